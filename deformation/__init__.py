@@ -1,0 +1,4 @@
+"""Kinematics, skinning, splines, pose-space interpolation and resampling.
+
+The lowest package: it imports from no other package of the workbench.
+"""

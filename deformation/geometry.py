@@ -1,0 +1,254 @@
+"""Grid geometry: where the voxels of a volume sit in world millimetres.
+
+Axis-order convention (the one place it is defined)
+----------------------------------------------------
+* Points, spacings, origins, sizes and voxel *indices* are in ITK order
+  ``(x, y, z)`` (``i`` along x, ``j`` along y, ``k`` along z).
+* NumPy arrays of voxels, as SimpleITK's ``GetArrayFromImage`` returns them,
+  are indexed ``[z, y, x]``; a vector image adds a trailing component axis
+  ``[z, y, x, c]`` whose components are ``(x, y, z)``.
+
+``GridGeometry.array_shape`` is the NumPy shape ``(nz, ny, nx)``;
+``GridGeometry.size`` is the ITK size ``(nx, ny, nz)``.  The mapping from a
+continuous index ``ijk`` to a world point ``p`` is ITK's::
+
+    p = origin + direction @ (spacing * ijk)
+
+with ``direction`` a 3x3 matrix whose *columns* are the world directions of
+the i, j and k axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["GridGeometry", "Volume", "GeometryMismatchError"]
+
+
+class GeometryMismatchError(ValueError):
+    """Two volumes that must share a grid do not."""
+
+
+def _as_vec3(value, name: str, *, positive: bool = False) -> tuple[float, float, float]:
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape != (3,):
+        raise ValueError(f"{name} must have 3 components (x, y, z), got {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    if positive and np.any(arr <= 0):
+        raise ValueError(f"{name} must be positive, got {value!r}")
+    return tuple(float(v) for v in arr)
+
+
+@dataclass(frozen=True)
+class GridGeometry:
+    """Shape and placement of a 3-D voxel grid in world millimetres.
+
+    Parameters
+    ----------
+    size : (nx, ny, nz)
+        Number of voxels along x, y, z (ITK order).
+    spacing : (sx, sy, sz)
+        Voxel spacing in mm.
+    origin : (ox, oy, oz), optional
+        World position (mm) of the centre of voxel index (0, 0, 0).
+    direction : 3x3 array-like, optional
+        Orthonormal matrix whose columns are the world directions of the
+        i, j, k index axes. Identity by default.
+    """
+
+    size: tuple[int, int, int]
+    spacing: tuple[float, float, float]
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    direction: tuple[float, ...] = field(default=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+
+    def __post_init__(self):
+        size = tuple(int(s) for s in np.asarray(self.size).reshape(-1))
+        if len(size) != 3 or min(size) < 1:
+            raise ValueError(f"size must be 3 positive integers (nx, ny, nz), got {self.size!r}")
+        object.__setattr__(self, "size", size)
+        object.__setattr__(self, "spacing", _as_vec3(self.spacing, "spacing", positive=True))
+        object.__setattr__(self, "origin", _as_vec3(self.origin, "origin"))
+        d = np.asarray(self.direction, dtype=float).reshape(-1)
+        if d.shape != (9,):
+            raise ValueError(f"direction must be a 3x3 matrix, got {self.direction!r}")
+        m = d.reshape(3, 3)
+        if not np.allclose(m.T @ m, np.eye(3), atol=1e-6):
+            raise ValueError(f"direction must be orthonormal, got\n{m}")
+        object.__setattr__(self, "direction", tuple(float(v) for v in d))
+
+    # -- derived quantities -------------------------------------------------
+    @property
+    def direction_matrix(self) -> np.ndarray:
+        """3x3 direction matrix (columns: world directions of i, j, k)."""
+        return np.asarray(self.direction, dtype=float).reshape(3, 3)
+
+    @property
+    def array_shape(self) -> tuple[int, int, int]:
+        """NumPy shape ``(nz, ny, nx)`` of a scalar volume on this grid."""
+        return self.size[::-1]
+
+    @property
+    def n_voxels(self) -> int:
+        return int(np.prod(self.size))
+
+    @property
+    def index_to_world_matrix(self) -> np.ndarray:
+        """4x4 affine mapping a continuous index (i, j, k, 1) to world (x, y, z, 1) mm."""
+        a = np.eye(4)
+        a[:3, :3] = self.direction_matrix * np.asarray(self.spacing)[None, :]
+        a[:3, 3] = self.origin
+        return a
+
+    @property
+    def world_to_index_matrix(self) -> np.ndarray:
+        return np.linalg.inv(self.index_to_world_matrix)
+
+    @property
+    def extent_mm(self) -> tuple[float, float, float]:
+        """Physical extent ``size * spacing`` along the index axes, in mm."""
+        return tuple(float(n * s) for n, s in zip(self.size, self.spacing))
+
+    # -- conversions --------------------------------------------------------
+    def index_to_world(self, ijk) -> np.ndarray:
+        """Continuous indices ``(..., 3)`` in (i, j, k) order → world points ``(..., 3)`` mm."""
+        ijk = np.asarray(ijk, dtype=float)
+        a = self.index_to_world_matrix
+        return ijk @ a[:3, :3].T + a[:3, 3]
+
+    def world_to_index(self, points) -> np.ndarray:
+        """World points ``(..., 3)`` mm → continuous indices ``(..., 3)`` in (i, j, k) order."""
+        p = np.asarray(points, dtype=float)
+        a = self.world_to_index_matrix
+        return p @ a[:3, :3].T + a[:3, 3]
+
+    def world_coordinates(self, *, dtype=np.float64, z_slice: slice | None = None) -> np.ndarray:
+        """World position of every voxel centre, shape ``(nz, ny, nx, 3)`` (components x, y, z).
+
+        ``z_slice`` restricts the result to a range of k (slice) indices, so
+        that large grids can be processed slab by slab.
+        """
+        nx, ny, nz = self.size
+        ks = np.arange(nz)[z_slice] if z_slice is not None else np.arange(nz)
+        k, j, i = np.meshgrid(ks, np.arange(ny), np.arange(nx), indexing="ij")
+        a = self.index_to_world_matrix.astype(dtype)
+        out = np.empty(k.shape + (3,), dtype=dtype)
+        for c in range(3):
+            out[..., c] = a[c, 0] * i + a[c, 1] * j + a[c, 2] * k + a[c, 3]
+        return out
+
+    def contains_world(self, points, *, margin_voxels: float = 0.0) -> np.ndarray:
+        """True where a world point falls inside the grid's voxel-centre box (± margin)."""
+        ijk = self.world_to_index(points)
+        lo = -margin_voxels
+        hi = np.asarray(self.size) - 1 + margin_voxels
+        return np.all((ijk >= lo - 1e-9) & (ijk <= hi + 1e-9), axis=-1)
+
+    # -- comparison ---------------------------------------------------------
+    def is_close(self, other: "GridGeometry", *, rtol: float = 1e-6, atol_mm: float = 1e-4) -> bool:
+        return (
+            self.size == other.size
+            and np.allclose(self.spacing, other.spacing, rtol=rtol, atol=0)
+            and np.allclose(self.origin, other.origin, rtol=0, atol=atol_mm)
+            and np.allclose(self.direction, other.direction, rtol=0, atol=1e-6)
+        )
+
+    def check_same(self, other: "GridGeometry", *, names=("first", "second"), remedy: str | None = None) -> None:
+        """Raise :class:`GeometryMismatchError` unless ``other`` is the same grid.
+
+        The message prints both geometries and the remedy; the mismatch is never
+        silently papered over (no ``CopyInformation``).
+        """
+        if self.is_close(other):
+            return
+        remedy = remedy or (
+            "resample one volume onto the other's grid explicitly "
+            "(e.g. SimpleITK.Resample with the reference image), or check that "
+            "the two files belong together"
+        )
+        raise GeometryMismatchError(
+            f"grid geometries differ:\n  {names[0]}: {self.describe()}\n  {names[1]}: {other.describe()}\n"
+            f"Remedy: {remedy}."
+        )
+
+    def describe(self) -> str:
+        d = np.round(self.direction_matrix, 6).tolist()
+        return (
+            f"size={self.size} spacing={tuple(round(s, 6) for s in self.spacing)} mm "
+            f"origin={tuple(round(o, 4) for o in self.origin)} mm direction={d}"
+        )
+
+    # -- (de)serialisation ---------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "size": list(self.size),
+            "spacing": list(self.spacing),
+            "origin": list(self.origin),
+            "direction": list(self.direction),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GridGeometry":
+        return cls(size=d["size"], spacing=d["spacing"], origin=d.get("origin", (0, 0, 0)),
+                   direction=d.get("direction", np.eye(3).reshape(-1)))
+
+    @classmethod
+    def from_sitk(cls, image) -> "GridGeometry":
+        if image.GetDimension() != 3:
+            raise ValueError(f"expected a 3-D image, got {image.GetDimension()}-D")
+        return cls(size=image.GetSize(), spacing=image.GetSpacing(), origin=image.GetOrigin(),
+                   direction=image.GetDirection())
+
+    def apply_to_sitk(self, image) -> None:
+        """Set origin, spacing and direction of a SimpleITK image (size must match)."""
+        if tuple(image.GetSize()) != self.size:
+            raise GeometryMismatchError(f"image size {image.GetSize()} differs from grid size {self.size}")
+        image.SetOrigin(self.origin)
+        image.SetSpacing(self.spacing)
+        image.SetDirection(self.direction)
+
+
+@dataclass
+class Volume:
+    """A voxel array together with its grid geometry.
+
+    ``data`` is indexed ``[z, y, x]`` (scalar) or ``[z, y, x, c]`` (vector
+    image, e.g. a displacement field with components (x, y, z) in mm).
+    """
+
+    data: np.ndarray
+    geometry: GridGeometry
+
+    def __post_init__(self):
+        self.data = np.asarray(self.data)
+        if self.data.shape[:3] != self.geometry.array_shape:
+            raise GeometryMismatchError(
+                f"array shape {self.data.shape} does not match grid {self.geometry.describe()} "
+                f"(expected leading shape (nz, ny, nx) = {self.geometry.array_shape})"
+            )
+        if self.data.ndim not in (3, 4):
+            raise ValueError(f"Volume data must be 3-D or 4-D (vector), got shape {self.data.shape}")
+
+    @property
+    def is_vector(self) -> bool:
+        return self.data.ndim == 4
+
+    @property
+    def n_components(self) -> int:
+        return 1 if self.data.ndim == 3 else int(self.data.shape[3])
+
+    def to_sitk(self):
+        """A SimpleITK image with the same voxels and geometry (vector images stay vector)."""
+        import SimpleITK as sitk
+
+        img = sitk.GetImageFromArray(self.data, isVector=self.is_vector)
+        self.geometry.apply_to_sitk(img)
+        return img
+
+    @classmethod
+    def from_sitk(cls, image) -> "Volume":
+        import SimpleITK as sitk
+
+        return cls(sitk.GetArrayFromImage(image), GridGeometry.from_sitk(image))

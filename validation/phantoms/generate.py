@@ -1,0 +1,313 @@
+"""Build phantom studies: template, label map, posed scans and their exact ground truth.
+
+Everything here returns arrays with their geometry; writing the study folder
+is :mod:`workbench.study`'s job.  Scans are produced one at a time
+(:meth:`Phantom.scans` is a generator) so that paper-size studies stay well
+under a few GiB of memory.
+
+Randomness: one ``seed`` feeds a :class:`numpy.random.SeedSequence`, spawned
+into independent streams for the texture, pose jitter, markers, and each
+image's noise and bias field, so the same seed gives identical files and
+another seed gives different noise (and jitter).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from deformation.geometry import GridGeometry, Volume
+from deformation.skeleton import Pose, Skeleton
+from deformation.transforms import apply
+
+from . import hand, knee
+from .anatomy import CONTRASTS, Anatomy, Texture
+from .posing import POSING_MODES, PosingModel
+
+__all__ = ["PhantomSpec", "PhantomScan", "Phantom", "REGIONS", "make_phantom", "SIZES", "MODALITIES"]
+
+REGIONS = {"knee": knee, "hand": hand}
+SIZES = ("test", "paper")
+MODALITIES = tuple(CONTRASTS)
+CHUNK = 1 << 17  # points per vectorised chunk: bounds temporary memory (~100 MB)
+N_MARKERS = 12
+
+
+@dataclass(frozen=True)
+class PhantomSpec:
+    """Everything that determines a phantom study (recorded in its manifest)."""
+
+    region: str = "knee"
+    size: str = "test"
+    modality: str = "mri"
+    n_poses: int | None = None
+    posing: str = "soft"
+    seed: int = 0
+    noise: bool = True
+    poses: tuple | None = None  # explicit joint angles: tuple of (id, {joint: angles})
+    direction: tuple | None = None  # grid direction (default identity)
+
+    def __post_init__(self):
+        if self.region not in REGIONS:
+            raise ValueError(f"region must be one of {sorted(REGIONS)}, got {self.region!r}")
+        if self.size not in SIZES:
+            raise ValueError(f"size must be one of {SIZES}, got {self.size!r}")
+        if self.modality not in MODALITIES:
+            raise ValueError(f"modality must be one of {MODALITIES}, got {self.modality!r}")
+        if self.posing not in POSING_MODES:
+            raise ValueError(f"posing must be one of {POSING_MODES}, got {self.posing!r}")
+        if self.n_poses is not None and self.n_poses < 1:
+            raise ValueError(f"n_poses must be at least 1, got {self.n_poses}")
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in ("region", "size", "modality", "n_poses", "posing", "seed", "noise")}
+        if self.direction is not None:
+            d["direction"] = list(self.direction)
+        return d
+
+
+@dataclass
+class PhantomScan:
+    """One posed scan with its ground truth.
+
+    ``correspondence`` is the ``scan_to_template`` displacement field on the
+    scan grid: for every scan voxel at world ``x``, ``x + u(x)`` is the template
+    world position it came from (mm).  ``markers`` is a list of
+    ``{"name", "template": [x,y,z], "scan": [x,y,z]}``.
+    """
+
+    id: str
+    image: Volume
+    pose: Pose
+    correspondence: Volume
+    markers: list
+    clean_image: Volume | None = None
+    stats: dict = field(default_factory=dict)
+
+
+def _chunks(n: int, size: int = CHUNK):
+    for s in range(0, n, size):
+        yield slice(s, min(s + size, n))
+
+
+def _apply_chunked(fn, points: np.ndarray, out_shape_tail=(), dtype=np.float64):
+    n = points.shape[0]
+    out = np.empty((n,) + tuple(out_shape_tail), dtype=dtype)
+    for sl in _chunks(n):
+        out[sl] = fn(points[sl])
+    return out
+
+
+class Phantom:
+    """A synthetic study: analytic anatomy, a template grid and a list of poses."""
+
+    def __init__(self, spec: PhantomSpec):
+        self.spec = spec
+        self.region = REGIONS[spec.region]
+        self.anatomy: Anatomy = self.region.anatomy()
+        self.skeleton: Skeleton = self.anatomy.skeleton
+        self.contrast = CONTRASTS[spec.modality]
+        size, spacing = self.region.GRIDS[spec.size]
+        direction = np.eye(3) if spec.direction is None else np.asarray(spec.direction, float).reshape(3, 3)
+        centre = np.asarray(self.region.GRID_CENTER, float)
+        half = direction @ ((np.asarray(size) - 1) * np.asarray(spacing) / 2.0)
+        self.geometry = GridGeometry(size, spacing, tuple(centre - half), tuple(direction.reshape(-1)))
+        # Partial-volume edge: ~0.6 voxel, so images are band-limited on this grid.
+        self.edge_mm = 0.6 * max(spacing)
+        ss = np.random.SeedSequence(spec.seed)
+        self._tex_seq, self._pose_seq, self._marker_seq, self._noise_seq = ss.spawn(4)
+        self.texture = Texture.random(np.random.default_rng(self._tex_seq))
+        self.poses = self._make_poses()
+        # One independent noise/bias stream per image: [template, scan 0, scan 1, ...].
+        self._image_seqs = self._noise_seq.spawn(len(self.poses) + 1)
+
+    # -- poses --------------------------------------------------------------------------
+    def _make_poses(self) -> list[tuple[str, dict]]:
+        if self.spec.poses is not None:
+            known = set(self.skeleton.joint_names)
+            out = []
+            for pid, angles in self.spec.poses:
+                unknown = set(angles) - known
+                if unknown:
+                    raise ValueError(f"pose {pid!r}: unknown joints {sorted(unknown)}; "
+                                     f"the {self.spec.region} skeleton has {sorted(known)}")
+                out.append((str(pid), self.region.complete_angles(angles)))
+            return out
+        n = self.spec.n_poses or self.region.DEFAULT_POSES
+        rng = np.random.default_rng(self._pose_seq)
+        return [(f"pose{i:02d}", a) for i, a in enumerate(self.region.default_poses(n, rng))]
+
+    # -- images -------------------------------------------------------------------------
+    def _world_points(self) -> np.ndarray:
+        return self.geometry.world_coordinates().reshape(-1, 3)
+
+    def render(self, template_points: np.ndarray) -> np.ndarray:
+        """Noise-free intensity at template positions (chunked)."""
+        return _apply_chunked(
+            lambda p: self.anatomy.intensity_fast(p, self.contrast, edge_mm=self.edge_mm, texture=self.texture),
+            template_points)
+
+    def _bias_field(self, rng: np.random.Generator) -> np.ndarray:
+        """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1."""
+        amp = self.contrast.bias_amplitude
+        if amp == 0:
+            return np.ones(self.geometry.array_shape)
+        nz, ny, nx = self.geometry.array_shape
+        axes = [np.linspace(-1, 1, n) for n in (nz, ny, nx)]
+        field_ = np.zeros((nz, ny, nx))
+        for _ in range(4):
+            f = rng.uniform(0.2, 0.7, size=3)
+            ph = rng.uniform(0, 2 * np.pi, size=3)
+            w = rng.normal(size=3)
+            field_ += (w[0] * np.cos(np.pi * f[0] * axes[0] + ph[0])[:, None, None]
+                       * np.cos(np.pi * f[1] * axes[1] + ph[1])[None, :, None]
+                       * np.cos(np.pi * f[2] * axes[2] + ph[2])[None, None, :])
+        field_ /= max(np.abs(field_).max(), 1e-12)
+        return 1.0 + amp * field_
+
+    def _acquire(self, clean: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Bias field and noise of a scanner acquisition (Rician for MRI, Gaussian for CT)."""
+        if not self.spec.noise:
+            return clean.astype(np.float32)
+        c = self.contrast
+        img = clean - c.air
+        img = img * self._bias_field(rng)
+        if c.noise == "rician":
+            img = np.hypot(img + rng.normal(0, c.noise_sigma, img.shape), rng.normal(0, c.noise_sigma, img.shape))
+        else:
+            img = img + rng.normal(0, c.noise_sigma, img.shape)
+        return (img + c.air).astype(np.float32)
+
+    def template(self) -> tuple[Volume, Volume, Volume]:
+        """``(template image, bone label map, noise-free template)`` on the template grid."""
+        p = self._world_points()
+        clean = self.render(p).reshape(self.geometry.array_shape)
+        labels = _apply_chunked(self._labels, p, dtype=np.uint8).reshape(self.geometry.array_shape)
+        rng = np.random.default_rng(self._image_seqs[0])
+        img = self._acquire(clean, rng)
+        return (Volume(img, self.geometry), Volume(labels, self.geometry),
+                Volume(clean.astype(np.float32), self.geometry))
+
+    def _labels(self, p: np.ndarray) -> np.ndarray:
+        d = self.anatomy.distances_fast(p)[:, :-1]
+        idx = np.argmin(d, axis=1)
+        lab = np.array([self.skeleton.label_of(n) for n in self.anatomy.bone_names], dtype=np.uint8)[idx]
+        return np.where(d[np.arange(len(idx)), idx] < 0, lab, 0)
+
+    # -- posed scans ----------------------------------------------------------------------
+    def pose_of(self, angles: dict) -> Pose:
+        return self.skeleton.pose(angles)
+
+    def posing_model(self, angles: dict, *, mode: str | None = None) -> PosingModel:
+        pose = self.pose_of(angles)
+        return PosingModel(self.anatomy, pose.transforms, angles, mode=mode or self.spec.posing)
+
+    def correspondence(self, model: PosingModel) -> tuple[np.ndarray, np.ndarray]:
+        """Template position of every scan voxel ``(nz, ny, nx, 3)`` and the inversion residual (mm).
+
+        Voxels where Newton from the inverse blend does not converge (near
+        folds of the blend) restart from the nearest forward-mapped template
+        voxel with finite-difference Newton steps.
+        """
+        from scipy.spatial import cKDTree
+
+        x = self._world_points()
+        phi, res = model.inverse(x, max_iter=12)
+        bad = np.nonzero(res > 1e-4)[0]
+        if bad.size:
+            tree = cKDTree(model.forward(x))
+            _, nn = tree.query(x[bad])
+            p2, r2 = model.inverse(x[bad], guess=x[nn], fd_jacobian=True, max_iter=30)
+            better = r2 < res[bad]
+            phi[bad[better]], res[bad[better]] = p2[better], r2[better]
+        shape = self.geometry.array_shape
+        return phi.reshape(shape + (3,)), res.reshape(shape)
+
+    def markers(self, model: PosingModel, *, n: int = N_MARKERS) -> list[dict]:
+        """Skin markers near the joints: template points on the skin, scan points ``F(p)``.
+
+        Markers are drawn (seeded) around the soft-tissue joints, projected onto
+        the skin surface (body distance = 0), and kept only when their scan
+        position lies inside the scan grid.
+        """
+        rng = np.random.default_rng(self._marker_seq)
+        pts = self._template_marker_points(rng, n)
+        scan_pts = model.forward(pts)
+        return [{"name": f"m{i + 1:02d}", "template": pts[i].tolist(), "scan": scan_pts[i].tolist()}
+                for i in range(len(pts))]
+
+    def _template_marker_points(self, rng, n):
+        sk = self.skeleton
+        joints = list(self.anatomy.joint_radius_mm)
+        pts = []
+        tries = 0
+        while len(pts) < n and tries < 50 * n:
+            j = sk.joint(joints[tries % len(joints)])
+            tries += 1
+            a = rng.uniform(0, 2 * np.pi)
+            along = rng.normal(0, 0.5) * self.anatomy.joint_radius_mm[j.name]
+            dirn = np.cos(a) * j.axes[:, 0] + np.sin(a) * j.axes[:, 1]
+            p = np.asarray(j.center) + along * j.axes[:, 2] + dirn * self.anatomy.joint_radius_mm[j.name]
+            p = self._project_to_skin(p)
+            if p is None or not self.geometry.contains_world(p, margin_voxels=-2):
+                continue
+            if np.min(self.anatomy.bone_distances(p[None]))< 2.0:
+                continue
+            pts.append(p)
+        if len(pts) < min(n, 8):
+            raise RuntimeError(f"could only place {len(pts)} skin markers inside the grid")
+        return np.array(pts)
+
+    def _project_to_skin(self, p):
+        body = self.anatomy.body_distance
+        h = 1e-4
+        for _ in range(50):
+            d = body(p[None])[0]
+            g = np.array([(body((p + h * e)[None])[0] - body((p - h * e)[None])[0]) / (2 * h) for e in np.eye(3)])
+            gn = g @ g
+            if gn < 1e-12:
+                return None
+            p = p - d * g / gn
+            if abs(d) < 1e-9:
+                return p
+        return p if abs(body(p[None])[0]) < 1e-6 else None
+
+    def scans(self, *, keep_clean: bool = False) -> Iterator[PhantomScan]:
+        """Posed scans with ground truth, one at a time."""
+        for i, (pid, angles) in enumerate(self.poses):
+            yield self.make_scan(i, pid, angles, keep_clean=keep_clean)
+
+    def make_scan(self, index: int, pid: str, angles: dict, *, keep_clean: bool = False,
+                  mode: str | None = None) -> PhantomScan:
+        model = self.posing_model(angles, mode=mode)
+        pose = self.pose_of(angles)
+        phi, residual = self.correspondence(model)
+        clean = self.render(phi.reshape(-1, 3)).reshape(self.geometry.array_shape)
+        rng = np.random.default_rng(self._image_seqs[index + 1])
+        img = self._acquire(clean, rng)
+        x = self.geometry.world_coordinates()
+        disp = (phi - x)
+        body = self.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(residual.shape) < 0
+        stats = {
+            "inverse_residual_max_mm": float(residual.max()),
+            "inverse_residual_body_max_mm": float(residual[body].max()) if body.any() else 0.0,
+            "unconverged_body_voxels": int(np.count_nonzero(residual[body] > 1e-3)),
+            "body_voxels": int(body.sum()),
+            "max_displacement_mm": float(np.linalg.norm(disp, axis=-1)[body].max()) if body.any() else 0.0,
+        }
+        return PhantomScan(
+            id=pid,
+            image=Volume(img, self.geometry),
+            pose=pose,
+            correspondence=Volume(disp, self.geometry),
+            markers=self.markers(model),
+            clean_image=Volume(clean.astype(np.float32), self.geometry) if keep_clean else None,
+            stats=stats,
+        )
+
+
+def make_phantom(region: str = "knee", **kwargs) -> Phantom:
+    """Convenience constructor: ``make_phantom("hand", size="test", seed=1)``."""
+    return Phantom(PhantomSpec(region=region, **kwargs))

@@ -1,0 +1,161 @@
+"""Hand phantom: radius, a carpal block (capitate), 5 metacarpals, 14 phalanges.
+
+Template world frame (mm, a right hand lying flat): ``+y`` distal (towards
+the fingertips), ``+x`` ulnar (towards the little finger; the thumb is at
+``-x``), ``+z`` dorsal; the palm faces ``-z`` and fingers flex towards
+``-z``.  Paper grid (Rhee Table 1): 255×255×90 voxels at 0.78×0.78×1.0 mm.
+
+Link model (Kurihara §3, Fig. 3): the radius is the root; the wrist
+(radius → capitate) and the thumb CMC are 6-DOF joints, all others 3 DOF:
+four finger CMC joints, five MCP, four PIP, four DIP and the thumb IP —
+20 joints for 21 bones.  Kurihara reports "19 joints, two with 6 DOFs"; a
+tree of the 21 bones this phantom carries needs 20 links, so we keep the
+paper's two 6-DOF joints and one more 3-DOF joint than the paper counts.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from deformation.skeleton import Bone, Joint, Skeleton
+
+from .anatomy import Anatomy
+from .shapes import Ellipsoid, RoundCone, SmoothUnion
+
+NAME = "hand"
+GRIDS = {
+    "paper": ((255, 255, 90), (0.78, 0.78, 1.0)),
+    "test": ((64, 64, 30), (3.1078125, 3.1078125, 3.0)),
+}
+GRID_CENTER = (-8.0, -1.0, -8.0)
+DEFAULT_POSES = 10
+
+GAP = 1.6  # joint space between articular caps, mm
+# finger: (MC base x, spread angle ψ in degrees towards +x, lengths MC/P1/P2/P3 between cap centres)
+FINGERS = {
+    "index": (-21.0, -7.0, (56.0, 34.0, 19.0, 11.0)),
+    "middle": (-6.0, 0.0, (58.0, 38.0, 23.0, 12.0)),
+    "ring": (8.0, 6.0, (54.0, 35.0, 21.0, 11.0)),
+    "little": (21.0, 13.0, (48.0, 28.0, 15.0, 9.0)),
+}
+# bone radii (base, head) for MC, P1, P2, P3
+RADII = ((4.0, 5.0), (4.4, 3.9), (3.6, 3.2), (3.0, 2.6))
+THUMB_BASE = np.array([-20.0, -44.0, -4.0])
+THUMB_DIR = np.array([-0.62, 0.72, -0.30]) / np.linalg.norm([-0.62, 0.72, -0.30])
+THUMB_LENGTHS = (36.0, 26.0, 17.0)
+THUMB_RADII = ((4.5, 5.0), (4.5, 4.0), (3.6, 3.0))
+MC_BASE_Y = -46.0
+SOFT = {"bone": 4.6, "palm": 9.0}
+
+
+def _frame(direction) -> np.ndarray:
+    """Joint frame for a digit along ``direction``: z along the digit, y as dorsal as possible."""
+    z = np.asarray(direction, float) / np.linalg.norm(direction)
+    y = np.array([0.0, 0.0, 1.0]) - z[2] * z
+    y /= np.linalg.norm(y)
+    return np.column_stack([np.cross(y, z), y, z])
+
+
+def _chain(base, direction, lengths, radii):
+    """Cap centres of a digit's bones: list of (start, end, r_start, r_end) and joint centres."""
+    d = np.asarray(direction, float)
+    segs = []
+    start = np.asarray(base, float)
+    for i, (length, (ra, rb)) in enumerate(zip(lengths, radii)):
+        end = start + length * d
+        segs.append((start, end, ra, rb))
+        if i + 1 < len(lengths):
+            start = end + (rb + GAP + radii[i + 1][0]) * d
+    return segs
+
+
+def _layout():
+    """Bones (name → segment), joints (name, parent, child, dof, centre, axes), soft radii."""
+    segs, joints, radius = {}, [], {}
+    wrist_axes = _frame((0.0, 1.0, 0.0))
+    segs["radius"] = ((-6.0, -104.0, 0.0), (-6.0, -80.0, 0.0), 9.0, 10.0)
+    joints.append(("wrist", "radius", "capitate", 6, (-2.0, -68.0, 0.0), wrist_axes))
+    radius["wrist"] = 22.0
+    for finger, (bx, psi, lengths) in FINGERS.items():
+        d = np.array([np.sin(np.deg2rad(psi)), np.cos(np.deg2rad(psi)), 0.0])
+        chain = _chain((bx, MC_BASE_Y, 0.0), d, lengths, RADII)
+        names = [f"{finger}_metacarpal", f"{finger}_proximal", f"{finger}_middle", f"{finger}_distal"]
+        axes = _frame(d)
+        parent = "capitate"
+        for i, (name, seg) in enumerate(zip(names, chain)):
+            segs[name] = seg
+            if i == 0:
+                jn, centre = f"{finger}_cmc", seg[0] - 2.0 * d
+            else:
+                jn, centre = f"{finger}_{('mcp', 'pip', 'dip')[i - 1]}", chain[i - 1][1]
+                radius[jn] = (11.0, 9.0, 8.0)[i - 1]
+            joints.append((jn, parent, name, 3, tuple(centre), axes))
+            parent = name
+    chain = _chain(THUMB_BASE, THUMB_DIR, THUMB_LENGTHS, THUMB_RADII)
+    names = ["thumb_metacarpal", "thumb_proximal", "thumb_distal"]
+    axes = _frame(THUMB_DIR)
+    parent = "capitate"
+    for i, (name, seg) in enumerate(zip(names, chain)):
+        segs[name] = seg
+        if i == 0:
+            jn, dof, centre = "thumb_cmc", 6, seg[0] - 2.0 * THUMB_DIR
+            radius[jn] = 14.0
+        else:
+            jn, dof, centre = ("thumb_mcp", "thumb_ip")[i - 1], 3, chain[i - 1][1]
+            radius[jn] = (10.0, 8.0)[i - 1]
+        joints.append((jn, parent, name, dof, tuple(centre), axes))
+        parent = name
+    return segs, joints, radius
+
+
+def skeleton() -> Skeleton:
+    segs, joints, _ = _layout()
+    bone_order = ["radius", "capitate"] + [n for n in segs if n != "radius"]
+    parent_of = {j[2]: j[1] for j in joints}
+    bones = [Bone(n, i + 1, parent_of.get(n)) for i, n in enumerate(bone_order)]
+    return Skeleton(bones, [Joint(*j) for j in joints], name=NAME)
+
+
+def anatomy() -> Anatomy:
+    segs, _, radius = _layout()
+    shapes = {n: RoundCone(tuple(a), tuple(b), ra, rb) for n, (a, b, ra, rb) in segs.items()}
+    shapes["capitate"] = Ellipsoid((0.0, -59.5, 0.0), (22.0, 6.5, 8.0))
+    palm_parts = [RoundCone((-4.0, -120.0, 0.0), (-2.0, -62.0, 0.0), 23.0, 25.0),
+                  Ellipsoid((0.0, -58.0, -1.0), (32.0, 16.0, 16.0))]
+    digits = []
+    for name, (a, b, ra, rb) in segs.items():
+        if name == "radius":
+            continue
+        if name.endswith("metacarpal"):
+            palm_parts.append(RoundCone(tuple(a), tuple(b), ra + SOFT["palm"], rb + SOFT["palm"] - 1.0))
+        else:
+            digits.append(RoundCone(tuple(a), tuple(b), ra + SOFT["bone"], rb + SOFT["bone"]))
+    body = SmoothUnion((SmoothUnion(tuple(palm_parts), k=12.0), *digits), k=5.0)
+    return Anatomy(skeleton(), shapes, body, joint_radius_mm=radius, cortex_mm=1.2, skin_mm=1.5, fat_mm=3.0)
+
+
+def complete_angles(angles: dict) -> dict:
+    return {k: np.asarray(v, float) for k, v in angles.items()}
+
+
+def default_poses(n: int, rng: np.random.Generator) -> list[dict]:
+    """``n`` poses from a wide spread (t = 0) to a fist-like curl (t = 1), with seeded jitter."""
+    poses = []
+    for t in np.linspace(0.0, 1.0, n):
+        def jit(k, s=2.0):
+            return rng.normal(0.0, s, size=k)
+
+        a = {"wrist": np.concatenate([[-8.0 + 20.0 * t], jit(2, 2.0), [0.0, -0.5 * t, 0.3 * t]])}
+        for i, (finger, (_, psi, _)) in enumerate(FINGERS.items()):
+            cup = (0.0, 2.0, 4.0, 8.0)[i]
+            a[f"{finger}_cmc"] = np.array([cup * t, 0.0, 0.0]) + jit(3, 1.0)
+            abd = (1.0 - t) * (-4.0 * np.sign(psi)) + t * 0.8 * psi
+            a[f"{finger}_mcp"] = np.array([70.0 * t, abd, 0.0]) + jit(3)
+            a[f"{finger}_pip"] = np.array([85.0 * t, 0.0, 0.0]) + jit(3, 1.5)
+            a[f"{finger}_dip"] = np.array([50.0 * t, 0.0, 0.0]) + jit(3, 1.5)
+        a["thumb_cmc"] = np.concatenate([np.array([30.0 * t, -15.0 * t, 20.0 * t]) + jit(3),
+                                         [0.8 * t, -0.5 * t, 0.4 * t]])
+        a["thumb_mcp"] = np.array([25.0 * t, 0.0, 0.0]) + jit(3, 1.5)
+        a["thumb_ip"] = np.array([35.0 * t, 0.0, 0.0]) + jit(3, 1.5)
+        poses.append(a)
+    return poses
