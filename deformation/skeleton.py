@@ -66,6 +66,14 @@ class SkeletonError(ValueError):
     """An inconsistent skeleton, joint or pose description."""
 
 
+def _check_version(d: dict, what: str) -> None:
+    # Exactly the integer 1: int() would let 1.5, "1", true and null through (or crash on null).
+    version = d.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version != 1:
+        raise SkeletonError(f"unsupported {what} version {version!r}: this workbench reads version 1 "
+                            f"(the integer 1 in the 'version' key)")
+
+
 @dataclass(frozen=True)
 class Bone:
     name: str
@@ -345,8 +353,7 @@ class Skeleton:
         if d.get("format") != SKELETON_FORMAT:
             raise SkeletonError(f"not a skeleton description: 'format' is {d.get('format')!r}, "
                                 f"expected {SKELETON_FORMAT!r}")
-        if int(d.get("version", 0)) != 1:
-            raise SkeletonError(f"unsupported skeleton version {d.get('version')!r} (this workbench reads 1)")
+        _check_version(d, "skeleton")
         try:
             bones = [Bone(b["name"], int(b["label"]), b.get("parent")) for b in d["bones"]]
         except KeyError as e:
@@ -412,10 +419,14 @@ class Pose:
     def from_dict(cls, d: dict) -> "Pose":
         if d.get("format") != POSE_FORMAT:
             raise SkeletonError(f"not a pose: 'format' is {d.get('format')!r}, expected {POSE_FORMAT!r}")
+        _check_version(d, "pose")
+        if "bones" not in d:
+            raise SkeletonError("a pose lacks the key 'bones' (one 4x4 transform per bone)")
         joints = d.get("joints")
         angles = centers = None
         if joints is not None:
-            angles = {k: v["angles_deg"] for k, v in joints.items() if "angles_deg" in v}
-            centers = {k: v["center_scan"] for k, v in joints.items() if "center_scan" in v}
+            # An attribute that no joint entry carries was not recorded (None), as before writing.
+            angles = {k: v["angles_deg"] for k, v in joints.items() if "angles_deg" in v} or None
+            centers = {k: v["center_scan"] for k, v in joints.items() if "center_scan" in v} or None
         return cls({k: np.asarray(v, dtype=float) for k, v in d["bones"].items()},
                    joint_angles=angles, joint_centers=centers, skeleton=d.get("skeleton"))

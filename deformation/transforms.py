@@ -48,10 +48,13 @@ def check_rigid(t, *, name: str = "transform", atol: float = 1e-6) -> np.ndarray
 
 def is_rigid(t, *, atol: float = 1e-6) -> bool:
     t = np.asarray(t, dtype=float)
+    # Shape first (slicing a wrong shape would raise), and finiteness of all 16
+    # entries: the rotation tests below never look at the translation column.
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        return False
     r = t[:3, :3]
-    return (
-        t.shape == (4, 4)
-        and np.allclose(t[3], [0, 0, 0, 1], atol=atol)
+    return bool(
+        np.allclose(t[3], [0, 0, 0, 1], atol=atol)
         and np.allclose(r.T @ r, np.eye(3), atol=atol)
         and np.linalg.det(r) > 0
     )
@@ -116,8 +119,14 @@ def interpolate(t0, t1, alpha: float, *, center=None) -> np.ndarray:
     origin), so that a joint centre moves on a straight line while the bone
     turns about it.  ``alpha = 0`` gives ``t0``, ``alpha = 1`` gives ``t1``.
     """
-    t0 = np.asarray(t0, dtype=float)
-    t1 = np.asarray(t1, dtype=float)
+    t0 = check_rigid(t0, name="t0")
+    t1 = check_rigid(t1, name="t1")
+    # The keyframes themselves are returned bit for bit: a matrix → quaternion
+    # → matrix round trip through Slerp would move them by ~1e-14 mm.
+    if alpha == 0:
+        return t0.copy()
+    if alpha == 1:
+        return t1.copy()
     c = np.zeros(3) if center is None else np.asarray(center, dtype=float)
     rots = Rotation.from_matrix(np.stack([t0[:3, :3], t1[:3, :3]]))
     r = Slerp([0.0, 1.0], rots)([alpha]).as_matrix()[0]
