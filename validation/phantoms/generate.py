@@ -32,7 +32,7 @@ REGIONS = {"knee": knee, "hand": hand}
 SIZES = ("test", "paper")
 MODALITIES = tuple(CONTRASTS)
 CHUNK = 1 << 17  # points per vectorised chunk: bounds temporary memory (~100 MB)
-N_MARKERS = 12
+N_MARKERS = 12  # skin markers per study (Rhee Table 3 used eight)
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,7 @@ class PhantomSpec:
     noise: bool = True
     poses: tuple | None = None  # explicit joint angles: tuple of (id, {joint: angles})
     direction: tuple | None = None  # grid direction (default identity)
+    spacing: tuple | None = None  # override the size's voxel spacing (mm); the field of view is kept
 
     def __post_init__(self):
         if self.region not in REGIONS:
@@ -58,6 +59,10 @@ class PhantomSpec:
             raise ValueError(f"modality must be one of {MODALITIES}, got {self.modality!r}")
         if self.posing not in POSING_MODES:
             raise ValueError(f"posing must be one of {POSING_MODES}, got {self.posing!r}")
+        if self.spacing is not None:
+            sp = np.asarray(self.spacing, float).reshape(-1)
+            if sp.shape != (3,) or np.any(~np.isfinite(sp)) or np.any(sp <= 0):
+                raise ValueError(f"spacing must be 3 positive numbers (mm), got {self.spacing!r}")
         if self.n_poses is not None and self.n_poses < 1:
             raise ValueError(f"n_poses must be at least 1, got {self.n_poses}")
 
@@ -65,6 +70,8 @@ class PhantomSpec:
         d = {k: getattr(self, k) for k in ("region", "size", "modality", "n_poses", "posing", "seed", "noise")}
         if self.direction is not None:
             d["direction"] = list(self.direction)
+        if self.spacing is not None:
+            d["spacing"] = list(self.spacing)
         return d
 
 
@@ -110,15 +117,24 @@ class Phantom:
         self.skeleton: Skeleton = self.anatomy.skeleton
         self.contrast = CONTRASTS[spec.modality]
         size, spacing = self.region.GRIDS[spec.size]
+        if spec.spacing is not None:  # keep the field of view, change the sampling
+            extent = np.asarray(size) * np.asarray(spacing)
+            size = tuple(int(v) for v in np.maximum(1, np.round(extent / np.asarray(spec.spacing, float))))
+            spacing = tuple(float(v) for v in spec.spacing)
         direction = np.eye(3) if spec.direction is None else np.asarray(spec.direction, float).reshape(3, 3)
         centre = np.asarray(self.region.GRID_CENTER, float)
         half = direction @ ((np.asarray(size) - 1) * np.asarray(spacing) / 2.0)
         self.geometry = GridGeometry(size, spacing, tuple(centre - half), tuple(direction.reshape(-1)))
-        # Partial-volume edge: ~0.6 voxel, so images are band-limited on this grid.
-        self.edge_mm = 0.6 * max(spacing)
+        # Partial-volume edge of 0.8 voxel (a scanner's point spread), so that
+        # images are nearly band-limited on their grid and linear resampling
+        # through the true correspondence reproduces a posed scan.
+        self.edge_mm = 0.8 * max(spacing)
         ss = np.random.SeedSequence(spec.seed)
         self._tex_seq, self._pose_seq, self._marker_seq, self._noise_seq = ss.spawn(4)
-        self.texture = Texture.random(np.random.default_rng(self._tex_seq))
+        # Texture wavelengths of at least 6 voxels (12 mm on the paper grids).
+        wl = max(12.0, 6.0 * max(spacing))
+        self.texture = Texture.random(np.random.default_rng(self._tex_seq), min_wavelength_mm=wl,
+                                      max_wavelength_mm=max(45.0, 3.0 * wl))
         self.poses = self._make_poses()
         # One independent noise/bias stream per image: [template, scan 0, scan 1, ...].
         self._image_seqs = self._noise_seq.spawn(len(self.poses) + 1)
@@ -225,40 +241,55 @@ class Phantom:
         shape = self.geometry.array_shape
         return phi.reshape(shape + (3,)), res.reshape(shape)
 
-    def markers(self, model: PosingModel, *, n: int = N_MARKERS) -> list[dict]:
-        """Skin markers near the joints: template points on the skin, scan points ``F(p)``.
-
-        Markers are drawn (seeded) around the soft-tissue joints, projected onto
-        the skin surface (body distance = 0), and kept only when their scan
-        position lies inside the scan grid.
-        """
-        rng = np.random.default_rng(self._marker_seq)
-        pts = self._template_marker_points(rng, n)
+    def markers(self, model: PosingModel) -> list[dict]:
+        """Skin markers: template points on the skin near the joints, and their scan points ``F(p)``."""
+        pts = self.template_markers()
         scan_pts = model.forward(pts)
         return [{"name": f"m{i + 1:02d}", "template": pts[i].tolist(), "scan": scan_pts[i].tolist()}
                 for i in range(len(pts))]
 
-    def _template_marker_points(self, rng, n):
+    def template_markers(self, *, n: int = N_MARKERS) -> np.ndarray:
+        """The study's skin markers in the template, the same for every scan (seeded).
+
+        Candidates are drawn around the soft-tissue joints, projected onto the
+        skin (body distance 0) and kept only if, in *every* pose, their scan
+        position lies inside the grid and the inverse map at that position
+        returns them — i.e. they are not where posed tissue overlaps other
+        tissue, so the correspondence field and the markers agree.
+        """
+        if getattr(self, "_markers", None) is not None:
+            return self._markers
+        rng = np.random.default_rng(self._marker_seq)
+        models = [self.posing_model(a) for _, a in self.poses]
         sk = self.skeleton
         joints = list(self.anatomy.joint_radius_mm)
-        pts = []
-        tries = 0
-        while len(pts) < n and tries < 50 * n:
+        pts, tries = [], 0
+        while len(pts) < n and tries < 40 * n:
             j = sk.joint(joints[tries % len(joints)])
             tries += 1
+            radius = self.anatomy.joint_radius_mm[j.name]
             a = rng.uniform(0, 2 * np.pi)
-            along = rng.normal(0, 0.5) * self.anatomy.joint_radius_mm[j.name]
+            along = rng.normal(0, 0.5) * radius
             dirn = np.cos(a) * j.axes[:, 0] + np.sin(a) * j.axes[:, 1]
-            p = np.asarray(j.center) + along * j.axes[:, 2] + dirn * self.anatomy.joint_radius_mm[j.name]
-            p = self._project_to_skin(p)
+            p = self._project_to_skin(np.asarray(j.center) + along * j.axes[:, 2] + dirn * radius)
             if p is None or not self.geometry.contains_world(p, margin_voxels=-2):
                 continue
-            if np.min(self.anatomy.bone_distances(p[None]))< 2.0:
+            if np.min(self.anatomy.bone_distances(p[None])) < 2.0:
                 continue
-            pts.append(p)
-        if len(pts) < min(n, 8):
-            raise RuntimeError(f"could only place {len(pts)} skin markers inside the grid")
-        return np.array(pts)
+            ok = True
+            for m in models:
+                q = m.forward(p[None])
+                back, res = m.inverse(q)
+                if (not self.geometry.contains_world(q[0], margin_voxels=-2) or res[0] > 1e-6
+                        or np.linalg.norm(back[0] - p) > 1e-4):
+                    ok = False
+                    break
+            if ok:
+                pts.append(p)
+        if len(pts) < 8:
+            raise RuntimeError(f"could only place {len(pts)} consistent skin markers (need 8)")
+        self._markers = np.array(pts)
+        return self._markers
 
     def _project_to_skin(self, p):
         body = self.anatomy.body_distance
@@ -273,6 +304,37 @@ class Phantom:
             if abs(d) < 1e-9:
                 return p
         return p if abs(body(p[None])[0]) < 1e-6 else None
+
+    def posing_difference(self, angles: dict) -> dict:
+        """How far ``soft`` posing puts tissue from where ``vbd`` posing puts it, for one pose.
+
+        Both correspondences are computed on the scan grid; the difference
+        ``|φ_soft(x) − φ_vbd(x)|`` (template mm) is summarised over soft tissue
+        near the joints (template position inside the body, ≥ 1 mm from every
+        bone, within 1.5 soft radii of a flexed joint) and over bone voxels.
+        Voxels where either inversion did not converge are left out.
+        """
+        phis, res = {}, {}
+        for mode in ("soft", "vbd"):
+            phi, r = self.correspondence(self.posing_model(angles, mode=mode))
+            phis[mode], res[mode] = phi.reshape(-1, 3), r.reshape(-1)
+        ok = (res["soft"] < 1e-4) & (res["vbd"] < 1e-4)
+        d = self.anatomy.distances_fast(phis["soft"])
+        near = np.zeros(len(d), bool)
+        for j, radius in self.anatomy.joint_radius_mm.items():
+            if np.asarray(angles.get(j, [0.0]))[0] != 0.0:
+                c = np.asarray(self.skeleton.joint(j).center)
+                near |= np.linalg.norm(phis["soft"] - c, axis=1) < 1.5 * radius
+        soft = ok & near & (d[:, -1] < 0) & (d[:, :-1].min(axis=1) > 1.0)
+        bone = ok & (d[:, :-1].min(axis=1) < -0.5)
+        diff = np.linalg.norm(phis["soft"] - phis["vbd"], axis=1)
+        return {
+            "soft_tissue_near_joints_mean_mm": float(diff[soft].mean()) if soft.any() else 0.0,
+            "soft_tissue_near_joints_p95_mm": float(np.percentile(diff[soft], 95)) if soft.any() else 0.0,
+            "soft_tissue_near_joints_max_mm": float(diff[soft].max()) if soft.any() else 0.0,
+            "soft_tissue_voxels": int(soft.sum()),
+            "bone_max_mm": float(diff[bone].max()) if bone.any() else 0.0,
+        }
 
     def scans(self, *, keep_clean: bool = False) -> Iterator[PhantomScan]:
         """Posed scans with ground truth, one at a time."""

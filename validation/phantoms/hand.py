@@ -40,7 +40,7 @@ FINGERS = {
 }
 # bone radii (base, head) for MC, P1, P2, P3
 RADII = ((4.0, 5.0), (4.4, 3.9), (3.6, 3.2), (3.0, 2.6))
-THUMB_BASE = np.array([-20.0, -44.0, -4.0])
+THUMB_BASE = np.array([-28.0, -53.0, -6.0])
 THUMB_DIR = np.array([-0.62, 0.72, -0.30]) / np.linalg.norm([-0.62, 0.72, -0.30])
 THUMB_LENGTHS = (36.0, 26.0, 17.0)
 THUMB_RADII = ((4.5, 5.0), (4.5, 4.0), (3.6, 3.0))
@@ -119,7 +119,7 @@ def skeleton() -> Skeleton:
 def anatomy() -> Anatomy:
     segs, _, radius = _layout()
     shapes = {n: RoundCone(tuple(a), tuple(b), ra, rb) for n, (a, b, ra, rb) in segs.items()}
-    shapes["capitate"] = Ellipsoid((0.0, -59.5, 0.0), (22.0, 6.5, 8.0))
+    shapes["capitate"] = Ellipsoid((0.0, -59.5, 0.0), (20.0, 6.5, 8.0))
     palm_parts = [RoundCone((-4.0, -120.0, 0.0), (-2.0, -62.0, 0.0), 23.0, 25.0),
                   Ellipsoid((0.0, -58.0, -1.0), (32.0, 16.0, 16.0))]
     digits = []

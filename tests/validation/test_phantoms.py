@@ -1,0 +1,190 @@
+"""Phantom ground truth is exact: resampling, rigid bones, markers, determinism (issue A).
+
+Tolerances
+----------
+* Resampling the noise-free template through the stored correspondence field
+  differs from the noise-free scan only by linear-interpolation error of the
+  template image.  On the knee's test grid (5 mm voxels) that leaves CC ≥ 0.99;
+  the hand's test grid (3.1 mm voxels for 3–5 mm finger bones with 1.2 mm
+  cortex) under-resolves its anatomy, which caps CC near 0.96–0.98 — the
+  0.99 criterion for the hand is checked on a finer grid in the slow test.
+* Bones: φ(x) = T_k⁻¹ x exactly where the inversion converged; the only error
+  is floating point, so a rigid fit must leave < 0.05 mm (it leaves ~1e-10).
+* Markers: the field is stored on the grid, so reading it at a marker costs an
+  interpolation error O(h⁴·u'''') for cubic splines; the median must be
+  < 0.01 mm and 90 % of markers < 0.1 mm at 5 mm voxels; the issue's linear
+  < 0.1 mm bound is checked at paper resolution in the slow test.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from scipy.ndimage import map_coordinates
+
+from deformation.rigid_fit import fit_rigid
+from deformation.transforms import apply, invert
+from validation.phantoms import make_phantom
+
+
+def _resample_cc(phantom, template, scan):
+    """CC inside the body between the scan and the template resampled through the truth field."""
+    field = sitk.Cast(scan.correspondence.to_sitk(), sitk.sitkVectorFloat64)
+    tx = sitk.DisplacementFieldTransform(field)
+    res = sitk.GetArrayFromImage(sitk.Resample(template.to_sitk(), scan.image.to_sitk(), tx, sitk.sitkLinear,
+                                               float(phantom.contrast.air)))
+    phi = scan.correspondence.data + phantom.geometry.world_coordinates()
+    body = phantom.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(res.shape) < 0
+    # Tissue imaged in the scan but outside the template's field of view cannot be resampled.
+    body &= phantom.geometry.contains_world(phi)
+    return float(np.corrcoef(res[body], scan.image.data[body])[0, 1])
+
+
+@pytest.fixture(scope="module")
+def knee():
+    ph = make_phantom("knee", size="test", seed=5, noise=False)
+    tpl, labels, _ = ph.template()
+    return ph, tpl, labels, list(ph.scans())
+
+
+@pytest.fixture(scope="module")
+def hand():
+    ph = make_phantom("hand", size="test", seed=5, noise=False, n_poses=3)
+    tpl, labels, _ = ph.template()
+    return ph, tpl, labels, list(ph.scans())
+
+
+def test_knee_resampling_reproduces_scan(knee):
+    ph, tpl, _, scans = knee
+    ccs = [_resample_cc(ph, tpl, s) for s in scans[1:]]
+    assert min(ccs) >= 0.99, ccs
+
+
+def test_hand_resampling_reproduces_scan_on_test_grid(hand):
+    ph, tpl, _, scans = hand
+    ccs = [_resample_cc(ph, tpl, s) for s in scans]
+    assert min(ccs) >= 0.95, ccs
+
+
+@pytest.mark.parametrize("which", ["knee", "hand"])
+def test_bones_move_rigidly_with_their_true_transform(which, request):
+    ph, _, _, scans = request.getfixturevalue(which)
+    x = ph.geometry.world_coordinates().reshape(-1, 3)
+    for scan in scans:
+        phi = (scan.correspondence.data.reshape(-1, 3) + x)
+        d = ph.anatomy.distances_fast(phi)
+        fx = scan.pose.transforms
+        for k, name in enumerate(ph.anatomy.bone_names):
+            sel = d[:, k] < -0.25  # scan voxels whose template position is inside bone k
+            if sel.sum() < 4:
+                continue
+            t = fit_rigid(phi[sel], x[sel])
+            rms = np.sqrt(np.mean(np.sum((apply(t, phi[sel]) - x[sel]) ** 2, axis=1)))
+            assert rms < 0.05, (scan.id, name, rms)
+            # ... and that motion is the bone's ground-truth transform.
+            err = np.abs(apply(invert(fx[name]), x[sel]) - phi[sel]).max()
+            assert err < 1e-6, (scan.id, name, err)
+
+
+@pytest.mark.parametrize("which", ["knee", "hand"])
+def test_markers_agree_with_field(which, request):
+    ph, _, _, scans = request.getfixturevalue(which)
+    for scan in scans:
+        assert len(scan.markers) >= 8
+        u = scan.correspondence.data
+        errs = []
+        for m in scan.markers:
+            ijk = ph.geometry.world_to_index(np.array(m["scan"]))
+            coords = [[ijk[2]], [ijk[1]], [ijk[0]]]
+            v = np.array([map_coordinates(u[..., c], coords, order=3)[0] for c in range(3)])
+            errs.append(np.linalg.norm(np.array(m["scan"]) + v - np.array(m["template"])))
+            # Markers sit on the skin: body distance 0 at the template position.
+            assert abs(ph.anatomy.body_distance(np.array([m["template"]]))[0]) < 1e-6
+        assert np.median(errs) < 0.01, errs
+        assert np.percentile(errs, 90) < 0.1, errs
+
+
+def test_truth_pose_matches_forward_kinematics(knee):
+    ph, _, _, scans = knee
+    for (pid, angles), scan in zip(ph.poses, scans):
+        fk = ph.skeleton.forward_kinematics(angles)
+        for name, t in fk.items():
+            np.testing.assert_allclose(scan.pose.transforms[name], t, atol=1e-12)
+        j = ph.skeleton.joint("knee")
+        np.testing.assert_allclose(scan.pose.joint_centers["knee"], apply(fk["femur"], j.center), atol=1e-12)
+        np.testing.assert_allclose(scan.pose.joint_angles["knee"], angles["knee"])
+    flex = [scan.pose.joint_angles["knee"][0] for scan in scans]
+    assert flex[0] == 0.0 and flex[-1] >= 60.0  # from straight to ≥ 60° flexion
+
+
+def test_label_map_matches_bone_volumes(knee):
+    ph, _, labels, _ = knee
+    vox_ml = np.prod(ph.geometry.spacing) / 1000.0
+    counts = np.bincount(labels.data.ravel(), minlength=5)
+    assert counts[1:].min() > 0
+    # Femur shaft alone (round cone r 13→15 mm, 135 mm long) is > 80 ml; the whole femur in the
+    # field of view stays below a 16 mm-radius cylinder through the FOV plus two condyles.
+    assert 80 < counts[1] * vox_ml < np.pi * 16**2 * 160 / 1000 + 2 * 4 / 3 * np.pi * 24 * 20 * 16 / 1000
+
+
+def test_knee_contrast_mri_and_ct():
+    # femoral marrow and cortex: at y = 120 the shaft axis is at x ≈ 23.8 with radius ≈ 13.8 mm
+    x_bone = np.array([[23.8, 120.0, 0.0], [23.8 + 12.5, 120.0, 0.0]])
+    soft = np.array([[25.0 + 40.0, 120.0, 0.0]])  # muscle of the thigh
+    fat = np.array([[25.0 - 5.0 + 62.5 - 7.0, 120.0, 0.0]])
+    for modality in ("mri", "ct"):
+        ph = make_phantom("knee", modality=modality, noise=False)
+        v = ph.anatomy.intensity(np.vstack([x_bone, soft, fat]), ph.contrast, edge_mm=0.3)
+        marrow, cortex, muscle, fat_i = v
+        if modality == "mri":
+            assert cortex < muscle < marrow and fat_i > muscle  # dark cortex, bright marrow and fat
+        else:
+            assert cortex > marrow > muscle > fat_i  # bright cortical bone in HU
+
+
+def test_same_seed_same_images_other_seed_other_noise():
+    a = make_phantom("knee", seed=11, n_poses=2)
+    b = make_phantom("knee", seed=11, n_poses=2)
+    c = make_phantom("knee", seed=12, n_poses=2)
+    ta, tb, tc = a.template()[0].data, b.template()[0].data, c.template()[0].data
+    assert np.array_equal(ta, tb)
+    assert not np.array_equal(ta, tc)
+    sa, sb, sc = (list(p.scans()) for p in (a, b, c))
+    for x, y in zip(sa, sb):
+        assert np.array_equal(x.image.data, y.image.data)
+        assert np.array_equal(x.correspondence.data, y.correspondence.data)
+        assert x.markers == y.markers
+    # Other seed: other noise (large differences in air and tissue) on the same anatomy.
+    diff = np.abs(sa[1].image.data - sc[1].image.data)
+    assert np.median(diff) > 5.0
+
+
+def test_rician_background_and_bias():
+    ph = make_phantom("knee", seed=2, n_poses=1)
+    img = ph.template()[0].data
+    x = ph.geometry.world_coordinates().reshape(-1, 3)
+    air = (ph.anatomy.body_distance(x) > 10).reshape(img.shape)
+    sigma = ph.contrast.noise_sigma
+    # Rician magnitude of pure noise: Rayleigh with mean σ·sqrt(π/2) (bias field does not act on air).
+    assert img[air].mean() == pytest.approx(sigma * np.sqrt(np.pi / 2), rel=0.05)
+
+
+def test_soft_posing_differs_from_vbd(knee):
+    ph, _, _, _ = knee
+    pid, angles = ph.poses[-1]
+    diff = ph.posing_difference(angles)
+    # Bulge (0.1·R·sin θ ≈ 5 mm at the knee's 55 mm radius) and skin sliding (≈ 5 mm) plus the
+    # dual-quaternion vs linear blend: millimetres near the joint, zero inside bones.
+    assert diff["soft_tissue_near_joints_mean_mm"] > 1.0
+    assert diff["bone_max_mm"] < 1e-6
+
+
+def test_direction_and_spacing_are_honoured():
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    ph = make_phantom("knee", noise=False, n_poses=2, direction=tuple(rot.ravel()), spacing=(6.0, 5.0, 4.5))
+    assert ph.geometry.spacing == (6.0, 5.0, 4.5)
+    np.testing.assert_allclose(ph.geometry.direction_matrix, rot)
+    tpl = ph.template()[0]
+    scans = list(ph.scans())
+    assert _resample_cc(ph, tpl, scans[1]) > 0.98
