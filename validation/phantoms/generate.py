@@ -32,6 +32,7 @@ REGIONS = {"knee": knee, "hand": hand}
 SIZES = ("test", "paper")
 MODALITIES = tuple(CONTRASTS)
 CHUNK = 1 << 17  # points per vectorised chunk: bounds temporary memory (~100 MB)
+RESTARTS = 8  # nearest forward-mapped template voxels tried for voxels Newton did not solve
 N_MARKERS = 12  # skin markers per study (Rhee Table 3 used eight)
 
 
@@ -234,10 +235,15 @@ class Phantom:
         bad = np.nonzero(res > 1e-4)[0]
         if bad.size:
             tree = cKDTree(model.forward(x))
-            _, nn = tree.query(x[bad])
-            p2, r2 = model.inverse(x[bad], guess=x[nn], fd_jacobian=True, max_iter=30)
-            better = r2 < res[bad]
-            phi[bad[better]], res[bad[better]] = p2[better], r2[better]
+            _, nn = tree.query(x[bad], k=RESTARTS)
+            for r in range(RESTARTS):
+                p2, r2 = model.inverse(x[bad], guess=x[nn[:, r]], fd_jacobian=True, max_iter=30)
+                better = r2 < res[bad]
+                phi[bad[better]], res[bad[better]] = p2[better], r2[better]
+                keep = res[bad] > 1e-4
+                bad, nn = bad[keep], nn[keep]
+                if not bad.size:
+                    break
         shape = self.geometry.array_shape
         return phi.reshape(shape + (3,)), res.reshape(shape)
 
@@ -281,7 +287,7 @@ class Phantom:
                 q = m.forward(p[None])
                 back, res = m.inverse(q)
                 if (not self.geometry.contains_world(q[0], margin_voxels=-2) or res[0] > 1e-6
-                        or np.linalg.norm(back[0] - p) > 1e-4):
+                        or np.linalg.norm(back[0] - p) > 1e-4 or not self._unfolded_around(m, q[0], p)):
                     ok = False
                     break
             if ok:
@@ -290,6 +296,24 @@ class Phantom:
             raise RuntimeError(f"could only place {len(pts)} consistent skin markers (need 8)")
         self._markers = np.array(pts)
         return self._markers
+
+    def _unfolded_around(self, model: PosingModel, q: np.ndarray, p: np.ndarray) -> bool:
+        """True when the scan voxels around ``q`` map back next to ``p`` on one branch of ``F⁻¹``.
+
+        Where posed tissue folds over or touches other tissue (a crease),
+        ``F`` is not one-to-one and the correspondence jumps between voxels;
+        a marker there would be ill-defined, as one in a skin fold would be.
+        """
+        g = self.geometry
+        base = np.floor(g.world_to_index(q)).astype(int)
+        corners = np.array([[i, j, k] for k in (-1, 0, 1, 2) for j in (-1, 0, 1, 2) for i in (-1, 0, 1, 2)]) + base
+        pts = g.index_to_world(corners)
+        back, res = model.inverse(pts)
+        reach = 3.0 * float(np.linalg.norm(g.spacing))
+        if np.any(res > 1e-6) or np.any(np.linalg.norm(back - p, axis=1) > reach):
+            return False
+        det = np.linalg.det(np.stack([back[1] - back[0], back[4] - back[0], back[16] - back[0]], axis=1))
+        return bool(det > 0)
 
     def _project_to_skin(self, p):
         body = self.anatomy.body_distance
