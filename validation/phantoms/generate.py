@@ -207,6 +207,12 @@ class Phantom:
         return (Volume(img, self.geometry), Volume(labels, self.geometry),
                 Volume(clean.astype(np.float32), self.geometry))
 
+    def _template_body_distance(self) -> np.ndarray:
+        """Body distance at every template voxel (flat, cached)."""
+        if getattr(self, "_tpl_body", None) is None:
+            self._tpl_body = self.anatomy.distances_fast(self._world_points())[:, -1]
+        return self._tpl_body
+
     def _labels(self, p: np.ndarray) -> np.ndarray:
         d = self.anatomy.distances_fast(p)[:, :-1]
         idx = np.argmin(d, axis=1)
@@ -234,7 +240,20 @@ class Phantom:
         phi, res = model.inverse(x, max_iter=12)
         bad = np.nonzero(res > 1e-4)[0]
         if bad.size:
-            tree = cKDTree(model.forward(x))
+            fwd = model.forward(x)
+            # Restart only near the posed body (the forward-mapped template body): far air is
+            # often imaged from beyond the template's field of view and stays air either way.
+            h = max(self.geometry.spacing)
+            body_fwd = fwd[self._template_body_distance() < 2.0 * h]
+            tree = cKDTree(fwd)
+            if len(body_fwd):
+                dist, _ = cKDTree(body_fwd).query(x[bad])
+                far = bad[dist >= 5.0 * h]
+                # Far air: take the nearest forward-mapped template voxel's position, itself air,
+                # rather than whatever an unconverged Newton iterate was.
+                dnn, nn0 = tree.query(x[far])
+                phi[far], res[far] = x[nn0], dnn
+                bad = bad[dist < 5.0 * h]
             _, nn = tree.query(x[bad], k=RESTARTS)
             for r in range(RESTARTS):
                 p2, r2 = model.inverse(x[bad], guess=x[nn[:, r]], fd_jacobian=True, max_iter=30)

@@ -336,10 +336,18 @@ def inverse_map(targets, guesses, use_guess, tabs, params, t_inv12, tol, max_ite
         rn = math.sqrt(r[0] ** 2 + r[1] ** 2 + r[2] ** 2)
         step = 1.0
         h = 1e-4
+        use_fd = fd_jacobian
         for _ in range(max_iter):
-            if rn <= tol or step < 1e-4:
+            if rn <= tol:
                 break
-            if fd_jacobian:
+            if step < 1e-4:
+                if use_fd:
+                    break
+                # The blended rotation is a poor Jacobian here (weights change fast):
+                # switch to finite differences and start again with full steps.
+                use_fd = True
+                step = 1.0
+            if use_fd:
                 for c in range(3):
                     cand[:] = p
                     cand[c] += h
@@ -354,9 +362,11 @@ def inverse_map(targets, guesses, use_guess, tabs, params, t_inv12, tol, max_ite
             rc0, rc1, rc2 = x - fc[0], y - fc[1], z - fc[2]
             rcn = math.sqrt(rc0 * rc0 + rc1 * rc1 + rc2 * rc2)
             if rcn < rn:
+                if rcn > 0.25 * rn:
+                    use_fd = True  # linear convergence only: Newton with the true Jacobian is quadratic
                 p[:] = cand
                 f[:] = fc
-                if not fd_jacobian:
+                if not use_fd:
                     jac[:, :] = jc
                 r[0], r[1], r[2] = rc0, rc1, rc2
                 rn = rcn

@@ -1,0 +1,60 @@
+# The two commands of README.md: `make demo` and `make test`.
+# Both set up everything on a fresh Debian machine with Python 3.11:
+# the Debian libraries Open3D and off-screen VTK need, a .venv, and the
+# project with its Python dependencies (pyproject.toml).
+
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+DEMO_DIR ?= demo-study
+# Debian packages Open3D (libusb, libgomp) and off-screen VTK (GL, EGL, OSMesa) load at run time.
+DEB_PACKAGES := libusb-1.0-0 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libgomp1
+
+.PHONY: demo test test-slow system-deps venv clean help
+
+help:
+	@echo "make demo       set up, then build a phantom knee study in $(DEMO_DIR)/ and summarise it"
+	@echo "make test       set up, then run the test suite (slow tests excluded)"
+	@echo "make test-slow  paper-size tests (minutes)"
+	@echo "make clean      remove .venv and $(DEMO_DIR)/"
+
+system-deps:
+	@missing=""; for p in $(DEB_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "Installing Debian packages:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing; \
+	  else \
+	    echo "Missing Debian packages:$$missing"; \
+	    echo "Install them with:  sudo apt-get install$$missing"; \
+	    exit 1; \
+	  fi; \
+	fi
+	@$(PYTHON) -c "import ensurepip, venv" 2>/dev/null || { \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv; \
+	  else echo "Python's venv module is missing: sudo apt-get install python3-venv"; exit 1; fi; }
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null || { echo "$(PYTHON) not found: install Python 3.11 (python3.11, python3.11-venv) or run make PYTHON=/path/to/python3.11"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+venv: system-deps $(STAMP)
+
+demo: venv
+	$(VENV)/bin/workbench phantom knee --out $(DEMO_DIR) --size test --force
+
+test: venv
+	$(VENV)/bin/pytest
+
+test-slow: venv
+	$(VENV)/bin/pytest -m slow
+
+clean:
+	rm -rf $(VENV) $(DEMO_DIR)

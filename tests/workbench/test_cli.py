@@ -1,0 +1,146 @@
+"""`workbench` command line: phantom studies on disk, their manifest, errors (issue A)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from deformation.transforms import apply
+from workbench import __version__
+from workbench.cli import main
+from workbench.study import read_study
+from workbench.volume_io import read_image_geometry
+
+
+def _digest(folder: Path) -> dict:
+    """SHA-256 of every file except the (timing) log."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and "logs" not in p.parts}
+
+
+@pytest.fixture(scope="module")
+def knee_study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "knee"
+    assert main(["phantom", "knee", "--out", str(out), "--poses", "2", "--seed", "4", "--quiet"]) == 0
+    return out
+
+
+def test_version_and_help(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and __version__ in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["phantom", "--help"])
+    text = capsys.readouterr().out
+    assert "--poses-file" in text and "scan-to-template" in text.replace("\n", " ").replace("  ", " ")
+
+
+def test_python_dash_m_runs():
+    r = subprocess.run([sys.executable, "-m", "workbench", "--version"], capture_output=True, text=True, check=True)
+    assert __version__ in r.stdout
+
+
+def test_study_manifest_and_geometry(knee_study):
+    study = read_study(knee_study)
+    m = study.manifest
+    assert m["format"] == "avw-study" and len(m["scans"]) == 2
+    for key in ("template", "template_labels", "skeleton"):
+        assert (knee_study / m[key]).is_file()
+    g = read_image_geometry(knee_study / m["template"])
+    # Test-size knee grid: 64×64×40 voxels covering Rhee's 318.75×318.75×147.6 mm field of view.
+    assert g.size == (64, 64, 40)
+    np.testing.assert_allclose(np.array(g.size) * np.array(g.spacing), (318.75, 318.75, 147.6), rtol=1e-6)
+    labels = study.template_labels()
+    assert set(np.unique(labels.data)) == {0, 1, 2, 3, 4}
+    sk = study.skeleton()
+    assert [b.name for b in sk.bones] == ["femur", "tibia", "fibula", "patella"]
+
+
+def test_written_truth_resamples_template_onto_scan(tmp_path):
+    out = tmp_path / "clean"
+    assert main(["phantom", "knee", "--out", str(out), "--poses", "2", "--noise-free", "--quiet"]) == 0
+    study = read_study(out)
+    sid = study.scan_ids[-1]
+    template = sitk.ReadImage(str(out / study.manifest["template"]))
+    scan = sitk.ReadImage(str(out / study.manifest["scans"][-1]["image"]))
+    field = sitk.ReadImage(str(out / study.manifest["scans"][-1]["truth"]["correspondence"]))
+    assert field.GetPixelID() == sitk.sitkVectorFloat64  # usable by DisplacementFieldTransform as is
+    outside = -1e6  # marks scan voxels whose template position lies outside the template's grid
+    warped = sitk.GetArrayFromImage(sitk.Resample(template, scan, sitk.DisplacementFieldTransform(field),
+                                                  sitk.sitkLinear, outside))
+    a = sitk.GetArrayFromImage(scan)
+    body = (a > 200) & (warped > outside / 2)  # soft tissue and marrow (MRI air is 0 without noise)
+    # Linear interpolation of the template on the 5 mm test grid is the only error source.
+    assert np.corrcoef(warped[body], a[body])[0, 1] > 0.99
+    # Markers and pose agree with each other through the skeleton.
+    pose = study.truth_pose(sid)
+    markers = study.truth_markers(sid)
+    assert len(markers) >= 8
+    femur = study.skeleton().joint("knee")
+    np.testing.assert_allclose(pose.joint_centers["knee"], apply(pose.transforms["femur"], femur.center))
+
+
+def test_same_seed_identical_files_other_seed_different(tmp_path, knee_study):
+    again = tmp_path / "again"
+    other = tmp_path / "other"
+    assert main(["phantom", "knee", "--out", str(again), "--poses", "2", "--seed", "4", "--quiet"]) == 0
+    assert main(["phantom", "knee", "--out", str(other), "--poses", "2", "--seed", "5", "--quiet"]) == 0
+    assert _digest(knee_study) == _digest(again)
+    d1, d2 = _digest(knee_study), _digest(other)
+    assert d1["template.nii.gz"] != d2["template.nii.gz"]
+    assert d1["skeleton.json"] == d2["skeleton.json"]
+
+
+def test_refuses_to_overwrite_and_force_replaces(tmp_path, capsys):
+    out = tmp_path / "s"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    assert main(["phantom", "knee", "--out", str(out), "--poses", "1", "--quiet"]) == 1
+    assert "--force" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+    assert main(["phantom", "knee", "--out", str(out), "--poses", "1", "--quiet", "--force"]) == 0
+    assert (out / "study.json").is_file() and not (out / "keep.txt").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging left behind
+
+
+def test_poses_file_and_its_errors(tmp_path, capsys):
+    pf = tmp_path / "bend10.json"
+    pf.write_text(json.dumps({"poses": [{"id": "bend10", "angles": {"knee": [10, 0, 0]}}]}))
+    out = tmp_path / "bend"
+    assert main(["phantom", "knee", "--out", str(out), "--poses-file", str(pf), "--posing", "vbd", "--quiet"]) == 0
+    study = read_study(out)
+    assert study.scan_ids == ["bend10"]
+    pose = study.truth_pose("bend10")
+    assert pose.joint_angles["knee"][0] == 10.0
+    assert pose.joint_angles["tibiofibular"][0] == 10.0  # the fibula follows the tibia
+    assert pose.joint_angles["patellofemoral"][0] == pytest.approx(7.0)
+
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"poses": [{"id": "x", "angles": {"elbow": [10]}}]}))
+    assert main(["phantom", "knee", "--out", str(tmp_path / "x"), "--poses-file", str(bad), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "bad.json" in err and "elbow" in err
+    assert not (tmp_path / "x").exists()
+    wrong_dof = tmp_path / "dof.json"
+    wrong_dof.write_text(json.dumps({"poses": [{"id": "x", "angles": {"knee": [10]}}]}))
+    assert main(["phantom", "knee", "--out", str(tmp_path / "y"), "--poses-file", str(wrong_dof), "--quiet"]) == 1
+    assert "3 DOF" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists()
+
+
+def test_info_prints_summary(knee_study, capsys):
+    assert main(["info", str(knee_study)]) == 0
+    out = capsys.readouterr().out
+    assert "femur" in out and "pose01" in out and "64, 64, 40" in out
+
+
+def test_info_on_missing_study(tmp_path, capsys):
+    assert main(["info", str(tmp_path / "nothing")]) == 1
+    assert "no such study folder" in capsys.readouterr().err
