@@ -182,7 +182,7 @@ def write_phantom_study(phantom, out: str | os.PathLike, *, overwrite: bool = Fa
         t0 = time.perf_counter()
         for sub in ("scans", "truth", "logs"):
             (stage / sub).mkdir()
-        tpl, labels, _ = phantom.template()
+        tpl, labels = phantom.template()
         write_volume(tpl, stage / "template.nii.gz")
         write_labels(labels, stage / "template_labels.nii.gz")
         write_json(phantom.skeleton.to_dict(), stage / "skeleton.json")

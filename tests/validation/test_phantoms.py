@@ -45,14 +45,14 @@ def _resample_cc(phantom, template, scan):
 @pytest.fixture(scope="module")
 def knee():
     ph = make_phantom("knee", size="test", seed=5, noise=False)
-    tpl, labels, _ = ph.template()
+    tpl, labels = ph.template()
     return ph, tpl, labels, list(ph.scans())
 
 
 @pytest.fixture(scope="module")
 def hand():
     ph = make_phantom("hand", size="test", seed=5, noise=False, n_poses=3)
-    tpl, labels, _ = ph.template()
+    tpl, labels = ph.template()
     return ph, tpl, labels, list(ph.scans())
 
 

@@ -130,13 +130,6 @@ class Anatomy:
     def body_distance(self, p: np.ndarray) -> np.ndarray:
         return self.body(p)
 
-    def labels(self, p: np.ndarray) -> np.ndarray:
-        """Bone label id at each point (0 outside bones): the hard partition ``sdf < 0``."""
-        d = self.bone_distances(p)
-        idx = np.argmin(d, axis=1)
-        lab = np.array([self.skeleton.label_of(n) for n in self.bone_names])[idx]
-        return np.where(d[np.arange(len(idx)), idx] < 0, lab, 0).astype(np.uint8)
-
     # -- appearance ---------------------------------------------------------------
     def intensity_fast(self, p: np.ndarray, contrast: Contrast, *, edge_mm: float,
                        texture: Texture | None = None) -> np.ndarray:

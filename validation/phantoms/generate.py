@@ -91,7 +91,6 @@ class PhantomScan:
     pose: Pose
     correspondence: Volume
     markers: list
-    clean_image: Volume | None = None
     stats: dict = field(default_factory=dict)
 
 
@@ -197,15 +196,14 @@ class Phantom:
             img = img + rng.normal(0, c.noise_sigma, img.shape)
         return (img + c.air).astype(np.float32)
 
-    def template(self) -> tuple[Volume, Volume, Volume]:
-        """``(template image, bone label map, noise-free template)`` on the template grid."""
+    def template(self) -> tuple[Volume, Volume]:
+        """``(template image, bone label map)`` on the template grid."""
         p = self._world_points()
         clean = self.render(p).reshape(self.geometry.array_shape)
         labels = _apply_chunked(self._labels, p, dtype=np.uint8).reshape(self.geometry.array_shape)
         rng = np.random.default_rng(self._image_seqs[0])
         img = self._acquire(clean, rng)
-        return (Volume(img, self.geometry), Volume(labels, self.geometry),
-                Volume(clean.astype(np.float32), self.geometry))
+        return Volume(img, self.geometry), Volume(labels, self.geometry)
 
     def _template_body_distance(self) -> np.ndarray:
         """Body distance at every template voxel (flat, cached)."""
@@ -379,13 +377,13 @@ class Phantom:
             "bone_max_mm": float(diff[bone].max()) if bone.any() else 0.0,
         }
 
-    def scans(self, *, keep_clean: bool = False) -> Iterator[PhantomScan]:
+    def scans(self) -> Iterator[PhantomScan]:
         """Posed scans with ground truth, one at a time."""
         for i, (pid, angles) in enumerate(self.poses):
-            yield self.make_scan(i, pid, angles, keep_clean=keep_clean)
+            yield self.make_scan(i, pid, angles)
 
-    def make_scan(self, index: int, pid: str, angles: dict, *, keep_clean: bool = False,
-                  mode: str | None = None) -> PhantomScan:
+    def make_scan(self, index: int, pid: str, angles: dict, *, mode: str | None = None) -> PhantomScan:
+        """Posed scan ``index`` (its noise stream) for joint ``angles``, with its ground truth."""
         model = self.posing_model(angles, mode=mode)
         pose = self.pose_of(angles)
         phi, residual = self.correspondence(model)
@@ -412,7 +410,6 @@ class Phantom:
             pose=pose,
             correspondence=Volume(disp, self.geometry),
             markers=self.markers(model),
-            clean_image=Volume(clean.astype(np.float32), self.geometry) if keep_clean else None,
             stats=stats,
         )
 
