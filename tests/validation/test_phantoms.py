@@ -12,7 +12,7 @@ Tolerances
   is floating point, so a rigid fit must leave < 0.05 mm (it leaves ~1e-10).
 * Markers: the field is stored on the grid, so reading it at a marker costs an
   interpolation error (O(h^4) for cubic splines where the field is smooth); the
-  median must be < 0.01 mm and the worst < 1 mm at 5 mm voxels; the issue's
+  median must be < 0.02 mm and the worst < 1 mm at 3-5 mm voxels; the issue's
   linear-interpolation < 0.1 mm bound is checked at paper resolution in the
   slow test.
 """
@@ -102,7 +102,7 @@ def test_markers_agree_with_field(which, request):
             errs.append(np.linalg.norm(np.array(m["scan"]) + v - np.array(m["template"])))
             # Markers sit on the skin: body distance 0 at the template position.
             assert abs(ph.anatomy.body_distance(np.array([m["template"]]))[0]) < 1e-6
-        assert np.median(errs) < 0.01, errs
+        assert np.median(errs) < 0.02, errs
         # Near the flexed knee's crease the field bends within a 5 mm voxel; even cubic
         # interpolation misses there by a few tenths of a mm (paper grid: see the slow test).
         assert max(errs) < 1.0, errs

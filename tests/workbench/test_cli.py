@@ -131,7 +131,8 @@ def test_poses_file_and_its_errors(tmp_path, capsys):
     wrong_dof = tmp_path / "dof.json"
     wrong_dof.write_text(json.dumps({"poses": [{"id": "x", "angles": {"knee": [10]}}]}))
     assert main(["phantom", "knee", "--out", str(tmp_path / "y"), "--poses-file", str(wrong_dof), "--quiet"]) == 1
-    assert "3 DOF" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "3 DOF" in err and "dof.json" in err
     assert not (tmp_path / "y").exists()
 
 

@@ -100,6 +100,11 @@ class Anatomy:
     fat_mm: float = 6.0
     weight_power: float = 4.0  # inverse-distance power of the posing weights
     weight_falloff_mm: float = 20.0  # exponential localisation of the posing weights
+    # ``soft`` posing, per flexed joint of soft radius R: flexor-side bulge up to
+    # bulge_gain·R·|sin θ| and extensor-side skin slide up to slide_gain·R·|θ| (θ in radians).
+    bulge_gain: float = 0.10
+    slide_gain: float = 0.08
+    bone_fade_mm: float = 3.0  # soft-tissue offsets fade in over this distance from the bones
     bone_names: list = field(init=False)
     _tables: tuple | None = field(init=False, repr=False, default=None)
 

@@ -27,16 +27,16 @@ GRIDS = {
     "paper": ((255, 255, 90), (0.78, 0.78, 1.0)),
     "test": ((64, 64, 30), (3.1078125, 3.1078125, 3.0)),
 }
-GRID_CENTER = (-8.0, -1.0, -8.0)
+GRID_CENTER = (-8.0, 6.0, -8.0)  # the wrist near the lower edge, fingertips inside the upper one
 DEFAULT_POSES = 10
 
 GAP = 1.6  # joint space between articular caps, mm
 # finger: (MC base x, spread angle ψ in degrees towards +x, lengths MC/P1/P2/P3 between cap centres)
 FINGERS = {
-    "index": (-21.0, -7.0, (56.0, 34.0, 19.0, 11.0)),
-    "middle": (-6.0, 0.0, (58.0, 38.0, 23.0, 12.0)),
-    "ring": (8.0, 6.0, (54.0, 35.0, 21.0, 11.0)),
-    "little": (21.0, 13.0, (48.0, 28.0, 15.0, 9.0)),
+    "index": (-21.0, -7.0, (49.0, 30.0, 17.0, 10.0)),
+    "middle": (-6.0, 0.0, (51.0, 33.0, 20.0, 10.5)),
+    "ring": (8.0, 6.0, (47.5, 31.0, 18.5, 10.0)),
+    "little": (21.0, 13.0, (42.0, 24.5, 13.0, 8.0)),
 }
 # bone radii (base, head) for MC, P1, P2, P3
 RADII = ((4.0, 5.0), (4.4, 3.9), (3.6, 3.2), (3.0, 2.6))
@@ -131,7 +131,8 @@ def anatomy() -> Anatomy:
         else:
             digits.append(RoundCone(tuple(a), tuple(b), ra + SOFT["bone"], rb + SOFT["bone"]))
     body = SmoothUnion((SmoothUnion(tuple(palm_parts), k=12.0), *digits), k=5.0)
-    return Anatomy(skeleton(), shapes, body, joint_radius_mm=radius, cortex_mm=1.2, skin_mm=1.5, fat_mm=3.0)
+    return Anatomy(skeleton(), shapes, body, joint_radius_mm=radius, cortex_mm=1.2, skin_mm=1.5, fat_mm=3.0,
+                   bulge_gain=0.5, slide_gain=0.3, bone_fade_mm=1.5)
 
 
 def complete_angles(angles: dict) -> dict:

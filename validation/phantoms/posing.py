@@ -13,7 +13,7 @@ Two models, both leaving every bone exactly rigid:
     joint), applied after ``δ``, which adds near each flexed joint a bulge of
     the soft tissue on the flexor side and a proximal sliding of the skin on
     the extensor side.  ``δ`` vanishes inside bones and fades in over the first
-    3 mm of soft tissue.  A VBD initialisation cannot represent either effect,
+    millimetres of soft tissue (``Anatomy.bone_fade_mm``).  A VBD initialisation cannot represent either effect,
     so it leaves a real residual.
 
 Weights are inverse-distance weights on the bones' signed distances,
@@ -21,11 +21,17 @@ Weights are inverse-distance weights on the bones' signed distances,
 exactly one-hot inside a bone.
 
 The ground truth for a scan voxel ``x`` is ``φ(x) = F⁻¹(x)``.  ``F`` is
-inverted numerically: a damped quasi-Newton iteration (the blended rotation
-as Jacobian) from the inverse blend with posed-bone weights, then, for the
-few voxels that do not converge (near folds of the blend), a restart from the
-nearest forward-mapped template sample and finite-difference Newton steps.
+inverted numerically (:meth:`PosingModel.inverse`): damped Newton steps from
+the inverse blend with posed-bone weights, using the blended rotation as the
+Jacobian and switching to finite differences where that converges slowly.
+:meth:`validation.phantoms.Phantom.correspondence` restarts the few voxels
+left (near folds of the blend) from nearby forward-mapped template voxels.
 The residual ``|F(φ(x)) − x|`` is returned so callers can report it.
+
+Neither blend is guaranteed one-to-one: at strong flexion a small fraction of
+soft-tissue voxels (≈0.1 % of the body at 70° knee flexion or in the hand's
+fist) fold over, as linear and dual quaternion skinning do; the generator
+reports that fraction per scan and keeps skin markers out of folds.
 """
 
 from __future__ import annotations
@@ -42,9 +48,6 @@ from .anatomy import Anatomy
 __all__ = ["PosingModel", "blend_weights", "POSING_MODES"]
 
 POSING_MODES = ("soft", "vbd")
-BONE_FADE_MM = 3.0
-BULGE_GAIN = 0.10  # bulge amplitude per unit sin(flexion), as a fraction of the joint's soft radius
-SLIDE_GAIN = 0.08  # skin slide per radian of flexion, as a fraction of the joint's soft radius
 
 
 def blend_weights(bone_distances: np.ndarray, *, power: float = 4.0, falloff_mm: float = 20.0) -> np.ndarray:
@@ -128,13 +131,13 @@ class PosingModel:
         ``(l_x, l_y, l_z)``: a compact envelope ``bump(l_z/1.5R)·bump(ρ/2R)``
         (``bump(t) = (1 − t²)³``, ``ρ = hypot(l_x, l_y)``), restricted to the
         joint's two bones by their blend weights; the bulge pushes flexor-side
-        tissue outward by up to ``BULGE_GAIN·R·|sin θ|``; the skin on the
-        extensor side slides proximally by up to ``SLIDE_GAIN·R·|θ|``.
+        tissue outward by up to ``bulge_gain·R·|sin θ|``; the skin on the
+        extensor side slides proximally by up to ``slide_gain·R·|θ|``.
         """
         out = np.zeros_like(p)
         if self.mode != "soft":
             return out
-        fade = _smoothstep(np.min(bone_d, axis=1) / BONE_FADE_MM)
+        fade = _smoothstep(np.min(bone_d, axis=1) / self.anatomy.bone_fade_mm)
         body = None
         for j in self.soft_joints:
             if j.flexion_deg == 0.0:
@@ -147,13 +150,13 @@ class PosingModel:
             th = np.deg2rad(j.flexion_deg)
             flexor = _smoothstep(-s * ly / (0.5 * j.radius))
             radial = np.minimum(rho / j.radius, 1.2)
-            bulge = BULGE_GAIN * j.radius * abs(np.sin(th)) * along * flexor * radial * member * fade
+            bulge = self.anatomy.bulge_gain * j.radius * abs(np.sin(th)) * along * flexor * radial * member * fade
             out += bulge[:, None] * (-s * j.axes[:, 1])
             if body is None:
                 body = self.anatomy.body_distance(p)
             extensor = _smoothstep(s * ly / (0.5 * j.radius))
             skin = np.exp(-0.5 * (body / (0.15 * j.radius)) ** 2)
-            slide = SLIDE_GAIN * j.radius * abs(th) * along * extensor * skin * member * fade
+            slide = self.anatomy.slide_gain * j.radius * abs(th) * along * extensor * skin * member * fade
             out += slide[:, None] * (-j.axes[:, 2])
         return out
 
@@ -175,9 +178,10 @@ class PosingModel:
             for i, j in enumerate(self.soft_joints):
                 joints[i, :3] = j.center
                 joints[i, 3:12] = j.axes.reshape(-1)
-                joints[i, 12:18] = (j.flexion_deg, j.radius, j.parent_index, j.child_index, BULGE_GAIN, SLIDE_GAIN)
+                joints[i, 12:18] = (j.flexion_deg, j.radius, j.parent_index, j.child_index,
+                                  self.anatomy.bulge_gain, self.anatomy.slide_gain)
             self._kparams = (self._t12, self._dq, sign, joints, 0 if self.mode == "vbd" else 1,
-                             float(self.anatomy.weight_power), float(self.anatomy.weight_falloff_mm), BONE_FADE_MM)
+                             float(self.anatomy.weight_power), float(self.anatomy.weight_falloff_mm), float(self.anatomy.bone_fade_mm))
         return self._kparams
 
     def forward(self, p: np.ndarray) -> np.ndarray:
