@@ -27,7 +27,9 @@ GRIDS = {
     "paper": ((255, 255, 90), (0.78, 0.78, 1.0)),
     "test": ((64, 64, 30), (3.1078125, 3.1078125, 3.0)),
 }
-GRID_CENTER = (-8.0, 6.0, -8.0)  # the wrist near the lower edge, fingertips inside the upper one
+# The wrist near the lower edge, fingertips inside the upper one; 67 mm of room on the palmar
+# side (-z) for the curled fingers, 22 mm dorsally (the template body reaches z = +19.5).
+GRID_CENTER = (-8.0, 6.0, -22.5)
 DEFAULT_POSES = 10
 
 GAP = 1.6  # joint space between articular caps, mm
@@ -120,7 +122,7 @@ def anatomy() -> Anatomy:
     segs, _, radius = _layout()
     shapes = {n: RoundCone(tuple(a), tuple(b), ra, rb) for n, (a, b, ra, rb) in segs.items()}
     shapes["capitate"] = Ellipsoid((0.0, -59.5, 0.0), (20.0, 6.5, 8.0))
-    palm_parts = [RoundCone((-4.0, -120.0, 0.0), (-2.0, -62.0, 0.0), 23.0, 25.0),
+    palm_parts = [RoundCone((-4.0, -120.0, 0.0), (-2.0, -62.0, 0.0), 19.0, 21.0),
                   Ellipsoid((0.0, -58.0, -1.0), (32.0, 16.0, 16.0))]
     digits = []
     for name, (a, b, ra, rb) in segs.items():
@@ -146,7 +148,7 @@ def default_poses(n: int, rng: np.random.Generator) -> list[dict]:
         def jit(k, s=2.0):
             return rng.normal(0.0, s, size=k)
 
-        a = {"wrist": np.concatenate([[-8.0 + 20.0 * t], jit(2, 2.0), [0.0, -0.5 * t, 0.3 * t]])}
+        a = {"wrist": np.concatenate([[-4.0 + 8.0 * t], jit(2, 2.0), [0.0, -0.5 * t, 0.3 * t]])}
         for i, (finger, (_, psi, _)) in enumerate(FINGERS.items()):
             cup = (0.0, 2.0, 4.0, 8.0)[i]
             a[f"{finger}_cmc"] = np.array([cup * t, 0.0, 0.0]) + jit(3, 1.0)
@@ -154,9 +156,10 @@ def default_poses(n: int, rng: np.random.Generator) -> list[dict]:
             a[f"{finger}_mcp"] = np.array([70.0 * t, abd, 0.0]) + jit(3)
             a[f"{finger}_pip"] = np.array([85.0 * t, 0.0, 0.0]) + jit(3, 1.5)
             a[f"{finger}_dip"] = np.array([50.0 * t, 0.0, 0.0]) + jit(3, 1.5)
-        a["thumb_cmc"] = np.concatenate([np.array([30.0 * t, -15.0 * t, 20.0 * t]) + jit(3),
+        # Thumb opposition: mostly adduction across the palm (towards +x), some palmar flexion.
+        a["thumb_cmc"] = np.concatenate([np.array([12.0 * t, -35.0 * t, 25.0 * t]) + jit(3),
                                          [0.8 * t, -0.5 * t, 0.4 * t]])
-        a["thumb_mcp"] = np.array([25.0 * t, 0.0, 0.0]) + jit(3, 1.5)
-        a["thumb_ip"] = np.array([35.0 * t, 0.0, 0.0]) + jit(3, 1.5)
+        a["thumb_mcp"] = np.array([20.0 * t, 0.0, 0.0]) + jit(3, 1.5)
+        a["thumb_ip"] = np.array([30.0 * t, 0.0, 0.0]) + jit(3, 1.5)
         poses.append(a)
     return poses
