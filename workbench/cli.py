@@ -185,16 +185,19 @@ def summarize(study) -> str:
     lines.append(f"scans: {len(m['scans'])}")
     header = f"  {'id':<10}{'joint angles (deg)':<44}{'max |u| body':>13}{'folded':>9}{'inv. resid.':>12}{'markers':>8}"
     lines.append(header)
+    poses = {s["id"]: study.truth_pose(s["id"]) for s in m["scans"] if "truth" in s}
+    # Show the three joints that flex most over the study (first angle = flexion).
+    span = {j.name: max((abs(p.joint_angles[j.name][0]) for p in poses.values()
+                         if p.joint_angles and j.name in p.joint_angles), default=0.0) for j in sk.joints}
+    shown = [j for j in sorted(span, key=span.get, reverse=True)[:3] if span[j] > 0]
+    shown.sort(key=[j.name for j in sk.joints].index)
     for s in m["scans"]:
         sid = s["id"]
         angles = ""
-        if "truth" in s:
-            pose = study.truth_pose(sid)
-            main = [j.name for j in sk.joints if j.name in (pose.joint_angles or {})][:3]
-            angles = " ".join(f"{j}={pose.joint_angles[j][0]:.0f}" for j in main)
+        nm = 0
+        if sid in poses:
+            angles = " ".join(f"{j}={poses[sid].joint_angles[j][0]:.0f}" for j in shown)
             nm = len(study.truth_markers(sid))
-        else:
-            nm = 0
         st = stats.get(sid, {})
         lines.append(f"  {sid:<10}{angles[:43]:<44}{st.get('max_displacement_mm', float('nan')):>10.1f} mm"
                      f"{100 * st.get('folded_fraction_body', float('nan')):>8.2f}%"
