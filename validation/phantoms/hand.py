@@ -156,8 +156,9 @@ def default_poses(n: int, rng: np.random.Generator) -> list[dict]:
             a[f"{finger}_mcp"] = np.array([70.0 * t, abd, 0.0]) + jit(3)
             a[f"{finger}_pip"] = np.array([85.0 * t, 0.0, 0.0]) + jit(3, 1.5)
             a[f"{finger}_dip"] = np.array([50.0 * t, 0.0, 0.0]) + jit(3, 1.5)
-        # Thumb opposition: mostly adduction across the palm (towards +x), some palmar flexion.
-        a["thumb_cmc"] = np.concatenate([np.array([12.0 * t, -35.0 * t, 25.0 * t]) + jit(3),
+        # Thumb opposition: adduction towards the palm (+x) and palmar flexion, kept moderate so
+        # that the thumb's soft tissue does not sink into the index finger's.
+        a["thumb_cmc"] = np.concatenate([np.array([15.0 * t, -20.0 * t, 20.0 * t]) + jit(3),
                                          [0.8 * t, -0.5 * t, 0.4 * t]])
         a["thumb_mcp"] = np.array([20.0 * t, 0.0, 0.0]) + jit(3, 1.5)
         a["thumb_ip"] = np.array([30.0 * t, 0.0, 0.0]) + jit(3, 1.5)
