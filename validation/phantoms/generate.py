@@ -20,7 +20,6 @@ import numpy as np
 
 from deformation.geometry import GridGeometry, Volume
 from deformation.skeleton import Pose, Skeleton
-from deformation.transforms import apply
 
 from . import hand, knee
 from .anatomy import CONTRASTS, Anatomy, Texture
