@@ -118,7 +118,13 @@ def _read_poses_file(path: Path):
         if pid in seen:
             raise InputFileError(f"{path}: pose id {pid!r} appears twice.", path)
         seen.add(pid)
-        out.append((pid, {k: list(v) for k, v in entry["angles"].items()}))
+        angles = {}
+        for joint, values in entry["angles"].items():
+            if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
+                raise InputFileError(f"{path}: poses[{i}] joint {joint!r}: angles must be a list of numbers "
+                                     f"(degrees, then mm for 6-DOF joints), got {values!r}.", path)
+            angles[joint] = values
+        out.append((pid, angles))
     return tuple(out)
 
 
@@ -151,9 +157,11 @@ def cmd_phantom(args) -> int:
         if bar is not None:
             bar.update(1)
 
-    study = write_phantom_study(phantom, args.out, overwrite=args.force, progress=progress)
-    if bar is not None:
-        bar.close()
+    try:
+        study = write_phantom_study(phantom, args.out, overwrite=args.force, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
     if not args.quiet:
         print(f"wrote {args.out} in {time.perf_counter() - t0:.1f} s")
         print(summarize(study))
@@ -196,7 +204,8 @@ def summarize(study) -> str:
         angles = ""
         nm = 0
         if sid in poses:
-            angles = " ".join(f"{j}={poses[sid].joint_angles[j][0]:.0f}" for j in shown)
+            ja = poses[sid].joint_angles or {}
+            angles = " ".join(f"{j}={ja[j][0]:.0f}" if j in ja else f"{j}=?" for j in shown)
             nm = len(study.truth_markers(sid))
         st = stats.get(sid, {})
         lines.append(f"  {sid:<10}{angles[:43]:<44}{st.get('max_displacement_mm', float('nan')):>10.1f} mm"
@@ -226,7 +235,7 @@ def main(argv=None) -> int:
 
     try:
         return args.func(args)
-    except (WorkbenchError, ValueError) as e:
+    except (WorkbenchError, ValueError, OSError) as e:
         print(f"workbench {args.command}: error: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

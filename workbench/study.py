@@ -128,15 +128,24 @@ def read_study(folder: str | os.PathLike) -> Study:
             raise StudyError(f"{manifest_path}: the manifest lacks the key {key!r}.", manifest_path)
     files = [m["template"], m["template_labels"], m["skeleton"]]
     ids = set()
+    if not isinstance(m["scans"], list):
+        raise StudyError(f"{manifest_path}: 'scans' must be a list of {{'id', 'image'[, 'truth']}}.", manifest_path)
     for i, s in enumerate(m["scans"]):
-        if "id" not in s or "image" not in s:
+        if not isinstance(s, dict) or "id" not in s or "image" not in s:
             raise StudyError(f"{manifest_path}: scans[{i}] needs 'id' and 'image'.", manifest_path)
         if s["id"] in ids:
             raise StudyError(f"{manifest_path}: scan id {s['id']!r} appears twice.", manifest_path)
         ids.add(s["id"])
         files.append(s["image"])
-        files.extend((s.get("truth") or {}).values())
+        truth = s.get("truth")
+        if truth is not None:
+            if not isinstance(truth, dict) or not {"correspondence", "pose", "markers"} <= set(truth):
+                raise StudyError(f"{manifest_path}: scans[{i}]['truth'] must name 'correspondence', 'pose' "
+                                 "and 'markers' files.", manifest_path)
+            files.extend(truth[k] for k in ("correspondence", "pose", "markers"))
     for f in files:
+        if not isinstance(f, str):
+            raise StudyError(f"{manifest_path}: file entries must be strings (paths), got {f!r}.", manifest_path)
         if Path(f).is_absolute() or ".." in Path(f).parts:
             raise StudyError(f"{manifest_path}: {f!r} must be a path relative to the study folder.",
                              manifest_path)
@@ -225,7 +234,11 @@ def write_phantom_study(phantom, out: str | os.PathLike, *, overwrite: bool = Fa
         if out.exists():
             trash = out.parent / f".{out.name}.old-{secrets.token_hex(4)}"
             os.replace(out, trash)
-            os.replace(stage, out)
+            try:
+                os.replace(stage, out)
+            except BaseException:
+                os.replace(trash, out)  # put the old study back
+                raise
             shutil.rmtree(trash, ignore_errors=True)
         else:
             os.replace(stage, out)

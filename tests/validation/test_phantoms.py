@@ -191,3 +191,9 @@ def test_direction_and_spacing_are_honoured():
     tpl = ph.template()[0]
     scans = list(ph.scans())
     assert _resample_cc(ph, tpl, scans[1]) > 0.98
+
+
+def test_mirrored_grid_direction_still_places_markers():
+    """A left-handed grid (det D = −1) flips index-space orientation, not the world's."""
+    ph = make_phantom("knee", n_poses=2, direction=(-1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0))
+    assert len(ph.template_markers()) >= 8

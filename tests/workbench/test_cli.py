@@ -145,3 +145,23 @@ def test_info_prints_summary(knee_study, capsys):
 def test_info_on_missing_study(tmp_path, capsys):
     assert main(["info", str(tmp_path / "nothing")]) == 1
     assert "no such study folder" in capsys.readouterr().err
+
+
+def test_poses_file_with_a_number_instead_of_a_list(tmp_path, capsys):
+    pf = tmp_path / "scalar.json"
+    pf.write_text(json.dumps({"poses": [{"id": "x", "angles": {"knee": 10}}]}))
+    assert main(["phantom", "knee", "--out", str(tmp_path / "s"), "--poses-file", str(pf), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "scalar.json" in err and "list of numbers" in err
+
+
+def test_info_on_manifest_with_bad_truth(knee_study, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(knee_study, copy)
+    m = json.loads((copy / "study.json").read_text())
+    m["scans"][0]["truth"] = "not an object"
+    (copy / "study.json").write_text(json.dumps(m))
+    assert main(["info", str(copy)]) == 1
+    assert "['truth'] must name" in capsys.readouterr().err

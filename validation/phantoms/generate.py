@@ -317,7 +317,8 @@ class Phantom:
             if ok:
                 pts.append(p)
         if len(pts) < 8:
-            raise RuntimeError(f"could only place {len(pts)} consistent skin markers (need 8)")
+            raise ValueError(f"could only place {len(pts)} skin markers outside folds and inside the field of "
+                             "view in every pose (need 8); use milder joint angles or fewer extreme poses")
         self._markers = np.array(pts)
         return self._markers
 
@@ -337,7 +338,7 @@ class Phantom:
         if np.any(res > 1e-6) or np.any(np.linalg.norm(back - p, axis=1) > reach):
             return False
         det = np.linalg.det(np.stack([back[1] - back[0], back[4] - back[0], back[16] - back[0]], axis=1))
-        return bool(det > 0)
+        return bool(det * np.linalg.det(g.direction_matrix) > 0)  # index-space orientation → world
 
     def _project_to_skin(self, p):
         body = self.anatomy.body_distance
