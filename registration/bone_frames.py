@@ -74,7 +74,9 @@ def bone_frames(labels: Volume, skeleton) -> dict[str, BoneFrame]:
         r = np.column_stack([x, y, z])
         local = (pts - c) @ r
         lo, hi = local.min(axis=0), local.max(axis=0)
-        pad = np.abs(r.T) @ voxel_half  # voxel centres → voxel extents, along each axis
+        # Voxel centres → voxel extents: the world half-voxel box projected on each OBB axis
+        # (exact when the OBB is aligned with the grid, a slight over-estimate otherwise).
+        pad = np.abs(r.T) @ voxel_half
         lo, hi = lo - pad, hi + pad
         centre_box = c + r @ ((lo + hi) / 2)
         half = (hi - lo) / 2

@@ -58,11 +58,11 @@ def test_phantom_hand_joint_centres_from_forward_kinematics():
     rng = np.random.default_rng(3)
     poses = [sk.forward_kinematics({j.name: rng.normal(0, 15, size=j.dof) * (
         [1, 1, 1, 0.1, 0.1, 0.1][:j.dof]) for j in sk.joints}) for _ in range(5)]
-    for name in ("wrist", "index_mcp", "thumb_ip"):
+    # 3-DOF joints only: a 6-DOF joint's translation moves its centre, so Eq. 1 has no exact zero
+    # there (Kurihara leaves the thumb CMC out of his 0.91 mm for that reason).
+    for name in ("index_mcp", "little_pip", "thumb_ip"):
         j = sk.joint(name)
         motions = [sk.relative_motion(p, name) for p in poses]
-        if j.dof == 6:  # translations move the centre: Eq. 1 is not zero there (Kurihara excludes thumb CMC)
-            continue
         r = estimate_joint_center(motions, reference=j.center)
         np.testing.assert_allclose(r.center, j.center, atol=1e-6)
 
@@ -89,7 +89,7 @@ def test_real_wrist_bone_motion():
     fixed = max(range(len(study.bones)), key=lambda i: len(study.bones[i].triangles))  # the largest bone
     moving = [i for i in range(len(study.bones)) if i != fixed]
     base = study.poses[0]
-    results = []
+    results, all_motions = [], []
     for b in moving:
         motions = []
         for pose in study.poses[1:]:
@@ -98,8 +98,11 @@ def test_real_wrist_bone_motion():
             motions.append(compose(invert(t_fixed), t_b))
         ref = study.bones[b].positions[base].mean(axis=0)
         results.append(estimate_joint_center(motions, reference=ref))
-    # Two motions of a real bone: Eq. 1 has an exact solution only for a pure rotation;
-    # carpal bones also translate, so a few tenths of a mm up to a few mm remain.
-    rms = [r.rms_mm for r in results]
-    assert all(np.isfinite(rms)) and max(rms) < 10.0
-    assert all(np.allclose(r.iterative_center, r.center, atol=1e-3) for r in results if not r.is_hinge)
+        all_motions.append(motions)
+    # Carpal bones translate as well as rotate, so Eq. 1 leaves millimetres; what must hold is that
+    # the closed form is its minimum (BFGS from the reference finds nothing lower) and that the
+    # reported RMS is sqrt(E / n).
+    for r, motions in zip(results, all_motions):
+        e = eq1_energy(r.center, motions)
+        assert e <= eq1_energy(r.iterative_center, motions) * (1 + 1e-6) + 1e-9
+        assert r.rms_mm == pytest.approx(np.sqrt(e / len(motions)), rel=1e-9)

@@ -161,7 +161,11 @@ class Phantom:
 
     # -- images -------------------------------------------------------------------------
     def _world_points(self) -> np.ndarray:
-        return self.geometry.world_coordinates().reshape(-1, 3)
+        """World position of every voxel centre, flat ``(n, 3)`` (computed once; read-only)."""
+        if getattr(self, "_x", None) is None:
+            self._x = self.geometry.world_coordinates().reshape(-1, 3)
+            self._x.setflags(write=False)
+        return self._x
 
     def render(self, template_points: np.ndarray) -> np.ndarray:
         """Noise-free intensity at template positions (chunked)."""
@@ -398,7 +402,7 @@ class Phantom:
         clean = self.render(phi.reshape(-1, 3)).reshape(self.geometry.array_shape)
         rng = np.random.default_rng(self._image_seqs[index + 1])
         img = self._acquire(clean, rng)
-        x = self.geometry.world_coordinates()
+        x = self._world_points().reshape(phi.shape)
         disp = (phi - x)
         body = self.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(residual.shape) < 0
         det = jacobian_determinant(phi, self.geometry)
