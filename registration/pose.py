@@ -1,0 +1,284 @@
+"""Bone poses, joint centres and joint angles of a study's scans (Rhee §3.1; Kurihara §3).
+
+The pipeline, per scan:
+
+1. **Root bone.**  Initialised from the identity (scans share the
+   template's scanner frame), from image moments (the centres of mass of the
+   two images, SimpleITK's ``CenteredTransformInitializer``), or from a
+   user-supplied pose file (the papers' semi-automatic step), then refined.
+2. **Every other bone, down the hierarchy** (:attr:`Skeleton.order`):
+   initialised from its parent's result, improved by a coarse search over
+   rotations about the joint centre
+   (:func:`registration.rigid.coarse_rotation_search`), then refined by
+   intensity (Rhee Eq. 1) or by surfaces (Kurihara §3 ICP).
+3. **Checks.**  Each bone's fit is ``ok`` or is reported with the reason
+   (outside the field of view, optimiser not converged, normalised
+   cross-correlation below ``min_ncc``), the scan, the bone and the metric.
+
+Then, over all scans: each joint's centre by Kurihara Eq. 1
+(:func:`registration.joint_centers.estimate_joint_center`) with hinge
+detection, the hinge's centre placed on its axis nearest the bones' contact
+region (the mean midpoint of the closest voxel pairs of the two bones in the
+template), and each scan's joint angles (:meth:`Joint.angles_from_motion`,
+intrinsic XYZ in the skeleton's joint frame).  Poses use the same schema as
+the phantoms' truth (:class:`deformation.skeleton.Pose`), so estimate and
+truth compare with :func:`compare_poses`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from deformation.geometry import Volume
+from deformation.skeleton import Joint, Pose, Skeleton
+from deformation.transforms import apply, compose, invert, rotation_angle_deg
+
+from .joint_centers import JointCenterResult, estimate_joint_center
+from .rigid import BoneFit, BoneRegion, Sampler, bone_regions, smooth, coarse_rotation_search, refine_intensity, refine_surface
+
+__all__ = ["METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
+           "compare_poses", "joint_errors", "moments_init"]
+
+METHODS = ("intensity", "surface")
+COARSE_SMOOTH = 1.5  # voxels: Gaussian blur of both images for the joint grid search
+
+
+@dataclass
+class ScanPose:
+    scan_id: str
+    pose: Pose
+    fits: dict[str, BoneFit]
+    seconds: float
+
+    @property
+    def failures(self) -> list[BoneFit]:
+        return [f for f in self.fits.values() if not f.ok]
+
+
+@dataclass
+class PoseResult:
+    method: str
+    scans: list[ScanPose]
+    joints: dict[str, JointCenterResult]
+    skeleton: Skeleton  # the input skeleton with estimated joint centres
+    contacts: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def failures(self) -> list[dict]:
+        return [{"scan": s.scan_id, "bone": f.bone, "status": f.status, "ncc": f.ncc, "ssd": f.ssd_after,
+                 "stop": f.stop} for s in self.scans for f in s.failures]
+
+    def joints_dict(self) -> dict:
+        out = {}
+        for name, r in self.joints.items():
+            j = self.skeleton.joint(name)
+            out[name] = {"parent": j.parent, "child": j.child, "dof": j.dof, "center": r.center.tolist(),
+                         "rms_mm": r.rms_mm, "per_scan_mm": r.per_motion_mm.tolist(), "n_motions": r.n_motions,
+                         "is_hinge": r.is_hinge, "axis": r.axis.tolist(),
+                         "singular_values": r.singular_values.tolist(),
+                         "iterative_center": None if r.iterative_center is None else r.iterative_center.tolist(),
+                         "closed_form_vs_iterative_mm": (None if r.iterative_center is None else
+                                                         float(np.linalg.norm(r.iterative_center - r.center))),
+                         "contact_point": self.contacts[name].tolist() if name in self.contacts else None,
+                         "max_rotation_deg": float(max((rotation_angle_deg(self.skeleton.relative_motion(
+                             s.pose.transforms, name)) for s in self.scans), default=0.0)),
+                         "note": r.message}
+        return out
+
+    def overall_rms_mm(self) -> float:
+        """RMS of Eq. 1's residual over all joints and moving scans (Kurihara's 0.91 mm figure)."""
+        res = np.concatenate([r.per_motion_mm for r in self.joints.values()] or [np.zeros(0)])
+        return float(np.sqrt(np.mean(res**2))) if res.size else math.nan
+
+
+def moments_init(template: Volume, scan: Volume) -> np.ndarray:
+    """Template → scan translation that aligns the images' centres of mass (SimpleITK MOMENTS)."""
+    import SimpleITK as sitk
+
+    f = template.to_sitk()
+    m = scan.to_sitk()
+    f = sitk.Cast(f, sitk.sitkFloat32) - float(np.min(template.data))  # moments of non-negative mass
+    m = sitk.Cast(m, sitk.sitkFloat32) - float(np.min(scan.data))
+    tx = sitk.CenteredTransformInitializer(f, m, sitk.Euler3DTransform(),
+                                           sitk.CenteredTransformInitializerFilter.MOMENTS)
+    t = np.eye(4)
+    t[:3, 3] = tx.GetTranslation()
+    return t
+
+
+def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skeleton, *, method: str = "intensity",
+                  root_init=None, coarse: bool = True, min_ncc: float = 0.5, interpolation: int = 3,
+                  prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc", coarse_regions=None,
+                  progress=None) -> dict[str, BoneFit]:
+    """Every bone's template → scan transform, root first, then down the hierarchy.
+
+    ``regions`` come from :func:`bone_regions` on the template smoothed by
+    ``smooth_voxels``; ``coarse_regions`` (optional) from the template
+    smoothed by :data:`COARSE_SMOOTH` voxels, for the joint grid search, whose
+    wider blur widens the capture basin (on the 2x-resolution knee the
+    fibula's grid search otherwise locked onto the tibia).
+    ``root_init`` is the root's initial 4x4 (identity by default);
+    ``progress(bone, done, total, fit)`` is called after each bone.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    sampler = Sampler(scan, order=interpolation, smooth_voxels=smooth_voxels)
+    coarse_sampler = None
+    if method == "intensity":
+        def refine(region, sampler, init, min_ncc, root=False):
+            return refine_intensity(region, sampler, init, min_ncc=min_ncc, prior_deg=None if root else prior_deg,
+                                    multires=root, metric=metric)
+    else:
+        refine = refine_surface
+    fits: dict[str, BoneFit] = {}
+    for k, name in enumerate(skeleton.order):
+        region = regions[name]
+        joint = skeleton.joint_of(name)
+        t0 = time.perf_counter()
+        if joint is None:
+            init = np.eye(4) if root_init is None else np.asarray(root_init, float)
+            how = "root initial pose"
+        else:
+            parent_t = fits[joint.parent].transform
+            if coarse:
+                if coarse_sampler is None:
+                    coarse_sampler = Sampler(scan, order=3, smooth_voxels=max(COARSE_SMOOTH, smooth_voxels))
+                init, _, n = coarse_rotation_search((coarse_regions or regions)[name], coarse_sampler, parent_t, joint,
+                                                    metric=metric)
+                how = f"parent + coarse search about the joint ({n} evaluations)"
+            else:
+                init, how = parent_t.copy(), "parent"
+        fit = (refine(region, sampler, init, min_ncc=min_ncc, root=True) if joint is None and method == "intensity"
+               else refine(region, sampler, init, min_ncc=min_ncc))
+        fit.init = how
+        fit.seconds = time.perf_counter() - t0
+        fits[name] = fit
+        if progress is not None:
+            progress(name, k + 1, len(skeleton.order), fit)
+    return fits
+
+
+def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None = None) -> np.ndarray:
+    """Mean midpoint of the closest voxel pairs of labels ``a`` and ``b`` (world mm).
+
+    All pairs within ``tolerance_mm`` (default one voxel diagonal) of the
+    closest pair count, so a joint with two contact areas (the knee's
+    condyles) gets a point between them.
+    """
+    g = labels.geometry
+    lab = np.asarray(labels.data)
+
+    def pts(v):
+        k, j, i = np.nonzero(lab == v)
+        return g.index_to_world(np.column_stack([i, j, k]).astype(float))
+
+    pa, pb = pts(a), pts(b)
+    if len(pa) == 0 or len(pb) == 0:
+        raise ValueError(f"labels {a} and {b} must both be present to find their contact")
+    d, idx = cKDTree(pb).query(pa)
+    tol = float(np.linalg.norm(g.spacing)) if tolerance_mm is None else tolerance_mm
+    near = d <= d.min() + tol
+    return 0.5 * (pa[near] + pb[idx[near]]).mean(axis=0)
+
+
+def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *,
+                   method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
+                   interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
+                   hinge_ratio: float = 0.05, progress=None) -> PoseResult:
+    """Register every bone in every scan, then estimate joint centres and angles.
+
+    Parameters
+    ----------
+    scans : dict scan id → :class:`Volume` (or a callable returning it, to load lazily)
+    root_init : None, ``"identity"``, ``"moments"``, or dict scan id → 4x4 root transform
+    progress : callable(scan_id, scan_index, n_scans, bone, done, total, fit), optional
+    """
+    regions = bone_regions(smooth(template, smooth_voxels), labels, skeleton)
+    coarse_regions = (bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton)
+                      if coarse else None)
+    results = []
+    ids = list(scans)
+    for si, sid in enumerate(ids):
+        t0 = time.perf_counter()
+        scan = scans[sid]() if callable(scans[sid]) else scans[sid]
+        if isinstance(root_init, dict):
+            r0 = root_init.get(sid)
+        elif root_init == "moments":
+            r0 = moments_init(template, scan)
+        else:
+            r0 = None
+        cb = None if progress is None else (lambda b, d, n, f, sid=sid, si=si: progress(sid, si, len(ids), b, d, n, f))
+        fits = register_scan(regions, scan, skeleton, method=method, root_init=r0, coarse=coarse, min_ncc=min_ncc,
+                             interpolation=interpolation, prior_deg=prior_deg, smooth_voxels=smooth_voxels,
+                             coarse_regions=coarse_regions, metric=metric,
+                             progress=cb)
+        transforms = {b: fits[b].transform for b in skeleton.order}
+        results.append(ScanPose(sid, Pose(transforms, skeleton=skeleton.name), fits, time.perf_counter() - t0))
+    joints, contacts, new_joints = {}, {}, []
+    for j in skeleton.joints:
+        motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in results]
+        contacts[j.name] = contact_point(labels, skeleton.label_of(j.parent), skeleton.label_of(j.child))
+        try:
+            r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio)
+        except ValueError:  # the joint never moves: keep the skeleton's centre
+            r = None
+        if r is None:
+            new_joints.append(j)
+            continue
+        joints[j.name] = r
+        new_joints.append(Joint(j.name, j.parent, j.child, j.dof, tuple(r.center), j.axes))
+    est = Skeleton(skeleton.bones, new_joints, name=skeleton.name)
+    for s in results:
+        angles, centres = {}, {}
+        for j in est.joints:
+            m = est.relative_motion(s.pose.transforms, j.name)
+            angles[j.name] = j.angles_from_motion(m)
+            centres[j.name] = apply(s.pose.transforms[j.parent], j.center)
+        s.pose = Pose(s.pose.transforms, joint_angles=angles, joint_centers=centres, skeleton=skeleton.name)
+    return PoseResult(method, results, joints, est, contacts)
+
+
+# -- accuracy against ground truth ---------------------------------------------------------------------
+def compare_poses(estimate: Pose, truth: Pose, centroids: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Per-bone error of an estimated pose against the truth.
+
+    Rotation error: the angle of ``T_true⁻¹ T_est`` (degrees).  Translation
+    error: the distance between where the two transforms put the bone's
+    template centroid (mm) — independent of where the world origin is.
+    """
+    out = {}
+    for b, t_true in truth.transforms.items():
+        if b not in estimate.transforms:
+            continue
+        t_est = estimate.transforms[b]
+        c = np.asarray(centroids[b], float)
+        out[b] = {"rotation_deg": rotation_angle_deg(compose(invert(t_true), t_est)),
+                  "translation_mm": float(np.linalg.norm(apply(t_est, c) - apply(t_true, c)))}
+    return out
+
+
+def joint_errors(result: PoseResult, true_skeleton: Skeleton) -> dict[str, dict]:
+    """Joint-centre accuracy against a skeleton holding the true centres and axes.
+
+    Well-conditioned joints: the distance between the estimated and true
+    centres.  Hinge-like joints: the distance from the true centre to the
+    estimated axis line, and the angle between the estimated axis and the
+    true joint axis nearest to it (the rotation axis of the joint's motions).
+    """
+    out = {}
+    for name, r in result.joints.items():
+        tj = true_skeleton.joint(name)
+        c_true = np.asarray(tj.center)
+        e = {"dof": tj.dof, "is_hinge": r.is_hinge, "center_error_mm": float(np.linalg.norm(r.center - c_true))}
+        if r.is_hinge:
+            d = c_true - r.center
+            e["center_to_axis_mm"] = float(np.linalg.norm(d - r.axis * (r.axis @ d)))
+            cosines = np.abs(tj.axes.T @ r.axis)
+            e["axis_error_deg"] = float(np.degrees(np.arccos(np.clip(cosines.max(), -1.0, 1.0))))
+            e["axis_vs"] = "xyz"[int(np.argmax(cosines))]
+        out[name] = e
+    return out
