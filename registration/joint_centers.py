@@ -75,7 +75,9 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
     hinge_ratio : float
         Smallest/largest singular value below which the joint counts as a hinge.
     cross_check : bool
-        Also minimise Eq. 1 with BFGS from the reference (or the origin).
+        Also minimise Eq. 1 with BFGS from the reference (or the origin) —
+        for a hinge, on the plane through the reference perpendicular to the
+        axis, the problem the closed form solves there.
     """
     ms = [np.asarray(m, float) for m in motions]
     moving = [m for m in ms if not np.allclose(m, np.eye(4), atol=1e-12)]
@@ -102,7 +104,16 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
     it = None
     if cross_check:
         x0 = np.zeros(3) if reference is None else np.asarray(reference, float)
-        it = minimize(eq1_energy, x0, args=(moving,), method="BFGS", options={"gtol": 1e-10}).x
+        if is_hinge:
+            # The same problem on the plane through the start point perpendicular to the axis: Eq. 1 is nearly
+            # flat along the axis, so an unconstrained descent stops anywhere along it.
+            basis = vt[:2].T
+            p0 = x0 if reference is not None else c
+            y = minimize(lambda y: eq1_energy(p0 + basis @ y, moving), np.zeros(2), method="BFGS",
+                         options={"gtol": 1e-10}).x
+            it = p0 + basis @ y
+        else:
+            it = minimize(eq1_energy, x0, args=(moving,), method="BFGS", options={"gtol": 1e-10}).x
     return JointCenterResult(center=c, rms_mm=float(np.sqrt(np.mean(per**2))), per_motion_mm=per,
                              singular_values=s, is_hinge=is_hinge, axis=axis, n_motions=len(moving),
                              iterative_center=it, message=msg)

@@ -129,15 +129,16 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
     sampler = Sampler(scan, order=interpolation, smooth_voxels=smooth_voxels)
     coarse_sampler = None
     if method == "intensity":
-        def refine(region, sampler, init, min_ncc, root=False):
+        def refine(region, sampler, init, min_ncc, root=False, prior_center=None):
             return refine_intensity(region, sampler, init, min_ncc=min_ncc, prior_deg=None if root else prior_deg,
-                                    multires=root, metric=metric)
+                                    multires=root, metric=metric, prior_center=prior_center)
     else:
         refine = refine_surface
     fits: dict[str, BoneFit] = {}
     for k, name in enumerate(skeleton.order):
         region = regions[name]
         joint = skeleton.joint_of(name)
+        prior_center = None
         t0 = time.perf_counter()
         if joint is None:
             init = np.eye(4) if root_init is None else np.asarray(root_init, float)
@@ -147,13 +148,20 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             if coarse:
                 if coarse_sampler is None:
                     coarse_sampler = Sampler(scan, order=3, smooth_voxels=max(COARSE_SMOOTH, smooth_voxels))
-                init, _, n = coarse_rotation_search((coarse_regions or regions)[name], coarse_sampler, parent_t, joint,
-                                                    metric=metric)
-                how = f"parent + coarse search about the joint ({n} evaluations)"
+                init, _, n, ang = coarse_rotation_search((coarse_regions or regions)[name], coarse_sampler, parent_t,
+                                                         joint, metric=metric)
+                how = (f"parent + grid search about the joint ({n} evaluations): flexion {ang[0]:.1f}°, "
+                       f"abduction {ang[1]:.1f}°, twist {ang[2]:.1f}°")
+                prior_center = compose(parent_t, joint.motion(np.r_[ang[0], np.zeros(joint.dof - 1)]))
             else:
                 init, how = parent_t.copy(), "parent"
-        fit = (refine(region, sampler, init, min_ncc=min_ncc, root=True) if joint is None and method == "intensity"
-               else refine(region, sampler, init, min_ncc=min_ncc))
+        if joint is None:
+            fit = refine(region, sampler, init, min_ncc=min_ncc, root=True) if method == "intensity" else \
+                refine(region, sampler, init, min_ncc=min_ncc)
+        elif method == "intensity":
+            fit = refine(region, sampler, init, min_ncc=min_ncc, prior_center=prior_center)
+        else:
+            fit = refine(region, sampler, init, min_ncc=min_ncc)
         fit.init = how
         fit.seconds = time.perf_counter() - t0
         fits[name] = fit

@@ -288,7 +288,9 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
     count down, a first grid at twice that step keeps its ``top`` candidates
     and only their neighbourhoods are searched at the full step.  The SSD uses
     ``max_points`` seeded random points of the region and evaluates a batch of
-    candidates per interpolation call.  Returns ``(transform, ssd, evaluations)``.
+    candidates per interpolation call.  Returns ``(transform, cost,
+    evaluations, angles)`` with ``angles`` the winning (flexion, abduction,
+    twist) in degrees.
     """
     c = np.asarray(joint.center if center is None else center, float)
     a = joint.axes
@@ -324,7 +326,7 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
     n = len(grid)
     order = np.argsort(e)[:top]
     if not np.isfinite(e[order[0]]):
-        return parent_transform.copy(), math.inf, n
+        return parent_transform.copy(), math.inf, n, np.zeros(3)
     # Stage 2: the geometric step around each of them.
     local = np.array(np.meshgrid(*[np.arange(-coarse_step, coarse_step + 1e-9, step)] * 3,
                                  indexing="ij")).reshape(3, -1).T
@@ -350,7 +352,7 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
         if h <= 1.0:
             break
         h /= 2
-    return transforms(best_angles[None])[0], best, n
+    return transforms(best_angles[None])[0], best, n, best_angles
 
 
 # -- Eq. 1 through SimpleITK ---------------------------------------------------------------------------
@@ -396,7 +398,8 @@ def _levels(region: BoneRegion, multires: bool) -> tuple[list[int], list[float]]
 
 def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, iterations: int = 300,
                      prior_deg: float | None = 2.0, prior_mm: float | None = 2.0, multires: bool = False,
-                     metric: str = "ncc", min_ncc: float = 0.5, min_inside: float = 0.5) -> BoneFit:
+                     metric: str = "ncc", prior_center: np.ndarray | None = None, min_ncc: float = 0.5,
+                     min_inside: float = 0.5) -> BoneFit:
     """Rhee Eq. 1: minimise the SSD over the bone region with SimpleITK, from ``init``.
 
     SimpleITK's ``ImageRegistrationMethod`` minimises mean squares over the
@@ -453,7 +456,15 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
              "sitk_stop": stop}
     not_converged = iters[0] >= iterations * len(shrink)
     if prior_deg is not None:
-        t, info = polish_with_prior(region, sampler, init, t, prior_deg=prior_deg, prior_mm=prior_mm, metric=metric)
+        centre = init if prior_center is None else np.asarray(prior_center, float)
+        sigma = _data_sigma(region, sampler, t, metric)
+        runs = [polish_with_prior(region, sampler, centre, t, prior_deg=prior_deg, prior_mm=prior_mm, metric=metric,
+                                  sigma=sigma)]
+        if prior_center is not None:  # also from the prior's centre: the grid search may have taken a wrong basin
+            runs.append(polish_with_prior(region, sampler, centre, centre, prior_deg=prior_deg, prior_mm=prior_mm,
+                                          metric=metric, sigma=sigma))
+        t, info = min(runs, key=lambda r: r[1].get("cost", math.inf))
+        info["polish_starts"] = len(runs)
         extra.update(info)
         not_converged = not info.get("converged", True)
         stop = info.get("message", stop)
@@ -470,9 +481,26 @@ def _increment(x: np.ndarray, reference: np.ndarray, center: np.ndarray) -> np.n
     return compose(d, reference)
 
 
+def _data_residuals(v: np.ndarray, ref: np.ndarray, metric: str) -> np.ndarray:
+    if metric == "ncc":  # after the best linear intensity map a·v + b, in closed form (variable projection)
+        vc = v - v.mean()
+        den = float(vc @ vc)
+        a = float(vc @ (ref - ref.mean())) / den if den > 0 else 0.0
+        return a * vc + ref.mean() - ref
+    return v - ref
+
+
+def _data_sigma(region: BoneRegion, sampler: Sampler, t: np.ndarray, metric: str) -> float:
+    v = sampler(apply(t, region.points))
+    ok = np.isfinite(v)
+    if ok.sum() < 12:
+        return math.nan
+    return math.sqrt(max(float(np.mean(_data_residuals(v[ok], region.values[ok], metric) ** 2)), 1e-12))
+
+
 def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, start: np.ndarray, *,
-                      prior_deg: float = 2.0, prior_mm: float | None = 2.0,
-                      metric: str = "ncc") -> tuple[np.ndarray, dict]:
+                      prior_deg: float = 2.0, prior_mm: float | None = 2.0, metric: str = "ncc",
+                      sigma: float | None = None) -> tuple[np.ndarray, dict]:
     """Eq. 1 plus a weak Gaussian prior tying the bone to its hierarchical initialisation.
 
     A bone that is nearly symmetric about an axis (a phalanx or fibula about
@@ -482,9 +510,11 @@ def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, st
         Σ_x (I_scan(T x) − I_template(x))² / σ² + |θ|² / τ_θ² + |t|² / τ_t²
 
     where ``(θ, t)`` is ``T``'s rotation (degrees, about the bone's centroid)
-    and translation relative to ``init`` (the parent's transform with the
-    coarse joint rotation), and ``σ²`` the mean squared residual of the plain
-    Eq. 1 fit.  Directions the image determines well are practically
+    and translation relative to ``init`` (the prior's centre: the parent's
+    transform turned by the joint's flexion from the grid search, other joint
+    angles zero — joints move mostly in flexion), and ``σ²`` the mean squared
+    residual of the plain Eq. 1 fit (``sigma``, so that costs from several
+    starts compare).  Directions the image determines well are practically
     unchanged (their data curvature is orders of magnitude above ``1/τ²``);
     undetermined ones stay at the initialisation instead of fitting noise
     (MAP estimation; Gauss–Newton through :func:`scipy.optimize.least_squares`
@@ -505,28 +535,35 @@ def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, st
     pts, ref = region.points[ok], region.values[ok]
 
     def data_residuals(v):
-        if metric == "ncc":  # the best linear intensity map a·v + b, in closed form (variable projection)
-            vc = v - v.mean()
-            den = float(vc @ vc)
-            a = float(vc @ (ref - ref.mean())) / den if den > 0 else 0.0
-            return a * vc + ref.mean() - ref
-        return v - ref
+        return _data_residuals(v, ref, metric)
 
-    sigma = math.sqrt(max(float(np.mean(data_residuals(vals0[ok]) ** 2)), 1e-12))
+    if sigma is None or not np.isfinite(sigma):
+        sigma = math.sqrt(max(float(np.mean(data_residuals(vals0[ok]) ** 2)), 1e-12))
     w = np.array([1 / prior_deg] * 3 + [0.0 if prior_mm is None else 1 / prior_mm] * 3)
 
-    def residuals(x):
+    def residuals(y):
+        # y: the change from ``start`` (so the solver starts at exactly 0: its first trust region is sized
+        # from |x0|, which is round-off small when start == init, and it then stopped after one tiny step).
+        x = x0 + y
         v = sampler(apply(_increment(x, init, c), pts))
         v = np.where(np.isfinite(v), v, ref)  # points leaving the grid stop contributing
         return np.concatenate([data_residuals(v) / sigma, w * x])
 
-    res = least_squares(residuals, x0, method="trf", x_scale=1.0, diff_step=1e-3, xtol=1e-6, ftol=1e-9)
+    def jacobian(x, f0=None):
+        # Forward differences with absolute steps of 0.01° and 0.01 mm.  (SciPy's relative diff_step scales
+        # with |x|, so at the start, where x is round-off close to 0, its Jacobian was exactly zero.)
+        f0 = residuals(x) if f0 is None else f0
+        h = 1e-2
+        return np.column_stack([(residuals(x + h * e) - f0) / h for e in np.eye(6)])
+
+    res = least_squares(residuals, np.zeros(6), jac=jacobian, method="trf", x_scale=1.0, xtol=1e-8, ftol=1e-10)
     j = res.jac
     cov = np.linalg.pinv(j.T @ j)
     sd = np.sqrt(np.clip(np.linalg.eigvalsh(cov[:3, :3]), 0, None))
     sd_t = np.sqrt(np.clip(np.linalg.eigvalsh(cov[3:, 3:]), 0, None))
-    t = _increment(res.x, init, c)
+    t = _increment(x0 + res.x, init, c)
     return t, {"prior_deg": prior_deg, "prior_mm": prior_mm, "residual_sigma": sigma, "metric": metric,
+               "cost": float(2 * res.cost),
                "converged": bool(res.status > 0), "message": f"polish: {res.message}", "polish_evaluations": int(res.nfev),
                "rotation_sd_deg": float(sd.max()), "translation_sd_mm": float(sd_t.max()),
                "change_from_eq1_deg": rotation_angle_deg(compose(t, np.linalg.inv(start)))}

@@ -14,14 +14,16 @@ every file by role, with paths relative to the folder::
         {"id": "pose00", "image": "scans/pose00.nii.gz",
          "truth": {"correspondence": "truth/pose00_correspondence.mha",
                    "pose": "truth/pose00_pose.json",
-                   "markers": "truth/pose00_markers.json"}},
+                   "markers": "truth/pose00_markers.json"},
+         "pose": "poses/pose00_pose.json"},
         ...
       ],
       "phantom": {...generator parameters...},
       "stages": {}
     }
 
-``truth`` is optional (a user's own study has none).  The correspondence
+``truth`` is optional (a user's own study has none); ``pose`` appears once
+``workbench pose`` has run, in the same schema as the truth pose.  The correspondence
 field is ``scan_to_template``: an ITK displacement field on the scan's grid
 whose vector at scan voxel ``x`` is ``template_position − x`` in mm, so
 ``sitk.DisplacementFieldTransform`` resamples the template onto the scan
@@ -102,6 +104,17 @@ class Study:
     def truth_pose(self, scan_id: str) -> Pose:
         return Pose.from_dict(read_json(self.path(self._scan_entry(scan_id)["truth"]["pose"])))
 
+    def has_pose(self, scan_id: str) -> bool:
+        return "pose" in self._scan_entry(scan_id)
+
+    def pose(self, scan_id: str) -> Pose:
+        """The estimated pose of a scan (``workbench pose``); same schema as :meth:`truth_pose`."""
+        entry = self._scan_entry(scan_id)
+        if "pose" not in entry:
+            raise StudyError(f"scan {scan_id!r} has no estimated pose yet; run `workbench pose {self.root}`.",
+                             self.root / MANIFEST)
+        return Pose.from_dict(read_json(self.path(entry["pose"])))
+
     def truth_correspondence(self, scan_id: str) -> Volume:
         """The ``scan_to_template`` displacement field of a scan (template position − voxel position, mm)."""
         return read_displacement(self.path(self._scan_entry(scan_id)["truth"]["correspondence"]))
@@ -143,6 +156,8 @@ def read_study(folder: str | os.PathLike) -> Study:
                 raise StudyError(f"{manifest_path}: scans[{i}]['truth'] must name 'correspondence', 'pose' "
                                  "and 'markers' files.", manifest_path)
             files.extend(truth[k] for k in ("correspondence", "pose", "markers"))
+        if "pose" in s:  # written by `workbench pose`
+            files.append(s["pose"])
     for f in files:
         if not isinstance(f, str):
             raise StudyError(f"{manifest_path}: file entries must be strings (paths), got {f!r}.", manifest_path)

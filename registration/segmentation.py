@@ -1,0 +1,246 @@
+"""Template bone segmentation from seeds (Rhee §3.1; Kurihara §2).
+
+The pose pipeline needs each bone's voxels in the template.  When the study
+has a label map it is used as it is.  Otherwise the bones are segmented from
+the template image and a **seeds file** — one or more world points (mm)
+inside each bone, the manual step both papers had (Rhee segmented MRI by
+graph cut from user strokes, Kurihara thresholded CT)::
+
+    {"format": "avw-seeds", "version": 1, "units": "mm",
+     "seeds": {"femur": [[x, y, z], ...], "tibia": [[x, y, z]], ...}}
+
+* **CT-like** (:func:`segment_ct`): threshold (bone is the brightest
+  tissue; default 400 HU, about a third of the way between soft tissue and cortical
+  bone, so that partial-volume voxels count as bone when they are more than
+  half bone), fill the marrow cavities, connected components
+  (SimpleITK), each component given to the bone whose seed it holds.  Bones
+  that touch at the scan's resolution share a component; it is split by a
+  marker-controlled watershed (SimpleITK) of the negated distance to the
+  mask's edge, whose ridges run through the necks where bones touch.
+* **MRI-like** (:func:`segment_mri`): seeded region growing (SimpleITK
+  ``ConfidenceConnected``) from each bone's seeds through the marrow, which
+  is bright and enclosed by the dark cortex, then one voxel of dilation to
+  take the cortex in; voxels claimed by two bones go to the nearer seed
+  region.  A growth that leaks out of the bone (more than ``max_volume_ml``)
+  (it touches the air, or exceeds ``max_volume_ml`` or a quarter of the
+  body's volume) is retried with a tighter
+  intensity band, and dropped and reported if it still leaks.
+
+Both return a label map on the image's grid with the skeleton's label ids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from deformation.geometry import Volume
+from workbench.errors import InputFileError
+from workbench.jsonio import read_json
+
+__all__ = ["SEEDS_FORMAT", "read_seeds", "seeds_from_labels", "segment_ct", "segment_mri", "segment_bones",
+           "SegmentationReport", "guess_modality"]
+
+SEEDS_FORMAT = "avw-seeds"
+
+
+@dataclass
+class SegmentationReport:
+    method: str
+    voxels: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    parameters: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"method": self.method, "voxels": self.voxels, "warnings": self.warnings,
+                "parameters": self.parameters}
+
+
+def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
+    """Read a seeds file; every skeleton bone needs at least one point."""
+    d = read_json(path)
+    if d.get("format") != SEEDS_FORMAT:
+        raise InputFileError(f"{path}: not a seeds file ('format' is {d.get('format')!r}, expected "
+                             f"{SEEDS_FORMAT!r}); see `workbench pose --help` for the schema.", path)
+    seeds = d.get("seeds")
+    if not isinstance(seeds, dict):
+        raise InputFileError(f"{path}: 'seeds' must map bone names to lists of [x, y, z] points (mm).", path)
+    unknown = sorted(set(seeds) - set(skeleton.bone_names))
+    if unknown:
+        raise InputFileError(f"{path}: unknown bones {unknown}; the skeleton has {skeleton.bone_names}.", path)
+    missing = [b for b in skeleton.bone_names if b not in seeds]
+    if missing:
+        raise InputFileError(f"{path}: no seed for bones {missing}; give at least one point inside each bone.", path)
+    out = {}
+    for b, pts in seeds.items():
+        a = np.asarray(pts, dtype=float)
+        if a.ndim == 1:
+            a = a[None]
+        if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0 or not np.all(np.isfinite(a)):
+            raise InputFileError(f"{path}: seeds of {b!r} must be a list of [x, y, z] points in mm, got {pts!r}.",
+                                 path)
+        out[b] = a
+    return out
+
+
+def seeds_from_labels(labels: Volume, skeleton) -> dict[str, np.ndarray]:
+    """One seed per bone: the voxel deepest inside it (world mm) — to write a seeds file from a label map."""
+    lab = np.asarray(labels.data)
+    g = labels.geometry
+    out = {}
+    for b in skeleton.bones:
+        m = lab == b.label
+        if not m.any():
+            raise ValueError(f"bone {b.name!r} (label {b.label}) is absent from the label map")
+        d = ndimage.distance_transform_edt(m, sampling=np.asarray(g.spacing)[::-1])
+        k, j, i = np.unravel_index(int(np.argmax(d)), d.shape)
+        out[b.name] = g.index_to_world(np.array([[i, j, k]], float))
+    return out
+
+
+def guess_modality(image: Volume) -> str:
+    """``"ct"`` when the image holds Hounsfield-like values (air below −500), else ``"mri"``."""
+    return "ct" if float(np.percentile(image.data, 1)) < -500 else "mri"
+
+
+def _seed_indices(image: Volume, seeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    g = image.geometry
+    out = {}
+    for b, pts in seeds.items():
+        ijk = np.rint(g.world_to_index(pts)).astype(int)
+        inside = np.all((ijk >= 0) & (ijk < np.asarray(g.size)), axis=1)
+        if not inside.all():
+            raise ValueError(f"seed(s) of bone {b!r} at {pts[~inside].tolist()} mm lie outside the image "
+                             f"({g.describe()}); seeds are world coordinates in mm")
+        out[b] = ijk
+    return out
+
+
+def _fill_cavities(mask: np.ndarray) -> np.ndarray:
+    """Fill enclosed cavities (the marrow inside the cortex): in 3-D, and slice by slice along each axis, so
+    that a long bone leaving the field of view, whose marrow tube is open at the image edge, is filled too."""
+    out = ndimage.binary_fill_holes(mask)
+    for axis in range(3):
+        moved = np.moveaxis(out, axis, 0)
+        filled = np.stack([ndimage.binary_fill_holes(s) for s in moved])
+        out = out | np.moveaxis(filled, 0, axis)
+    return out
+
+
+def segment_ct(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, threshold: float = 400.0,
+               smoothing_voxels: float = 1.0) -> tuple[Volume, SegmentationReport]:
+    """Threshold, fill, connected components, split shared components by watershed (see module doc)."""
+    import SimpleITK as sitk
+
+    rep = SegmentationReport("ct threshold + components + watershed",
+                             parameters={"threshold": threshold, "smoothing_voxels": smoothing_voxels})
+    idx = _seed_indices(image, seeds)
+    data = np.asarray(image.data, dtype=np.float32)
+    mask = _fill_cavities(data > threshold)
+    comp, n = ndimage.label(mask)
+    label_of = {b.name: b.label for b in skeleton.bones}
+    markers = np.zeros(data.shape, np.uint16)
+    for b, ijk in idx.items():
+        markers[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = label_of[b]
+    out = np.zeros(data.shape, np.uint16)
+    # Flooding relief: the negated distance to the mask's edge (mm).  Bone interiors are deep basins; where two
+    # bones touch, the mask narrows to a neck, a ridge of the relief, and the fronts from the seeds meet there.
+    # (The negated intensity fails: a seed next to the bright cortex floods every touching bone's cortex first.)
+    relief = -ndimage.distance_transform_edt(mask, sampling=np.asarray(image.geometry.spacing)[::-1])
+    for c in range(1, n + 1):
+        inside = comp == c
+        present = np.unique(markers[inside & (markers > 0)])
+        if len(present) == 0:
+            continue  # a bright structure without a seed (a calcification, the table): not a bone of ours
+        if len(present) == 1:
+            out[inside] = present[0]
+            continue
+        # Several bones in one component: watershed of the gradient from their seeds, inside the component.
+        bb = ndimage.find_objects(inside.astype(np.uint8))[0]
+        g = np.where(inside[bb], relief[bb], 1.0).astype(np.float32)
+        mk = np.where(inside[bb], markers[bb], 0).astype(np.uint16)
+        mk[~ndimage.binary_dilation(inside[bb], iterations=1)] = 0
+        bg = np.uint16(max(present) + 1)
+        mk[~inside[bb]] = bg  # everything outside the component is its own basin
+        ws = sitk.GetArrayFromImage(sitk.MorphologicalWatershedFromMarkers(
+            sitk.GetImageFromArray(g), sitk.GetImageFromArray(mk), markWatershedLine=False, fullyConnected=True))
+        sub = out[bb]
+        sel = inside[bb] & (ws != bg)
+        sub[sel] = ws[sel]
+    for b in skeleton.bones:
+        rep.voxels[b.name] = int((out == b.label).sum())
+        if rep.voxels[b.name] == 0:
+            rep.warnings.append(f"bone {b.name!r}: its seed is not above the threshold {threshold}; "
+                                "move the seed into the bone or lower --threshold")
+    return Volume(out, image.geometry), rep
+
+
+def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, multiplier: float = 3.0,
+                max_volume_ml: float = 1500.0, cortex_voxels: int = 1) -> tuple[Volume, SegmentationReport]:
+    """Seeded region growing through the marrow, then the cortex by dilation (see module doc)."""
+    import SimpleITK as sitk
+
+    rep = SegmentationReport("mri seeded region growing (ConfidenceConnected)",
+                             parameters={"multiplier": multiplier, "max_volume_ml": max_volume_ml,
+                                         "cortex_voxels": cortex_voxels})
+    idx = _seed_indices(image, seeds)
+    img = sitk.Cast(image.to_sitk(), sitk.sitkFloat32)
+    img = sitk.CurvatureFlow(img, timeStep=0.0625, numberOfIterations=5)  # edge-preserving denoising
+    voxel_ml = float(np.prod(image.geometry.spacing)) / 1000.0
+    # Air: below Otsu's threshold between air and tissue.  A bone never touches air, so a grown region that
+    # does has leaked (into the bright subcutaneous fat, typically).
+    raw = sitk.Cast(image.to_sitk(), sitk.sitkFloat32)
+    air = sitk.GetArrayFromImage(sitk.OtsuThreshold(raw, 1, 0)).astype(bool)
+    near_air = air
+    limit_ml = min(max_volume_ml, 0.25 * float((~air).sum()) * voxel_ml)  # no bone is a quarter of the body
+    rep.parameters["volume_limit_ml"] = round(limit_ml, 1)
+    grown = {}
+    for b in skeleton.bones:
+        seeds_b = [tuple(int(v) for v in p) for p in idx[b.name]]
+        m = multiplier
+        for _ in range(4):
+            r = sitk.GetArrayFromImage(sitk.ConfidenceConnected(img, seedList=seeds_b, numberOfIterations=2,
+                                                                multiplier=m, initialNeighborhoodRadius=1,
+                                                                replaceValue=1)).astype(bool)
+            if r.sum() * voxel_ml <= limit_ml and not (r & near_air).any():
+                break
+            m *= 0.7
+        else:
+            rep.warnings.append(f"bone {b.name!r}: region growing leaked out of the bone (reached the air or "
+                                f"{r.sum() * voxel_ml:.0f} ml) even with a tight intensity band; its voxels are "
+                                "dropped — add seeds, or give a label map")
+            r = np.zeros_like(r)
+        if r.sum() < 8:
+            rep.warnings.append(f"bone {b.name!r}: only {int(r.sum())} voxels grown from its seeds; the marrow may "
+                                "not be resolved at this spacing")
+        r = ndimage.binary_fill_holes(r)
+        if cortex_voxels:
+            r = ndimage.binary_dilation(r, iterations=cortex_voxels)
+        grown[b.name] = r
+    out = np.zeros(image.geometry.array_shape, np.uint16)
+    dist = np.full(out.shape, np.inf)
+    spacing = np.asarray(image.geometry.spacing)[::-1]
+    for b in skeleton.bones:
+        seed_mask = np.zeros(out.shape, bool)
+        ijk = idx[b.name]
+        seed_mask[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = True
+        d = ndimage.distance_transform_edt(~seed_mask, sampling=spacing)  # overlaps go to the nearer seed
+        take = grown[b.name] & (d < dist)
+        out[take] = b.label
+        dist[take] = d[take]
+    for b in skeleton.bones:
+        rep.voxels[b.name] = int((out == b.label).sum())
+    return Volume(out, image.geometry), rep
+
+
+def segment_bones(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, modality: str | None = None,
+                  **kwargs) -> tuple[Volume, SegmentationReport]:
+    """Segment with the method for the modality (``"ct"``/``"mri"``; guessed from the intensities if None)."""
+    modality = modality or guess_modality(image)
+    if modality == "ct":
+        return segment_ct(image, skeleton, seeds, **kwargs)
+    if modality == "mri":
+        return segment_mri(image, skeleton, seeds, **kwargs)
+    raise ValueError(f"modality must be 'ct' or 'mri', got {modality!r}")
