@@ -173,8 +173,8 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
 def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None = None) -> np.ndarray:
     """Mean midpoint of the closest voxel pairs of labels ``a`` and ``b`` (world mm).
 
-    All pairs within ``tolerance_mm`` (default one voxel diagonal) of the
-    closest pair count, so a joint with two contact areas (the knee's
+    All pairs within ``tolerance_mm`` (default the largest voxel spacing) of
+    the closest pair count, from either bone's side, so a joint with two contact areas (the knee's
     condyles) gets a point between them.
     """
     g = labels.geometry
@@ -187,10 +187,14 @@ def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None 
     pa, pb = pts(a), pts(b)
     if len(pa) == 0 or len(pb) == 0:
         raise ValueError(f"labels {a} and {b} must both be present to find their contact")
-    d, idx = cKDTree(pb).query(pa)
-    tol = float(np.linalg.norm(g.spacing)) if tolerance_mm is None else tolerance_mm
-    near = d <= d.min() + tol
-    return 0.5 * (pa[near] + pb[idx[near]]).mean(axis=0)
+    da, ia = cKDTree(pb).query(pa)
+    db, ib = cKDTree(pa).query(pb)
+    tol = float(max(g.spacing)) if tolerance_mm is None else tolerance_mm
+    dmin = min(da.min(), db.min())
+    na, nb = da <= dmin + tol, db <= dmin + tol
+    # Both directions, so that the layers within the tolerance count equally on either side.
+    mids = np.concatenate([0.5 * (pa[na] + pb[ia[na]]), 0.5 * (pb[nb] + pa[ib[nb]])])
+    return mids.mean(axis=0)
 
 
 def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *,

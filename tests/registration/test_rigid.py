@@ -90,12 +90,14 @@ def test_sampler_reproduces_polynomials_and_marks_outside():
     f = 3.0 + 0.5 * x[..., 0] - 0.2 * x[..., 1] + 0.1 * x[..., 2]
     vol = Volume(f.astype(np.float64), GRID)
     rng = np.random.default_rng(0)
-    ijk = rng.uniform([3, 3, 3], np.asarray(GRID.size) - 4, size=(200, 3))
+    ijk = rng.uniform([6, 6, 6], np.asarray(GRID.size) - 7, size=(200, 3))
     p = GRID.index_to_world(ijk)
     truth = 3.0 + 0.5 * p[:, 0] - 0.2 * p[:, 1] + 0.1 * p[:, 2]
-    # Linear and cubic B-spline interpolation both reproduce a linear function exactly (float rounding).
-    for order in (1, 3):
-        np.testing.assert_allclose(Sampler(vol, order=order)(p), truth, atol=1e-6)
+    # Trilinear interpolation reproduces a linear function exactly (float rounding).  The cubic B-spline
+    # does too, up to the mirror boundary's effect, which decays by 0.27 per voxel inwards: ≥ 6 voxels
+    # from the edge it is below 1e-4 (measured 4e-5 on values spanning ±30).
+    np.testing.assert_allclose(Sampler(vol, order=1)(p), truth, atol=1e-9)
+    np.testing.assert_allclose(Sampler(vol, order=3)(p), truth, atol=1e-4)
     far = GRID.index_to_world(np.array([[-2.0, 5.0, 5.0], [5.0, 5.0, GRID.size[2] + 1.0]]))
     assert np.isnan(Sampler(vol)(far)).all()
 
@@ -106,13 +108,20 @@ def test_intensity_registration_recovers_a_known_motion(template):
     truth = motion([3.0, -4.0, 6.0], [2.5, -1.5, 1.0], center=BLOBS[0])
     sampler = Sampler(render(truth), order=3)
     start = compose(motion([2.0, 1.5, -2.0], [1.5, 1.0, -1.0], center=BLOBS[0]), truth)  # ~3° and 2 mm off
-    fit = refine_intensity(region, sampler, start, prior_deg=None)
-    rot, tr = errors(fit.transform, truth, region.centroid)
-    # Exact images, smooth content: Eq. 1's minimum is the truth up to interpolation error (cubic B-spline
-    # on σ = 2.5-voxel blobs: measured ≤ 0.02° / 0.01 mm); 0.1° / 0.05 mm leaves room for the optimiser.
-    assert fit.ok, fit.stop
-    assert rot < 0.1 and tr < 0.05, (rot, tr)
-    assert fit.ssd_after < 0.01 * fit.ssd_before
+    # SimpleITK alone (Eq. 1, regular-step descent): it stops short in rotation (measured 0.11°, 0.004 mm).
+    plain = refine_intensity(region, sampler, start, prior_deg=None)
+    rot, tr = errors(plain.transform, truth, region.centroid)
+    assert plain.ok, plain.stop
+    assert rot < 0.25 and tr < 0.02, (rot, tr)
+    assert plain.ssd_after < 0.05 * plain.ssd_before
+    # With the least-squares polish the minimum is reached: exact images, so only the cubic interpolation
+    # error remains (measured 0.003°, 0.0002 mm).
+    fit = refine_intensity(region, sampler, start, metric="ssd")
+    rot_p, tr_p = errors(fit.transform, truth, region.centroid)
+    assert fit.ok and rot_p < 0.02 and tr_p < 0.005, (rot_p, tr_p)
+    # Trilinear interpolation leaves a larger bias on the same data (measured 0.17°): why cubic is the default.
+    lin = refine_intensity(region, Sampler(render(truth), order=1), start, metric="ssd")
+    assert errors(lin.transform, truth, region.centroid)[0] > 5 * rot_p
 
 
 def test_prior_polish_agrees_with_eq1_when_the_image_determines_the_motion(template):
@@ -123,10 +132,10 @@ def test_prior_polish_agrees_with_eq1_when_the_image_determines_the_motion(templ
     start = compose(motion([1.5, -1.0, 1.0], [1.0, 0.5, 0.5], center=BLOBS[0]), truth)
     fit = refine_intensity(region, sampler, start, prior_deg=2.0)
     rot, tr = errors(fit.transform, truth, region.centroid)
-    # The blob image fixes all six parameters sharply (posterior sd ≪ 0.1°), so the 2° prior pulls the
-    # result by a negligible amount: the same 0.1° / 0.05 mm as plain Eq. 1.
-    assert rot < 0.1 and tr < 0.05, (rot, tr)
-    assert fit.extra["rotation_sd_deg"] < 0.1
+    # The blob image fixes all six parameters sharply (posterior sd measured 0.002°), so the 2° prior,
+    # centred 2° from the truth, moves the result by about (0.002/2)² of that: nothing measurable.
+    assert fit.extra["rotation_sd_deg"] < 0.01
+    assert rot < 0.02 and tr < 0.005, (rot, tr)
 
 
 def test_prior_holds_a_rotation_the_image_cannot_see():
@@ -186,9 +195,10 @@ def test_coarse_search_finds_a_large_flexion():
     truth = sk.forward_kinematics({"j": [65.0, 4.0, -3.0]})["c"]
     scan = Volume(child(apply(invert(truth), x)).reshape(g.array_shape).astype(np.float32), g)
     region = bone_regions(tpl, lab, sk)["c"]
-    t, cost, n = coarse_rotation_search(region, Sampler(scan), np.eye(4), sk.joint("j"))
+    t, cost, n, angles = coarse_rotation_search(region, Sampler(scan), np.eye(4), sk.joint("j"))
     rot, _ = errors(t, truth, region.centroid)
     assert rot < 2.0, rot
+    np.testing.assert_allclose(angles, [65.0, 4.0, -3.0], atol=2.0)
     assert n > 100
 
 

@@ -1,0 +1,116 @@
+"""Bone poses, joint centres and angles of a phantom study against its ground truth (Rhee §3.1, Kurihara §3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deformation.geometry import GridGeometry, Volume
+from registration.pose import contact_point, estimate_poses, register_scan
+from registration.report import accuracy
+from registration.rigid import bone_regions
+
+
+@pytest.fixture(scope="module")
+def knee_result(knee_ct_study):
+    st = knee_ct_study
+    sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
+    res = estimate_poses(tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk)
+    centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
+    acc = accuracy(res, {s: st.truth_pose(s) for s in st.scan_ids}, sk, centroids)
+    return res, acc
+
+
+def test_bone_transforms_match_the_truth(knee_result):
+    res, acc = knee_result
+    assert all(f.ok for s in res.scans for f in s.fits.values()), res.failures()
+    s = acc["summary"]
+    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion (measured: median 0.24° / 0.12 mm,
+    # worst 2.7° / 0.54 mm, the worst being the disc-shaped patella).  Medians as the issue asks;
+    # the worst-bone bounds are regression bounds just above the measured values.
+    assert s["rotation_deg"]["median"] <= 0.5 and s["translation_mm"]["median"] <= 0.5, s
+    assert s["translation_mm"]["max"] <= 1.0, s
+    worst = {b: max(acc["bones"][sid][b]["rotation_deg"] for sid in acc["bones"]) for b in ("femur", "tibia", "fibula")}
+    assert max(worst.values()) <= 2.6, worst
+    assert s["rotation_deg"]["max"] <= 3.5, s
+
+
+def test_joint_centres_and_hinge_axes(knee_result):
+    res, acc = knee_result
+    knee = acc["joints"]["knee"]
+    # The knee flexes 70° with only a few degrees of varus and twist: Eq. 1 sees a near-hinge.  The true centre
+    # lies within 1 mm of the estimated axis (measured 0.34 mm) and the axis is within 2° of the one the true
+    # motions define (measured 1.7°).
+    assert knee["is_hinge"]
+    assert knee["center_to_axis_mm"] <= 1.0 and knee["axis_error_deg"] <= 2.0, knee
+    for name, e in acc["joints"].items():
+        # Closed form and the quasi-Newton cross-check agree (measured ≤ 1e-7 mm; the issue asks 0.01 mm).
+        assert e["closed_form_vs_iterative_mm"] <= 0.01, (name, e)
+    assert np.isfinite(res.overall_rms_mm()) and res.overall_rms_mm() < 1.0
+
+
+def test_angles_and_centres_are_recorded_per_scan(knee_result, knee_ct_study):
+    res, _ = knee_result
+    sk = knee_ct_study.skeleton()
+    for s in res.scans:
+        truth = knee_ct_study.truth_pose(s.scan_id)
+        assert set(s.pose.joint_angles) == set(sk.joint_names)
+        # Flexion (intrinsic XYZ, first angle) within 2° of the truth for the knee (tibia ≤ 2.4° in rotation).
+        assert abs(s.pose.joint_angles["knee"][0] - truth.joint_angles["knee"][0]) < 2.5
+        # The joint centre in the scan is the estimated centre carried by the parent (the femur).
+        j = res.skeleton.joint("knee")
+        np.testing.assert_allclose(s.pose.joint_centers["knee"],
+                                   s.pose.transforms["femur"][:3, :3] @ np.asarray(j.center)
+                                   + s.pose.transforms["femur"][:3, 3])
+
+
+def test_a_bone_outside_the_field_of_view_is_reported(knee_ct_study):
+    """Cut the scan above the knee: the tibia and fibula are missing and must be reported, not accepted.
+
+    The joint search may still find a place for a missing bone inside the cut field (turned up by 100°+);
+    it then fails the correlation check instead of the field-of-view check — either way it is reported,
+    with the scan, the bone and the metric."""
+    st = knee_ct_study
+    sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
+    scan = st.scan("pose01")
+    g = scan.geometry
+    keep = slice(g.size[1] // 2 + 4, g.size[1])  # y (proximal) half: the femur and patella stay
+    cut_geo = GridGeometry((g.size[0], keep.stop - keep.start, g.size[2]), g.spacing,
+                           tuple(g.index_to_world([0, keep.start, 0])), g.direction)
+    cut = Volume(np.ascontiguousarray(scan.data[:, keep, :]), cut_geo)
+    res = estimate_poses(tpl, lab, {"cut": cut}, sk)
+    fits = res.scans[0].fits
+    assert fits["femur"].ok
+    failed = {f["bone"]: f for f in res.failures()}
+    for bone in ("tibia", "fibula"):
+        assert fits[bone].status in ("outside_field_of_view", "poor_match"), (bone, fits[bone].status)
+        assert failed[bone]["scan"] == "cut"
+        assert failed[bone]["status"] == fits[bone].status
+        assert fits[bone].inside_fraction < 0.5 or fits[bone].ncc < 0.5
+
+
+def test_erased_bone_is_a_poor_match(knee_ct_study):
+    """Replace the patella by soft tissue in the scan: it cannot be found, and the report says so."""
+    st = knee_ct_study
+    sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
+    scan = st.scan("pose00")  # the template's own pose: the patella's voxels are where the labels say
+    data = scan.data.copy()
+    near = np.asarray(bone_regions(tpl, lab, sk, margin_mm=6.0)["patella"].points)
+    ijk = np.rint(scan.geometry.world_to_index(near)).astype(int)
+    data[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = 40.0  # muscle-like HU, no texture
+    res = estimate_poses(tpl, lab, {"erased": Volume(data, scan.geometry)}, sk, min_ncc=0.5)
+    f = res.scans[0].fits["patella"]
+    assert f.status == "poor_match", (f.status, f.ncc)
+    fail = [x for x in res.failures() if x["bone"] == "patella"]
+    assert fail and fail[0]["scan"] == "erased" and fail[0]["ncc"] < 0.5
+
+
+def test_contact_point_lies_between_the_bones():
+    g = GridGeometry((20, 20, 20), (1.0, 1.0, 2.0))
+    lab = np.zeros(g.array_shape, np.uint8)
+    lab[:, :, :8] = 1
+    lab[:, :, 11:] = 2
+    p = contact_point(Volume(lab, g), 1, 2)
+    # Closest pairs span the whole facing planes x = 7 and x = 11: their midpoints average to x = 9, mid-plane.
+    assert abs(p[0] - 9.0) < 1e-9
+    np.testing.assert_allclose(p[1:], [9.5, 19.0], atol=1e-9)

@@ -1,0 +1,98 @@
+"""`workbench pose`: writes estimated poses into a study, names them in study.json, refuses to clobber."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from deformation.transforms import compose, invert, rotation_angle_deg
+from workbench.cli import main
+from workbench.study import read_study
+
+
+@pytest.fixture(scope="module")
+def small_ct_study(tmp_path_factory):
+    from validation.phantoms import make_phantom
+    from workbench.study import write_phantom_study
+
+    return write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=2, seed=7),
+                               tmp_path_factory.mktemp("cli-pose") / "study").root
+
+
+def _hashes(root):
+    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file() and not p.relative_to(root).parts[0] == "poses"
+            and p.name != "study.json"}
+
+
+def test_pose_writes_into_the_study(tmp_path, small_ct_study, capsys):
+    root = tmp_path / "study"
+    shutil.copytree(small_ct_study, root)
+    before = _hashes(root)
+    assert main(["pose", str(root), "--scan", "pose01", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "accuracy against the phantom's ground truth" in out and "knee" in out
+    st = read_study(root)
+    entry = next(s for s in st.manifest["scans"] if s["id"] == "pose01")
+    assert entry["pose"] == "poses/pose01_pose.json"
+    assert "pose" not in next(s for s in st.manifest["scans"] if s["id"] == "pose00")
+    stage = st.manifest["stages"]["pose"]
+    assert stage["method"] == "intensity" and stage["scans"] == ["pose01"] and stage["failures"] == 0
+    # Estimate and truth share a schema, so they compare directly (70° of flexion: tibia within 3°).
+    est, truth = st.pose("pose01"), st.truth_pose("pose01")
+    err = rotation_angle_deg(compose(invert(truth.transforms["tibia"]), est.transforms["tibia"]))
+    assert err < 3.0, err
+    assert set(est.joint_angles) == set(truth.joint_angles)
+    joints = json.loads((root / "poses" / "joints.json").read_text())
+    assert joints["format"] == "avw-joints" and set(joints["joints"]) == {"knee", "tibiofibular", "patellofemoral"}
+    fits = json.loads((root / "poses" / "fits.json").read_text())
+    assert fits["scans"]["pose01"]["bones"]["tibia"]["status"] == "ok"
+    assert _hashes(root) == before  # no input file touched
+
+    # A second run is refused without --force, and leaves the study as it was.
+    manifest = (root / "study.json").read_bytes()
+    assert main(["pose", str(root), "--quiet"]) == 1
+    assert "--force" in capsys.readouterr().err
+    assert (root / "study.json").read_bytes() == manifest
+
+    # Unknown scans are named.
+    assert main(["pose", str(root), "--scan", "nope", "--force", "--quiet"]) == 1
+    assert "pose00" in capsys.readouterr().err
+    assert (root / "study.json").read_bytes() == manifest
+
+
+def test_pose_with_seeds_segments_the_template(tmp_path, small_ct_study, capsys):
+    from registration.segmentation import seeds_from_labels
+
+    root = tmp_path / "study"
+    shutil.copytree(small_ct_study, root)
+    st = read_study(root)
+    seeds = {b: p.tolist() for b, p in seeds_from_labels(st.template_labels(), st.skeleton()).items()}
+    sf = tmp_path / "seeds.json"
+    sf.write_text(json.dumps({"format": "avw-seeds", "version": 1, "units": "mm", "seeds": seeds}))
+    assert main(["pose", str(root), "--scan", "pose00", "--seeds", str(sf), "--quiet"]) == 0
+    capsys.readouterr()
+    st = read_study(root)
+    assert st.manifest["stages"]["pose"]["labels"] == "poses/template_labels.nii.gz"
+    seg = json.loads((root / "poses" / "segmentation.json").read_text())
+    assert seg["method"].startswith("ct") and all(v > 0 for v in seg["voxels"].values())
+    # pose00 is the straight leg: every bone's true transform is the identity.  Segmented regions differ
+    # from the exact labels at the rim only, so the bones stay within 2° and 0.5 mm (at their centroids).
+    est = st.pose("pose00")
+    lab = st.template_labels()
+    for b, t in est.transforms.items():
+        k, j, i = np.nonzero(lab.data == st.skeleton().label_of(b))
+        c = lab.geometry.index_to_world(np.column_stack([i, j, k]).astype(float)).mean(axis=0)
+        assert rotation_angle_deg(t) < 2.0, (b, rotation_angle_deg(t))
+        assert np.linalg.norm(t[:3, :3] @ c + t[:3, 3] - c) < 0.5, b
+
+
+def test_pose_help_teaches_the_schema(capsys):
+    with pytest.raises(SystemExit):
+        main(["pose", "--help"])
+    text = capsys.readouterr().out
+    assert "avw-seeds" in text and "--method" in text and "intrinsic XYZ" in text
