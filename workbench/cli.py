@@ -155,6 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("--prior-deg", type=float, default=2.0, metavar="DEG",
                     help="width of the weak prior tying each bone to its hierarchical initialisation "
                          "(degrees and mm); 0 turns it off (plain Eq. 1). Default: 2")
+    po.add_argument("--bias-correction", choices=["auto", "on", "off"], default="auto",
+                    help="N4 bias-field correction of template and scans before registration; 'auto' does it "
+                         "for MRI-like images. Default: auto")
     po.add_argument("--min-ncc", type=float, default=0.5,
                     help="a bone whose final correlation with the template is lower is reported as a poor "
                          "match. Default: 0.5")
@@ -174,6 +177,7 @@ def cmd_pose(args) -> int:
                             threshold=args.threshold, init=args.init, scan_ids=args.scan, metric=args.metric,
                             interpolation=3 if args.interpolation == "bspline" else 1,
                             prior_deg=args.prior_deg or None, min_ncc=args.min_ncc, overwrite=args.force,
+                            bias_correction={"auto": None, "on": True, "off": False}[args.bias_correction],
                             progress=say)
     print(report["text"])
     print(f"\nwrote {args.study / 'poses'} and updated {args.study / 'study.json'}")

@@ -66,7 +66,8 @@ def read_initial_poses(path, study: Study, skeleton) -> dict[str, np.ndarray]:
 def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bool = False,
                    modality: str | None = None, threshold: float | None = None, init: str = "identity",
                    scan_ids=None, metric: str = "ncc", interpolation: int = 3, prior_deg: float | None = 2.0,
-                   min_ncc: float = 0.5, overwrite: bool = False, progress=None) -> dict:
+                   min_ncc: float = 0.5, bias_correction: bool | None = None, overwrite: bool = False,
+                   progress=None) -> dict:
     """Estimate poses for a study and write them into it; returns the report dictionary.
 
     Parameters
@@ -121,11 +122,12 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
 
     t0 = time.perf_counter()
     result = estimate_poses(template, labels, scans, skeleton, method=method, root_init=root_init, metric=metric,
-                            interpolation=interpolation, prior_deg=prior_deg, min_ncc=min_ncc, progress=cb)
+                            interpolation=interpolation, prior_deg=prior_deg, min_ncc=min_ncc,
+                            bias_correction=bias_correction, progress=cb)
     total = time.perf_counter() - t0
     centroids = {k: r.centroid for k, r in bone_regions(template, labels, skeleton).items()}
     report = {"method": method, "metric": metric, "interpolation": "cubic B-spline" if interpolation == 3 else "linear",
-              "prior_deg": prior_deg, "init": init if init in ("identity", "moments") else str(init),
+              "prior_deg": prior_deg, "bias_correction": bias_correction, "init": init if init in ("identity", "moments") else str(init),
               "seconds_total": round(total, 2), "seconds_per_scan": {s.scan_id: round(s.seconds, 2) for s in result.scans},
               "failures": result.failures(), "eq1_rms_mm": result.overall_rms_mm(),
               "eq1_base_pose_counted": False}

@@ -23,9 +23,9 @@ def test_icp_recovers_true_bone_motion(wrist):
     from workbench.wrist_bones import true_motion
 
     rng = np.random.default_rng(0)
-    base, pose = wrist.poses[0], wrist.poses[1]
+    base = wrist.poses[0]
     errors = []
-    for bone in wrist.bones[:4]:
+    for bone, pose in [(b, p) for b in wrist.bones for p in wrist.poses[1:]]:  # every bone, both motions
         truth = true_motion(wrist, bone, base, pose).transform
         src = bone.positions[base]
         # Target: a different sampling of the posed surface (every other vertex, jittered by
@@ -40,8 +40,10 @@ def test_icp_recovers_true_bone_motion(wrist):
         err = compose(invert(truth), r.transform)
         moved = np.linalg.norm((src @ err[:3, :3].T + err[:3, 3]) - src, axis=1)
         errors.append((rotation_angle_deg(err), moved.max()))
-    # Half sampling and 0.05 mm jitter of the target limit the fit (measured: ≤ 0.13°, ≤ 0.02 mm
-    # over all ten bones): within 0.2° and 0.05 mm anywhere on the bone, from a 5° / 3 mm start.
+    # Half sampling and 0.05 mm jitter of the target limit the fit (measured: ≤ 0.13°, ≤ 0.02 mm over the
+    # ten bones and two motions).  The issue asks ≤ 0.5° and ≤ 0.3 mm; we hold ICP to 0.2° and 0.05 mm
+    # anywhere on the bone, from a 5° / 3 mm start.
+    assert len(errors) == 2 * len(wrist.bones) == 20
     for angle, dist in errors:
         assert angle < 0.2 and dist < 0.05, errors
 
