@@ -224,7 +224,8 @@ def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None 
 def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *,
                    method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
                    interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
-                   hinge_ratio: float = 0.05, bias_correction: bool | None = None, progress=None) -> PoseResult:
+                   hinge_ratio: float = 0.05, bias_correction: bool | None = None, margin_mm: float | None = None,
+                   progress=None) -> PoseResult:
     """Register every bone in every scan, then estimate joint centres and angles.
 
     Parameters
@@ -241,8 +242,9 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
         bias_correction = guess_modality(template) == "mri"
     if bias_correction:
         template = correct_bias(template)
-    regions = bone_regions(smooth(template, smooth_voxels), labels, skeleton)
-    coarse_regions = (bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton)
+    regions = bone_regions(smooth(template, smooth_voxels), labels, skeleton, margin_mm=margin_mm)
+    coarse_regions = (bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton,
+                                   margin_mm=margin_mm)
                       if coarse else None)
     results = []
     ids = list(scans)

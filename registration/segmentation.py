@@ -2,7 +2,8 @@
 
 The pose pipeline needs each bone's voxels in the template.  When the study
 has a label map it is used as it is.  Otherwise the bones are segmented from
-the template image and a **seeds file** — one or more world points (mm)
+the template image and seeds (``{bone: (n, 3) world points}``; the file is
+read by :func:`workbench.pose_stage.read_seeds`), a **seeds file** — one or more world points (mm)
 inside each bone, the manual step both papers had (Rhee segmented MRI by
 graph cut from user strokes, Kurihara thresholded CT)::
 
@@ -37,10 +38,8 @@ import numpy as np
 from scipy import ndimage
 
 from deformation.geometry import Volume
-from workbench.errors import InputFileError
-from workbench.jsonio import read_json
 
-__all__ = ["SEEDS_FORMAT", "read_seeds", "seeds_from_labels", "segment_ct", "segment_mri", "segment_bones",
+__all__ = ["SEEDS_FORMAT", "seeds_from_labels", "segment_ct", "segment_mri", "segment_bones",
            "SegmentationReport", "guess_modality"]
 
 SEEDS_FORMAT = "avw-seeds"
@@ -56,33 +55,6 @@ class SegmentationReport:
     def to_dict(self) -> dict:
         return {"method": self.method, "voxels": self.voxels, "warnings": self.warnings,
                 "parameters": self.parameters}
-
-
-def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
-    """Read a seeds file; every skeleton bone needs at least one point."""
-    d = read_json(path)
-    if d.get("format") != SEEDS_FORMAT:
-        raise InputFileError(f"{path}: not a seeds file ('format' is {d.get('format')!r}, expected "
-                             f"{SEEDS_FORMAT!r}); see `workbench pose --help` for the schema.", path)
-    seeds = d.get("seeds")
-    if not isinstance(seeds, dict):
-        raise InputFileError(f"{path}: 'seeds' must map bone names to lists of [x, y, z] points (mm).", path)
-    unknown = sorted(set(seeds) - set(skeleton.bone_names))
-    if unknown:
-        raise InputFileError(f"{path}: unknown bones {unknown}; the skeleton has {skeleton.bone_names}.", path)
-    missing = [b for b in skeleton.bone_names if b not in seeds]
-    if missing:
-        raise InputFileError(f"{path}: no seed for bones {missing}; give at least one point inside each bone.", path)
-    out = {}
-    for b, pts in seeds.items():
-        a = np.asarray(pts, dtype=float)
-        if a.ndim == 1:
-            a = a[None]
-        if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0 or not np.all(np.isfinite(a)):
-            raise InputFileError(f"{path}: seeds of {b!r} must be a list of [x, y, z] points in mm, got {pts!r}.",
-                                 path)
-        out[b] = a
-    return out
 
 
 def seeds_from_labels(labels: Volume, skeleton) -> dict[str, np.ndarray]:

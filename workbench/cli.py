@@ -155,6 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("--prior-deg", type=float, default=2.0, metavar="DEG",
                     help="width of the weak prior tying each bone to its hierarchical initialisation "
                          "(degrees and mm); 0 turns it off (plain Eq. 1). Default: 2")
+    po.add_argument("--margin-mm", type=float, metavar="MM",
+                    help="dilation of each bone's region for the intensity cost (Rhee: 'slightly dilated'); "
+                         "default one voxel, at least 2 mm.  Smaller keeps non-rigid soft tissue out on fine grids")
     po.add_argument("--bias-correction", choices=["auto", "on", "off"], default="auto",
                     help="N4 bias-field correction of template and scans before registration; 'auto' does it "
                          "for MRI-like images. Default: auto")
@@ -178,6 +181,7 @@ def cmd_pose(args) -> int:
                             interpolation=3 if args.interpolation == "bspline" else 1,
                             prior_deg=args.prior_deg or None, min_ncc=args.min_ncc, overwrite=args.force,
                             bias_correction={"auto": None, "on": True, "off": False}[args.bias_correction],
+                            margin_mm=args.margin_mm,
                             progress=say)
     print(report["text"])
     print(f"\nwrote {args.study / 'poses'} and updated {args.study / 'study.json'}")

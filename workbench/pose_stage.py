@@ -5,6 +5,8 @@ place, so an interrupted run leaves nothing half-written)::
 
     poses/<scan>_pose.json          estimated pose, the same schema as truth/<scan>_pose.json
     poses/skeleton_estimated.json   the skeleton with the estimated joint centres
+    poses/bone_frames.json          each bone's OBB frame in the template (Rhee §3.1)
+    poses/pose_vectors.json         each scan's joint angles, concatenated in the skeleton's joint order
     poses/joints.json               per joint: centre, hinge axis, Eq. 1 residuals, conditioning
     poses/fits.json                 per scan and bone: status, metric before/after, iterations, time
     poses/report.txt / report.json  summary tables; accuracy against the truth when the study has it
@@ -30,9 +32,38 @@ from workbench.jsonio import read_json, write_json
 from workbench.study import MANIFEST, Study, read_study
 from workbench.volume_io import write_labels
 
-__all__ = ["run_pose_stage", "read_initial_poses"]
+__all__ = ["run_pose_stage", "read_initial_poses", "read_seeds"]
 
 STAGE_DIR = "poses"
+
+
+def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
+    """Read a seeds file; every skeleton bone needs at least one point."""
+    from registration.segmentation import SEEDS_FORMAT
+
+    d = read_json(path)
+    if d.get("format") != SEEDS_FORMAT:
+        raise InputFileError(f"{path}: not a seeds file ('format' is {d.get('format')!r}, expected "
+                             f"{SEEDS_FORMAT!r}); see `workbench pose --help` for the schema.", path)
+    seeds = d.get("seeds")
+    if not isinstance(seeds, dict):
+        raise InputFileError(f"{path}: 'seeds' must map bone names to lists of [x, y, z] points (mm).", path)
+    unknown = sorted(set(seeds) - set(skeleton.bone_names))
+    if unknown:
+        raise InputFileError(f"{path}: unknown bones {unknown}; the skeleton has {skeleton.bone_names}.", path)
+    missing = [b for b in skeleton.bone_names if b not in seeds]
+    if missing:
+        raise InputFileError(f"{path}: no seed for bones {missing}; give at least one point inside each bone.", path)
+    out = {}
+    for b, pts in seeds.items():
+        a = np.asarray(pts, dtype=float)
+        if a.ndim == 1:
+            a = a[None]
+        if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0 or not np.all(np.isfinite(a)):
+            raise InputFileError(f"{path}: seeds of {b!r} must be a list of [x, y, z] points in mm, got {pts!r}.",
+                                 path)
+        out[b] = a
+    return out
 
 
 def read_initial_poses(path, study: Study, skeleton) -> dict[str, np.ndarray]:
@@ -66,7 +97,8 @@ def read_initial_poses(path, study: Study, skeleton) -> dict[str, np.ndarray]:
 def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bool = False,
                    modality: str | None = None, threshold: float | None = None, init: str = "identity",
                    scan_ids=None, metric: str = "ncc", interpolation: int = 3, prior_deg: float | None = 2.0,
-                   min_ncc: float = 0.5, bias_correction: bool | None = None, overwrite: bool = False,
+                   min_ncc: float = 0.5, bias_correction: bool | None = None, margin_mm: float | None = None,
+                   overwrite: bool = False,
                    progress=None) -> dict:
     """Estimate poses for a study and write them into it; returns the report dictionary.
 
@@ -79,10 +111,11 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
     init : "identity", "moments", or the path of an initial-pose file
     progress : callable(line: str), optional
     """
+    from registration.bone_frames import bone_frames
     from registration.pose import estimate_poses
     from registration.report import accuracy, format_accuracy, format_fits
     from registration.rigid import bone_regions
-    from registration.segmentation import read_seeds, segment_bones
+    from registration.segmentation import segment_bones
 
     study = read_study(folder)
     root = study.root
@@ -123,11 +156,11 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
     t0 = time.perf_counter()
     result = estimate_poses(template, labels, scans, skeleton, method=method, root_init=root_init, metric=metric,
                             interpolation=interpolation, prior_deg=prior_deg, min_ncc=min_ncc,
-                            bias_correction=bias_correction, progress=cb)
+                            bias_correction=bias_correction, margin_mm=margin_mm, progress=cb)
     total = time.perf_counter() - t0
     centroids = {k: r.centroid for k, r in bone_regions(template, labels, skeleton).items()}
     report = {"method": method, "metric": metric, "interpolation": "cubic B-spline" if interpolation == 3 else "linear",
-              "prior_deg": prior_deg, "bias_correction": bias_correction, "init": init if init in ("identity", "moments") else str(init),
+              "prior_deg": prior_deg, "bias_correction": bias_correction, "margin_mm": margin_mm, "init": init if init in ("identity", "moments") else str(init),
               "seconds_total": round(total, 2), "seconds_per_scan": {s.scan_id: round(s.seconds, 2) for s in result.scans},
               "failures": result.failures(), "eq1_rms_mm": result.overall_rms_mm(),
               "eq1_base_pose_counted": False}
@@ -145,6 +178,20 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
         for s in result.scans:
             write_json(s.pose.to_dict(), stage / f"{s.scan_id}_pose.json")
         write_json(result.skeleton.to_dict(), stage / "skeleton_estimated.json")
+        frames = bone_frames(labels, skeleton)
+        write_json({"format": "avw-bone-frames", "version": 1, "units": "mm",
+                    "convention": "Rhee §3.1: principal axes of the bone's voxels; z the longest, pointing away "
+                                  "from the parent; origin at the centre of the box's base; frame maps bone "
+                                  "coordinates to template world",
+                    "bones": {b: {"frame": f.frame.tolist(), "half_extents_mm": f.half_extents.tolist(),
+                                  "centroid": f.centroid.tolist(), "voxels": f.n_voxels}
+                              for b, f in frames.items()}}, stage / "bone_frames.json")
+        order = [j.name for j in skeleton.joints]
+        write_json({"format": "avw-pose-vectors", "version": 1, "joint_order": order,
+                    "dof": [j.dof for j in skeleton.joints],
+                    "units": "degrees (6-DOF joints: three angles, then mm)",
+                    "scans": {s.scan_id: np.concatenate([np.asarray(s.pose.joint_angles[j]) for j in order]).tolist()
+                              for s in result.scans}}, stage / "pose_vectors.json")
         write_json({"format": "avw-joints", "version": 1, "method": method, "units": "mm",
                     "eq1_rms_mm": result.overall_rms_mm(), "eq1_base_pose_counted": False,
                     "joints": result.joints_dict()}, stage / "joints.json")

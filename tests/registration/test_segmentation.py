@@ -7,8 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from registration.segmentation import guess_modality, read_seeds, seeds_from_labels, segment_bones
+from registration.segmentation import guess_modality, seeds_from_labels, segment_bones
 from workbench.errors import InputFileError
+from workbench.pose_stage import read_seeds
 
 
 def dice(a, b):

@@ -49,6 +49,11 @@ def test_pose_writes_into_the_study(tmp_path, small_ct_study, capsys):
     assert set(est.joint_angles) == set(truth.joint_angles)
     joints = json.loads((root / "poses" / "joints.json").read_text())
     assert joints["format"] == "avw-joints" and set(joints["joints"]) == {"knee", "tibiofibular", "patellofemoral"}
+    vec = json.loads((root / "poses" / "pose_vectors.json").read_text())
+    assert len(vec["scans"]["pose01"]) == sum(vec["dof"]) == 9
+    np.testing.assert_allclose(vec["scans"]["pose01"][:3], est.joint_angles["knee"])
+    frames = json.loads((root / "poses" / "bone_frames.json").read_text())
+    assert set(frames["bones"]) == {"femur", "tibia", "fibula", "patella"}
     fits = json.loads((root / "poses" / "fits.json").read_text())
     assert fits["scans"]["pose01"]["bones"]["tibia"]["status"] == "ok"
     assert _hashes(root) == before  # no input file touched
