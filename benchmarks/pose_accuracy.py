@@ -92,7 +92,10 @@ def run_phantoms(args, root: Path):
                       f" | trans median {f(s['translation_mm']['median'])} max {f(s['translation_mm']['max'])} mm"
                       f" | centre (2-3 DOF, moving; n={c['n']}) median {f(c['median'])} max {f(c['max'])} mm"
                       f" | hinges n={h['n']}: c→axis max {f(h['max'])} mm, axis max {f(a['max'])}°"
-                      f" | {dt:5.1f} s/scan | bones flagged {fails}", flush=True)
+                      f" | {dt:5.1f} s/scan | bones flagged {fails}"
+                      f" | unflagged: rot median {f(s['rotation_deg_unflagged']['median'])}° max "
+                      f"{f(s['rotation_deg_unflagged']['max'])}°, trans max {f(s['translation_mm_unflagged']['max'])} mm",
+                      flush=True)
                 rows.append((region, modality, name, s, dt, fails))
                 if name == "ours" and args.tables:
                     from registration.report import format_accuracy

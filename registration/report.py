@@ -33,7 +33,7 @@ def accuracy(result: PoseResult, truth: dict[str, Pose], true_skeleton: Skeleton
              centroids: dict[str, np.ndarray]) -> dict:
     """Per-bone and per-joint errors of ``result`` against ``truth`` (scan id → true pose)."""
     bones = {}
-    rot, tr = [], []
+    rot, tr, rot_ok, tr_ok = [], [], [], []
     for s in result.scans:
         if s.scan_id not in truth:
             continue
@@ -41,6 +41,8 @@ def accuracy(result: PoseResult, truth: dict[str, Pose], true_skeleton: Skeleton
         bones[s.scan_id] = e
         rot += [v["rotation_deg"] for v in e.values()]
         tr += [v["translation_mm"] for v in e.values()]
+        rot_ok += [v["rotation_deg"] for b, v in e.items() if s.fits[b].ok]
+        tr_ok += [v["translation_mm"] for b, v in e.items() if s.fits[b].ok]
     joints = {}
     for name, r in result.joints.items():
         tj = true_skeleton.joint(name)
@@ -76,6 +78,8 @@ def accuracy(result: PoseResult, truth: dict[str, Pose], true_skeleton: Skeleton
         "joints": joints,
         "summary": {
             "rotation_deg": stats(rot), "translation_mm": stats(tr),
+            # The same over the bones not flagged (flagged ones are reported, not accepted).
+            "rotation_deg_unflagged": stats(rot_ok), "translation_mm_unflagged": stats(tr_ok),
             "center_error_mm_2_3_dof_moving": stats(centre_ok),
             "center_error_mm_all": stats([e["center_error_mm"] for e in joints.values() if "center_error_mm" in e]),
             "hinge_center_to_axis_mm": stats([e["center_to_axis_mm"] for e in joints.values() if e["is_hinge"]]),
@@ -105,6 +109,10 @@ def format_accuracy(acc: dict) -> str:
     s = acc["summary"]
     lines.append(f"{'all bones':<20}{_f(s['rotation_deg']['median']):>13}{_f(s['rotation_deg']['max']):>11}"
                  f"{_f(s['translation_mm']['median']):>17}{_f(s['translation_mm']['max']):>14}")
+    u, t = s["rotation_deg_unflagged"], s["translation_mm_unflagged"]
+    if u["n"] != s["rotation_deg"]["n"]:
+        lines.append(f"{'unflagged bones':<20}{_f(u['median']):>13}{_f(u['max']):>11}{_f(t['median']):>17}"
+                     f"{_f(t['max']):>14}   ({s['rotation_deg']['n'] - u['n']} flagged bone fits left out)")
     lines.append("")
     lines.append(f"{'joint':<18}{'dof':>4}{'moves °':>9}{'hinge':>7}{'centre err mm':>15}{'true c→axis mm':>16}"
                  f"{'axis err °':>12}{'Eq.1 rms mm':>13}{'|cf−it| mm':>12}")
