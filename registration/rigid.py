@@ -14,20 +14,26 @@ This module holds both refinements plus the shared pieces:
   mm and their template intensities.  The dilation stops half-way to any
   other bone (a Voronoi split of the neighbourhood), so voxels that move with
   a neighbour never pull on this bone.
+* :class:`Sampler` — a scan interpolated at world points, cubic B-spline by
+  default (trilinear, Rhee's choice, on request), after a light Gaussian
+  smoothing (:func:`smooth`) that removes the noise-interpolation bias.
 * :func:`coarse_rotation_search` — our addition: before refining a child
   bone, try rotations about its joint centre (carried by the parent's
-  transform) on a grid of flexion/abduction angles and keep the best SSD.
-  Initialising a child from its parent alone (the paper's scheme) starts a
-  fist's middle phalanx 85° off, far outside any local optimiser's capture
-  range.
+  transform) on a grid of flexion, abduction and twist and keep the best
+  cost.  Initialising a child from its parent alone (the paper's scheme)
+  starts a fist's middle phalanx 85° off, far outside any local optimiser's
+  capture range.
 * :func:`refine_intensity` — Eq. 1 through SimpleITK's registration
-  framework: mean squares over the bone mask (a fixed-image mask), linear
-  interpolation, a regular-step gradient descent on a ``Euler3DTransform``
-  centred on the bone, multi-resolution (Gaussian smoothing, then a shrink
-  when the crop is big enough).
+  framework: mean squares over the bone mask (a fixed-image mask on the
+  template crop), the sampler's interpolation, a regular-step gradient
+  descent on a ``Euler3DTransform`` centred on the bone (multi-resolution
+  for a root bone), then :func:`polish_with_prior`: the same cost minimised
+  to convergence by least squares, optionally blind to a linear intensity
+  change, with a weak prior towards the kinematic initialisation for the
+  directions the image does not determine, and the posterior uncertainty.
 * :func:`refine_surface` — Kurihara's ICP: isosurfaces of template and scan
   extracted with VTK flying edges at the same level, in world mm, aligned by
-  Open3D point-to-plane ICP (:mod:`registration.icp`).
+  Open3D ICP (:mod:`registration.icp`).
 
 Every transform maps template world points to scan world points (4x4).
 """
@@ -445,11 +451,17 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
     reg.SetInitialTransform(_euler_from_matrix(init, region.centroid), inPlace=False)
     iters = [0]
     reg.AddCommand(sitk.sitkIterationEvent, lambda: iters.__setitem__(0, iters[0] + 1))
+    # ITK prints "No valid points were found during metric evaluation" when a trial step leaves the scan; the
+    # outcome is judged below (inside fraction, convergence), so the console stays quiet.
+    shown = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
     try:
         out = reg.Execute(fixed, moving)
     except RuntimeError as e:  # e.g. "All samples map outside moving image buffer"
         return BoneFit(region.name, init, "intensity", "not_converged", before, math.nan, math.nan, inside0,
                        stop=f"SimpleITK failed: {str(e).strip().splitlines()[-1]}", seconds=time.perf_counter() - t0)
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(shown)
     t = _matrix_from_sitk(out.GetNthTransform(0) if hasattr(out, "GetNthTransform") else out)
     stop = reg.GetOptimizerStopConditionDescription()
     extra = {"ssd_eq1": _evaluate(region, sampler, t, min_inside=0.0)[0], "sitk_iterations": iters[0],
