@@ -101,3 +101,31 @@ def test_pose_help_teaches_the_schema(capsys):
         main(["pose", "--help"])
     text = capsys.readouterr().out
     assert "avw-seeds" in text and "--method" in text and "intrinsic XYZ" in text
+
+
+def test_initial_pose_file_formats(tmp_path, small_ct_study):
+    from workbench.errors import InputFileError
+    from workbench.pose_stage import read_initial_poses
+
+    st = read_study(small_ct_study)
+    sk = st.skeleton()
+    t = np.eye(4)
+    t[:3, 3] = (5.0, 0.0, -2.0)
+    p = tmp_path / "init.json"
+    p.write_text(json.dumps({"format": "avw-initial-poses", "version": 1, "scans": {"pose01": t.tolist()}}))
+    got = read_initial_poses(p, st, sk)
+    assert set(got) == {"pose01"} and np.allclose(got["pose01"], t)
+    # An avw-pose file: its root transform serves every scan.
+    p.write_text(json.dumps(st.truth_pose("pose01").to_dict()))
+    assert set(read_initial_poses(p, st, sk)) == set(st.scan_ids)
+    p.write_text(json.dumps({"format": "avw-initial-poses", "version": 1, "scans": {"nope": t.tolist()}}))
+    with pytest.raises(InputFileError, match="unknown scans"):
+        read_initial_poses(p, st, sk)
+    bad = t.copy()
+    bad[0, 0] = 2.0
+    p.write_text(json.dumps({"format": "avw-initial-poses", "version": 1, "scans": {"pose01": bad.tolist()}}))
+    with pytest.raises(InputFileError, match="init.json"):
+        read_initial_poses(p, st, sk)
+    p.write_text(json.dumps({"scans": {}}))
+    with pytest.raises(InputFileError, match="avw-initial-poses"):
+        read_initial_poses(p, st, sk)
