@@ -270,11 +270,14 @@ def summarize(study) -> str:
              f"{tuple(round(s, 4) for s in g.spacing)} mm, extent {tuple(round(e, 1) for e in g.extent_mm)} mm",
              f"skeleton: {sk.name}, {len(sk.bones)} bones, {len(sk.joints)} joints, {sk.n_dof} DOF "
              f"(6-DOF joints: {', '.join(j.name for j in sk.joints if j.dof == 6) or 'none'})"]
-    labels = study.template_labels().data
-    counts = np.bincount(labels.ravel(), minlength=max(b.label for b in sk.bones) + 1)
     vox_ml = float(np.prod(g.spacing)) / 1000.0
-    lines.append("bones (label: voxels, ml): " + ", ".join(
-        f"{b.name} ({b.label}: {counts[b.label]}, {counts[b.label] * vox_ml:.1f})" for b in sk.bones))
+    if study.has_template_labels:
+        labels = study.template_labels().data
+        counts = np.bincount(labels.ravel(), minlength=max(b.label for b in sk.bones) + 1)
+        lines.append("bones (label: voxels, ml): " + ", ".join(
+            f"{b.name} ({b.label}: {counts[b.label]}, {counts[b.label] * vox_ml:.1f})" for b in sk.bones))
+    else:
+        lines.append("bones: no label map yet (segment them with `workbench pose STUDY --seeds FILE`)")
     log_path = study.root / "logs" / "phantom.json"
     stats = {s["id"]: s for s in read_json(log_path)["scans"]} if log_path.exists() else {}
     lines.append(f"scans: {len(m['scans'])}")

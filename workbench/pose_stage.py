@@ -66,6 +66,17 @@ def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
     return out
 
 
+def _finite(obj):
+    """Non-finite floats (a metric never computed for a bone out of view) → None, so JSON can hold them."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)) and not np.isfinite(obj):
+        return None
+    return obj
+
+
 def read_initial_poses(path, study: Study, skeleton) -> dict[str, np.ndarray]:
     """Root-bone initial transforms per scan from a JSON file.
 
@@ -138,6 +149,9 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
         if empty:
             raise InputFileError(f"segmentation found no voxels for bones {empty}: "
                                  + " ".join(seg_report.warnings) + " — or give the study a label map.", Path(seeds))
+    elif not study.has_template_labels:
+        raise InputFileError(f"{root}: the study has no bone label map; pass --seeds FILE to segment the template's "
+                             "bones (see `workbench pose --help` for the seeds schema).", root)
     else:
         labels = study.template_labels()
     ids = list(scan_ids) if scan_ids else study.scan_ids
@@ -171,6 +185,7 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
         report["accuracy"] = acc
         text += ["", "accuracy against the phantom's ground truth:", format_accuracy(acc)]
     report["text"] = "\n".join(text)
+    report = _finite(report)
 
     stage = root / f".{STAGE_DIR}.partial-{secrets.token_hex(4)}"
     stage.mkdir()
@@ -192,12 +207,13 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
                     "units": "degrees (6-DOF joints: three angles, then mm)",
                     "scans": {s.scan_id: np.concatenate([np.asarray(s.pose.joint_angles[j]) for j in order]).tolist()
                               for s in result.scans}}, stage / "pose_vectors.json")
-        write_json({"format": "avw-joints", "version": 1, "method": method, "units": "mm",
-                    "eq1_rms_mm": result.overall_rms_mm(), "eq1_base_pose_counted": False,
-                    "joints": result.joints_dict()}, stage / "joints.json")
-        write_json({"format": "avw-fits", "version": 1, "method": method,
-                    "scans": {s.scan_id: {"seconds": s.seconds, "bones": {b: f.to_dict() for b, f in s.fits.items()}}
-                              for s in result.scans}}, stage / "fits.json")
+        write_json(_finite({"format": "avw-joints", "version": 1, "method": method, "units": "mm",
+                            "eq1_rms_mm": result.overall_rms_mm(), "eq1_base_pose_counted": False,
+                            "joints": result.joints_dict()}), stage / "joints.json")
+        write_json(_finite({"format": "avw-fits", "version": 1, "method": method,
+                            "scans": {s.scan_id: {"seconds": s.seconds,
+                                                  "bones": {b: f.to_dict() for b, f in s.fits.items()}}
+                                      for s in result.scans}}), stage / "fits.json")
         write_json(report, stage / "report.json")
         (stage / "report.txt").write_text(report["text"] + "\n", encoding="utf-8")
         if seg_report is not None:

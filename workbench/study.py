@@ -22,7 +22,8 @@ every file by role, with paths relative to the folder::
       "stages": {}
     }
 
-``truth`` is optional (a user's own study has none); ``pose`` appears once
+``template_labels`` and ``truth`` are optional (a user's own study may have
+neither; ``workbench pose --seeds`` segments the bones); ``pose`` appears once
 ``workbench pose`` has run, in the same schema as the truth pose.  The correspondence
 field is ``scan_to_template``: an ITK displacement field on the scan's grid
 whose vector at scan voxel ``x`` is ``template_position − x`` in mm, so
@@ -91,7 +92,15 @@ class Study:
     def template(self) -> Volume:
         return read_volume(self.path(self.manifest["template"]))
 
+    @property
+    def has_template_labels(self) -> bool:
+        return bool(self.manifest.get("template_labels"))
+
     def template_labels(self) -> Volume:
+        if not self.has_template_labels:
+            raise StudyError(f"{self.root / MANIFEST}: the study has no 'template_labels' (bone label map); give "
+                             "one, or segment the bones with `workbench pose STUDY --seeds FILE`.",
+                             self.root / MANIFEST)
         return read_labels(self.path(self.manifest["template_labels"]),
                            reference=self.path(self.manifest["template"]))
 
@@ -136,10 +145,11 @@ def read_study(folder: str | os.PathLike) -> Study:
     if m.get("format") != STUDY_FORMAT:
         raise StudyError(f"{manifest_path}: 'format' is {m.get('format')!r}, expected {STUDY_FORMAT!r}.",
                          manifest_path)
-    for key in ("template", "template_labels", "skeleton", "scans"):
+    for key in ("template", "skeleton", "scans"):
         if key not in m:
             raise StudyError(f"{manifest_path}: the manifest lacks the key {key!r}.", manifest_path)
-    files = [m["template"], m["template_labels"], m["skeleton"]]
+    # A user's study may come without a bone label map: `workbench pose --seeds` segments one.
+    files = [m["template"], m["skeleton"]] + ([m["template_labels"]] if m.get("template_labels") else [])
     ids = set()
     if not isinstance(m["scans"], list):
         raise StudyError(f"{manifest_path}: 'scans' must be a list of {{'id', 'image'[, 'truth']}}.", manifest_path)

@@ -129,3 +129,43 @@ def test_initial_pose_file_formats(tmp_path, small_ct_study):
     p.write_text(json.dumps({"scans": {}}))
     with pytest.raises(InputFileError, match="avw-initial-poses"):
         read_initial_poses(p, st, sk)
+
+
+def test_study_without_labels_and_a_bone_out_of_view(tmp_path, small_ct_study, capsys):
+    """A user's study: no label map (so --seeds is required) and a scan that misses the shank; the
+    missing bones are reported in fits.json and report.json (metrics that could not be computed are null)."""
+    from deformation.geometry import GridGeometry, Volume
+    from registration.segmentation import seeds_from_labels
+    from workbench.volume_io import write_volume
+
+    root = tmp_path / "study"
+    shutil.copytree(small_ct_study, root)
+    st = read_study(root)
+    seeds = {b: p.tolist() for b, p in seeds_from_labels(st.template_labels(), st.skeleton()).items()}
+    sf = tmp_path / "seeds.json"
+    sf.write_text(json.dumps({"format": "avw-seeds", "version": 1, "units": "mm", "seeds": seeds}))
+    manifest = json.loads((root / "study.json").read_text())
+    del manifest["template_labels"]
+    (root / "study.json").write_text(json.dumps(manifest))
+    (root / "template_labels.nii.gz").unlink()
+    scan = st.scan("pose01")
+    g = scan.geometry
+    j0 = g.size[1] // 2 + 4
+    cut = Volume(np.ascontiguousarray(scan.data[:, j0:, :]),
+                 GridGeometry((g.size[0], g.size[1] - j0, g.size[2]), g.spacing, tuple(g.index_to_world([0, j0, 0])),
+                              g.direction))
+    (root / "scans" / "pose01.nii.gz").unlink()
+    write_volume(cut, root / "scans" / "pose01.nii.gz")
+
+    assert main(["info", str(root)]) == 0
+    assert "no label map" in capsys.readouterr().out
+    assert main(["pose", str(root), "--scan", "pose01", "--quiet"]) == 1
+    assert "--seeds" in capsys.readouterr().err
+    assert main(["pose", str(root), "--scan", "pose01", "--seeds", str(sf), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "tibia" in out and "fibula" in out  # named in the problems column
+    report = json.loads((root / "poses" / "report.json").read_text())
+    failed = {f["bone"]: f for f in report["failures"]}
+    assert {"tibia", "fibula"} <= set(failed) and all(f["scan"] == "pose01" for f in failed.values())
+    fits = json.loads((root / "poses" / "fits.json").read_text())["scans"]["pose01"]["bones"]
+    assert fits["femur"]["status"] == "ok" and fits["tibia"]["status"] != "ok"
