@@ -45,6 +45,7 @@ __all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan",
            "compare_poses", "joint_errors", "moments_init"]
 
 METHODS = ("intensity", "surface")
+MOVING_DEG = 5.0  # a joint whose largest rotation over the scans is below this has no identifiable centre
 COARSE_SMOOTH = 1.5  # voxels: Gaussian blur of both images for the joint grid search
 
 
@@ -266,26 +267,38 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                              progress=cb)
         transforms = {b: fits[b].transform for b in skeleton.order}
         results.append(ScanPose(sid, Pose(transforms, skeleton=skeleton.name), fits, time.perf_counter() - t0))
+    def usable(s, j):  # flagged fits are reported, not used
+        return s.fits[j.parent].ok and s.fits[j.child].ok
+
     joints, contacts, new_joints = {}, {}, []
     for j in skeleton.joints:
-        motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in results]
+        motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in results if usable(s, j)]
         contacts[j.name] = contact_point(labels, skeleton.label_of(j.parent), skeleton.label_of(j.child))
-        try:
-            r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio)
-        except ValueError:  # the joint never moves: keep the skeleton's centre
-            r = None
-        if r is None:
-            new_joints.append(j)
+        if not motions:
+            new_joints.append(j)  # no scan where both bones were found: the skeleton's centre stays
             continue
+        r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio) \
+            if max(rotation_angle_deg(m) for m in motions) >= MOVING_DEG else None
+        if r is None:
+            # The joint barely turns: Eq. 1's centre would be translation noise over a tiny angle (millimetres
+            # off for 0.3° of noise), so the skeleton's centre stays, with its residual reported.
+            c = np.asarray(j.center, float)
+            per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in motions])
+            r = JointCenterResult(center=c, rms_mm=float(np.sqrt(np.mean(per**2))), per_motion_mm=per,
+                                  singular_values=np.zeros(3), is_hinge=False, axis=np.zeros(3),
+                                  n_motions=len(motions), iterative_center=c.copy(),
+                                  message=f"moves less than {MOVING_DEG:.0f}° in every scan: the skeleton's centre "
+                                          "is kept (Eq. 1 cannot place it)")
         joints[j.name] = r
         new_joints.append(Joint(j.name, j.parent, j.child, j.dof, tuple(r.center), j.axes))
     est = Skeleton(skeleton.bones, new_joints, name=skeleton.name)
     for s in results:
         angles, centres = {}, {}
         for j in est.joints:
-            m = est.relative_motion(s.pose.transforms, j.name)
-            angles[j.name] = j.angles_from_motion(m)
-            centres[j.name] = apply(s.pose.transforms[j.parent], j.center)
+            if s.fits[j.parent].ok:
+                centres[j.name] = apply(s.pose.transforms[j.parent], j.center)
+            if usable(s, j):  # a joint with a flagged bone gets no angles (it is listed in the failures)
+                angles[j.name] = j.angles_from_motion(est.relative_motion(s.pose.transforms, j.name))
         s.pose = Pose(s.pose.transforms, joint_angles=angles, joint_centers=centres, skeleton=skeleton.name)
     return PoseResult(method, results, joints, est, contacts)
 

@@ -22,11 +22,9 @@ from deformation.skeleton import Pose, Skeleton
 from deformation.transforms import rotation_angle_deg
 
 from .joint_centers import estimate_joint_center
-from .pose import PoseResult, compare_poses
+from .pose import MOVING_DEG, PoseResult, compare_poses
 
 __all__ = ["accuracy", "format_accuracy", "format_fits", "MOVING_DEG"]
-
-MOVING_DEG = 5.0  # a joint whose largest rotation over the scans is below this has no identifiable centre
 
 
 def accuracy(result: PoseResult, truth: dict[str, Pose], true_skeleton: Skeleton,

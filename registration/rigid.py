@@ -11,9 +11,10 @@ This module holds both refinements plus the shared pieces:
 
 * :class:`BoneRegion` — a bone's region in the template: a crop around the
   bone, the (slightly dilated) bone mask inside it, its voxel centres in world
-  mm and their template intensities.  The dilation stops half-way to any
-  other bone (a Voronoi split of the neighbourhood), so voxels that move with
-  a neighbour never pull on this bone.
+  mm and their template intensities.  Each dilation voxel belongs to its
+  nearest bone only (a Voronoi split), and none lies within the margin of
+  another bone, so voxels that move with a neighbour never pull on this bone
+  (across a joint space narrower than twice the margin, nothing is added).
 * :class:`Sampler` — a scan interpolated at world points, cubic B-spline by
   default (trilinear, Rhee's choice, on request), after a light Gaussian
   smoothing (:func:`smooth`) that removes the noise-interpolation bias.
@@ -150,9 +151,9 @@ def bone_regions(template: Volume, labels: Volume, skeleton, *, margin_mm: float
         own = lab == b.label
         n = int(own.sum())
         if n < 4:
-            raise ValueError(f"bone {b.name!r} (label {b.label}) has {n} voxels in the template label map; "
-                             "check the label ids in skeleton.json against the label map, or segment the "
-                             "template with a seeds file")
+            raise ValueError(f"bone {b.name!r} (label {b.label}) has {n} voxels in the template label map (at least "
+                             "4 needed); check the label ids in skeleton.json against the label map, or, for a "
+                             "segmented template, move or add seeds for this bone")
         region = (nearest == b.label) & (dist <= margin_mm)
         others = bone_voxels & ~own
         if others.any():
@@ -344,8 +345,9 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
     if not np.isfinite(e[order[0]]):
         return parent_transform.copy(), math.inf, n, np.zeros(3)
     # Stage 2: the geometric step around each of them.
-    local = np.array(np.meshgrid(*[np.arange(-coarse_step, coarse_step + 1e-9, step)] * 3,
-                                 indexing="ij")).reshape(3, -1).T
+    k = max(1, int(round(coarse_step / step)))
+    ticks = np.arange(-k, k + 1) * step  # symmetric about the stage-1 winner, which is scored again
+    local = np.array(np.meshgrid(ticks, ticks, ticks, indexing="ij")).reshape(3, -1).T
     best, best_angles = math.inf, np.zeros(3)
     for i in order:
         if not np.isfinite(e[i]):

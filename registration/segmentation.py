@@ -22,10 +22,9 @@ graph cut from user strokes, Kurihara thresholded CT)::
   ``ConfidenceConnected``) from each bone's seeds through the marrow, which
   is bright and enclosed by the dark cortex, then one voxel of dilation to
   take the cortex in; voxels claimed by two bones go to the nearer seed
-  region.  A growth that leaks out of the bone (more than ``max_volume_ml``)
-  (it touches the air, or exceeds ``max_volume_ml`` or a quarter of the
-  body's volume) is retried with a tighter
-  intensity band, and dropped and reported if it still leaks.
+  region.  A growth that leaks out of the bone — it touches the air, or
+  exceeds ``max_volume_ml`` or a quarter of the body's volume — is retried
+  with a tighter intensity band, and dropped and reported if it still leaks.
 
 Both return a label map on the image's grid with the skeleton's label ids.
 """

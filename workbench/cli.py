@@ -137,7 +137,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "bones from it instead of using the study's label map")
     po.add_argument("--modality", choices=["ct", "mri"],
                     help="segmentation method for --seeds (default: guessed from the intensities: CT if air is "
-                         "below -500)")
+                         "below -500 HU; a CT cropped to the limb, with no air, needs --modality ct and "
+                         "--bias-correction off)")
     po.add_argument("--threshold", type=float, metavar="HU",
                     help="bone threshold for CT segmentation (default 400)")
     po.add_argument("--init", default="identity", metavar="identity|moments|FILE",
@@ -150,11 +151,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "after the best linear intensity map per bone (insensitive to an MRI bias field). "
                          "Default: ncc")
     po.add_argument("--interpolation", choices=["linear", "bspline"], default="bspline",
-                    help="'linear' is the papers' trilinear; 'bspline' (cubic) halves the residual of a rotated "
-                         "bone on coarse grids. Default: bspline")
+                    help="'linear' is the papers' trilinear; 'bspline' (cubic) leaves a residual about 4x smaller "
+                         "for a rotated bone on coarse grids. Default: bspline")
     po.add_argument("--prior-deg", type=float, default=2.0, metavar="DEG",
-                    help="width of the weak prior tying each bone to its hierarchical initialisation "
-                         "(degrees and mm); 0 turns it off (plain Eq. 1). Default: 2")
+                    help="width (degrees) of the weak prior tying each bone's rotation to its hierarchical "
+                         "initialisation (the translation prior is 2 mm); 0 turns the polish off (plain Eq. 1 "
+                         "through SimpleITK). Default: 2")
     po.add_argument("--margin-mm", type=float, metavar="MM",
                     help="dilation of each bone's region for the intensity cost (Rhee: 'slightly dilated'); "
                          "default one voxel, at least 2 mm.  Smaller keeps non-rigid soft tissue out on fine grids")

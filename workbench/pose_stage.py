@@ -139,8 +139,14 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
     seg_report = None
     if segment or seeds is not None:
         if seeds is None:
-            raise InputFileError("--segment needs --seeds FILE (one world point in mm inside each bone).", root)
+            raise InputFileError("segmenting needs a seeds file (one world point in mm inside each bone).", root)
         sd = read_seeds(seeds, skeleton)
+        from registration.segmentation import guess_modality
+
+        modality = modality or guess_modality(template)
+        if threshold is not None and modality != "ct":
+            raise InputFileError(f"--threshold applies to CT segmentation, but the template segments as "
+                                 f"{modality.upper()}; pass --modality ct if it is a CT.", root)
         kw = {} if threshold is None else {"threshold": threshold}
         labels, seg_report = segment_bones(template, skeleton, sd, modality=modality, **kw)
         for w in seg_report.warnings:
@@ -205,7 +211,11 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
         write_json({"format": "avw-pose-vectors", "version": 1, "joint_order": order,
                     "dof": [j.dof for j in skeleton.joints],
                     "units": "degrees (6-DOF joints: three angles, then mm)",
-                    "scans": {s.scan_id: np.concatenate([np.asarray(s.pose.joint_angles[j]) for j in order]).tolist()
+                    "missing": "null: a joint with a bone flagged in that scan (see fits.json)",
+                    "scans": {s.scan_id: [v for j in order
+                                          for v in (np.asarray(s.pose.joint_angles[j]).tolist()
+                                                    if j in s.pose.joint_angles
+                                                    else [None] * skeleton.joint(j).dof)]
                               for s in result.scans}}, stage / "pose_vectors.json")
         write_json(_finite({"format": "avw-joints", "version": 1, "method": method, "units": "mm",
                             "eq1_rms_mm": result.overall_rms_mm(), "eq1_base_pose_counted": False,

@@ -122,7 +122,11 @@ class Study:
         if "pose" not in entry:
             raise StudyError(f"scan {scan_id!r} has no estimated pose yet; run `workbench pose {self.root}`.",
                              self.root / MANIFEST)
-        return Pose.from_dict(read_json(self.path(entry["pose"])))
+        path = self.path(entry["pose"])
+        if not path.is_file():
+            raise MissingFileError(f"{path}: named in {self.root / MANIFEST} but missing; run `workbench pose "
+                                   f"{self.root} --force` to estimate the poses again.", path)
+        return Pose.from_dict(read_json(path))
 
     def truth_correspondence(self, scan_id: str) -> Volume:
         """The ``scan_to_template`` displacement field of a scan (template position − voxel position, mm)."""
@@ -166,8 +170,8 @@ def read_study(folder: str | os.PathLike) -> Study:
                 raise StudyError(f"{manifest_path}: scans[{i}]['truth'] must name 'correspondence', 'pose' "
                                  "and 'markers' files.", manifest_path)
             files.extend(truth[k] for k in ("correspondence", "pose", "markers"))
-        if "pose" in s:  # written by `workbench pose`
-            files.append(s["pose"])
+        # A scan's "pose" (written by `workbench pose`) is not required to exist: a study whose poses/ folder
+        # was deleted must still open, so that `workbench pose --force` can write it again.
     for f in files:
         if not isinstance(f, str):
             raise StudyError(f"{manifest_path}: file entries must be strings (paths), got {f!r}.", manifest_path)

@@ -55,7 +55,8 @@ def test_angles_and_centres_are_recorded_per_scan(knee_result, knee_ct_study):
     for s in res.scans:
         truth = knee_ct_study.truth_pose(s.scan_id)
         assert set(s.pose.joint_angles) == set(sk.joint_names)
-        # Flexion (intrinsic XYZ, first angle) within 2° of the truth for the knee (tibia ≤ 2.4° in rotation).
+        # Flexion (intrinsic XYZ, first angle) within 2.5° of the truth: the tibia's whole rotation error is
+        # ≤ 2.4° here (measured), and flexion is one component of it.
         assert abs(s.pose.joint_angles["knee"][0] - truth.joint_angles["knee"][0]) < 2.5
         # The joint centre in the scan is the estimated centre carried by the parent (the femur).
         j = res.skeleton.joint("knee")
@@ -131,3 +132,24 @@ def test_root_from_image_moments_follows_a_shifted_scan(knee_ct_study):
         c = centroids[b]
         # Translation of each bone's centroid equals the shift within 0.5 mm (the test-size accuracy above).
         np.testing.assert_allclose(t[:3, :3] @ c + t[:3, 3] - c, shift, atol=0.5, err_msg=b)
+
+
+def test_flagged_bones_do_not_feed_joint_centres_or_angles(knee_ct_study):
+    """A scan missing the shank: its knee motion is not used for the knee's centre and gets no angles."""
+    st = knee_ct_study
+    sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
+    scans = {s: st.scan(s) for s in st.scan_ids}
+    g = scans["pose02"].geometry
+    j0 = g.size[1] // 2 + 4
+    scans["pose02"] = Volume(np.ascontiguousarray(scans["pose02"].data[:, j0:, :]),
+                             GridGeometry((g.size[0], g.size[1] - j0, g.size[2]), g.spacing,
+                                          tuple(g.index_to_world([0, j0, 0])), g.direction))
+    res = estimate_poses(tpl, lab, scans, sk)
+    cut = next(s for s in res.scans if s.scan_id == "pose02")
+    assert not cut.fits["tibia"].ok
+    for j in sk.joints:  # angles exactly for the joints whose two bones were found
+        assert (j.name in cut.pose.joint_angles) == (cut.fits[j.parent].ok and cut.fits[j.child].ok), j.name
+    assert "knee" not in cut.pose.joint_angles
+    # The knee's centre comes from the two other scans only (the estimated straight leg is not exactly the
+    # identity, so it counts).
+    assert res.joints["knee"].n_motions == 2

@@ -52,7 +52,7 @@ def test_mri_region_growing_reports_what_it_cannot_segment(knee_templates):
     # reported (and its voxels dropped), not passed on.
     for b in ("femur", "tibia", "patella"):
         assert d[b] >= 0.75, d
-    if d["fibula"] < 0.5:
+    if d["fibula"] < 0.75:  # a poor fibula must come with a warning and no voxels, never silently
         assert any("fibula" in w for w in rep.warnings), rep.warnings
         assert rep.voxels["fibula"] == 0
 
