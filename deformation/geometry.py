@@ -239,6 +239,24 @@ class Volume:
     def n_components(self) -> int:
         return 1 if self.data.ndim == 3 else int(self.data.shape[3])
 
+    def crop(self, lo, hi) -> "Volume":
+        """The sub-volume of voxel indices ``lo ≤ (i, j, k) < hi`` (clipped to the grid), with its geometry.
+
+        Indices are in (i, j, k) = (x, y, z) order; the new origin is the world
+        position of voxel ``lo``, spacing and direction are kept, so every voxel
+        stays where it was in world mm.  The data are a copy.
+        """
+        size = np.asarray(self.geometry.size)
+        lo = np.clip(np.asarray(lo, dtype=int), 0, size)
+        hi = np.clip(np.asarray(hi, dtype=int), 0, size)
+        if np.any(hi <= lo):
+            raise ValueError(f"empty crop: index range {lo.tolist()}..{hi.tolist()} of a grid of size {size.tolist()}")
+        g = self.geometry
+        geo = GridGeometry(tuple(int(v) for v in hi - lo), g.spacing, tuple(g.index_to_world(lo.astype(float))),
+                           g.direction)
+        data = self.data[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]  # array order [z, y, x]
+        return Volume(np.array(data, copy=True, order="C"), geo)
+
     def to_sitk(self):
         """A SimpleITK image with the same voxels and geometry (vector images stay vector)."""
         import SimpleITK as sitk

@@ -42,7 +42,7 @@ from .joint_centers import JointCenterResult, estimate_joint_center
 from .rigid import BoneFit, BoneRegion, Sampler, bone_regions, smooth, coarse_rotation_search, refine_intensity, refine_surface
 
 __all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
-           "compare_poses", "joint_errors", "moments_init"]
+           "compare_poses", "moments_init"]
 
 METHODS = ("intensity", "surface")
 MOVING_DEG = 5.0  # a joint whose largest rotation over the scans is below this has no identifiable centre
@@ -153,12 +153,6 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     sampler = Sampler(scan, order=interpolation, smooth_voxels=smooth_voxels)
     coarse_sampler = None
-    if method == "intensity":
-        def refine(region, sampler, init, min_ncc, root=False, prior_center=None):
-            return refine_intensity(region, sampler, init, min_ncc=min_ncc, prior_deg=None if root else prior_deg,
-                                    multires=root, metric=metric, prior_center=prior_center)
-    else:
-        refine = refine_surface
     fits: dict[str, BoneFit] = {}
     for k, name in enumerate(skeleton.order):
         region = regions[name]
@@ -171,8 +165,9 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
         else:
             parent_t = fits[joint.parent].transform
             if coarse:
-                if coarse_sampler is None:
-                    coarse_sampler = Sampler(scan, order=3, smooth_voxels=max(COARSE_SMOOTH, smooth_voxels))
+                if coarse_sampler is None:  # the scan blurred like the template regions of the search
+                    coarse_sampler = Sampler(scan, order=3, smooth_voxels=(
+                        max(COARSE_SMOOTH, smooth_voxels) if coarse_regions is not None else smooth_voxels))
                 init, _, n, ang = coarse_rotation_search((coarse_regions or regions)[name], coarse_sampler, parent_t,
                                                          joint, metric=metric)
                 how = (f"parent + grid search about the joint ({n} evaluations): flexion {ang[0]:.1f}°, "
@@ -180,13 +175,11 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
                 prior_center = compose(parent_t, joint.motion(np.r_[ang[0], np.zeros(joint.dof - 1)]))
             else:
                 init, how = parent_t.copy(), "parent"
-        if joint is None:
-            fit = refine(region, sampler, init, min_ncc=min_ncc, root=True) if method == "intensity" else \
-                refine(region, sampler, init, min_ncc=min_ncc)
-        elif method == "intensity":
-            fit = refine(region, sampler, init, min_ncc=min_ncc, prior_center=prior_center)
+        if method == "intensity":  # the root starts from a rough pose: multi-resolution, no prior to tie it to
+            fit = refine_intensity(region, sampler, init, min_ncc=min_ncc, metric=metric, multires=joint is None,
+                                   prior_deg=None if joint is None else prior_deg, prior_center=prior_center)
         else:
-            fit = refine(region, sampler, init, min_ncc=min_ncc)
+            fit = refine_surface(region, sampler, init, min_ncc=min_ncc)
         fit.init = how
         fit.seconds = time.perf_counter() - t0
         fits[name] = fit
@@ -319,27 +312,4 @@ def compare_poses(estimate: Pose, truth: Pose, centroids: dict[str, np.ndarray])
         c = np.asarray(centroids[b], float)
         out[b] = {"rotation_deg": rotation_angle_deg(compose(invert(t_true), t_est)),
                   "translation_mm": float(np.linalg.norm(apply(t_est, c) - apply(t_true, c)))}
-    return out
-
-
-def joint_errors(result: PoseResult, true_skeleton: Skeleton) -> dict[str, dict]:
-    """Joint-centre accuracy against a skeleton holding the true centres and axes.
-
-    Well-conditioned joints: the distance between the estimated and true
-    centres.  Hinge-like joints: the distance from the true centre to the
-    estimated axis line, and the angle between the estimated axis and the
-    true joint axis nearest to it (the rotation axis of the joint's motions).
-    """
-    out = {}
-    for name, r in result.joints.items():
-        tj = true_skeleton.joint(name)
-        c_true = np.asarray(tj.center)
-        e = {"dof": tj.dof, "is_hinge": r.is_hinge, "center_error_mm": float(np.linalg.norm(r.center - c_true))}
-        if r.is_hinge:
-            d = c_true - r.center
-            e["center_to_axis_mm"] = float(np.linalg.norm(d - r.axis * (r.axis @ d)))
-            cosines = np.abs(tj.axes.T @ r.axis)
-            e["axis_error_deg"] = float(np.degrees(np.arccos(np.clip(cosines.max(), -1.0, 1.0))))
-            e["axis_vs"] = "xyz"[int(np.argmax(cosines))]
-        out[name] = e
     return out

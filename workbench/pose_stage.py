@@ -161,8 +161,9 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
     else:
         labels = study.template_labels()
     ids = list(scan_ids) if scan_ids else study.scan_ids
-    for sid in ids:
-        study._scan_entry(sid)  # unknown ids fail here, naming the study's scans
+    unknown = [sid for sid in ids if sid not in study.scan_ids]
+    if unknown:
+        raise InputFileError(f"no scan {unknown} in this study; its scans are {study.scan_ids}.", root / MANIFEST)
     if init in ("identity", "moments"):
         root_init = None if init == "identity" else "moments"
     else:

@@ -215,3 +215,18 @@ def test_apply_to_sitk_refuses_another_size(geom):
     img = sitk.Image([7, 5, 3], sitk.sitkUInt8)
     with pytest.raises(GeometryMismatchError, match="differs from grid size"):
         geom.apply_to_sitk(img)
+
+
+def test_volume_crop_keeps_voxels_in_place(geom):
+    rng = np.random.default_rng(3)
+    vol = Volume(rng.normal(size=geom.array_shape), geom)
+    sub = vol.crop((1, 2, 1), (4, 5, 3))  # the grid is 7×5×4 (x, y, z), rotated and anisotropic
+    assert sub.geometry.size == (3, 3, 2)
+    # Every voxel of the crop is at the same world position, with the same value, as in the original.
+    ijk = np.array([[i, j, k] for i in range(3) for j in range(3) for k in range(2)], float)
+    np.testing.assert_allclose(sub.geometry.index_to_world(ijk), geom.index_to_world(ijk + [1, 2, 1]), atol=1e-9)
+    for i, j, k in ijk.astype(int):
+        assert sub.data[k, j, i] == vol.data[k + 1, j + 2, i + 1]
+    assert vol.crop((-5, 0, 0), (2, 99, 99)).geometry.size == (2,) + tuple(geom.size[1:])  # clipped
+    with pytest.raises(ValueError, match="empty crop"):
+        vol.crop((2, 0, 0), (2, 1, 1))

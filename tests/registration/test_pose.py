@@ -11,6 +11,12 @@ from registration.report import accuracy
 from registration.rigid import bone_regions
 
 
+def cut_above_knee(scan):
+    """The proximal part of a knee scan (y index beyond the middle + 4): the femur stays, the shank is gone."""
+    g = scan.geometry
+    return scan.crop((0, g.size[1] // 2 + 4, 0), g.size)
+
+
 @pytest.fixture(scope="module")
 def knee_result(knee_ct_study):
     st = knee_ct_study
@@ -73,12 +79,7 @@ def test_a_bone_outside_the_field_of_view_is_reported(knee_ct_study):
     with the scan, the bone and the metric."""
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
-    scan = st.scan("pose01")
-    g = scan.geometry
-    keep = slice(g.size[1] // 2 + 4, g.size[1])  # y (proximal) half: the femur and patella stay
-    cut_geo = GridGeometry((g.size[0], keep.stop - keep.start, g.size[2]), g.spacing,
-                           tuple(g.index_to_world([0, keep.start, 0])), g.direction)
-    cut = Volume(np.ascontiguousarray(scan.data[:, keep, :]), cut_geo)
+    cut = cut_above_knee(st.scan("pose01"))
     res = estimate_poses(tpl, lab, {"cut": cut}, sk)
     fits = res.scans[0].fits
     assert fits["femur"].ok
@@ -139,11 +140,7 @@ def test_flagged_bones_do_not_feed_joint_centres_or_angles(knee_ct_study):
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
     scans = {s: st.scan(s) for s in st.scan_ids}
-    g = scans["pose02"].geometry
-    j0 = g.size[1] // 2 + 4
-    scans["pose02"] = Volume(np.ascontiguousarray(scans["pose02"].data[:, j0:, :]),
-                             GridGeometry((g.size[0], g.size[1] - j0, g.size[2]), g.spacing,
-                                          tuple(g.index_to_world([0, j0, 0])), g.direction))
+    scans["pose02"] = cut_above_knee(scans["pose02"])
     res = estimate_poses(tpl, lab, scans, sk)
     cut = next(s for s in res.scans if s.scan_id == "pose02")
     assert not cut.fits["tibia"].ok

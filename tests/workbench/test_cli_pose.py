@@ -23,6 +23,16 @@ def small_ct_study(tmp_path_factory):
                                tmp_path_factory.mktemp("cli-pose") / "study").root
 
 
+def _write_seeds(study, path):
+    """A seeds file with one point deep inside each bone of the study's label map."""
+    from registration.segmentation import seeds_from_labels
+
+    seeds = seeds_from_labels(study.template_labels(), study.skeleton())
+    path.write_text(json.dumps({"format": "avw-seeds", "version": 1, "units": "mm",
+                                "seeds": {b: p.tolist() for b, p in seeds.items()}}))
+    return path
+
+
 def _hashes(root):
     return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(root.rglob("*")) if p.is_file() and not p.relative_to(root).parts[0] == "poses"
@@ -42,10 +52,11 @@ def test_pose_writes_into_the_study(tmp_path, small_ct_study, capsys):
     assert "pose" not in next(s for s in st.manifest["scans"] if s["id"] == "pose00")
     stage = st.manifest["stages"]["pose"]
     assert stage["method"] == "intensity" and stage["scans"] == ["pose01"] and stage["failures"] == 0
-    # Estimate and truth share a schema, so they compare directly (70° of flexion: tibia within 3°).
+    # Estimate and truth share a schema, so they compare directly.  At 70° of flexion on 5 mm voxels the
+    # tibia is measured 2.95° off; 3.5° is the worst bone over the test-size benchmark (3.3°) plus margin.
     est, truth = st.pose("pose01"), st.truth_pose("pose01")
     err = rotation_angle_deg(compose(invert(truth.transforms["tibia"]), est.transforms["tibia"]))
-    assert err < 3.0, err
+    assert err < 3.5, err
     assert set(est.joint_angles) == set(truth.joint_angles)
     joints = json.loads((root / "poses" / "joints.json").read_text())
     assert joints["format"] == "avw-joints" and set(joints["joints"]) == {"knee", "tibiofibular", "patellofemoral"}
@@ -71,14 +82,10 @@ def test_pose_writes_into_the_study(tmp_path, small_ct_study, capsys):
 
 
 def test_pose_with_seeds_segments_the_template(tmp_path, small_ct_study, capsys):
-    from registration.segmentation import seeds_from_labels
-
     root = tmp_path / "study"
     shutil.copytree(small_ct_study, root)
     st = read_study(root)
-    seeds = {b: p.tolist() for b, p in seeds_from_labels(st.template_labels(), st.skeleton()).items()}
-    sf = tmp_path / "seeds.json"
-    sf.write_text(json.dumps({"format": "avw-seeds", "version": 1, "units": "mm", "seeds": seeds}))
+    sf = _write_seeds(st, tmp_path / "seeds.json")
     assert main(["pose", str(root), "--scan", "pose00", "--seeds", str(sf), "--quiet"]) == 0
     capsys.readouterr()
     st = read_study(root)
@@ -134,26 +141,18 @@ def test_initial_pose_file_formats(tmp_path, small_ct_study):
 def test_study_without_labels_and_a_bone_out_of_view(tmp_path, small_ct_study, capsys):
     """A user's study: no label map (so --seeds is required) and a scan that misses the shank; the
     missing bones are reported in fits.json and report.json (metrics that could not be computed are null)."""
-    from deformation.geometry import GridGeometry, Volume
-    from registration.segmentation import seeds_from_labels
     from workbench.volume_io import write_volume
 
     root = tmp_path / "study"
     shutil.copytree(small_ct_study, root)
     st = read_study(root)
-    seeds = {b: p.tolist() for b, p in seeds_from_labels(st.template_labels(), st.skeleton()).items()}
-    sf = tmp_path / "seeds.json"
-    sf.write_text(json.dumps({"format": "avw-seeds", "version": 1, "units": "mm", "seeds": seeds}))
+    sf = _write_seeds(st, tmp_path / "seeds.json")
     manifest = json.loads((root / "study.json").read_text())
     del manifest["template_labels"]
     (root / "study.json").write_text(json.dumps(manifest))
     (root / "template_labels.nii.gz").unlink()
     scan = st.scan("pose01")
-    g = scan.geometry
-    j0 = g.size[1] // 2 + 4
-    cut = Volume(np.ascontiguousarray(scan.data[:, j0:, :]),
-                 GridGeometry((g.size[0], g.size[1] - j0, g.size[2]), g.spacing, tuple(g.index_to_world([0, j0, 0])),
-                              g.direction))
+    cut = scan.crop((0, scan.geometry.size[1] // 2 + 4, 0), scan.geometry.size)  # the shank is gone
     (root / "scans" / "pose01.nii.gz").unlink()
     write_volume(cut, root / "scans" / "pose01.nii.gz")
 
