@@ -13,8 +13,15 @@ quasi-Newton minimisation (SciPy's BFGS, DFP's dual update) as a cross-check.
 
 Near-hinge joints (knee, finger PIP/DIP) rotate about nearly one axis, so
 ``E`` is nearly flat along that axis and the centre is fixed only up to a
-line.  This is detected from the singular values of the stacked matrix
-(smallest / largest below ``hinge_ratio``); the axis is reported and the
+line.  This is detected from the stacked matrix's conditioning, in two
+ways: its smallest / largest singular value is below ``hinge_ratio`` (the
+motions share one axis), or the centre's standard error along the weakest
+direction, ``σ̂ / s_min`` with ``σ̂`` the residual's standard deviation
+per row, exceeds ``hinge_sd_mm`` (the data place the centre along the axis
+no better than that: a knee whose 8° of screw-home rotation sits beside 70°
+of flexion has a singular-value ratio of 0.05, so the ratio alone decides by
+a coin flip, while registration noise moves its centre along the axis by
+millimetres).  The axis is reported and the
 centre is taken as the point on the axis closest to a ``reference`` point —
 the caller passes the bones' contact region (e.g. the midpoint of the closest
 points of the two bone surfaces), which puts the centre where the joint
@@ -39,7 +46,9 @@ class JointCenterResult:
     "square root of the mean error in Equation 1"); ``per_motion_mm`` the
     individual ``|M_i c − c|``.  ``singular_values`` of the stacked
     ``[R_i − I]`` (descending) show the conditioning; ``axis`` is the weakest
-    direction (the hinge axis when ``is_hinge``).
+    direction (the hinge axis when ``is_hinge``) and ``axis_sd_mm`` the
+    standard error of the unconstrained centre along it (NaN with a single
+    motion, which has no residual degrees of freedom).
     """
 
     center: np.ndarray
@@ -49,6 +58,7 @@ class JointCenterResult:
     is_hinge: bool
     axis: np.ndarray
     n_motions: int
+    axis_sd_mm: float = float("nan")
     iterative_center: np.ndarray | None = None
     message: str = ""
 
@@ -60,7 +70,7 @@ def eq1_energy(center, motions) -> float:
 
 
 def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
-                          cross_check: bool = True) -> JointCenterResult:
+                          hinge_sd_mm: float | None = 1.0, cross_check: bool = True) -> JointCenterResult:
     """Closed-form joint centre from relative motions (Eq. 1), with hinge handling.
 
     Parameters
@@ -74,6 +84,9 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
         the centre on a hinge axis; otherwise the minimum-norm solution is used.
     hinge_ratio : float
         Smallest/largest singular value below which the joint counts as a hinge.
+    hinge_sd_mm : float or None
+        Standard error of the centre along the weakest direction above which
+        the joint counts as a hinge too (None: the ratio alone decides).
     cross_check : bool
         Also minimise Eq. 1 with BFGS from the reference (or the origin) —
         for a hinge, on the plane through the reference perpendicular to the
@@ -87,14 +100,21 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
     b = np.concatenate([-m[:3, 3] for m in moving])
     u, s, vt = np.linalg.svd(a, full_matrices=False)
     axis = vt[-1]
-    is_hinge = bool(s[-1] < hinge_ratio * s[0])
+    dof = a.shape[0] - 3
+    if dof > 0 and s[-1] > 0:
+        c_full = vt.T @ ((u.T @ b) / s)
+        axis_sd = float(np.linalg.norm(a @ c_full - b) / np.sqrt(dof) / s[-1])
+    else:
+        axis_sd = float("nan")
+    is_hinge = bool(s[-1] < hinge_ratio * s[0]) or (hinge_sd_mm is not None and axis_sd > hinge_sd_mm)
     if is_hinge:
         # Solve in the well-determined 2-D subspace, then slide along the axis to the reference.
         c = vt[:2].T @ ((u[:, :2].T @ b) / s[:2])
         if reference is not None:
             r = np.asarray(reference, float)
             c = c + axis * float(axis @ (r - c))
-        msg = ("near-hinge joint: the centre is fixed only up to the axis; "
+        msg = (f"near-hinge joint (singular-value ratio {s[-1] / s[0]:.3f}, centre sd along the axis "
+               f"{axis_sd:.2f} mm): the centre is fixed only up to the axis; "
                + ("placed at the point of the axis closest to the reference" if reference is not None
                   else "minimum-norm point of the axis (pass reference= to place it at the bones' contact)"))
     else:
@@ -115,5 +135,5 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
         else:
             it = minimize(eq1_energy, x0, args=(moving,), method="BFGS", options={"gtol": 1e-10}).x
     return JointCenterResult(center=c, rms_mm=float(np.sqrt(np.mean(per**2))), per_motion_mm=per,
-                             singular_values=s, is_hinge=is_hinge, axis=axis, n_motions=len(moving),
+                             singular_values=s, is_hinge=is_hinge, axis=axis, n_motions=len(moving), axis_sd_mm=axis_sd,
                              iterative_center=it, message=msg)

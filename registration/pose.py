@@ -80,7 +80,7 @@ class PoseResult:
             out[name] = {"parent": j.parent, "child": j.child, "dof": j.dof, "center": r.center.tolist(),
                          "rms_mm": r.rms_mm, "per_scan_mm": r.per_motion_mm.tolist(), "n_motions": r.n_motions,
                          "is_hinge": r.is_hinge, "axis": r.axis.tolist(),
-                         "singular_values": r.singular_values.tolist(),
+                         "singular_values": r.singular_values.tolist(), "axis_sd_mm": r.axis_sd_mm,
                          "iterative_center": None if r.iterative_center is None else r.iterative_center.tolist(),
                          "closed_form_vs_iterative_mm": (None if r.iterative_center is None else
                                                          float(np.linalg.norm(r.iterative_center - r.center))),
@@ -218,7 +218,7 @@ def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None 
 def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *,
                    method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
                    interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
-                   hinge_ratio: float = 0.05, bias_correction: bool | None = None, margin_mm: float | None = None,
+                   hinge_ratio: float = 0.05, hinge_sd_mm: float | None = 1.0, bias_correction: bool | None = None, margin_mm: float | None = None,
                    progress=None) -> PoseResult:
     """Register every bone in every scan, then estimate joint centres and angles.
 
@@ -270,7 +270,8 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
         if not motions:
             new_joints.append(j)  # no scan where both bones were found: the skeleton's centre stays
             continue
-        r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio) \
+        r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio,
+                                  hinge_sd_mm=hinge_sd_mm) \
             if max(rotation_angle_deg(m) for m in motions) >= MOVING_DEG else None
         if r is None:
             # The joint barely turns: Eq. 1's centre would be translation noise over a tiny angle (millimetres

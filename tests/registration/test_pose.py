@@ -31,9 +31,10 @@ def test_bone_transforms_match_the_truth(knee_result):
     res, acc = knee_result
     assert all(f.ok for s in res.scans for f in s.fits.values()), res.failures()
     s = acc["summary"]
-    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion (measured: median 0.24° / 0.12 mm,
-    # worst 2.7° / 0.54 mm, the worst being the disc-shaped patella).  Medians as the issue asks;
-    # the worst-bone bounds are regression bounds just above the measured values.
+    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion (measured: median 0.24° / 0.09 mm, worst
+    # 2.4° / 0.50 mm: the tibia's screw-home twist, which the polish's 2° prior, centred on zero twist,
+    # shrinks; then the patella, 2.2°).  Medians as the issue asks; the worst-bone bounds are
+    # regression bounds just above the measured values.
     assert s["rotation_deg"]["median"] <= 0.5 and s["translation_mm"]["median"] <= 0.5, s
     assert s["translation_mm"]["max"] <= 1.0, s
     worst = {b: max(acc["bones"][sid][b]["rotation_deg"] for sid in acc["bones"]) for b in ("femur", "tibia", "fibula")}

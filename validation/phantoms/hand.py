@@ -118,9 +118,34 @@ def skeleton() -> Skeleton:
     return Skeleton(bones, [Joint(*j) for j in joints], name=NAME)
 
 
+def digit_bone(a, b, ra, rb, axes) -> SmoothUnion:
+    """A tubular bone of the hand or forearm that is not a body of revolution.
+
+    Real metacarpals and phalanges have a waisted shaft, a base wider
+    radio-ulnarly than it is deep with a dorsal lip, and a head whose condyles
+    project palmarly.  A round cone (the first version of this phantom) is
+    symmetric about its long axis, so its twist is invisible in any image and
+    no registration can recover it; these widths and offsets (about 1.4:1 at
+    the ends) make every rotation observable, as in real bones.  ``axes`` is
+    the digit frame of :func:`_frame` (x radio-ulnar, y dorsal, z along the
+    digit).  The articular ends stay where the round cone's caps were, so the
+    joint spaces keep their ``GAP``.
+    """
+    a, b, axes = np.asarray(a, float), np.asarray(b, float), np.asarray(axes, float)
+    y = axes[:, 1]
+    rot = tuple(axes.reshape(-1))
+    return SmoothUnion((
+        RoundCone(tuple(a), tuple(b), 0.78 * ra, 0.78 * rb),
+        Ellipsoid(tuple(a + 0.12 * ra * y), (1.22 * ra, 0.86 * ra, ra), rot),
+        Ellipsoid(tuple(b - 0.12 * rb * y), (1.18 * rb, 0.86 * rb, rb), rot),
+    ), k=1.5)
+
+
 def anatomy() -> Anatomy:
-    segs, _, radius = _layout()
-    shapes = {n: RoundCone(tuple(a), tuple(b), ra, rb) for n, (a, b, ra, rb) in segs.items()}
+    segs, joints, radius = _layout()
+    axes_of = {child: np.asarray(ax, float) for (_, _, child, _, _, ax) in joints}
+    axes_of["radius"] = _frame((0.0, 1.0, 0.0))
+    shapes = {n: digit_bone(a, b, ra, rb, axes_of[n]) for n, (a, b, ra, rb) in segs.items()}
     shapes["capitate"] = Ellipsoid((0.0, -59.5, 0.0), (20.0, 6.5, 8.0))
     palm_parts = [RoundCone((-4.0, -120.0, 0.0), (-2.0, -62.0, 0.0), 19.0, 21.0),
                   Ellipsoid((0.0, -58.0, -1.0), (32.0, 16.0, 16.0))]

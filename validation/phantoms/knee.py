@@ -63,11 +63,18 @@ def anatomy() -> Anatomy:
         RoundCone((x0, -175.0, 0.0), (x0, -25.0, 0.0), 12.0, 16.0),
         Ellipsoid((x0 - 2.0, -14.0, 0.0), (28.0, 9.0, 38.0)),
     ), k=6.0)
+    # Neither the fibula nor the patella is a body of revolution (a round fibular head or
+    # a disc-shaped patella would leave a rotation that no image shows): the fibular head
+    # is longer antero-posteriorly than it is wide and sits off the shaft's axis, and the
+    # patella is a rounded triangle, its broad base proximal and its apex distal.
     fibula = SmoothUnion((
         RoundCone((x0 - 14.0, -175.0, 31.0), (x0 - 12.0, -40.0, 32.0), 6.0, 7.0),
-        Ellipsoid((x0 - 12.0, -36.0, 32.0), (9.0, 7.0, 9.0)),
+        Ellipsoid((x0 - 11.0, -36.0, 31.0), (10.0, 7.0, 7.0)),
     ), k=4.0)
-    patella = Ellipsoid((x0 + 32.0, 28.0, 0.0), (8.0, 18.0, 16.0))
+    patella = SmoothUnion((
+        Ellipsoid((x0 + 33.0, 31.0, 0.0), (10.0, 15.0, 18.0)),
+        Ellipsoid((x0 + 32.0, 17.0, 0.0), (7.5, 9.0, 10.0)),
+    ), k=4.0)
     body = SmoothUnion((
         RoundCone((x0 - 5.0, 190.0, 0.0), (x0 - 2.0, 45.0, 0.0), 64.0, 56.0),
         Ellipsoid((x0 + 2.0, 10.0, 0.0), (58.0, 70.0, 60.0)),
