@@ -59,6 +59,7 @@ class JointCenterResult:
     axis: np.ndarray
     n_motions: int
     axis_sd_mm: float = float("nan")
+    estimated: bool = True  # False: Eq. 1 was not solved and the given centre was kept (see ``message``)
     iterative_center: np.ndarray | None = None
     message: str = ""
 

@@ -47,6 +47,7 @@ __all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan",
 METHODS = ("intensity", "surface")
 MOVING_DEG = 5.0  # a joint whose largest rotation over the scans is below this has no identifiable centre
 COARSE_SMOOTH = 1.5  # voxels: Gaussian blur of both images for the joint grid search
+MAX_JOINT_GAP_MM = 10.0  # a bone whose joint centre lands farther than this from its parent's is flagged
 
 
 @dataclass
@@ -79,7 +80,7 @@ class PoseResult:
             j = self.skeleton.joint(name)
             out[name] = {"parent": j.parent, "child": j.child, "dof": j.dof, "center": r.center.tolist(),
                          "rms_mm": r.rms_mm, "per_scan_mm": r.per_motion_mm.tolist(), "n_motions": r.n_motions,
-                         "is_hinge": r.is_hinge, "axis": r.axis.tolist(),
+                         "estimated": r.estimated, "is_hinge": r.is_hinge, "axis": r.axis.tolist(),
                          "singular_values": r.singular_values.tolist(), "axis_sd_mm": r.axis_sd_mm,
                          "iterative_center": None if r.iterative_center is None else r.iterative_center.tolist(),
                          "closed_form_vs_iterative_mm": (None if r.iterative_center is None else
@@ -138,7 +139,7 @@ def correct_bias(image: Volume) -> Volume:
 def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skeleton, *, method: str = "intensity",
                   root_init=None, coarse: bool = True, min_ncc: float = 0.5, interpolation: int = 3,
                   prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc", coarse_regions=None,
-                  progress=None) -> dict[str, BoneFit]:
+                  max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, progress=None) -> dict[str, BoneFit]:
     """Every bone's template → scan transform, root first, then down the hierarchy.
 
     ``regions`` come from :func:`bone_regions` on the template smoothed by
@@ -148,6 +149,15 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
     fibula's grid search otherwise locked onto the tibia).
     ``root_init`` is the root's initial 4x4 (identity by default);
     ``progress(bone, done, total, fit)`` is called after each bone.
+
+    Bones do not dislocate: the skeleton's joint centre, carried by the
+    child's transform and by the parent's, must land within
+    ``max_joint_gap_mm`` of itself (``joint_gap_mm`` in the fit).  A bone
+    that correlates well where it cannot be — a distal phalanx two voxels
+    wide locked onto a neighbouring finger — is flagged ``joint_detached``
+    rather than accepted.  The gap is measured at the input skeleton's
+    centre, so a rough skeleton (centres off by ``d`` mm, joints turning by
+    ``θ``) needs a limit above ``θ·d``; None switches the check off.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -181,6 +191,14 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
         else:
             fit = refine_surface(region, sampler, init, min_ncc=min_ncc)
         fit.init = how
+        if joint is not None:
+            c = np.asarray(joint.center, float)
+            gap = float(np.linalg.norm(apply(fit.transform, c) - apply(fits[joint.parent].transform, c)))
+            fit.extra["joint_gap_mm"] = gap
+            if fit.ok and max_joint_gap_mm is not None and gap > max_joint_gap_mm:
+                fit.status = "joint_detached"
+                fit.stop = (f"{fit.stop}; the bone left joint '{joint.name}': its centre lands {gap:.1f} mm from "
+                            f"where the parent puts it (limit {max_joint_gap_mm:g} mm)")
         fit.seconds = time.perf_counter() - t0
         fits[name] = fit
         if progress is not None:
@@ -219,7 +237,7 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                    method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
                    interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
                    hinge_ratio: float = 0.05, hinge_sd_mm: float | None = 1.0, bias_correction: bool | None = None, margin_mm: float | None = None,
-                   progress=None) -> PoseResult:
+                   max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, progress=None) -> PoseResult:
     """Register every bone in every scan, then estimate joint centres and angles.
 
     Parameters
@@ -256,7 +274,7 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
         cb = None if progress is None else (lambda b, d, n, f, sid=sid, si=si: progress(sid, si, len(ids), b, d, n, f))
         fits = register_scan(regions, scan, skeleton, method=method, root_init=r0, coarse=coarse, min_ncc=min_ncc,
                              interpolation=interpolation, prior_deg=prior_deg, smooth_voxels=smooth_voxels,
-                             coarse_regions=coarse_regions, metric=metric,
+                             coarse_regions=coarse_regions, metric=metric, max_joint_gap_mm=max_joint_gap_mm,
                              progress=cb)
         transforms = {b: fits[b].transform for b in skeleton.order}
         results.append(ScanPose(sid, Pose(transforms, skeleton=skeleton.name), fits, time.perf_counter() - t0))
@@ -280,7 +298,7 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
             per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in motions])
             r = JointCenterResult(center=c, rms_mm=float(np.sqrt(np.mean(per**2))), per_motion_mm=per,
                                   singular_values=np.zeros(3), is_hinge=False, axis=np.zeros(3),
-                                  n_motions=len(motions), iterative_center=c.copy(),
+                                  n_motions=len(motions), iterative_center=c.copy(), estimated=False,
                                   message=f"moves less than {MOVING_DEG:.0f}° in every scan: the skeleton's centre "
                                           "is kept (Eq. 1 cannot place it)")
         joints[j.name] = r

@@ -86,7 +86,7 @@ class BoneFit:
     bone: str
     transform: np.ndarray
     method: str
-    status: str  # "ok", "not_converged", "poor_match" or "outside_field_of_view"
+    status: str  # "ok", "not_converged", "poor_match", "outside_field_of_view" or "joint_detached"
     ssd_before: float  # mean squared difference over the region at the initialisation
     ssd_after: float
     ncc: float  # normalised cross-correlation of template and scan over the region, after
@@ -517,9 +517,10 @@ def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, st
                       sigma: float | None = None) -> tuple[np.ndarray, dict]:
     """Eq. 1 plus a weak Gaussian prior tying the bone to its hierarchical initialisation.
 
-    A bone that is nearly symmetric about an axis (a phalanx or fibula about
-    its length, a disc-like patella about its normal) leaves Eq. 1 almost flat
-    along that rotation: noise alone then moves it by degrees.  We minimise
+    A bone that is nearly symmetric about an axis (a phalanx two voxels
+    across, seen about its length; a small patella about its normal) leaves
+    Eq. 1 almost flat along that rotation: noise alone then moves it by
+    degrees.  We minimise
 
         Σ_x (I_scan(T x) − I_template(x))² / σ² + |θ|² / τ_θ² + |t|² / τ_t²
 

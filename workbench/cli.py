@@ -166,6 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("--min-ncc", type=float, default=0.5,
                     help="a bone whose final correlation with the template is lower is reported as a poor "
                          "match. Default: 0.5")
+    po.add_argument("--max-joint-gap-mm", type=float, default=10.0, metavar="MM",
+                    help="a bone whose joint centre (from skeleton.json) lands farther than this from where its "
+                         "parent puts it has left its joint and is reported as 'joint_detached'; raise it for a "
+                         "rough skeleton, 0 switches the check off. Default: 10")
     po.add_argument("--force", action="store_true", help="replace an earlier pose stage")
     po.add_argument("--quiet", action="store_true", help="no progress lines")
     po.set_defaults(func=cmd_pose)
@@ -177,13 +181,15 @@ def cmd_pose(args) -> int:
 
     if args.prior_deg < 0:
         raise ValueError(f"--prior-deg must be ≥ 0, got {args.prior_deg}")
+    if args.max_joint_gap_mm < 0:
+        raise ValueError(f"--max-joint-gap-mm must be ≥ 0 (0 switches the check off), got {args.max_joint_gap_mm}")
     say = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     report = run_pose_stage(args.study, method=args.method, seeds=args.seeds, modality=args.modality,
                             threshold=args.threshold, init=args.init, scan_ids=args.scan, metric=args.metric,
                             interpolation=3 if args.interpolation == "bspline" else 1,
                             prior_deg=args.prior_deg or None, min_ncc=args.min_ncc, overwrite=args.force,
                             bias_correction={"auto": None, "on": True, "off": False}[args.bias_correction],
-                            margin_mm=args.margin_mm,
+                            margin_mm=args.margin_mm, max_joint_gap_mm=args.max_joint_gap_mm or None,
                             progress=say)
     print(report["text"])
     print(f"\nwrote {args.study / 'poses'} and updated {args.study / 'study.json'}")

@@ -109,7 +109,7 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
                    modality: str | None = None, threshold: float | None = None, init: str = "identity",
                    scan_ids=None, metric: str = "ncc", interpolation: int = 3, prior_deg: float | None = 2.0,
                    min_ncc: float = 0.5, bias_correction: bool | None = None, margin_mm: float | None = None,
-                   overwrite: bool = False,
+                   max_joint_gap_mm: float | None = 10.0, overwrite: bool = False,
                    progress=None) -> dict:
     """Estimate poses for a study and write them into it; returns the report dictionary.
 
@@ -177,7 +177,8 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
     t0 = time.perf_counter()
     result = estimate_poses(template, labels, scans, skeleton, method=method, root_init=root_init, metric=metric,
                             interpolation=interpolation, prior_deg=prior_deg, min_ncc=min_ncc,
-                            bias_correction=bias_correction, margin_mm=margin_mm, progress=cb)
+                            bias_correction=bias_correction, margin_mm=margin_mm,
+                            max_joint_gap_mm=max_joint_gap_mm, progress=cb)
     total = time.perf_counter() - t0
     centroids = {k: r.centroid for k, r in bone_regions(template, labels, skeleton).items()}
     report = {"method": method, "metric": metric, "interpolation": "cubic B-spline" if interpolation == 3 else "linear",

@@ -5,6 +5,10 @@ the fingertips), ``+x`` ulnar (towards the little finger; the thumb is at
 ``-x``), ``+z`` dorsal; the palm faces ``-z`` and fingers flex towards
 ``-z``.  Paper grid (Rhee Table 1): 255×255×90 voxels at 0.78×0.78×1.0 mm.
 
+Bones: the radius, metacarpals and phalanges are :func:`digit_bone` shapes
+(waisted shaft, a base wider than deep with a dorsal lip, palmar condyles),
+so none is a body of revolution; the capitate is an ellipsoid.
+
 Link model (Kurihara §3, Fig. 3): the radius is the root; the wrist
 (radius → capitate) and the thumb CMC are 6-DOF joints, all others 3 DOF:
 four finger CMC joints, five MCP, four PIP, four DIP and the thumb IP —
