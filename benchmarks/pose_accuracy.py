@@ -148,7 +148,10 @@ def run_wrist():
             motions = [compose(invert(true_motion(w, w.bones[fixed], base, p).transform),
                                true_motion(w, w.bones[b], base, p).transform) for p in w.poses[1:]]
             try:
-                res.append(estimate_joint_center(motions, reference=w.bones[b].positions[base].mean(axis=0)))
+                # Kurihara's figure is Eq. 1's plain minimum: no hinge rule (carpal bones translate, so the
+                # centre's sd along the weakest direction is millimetres and the rule would pin it).
+                res.append(estimate_joint_center(motions, reference=w.bones[b].positions[base].mean(axis=0),
+                                                 hinge_sd_mm=None))
             except ValueError:
                 pass
         per = np.concatenate([r.per_motion_mm for r in res])
