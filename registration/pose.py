@@ -153,10 +153,10 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
     Bones do not dislocate: the skeleton's joint centre, carried by the
     child's transform and by the parent's, must land within
     ``max_joint_gap_mm`` of itself (``joint_gap_mm`` in the fit).  A bone
-    that correlates well where it cannot be (on the test-size MRI hand, a
-    distal phalanx two voxels wide passed the other checks 80 mm from its
-    joint) is flagged ``joint_detached`` rather than accepted.  A child is
-    checked against its parent's result, flagged or not.  The gap is measured at the input skeleton's
+    that correlates well where it cannot be is flagged ``joint_detached``
+    rather than accepted.  A child is checked against its parent's result,
+    flagged or not, so a whole chain that moved together is caught only at
+    the bone where it left its joint.  The gap is measured at the input skeleton's
     centre, so a rough skeleton (centres off by ``d`` mm, joints turning by
     ``θ``) needs a limit above ``θ·d``; None switches the check off.
     """
