@@ -35,7 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-__all__ = ["JointCenterResult", "estimate_joint_center", "eq1_energy"]
+__all__ = ["JointCenterResult", "estimate_joint_center", "eq1_energy", "HINGE_SD_MM"]
+
+HINGE_SD_MM = 1.0  # centre's standard error along the weakest direction above which a joint is a hinge
 
 
 @dataclass
@@ -71,7 +73,7 @@ def eq1_energy(center, motions) -> float:
 
 
 def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
-                          hinge_sd_mm: float | None = 1.0, cross_check: bool = True) -> JointCenterResult:
+                          hinge_sd_mm: float | None = HINGE_SD_MM, cross_check: bool = True) -> JointCenterResult:
     """Closed-form joint centre from relative motions (Eq. 1), with hinge handling.
 
     Parameters
@@ -102,11 +104,9 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
     u, s, vt = np.linalg.svd(a, full_matrices=False)
     axis = vt[-1]
     dof = a.shape[0] - 3
-    if dof > 0 and s[-1] > 0:
-        c_full = vt.T @ ((u.T @ b) / s)
-        axis_sd = float(np.linalg.norm(a @ c_full - b) / np.sqrt(dof) / s[-1])
-    else:
-        axis_sd = float("nan")
+    c_full = vt.T @ ((u.T @ b) / s) if s[-1] > 0 else None  # the unconstrained least-squares centre
+    axis_sd = (float(np.linalg.norm(a @ c_full - b) / np.sqrt(dof) / s[-1]) if dof > 0 and c_full is not None
+               else float("nan"))
     is_hinge = bool(s[-1] < hinge_ratio * s[0]) or (hinge_sd_mm is not None and axis_sd > hinge_sd_mm)
     if is_hinge:
         # Solve in the well-determined 2-D subspace, then slide along the axis to the reference.
@@ -119,7 +119,7 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
                + ("placed at the point of the axis closest to the reference" if reference is not None
                   else "minimum-norm point of the axis (pass reference= to place it at the bones' contact)"))
     else:
-        c = vt.T @ ((u.T @ b) / s)
+        c = c_full
         msg = "well-conditioned"
     per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in moving])
     it = None

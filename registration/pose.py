@@ -38,7 +38,7 @@ from deformation.geometry import Volume
 from deformation.skeleton import Joint, Pose, Skeleton
 from deformation.transforms import apply, compose, invert, rotation_angle_deg
 
-from .joint_centers import JointCenterResult, estimate_joint_center
+from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
 from .rigid import BoneFit, BoneRegion, Sampler, bone_regions, smooth, coarse_rotation_search, refine_intensity, refine_surface
 
 __all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
@@ -237,7 +237,7 @@ def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None 
 def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *,
                    method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
                    interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
-                   hinge_ratio: float = 0.05, hinge_sd_mm: float | None = 1.0, bias_correction: bool | None = None, margin_mm: float | None = None,
+                   hinge_ratio: float = 0.05, hinge_sd_mm: float | None = HINGE_SD_MM, bias_correction: bool | None = None, margin_mm: float | None = None,
                    max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, progress=None) -> PoseResult:
     """Register every bone in every scan, then estimate joint centres and angles.
 
