@@ -154,9 +154,11 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
     child's transform and by the parent's, must land within
     ``max_joint_gap_mm`` of itself (``joint_gap_mm`` in the fit).  A bone
     that correlates well where it cannot be is flagged ``joint_detached``
-    rather than accepted.  A child is checked against its parent's result,
-    flagged or not, so a whole chain that moved together is caught only at
-    the bone where it left its joint.  The gap is measured at the input skeleton's
+    rather than accepted.  A bone whose parent was flagged (for any reason)
+    is flagged ``parent_flagged``: it is fitted from the parent's result, so
+    a chain that moved together (a finger registered onto its neighbour)
+    would otherwise pass every check below its first wrong bone; nothing in
+    the scan tells a right child of a wrong parent from a wrong one.  The gap is measured at the input skeleton's
     centre, so a rough skeleton (centres off by ``d`` mm, joints turning by
     ``θ``) needs a limit above ``θ·d``; None switches the check off.
     """
@@ -196,7 +198,12 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             c = np.asarray(joint.center, float)
             gap = float(np.linalg.norm(apply(fit.transform, c) - apply(fits[joint.parent].transform, c)))
             fit.extra["joint_gap_mm"] = gap
-            if fit.ok and max_joint_gap_mm is not None and gap > max_joint_gap_mm:
+            parent = fits[joint.parent]
+            if fit.ok and not parent.ok:
+                fit.status = "parent_flagged"
+                fit.stop = (f"{fit.stop}; its parent '{joint.parent}' was flagged ({parent.status}) and this bone "
+                            f"was fitted from it, so it is not trusted either (joint gap {gap:.1f} mm)")
+            elif fit.ok and max_joint_gap_mm is not None and gap > max_joint_gap_mm:
                 fit.status = "joint_detached"
                 fit.stop = (f"{fit.stop}; the bone left joint '{joint.name}': its centre lands {gap:.1f} mm from "
                             f"where the parent puts it (limit {max_joint_gap_mm:g} mm)")

@@ -86,7 +86,8 @@ class BoneFit:
     bone: str
     transform: np.ndarray
     method: str
-    status: str  # "ok", "not_converged", "poor_match", "outside_field_of_view" or "joint_detached"
+    status: str  # "ok", "not_converged", "poor_match", "outside_field_of_view", "joint_detached"
+    # or "parent_flagged"
     ssd_before: float  # mean squared difference over the region at the initialisation
     ssd_after: float
     ncc: float  # normalised cross-correlation of template and scan over the region, after

@@ -189,3 +189,27 @@ def test_a_bone_that_leaves_its_joint_is_flagged(knee_ct_study):
         if strict[b].status == "joint_detached":
             assert "left joint" in strict[b].stop and strict[b].extra["joint_gap_mm"] == pytest.approx(g, abs=1e-6)
     assert strict["femur"].ok
+
+
+def test_a_child_of_a_flagged_bone_is_flagged_too(knee_ct_study):
+    """A bone is fitted from its parent's result, so once the parent is flagged the child is not
+    trusted, however well it correlates: a chain that moved together (a finger registered onto its
+    neighbour) must not pass below its first wrong bone.  Here the fibula hangs from the tibia, and
+    the tibia is flagged by a joint-gap limit no real fit meets."""
+    from dataclasses import replace
+
+    from deformation.skeleton import Skeleton
+
+    st = knee_ct_study
+    sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
+    bones = [replace(b, parent="tibia") if b.name == "fibula" else b for b in sk.bones]
+    joints = [replace(j, parent="tibia") if j.child == "fibula" else j for j in sk.joints]
+    chain = Skeleton(bones, joints, name=sk.name)
+    scan = {"pose01": st.scan("pose01")}
+    fits = estimate_poses(tpl, lab, scan, chain).scans[0].fits
+    assert all(f.ok for f in fits.values()), {b: f.status for b, f in fits.items()}
+    strict = estimate_poses(tpl, lab, scan, chain, max_joint_gap_mm=1e-3).scans[0].fits
+    assert strict["tibia"].status == "joint_detached"
+    assert strict["fibula"].status == "parent_flagged" and "'tibia' was flagged" in strict["fibula"].stop
+    # The flag is a judgement, not a different fit: the fibula's transform is the same as before.
+    np.testing.assert_allclose(strict["fibula"].transform, fits["fibula"].transform, atol=1e-9)
