@@ -11,7 +11,10 @@ Prints, in one run on the same data:
   - ``paper``: Rhee's Eq. 1 as printed after the same initialisation (SSD,
     trilinear interpolation, SimpleITK only, no smoothing, no prior);
   - ``surface``: Kurihara's ICP of bone isosurfaces;
-  with the ratio of ours to the paper's configuration (time and error);
+  with the ratio of ours to the paper's configuration (time and error), and
+  the Cramér–Rao bound on every bone fit (``validation.information_bound``:
+  what the scan's noise lets any registration of the bone's region reach,
+  with a noise-free template), with the ratio of ours to it;
 * on the real wrist bones: ICP recovery of every bone's known motion from a
   resampled, noised and perturbed copy, and Kurihara's Eq. 1 residual of the
   real motion next to the paper's 0.91 mm.
@@ -19,7 +22,7 @@ Prints, in one run on the same data:
 Usage::
 
     .venv/bin/python benchmarks/pose_accuracy.py [--regions knee hand] [--modalities mri ct] [--scale 1]
-        [--methods ours paper surface] [--out DIR]
+        [--methods ours paper surface] [--out DIR] [--no-bound] [--no-wrist] [--tables]
 """
 
 from __future__ import annotations
@@ -42,17 +45,48 @@ CONFIGS = {
 
 
 def phantom_study(region, modality, scale, root: Path):
+    """The study on disk (made once per ``--out``) and the phantom behind it."""
     from validation.phantoms import hand, knee, make_phantom
     from workbench.study import read_study, write_phantom_study
 
     out = root / f"{region}-{modality}-x{scale:g}"
-    if (out / "study.json").exists():
-        return read_study(out)
     spacing = None
     if scale != 1:
         spacing = tuple(s / scale for s in {"knee": knee, "hand": hand}[region].GRIDS["test"][1])
     ph = make_phantom(region, size="test", modality=modality, spacing=spacing)
-    return write_phantom_study(ph, out)
+    if (out / "study.json").exists():
+        return read_study(out), ph
+    return write_phantom_study(ph, out), ph
+
+
+PRIOR_LABEL = "2° / 2 mm prior centred on the truth"
+
+
+def print_bound(phantom, regions, study, summary):
+    """The Cramér–Rao bound on every bone fit of the study (validation.information_bound), next to ours."""
+    from validation.information_bound import median_error_norm, phantom_pose_bounds
+
+    angles = dict(phantom.poses)
+    out = {}
+    for label, prior in (("no prior", None), (PRIOR_LABEL, 2.0)):
+        b = [phantom_pose_bounds(phantom, angles[s], regions, prior_deg=prior, prior_mm=prior)
+             for s in study.scan_ids]
+        rot = median_error_norm([x.rotation_cov_deg2 for bs in b for x in bs.values()])
+        tr = median_error_norm([x.translation_cov_mm2 for bs in b for x in bs.values()])
+        finite = [(x.rotation_rms_deg, n, s) for s, bs in zip(study.scan_ids, b) for n, x in bs.items()
+                  if np.isfinite(x.rotation_rms_deg)]
+        unseen = [f"{n} in {s}" for s, bs in zip(study.scan_ids, b) for n, x in bs.items()
+                  if not np.isfinite(x.rotation_rms_deg)]
+        worst = max(finite)
+        out[label] = rot
+        print(f"bound ({label}; noise-free template): median |rotation error| ≥ {rot:.2f}°, "
+              f"|translation error| ≥ {tr:.3f} mm; weakest bone {worst[1]} ({worst[2]}) rms ≥ {worst[0]:.2f}°"
+              + (f"; not determined at all (region outside the scan): {', '.join(unseen)}" if unseen else ""),
+              flush=True)
+    if summary is not None:
+        m = summary["rotation_deg"]["median"]
+        print(f"ratio ours/bound: median rotation error {m / out['no prior']:.2f} (no prior), "
+              f"{m / out[PRIOR_LABEL]:.2f} (with the prior)", flush=True)
 
 
 def run_phantoms(args, root: Path):
@@ -64,13 +98,14 @@ def run_phantoms(args, root: Path):
     for region in args.regions:
         for modality in args.modalities:
             t0 = time.perf_counter()
-            st = phantom_study(region, modality, args.scale, root)
+            st, ph = phantom_study(region, modality, args.scale, root)
             print(f"\n== {region} {modality} (scale {args.scale:g}: "
                   f"{st.template().geometry.size} voxels, spacing "
                   f"{tuple(round(s, 2) for s in st.template().geometry.spacing)} mm; "
                   f"{len(st.scan_ids)} scans; generated in {time.perf_counter() - t0:.0f} s)", flush=True)
             sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
-            centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
+            regions = bone_regions(tpl, lab, sk)
+            centroids = {k: r.centroid for k, r in regions.items()}
             truth = {s: st.truth_pose(s) for s in st.scan_ids}
             per = {}
             for name in args.methods:
@@ -101,6 +136,8 @@ def run_phantoms(args, root: Path):
                     from registration.report import format_accuracy
 
                     print(format_accuracy(acc))
+            if args.bound:
+                print_bound(ph, regions, st, per["ours"][0] if "ours" in per else None)
             if "ours" in per and "paper" in per:
                 (so, to), (sp, tp) = per["ours"], per["paper"]
                 print(f"ratio ours/paper: median rotation error {so['rotation_deg']['median'] / sp['rotation_deg']['median']:.2f}, "
@@ -169,6 +206,8 @@ def main(argv=None):
     p.add_argument("--scale", type=float, default=1.0, help="voxels per test-size voxel along each axis")
     p.add_argument("--tables", action="store_true", help="also print per-bone and per-joint tables for 'ours'")
     p.add_argument("--no-wrist", action="store_true")
+    p.add_argument("--no-bound", dest="bound", action="store_false",
+                   help="skip the Cramér–Rao bound on each phantom (validation.information_bound)")
     p.add_argument("--out", type=Path, help="keep the phantom studies here (default: a temporary folder)")
     args = p.parse_args(argv)
     if args.out:

@@ -69,6 +69,16 @@ def test_median_error_norm_of_an_isotropic_gaussian():
     """|e| of a 3-D isotropic Gaussian is Maxwell distributed: median 1.5382 s."""
     assert median_error_norm(np.eye(3) * 4.0, seed=1, n=200_000) == pytest.approx(1.5382 * 2.0, rel=5e-3)
     assert median_error_norm(np.diag([1.0, np.inf, 1.0])) == np.inf
+    # Pooled: half the fits with sd 1, half with sd 3: the mixture's median m solves
+    # ½F(m) + ½F(m/3) = ½ with the Maxwell CDF F(x) = erf(x/√2) − √(2/π) x exp(−x²/2).
+    from scipy.optimize import brentq
+    from scipy.special import erf
+
+    def maxwell(x):
+        return erf(x / np.sqrt(2)) - np.sqrt(2 / np.pi) * x * np.exp(-x * x / 2)
+
+    m = brentq(lambda x: 0.5 * maxwell(x) + 0.5 * maxwell(x / 3) - 0.5, 0.1, 10)
+    assert median_error_norm([np.eye(3), np.eye(3) * 9.0], seed=2, n=100_000) == pytest.approx(m, rel=5e-3)
 
 
 def test_phantom_gradient_model_predicts_the_rendered_change():
