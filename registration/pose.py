@@ -189,8 +189,11 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             else:
                 init, how = parent_t.copy(), "parent"
         if method == "intensity":  # the root starts from a rough pose: multi-resolution, no prior to tie it to
+            # ``prior_deg`` None is Eq. 1 through SimpleITK alone; otherwise the polish follows, with the prior
+            # for a child bone and without one for the root (no parent to tie it to).
             fit = refine_intensity(region, sampler, init, min_ncc=min_ncc, metric=metric, multires=joint is None,
-                                   prior_deg=None if joint is None else prior_deg, prior_center=prior_center)
+                                   polish=prior_deg is not None, prior_deg=None if joint is None else prior_deg,
+                                   prior_mm=None if joint is None else 2.0, prior_center=prior_center)
         else:
             fit = refine_surface(region, sampler, init, min_ncc=min_ncc)
         fit.init = how

@@ -31,28 +31,26 @@ def test_bone_transforms_match_the_truth(knee_result):
     res, acc = knee_result
     assert all(f.ok for s in res.scans for f in s.fits.values()), res.failures()
     s = acc["summary"]
-    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion (measured: median 0.24° / 0.09 mm, worst
-    # 2.4° / 0.50 mm: the tibia's screw-home twist, which the polish's 2° prior, centred on zero twist,
-    # shrinks; then the patella, 2.2°).  Medians as the issue asks; the worst-bone bounds are
-    # regression bounds just above the measured values.
+    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion: the issue's bounds (median ≤ 0.5° / 0.5 mm, worst
+    # bone ≤ 2° / 2 mm).  Measured: median 0.08° / 0.05 mm, worst 1.16° (the patella, whose Cramér–Rao bound
+    # here is 0.46° rms) and 0.24 mm.  Before the phantom rendered bone edges rigidly and the polish became
+    # robust, the worst was 2.4° (the tibia) and the patella 2.2°.
     assert s["rotation_deg"]["median"] <= 0.5 and s["translation_mm"]["median"] <= 0.5, s
-    assert s["translation_mm"]["max"] <= 1.0, s
-    worst = {b: max(acc["bones"][sid][b]["rotation_deg"] for sid in acc["bones"]) for b in ("femur", "tibia", "fibula")}
-    assert max(worst.values()) <= 2.6, worst
-    assert s["rotation_deg"]["max"] <= 3.5, s
+    assert s["rotation_deg"]["max"] <= 2.0 and s["translation_mm"]["max"] <= 2.0, s
 
 
 def test_joint_centres_and_hinge_axes(knee_result):
     res, acc = knee_result
-    knee = acc["joints"]["knee"]
-    # The knee flexes 70° with only a few degrees of varus and twist: Eq. 1 sees a near-hinge.  The true centre
-    # lies within 1 mm of the estimated axis (measured 0.34 mm) and the axis is within 2° of the one the true
-    # motions define (measured 1.7°).
-    assert knee["is_hinge"]
-    assert knee["center_to_axis_mm"] <= 1.0 and knee["axis_error_deg"] <= 2.0, knee
+    # Every joint flexes (70°, or 49° for the patella) with only a few degrees of varus and twist: Eq. 1 sees
+    # near-hinges.  The issue's bounds: the true centre within 1 mm of the estimated axis, the axis within 2°
+    # of the one the true motions define.  Measured: knee 0.03 mm / 0.70°, tibiofibular 0.18 mm / 0.24°,
+    # patellofemoral 0.65 mm / 0.48°.
     for name, e in acc["joints"].items():
+        assert e["is_hinge"], (name, e)
+        assert e["center_to_axis_mm"] <= 1.0 and e["axis_error_deg"] <= 2.0, (name, e)
         # Closed form and the quasi-Newton cross-check agree (measured ≤ 1e-7 mm; the issue asks 0.01 mm).
         assert e["closed_form_vs_iterative_mm"] <= 0.01, (name, e)
+    # Kurihara's Eq. 1 residual over all joints and scans (measured 0.30 mm; the paper's hand: 0.91 mm).
     assert np.isfinite(res.overall_rms_mm()) and res.overall_rms_mm() < 1.0
 
 
@@ -92,8 +90,12 @@ def test_a_bone_outside_the_field_of_view_is_reported(knee_ct_study):
         assert fits[bone].inside_fraction < 0.5 or fits[bone].ncc < 0.5
 
 
-def test_erased_bone_is_a_poor_match(knee_ct_study):
-    """Replace the patella by soft tissue in the scan: it cannot be found, and the report says so."""
+def test_erased_bone_is_reported(knee_ct_study):
+    """Replace the patella by soft tissue in the scan: it cannot be found, and the report says so.
+
+    With squares the fit ended with NCC < 0.5 (``poor_match``).  The robust polish discounts the erased
+    voxels and fits what is left of the region's rim (measured NCC 0.57), sliding 10+ mm off the joint:
+    ``joint_detached``.  Either way the bone is flagged and listed with the scan and its metric."""
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
     scan = st.scan("pose00")  # the template's own pose: the patella's voxels are where the labels say
@@ -103,9 +105,12 @@ def test_erased_bone_is_a_poor_match(knee_ct_study):
     data[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = 40.0  # muscle-like HU, no texture
     res = estimate_poses(tpl, lab, {"erased": Volume(data, scan.geometry)}, sk, min_ncc=0.5)
     f = res.scans[0].fits["patella"]
-    assert f.status == "poor_match", (f.status, f.ncc)
+    assert f.status in ("poor_match", "joint_detached"), (f.status, f.ncc)
     fail = [x for x in res.failures() if x["bone"] == "patella"]
-    assert fail and fail[0]["scan"] == "erased" and fail[0]["ncc"] < 0.5
+    assert fail and fail[0]["scan"] == "erased" and fail[0]["status"] == f.status
+    # The metric is reported, and it is far below a found patella's (0.9 and more on this study).
+    assert fail[0]["ncc"] < 0.7
+    assert all(x.ok for b, x in res.scans[0].fits.items() if b != "patella")
 
 
 def test_contact_point_lies_between_the_bones():

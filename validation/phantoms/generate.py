@@ -167,11 +167,29 @@ class Phantom:
             self._x.setflags(write=False)
         return self._x
 
-    def render(self, template_points: np.ndarray) -> np.ndarray:
-        """Noise-free intensity at template positions (chunked)."""
-        return _apply_chunked(
-            lambda p: self.anatomy.intensity_fast(p, self.contrast, edge_mm=self.edge_mm, texture=self.texture),
-            template_points)
+    def render(self, template_points: np.ndarray, *, scan_points: np.ndarray | None = None,
+               pose: Pose | None = None) -> np.ndarray:
+        """Noise-free intensity at template positions (chunked).
+
+        With ``scan_points`` and ``pose`` (a posed scan's voxel positions and
+        its bone transforms), soft tissue is rendered at ``template_points``
+        and each bone's blurred edge rigidly, in the bone's own frame (see
+        :meth:`Anatomy.intensity`).
+        """
+        if scan_points is None:
+            return _apply_chunked(
+                lambda p: self.anatomy.intensity_fast(p, self.contrast, edge_mm=self.edge_mm, texture=self.texture),
+                template_points)
+        if pose is None:
+            raise ValueError("render: scan_points need the pose whose bone transforms they were posed by")
+        transforms = pose.transforms
+        n = template_points.shape[0]
+        out = np.empty(n)
+        for sl in _chunks(n):
+            out[sl] = self.anatomy.intensity_fast(template_points[sl], self.contrast, edge_mm=self.edge_mm,
+                                                  texture=self.texture,
+                                                  bone_frames=(scan_points[sl], transforms))
+        return out
 
     def _bias_field(self, rng: np.random.Generator) -> np.ndarray:
         """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1."""
@@ -399,7 +417,13 @@ class Phantom:
         model = self.posing_model(angles, mode=mode)
         pose = self.pose_of(angles)
         phi, residual = self.correspondence(model)
-        clean = self.render(phi.reshape(-1, 3)).reshape(self.geometry.array_shape)
+        if model.mode == "vbd":
+            # Rhee's Table 2 target: the template image deformed by VBD, halo and all.
+            clean = self.render(phi.reshape(-1, 3))
+        else:
+            # An acquisition of the posed body: bones' edges blurred where the bones are (Anatomy.intensity).
+            clean = self.render(phi.reshape(-1, 3), scan_points=self._world_points(), pose=pose)
+        clean = clean.reshape(self.geometry.array_shape)
         rng = np.random.default_rng(self._image_seqs[index + 1])
         img = self._acquire(clean, rng)
         x = self._world_points().reshape(phi.shape)

@@ -385,19 +385,33 @@ def inverse_map(targets, guesses, use_guess, tabs, params, t_inv12, tol, max_ite
 
 # -- appearance ----------------------------------------------------------------------------------
 @nb.njit(cache=True, parallel=True)
-def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, phases, amplitudes, tex_amp):
-    """Noise-free intensity at template points (see :meth:`Anatomy.intensity`)."""
+def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, phases, amplitudes, tex_amp,
+                  scan_points, bone_frames):
+    """Noise-free intensity at template points (see :meth:`Anatomy.intensity`).
+
+    ``bone_frames`` ``(nbones, 3, 4)``, when not empty, maps ``scan_points``
+    into each bone's template frame, where that bone's distance is taken.
+    """
     prims, groups, group_k, table, shape_k = tabs
     air, skin_i, fat, muscle, cortex, marrow = contrast
     skin_mm, fat_mm, cortex_mm = layers
     n = points.shape[0]
+    rigid = bone_frames.shape[0] > 0
     out = np.empty(n)
     for i in nb.prange(n):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         b = _shape_sdf(prims, groups, group_k, table, shape_k, nbones, x, y, z)
         db = np.inf
         for k in range(nbones):
-            db = min(db, _shape_sdf(prims, groups, group_k, table, shape_k, k, x, y, z))
+            if rigid:
+                sx, sy, sz = scan_points[i, 0], scan_points[i, 1], scan_points[i, 2]
+                m = bone_frames[k]
+                qx = m[0, 0] * sx + m[0, 1] * sy + m[0, 2] * sz + m[0, 3]
+                qy = m[1, 0] * sx + m[1, 1] * sy + m[1, 2] * sz + m[1, 3]
+                qz = m[2, 0] * sx + m[2, 1] * sy + m[2, 2] * sz + m[2, 3]
+                db = min(db, _shape_sdf(prims, groups, group_k, table, shape_k, k, qx, qy, qz))
+            else:
+                db = min(db, _shape_sdf(prims, groups, group_k, table, shape_k, k, x, y, z))
         tex = 0.0
         for q in range(phases.shape[0]):
             tex += amplitudes[q] * math.cos(wavevectors[q, 0] * x + wavevectors[q, 1] * y
