@@ -42,12 +42,17 @@ from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
 from .rigid import BoneFit, BoneRegion, Sampler, bone_regions, smooth, coarse_rotation_search, refine_intensity, refine_surface
 
 __all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
-           "compare_poses", "moments_init"]
+           "compare_poses", "moments_init", "flag_joint_outliers"]
 
 METHODS = ("intensity", "surface")
 MOVING_DEG = 5.0  # a joint whose largest rotation over the scans is below this has no identifiable centre
 COARSE_SMOOTH = 1.5  # voxels: Gaussian blur of both images for the joint grid search
 MAX_JOINT_GAP_MM = 10.0  # a bone whose joint centre lands farther than this from its parent's is flagged
+# Eq. 1 consistency (estimate_poses): a scan whose child-bone motion misses the joint centre estimated from all
+# scans by more than OUTLIER_FACTOR x the joint's median miss (and more than OUTLIER_VOXELS voxels) is flagged.
+OUTLIER_FACTOR = 4.0
+OUTLIER_VOXELS = 0.5
+OUTLIER_MIN_MOTIONS = 4  # fewer motions than this leave too little redundancy to tell an outlier
 
 
 @dataclass
@@ -248,7 +253,8 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                    method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
                    interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
                    hinge_ratio: float = 0.05, hinge_sd_mm: float | None = HINGE_SD_MM, bias_correction: bool | None = None, margin_mm: float | None = None,
-                   max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, progress=None) -> PoseResult:
+                   max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, outlier_factor: float | None = OUTLIER_FACTOR,
+                   progress=None) -> PoseResult:
     """Register every bone in every scan, then estimate joint centres and angles.
 
     Parameters
@@ -257,6 +263,16 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
     root_init : None, ``"identity"``, ``"moments"``, or dict scan id → 4x4 root transform
     bias_correction : N4-correct template and scans first (:func:`correct_bias`);
         None (default) does so for MRI-like images (no values below −500)
+    outlier_factor : Eq. 1 consistency check (None: off).  All the scans of a
+        joint (of 3 DOF or fewer, moving, with at least
+        :data:`OUTLIER_MIN_MOTIONS` scans where both bones are ok) fix its
+        centre ``c``; a scan whose child motion misses it, ``|M_i c − c|``,
+        by more than ``outlier_factor`` times the joint's median miss and by
+        more than :data:`OUTLIER_VOXELS` voxels is an outlier: its child bone
+        is flagged ``joint_outlier`` (and the bones below it
+        ``parent_flagged``), one scan at a time, worst first, until none is
+        left.  This catches a bone that turned with its neighbour or slid off
+        its joint by less than ``max_joint_gap_mm``.
     progress : callable(scan_id, scan_index, n_scans, bone, done, total, fit), optional
     """
     from .segmentation import guess_modality
@@ -271,11 +287,13 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                       if coarse else None)
     results = []
     ids = list(scans)
+    voxel_mm = {}
     for si, sid in enumerate(ids):
         t0 = time.perf_counter()
         scan = scans[sid]() if callable(scans[sid]) else scans[sid]
         if bias_correction:
             scan = correct_bias(scan)
+        voxel_mm[sid] = float(max(scan.geometry.spacing))
         if isinstance(root_init, dict):
             r0 = root_init.get(sid)
         elif root_init == "moments":
@@ -292,10 +310,14 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
     def usable(s, j):  # flagged fits are reported, not used
         return s.fits[j.parent].ok and s.fits[j.child].ok
 
-    joints, contacts, new_joints = {}, {}, []
+    contacts = {j.name: contact_point(labels, skeleton.label_of(j.parent), skeleton.label_of(j.child))
+                for j in skeleton.joints}
+    if outlier_factor is not None:
+        flag_joint_outliers(results, skeleton, contacts, voxel_mm, factor=outlier_factor, hinge_ratio=hinge_ratio,
+                            hinge_sd_mm=hinge_sd_mm)
+    joints, new_joints = {}, []
     for j in skeleton.joints:
         motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in results if usable(s, j)]
-        contacts[j.name] = contact_point(labels, skeleton.label_of(j.parent), skeleton.label_of(j.child))
         if not motions:
             new_joints.append(j)  # no scan where both bones were found: the skeleton's centre stays
             continue
@@ -324,6 +346,54 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                 angles[j.name] = j.angles_from_motion(est.relative_motion(s.pose.transforms, j.name))
         s.pose = Pose(s.pose.transforms, joint_angles=angles, joint_centers=centres, skeleton=skeleton.name)
     return PoseResult(method, results, joints, est, contacts)
+
+
+def flag_joint_outliers(results: list[ScanPose], skeleton: Skeleton, contacts: dict, voxel_mm: dict, *,
+                        factor: float = OUTLIER_FACTOR, hinge_ratio: float = 0.05,
+                        hinge_sd_mm: float | None = HINGE_SD_MM) -> list[tuple[str, str]]:
+    """Flag child bones whose motion is inconsistent with their joint's Eq. 1 centre (see :func:`estimate_poses`).
+
+    Returns the ``(scan id, bone)`` pairs flagged ``joint_outlier``; their
+    fits (and those below them, ``parent_flagged``) are updated in place.
+    """
+    flagged = []
+    by_id = {s.scan_id: s for s in results}
+    while True:
+        worst = None  # (excess ratio, scan, joint, miss, limit)
+        for j in skeleton.joints:
+            if j.dof > 3:  # a 6-DOF joint translates: Eq. 1's residual is motion, not error
+                continue
+            used = [s for s in results if s.fits[j.parent].ok and s.fits[j.child].ok]
+            if len(used) < OUTLIER_MIN_MOTIONS:
+                continue
+            motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in used]
+            if max(rotation_angle_deg(m) for m in motions) < MOVING_DEG:
+                continue
+            r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio,
+                                      hinge_sd_mm=hinge_sd_mm, cross_check=False)
+            miss = r.per_motion_mm
+            med = float(np.median(miss))
+            for s, d in zip(used, miss):
+                limit = max(factor * med, OUTLIER_VOXELS * voxel_mm.get(s.scan_id, 0.0))
+                if d > limit and (worst is None or d / limit > worst[0]):
+                    worst = (d / limit, s.scan_id, j, float(d), limit)
+        if worst is None:
+            return flagged
+        _, sid, j, d, limit = worst
+        s = by_id[sid]
+        f = s.fits[j.child]
+        f.status = "joint_outlier"
+        f.extra["eq1_miss_mm"] = d
+        f.stop = (f"{f.stop}; its motion misses joint '{j.name}''s centre, estimated by Eq. 1 from all scans, by "
+                  f"{d:.1f} mm (limit {limit:.1f} mm: {factor:g}x the joint's median, at least "
+                  f"{OUTLIER_VOXELS:g} voxel)")
+        flagged.append((sid, j.child))
+        for name in skeleton.order:  # bones below a flagged bone were fitted from it
+            jj = skeleton.joint_of(name)
+            if jj is not None and s.fits[name].ok and not s.fits[jj.parent].ok:
+                s.fits[name].status = "parent_flagged"
+                s.fits[name].stop = (f"{s.fits[name].stop}; its parent '{jj.parent}' was flagged "
+                                     f"({s.fits[jj.parent].status}) and this bone was fitted from it")
 
 
 # -- accuracy against ground truth ---------------------------------------------------------------------

@@ -97,7 +97,7 @@ class BoneFit:
     bone: str
     transform: np.ndarray
     method: str
-    status: str  # "ok", "not_converged", "poor_match", "outside_field_of_view", "joint_detached"
+    status: str  # "ok", "not_converged", "poor_match", "outside_field_of_view", "joint_detached", "joint_outlier"
     # or "parent_flagged"
     ssd_before: float  # mean squared difference over the region at the initialisation
     ssd_after: float
@@ -601,13 +601,29 @@ def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, st
     cov = np.linalg.pinv(j.T @ j)
     sd = np.sqrt(np.clip(np.linalg.eigvalsh(cov[:3, :3]), 0, None))
     sd_t = np.sqrt(np.clip(np.linalg.eigvalsh(cov[3:, 3:]), 0, None))
+    image_sd = _image_rotation_sd(j[:-6])
     t = _increment(x0 + res.x, init, c)
     return t, {"prior_deg": prior_deg, "prior_mm": prior_mm, "residual_sigma": sigma, "metric": metric,
                "loss": loss, "loss_scale": float(loss_scale),
                "cost": float(2 * res.cost),
                "converged": bool(res.status > 0), "message": f"polish: {res.message}", "polish_evaluations": int(res.nfev),
                "rotation_sd_deg": float(sd.max()), "translation_sd_mm": float(sd_t.max()),
+               "image_rotation_sd_deg": image_sd,
                "change_from_eq1_deg": rotation_angle_deg(compose(t, np.linalg.inv(start)))}
+
+
+def _image_rotation_sd(j_data: np.ndarray) -> float | None:
+    """Largest rotation standard deviation (degrees) that the image alone gives, without the prior.
+
+    ``j_data``: the data residuals' Jacobian (residuals in units of σ, parameters in degrees and mm), so the
+    covariance is ``(JᵀJ)⁻¹``.  None (stored as null) when the image leaves a direction undetermined.
+    """
+    f = j_data.T @ j_data
+    w = np.linalg.eigvalsh(f)
+    if not w[0] > 1e-12 * max(w[-1], 1e-300):
+        return None
+    cov = np.linalg.inv(f)
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)))
 
 
 def _finish(region, sampler, t, method, before, iterations, stop, t0, *, min_ncc, min_inside, not_converged=False,

@@ -170,6 +170,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a bone whose joint centre (from skeleton.json) lands farther than this from where its "
                          "parent puts it has left its joint and is reported as 'joint_detached'; raise it for a "
                          "rough skeleton, 0 switches the check off. Default: 10")
+    po.add_argument("--outlier-factor", type=float, default=4.0, metavar="K",
+                    help="Eq. 1 consistency check: with 4 or more scans, a bone whose motion misses its joint's "
+                         "centre (estimated from all scans) by more than K times the joint's median miss, and by "
+                         "more than half a voxel, is reported as 'joint_outlier'; 0 switches the check off. "
+                         "Default: 4")
     po.add_argument("--force", action="store_true", help="replace an earlier pose stage")
     po.add_argument("--quiet", action="store_true", help="no progress lines")
     po.set_defaults(func=cmd_pose)
@@ -183,6 +188,9 @@ def cmd_pose(args) -> int:
         raise ValueError(f"--prior-deg must be ≥ 0, got {args.prior_deg}")
     if args.max_joint_gap_mm < 0:
         raise ValueError(f"--max-joint-gap-mm must be ≥ 0 (0 switches the check off), got {args.max_joint_gap_mm}")
+    if args.outlier_factor < 0 or 0 < args.outlier_factor <= 1:
+        raise ValueError(f"--outlier-factor must be 0 (off) or above 1 (a multiple of the joint's median miss), "
+                         f"got {args.outlier_factor}")
     say = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     report = run_pose_stage(args.study, method=args.method, seeds=args.seeds, modality=args.modality,
                             threshold=args.threshold, init=args.init, scan_ids=args.scan, metric=args.metric,
@@ -190,7 +198,7 @@ def cmd_pose(args) -> int:
                             prior_deg=args.prior_deg or None, min_ncc=args.min_ncc, overwrite=args.force,
                             bias_correction={"auto": None, "on": True, "off": False}[args.bias_correction],
                             margin_mm=args.margin_mm, max_joint_gap_mm=args.max_joint_gap_mm or None,
-                            progress=say)
+                            outlier_factor=args.outlier_factor or None, progress=say)
     print(report["text"])
     print(f"\nwrote {args.study / 'poses'} and updated {args.study / 'study.json'}")
     return 0

@@ -109,7 +109,8 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
                    modality: str | None = None, threshold: float | None = None, init: str = "identity",
                    scan_ids=None, metric: str = "ncc", interpolation: int = 3, prior_deg: float | None = 2.0,
                    min_ncc: float = 0.5, bias_correction: bool | None = None, margin_mm: float | None = None,
-                   max_joint_gap_mm: float | None = 10.0, overwrite: bool = False,
+                   max_joint_gap_mm: float | None = 10.0, outlier_factor: float | None = 4.0,
+                   overwrite: bool = False,
                    progress=None) -> dict:
     """Estimate poses for a study and write them into it; returns the report dictionary.
 
@@ -178,11 +179,12 @@ def run_pose_stage(folder, *, method: str = "intensity", seeds=None, segment: bo
     result = estimate_poses(template, labels, scans, skeleton, method=method, root_init=root_init, metric=metric,
                             interpolation=interpolation, prior_deg=prior_deg, min_ncc=min_ncc,
                             bias_correction=bias_correction, margin_mm=margin_mm,
-                            max_joint_gap_mm=max_joint_gap_mm, progress=cb)
+                            max_joint_gap_mm=max_joint_gap_mm, outlier_factor=outlier_factor, progress=cb)
     total = time.perf_counter() - t0
     centroids = {k: r.centroid for k, r in bone_regions(template, labels, skeleton).items()}
     report = {"method": method, "metric": metric, "interpolation": "cubic B-spline" if interpolation == 3 else "linear",
-              "prior_deg": prior_deg, "bias_correction": bias_correction, "margin_mm": margin_mm, "init": init if init in ("identity", "moments") else str(init),
+              "prior_deg": prior_deg, "bias_correction": bias_correction, "margin_mm": margin_mm,
+              "max_joint_gap_mm": max_joint_gap_mm, "outlier_factor": outlier_factor, "init": init if init in ("identity", "moments") else str(init),
               "seconds_total": round(total, 2), "seconds_per_scan": {s.scan_id: round(s.seconds, 2) for s in result.scans},
               "failures": result.failures(), "eq1_rms_mm": result.overall_rms_mm(),
               "eq1_base_pose_counted": False}

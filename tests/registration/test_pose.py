@@ -218,3 +218,57 @@ def test_a_child_of_a_flagged_bone_is_flagged_too(knee_ct_study):
     assert strict["fibula"].status == "parent_flagged" and "'tibia' was flagged" in strict["fibula"].stop
     # The flag is a judgement, not a different fit: the fibula's transform is the same as before.
     np.testing.assert_allclose(strict["fibula"].transform, fits["fibula"].transform, atol=1e-9)
+
+
+def _chain_results(rng, n_scans, outlier=None, offset_mm=3.0):
+    """Synthetic fits of a three-bone chain a → b → c turning about known centres, with 0.1 mm noise."""
+    from scipy.spatial.transform import Rotation
+
+    from deformation.skeleton import Bone, Joint, Pose, Skeleton
+    from deformation.transforms import compose, rotation_about_point
+    from registration.pose import ScanPose
+    from registration.rigid import BoneFit
+
+    c1, c2 = np.array([0.0, 30.0, 0.0]), np.array([0.0, 60.0, 0.0])
+    sk = Skeleton([Bone("a", 1, None), Bone("b", 2, "a"), Bone("c", 3, "b")],
+                  [Joint("j1", "a", "b", 3, tuple(c1)), Joint("j2", "b", "c", 3, tuple(c2))], name="chain")
+    results = []
+    for i in range(n_scans):
+        r1 = Rotation.from_rotvec(np.deg2rad(rng.uniform(-30, 30, 3))).as_matrix()
+        r2 = Rotation.from_rotvec(np.deg2rad(rng.uniform(-30, 30, 3))).as_matrix()
+        tb = rotation_about_point(r1, c1)
+        tb[:3, 3] += rng.normal(0, 0.1, 3)
+        if i == outlier:
+            tb[:3, 3] += offset_mm * np.array([1.0, 0.0, 0.0])  # b slid off its joint
+        tc = compose(tb, rotation_about_point(r2, c2))
+        transforms = {"a": np.eye(4), "b": tb, "c": tc}
+        fits = {k: BoneFit(k, v, "intensity", "ok", 0.0, 0.0, 1.0, 1.0) for k, v in transforms.items()}
+        results.append(ScanPose(f"s{i}", Pose(transforms, skeleton="chain"), fits, 0.0))
+    contacts = {"j1": c1, "j2": c2}
+    return sk, results, contacts
+
+
+def test_a_motion_inconsistent_with_its_joint_centre_is_flagged():
+    """Eq. 1 over all scans fixes each joint's centre; a bone whose motion misses it by far more than the
+    others (here 3 mm beside 0.1 mm noise) is flagged joint_outlier, and the bone below it parent_flagged.
+    Bones that are right are left alone; so is a scan set without an outlier."""
+    from registration.pose import flag_joint_outliers
+
+    rng = np.random.default_rng(4)
+    sk, results, contacts = _chain_results(rng, 8, outlier=5)
+    voxel = {s.scan_id: 1.0 for s in results}  # 1 mm voxels: the floor is 0.5 mm
+    flagged = flag_joint_outliers(results, sk, contacts, voxel)
+    assert flagged == [("s5", "b")]
+    f = results[5].fits["b"]
+    assert f.status == "joint_outlier" and f.extra["eq1_miss_mm"] > 2.0 and "j1" in f.stop
+    assert results[5].fits["c"].status == "parent_flagged"
+    assert all(x.ok for s in results if s.scan_id != "s5" for x in s.fits.values())
+    # No outlier: nothing flagged (the misses are noise, a few tenths of a millimetre).
+    sk, clean, contacts = _chain_results(np.random.default_rng(4), 8)
+    assert flag_joint_outliers(clean, sk, contacts, voxel) == []
+    # A miss below half a voxel is never an outlier, whatever the ratio to the median (5 mm voxels here).
+    sk, small, contacts = _chain_results(np.random.default_rng(4), 8, outlier=5, offset_mm=2.0)
+    assert flag_joint_outliers(small, sk, contacts, {s.scan_id: 5.0 for s in small}) == []
+    # Too few scans to tell (3 motions for 3 unknowns): left alone.
+    sk, few, contacts = _chain_results(np.random.default_rng(4), 3, outlier=1)
+    assert flag_joint_outliers(few, sk, contacts, voxel) == []

@@ -176,3 +176,11 @@ def test_pose_refuses_a_negative_joint_gap_limit(small_ct_study, capsys):
     assert main(["pose", str(small_ct_study), "--max-joint-gap-mm", "-1", "--quiet"]) == 1
     assert "--max-joint-gap-mm" in capsys.readouterr().err
     assert (small_ct_study / "study.json").read_bytes() == manifest
+
+
+@pytest.mark.parametrize("value", ["-1", "0.5"])
+def test_pose_refuses_an_outlier_factor_that_is_not_a_multiple_of_the_median(small_ct_study, capsys, value):
+    manifest = (small_ct_study / "study.json").read_bytes()
+    assert main(["pose", str(small_ct_study), "--outlier-factor", value, "--quiet"]) == 1
+    assert "--outlier-factor" in capsys.readouterr().err
+    assert (small_ct_study / "study.json").read_bytes() == manifest
