@@ -402,9 +402,11 @@ def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, pha
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         b = _shape_sdf(prims, groups, group_k, table, shape_k, nbones, x, y, z)
         db = np.inf
+        sx = sy = sz = 0.0
+        if rigid:
+            sx, sy, sz = scan_points[i, 0], scan_points[i, 1], scan_points[i, 2]
         for k in range(nbones):
             if rigid:
-                sx, sy, sz = scan_points[i, 0], scan_points[i, 1], scan_points[i, 2]
                 m = bone_frames[k]
                 qx = m[0, 0] * sx + m[0, 1] * sy + m[0, 2] * sz + m[0, 3]
                 qy = m[1, 0] * sx + m[1, 1] * sy + m[1, 2] * sz + m[1, 3]
