@@ -39,7 +39,8 @@ from deformation.skeleton import Joint, Pose, Skeleton
 from deformation.transforms import apply, compose, invert, rotation_angle_deg
 
 from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
-from .rigid import BoneFit, BoneRegion, Sampler, bone_regions, smooth, coarse_rotation_search, refine_intensity, refine_surface
+from .rigid import (PRIOR_MM, BoneFit, BoneRegion, Sampler, bone_regions, coarse_rotation_search, refine_intensity,
+                    refine_surface, smooth)
 
 __all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
            "compare_poses", "moments_init", "flag_joint_outliers"]
@@ -198,7 +199,7 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             # for a child bone and without one for the root (no parent to tie it to).
             fit = refine_intensity(region, sampler, init, min_ncc=min_ncc, metric=metric, multires=joint is None,
                                    polish=prior_deg is not None, prior_deg=None if joint is None else prior_deg,
-                                   prior_mm=None if joint is None else 2.0, prior_center=prior_center)
+                                   prior_mm=None if joint is None else PRIOR_MM, prior_center=prior_center)
         else:
             fit = refine_surface(region, sampler, init, min_ncc=min_ncc)
         fit.init = how

@@ -51,7 +51,7 @@ from scipy.spatial.transform import Rotation
 from deformation.geometry import GridGeometry, Volume
 from deformation.transforms import apply, compose, rotation_about_point, rotation_angle_deg
 
-__all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish_with_prior", "ssd", "ncc",
+__all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish_with_prior", "ssd", "ncc", "PRIOR_MM",
            "coarse_rotation_search", "refine_intensity", "refine_surface", "isosurface_points", "auto_iso_level"]
 
 
@@ -77,6 +77,7 @@ NOISE_CORRELATION = 1.0
 # MRI knee is noise-limited: see validation.information_bound).
 ROBUST_LOSS = "huber"
 ROBUST_SCALE = 2.0
+PRIOR_MM = 2.0  # the polish's translation prior (the rotation prior is the callers' prior_deg)
 
 
 @dataclass
@@ -418,7 +419,7 @@ def _levels(region: BoneRegion, multires: bool) -> tuple[list[int], list[float]]
 
 
 def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, iterations: int = 300,
-                     polish: bool = True, prior_deg: float | None = 2.0, prior_mm: float | None = 2.0,
+                     polish: bool = True, prior_deg: float | None = 2.0, prior_mm: float | None = PRIOR_MM,
                      multires: bool = False, metric: str = "ncc", prior_center: np.ndarray | None = None,
                      noise_correlation: float = NOISE_CORRELATION, loss: str = ROBUST_LOSS,
                      loss_scale: float = ROBUST_SCALE, min_ncc: float = 0.5, min_inside: float = 0.5) -> BoneFit:
@@ -492,8 +493,9 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
         # robust scale of the residual (its MAD), which the voxels that do not follow the bone do not inflate.
         rms, mad = _data_sigma(region, sampler, t, metric)
         sigma = rms * math.sqrt(noise_correlation)
+        robust = mad / rms if np.isfinite(rms) else 1.0  # NaN when the fit left the scan: polish re-measures σ
         opts = dict(prior_deg=prior_deg, prior_mm=prior_mm, metric=metric, sigma=sigma, loss=loss,
-                    loss_scale=loss_scale * (mad / rms if rms > 0 else 1.0))
+                    loss_scale=loss_scale * robust)
         runs = [polish_with_prior(region, sampler, centre, t, **opts)]
         if prior_center is not None:  # also from the prior's centre: the grid search may have taken a wrong basin
             runs.append(polish_with_prior(region, sampler, centre, centre, **opts))
@@ -539,7 +541,7 @@ def _data_sigma(region: BoneRegion, sampler: Sampler, t: np.ndarray, metric: str
 
 
 def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, start: np.ndarray, *,
-                      prior_deg: float | None = 2.0, prior_mm: float | None = 2.0, metric: str = "ncc",
+                      prior_deg: float | None = 2.0, prior_mm: float | None = PRIOR_MM, metric: str = "ncc",
                       sigma: float | None = None, loss: str = ROBUST_LOSS,
                       loss_scale: float = ROBUST_SCALE) -> tuple[np.ndarray, dict]:
     """Eq. 1 plus a weak Gaussian prior tying the bone to its hierarchical initialisation.

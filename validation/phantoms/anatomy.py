@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from deformation.skeleton import Skeleton
+from deformation.transforms import invert
 
 __all__ = ["Anatomy", "Contrast", "CONTRASTS", "Texture"]
 
@@ -161,7 +162,7 @@ class Anatomy:
         missing = set(self.bone_names) - set(transforms)
         if missing:
             raise ValueError(f"bone_frames lacks transforms for bones {sorted(missing)}")
-        frames = np.stack([np.linalg.inv(np.asarray(transforms[n], float))[:3] for n in self.bone_names])
+        frames = np.stack([invert(transforms[n])[:3] for n in self.bone_names])
         return scan, np.ascontiguousarray(frames)
 
     def distances_fast(self, p: np.ndarray) -> np.ndarray:

@@ -176,19 +176,13 @@ class Phantom:
         and each bone's blurred edge rigidly, in the bone's own frame (see
         :meth:`Anatomy.intensity`).
         """
-        if scan_points is None:
-            return _apply_chunked(
-                lambda p: self.anatomy.intensity_fast(p, self.contrast, edge_mm=self.edge_mm, texture=self.texture),
-                template_points)
-        if pose is None:
+        if scan_points is not None and pose is None:
             raise ValueError("render: scan_points need the pose whose bone transforms they were posed by")
-        transforms = pose.transforms
-        n = template_points.shape[0]
-        out = np.empty(n)
-        for sl in _chunks(n):
+        out = np.empty(template_points.shape[0])
+        for sl in _chunks(len(out)):
+            frames = None if scan_points is None else (scan_points[sl], pose.transforms)
             out[sl] = self.anatomy.intensity_fast(template_points[sl], self.contrast, edge_mm=self.edge_mm,
-                                                  texture=self.texture,
-                                                  bone_frames=(scan_points[sl], transforms))
+                                                  texture=self.texture, bone_frames=frames)
         return out
 
     def _bias_field(self, rng: np.random.Generator) -> np.ndarray:
