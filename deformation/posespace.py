@@ -1,0 +1,388 @@
+"""Pose space: RBF pose weights, pose space deformation (PSD), weighted PSD (WPSD).
+
+Kurihara & Miyata 2004 §5.  A *pose vector* ``a`` is the concatenation of
+every joint's degrees of freedom in the skeleton's joint order (degrees; the
+translations of a 6-DOF joint in mm) — the root bone's world placement is not
+part of it, since moving the whole body does not deform it.
+
+Pose weights (Kurihara Eq. 12–14)
+---------------------------------
+``f_i(a) = Σ_j c_ij φ(d(a, a_j))`` with ``f_i(a_j) = δ_ij`` (Eq. 12–13), so
+``C = Φ⁻¹`` with ``Φ_jl = φ(d(a_j, a_l))``; then ``s_i = f_i / Σ_j f_j``
+(Eq. 14).  At a training pose ``s_i(a_j) = δ_ij`` (Eq. 10) and always
+``Σ s_i = 1`` (Eq. 11).  The paper does not name ``φ``; we use a Gaussian
+``φ(d) = exp(−(d/σ)²)`` whose width ``σ`` is the mean nearest-neighbour
+distance between the training poses *in the same metric* (so the weights do
+not change when every distance is scaled, and a WPSD point whose pose
+distances are all small is not treated differently from one whose distances
+are large).  The Gaussian kernel matrix of distinct poses is positive
+definite, so ``Φ`` is always invertible.
+
+Distances (Eq. 15, 16)
+----------------------
+PSD uses ``d(a, b) = √Σ_k (a_k − b_k)²`` (Eq. 15).  WPSD uses per point ``j``
+``d_j(a, b) = √Σ_k u_jk (a_k − b_k)²`` (Eq. 16) with, as the paper did,
+``u_jk`` the point's skinning weight of the bone that DOF ``k`` moves (the
+joint's child bone).  A point wholly on the root bone has every ``u`` zero
+and no pose distance at all; a small floor ``u_jk ≥ U_FLOOR`` makes such a
+point fall back to the global PSD weights (with the scale-free width above,
+a uniform ``u`` gives exactly the PSD weights).
+
+PSD itself (Eq. 6–8) is in :func:`psd_training` (the inverse SSD of each
+sample, Eq. 6) and :func:`psd_deform` (morph, Eq. 7, then SSD, Eq. 8).
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from .skinning import SkinningWeights, _as_stack, inverse_lbs, lbs
+
+if nb.config.THREADING_LAYER == "default":
+    nb.config.THREADING_LAYER = "omp"
+
+__all__ = ["PoseSpace", "pose_vector", "pose_weights", "U_FLOOR", "psd_training", "psd_deform",
+           "PointPoseSpace", "wpsd_deform", "skin", "dof_bones"]
+
+#: Floor on the WPSD DOF weights ``u_jk`` (see the module docstring).
+U_FLOOR = 1e-6
+
+
+def pose_vector(skeleton, pose) -> np.ndarray:
+    """The pose vector of a :class:`~deformation.skeleton.Pose`: every joint's DOF values, joint order.
+
+    Uses the pose's recorded joint angles when present, otherwise recovers
+    them from the bone transforms (``Joint.angles_from_motion`` of the
+    child's motion relative to its parent).
+    """
+    parts = []
+    for j in skeleton.joints:
+        ang = None if pose.joint_angles is None else pose.joint_angles.get(j.name)
+        if ang is None:
+            ang = j.angles_from_motion(skeleton.relative_motion(pose.transforms, j.name))
+        ang = np.asarray(ang, dtype=float).reshape(-1)
+        if ang.shape != (j.dof,):
+            raise ValueError(f"joint {j.name!r} has {j.dof} DOF but the pose gives {ang.size} values")
+        parts.append(ang)
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def dof_bones(skeleton, bones) -> np.ndarray:
+    """For every pose-vector component, the index (in ``bones``) of the bone that DOF moves (the joint's child)."""
+    bones = tuple(bones)
+    out = []
+    for j in skeleton.joints:
+        out += [bones.index(j.child)] * j.dof
+    return np.asarray(out, dtype=np.int64)
+
+
+def _nn_width(sq_pair: np.ndarray) -> float:
+    """Mean nearest-neighbour distance from a matrix of squared pair distances (the Gaussian's σ)."""
+    n = sq_pair.shape[0]
+    if n < 2:
+        return 1.0
+    d = np.sqrt(np.maximum(sq_pair, 0.0)) + np.diag(np.full(n, np.inf))
+    return float(np.mean(d.min(axis=1)))
+
+
+def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> np.ndarray:
+    """Normalised RBF weights ``s_i(a)`` of the training poses at ``query`` (Kurihara Eq. 12–14).
+
+    ``train (P, n_dof)``, ``query (n_dof,)`` or ``(Q, n_dof)``; ``dof_weights
+    (n_dof,)`` gives Eq. 16's ``u_k`` for one point (default all one: Eq. 15).
+    Returns ``(P,)`` or ``(Q, P)``, each row summing to one.
+    """
+    train = np.atleast_2d(np.asarray(train, dtype=float))
+    q = np.asarray(query, dtype=float)
+    single = q.ndim == 1
+    q = np.atleast_2d(q)
+    u = np.ones(train.shape[1]) if dof_weights is None else np.asarray(dof_weights, dtype=float)
+    if q.shape[1] != train.shape[1] or u.shape != (train.shape[1],):
+        raise ValueError(f"query has {q.shape[1]} DOF, the training poses {train.shape[1]}, "
+                         f"dof_weights {u.shape}")
+    if train.shape[0] == 1:
+        s = np.ones((q.shape[0], 1))
+        return s[0] if single else s
+    pair = ((train[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
+    sigma = _nn_width(pair)
+    if sigma <= 0:
+        raise ValueError("two training poses coincide (zero pose distance): Φ of Kurihara Eq. 13 is singular")
+    phi = np.exp(-pair / sigma ** 2)
+    dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
+    f = np.linalg.solve(phi, np.exp(-dq / sigma ** 2).T).T  # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹
+    s = f / f.sum(axis=1, keepdims=True)
+    return s[0] if single else s
+
+
+class PoseSpace:
+    """Training poses of a skeleton, and their normalised RBF weights at any pose (PSD, Eq. 12–15)."""
+
+    def __init__(self, skeleton, train_poses):
+        self.skeleton = skeleton
+        vecs = [p if isinstance(p, np.ndarray) else pose_vector(skeleton, p) for p in train_poses]
+        self.train = np.asarray(np.stack(vecs), dtype=float)
+        if self.train.ndim != 2 or self.train.shape[1] != skeleton.n_dof:
+            raise ValueError(f"training pose vectors must have {skeleton.n_dof} values, got {self.train.shape}")
+        d = np.sqrt(((self.train[:, None] - self.train[None]) ** 2).sum(-1)) + np.eye(len(self.train))
+        if len(self.train) > 1 and d.min() < 1e-9:
+            i, j = np.unravel_index(np.argmin(d), d.shape)
+            raise ValueError(f"training poses {i} and {j} are identical: pose space interpolation needs "
+                             "distinct poses (drop one)")
+
+    @property
+    def n_poses(self) -> int:
+        return int(self.train.shape[0])
+
+    def vector(self, pose) -> np.ndarray:
+        return pose if isinstance(pose, np.ndarray) else pose_vector(self.skeleton, pose)
+
+    def weights(self, pose) -> np.ndarray:
+        """``s(a)`` over the training poses (Eq. 14)."""
+        return pose_weights(self.train, self.vector(pose))
+
+    def point_space(self, weights: SkinningWeights) -> "PointPoseSpace":
+        """Per-point WPSD coefficients for points with these skinning weights (Eq. 16)."""
+        return PointPoseSpace(self, weights)
+
+
+# -- per-point (WPSD) pose weights ------------------------------------------------------------
+@nb.njit(cache=True, inline="always")
+def _chol_factor(a, n):
+    """In-place lower Cholesky factor of the SPD matrix a (n×n).  False if a is not positive definite."""
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= a[j, k] * a[j, k]
+        if s <= 0.0:
+            return False
+        a[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            t = a[i, j]
+            for k in range(j):
+                t -= a[i, k] * a[j, k]
+            a[i, j] = t / a[j, j]
+    return True
+
+
+@nb.njit(cache=True, inline="always")
+def _chol_subst(a, b, n, work):
+    """Solve L Lᵀ x = b with the factor from :func:`_chol_factor`; b is overwritten by x."""
+    for i in range(n):
+        t = b[i]
+        for k in range(i):
+            t -= a[i, k] * work[k]
+        work[i] = t / a[i, i]
+    for i in range(n - 1, -1, -1):
+        t = work[i]
+        for k in range(i + 1, n):
+            t -= a[k, i] * b[k]
+        b[i] = t / a[i, i]
+
+
+@nb.njit(cache=True, inline="always")
+def _point_u(idx, val, j, n_bones, ubone):
+    for b in range(n_bones):
+        ubone[b] = U_FLOOR
+    for s in range(idx.shape[1]):
+        ubone[idx[j, s]] += val[j, s]
+
+
+@nb.njit(cache=True, inline="always")
+def _point_pair(bone_pair, ubone, pair):
+    n_bones, P = bone_pair.shape[0], bone_pair.shape[1]
+    for i in range(P):
+        for l in range(P):
+            pair[i, l] = 0.0
+    for b in range(n_bones):
+        u = ubone[b]
+        for i in range(P):
+            for l in range(P):
+                pair[i, l] += u * bone_pair[b, i, l]
+
+
+@nb.njit(cache=True, inline="always")
+def _width(pair, P):
+    tot = 0.0
+    for i in range(P):
+        m = np.inf
+        for l in range(P):
+            if l != i and pair[i, l] < m:
+                m = pair[i, l]
+        tot += np.sqrt(max(m, 0.0))
+    return tot / P
+
+
+@nb.njit(cache=True, parallel=True)
+def _wpsd_coefficients(idx, val, bone_pair, out_c, out_inv_sigma2):
+    """Per point: C = Φ⁻¹ (P×P) and 1/σ² (Kurihara: "we can precompute coefficient c_ij for every vertex")."""
+    n = idx.shape[0]
+    n_bones, P = bone_pair.shape[0], bone_pair.shape[1]
+    for j in nb.prange(n):
+        ubone = np.empty(n_bones)
+        pair = np.empty((P, P))
+        a = np.empty((P, P))
+        col = np.empty(P)
+        work = np.empty(P)
+        _point_u(idx, val, j, n_bones, ubone)
+        _point_pair(bone_pair, ubone, pair)
+        sig = _width(pair, P)
+        inv = 1.0 / (sig * sig)
+        out_inv_sigma2[j] = inv
+        for i in range(P):
+            for l in range(P):
+                a[i, l] = np.exp(-pair[i, l] * inv)
+        ok = _chol_factor(a, P)
+        for c in range(P):
+            for i in range(P):
+                col[i] = 1.0 if i == c else 0.0
+            if ok:
+                _chol_subst(a, col, P, work)
+            for i in range(P):
+                out_c[j, i, c] = col[i] if ok else np.nan
+
+
+class PointPoseSpace:
+    """WPSD (Kurihara Eq. 16): per-point pose weights from per-point pose distances.
+
+    ``u_jk`` is the point's skinning weight of the bone that DOF ``k`` moves
+    (floored at :data:`U_FLOOR`).  The coefficient matrices ``C_j = Φ_j⁻¹``
+    and the widths are precomputed per point, as Kurihara suggests, so an
+    evaluation costs ``O(n_pose²)`` per point (:meth:`weights`).
+    """
+
+    def __init__(self, space: PoseSpace, weights: SkinningWeights):
+        self.space = space
+        self.weights_ = weights
+        self.dof_bone = dof_bones(space.skeleton, weights.bones)
+        # squared DOF differences summed per bone: bone_pair[b, i, l] = Σ_{k moves b} (a_ik − a_lk)²
+        self.bone_pair = self._per_bone(space.train[:, None, :] - space.train[None, :, :])
+        P = space.n_poses
+        self.coef = np.empty((weights.n_points, P, P))
+        self.inv_sigma2 = np.empty(weights.n_points)
+        _wpsd_coefficients(weights.index, weights.value, self.bone_pair, self.coef, self.inv_sigma2)
+        bad = ~np.isfinite(self.coef).all(axis=(1, 2))
+        if bad.any():
+            raise ValueError(f"{int(bad.sum())} points have a singular WPSD kernel matrix (Eq. 16): two training "
+                             "poses coincide in those points' weighted pose distance")
+
+    def _per_bone(self, diff: np.ndarray) -> np.ndarray:
+        nb_ = self.weights_.n_bones
+        out = np.zeros((nb_,) + diff.shape[:-1])
+        for k, b in enumerate(self.dof_bone):
+            out[b] += diff[..., k] ** 2
+        return out
+
+    def weights(self, pose) -> np.ndarray:
+        """``s_j(a)`` of every point: ``(n_points, n_poses)``, rows summing to one."""
+        a = self.space.vector(pose)
+        bone_q = self._per_bone((a[None, :] - self.space.train)[None])[:, 0]  # (n_bones, P)
+        out = np.empty((self.weights_.n_points, self.space.n_poses))
+        _wpsd_weights(self.weights_.index, self.weights_.value, bone_q, self.coef, self.inv_sigma2, out)
+        return out
+
+
+@nb.njit(cache=True, parallel=True)
+def _wpsd_weights(idx, val, bone_q, coef, inv_sigma2, out):
+    n = idx.shape[0]
+    n_bones, P = bone_q.shape[0], bone_q.shape[1]
+    for j in nb.prange(n):
+        phi = np.empty(P)
+        ubone = np.empty(n_bones)
+        _point_u(idx, val, j, n_bones, ubone)
+        for i in range(P):
+            d2 = 0.0
+            for b in range(n_bones):
+                d2 += ubone[b] * bone_q[b, i]
+            phi[i] = np.exp(-d2 * inv_sigma2[j])
+        tot = 0.0
+        for i in range(P):
+            f = 0.0
+            for l in range(P):
+                f += coef[j, i, l] * phi[l]
+            out[j, i] = f
+            tot += f
+        for i in range(P):
+            out[j, i] /= tot
+
+
+# -- PSD / WPSD of meshes (Kurihara Eq. 6–8) --------------------------------------------------------
+def psd_training(samples, weights: SkinningWeights, sample_transforms) -> np.ndarray:
+    """Every sample's vertices taken to the base pose by inverse SSD (Kurihara Eq. 6): ``(P, n, 3)``.
+
+    ``samples`` is a sequence of ``(n, 3)`` vertex arrays in corresponding
+    order (vertex ``j`` of every sample is the same skin point), and
+    ``sample_transforms`` one set of bone transforms (template → sample) per
+    sample.
+    """
+    return np.stack([inverse_lbs(v, weights, t) for v, t in zip(samples, sample_transforms, strict=True)])
+
+
+def psd_deform(base_samples: np.ndarray, weights: SkinningWeights, s: np.ndarray, transforms) -> np.ndarray:
+    """PSD: morph the base-pose samples with ``s`` (Eq. 7), then SSD with the pose's transforms (Eq. 8).
+
+    ``s`` is ``(P,)`` for PSD (the same weights for all vertices) or ``(n, P)``
+    for WPSD (per-vertex weights from :meth:`PointPoseSpace.weights`).
+    """
+    s = np.asarray(s, dtype=float)
+    if s.ndim == 1:
+        u0 = np.tensordot(s, base_samples, axes=(0, 0))
+    else:
+        u0 = np.einsum("np,pnc->nc", s, base_samples)
+    return lbs(u0, weights, transforms)
+
+
+@nb.njit(cache=True, parallel=True)
+def _skin_kernel(base, s, per_point, idx, val, t, out):
+    """out_j = (Σ_k w_jk T_k)(Σ_i s_ji base_ij): Eq. 7 and 8 fused; base (n, P, 3)."""
+    n, P = base.shape[0], base.shape[1]
+    for j in nb.prange(n):
+        u0 = 0.0
+        u1 = 0.0
+        u2 = 0.0
+        for i in range(P):
+            si = s[j, i] if per_point else s[0, i]
+            u0 += si * base[j, i, 0]
+            u1 += si * base[j, i, 1]
+            u2 += si * base[j, i, 2]
+        o0 = 0.0
+        o1 = 0.0
+        o2 = 0.0
+        for m in range(idx.shape[1]):
+            w = val[j, m]
+            if w == 0.0:
+                continue
+            b = idx[j, m]
+            o0 += w * (t[b, 0, 0] * u0 + t[b, 0, 1] * u1 + t[b, 0, 2] * u2 + t[b, 0, 3])
+            o1 += w * (t[b, 1, 0] * u0 + t[b, 1, 1] * u1 + t[b, 1, 2] * u2 + t[b, 1, 3])
+            o2 += w * (t[b, 2, 0] * u0 + t[b, 2, 1] * u1 + t[b, 2, 2] * u2 + t[b, 2, 3])
+        out[j, 0] = o0
+        out[j, 1] = o1
+        out[j, 2] = o2
+
+
+def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) -> np.ndarray:
+    """Compiled SSD / PSD / WPSD in one pass.
+
+    ``base_points`` is ``(n, 3)`` (plain SSD, Eq. 2) or ``(n, P, 3)`` base-pose
+    samples laid out per point; ``s`` is ``(P,)`` (PSD) or ``(n, P)`` (WPSD).
+    """
+    t = _as_stack(transforms, weights)[:, :3, :]
+    base = np.asarray(base_points, dtype=np.float64)
+    if base.ndim == 2:
+        base = base[:, None, :]
+        s = np.ones((1, 1))
+    s = np.atleast_2d(np.asarray(s, dtype=np.float64))
+    if base.shape[0] != weights.n_points or s.shape[-1] != base.shape[1]:
+        raise ValueError(f"base points {base.shape}, pose weights {s.shape} and {weights.n_points} weighted "
+                         "points do not agree")
+    out = np.empty((base.shape[0], 3))
+    _skin_kernel(base, s, s.shape[0] == base.shape[0] and s.shape[0] > 1, weights.index, weights.value, t, out)
+    return out
+
+
+def wpsd_deform(base_samples_per_point: np.ndarray, weights: SkinningWeights, point_space: PointPoseSpace,
+                pose, transforms) -> np.ndarray:
+    """WPSD (Kurihara §5.2): per-vertex pose weights (Eq. 16), morph (Eq. 7), SSD (Eq. 8)."""
+    return skin(base_samples_per_point, weights, transforms, point_space.weights(pose))
+

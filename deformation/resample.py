@@ -1,0 +1,497 @@
+"""Resampling a forward-deformed volume onto a regular grid: the backward map.
+
+VBD (Rhee Eq. 2) and EVD (Rhee Eq. 6) move *template* voxels forward: they
+give ``F(v)``, the posed position of every template grid point ``v``.  A
+posed volume on a regular grid needs the opposite, the template position
+``F⁻¹(y)`` of every target voxel ``y``.
+
+How (measured and chosen; see ``benchmarks/deformation.py``)
+------------------------------------------------------------
+``F`` between grid points is the trilinear interpolation of the forward
+positions, a continuous, piecewise-trilinear map.  For each target voxel we
+solve ``F(x) = y`` by Newton's method on that map (its Jacobian is exact
+inside a cell), walking along each row of the target grid so that every
+solve starts from its neighbour's answer (one or two Newton steps suffice).
+The first voxel of a row, and any voxel where Newton fails, restarts from the
+best of a few *candidates* ``T_b⁻¹ y`` — the inverse of each bone's rigid
+transform, exact wherever tissue moves with a bone — picked by their
+residual ``|F(x) − y|``.  Rows are independent, so they run in parallel and
+the result is deterministic.
+
+The alternative, rasterising the deformed grid cells as tetrahedra,
+inverts a *piecewise-linear* forward map instead (a different map from the
+trilinear interpolation the forward pass defines), and writes each target
+voxel from whichever tetrahedron reaches it, which is racy in parallel.
+
+Every target voxel gets a status:
+
+* ``OK`` — converged, ``|F(x) − y| ≤ tol``;
+* ``FOLDED`` — converged, but ``det ∂F/∂x ≤ 0`` at the solution: the forward
+  map folds here (more than one template point lands on ``y``; we return
+  one of them);
+* ``NOT_CONVERGED`` — no candidate converged (returned: the best iterate);
+* ``OUTSIDE`` — the preimage lies outside the template grid; the voxel
+  gets the fill value.
+
+Label maps are resampled with nearest neighbour, intensities trilinearly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from .geometry import GridGeometry, Volume
+
+if nb.config.THREADING_LAYER == "default":
+    nb.config.THREADING_LAYER = "omp"
+
+__all__ = ["BackwardMap", "backward_map", "backward_points", "resample_forward", "OK", "FOLDED", "NOT_CONVERGED", "OUTSIDE",
+           "STATUS_NAMES"]
+
+OK, FOLDED, NOT_CONVERGED, OUTSIDE = 0, 1, 2, 3
+STATUS_NAMES = {OK: "ok", FOLDED: "folded", NOT_CONVERGED: "not_converged", OUTSIDE: "outside"}
+
+
+@nb.njit(cache=True, inline="always")
+def _eval(fwd, x0, x1, x2, out, jac):
+    """Trilinear F and its exact in-cell Jacobian at continuous template index (x0, x1, x2) = (i, j, k)."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    i0 = min(max(int(np.floor(x0)), 0), nx - 2)
+    j0 = min(max(int(np.floor(x1)), 0), ny - 2)
+    k0 = min(max(int(np.floor(x2)), 0), nz - 2)
+    fx = x0 - i0
+    fy = x1 - j0
+    fz = x2 - k0
+    for c in range(3):
+        c000 = fwd[k0, j0, i0, c]
+        c100 = fwd[k0, j0, i0 + 1, c]
+        c010 = fwd[k0, j0 + 1, i0, c]
+        c110 = fwd[k0, j0 + 1, i0 + 1, c]
+        c001 = fwd[k0 + 1, j0, i0, c]
+        c101 = fwd[k0 + 1, j0, i0 + 1, c]
+        c011 = fwd[k0 + 1, j0 + 1, i0, c]
+        c111 = fwd[k0 + 1, j0 + 1, i0 + 1, c]
+        a00 = c000 + (c100 - c000) * fx
+        a10 = c010 + (c110 - c010) * fx
+        a01 = c001 + (c101 - c001) * fx
+        a11 = c011 + (c111 - c011) * fx
+        b0 = a00 + (a10 - a00) * fy
+        b1 = a01 + (a11 - a01) * fy
+        out[c] = b0 + (b1 - b0) * fz
+        # derivatives along i, j, k
+        dx00 = c100 - c000
+        dx10 = c110 - c010
+        dx01 = c101 - c001
+        dx11 = c111 - c011
+        d0 = dx00 + (dx10 - dx00) * fy
+        d1 = dx01 + (dx11 - dx01) * fy
+        jac[c, 0] = d0 + (d1 - d0) * fz
+        e0 = a10 - a00
+        e1 = a11 - a01
+        jac[c, 1] = e0 + (e1 - e0) * fz
+        jac[c, 2] = b1 - b0
+
+
+@nb.njit(cache=True, inline="always")
+def _det3(m):
+    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+
+
+@nb.njit(cache=True, inline="always")
+def _newton(fwd, y, x, tol, max_iter, max_step, f, jac):
+    """Newton on F(x) = y from x (modified in place).  Returns (residual, det J at x)."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    lim0 = nx - 1.0
+    lim1 = ny - 1.0
+    lim2 = nz - 1.0
+    res = np.inf
+    det = 0.0
+    for it in range(max_iter + 1):
+        _eval(fwd, x[0], x[1], x[2], f, jac)
+        r0 = y[0] - f[0]
+        r1 = y[1] - f[1]
+        r2 = y[2] - f[2]
+        res = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+        det = _det3(jac)
+        if res <= tol or it == max_iter or det == 0.0:
+            break
+        inv = 1.0 / det
+        # δ = J⁻¹ r by the adjugate
+        d0 = inv * ((jac[1, 1] * jac[2, 2] - jac[1, 2] * jac[2, 1]) * r0
+                    - (jac[0, 1] * jac[2, 2] - jac[0, 2] * jac[2, 1]) * r1
+                    + (jac[0, 1] * jac[1, 2] - jac[0, 2] * jac[1, 1]) * r2)
+        d1 = inv * (-(jac[1, 0] * jac[2, 2] - jac[1, 2] * jac[2, 0]) * r0
+                    + (jac[0, 0] * jac[2, 2] - jac[0, 2] * jac[2, 0]) * r1
+                    - (jac[0, 0] * jac[1, 2] - jac[0, 2] * jac[1, 0]) * r2)
+        d2 = inv * ((jac[1, 0] * jac[2, 1] - jac[1, 1] * jac[2, 0]) * r0
+                    - (jac[0, 0] * jac[2, 1] - jac[0, 1] * jac[2, 0]) * r1
+                    + (jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]) * r2)
+        m = max(abs(d0), abs(d1), abs(d2))
+        if m > max_step:
+            sc = max_step / m
+            d0 *= sc
+            d1 *= sc
+            d2 *= sc
+        x[0] = min(max(x[0] + d0, 0.0), lim0)
+        x[1] = min(max(x[1] + d1, 0.0), lim1)
+        x[2] = min(max(x[2] + d2, 0.0), lim2)
+    return res, det
+
+
+@nb.njit(cache=True, inline="always")
+def _on_border(x, nx, ny, nz):
+    e = 1e-6
+    return (x[0] <= e or x[1] <= e or x[2] <= e or x[0] >= nx - 1 - e or x[1] >= ny - 1 - e
+            or x[2] >= nz - 1 - e)
+
+
+@nb.njit(cache=True, parallel=True)
+def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, out_x, out_res, out_status):
+    """For every target voxel (rows in parallel) solve F(x) = y; x in template continuous index (i, j, k)."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    tz, ty, tx = out_x.shape[0], out_x.shape[1], out_x.shape[2]
+    nc = cands.shape[0]
+    for row in nb.prange(tz * ty):
+        kk = row // ty
+        jj = row % ty
+        y = np.empty(3)
+        x = np.empty(3)
+        xb = np.empty(3)
+        f = np.empty(3)
+        jac = np.empty((3, 3))
+        cres = np.empty(nc)
+        have = False
+        for ii in range(tx):
+            for c in range(3):
+                y[c] = tgt_a[c, 0] * ii + tgt_a[c, 1] * jj + tgt_a[c, 2] * kk + tgt_a[c, 3]
+            res = np.inf
+            det = 0.0
+            if have:
+                res, det = _newton(fwd, y, x, tol, max_iter, max_step, f, jac)
+            if res > tol:
+                # restart from the candidates T_b⁻¹ y (in template index space), best residual first
+                for c in range(nc):
+                    for q in range(3):
+                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
+                        xb[q] = v
+                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
+                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
+                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
+                    _eval(fwd, xb[0], xb[1], xb[2], f, jac)
+                    cres[c] = np.sqrt((f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2)
+                order = np.argsort(cres)
+                best_res = res
+                best0 = x[0]
+                best1 = x[1]
+                best2 = x[2]
+                best_det = det
+                if not have:
+                    best_res = np.inf
+                for r in range(min(n_restarts, nc)):
+                    c = order[r]
+                    for q in range(3):
+                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
+                        xb[q] = v
+                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
+                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
+                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
+                    r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
+                    if r2 < best_res:
+                        best_res = r2
+                        best_det = d2
+                        best0 = xb[0]
+                        best1 = xb[1]
+                        best2 = xb[2]
+                    if r2 <= tol:
+                        break
+                x[0] = best0
+                x[1] = best1
+                x[2] = best2
+                res = best_res
+                det = best_det
+            out_x[kk, jj, ii, 0] = x[0]
+            out_x[kk, jj, ii, 1] = x[1]
+            out_x[kk, jj, ii, 2] = x[2]
+            out_res[kk, jj, ii] = res
+            if res <= tol:
+                out_status[kk, jj, ii] = 0 if det > 0.0 else 1
+                have = True
+            elif _on_border(x, nx, ny, nz):
+                out_status[kk, jj, ii] = 3
+                have = False
+            else:
+                out_status[kk, jj, ii] = 2
+                have = False
+
+
+@nb.njit(cache=True, parallel=True)
+def _points_kernel(fwd, pts, cands, tol, max_iter, max_step, n_restarts, out_x, out_res, out_status):
+    """As :func:`_backward_kernel` for arbitrary world points (candidates map world → template index)."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    nc = cands.shape[0]
+    for n in nb.prange(pts.shape[0]):
+        y = np.empty(3)
+        xb = np.empty(3)
+        f = np.empty(3)
+        jac = np.empty((3, 3))
+        cres = np.empty(nc)
+        for c in range(3):
+            y[c] = pts[n, c]
+        for c in range(nc):
+            for q in range(3):
+                xb[q] = cands[c, q, 0] * y[0] + cands[c, q, 1] * y[1] + cands[c, q, 2] * y[2] + cands[c, q, 3]
+            xb[0] = min(max(xb[0], 0.0), nx - 1.0)
+            xb[1] = min(max(xb[1], 0.0), ny - 1.0)
+            xb[2] = min(max(xb[2], 0.0), nz - 1.0)
+            _eval(fwd, xb[0], xb[1], xb[2], f, jac)
+            cres[c] = np.sqrt((f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2)
+        order = np.argsort(cres)
+        best = np.inf
+        bdet = 0.0
+        for r in range(min(n_restarts, nc)):
+            c = order[r]
+            for q in range(3):
+                xb[q] = cands[c, q, 0] * y[0] + cands[c, q, 1] * y[1] + cands[c, q, 2] * y[2] + cands[c, q, 3]
+            xb[0] = min(max(xb[0], 0.0), nx - 1.0)
+            xb[1] = min(max(xb[1], 0.0), ny - 1.0)
+            xb[2] = min(max(xb[2], 0.0), nz - 1.0)
+            r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
+            if r2 < best:
+                best = r2
+                bdet = d2
+                for q in range(3):
+                    out_x[n, q] = xb[q]
+            if r2 <= tol:
+                break
+        out_res[n] = best
+        if best <= tol:
+            out_status[n] = 0 if bdet > 0.0 else 1
+        else:
+            for q in range(3):
+                xb[q] = out_x[n, q]
+            out_status[n] = 3 if _on_border(xb, nx, ny, nz) else 2
+
+
+@dataclass
+class BackwardMap:
+    """Template position of every target voxel, and how well it was found.
+
+    ``template_index`` is the continuous template index ``(i, j, k)`` per
+    target voxel ``(nz, ny, nx, 3)``; ``residual_mm`` is ``|F(x) − y|``;
+    ``status`` holds :data:`OK`, :data:`FOLDED`, :data:`NOT_CONVERGED` or
+    :data:`OUTSIDE`.
+    """
+
+    template_geometry: GridGeometry
+    target_geometry: GridGeometry
+    template_index: np.ndarray
+    residual_mm: np.ndarray
+    status: np.ndarray
+
+    def template_positions(self) -> np.ndarray:
+        """World (mm) template position of every target voxel, ``(nz, ny, nx, 3)``."""
+        return self.template_geometry.index_to_world(self.template_index)
+
+    def scan_to_template(self) -> Volume:
+        """The backward map as a displacement field on the target grid (template position − voxel, mm).
+
+        The convention of the phantoms' truth correspondence, usable by
+        ``sitk.DisplacementFieldTransform``.  Voxels ``OUTSIDE`` the template
+        keep their (clamped) best position.
+        """
+        pos = self.template_positions()
+        return Volume((pos - self.target_geometry.world_coordinates()).astype(np.float32), self.target_geometry)
+
+    def summary(self) -> dict:
+        n = int(self.status.size)
+        out = {f"n_{name}": int(np.sum(self.status == code)) for code, name in STATUS_NAMES.items()}
+        out["n_voxels"] = n
+        good = self.status <= FOLDED
+        out["max_residual_mm"] = float(self.residual_mm[good].max()) if good.any() else 0.0
+        out["fraction_folded"] = out["n_folded"] / n if n else 0.0
+        return out
+
+
+def _candidates(template: GridGeometry, target: GridGeometry, transforms) -> np.ndarray:
+    """Matrices target index → template index for the inverse of each transform (plus the identity)."""
+    w = template.world_to_index_matrix
+    a = target.index_to_world_matrix
+    mats = [np.eye(4)]
+    if transforms is not None:
+        for t in np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4):
+            mats.append(np.linalg.inv(t))
+    out = np.stack([(w @ m @ a)[:3] for m in mats])
+    # drop duplicates (e.g. several bones that have not moved)
+    _, keep = np.unique(np.round(out, 9).reshape(len(out), -1), axis=0, return_index=True)
+    return np.ascontiguousarray(out[np.sort(keep)])
+
+
+def backward_map(forward_positions, template_geometry: GridGeometry, target_geometry: GridGeometry | None = None,
+                 *, transforms=None, tol_voxels: float = 1e-3, max_iter: int = 12,
+                 n_restarts: int = 4) -> BackwardMap:
+    """Invert a forward map given by the posed positions of every template voxel.
+
+    Parameters
+    ----------
+    forward_positions : (nz, ny, nx, 3) array
+        World (mm) position that each template voxel moves to.
+    template_geometry, target_geometry : GridGeometry
+        The template's grid, and the grid to resample onto (default: the
+        template's).
+    transforms : (n, 4, 4), optional
+        The bones' template → target transforms: their inverses seed the
+        Newton solves (see the module docstring).  Without them only the
+        identity is tried, which suffices for small deformations.
+    tol_voxels : float
+        Convergence tolerance on ``|F(x) − y|``, in units of the smallest
+        template spacing.
+    """
+    fwd = np.ascontiguousarray(forward_positions, dtype=np.float32)
+    if fwd.shape != template_geometry.array_shape + (3,):
+        raise ValueError(f"forward_positions must be {template_geometry.array_shape + (3,)} (the template grid "
+                         f"{template_geometry.describe()}, components x, y, z), got {fwd.shape}")
+    if min(template_geometry.size) < 2:
+        raise ValueError("the template grid needs at least 2 voxels along each axis")
+    target = template_geometry if target_geometry is None else target_geometry
+    cands = _candidates(template_geometry, target, transforms)
+    tol = float(tol_voxels) * min(template_geometry.spacing)
+    shape = target.array_shape
+    out_x = np.empty(shape + (3,), dtype=np.float64)
+    out_res = np.empty(shape, dtype=np.float32)
+    out_status = np.empty(shape, dtype=np.uint8)
+    tgt_a = np.ascontiguousarray(target.index_to_world_matrix[:3])
+    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), out_x, out_res, out_status)
+    if np.any(out_status == NOT_CONVERGED):
+        flat = (out_x.reshape(-1, 3), out_res.reshape(-1), out_status.reshape(-1))
+        _nearest_restarts(fwd, template_geometry, *flat, target.world_coordinates().reshape(-1, 3), tol,
+                          int(max_iter))
+    return BackwardMap(template_geometry, target, out_x, out_res, out_status)
+
+
+@nb.njit(cache=True, parallel=True)
+def _guess_kernel(fwd, pts, guesses, tol, max_iter, max_step, out_x, out_res, out_status):
+    """Newton from explicit guesses (template index) for each world point; keeps the best."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    for n in nb.prange(pts.shape[0]):
+        y = np.empty(3)
+        xb = np.empty(3)
+        f = np.empty(3)
+        jac = np.empty((3, 3))
+        for c in range(3):
+            y[c] = pts[n, c]
+        best = out_res[n]
+        bdet = 1.0
+        improved = False
+        for g in range(guesses.shape[1]):
+            for q in range(3):
+                xb[q] = guesses[n, g, q]
+            r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
+            if r2 < best:
+                best = r2
+                bdet = d2
+                improved = True
+                for q in range(3):
+                    out_x[n, q] = xb[q]
+            if r2 <= tol:
+                break
+        if improved:
+            out_res[n] = best
+            if best <= tol:
+                out_status[n] = 0 if bdet > 0.0 else 1
+
+
+def _nearest_restarts(fwd, geometry: GridGeometry, x, res, status, pts_world, tol, max_iter, k: int = 8):
+    """Retry NOT_CONVERGED points from the template voxels whose forward positions are nearest (cKDTree)."""
+    from scipy.spatial import cKDTree
+
+    bad = np.nonzero(status == NOT_CONVERGED)[0]
+    if not bad.size:
+        return
+    tree = cKDTree(fwd.reshape(-1, 3))
+    _, nn = tree.query(pts_world[bad], k=k, workers=-1)
+    nz, ny, nx = geometry.array_shape
+    kk, jj, ii = np.unravel_index(nn, (nz, ny, nx))
+    guesses = np.ascontiguousarray(np.stack([ii, jj, kk], -1).astype(np.float64))
+    bx = np.ascontiguousarray(x[bad])
+    br = np.ascontiguousarray(res[bad])
+    bs = np.ascontiguousarray(status[bad])
+    _guess_kernel(fwd, np.ascontiguousarray(pts_world[bad]), guesses, tol, max_iter, 2.0, bx, br, bs)
+    x[bad], res[bad], status[bad] = bx, br, bs
+
+
+def backward_points(forward_positions, template_geometry: GridGeometry, points, *, transforms=None,
+                    tol_voxels: float = 1e-3, max_iter: int = 12, n_restarts: int = 4):
+    """Invert the forward map at arbitrary world points ``(n, 3)``.
+
+    Returns ``(template world positions (n, 3), residual_mm (n,), status (n,))``;
+    see :func:`backward_map` for the parameters and the status codes.
+    """
+    fwd = np.ascontiguousarray(forward_positions, dtype=np.float32)
+    if fwd.shape != template_geometry.array_shape + (3,):
+        raise ValueError(f"forward_positions must be {template_geometry.array_shape + (3,)}, got {fwd.shape}")
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    world = GridGeometry((1, 1, 1), (1.0, 1.0, 1.0))  # candidates act on world points: identity "grid"
+    cands = _candidates(template_geometry, world, transforms)
+    tol = float(tol_voxels) * min(template_geometry.spacing)
+    x = np.zeros((len(pts), 3))
+    res = np.empty(len(pts), dtype=np.float32)
+    status = np.empty(len(pts), dtype=np.uint8)
+    _points_kernel(fwd, pts, cands, tol, int(max_iter), 2.0, int(n_restarts), x, res, status)
+    _nearest_restarts(fwd, template_geometry, x, res, status, pts, tol, int(max_iter))
+    return template_geometry.index_to_world(x), res, status
+
+
+@nb.njit(cache=True, parallel=True)
+def _pull(src, x, status, fill, order, out):
+    nz, ny, nx = src.shape
+    tz, ty, tx = x.shape[0], x.shape[1], x.shape[2]
+    for kk in nb.prange(tz):
+        for jj in range(ty):
+            for ii in range(tx):
+                if status[kk, jj, ii] == 3:
+                    out[kk, jj, ii] = fill
+                    continue
+                a = x[kk, jj, ii, 0]
+                b = x[kk, jj, ii, 1]
+                c = x[kk, jj, ii, 2]
+                if order == 0:
+                    i = min(max(int(np.floor(a + 0.5)), 0), nx - 1)
+                    j = min(max(int(np.floor(b + 0.5)), 0), ny - 1)
+                    k = min(max(int(np.floor(c + 0.5)), 0), nz - 1)
+                    out[kk, jj, ii] = src[k, j, i]
+                    continue
+                i0 = min(max(int(np.floor(a)), 0), nx - 2)
+                j0 = min(max(int(np.floor(b)), 0), ny - 2)
+                k0 = min(max(int(np.floor(c)), 0), nz - 2)
+                fx = a - i0
+                fy = b - j0
+                fz = c - k0
+                v00 = src[k0, j0, i0] + (src[k0, j0, i0 + 1] - src[k0, j0, i0]) * fx
+                v10 = src[k0, j0 + 1, i0] + (src[k0, j0 + 1, i0 + 1] - src[k0, j0 + 1, i0]) * fx
+                v01 = src[k0 + 1, j0, i0] + (src[k0 + 1, j0, i0 + 1] - src[k0 + 1, j0, i0]) * fx
+                v11 = src[k0 + 1, j0 + 1, i0] + (src[k0 + 1, j0 + 1, i0 + 1] - src[k0 + 1, j0 + 1, i0]) * fx
+                w0 = v00 + (v10 - v00) * fy
+                w1 = v01 + (v11 - v01) * fy
+                out[kk, jj, ii] = w0 + (w1 - w0) * fz
+
+
+def resample_forward(bmap: BackwardMap, volume: Volume, *, labels: bool = False, fill=0.0) -> Volume:
+    """The template ``volume`` pulled onto the target grid through ``bmap`` (trilinear; nearest for labels)."""
+    if not volume.geometry.is_close(bmap.template_geometry):
+        bmap.template_geometry.check_same(volume.geometry, names=("backward map's template", "volume"))
+    if volume.is_vector:
+        raise ValueError("resample_forward takes scalar volumes (resample each component separately)")
+    src = np.ascontiguousarray(volume.data)
+    if labels:
+        out = np.empty(bmap.status.shape, dtype=src.dtype)
+        _pull(src, bmap.template_index, bmap.status, src.dtype.type(fill), 0, out)
+    else:
+        src = src.astype(np.float32, copy=False)
+        out = np.empty(bmap.status.shape, dtype=np.float32)
+        _pull(src, bmap.template_index, bmap.status, np.float32(fill), 1, out)
+    return Volume(out, bmap.target_geometry)
