@@ -150,9 +150,45 @@ def _on_border(x, nx, ny, nz):
             or x[2] >= nz - 1 - e)
 
 
+@nb.njit(cache=True, inline="always")
+def _prio_at(prio, x):
+    nz, ny, nx = prio.shape
+    i = min(max(int(np.floor(x[0] + 0.5)), 0), nx - 1)
+    j = min(max(int(np.floor(x[1] + 0.5)), 0), ny - 1)
+    k = min(max(int(np.floor(x[2] + 0.5)), 0), nz - 1)
+    return prio[k, j, i]
+
+
 @nb.njit(cache=True, parallel=True)
-def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, out_x, out_res, out_status):
-    """For every target voxel (rows in parallel) solve F(x) = y; x in template continuous index (i, j, k)."""
+def _splat(fwd, prio, tgt_w, occ):
+    """Mark the target voxels nearest to the forward positions of the template voxels with ``prio`` set."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    tz, ty, tx = occ.shape
+    for k in nb.prange(nz):
+        for j in range(ny):
+            for i in range(nx):
+                if prio[k, j, i] == 0:
+                    continue
+                p0 = fwd[k, j, i, 0]
+                p1 = fwd[k, j, i, 1]
+                p2 = fwd[k, j, i, 2]
+                a = int(np.floor(tgt_w[0, 0] * p0 + tgt_w[0, 1] * p1 + tgt_w[0, 2] * p2 + tgt_w[0, 3] + 0.5))
+                b = int(np.floor(tgt_w[1, 0] * p0 + tgt_w[1, 1] * p1 + tgt_w[1, 2] * p2 + tgt_w[1, 3] + 0.5))
+                c = int(np.floor(tgt_w[2, 0] * p0 + tgt_w[2, 1] * p1 + tgt_w[2, 2] * p2 + tgt_w[2, 3] + 0.5))
+                if 0 <= a < tx and 0 <= b < ty and 0 <= c < tz:
+                    occ[c, b, a] = 1  # benign race: every writer writes 1
+
+
+@nb.njit(cache=True, parallel=True)
+def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, out_x, out_res,
+                     out_status):
+    """For every target voxel (rows in parallel) solve F(x) = y; x in template continuous index (i, j, k).
+
+    ``prio`` (template grid, uint8) and ``occ`` (target grid) implement the preference for body
+    preimages: where ``occ`` is set and the solution found lies where ``prio`` is 0, the
+    candidates are tried for a converged solution with ``prio`` 1.
+    """
+    use_prio = prio.shape[0] == fwd.shape[0]
     nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     tz, ty, tx = out_x.shape[0], out_x.shape[1], out_x.shape[2]
     nc = cands.shape[0]
@@ -214,6 +250,33 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, out
                 x[2] = best2
                 res = best_res
                 det = best_det
+            if use_prio and occ[kk, jj, ii] != 0 and _prio_at(prio, x) == 0:
+                for c in range(nc):
+                    for q in range(3):
+                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
+                        xb[q] = v
+                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
+                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
+                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
+                    _eval(fwd, xb[0], xb[1], xb[2], f, jac)
+                    cres[c] = np.sqrt((f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2)
+                order = np.argsort(cres)
+                for r in range(min(n_restarts, nc)):
+                    c = order[r]
+                    for q in range(3):
+                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
+                        xb[q] = v
+                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
+                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
+                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
+                    r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
+                    if r2 <= tol and _prio_at(prio, xb) != 0:
+                        x[0] = xb[0]
+                        x[1] = xb[1]
+                        x[2] = xb[2]
+                        res = r2
+                        det = d2
+                        break
             out_x[kk, jj, ii, 0] = x[0]
             out_x[kk, jj, ii, 1] = x[1]
             out_x[kk, jj, ii, 2] = x[2]
@@ -332,7 +395,7 @@ def _candidates(template: GridGeometry, target: GridGeometry, transforms) -> np.
 
 
 def backward_map(forward_positions, template_geometry: GridGeometry, target_geometry: GridGeometry | None = None,
-                 *, transforms=None, tol_voxels: float = 1e-3, max_iter: int = 12,
+                 *, transforms=None, prefer=None, tol_voxels: float = 1e-3, max_iter: int = 12,
                  n_restarts: int = 4) -> BackwardMap:
     """Invert a forward map given by the posed positions of every template voxel.
 
@@ -347,6 +410,14 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
         The bones' template → target transforms: their inverses seed the
         Newton solves (see the module docstring).  Without them only the
         identity is tried, which suffices for small deformations.
+    prefer : (nz, ny, nx) bool array on the template grid, optional
+        Where the forward map is not one-to-one (linear blends fold, and far
+        air swept by a large rotation can land on the posed body), several
+        template points map to one target voxel.  With ``prefer`` (e.g. the
+        template's body mask), a target voxel reached by a preferred voxel
+        (its forward position, splatted to the nearest target voxel and
+        dilated by one voxel) takes a preferred preimage when Newton finds
+        one from the candidates: tissue, not air, fills the posed body.
     tol_voxels : float
         Convergence tolerance on ``|F(x) − y|``, in units of the smallest
         template spacing.
@@ -365,7 +436,21 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
     out_res = np.empty(shape, dtype=np.float32)
     out_status = np.empty(shape, dtype=np.uint8)
     tgt_a = np.ascontiguousarray(target.index_to_world_matrix[:3])
-    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), out_x, out_res, out_status)
+    if prefer is not None:
+        prio = np.ascontiguousarray(prefer, dtype=np.uint8)
+        if prio.shape != template_geometry.array_shape:
+            raise ValueError(f"prefer must be a mask on the template grid {template_geometry.array_shape}, "
+                             f"got {prio.shape}")
+        occ = np.zeros(shape, dtype=np.uint8)
+        _splat(fwd, prio, np.ascontiguousarray(target.world_to_index_matrix[:3]), occ)
+        from scipy import ndimage
+
+        occ = ndimage.binary_dilation(occ, np.ones((3, 3, 3), bool)).astype(np.uint8)
+    else:
+        prio = np.zeros((1, 1, 1), dtype=np.uint8)
+        occ = np.zeros((1, 1, 1), dtype=np.uint8)
+    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, out_x, out_res,
+                     out_status)
     if np.any(out_status == NOT_CONVERGED):
         flat = (out_x.reshape(-1, 3), out_res.reshape(-1), out_status.reshape(-1))
         _nearest_restarts(fwd, template_geometry, *flat, target.world_coordinates().reshape(-1, 3), tol,

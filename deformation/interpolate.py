@@ -1,0 +1,353 @@
+"""Fast sampling of volumes at world points (compiled, parallel trilinear / nearest interpolation).
+
+Convention — the same as SimpleITK's ``sitk.Resample`` (checked in
+``tests/deformation/test_fields.py``)
+--------------------------------------------------------------------------------------
+A world point ``p`` (mm, components x, y, z) is mapped to a continuous index
+``(i, j, k) = world_to_index(p)`` (:class:`~deformation.geometry.GridGeometry`:
+``p = origin + direction @ (spacing * ijk)``, voxel centres at integer
+indices).  Along every axis of ``n`` voxels:
+
+* **inside** means ``-0.5 <= index < n - 0.5`` — the voxel-centre box grown by
+  half a voxel, half-open like ITK's ``ImageFunction::IsInsideBuffer``;
+* inside but beyond the outermost voxel centres (the half-voxel border), the
+  index is **clamped** to ``[0, n - 1]``: the edge value is extended, exactly
+  as ITK's ``LinearInterpolateImageFunction`` does;
+* outside (or a NaN point) the result is ``fill``.
+
+``order=1`` is trilinear interpolation; ``order=0`` is nearest neighbour with
+ITK's rounding (``floor(index + 0.5)``, i.e. halves round up), meant for label
+maps: it never mixes values and keeps integer dtypes.
+
+Precision.  Indices, weights and sums are computed in float64 whatever the
+data or point dtype (float32 and float64 points are both accepted without a
+copy); the result is then rounded to the output dtype.  For float32 data the
+output is float32, so the only error beyond float64 round-off is the final
+rounding, ≤ 0.5 ulp of the value (relative 6e-8) — SimpleITK does the same
+(double arithmetic, float output), and the two agree to 1 float32 ulp.
+Integer or boolean data give float64 output with ``order=1`` and keep their
+dtype with ``order=0``.  A float32 *point* carries its own rounding
+(≈ 6e-8 × its coordinate, e.g. 6e-6 mm at 100 mm).
+
+Speed.  The kernels are numba-compiled (``parallel=True``, ``cache=True``,
+no fastmath); on the paper-size hand grid (255×255×90 float32, 2 cores) a full
+trilinear pass is an order of magnitude faster than
+``scipy.ndimage.map_coordinates(order=1)``; ``benchmarks/interpolation.py``
+measures it against SciPy and ``sitk.Resample`` in one run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .geometry import GeometryMismatchError, GridGeometry, Volume
+
+__all__ = ["sample", "sample_array", "warp", "sample_displaced_array"]
+
+# Open3D ships an older TBB; once it is loaded, numba's default threading layer
+# tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
+if nb.config.THREADING_LAYER == "default":
+    nb.config.THREADING_LAYER = "omp"
+
+
+# -- compiled kernels -----------------------------------------------------------------------
+# Voxel data are passed flattened: ``f[(k*ny + j)*nx + i]`` (scalar) or ``f[(k*ny + j)*nx + i, c]``
+# (vector), with the grid size (nx, ny, nz) alongside.  Scalar and vector kernels are separate
+# because a run-time component loop costs ~1.5x on scalar volumes.
+@nb.njit(cache=True, inline="always")
+def _to_index(m, x, y, z):
+    """Continuous index (i, j, k) of world point (x, y, z) through the 4x4 (or 3x4) matrix ``m``."""
+    return (m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3],
+            m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3],
+            m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3])
+
+
+@nb.njit(cache=True, inline="always")
+def _inside(ci, cj, ck, nx, ny, nz):
+    """ITK's ``IsInsideBuffer``: ``-0.5 <= index < n - 0.5`` on every axis (NaN is outside)."""
+    return ci >= -0.5 and ci < nx - 0.5 and cj >= -0.5 and cj < ny - 0.5 and ck >= -0.5 and ck < nz - 0.5
+
+
+@nb.njit(cache=True, inline="always")
+def _nearest(ci, cj, ck, nx, ny, nz):
+    """Flat offset of the nearest voxel (ITK rounding: floor(index + 0.5)) of an inside point."""
+    i = min(max(int(math.floor(ci + 0.5)), 0), nx - 1)
+    j = min(max(int(math.floor(cj + 0.5)), 0), ny - 1)
+    k = min(max(int(math.floor(ck + 0.5)), 0), nz - 1)
+    return (k * ny + j) * nx + i
+
+
+@nb.njit(cache=True, inline="always")
+def _linear(ci, cj, ck, nx, ny, nz):
+    """Base offset, neighbour strides and weights of trilinear interpolation of an inside point.
+
+    The index is clamped to the voxel-centre box [0, n-1] first (edge extension in the
+    half-voxel border); a neighbour stride is 0 on the last voxel of an axis.
+    """
+    ci = min(max(ci, 0.0), nx - 1.0)
+    cj = min(max(cj, 0.0), ny - 1.0)
+    ck = min(max(ck, 0.0), nz - 1.0)
+    i0 = int(ci)  # ci >= 0: truncation is floor
+    j0 = int(cj)
+    k0 = int(ck)
+    di = 1 if i0 < nx - 1 else 0
+    dj = nx if j0 < ny - 1 else 0
+    dk = nx * ny if k0 < nz - 1 else 0
+    return (k0 * ny + j0) * nx + i0, di, dj, dk, ci - i0, cj - j0, ck - k0
+
+
+@nb.njit(cache=True, inline="always")
+def _lerp_scalar(f, b, di, dj, dk, ti, tj, tk):
+    si = 1.0 - ti
+    sj = 1.0 - tj
+    sk = 1.0 - tk
+    v00 = si * np.float64(f[b]) + ti * np.float64(f[b + di])
+    v01 = si * np.float64(f[b + dj]) + ti * np.float64(f[b + dj + di])
+    v10 = si * np.float64(f[b + dk]) + ti * np.float64(f[b + dk + di])
+    v11 = si * np.float64(f[b + dk + dj]) + ti * np.float64(f[b + dk + dj + di])
+    return sk * (sj * v00 + tj * v01) + tk * (sj * v10 + tj * v11)
+
+
+@nb.njit(cache=True, inline="always")
+def _lerp_component(f, b, di, dj, dk, ti, tj, tk, c):
+    si = 1.0 - ti
+    sj = 1.0 - tj
+    sk = 1.0 - tk
+    v00 = si * np.float64(f[b, c]) + ti * np.float64(f[b + di, c])
+    v01 = si * np.float64(f[b + dj, c]) + ti * np.float64(f[b + dj + di, c])
+    v10 = si * np.float64(f[b + dk, c]) + ti * np.float64(f[b + dk + di, c])
+    v11 = si * np.float64(f[b + dk + dj, c]) + ti * np.float64(f[b + dk + dj + di, c])
+    return sk * (sj * v00 + tj * v01) + tk * (sj * v10 + tj * v11)
+
+
+@nb.njit(cache=True, inline="always")
+def _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, row):
+    """Interpolate vector data ``f (nvox, nc)`` at continuous index (ci, cj, ck) into ``out[row, :]``."""
+    nc = f.shape[1]
+    if not _inside(ci, cj, ck, nx, ny, nz):
+        for c in range(nc):
+            out[row, c] = fill
+    elif order == 0:
+        b = _nearest(ci, cj, ck, nx, ny, nz)
+        for c in range(nc):
+            out[row, c] = f[b, c]
+    else:
+        b, di, dj, dk, ti, tj, tk = _linear(ci, cj, ck, nx, ny, nz)
+        for c in range(nc):
+            out[row, c] = _lerp_component(f, b, di, dj, dk, ti, tj, tk, c)
+
+
+@nb.njit(cache=True, parallel=True)
+def _sample_points_scalar(f, nx, ny, nz, w2i, points, order, fill, out):
+    """``out[p]`` = scalar data ``f`` sampled at world point ``points[p]``; ``w2i`` world → index."""
+    for p in nb.prange(points.shape[0]):
+        ci, cj, ck = _to_index(w2i, np.float64(points[p, 0]), np.float64(points[p, 1]), np.float64(points[p, 2]))
+        if not _inside(ci, cj, ck, nx, ny, nz):
+            out[p] = fill
+        elif order == 0:
+            out[p] = f[_nearest(ci, cj, ck, nx, ny, nz)]
+        else:
+            b, di, dj, dk, ti, tj, tk = _linear(ci, cj, ck, nx, ny, nz)
+            out[p] = _lerp_scalar(f, b, di, dj, dk, ti, tj, tk)
+
+
+@nb.njit(cache=True, parallel=True)
+def _sample_points_vector(f, nx, ny, nz, w2i, points, order, fill, out):
+    """``out[p, :]`` = vector data ``f (nvox, nc)`` sampled at world point ``points[p]``."""
+    for p in nb.prange(points.shape[0]):
+        ci, cj, ck = _to_index(w2i, np.float64(points[p, 0]), np.float64(points[p, 1]), np.float64(points[p, 2]))
+        _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, p)
+
+
+@nb.njit(cache=True, inline="always")
+def _displaced_point(i2w, disp, k, j, i):
+    """World point x(i, j, k) + disp[k, j, i] of a target voxel."""
+    return (i2w[0, 0] * i + i2w[0, 1] * j + i2w[0, 2] * k + i2w[0, 3] + np.float64(disp[k, j, i, 0]),
+            i2w[1, 0] * i + i2w[1, 1] * j + i2w[1, 2] * k + i2w[1, 3] + np.float64(disp[k, j, i, 1]),
+            i2w[2, 0] * i + i2w[2, 1] * j + i2w[2, 2] * k + i2w[2, 3] + np.float64(disp[k, j, i, 2]))
+
+
+@nb.njit(cache=True, parallel=True)
+def _sample_displaced_scalar(f, nx, ny, nz, w2i, i2w, disp, order, fill, out):
+    """For every target voxel (k, j, i) (index → world ``i2w``), scalar ``f`` at ``x + disp[k, j, i]``
+    into ``out[(k*ty + j)*tx + i]``.  Fused: the world points are never stored."""
+    tz, ty, tx = disp.shape[0], disp.shape[1], disp.shape[2]
+    for r in nb.prange(tz * ty):
+        k = r // ty
+        j = r - k * ty
+        for i in range(tx):
+            x, y, z = _displaced_point(i2w, disp, k, j, i)
+            ci, cj, ck = _to_index(w2i, x, y, z)
+            p = r * tx + i
+            if not _inside(ci, cj, ck, nx, ny, nz):
+                out[p] = fill
+            elif order == 0:
+                out[p] = f[_nearest(ci, cj, ck, nx, ny, nz)]
+            else:
+                b, di, dj, dk, ti, tj, tk = _linear(ci, cj, ck, nx, ny, nz)
+                out[p] = _lerp_scalar(f, b, di, dj, dk, ti, tj, tk)
+
+
+@nb.njit(cache=True, parallel=True)
+def _sample_displaced_vector(f, nx, ny, nz, w2i, i2w, disp, order, fill, out):
+    """Vector version of :func:`_sample_displaced_scalar`: ``out[(k*ty + j)*tx + i, :]``."""
+    tz, ty, tx = disp.shape[0], disp.shape[1], disp.shape[2]
+    for r in nb.prange(tz * ty):
+        k = r // ty
+        j = r - k * ty
+        for i in range(tx):
+            x, y, z = _displaced_point(i2w, disp, k, j, i)
+            ci, cj, ck = _to_index(w2i, x, y, z)
+            _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, r * tx + i)
+
+
+# -- helpers --------------------------------------------------------------------------------
+def _check_order(order) -> int:
+    if order not in (0, 1):
+        raise ValueError(f"order must be 0 (nearest neighbour) or 1 (trilinear), got {order!r}")
+    return int(order)
+
+
+def _flat_data(data) -> tuple[np.ndarray, tuple[int, int, int], bool]:
+    """Flattened voxel data (``(nvox,)`` scalar or ``(nvox, c)`` vector, C order, booleans as uint8),
+    the grid size (nx, ny, nz) and whether the data are scalar."""
+    data = np.asarray(data)
+    if data.ndim not in (3, 4):
+        raise ValueError(f"voxel data must be [z, y, x] or [z, y, x, c], got shape {data.shape}")
+    nz, ny, nx = data.shape[:3]
+    f = np.ascontiguousarray(data)
+    if f.dtype == np.bool_:  # sample booleans as bytes (viewed back by the caller)
+        f = f.view(np.uint8)
+    f = f.reshape(nz * ny * nx) if data.ndim == 3 else f.reshape(nz * ny * nx, data.shape[3])
+    return f, (nx, ny, nz), data.ndim == 3
+
+
+def _output_dtype(dtype: np.dtype, order: int) -> np.dtype:
+    if order == 0 or np.issubdtype(dtype, np.floating):
+        return np.dtype(dtype)
+    return np.dtype(np.float64)
+
+
+def _fill_value(fill, dtype: np.dtype):
+    """``fill`` converted to the output dtype, refusing values the dtype cannot hold."""
+    if np.issubdtype(dtype, np.floating):
+        return dtype.type(fill)
+    if dtype == np.bool_:
+        if fill not in (0, 1, False, True):
+            raise ValueError(f"fill {fill!r} is not representable in a boolean volume")
+        return np.bool_(fill)
+    info = np.iinfo(dtype)
+    if not (float(fill) == int(fill) and info.min <= int(fill) <= info.max):
+        raise ValueError(f"fill {fill!r} is not representable in the volume's dtype {dtype}")
+    return dtype.type(int(fill))
+
+
+def _as_points(points) -> np.ndarray:
+    p = np.asarray(points)
+    if p.shape[-1:] != (3,):
+        raise ValueError(f"points must have shape (..., 3) with components (x, y, z) in mm, got {p.shape}")
+    if p.dtype not in (np.float32, np.float64):
+        p = p.astype(np.float64)
+    return np.ascontiguousarray(p.reshape(-1, 3))
+
+
+def _matrix(m, name) -> np.ndarray:
+    m = np.ascontiguousarray(m, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 homogeneous matrix, got shape {m.shape}")
+    return m
+
+
+# -- public API -----------------------------------------------------------------------------
+def _output(n, nc, scalar, dtype):
+    kernel_dtype = np.uint8 if dtype == np.bool_ else dtype
+    return np.empty(n if scalar else (n, nc), dtype=kernel_dtype)
+
+
+def sample_array(data, world_to_index, points, order: int = 1, fill: float = 0.0) -> np.ndarray:
+    """Sample voxel ``data`` ([z, y, x] or [z, y, x, c]) at world ``points`` ``(..., 3)`` mm.
+
+    ``world_to_index`` is the 4x4 matrix mapping a world point (x, y, z, 1) to
+    the continuous index (i, j, k, 1) of ``data`` (e.g.
+    ``GridGeometry.world_to_index_matrix``).  Returns ``(...)`` for scalar data
+    and ``(..., c)`` for vector data.  See the module docstring for the
+    boundary rule, the rounding and the dtypes.
+    """
+    order = _check_order(order)
+    odt = _output_dtype(np.asarray(data).dtype, order)
+    f, (nx, ny, nz), scalar = _flat_data(data)
+    w2i = _matrix(world_to_index, "world_to_index")
+    pts = _as_points(points)
+    lead = np.shape(points)[:-1]
+    out = _output(pts.shape[0], 1 if scalar else f.shape[1], scalar, odt)
+    kernel = _sample_points_scalar if scalar else _sample_points_vector
+    kernel(f, nx, ny, nz, w2i, pts, order, _fill_value(fill, odt), out)
+    if odt == np.bool_:
+        out = out.view(np.bool_)
+    return out.reshape(lead) if scalar else out.reshape(lead + (f.shape[1],))
+
+
+def sample(volume: Volume, points, *, order: int = 1, fill: float = 0.0) -> np.ndarray:
+    """Sample ``volume`` at world ``points`` ``(..., 3)`` (mm, components x, y, z).
+
+    ``order=1`` trilinear, ``order=0`` nearest neighbour (label maps; integer
+    dtypes kept).  Points outside the voxel-centre box grown by half a voxel
+    give ``fill``; inside that half-voxel border the edge value is extended
+    (SimpleITK's ``sitk.Resample`` convention).  Returns ``(...)`` for a scalar
+    volume and ``(..., c)`` for a vector volume.
+    """
+    return sample_array(volume.data, volume.geometry.world_to_index_matrix, points, order, fill)
+
+
+def sample_displaced_array(data, world_to_index, target_geometry: GridGeometry, displacement,
+                           order: int = 1, fill: float = 0.0) -> np.ndarray:
+    """Sample ``data`` at ``x + displacement[x]`` for every voxel centre ``x`` of ``target_geometry``.
+
+    ``displacement`` is ``(nz, ny, nx, 3)`` mm on the target grid.  Fused: the
+    world positions are never stored.  Returns ``(nz, ny, nx)`` or
+    ``(nz, ny, nx, c)``.
+    """
+    order = _check_order(order)
+    odt = _output_dtype(np.asarray(data).dtype, order)
+    f, (nx, ny, nz), scalar = _flat_data(data)
+    w2i = _matrix(world_to_index, "world_to_index")
+    disp = np.asarray(displacement)
+    if disp.shape != target_geometry.array_shape + (3,):
+        raise GeometryMismatchError(
+            f"displacement shape {disp.shape} does not match the target grid {target_geometry.describe()} "
+            f"(expected {target_geometry.array_shape + (3,)})")
+    if disp.dtype not in (np.float32, np.float64):
+        disp = disp.astype(np.float64)
+    disp = np.ascontiguousarray(disp)
+    out = _output(target_geometry.n_voxels, 1 if scalar else f.shape[1], scalar, odt)
+    kernel = _sample_displaced_scalar if scalar else _sample_displaced_vector
+    kernel(f, nx, ny, nz, w2i, np.ascontiguousarray(target_geometry.index_to_world_matrix), disp, order,
+           _fill_value(fill, odt), out)
+    if odt == np.bool_:
+        out = out.view(np.bool_)
+    shape = target_geometry.array_shape
+    return out.reshape(shape) if scalar else out.reshape(shape + (f.shape[1],))
+
+
+def warp(volume: Volume, positions, target_geometry: GridGeometry, *, order: int = 1,
+         fill: float = 0.0) -> Volume:
+    """Pull-resample ``volume`` onto ``target_geometry``.
+
+    ``positions`` ``(nz, ny, nx, 3)`` gives, for each target voxel, the world
+    point (mm) of ``volume`` whose value it takes: for a field ``u`` on the
+    target grid whose map ``U(x) = x + u(x)`` lands in ``volume``'s space,
+    ``positions = fields.positions(u)`` and the result is ``volume ∘ U``.  For
+    example a scan pulled onto the template grid is
+    ``warp(scan, positions(template_to_scan), template.geometry)``, where the
+    ``template_to_scan`` field gives, for each template voxel, the scan position
+    minus the template position.  Points outside ``volume`` give ``fill``.
+    """
+    pos = np.asarray(positions)
+    if pos.shape != target_geometry.array_shape + (3,):
+        raise GeometryMismatchError(
+            f"positions shape {pos.shape} does not match the target grid {target_geometry.describe()} "
+            f"(expected {target_geometry.array_shape + (3,)})")
+    return Volume(sample(volume, pos, order=order, fill=fill), target_geometry)
