@@ -30,8 +30,10 @@ Every target voxel gets a status:
   map folds here (more than one template point lands on ``y``; we return
   one of them);
 * ``NOT_CONVERGED`` — no candidate converged (returned: the best iterate);
-* ``OUTSIDE`` — the preimage lies outside the template grid; the voxel
-  gets the fill value.
+* ``OUTSIDE`` — the preimage lies outside the template grid (or no
+  template voxel's forward position lands in the 8 cells around the voxel:
+  it is outside the forward map's image, as where linear blending shrinks
+  the air around a fist); the voxel gets the fill value.
 
 Label maps are resampled with nearest neighbour, intensities trilinearly.
 """
@@ -111,15 +113,24 @@ def _newton(fwd, y, x, tol, max_iter, max_step, f, jac):
     lim2 = nz - 1.0
     res = np.inf
     det = 0.0
+    pinned = 0
     for it in range(max_iter + 1):
         _eval(fwd, x[0], x[1], x[2], f, jac)
         r0 = y[0] - f[0]
         r1 = y[1] - f[1]
         r2 = y[2] - f[2]
+        last = res
         res = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
         det = _det3(jac)
         if res <= tol or it == max_iter or det == 0.0:
             break
+        # stuck against the grid's edge without getting closer: the preimage is outside
+        if _on_border(x, nx, ny, nz) and res > 0.5 * last:
+            pinned += 1
+            if pinned >= 2:
+                break
+        else:
+            pinned = 0
         inv = 1.0 / det
         # δ = J⁻¹ r by the adjugate
         d0 = inv * ((jac[1, 1] * jac[2, 2] - jac[1, 2] * jac[2, 1]) * r0
@@ -160,38 +171,109 @@ def _prio_at(prio, x):
 
 
 @nb.njit(cache=True, parallel=True)
-def _splat(fwd, prio, tgt_w, occ):
-    """Mark the target voxels nearest to the forward positions of the template voxels with ``prio`` set."""
+def _splat(fwd, prio, use_prio, tgt_w, occ):
+    """Mark the 8 target voxels around the forward position of every template voxel (with ``prio`` set).
+
+    Marking the cell's 8 corners (not only the nearest voxel) leaves no hole where the forward map
+    stretches space by less than 2×.  Rows of template voxels run in parallel; the race is benign
+    (every writer writes 1).
+    """
     nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     tz, ty, tx = occ.shape
     for k in nb.prange(nz):
         for j in range(ny):
             for i in range(nx):
-                if prio[k, j, i] == 0:
+                if use_prio and prio[k, j, i] == 0:
                     continue
                 p0 = fwd[k, j, i, 0]
                 p1 = fwd[k, j, i, 1]
                 p2 = fwd[k, j, i, 2]
-                a = int(np.floor(tgt_w[0, 0] * p0 + tgt_w[0, 1] * p1 + tgt_w[0, 2] * p2 + tgt_w[0, 3] + 0.5))
-                b = int(np.floor(tgt_w[1, 0] * p0 + tgt_w[1, 1] * p1 + tgt_w[1, 2] * p2 + tgt_w[1, 3] + 0.5))
-                c = int(np.floor(tgt_w[2, 0] * p0 + tgt_w[2, 1] * p1 + tgt_w[2, 2] * p2 + tgt_w[2, 3] + 0.5))
-                if 0 <= a < tx and 0 <= b < ty and 0 <= c < tz:
-                    occ[c, b, a] = 1  # benign race: every writer writes 1
+                a = int(np.floor(tgt_w[0, 0] * p0 + tgt_w[0, 1] * p1 + tgt_w[0, 2] * p2 + tgt_w[0, 3]))
+                b = int(np.floor(tgt_w[1, 0] * p0 + tgt_w[1, 1] * p1 + tgt_w[1, 2] * p2 + tgt_w[1, 3]))
+                c = int(np.floor(tgt_w[2, 0] * p0 + tgt_w[2, 1] * p1 + tgt_w[2, 2] * p2 + tgt_w[2, 3]))
+                for dc in range(2):
+                    cc = c + dc
+                    if cc < 0 or cc >= tz:
+                        continue
+                    for db in range(2):
+                        bb = b + db
+                        if bb < 0 or bb >= ty:
+                            continue
+                        for da in range(2):
+                            aa = a + da
+                            if 0 <= aa < tx:
+                                occ[cc, bb, aa] = 1
+
+
+@nb.njit(cache=True, inline="always")
+def _cand_point(cands, c, u0, u1, u2, nx, ny, nz, xb):
+    """Candidate ``c`` applied to (u0, u1, u2) (a target index or a world point), clamped into the grid."""
+    for q in range(3):
+        xb[q] = cands[c, q, 0] * u0 + cands[c, q, 1] * u1 + cands[c, q, 2] * u2 + cands[c, q, 3]
+    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
+    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
+    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
+
+
+@nb.njit(cache=True)
+def _restart(fwd, cands, u0, u1, u2, y, tol, max_iter, max_step, n_try, prio, need_prio, x, f, jac, xb, cres):
+    """Newton from the ``n_try`` candidates of smallest residual ``|F(x_c) − y|``, best first.
+
+    Keeps the best result in ``x``; returns (residual, det).  With ``need_prio`` only a converged
+    solution where ``prio`` is set is accepted (and ``x`` is left alone if there is none).
+    """
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    nc = cands.shape[0]
+    for c in range(nc):
+        _cand_point(cands, c, u0, u1, u2, nx, ny, nz, xb)
+        _eval(fwd, xb[0], xb[1], xb[2], f, jac)
+        cres[c] = (f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2
+    best = np.inf
+    bdet = 0.0
+    for r in range(min(n_try, nc)):
+        c = 0
+        for q in range(1, nc):
+            if cres[q] < cres[c]:
+                c = q
+        if cres[c] == np.inf:
+            break
+        cres[c] = np.inf  # used
+        _cand_point(cands, c, u0, u1, u2, nx, ny, nz, xb)
+        r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
+        if need_prio:
+            if r2 <= tol and _prio_at(prio, xb) != 0:
+                x[0] = xb[0]
+                x[1] = xb[1]
+                x[2] = xb[2]
+                return r2, d2
+            continue
+        if r2 < best:
+            best = r2
+            bdet = d2
+            x[0] = xb[0]
+            x[1] = xb[1]
+            x[2] = xb[2]
+        if r2 <= tol:
+            break
+    return best, bdet
 
 
 @nb.njit(cache=True, parallel=True)
-def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, out_x, out_res,
+def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, cover, out_x, out_res,
                      out_status):
     """For every target voxel (rows in parallel) solve F(x) = y; x in template continuous index (i, j, k).
 
-    ``prio`` (template grid, uint8) and ``occ`` (target grid) implement the preference for body
-    preimages: where ``occ`` is set and the solution found lies where ``prio`` is 0, the
-    candidates are tried for a converged solution with ``prio`` 1.
+    Each solve starts from the previous voxel's answer in the row; the first voxel of a row, and
+    any voxel where that fails, restarts from the candidates (:func:`_restart`).  ``prio``
+    (template grid, uint8) and ``occ`` (target grid) implement the preference for body preimages:
+    where ``occ`` is set and the solution found lies where ``prio`` is 0, the candidates are
+    tried for a converged solution with ``prio`` 1.  Target voxels that no template voxel reaches
+    (``cover`` 0) are outside the forward map's image: no solve there.
     """
-    use_prio = prio.shape[0] == fwd.shape[0]
     nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     tz, ty, tx = out_x.shape[0], out_x.shape[1], out_x.shape[2]
     nc = cands.shape[0]
+    use_prio = prio.shape[0] == fwd.shape[0]
     for row in nb.prange(tz * ty):
         kk = row // ty
         jj = row % ty
@@ -200,83 +282,43 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
         xb = np.empty(3)
         f = np.empty(3)
         jac = np.empty((3, 3))
+        xr = np.empty(3)
         cres = np.empty(nc)
         have = False
         for ii in range(tx):
             for c in range(3):
                 y[c] = tgt_a[c, 0] * ii + tgt_a[c, 1] * jj + tgt_a[c, 2] * kk + tgt_a[c, 3]
+            if cover[kk, jj, ii] == 0:
+                # no template voxel lands in the cells around y: no preimage (the fill value)
+                _cand_point(cands, 0, ii, jj, kk, nx, ny, nz, xb)
+                out_x[kk, jj, ii, 0] = xb[0]
+                out_x[kk, jj, ii, 1] = xb[1]
+                out_x[kk, jj, ii, 2] = xb[2]
+                out_res[kk, jj, ii] = np.inf
+                out_status[kk, jj, ii] = 3
+                have = False
+                continue
+            occupied = (not use_prio) or occ[kk, jj, ii] != 0
             res = np.inf
             det = 0.0
             if have:
                 res, det = _newton(fwd, y, x, tol, max_iter, max_step, f, jac)
             if res > tol:
-                # restart from the candidates T_b⁻¹ y (in template index space), best residual first
-                for c in range(nc):
-                    for q in range(3):
-                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
-                        xb[q] = v
-                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
-                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
-                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
-                    _eval(fwd, xb[0], xb[1], xb[2], f, jac)
-                    cres[c] = np.sqrt((f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2)
-                order = np.argsort(cres)
-                best_res = res
-                best0 = x[0]
-                best1 = x[1]
-                best2 = x[2]
-                best_det = det
-                if not have:
-                    best_res = np.inf
-                for r in range(min(n_restarts, nc)):
-                    c = order[r]
-                    for q in range(3):
-                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
-                        xb[q] = v
-                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
-                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
-                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
-                    r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
-                    if r2 < best_res:
-                        best_res = r2
-                        best_det = d2
-                        best0 = xb[0]
-                        best1 = xb[1]
-                        best2 = xb[2]
-                    if r2 <= tol:
-                        break
-                x[0] = best0
-                x[1] = best1
-                x[2] = best2
-                res = best_res
-                det = best_det
-            if use_prio and occ[kk, jj, ii] != 0 and _prio_at(prio, x) == 0:
-                for c in range(nc):
-                    for q in range(3):
-                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
-                        xb[q] = v
-                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
-                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
-                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
-                    _eval(fwd, xb[0], xb[1], xb[2], f, jac)
-                    cres[c] = np.sqrt((f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2)
-                order = np.argsort(cres)
-                for r in range(min(n_restarts, nc)):
-                    c = order[r]
-                    for q in range(3):
-                        v = cands[c, q, 0] * ii + cands[c, q, 1] * jj + cands[c, q, 2] * kk + cands[c, q, 3]
-                        xb[q] = v
-                    xb[0] = min(max(xb[0], 0.0), nx - 1.0)
-                    xb[1] = min(max(xb[1], 0.0), ny - 1.0)
-                    xb[2] = min(max(xb[2], 0.0), nz - 1.0)
-                    r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
-                    if r2 <= tol and _prio_at(prio, xb) != 0:
-                        x[0] = xb[0]
-                        x[1] = xb[1]
-                        x[2] = xb[2]
-                        res = r2
-                        det = d2
-                        break
+                # far from the posed body one restart is enough: whatever is found there is air
+                r2, d2 = _restart(fwd, cands, ii, jj, kk, y, tol, max_iter, max_step,
+                                  n_restarts if occupied else 1, prio, False, xr, f, jac, xb, cres)
+                if not have or r2 < res:
+                    x[0] = xr[0]
+                    x[1] = xr[1]
+                    x[2] = xr[2]
+                    res = r2
+                    det = d2
+            if use_prio and occ[kk, jj, ii] != 0 and res <= tol and _prio_at(prio, x) == 0:
+                r2, d2 = _restart(fwd, cands, ii, jj, kk, y, tol, max_iter, max_step, n_restarts, prio, True, x,
+                                  f, jac, xb, cres)
+                if r2 <= tol:
+                    res = r2
+                    det = d2
             out_x[kk, jj, ii, 0] = x[0]
             out_x[kk, jj, ii, 1] = x[1]
             out_x[kk, jj, ii, 2] = x[2]
@@ -297,47 +339,25 @@ def _points_kernel(fwd, pts, cands, tol, max_iter, max_step, n_restarts, out_x, 
     """As :func:`_backward_kernel` for arbitrary world points (candidates map world → template index)."""
     nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     nc = cands.shape[0]
+    no_prio = np.zeros((1, 1, 1), dtype=np.uint8)
     for n in nb.prange(pts.shape[0]):
         y = np.empty(3)
+        x = np.zeros(3)
         xb = np.empty(3)
         f = np.empty(3)
         jac = np.empty((3, 3))
         cres = np.empty(nc)
         for c in range(3):
             y[c] = pts[n, c]
-        for c in range(nc):
-            for q in range(3):
-                xb[q] = cands[c, q, 0] * y[0] + cands[c, q, 1] * y[1] + cands[c, q, 2] * y[2] + cands[c, q, 3]
-            xb[0] = min(max(xb[0], 0.0), nx - 1.0)
-            xb[1] = min(max(xb[1], 0.0), ny - 1.0)
-            xb[2] = min(max(xb[2], 0.0), nz - 1.0)
-            _eval(fwd, xb[0], xb[1], xb[2], f, jac)
-            cres[c] = np.sqrt((f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2)
-        order = np.argsort(cres)
-        best = np.inf
-        bdet = 0.0
-        for r in range(min(n_restarts, nc)):
-            c = order[r]
-            for q in range(3):
-                xb[q] = cands[c, q, 0] * y[0] + cands[c, q, 1] * y[1] + cands[c, q, 2] * y[2] + cands[c, q, 3]
-            xb[0] = min(max(xb[0], 0.0), nx - 1.0)
-            xb[1] = min(max(xb[1], 0.0), ny - 1.0)
-            xb[2] = min(max(xb[2], 0.0), nz - 1.0)
-            r2, d2 = _newton(fwd, y, xb, tol, max_iter, max_step, f, jac)
-            if r2 < best:
-                best = r2
-                bdet = d2
-                for q in range(3):
-                    out_x[n, q] = xb[q]
-            if r2 <= tol:
-                break
+        best, bdet = _restart(fwd, cands, y[0], y[1], y[2], y, tol, max_iter, max_step, n_restarts, no_prio,
+                              False, x, f, jac, xb, cres)
+        for q in range(3):
+            out_x[n, q] = x[q]
         out_res[n] = best
         if best <= tol:
             out_status[n] = 0 if bdet > 0.0 else 1
         else:
-            for q in range(3):
-                xb[q] = out_x[n, q]
-            out_status[n] = 3 if _on_border(xb, nx, ny, nz) else 2
+            out_status[n] = 3 if _on_border(x, nx, ny, nz) else 2
 
 
 @dataclass
@@ -395,7 +415,7 @@ def _candidates(template: GridGeometry, target: GridGeometry, transforms) -> np.
 
 
 def backward_map(forward_positions, template_geometry: GridGeometry, target_geometry: GridGeometry | None = None,
-                 *, transforms=None, prefer=None, tol_voxels: float = 1e-3, max_iter: int = 12,
+                 *, transforms=None, prefer=None, tol_voxels: float = 1e-2, max_iter: int = 12,
                  n_restarts: int = 4) -> BackwardMap:
     """Invert a forward map given by the posed positions of every template voxel.
 
@@ -415,8 +435,8 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
         air swept by a large rotation can land on the posed body), several
         template points map to one target voxel.  With ``prefer`` (e.g. the
         template's body mask), a target voxel reached by a preferred voxel
-        (its forward position, splatted to the nearest target voxel and
-        dilated by one voxel) takes a preferred preimage when Newton finds
+        (its forward position splatted to the 8 surrounding target voxels)
+        takes a preferred preimage when Newton finds
         one from the candidates: tissue, not air, fills the posed body.
     tol_voxels : float
         Convergence tolerance on ``|F(x) − y|``, in units of the smallest
@@ -436,25 +456,30 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
     out_res = np.empty(shape, dtype=np.float32)
     out_status = np.empty(shape, dtype=np.uint8)
     tgt_a = np.ascontiguousarray(target.index_to_world_matrix[:3])
+    tgt_w = np.ascontiguousarray(target.world_to_index_matrix[:3])
     if prefer is not None:
         prio = np.ascontiguousarray(prefer, dtype=np.uint8)
         if prio.shape != template_geometry.array_shape:
             raise ValueError(f"prefer must be a mask on the template grid {template_geometry.array_shape}, "
                              f"got {prio.shape}")
         occ = np.zeros(shape, dtype=np.uint8)
-        _splat(fwd, prio, np.ascontiguousarray(target.world_to_index_matrix[:3]), occ)
-        from scipy import ndimage
-
-        occ = ndimage.binary_dilation(occ, np.ones((3, 3, 3), bool)).astype(np.uint8)
+        _splat(fwd, prio, True, tgt_w, occ)
     else:
         prio = np.zeros((1, 1, 1), dtype=np.uint8)
         occ = np.zeros((1, 1, 1), dtype=np.uint8)
-    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, out_x, out_res,
-                     out_status)
-    if np.any(out_status == NOT_CONVERGED):
-        flat = (out_x.reshape(-1, 3), out_res.reshape(-1), out_status.reshape(-1))
-        _nearest_restarts(fwd, template_geometry, *flat, target.world_coordinates().reshape(-1, 3), tol,
-                          int(max_iter))
+    cover = np.zeros(shape, dtype=np.uint8)
+    _splat(fwd, prio, False, tgt_w, cover)
+    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, out_x,
+                     out_res, out_status)
+    retry = out_status == NOT_CONVERGED
+    if prefer is not None:
+        retry &= occ.astype(bool)  # far air: whatever was found is air
+    if np.any(retry):
+        sel = np.nonzero(retry.reshape(-1))[0]
+        bx, br, bs = out_x.reshape(-1, 3)[sel], out_res.reshape(-1)[sel], out_status.reshape(-1)[sel]
+        _nearest_restarts(fwd, template_geometry, bx, br, bs, target.world_coordinates().reshape(-1, 3)[sel],
+                          tol, int(max_iter), prefer=prio if prefer is not None else None)
+        out_x.reshape(-1, 3)[sel], out_res.reshape(-1)[sel], out_status.reshape(-1)[sel] = bx, br, bs
     return BackwardMap(template_geometry, target, out_x, out_res, out_status)
 
 
@@ -490,15 +515,24 @@ def _guess_kernel(fwd, pts, guesses, tol, max_iter, max_step, out_x, out_res, ou
                 out_status[n] = 0 if bdet > 0.0 else 1
 
 
-def _nearest_restarts(fwd, geometry: GridGeometry, x, res, status, pts_world, tol, max_iter, k: int = 8):
-    """Retry NOT_CONVERGED points from the template voxels whose forward positions are nearest (cKDTree)."""
+def _nearest_restarts(fwd, geometry: GridGeometry, x, res, status, pts_world, tol, max_iter, k: int = 8,
+                      prefer=None):
+    """Retry NOT_CONVERGED points from the template voxels whose forward positions are nearest (cKDTree).
+
+    With ``prefer`` only the preferred template voxels' positions are searched (a smaller tree).
+    """
     from scipy.spatial import cKDTree
 
     bad = np.nonzero(status == NOT_CONVERGED)[0]
     if not bad.size:
         return
-    tree = cKDTree(fwd.reshape(-1, 3))
-    _, nn = tree.query(pts_world[bad], k=k, workers=-1)
+    flat = fwd.reshape(-1, 3)
+    ids = np.arange(len(flat)) if prefer is None else np.nonzero(np.asarray(prefer).reshape(-1))[0]
+    if not ids.size:
+        return
+    tree = cKDTree(flat[ids])
+    _, nn = tree.query(pts_world[bad], k=min(k, len(ids)), workers=-1)
+    nn = ids[np.asarray(nn).reshape(len(bad), -1)]
     nz, ny, nx = geometry.array_shape
     kk, jj, ii = np.unravel_index(nn, (nz, ny, nx))
     guesses = np.ascontiguousarray(np.stack([ii, jj, kk], -1).astype(np.float64))
@@ -510,7 +544,7 @@ def _nearest_restarts(fwd, geometry: GridGeometry, x, res, status, pts_world, to
 
 
 def backward_points(forward_positions, template_geometry: GridGeometry, points, *, transforms=None,
-                    tol_voxels: float = 1e-3, max_iter: int = 12, n_restarts: int = 4):
+                    tol_voxels: float = 1e-2, max_iter: int = 12, n_restarts: int = 4):
     """Invert the forward map at arbitrary world points ``(n, 3)``.
 
     Returns ``(template world positions (n, 3), residual_mm (n,), status (n,))``;

@@ -90,6 +90,8 @@ __all__ = [
     "read_volume",
     "read_labels",
     "read_displacement",
+    "read_vector_image",
+    "write_vector_image",
     "read_image_geometry",
     "write_volume",
     "write_labels",
@@ -1002,3 +1004,42 @@ def write_displacement(
     if not np.isfinite(data).all():
         _check_finite(data, p, "displacement field", _FIX_WRITE + ".")
     return _write_sitk(_image_from(volume, data, is_vector=True), p, overwrite=overwrite, compress=compress)
+
+
+def write_vector_image(volume: Volume, path: str | os.PathLike, *, overwrite: bool = False,
+                       compress: bool = True) -> Path:
+    """Write a vector image of any number of components per voxel (e.g. skinning weights), atomically.
+
+    ``volume.data`` is ``(nz, ny, nx, c)`` of an integer or float type, finite.
+    Use :func:`write_displacement` for displacement fields (3 components in
+    mm), whose layout tools recognise.  MetaImage (``.mha``) and NRRD keep
+    the geometry exact.
+    """
+    p = _output_path(volume, path)
+    data = volume.data
+    if data.ndim != 4:
+        raise ValueError(f"{p}: a vector image needs data of shape (nz, ny, nx, c), got {data.shape}.")
+    data = _writable_array(data, p, "vector image")
+    if data.dtype.kind == "f" and not np.isfinite(data).all():
+        _check_finite(data, p, "vector image", _FIX_WRITE + ".")
+    return _write_sitk(_image_from(volume, data, is_vector=True), p, overwrite=overwrite, compress=compress)
+
+
+def read_vector_image(path: str | os.PathLike, *, components: int | None = None) -> Volume:
+    """Read a 3-D vector image as ``(nz, ny, nx, c)`` in its stored dtype (scalars get ``c = 1``).
+
+    ``components`` checks the number of components per voxel
+    (:class:`DimensionError` naming the file when it differs).
+    """
+    loaded = _read_sitk(path)
+    image, p = loaded.image, loaded.path
+    _require_3d(image, p, "vector image")
+    n = image.GetNumberOfComponentsPerPixel()
+    if components is not None and n != components:
+        raise DimensionError(f"{p}: {n} component(s) per voxel, expected {components}.", p)
+    data = loaded.voxels()
+    if data.ndim == 3:
+        data = data[..., None]
+    if data.dtype.kind == "f":
+        _check_finite(data, p, "vector image", _FIX_READ + ".")
+    return Volume(data, GridGeometry.from_sitk(image))

@@ -55,12 +55,12 @@ def test_vbd_forward_then_backward_returns_every_unfolded_voxel(knee, pose_index
     body = ph.anatomy.distances_fast(x)[:, -1] < 0
     back, res, status = backward_points(fwd, g, fwd.reshape(-1, 3)[body], transforms=t)
     err_vox = np.linalg.norm(back - x[body], axis=1) / min(g.spacing)
-    tol = 1e-3 * min(g.spacing)
+    tol = 1e-2 * min(g.spacing)  # the backward map's default convergence tolerance
     # Every body voxel's image is found again (converged or in a fold; never lost) ...
     assert np.all(status <= FOLDED)
     assert res.max() <= tol
     # ... and it is the voxel itself, within 0.1 voxel, unless the map is not one-to-one there: then the
-    # point found is *another* exact preimage of the same posed point (residual ≤ 1e-3 voxel), which
+    # point found is *another* exact preimage of the same posed point (residual ≤ 1e-2 voxel), which
     # proves that F folds over at that place (distance-based VBD at 70° does, over a few % of the body).
     other = err_vox > 0.1
     assert np.all(res[other] <= tol)
@@ -81,8 +81,8 @@ def test_backward_map_of_the_identity_is_the_grid(knee):
     fwd = g.world_coordinates().astype(np.float32)
     bm = backward_map(fwd, g)
     assert np.all(bm.status == OK)
-    # float32 positions (2.4e-5 mm resolution) solved to 1e-3 voxel
-    np.testing.assert_allclose(bm.template_positions(), g.world_coordinates(), atol=1e-3 * min(g.spacing))
+    # float32 positions (2.4e-5 mm resolution) solved to 1e-2 voxel
+    np.testing.assert_allclose(bm.template_positions(), g.world_coordinates(), atol=1e-2 * min(g.spacing))
 
 
 def test_backward_map_marks_voxels_whose_preimage_leaves_the_template(knee):
