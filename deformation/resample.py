@@ -30,10 +30,10 @@ Every target voxel gets a status:
   map folds here (more than one template point lands on ``y``; we return
   one of them);
 * ``NOT_CONVERGED`` — no candidate converged (returned: the best iterate);
-* ``OUTSIDE`` — the preimage lies outside the template grid (or no
-  template voxel's forward position lands in the 8 cells around the voxel:
-  it is outside the forward map's image, as where linear blending shrinks
-  the air around a fist); the voxel gets the fill value.
+* ``OUTSIDE`` — the preimage lies outside the template grid, or the voxel
+  lies in no template cell's forward-mapped bounding box (so it is outside
+  the forward map's image, as where linear blending shrinks the air around a
+  fist; no solve is spent there); the voxel gets the fill value.
 
 Label maps are resampled with nearest neighbour, intensities trilinearly.
 """
@@ -203,6 +203,48 @@ def _splat(fwd, prio, use_prio, tgt_w, occ):
                             aa = a + da
                             if 0 <= aa < tx:
                                 occ[cc, bb, aa] = 1
+
+
+@nb.njit(cache=True, parallel=True)
+def _cover_cells(fwd, tgt_w, max_extent, cover):
+    """Mark every target voxel inside the bounding box of each template cell's 8 forward-mapped corners.
+
+    A superset of the image of the trilinear forward map (each cell's image lies in its corners'
+    convex hull), so a voxel left unmarked has no preimage.  Cells whose box is wider than
+    ``max_extent`` voxels (torn apart across a fold) mark only their corners' voxels.
+    """
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    tz, ty, tx = cover.shape
+    for k in nb.prange(nz - 1):
+        lo = np.empty(3)
+        hi = np.empty(3)
+        for j in range(ny - 1):
+            for i in range(nx - 1):
+                for q in range(3):
+                    lo[q] = np.inf
+                    hi[q] = -np.inf
+                for dk in range(2):
+                    for dj in range(2):
+                        for di in range(2):
+                            p0 = fwd[k + dk, j + dj, i + di, 0]
+                            p1 = fwd[k + dk, j + dj, i + di, 1]
+                            p2 = fwd[k + dk, j + dj, i + di, 2]
+                            for q in range(3):
+                                v = tgt_w[q, 0] * p0 + tgt_w[q, 1] * p1 + tgt_w[q, 2] * p2 + tgt_w[q, 3]
+                                lo[q] = min(lo[q], v)
+                                hi[q] = max(hi[q], v)
+                a0 = max(int(np.ceil(lo[0])), 0)
+                a1 = min(int(np.floor(hi[0])), tx - 1)
+                b0 = max(int(np.ceil(lo[1])), 0)
+                b1 = min(int(np.floor(hi[1])), ty - 1)
+                c0 = max(int(np.ceil(lo[2])), 0)
+                c1 = min(int(np.floor(hi[2])), tz - 1)
+                if a1 - a0 > max_extent or b1 - b0 > max_extent or c1 - c0 > max_extent:
+                    continue  # the corners' own voxels are marked by _splat
+                for cc in range(c0, c1 + 1):
+                    for bb in range(b0, b1 + 1):
+                        for aa in range(a0, a1 + 1):
+                            cover[cc, bb, aa] = 1
 
 
 @nb.njit(cache=True, inline="always")
@@ -469,6 +511,7 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
         occ = np.zeros((1, 1, 1), dtype=np.uint8)
     cover = np.zeros(shape, dtype=np.uint8)
     _splat(fwd, prio, False, tgt_w, cover)
+    _cover_cells(fwd, tgt_w, 16, cover)
     _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, out_x,
                      out_res, out_status)
     retry = out_status == NOT_CONVERGED

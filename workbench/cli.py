@@ -32,6 +32,44 @@ examples:
   workbench info knee-study
   workbench pose knee-study                               # bone poses, joint centres and angles
   workbench pose knee-study --method surface --force
+  workbench weights knee-study                            # harmonic skinning weights (tet mesh kept in the study)
+  workbench model knee-study                              # EVD model from the ground-truth correspondences
+  workbench deform knee-study --pose bend.json --out bent.nii.gz
+"""
+
+WEIGHTS_HELP = """Skinning weights for every template voxel (Kurihara Eq. 3; DESIGN step 4).
+
+'harmonic' (default): the body is segmented from the template, its skin
+surface (VTK flying edges) filled with tetrahedra by pytetwild, and each
+bone's weight solved as the harmonic function that is 1 on that bone and 0
+on the others (P1 finite elements, one sparse LU); voxels take the
+barycentric interpolation of the vertex weights, bones are one-hot, at most
+4 influences per voxel.  pytetwild has no seed, so the mesh is made once and
+kept (skinning/tetmesh.vtu, with each bone's weight as a point array for
+ParaView); --force recomputes from it, --remesh makes a new mesh.
+'distance': inverse-distance weights on each voxel's distance to the bones
+(fast; a fallback and a comparison).
+
+Writes skinning/weights.json with weights_index.mha and weights_value.mha
+(4-component images on the template grid) and skinning/body_mask.nii.gz.
+"""
+
+MODEL_HELP = """Build an example-based volume deformation model (Rhee Eq. 7) from the
+study's scans: for each scan, the displacement of every template voxel in
+the template frame after undoing VBD with the scan's pose.  The source is the
+ground truth (phantom studies); registrations (issue D) will follow.
+Writes model/evd.json and model/evd_displacements.mha.  Needs `workbench
+weights` first.
+"""
+
+DEFORM_HELP = """Deform the template to a pose and write the posed volume and its label map
+on the template's grid (same geometry), by EVD (Rhee Eq. 6) when the study
+has a model, otherwise by VBD (Rhee Eq. 2).  The pose file is an avw-pose
+(one 4x4 template-to-pose transform per bone, as truth/<id>_pose.json) or
+joint angles: {"angles": {"knee": [45, 0, 0]}} (degrees; missing joints
+stay at 0).  The posed volume is resampled through the backward map (Newton
+on the trilinear forward map; intensities trilinear, labels nearest); the
+summary counts voxels where the forward map folds.
 """
 
 PHANTOM_HELP = """\
@@ -178,7 +216,88 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("--force", action="store_true", help="replace an earlier pose stage")
     po.add_argument("--quiet", action="store_true", help="no progress lines")
     po.set_defaults(func=cmd_pose)
+
+    we = sub.add_parser("weights", help="skinning weights of every template voxel (harmonic on a tet mesh)",
+                        description=WEIGHTS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    we.add_argument("study", type=Path, help="study folder (holding study.json)")
+    we.add_argument("--method", choices=["harmonic", "distance"], default="harmonic",
+                    help="'harmonic' (tet mesh + Laplace solve) or 'distance' (inverse distance). Default: harmonic")
+    we.add_argument("--edge-length-mm", type=float, metavar="MM",
+                    help="target tet edge length for a new mesh (default: 5%% of the body's bounding-box diagonal)")
+    we.add_argument("--remesh", action="store_true", help="make a new tet mesh instead of reusing the study's")
+    we.add_argument("--force", action="store_true", help="replace earlier weights")
+    we.add_argument("--quiet", action="store_true", help="no progress lines")
+    we.set_defaults(func=cmd_weights)
+
+    mo = sub.add_parser("model", help="build an EVD model (Rhee Eq. 7) from the study's correspondences",
+                        description=MODEL_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    mo.add_argument("study", type=Path, help="study folder (holding study.json)")
+    mo.add_argument("--source", choices=["truth"], default="truth", help="correspondences to use. Default: truth")
+    mo.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
+    mo.add_argument("--force", action="store_true", help="replace an earlier model")
+    mo.add_argument("--quiet", action="store_true", help="no progress lines")
+    mo.set_defaults(func=cmd_model)
+
+    de = sub.add_parser("deform", help="deform the template to a pose (EVD or VBD) and write the posed volume",
+                        description=DEFORM_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    de.add_argument("study", type=Path, help="study folder (holding study.json)")
+    de.add_argument("--pose", required=True, type=Path, metavar="POSE.json", help="target pose (see above)")
+    de.add_argument("--out", required=True, type=Path, metavar="VOLUME",
+                    help="posed volume (.nii.gz, .mha, .nrrd); the labels go to VOLUME's name + _labels")
+    de.add_argument("--labels-out", type=Path, metavar="LABELS", help="posed label map (default: beside --out)")
+    de.add_argument("--field-out", type=Path, metavar="FIELD",
+                    help="also write the posed-to-template displacement field (ITK vector image, mm)")
+    de.add_argument("--method", choices=["auto", "vbd", "evd"], default="auto",
+                    help="'auto': EVD when the study has a model, else VBD. Default: auto")
+    de.add_argument("--weighting", choices=["psd", "wpsd"], default="psd",
+                    help="EVD pose weights: 'psd' one set for all voxels (Rhee); 'wpsd' per voxel from the "
+                         "skinning weights (Kurihara Eq. 16). Default: psd")
+    de.add_argument("--force", action="store_true", help="replace existing output files")
+    de.add_argument("--quiet", action="store_true", help="no progress lines")
+    de.set_defaults(func=cmd_deform)
     return p
+
+
+def _say(args):
+    return None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+
+
+def cmd_weights(args) -> int:
+    from workbench.deform_stage import run_weights_stage
+
+    if args.edge_length_mm is not None and args.edge_length_mm <= 0:
+        raise ValueError(f"--edge-length-mm must be positive, got {args.edge_length_mm}")
+    info = run_weights_stage(args.study, method=args.method, edge_length_mm=args.edge_length_mm,
+                             remesh=args.remesh, overwrite=args.force, progress=_say(args))
+    extra = f", {info['n_vertices']} mesh vertices, {info['n_tets']} tets" if "n_tets" in info else ""
+    print(f"{args.method} weights{extra} in {info['seconds']:.1f} s; wrote {args.study / 'skinning'}")
+    return 0
+
+
+def cmd_model(args) -> int:
+    from workbench.deform_stage import run_model_stage
+
+    info = run_model_stage(args.study, source=args.source, scan_ids=args.scan, overwrite=args.force,
+                           progress=_say(args))
+    print(f"EVD model from {len(info['scans'])} scans ({', '.join(info['scans'])}) in {info['seconds']:.1f} s; "
+          f"wrote {args.study / 'model'}")
+    return 0
+
+
+def cmd_deform(args) -> int:
+    from workbench.deform_stage import deform_study
+
+    s = deform_study(args.study, args.pose, args.out, method=args.method, weighting=args.weighting,
+                     labels_out=args.labels_out, field_out=args.field_out, overwrite=args.force,
+                     progress=_say(args))
+    n = s["n_voxels"]
+    print(f"{s['method'].upper()}: forward {s['forward_seconds']:.2f} s, backward map + resampling "
+          f"{s['backward_seconds']:.2f} s for {n:,} voxels")
+    print(f"backward map: {s['n_ok']:,} ok, {s['n_folded']:,} where the forward map folds "
+          f"({100 * s['fraction_folded']:.3f} %), {s['n_not_converged']:,} not converged, {s['n_outside']:,} "
+          f"outside the template (fill value)")
+    print(f"wrote {s['out']} and {s['labels']}" + (f" and {s['field']}" if s["field"] else ""))
+    return 0
 
 
 def cmd_pose(args) -> int:

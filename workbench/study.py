@@ -13,6 +13,7 @@ every file by role, with paths relative to the folder::
       "scans": [
         {"id": "pose00", "image": "scans/pose00.nii.gz",
          "truth": {"correspondence": "truth/pose00_correspondence.mha",
+                   "template_to_scan": "truth/pose00_template_to_scan.mha",
                    "pose": "truth/pose00_pose.json",
                    "markers": "truth/pose00_markers.json"},
          "pose": "poses/pose00_pose.json"},
@@ -28,7 +29,9 @@ neither; ``workbench pose --seeds`` segments the bones); ``pose`` appears once
 field is ``scan_to_template``: an ITK displacement field on the scan's grid
 whose vector at scan voxel ``x`` is ``template_position − x`` in mm, so
 ``sitk.DisplacementFieldTransform`` resamples the template onto the scan
-directly.  Markers are ``{"markers": [{"name", "template": [x,y,z],
+directly.  The optional ``template_to_scan`` field is the exact forward map
+on the template grid (scan position − template voxel position, mm); it
+differs from the inverse of ``correspondence`` where the posing folds.  Markers are ``{"markers": [{"name", "template": [x,y,z],
 "scan": [x,y,z]}]}``.  Later pipeline stages record their outputs under
 ``stages``.
 
@@ -132,6 +135,13 @@ class Study:
         """The ``scan_to_template`` displacement field of a scan (template position − voxel position, mm)."""
         return read_displacement(self.path(self._scan_entry(scan_id)["truth"]["correspondence"]))
 
+    def has_truth_template_to_scan(self, scan_id: str) -> bool:
+        return "template_to_scan" in (self._scan_entry(scan_id).get("truth") or {})
+
+    def truth_template_to_scan(self, scan_id: str) -> Volume:
+        """The exact forward map of a phantom scan on the template grid (scan position − voxel position, mm)."""
+        return read_displacement(self.path(self._scan_entry(scan_id)["truth"]["template_to_scan"]))
+
     def truth_markers(self, scan_id: str) -> list[dict]:
         return read_json(self.path(self._scan_entry(scan_id)["truth"]["markers"]))["markers"]
 
@@ -169,7 +179,7 @@ def read_study(folder: str | os.PathLike) -> Study:
             if not isinstance(truth, dict) or not {"correspondence", "pose", "markers"} <= set(truth):
                 raise StudyError(f"{manifest_path}: scans[{i}]['truth'] must name 'correspondence', 'pose' "
                                  "and 'markers' files.", manifest_path)
-            files.extend(truth[k] for k in ("correspondence", "pose", "markers"))
+            files.extend(truth[k] for k in ("correspondence", "pose", "markers", "template_to_scan") if k in truth)
         # A scan's "pose" (written by `workbench pose`) is not required to exist: a study whose poses/ folder
         # was deleted must still open, so that `workbench pose --force` can write it again.
     for f in files:
@@ -234,6 +244,9 @@ def write_phantom_study(phantom, out: str | os.PathLike, *, overwrite: bool = Fa
                      "markers": f"truth/{sid}_markers.json"}
             write_volume(scan.image, stage / f"scans/{sid}.nii.gz")
             write_displacement(scan.correspondence, stage / truth["correspondence"])
+            if scan.template_to_scan is not None:
+                truth["template_to_scan"] = f"truth/{sid}_template_to_scan.mha"
+                write_displacement(scan.template_to_scan, stage / truth["template_to_scan"])
             write_json(scan.pose.to_dict(), stage / truth["pose"])
             write_json({"format": "avw-markers", "version": 1, "units": "mm", "markers": scan.markers},
                        stage / truth["markers"])

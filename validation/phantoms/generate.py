@@ -91,6 +91,7 @@ class PhantomScan:
     correspondence: Volume
     markers: list
     stats: dict = field(default_factory=dict)
+    template_to_scan: Volume | None = None
 
 
 def _chunks(n: int, size: int = CHUNK):
@@ -435,6 +436,8 @@ class Phantom:
             "folded_fraction_body": float(np.mean(det[body] <= 0)) if body.any() else 0.0,
             "jacobian_body_p1_p99": [float(v) for v in np.percentile(det[body], [1, 99])] if body.any() else [],
         }
+        xt = self._world_points()
+        forward = (model.forward(xt) - xt).reshape(self.geometry.array_shape + (3,))
         return PhantomScan(
             id=pid,
             image=Volume(img, self.geometry),
@@ -442,6 +445,7 @@ class Phantom:
             correspondence=Volume(disp, self.geometry),
             markers=self.markers(model),
             stats=stats,
+            template_to_scan=Volume(forward.astype(np.float32), self.geometry),
         )
 
 
