@@ -46,6 +46,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry, Volume
+from .interpolate import sample_array
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -608,52 +609,16 @@ def backward_points(forward_positions, template_geometry: GridGeometry, points, 
     return template_geometry.index_to_world(x), res, status
 
 
-@nb.njit(cache=True, parallel=True)
-def _pull(src, x, status, fill, order, out):
-    nz, ny, nx = src.shape
-    tz, ty, tx = x.shape[0], x.shape[1], x.shape[2]
-    for kk in nb.prange(tz):
-        for jj in range(ty):
-            for ii in range(tx):
-                if status[kk, jj, ii] == 3:
-                    out[kk, jj, ii] = fill
-                    continue
-                a = x[kk, jj, ii, 0]
-                b = x[kk, jj, ii, 1]
-                c = x[kk, jj, ii, 2]
-                if order == 0:
-                    i = min(max(int(np.floor(a + 0.5)), 0), nx - 1)
-                    j = min(max(int(np.floor(b + 0.5)), 0), ny - 1)
-                    k = min(max(int(np.floor(c + 0.5)), 0), nz - 1)
-                    out[kk, jj, ii] = src[k, j, i]
-                    continue
-                i0 = min(max(int(np.floor(a)), 0), nx - 2)
-                j0 = min(max(int(np.floor(b)), 0), ny - 2)
-                k0 = min(max(int(np.floor(c)), 0), nz - 2)
-                fx = a - i0
-                fy = b - j0
-                fz = c - k0
-                v00 = src[k0, j0, i0] + (src[k0, j0, i0 + 1] - src[k0, j0, i0]) * fx
-                v10 = src[k0, j0 + 1, i0] + (src[k0, j0 + 1, i0 + 1] - src[k0, j0 + 1, i0]) * fx
-                v01 = src[k0 + 1, j0, i0] + (src[k0 + 1, j0, i0 + 1] - src[k0 + 1, j0, i0]) * fx
-                v11 = src[k0 + 1, j0 + 1, i0] + (src[k0 + 1, j0 + 1, i0 + 1] - src[k0 + 1, j0 + 1, i0]) * fx
-                w0 = v00 + (v10 - v00) * fy
-                w1 = v01 + (v11 - v01) * fy
-                out[kk, jj, ii] = w0 + (w1 - w0) * fz
-
-
 def resample_forward(bmap: BackwardMap, volume: Volume, *, labels: bool = False, fill=0.0) -> Volume:
     """The template ``volume`` pulled onto the target grid through ``bmap`` (trilinear; nearest for labels)."""
     if not volume.geometry.is_close(bmap.template_geometry):
         bmap.template_geometry.check_same(volume.geometry, names=("backward map's template", "volume"))
     if volume.is_vector:
         raise ValueError("resample_forward takes scalar volumes (resample each component separately)")
-    src = np.ascontiguousarray(volume.data)
-    if labels:
-        out = np.empty(bmap.status.shape, dtype=src.dtype)
-        _pull(src, bmap.template_index, bmap.status, src.dtype.type(fill), 0, out)
-    else:
+    src = np.asarray(volume.data)
+    if not labels:
         src = src.astype(np.float32, copy=False)
-        out = np.empty(bmap.status.shape, dtype=np.float32)
-        _pull(src, bmap.template_index, bmap.status, np.float32(fill), 1, out)
+    # template_index is a continuous index inside the grid: sample with an identity "world → index" map
+    out = sample_array(src, np.eye(4), bmap.template_index, order=0 if labels else 1, fill=fill)
+    out[bmap.status == OUTSIDE] = fill
     return Volume(out, bmap.target_geometry)
