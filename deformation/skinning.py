@@ -54,7 +54,9 @@ class SkinningWeights:
     def __post_init__(self):
         self.bones = tuple(str(b) for b in self.bones)
         index = np.asarray(self.index)
-        value = np.asarray(self.value, dtype=np.float64)
+        value = np.asarray(self.value)
+        if value.dtype != np.float32:
+            value = value.astype(np.float64)
         if index.ndim != 2 or value.shape != index.shape:
             raise ValueError(f"index and value must both be (n, K); got {index.shape} and {value.shape}")
         if not np.issubdtype(index.dtype, np.integer):
@@ -66,13 +68,16 @@ class SkinningWeights:
             raise ValueError("weights must be finite")
         if value.size and value.min() < -1e-6:
             raise ValueError(f"weights must be non-negative (Kurihara Eq. 3); minimum {value.min():.3g}")
-        sums = value.sum(axis=1)
+        sums = value.sum(axis=1, dtype=np.float64) if value.shape[1] <= 8 else value.sum(axis=1)
         if value.size and np.max(np.abs(sums - 1.0)) > 1e-5:
             worst = int(np.argmax(np.abs(sums - 1.0)))
             raise ValueError(f"weights must sum to one per point (Kurihara Eq. 3); point {worst} sums to "
                              f"{sums[worst]:.6f}")
         self.index = np.ascontiguousarray(index, dtype=np.int16 if len(self.bones) > 255 else np.uint8)
-        self.value = np.ascontiguousarray(np.clip(value, 0.0, None), dtype=np.float32)
+        value = np.ascontiguousarray(value, dtype=np.float32)
+        if value.size and value.min() < 0:
+            value = np.clip(value, 0.0, None)
+        self.value = value
 
     @property
     def n_points(self) -> int:
