@@ -61,7 +61,7 @@ from scipy.sparse.csgraph import connected_components as _graph_components
 from .geometry import GridGeometry, Volume
 from .mesh import SurfaceMesh
 
-__all__ = ["TetMesh", "TIE_DIRECTION", "body_mask", "body_surface", "tetrahedralize", "rasterize", "locate"]
+__all__ = ["TetMesh", "TIE_DIRECTION", "body_surface", "tetrahedralize", "rasterize", "locate"]
 
 # Open3D ships an older TBB; once it is loaded, numba's default threading layer
 # tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
@@ -231,41 +231,6 @@ class TetMesh:
 # ---------------------------------------------------------------------------------------------
 # Body mask and surface
 # ---------------------------------------------------------------------------------------------
-
-def body_mask(image: Volume, threshold: float, *, fill_holes: bool = True, largest_component: bool = True) -> Volume:
-    """The body region of a scan: voxels above ``threshold``, one component, no internal holes.
-
-    Parameters
-    ----------
-    image : Volume
-        A scalar scan (e.g. CT in HU: air ≈ −1000, so ``threshold=-500``).
-    threshold : float
-        Voxels with ``value > threshold`` are body.
-    fill_holes : bool
-        Fill cavities enclosed in 3-D (air pockets inside the body).
-    largest_component : bool
-        Keep only the largest 6-connected component (drops noise specks).
-
-    Returns
-    -------
-    Volume
-        uint8 mask (1 = body) on the image's grid.
-    """
-    from scipy import ndimage
-
-    if image.is_vector:
-        raise ValueError("body_mask needs a scalar image")
-    m = np.asarray(image.data) > threshold
-    if largest_component and m.any():
-        lab, n = ndimage.label(m)
-        if n > 1:
-            sizes = np.bincount(lab.ravel())
-            sizes[0] = 0
-            m = lab == int(np.argmax(sizes))
-    if fill_holes:
-        m = ndimage.binary_fill_holes(m)
-    return Volume(m.astype(np.uint8), image.geometry)
-
 
 def _vtk_image(array_zyx: np.ndarray):
     from vtkmodules.util.numpy_support import numpy_to_vtk

@@ -20,7 +20,8 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.harmonic import (constrained_vertices, harmonic_weights, stiffness_matrix, weights_at_points,
                                   weights_on_grid)
 from deformation.skinning import SkinningWeights, distance_weights
-from deformation.tetmesh import TetMesh, body_mask, body_surface, locate, rasterize, tetrahedralize
+from deformation.tetmesh import TetMesh, body_surface, locate, rasterize, tetrahedralize
+from registration.segmentation import segment_body
 from workbench.tetmesh_io import read_tetmesh, weight_arrays, write_tetmesh
 
 KNEE_EDGE_MM = 10.0  # the test knee's grid is 4.98×4.98×3.69 mm; its patella ≈ 12 cm³
@@ -36,7 +37,7 @@ def knee(tmp_path_factory):
 
     ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=3)
     template, labels = ph.template()
-    mask = body_mask(template, -500.0)  # CT: air ≈ −1000 HU
+    mask = segment_body(template, threshold=-500.0, smooth_voxels=0)  # CT: air ≈ −1000 HU
     t0 = time.perf_counter()
     surface = body_surface(mask, target_triangles=3000)
     t1 = time.perf_counter()
