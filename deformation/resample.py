@@ -172,26 +172,36 @@ def _prio_at(prio, x):
 
 
 @nb.njit(cache=True, parallel=True)
-def _splat(fwd, prio, use_prio, tgt_w, occ):
+def _target_index(fwd, tgt_w, out):
+    """Continuous target index of every template voxel's forward position (float32)."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    for k in nb.prange(nz):
+        for j in range(ny):
+            for i in range(nx):
+                p0 = fwd[k, j, i, 0]
+                p1 = fwd[k, j, i, 1]
+                p2 = fwd[k, j, i, 2]
+                for q in range(3):
+                    out[k, j, i, q] = tgt_w[q, 0] * p0 + tgt_w[q, 1] * p1 + tgt_w[q, 2] * p2 + tgt_w[q, 3]
+
+
+@nb.njit(cache=True, parallel=True)
+def _splat(tidx, prio, use_prio, occ):
     """Mark the 8 target voxels around the forward position of every template voxel (with ``prio`` set).
 
     Marking the cell's 8 corners (not only the nearest voxel) leaves no hole where the forward map
-    stretches space by less than 2×.  Rows of template voxels run in parallel; the race is benign
-    (every writer writes 1).
+    stretches space by less than 2×.  The race between threads is benign (every writer writes 1).
     """
-    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    nz, ny, nx = tidx.shape[0], tidx.shape[1], tidx.shape[2]
     tz, ty, tx = occ.shape
     for k in nb.prange(nz):
         for j in range(ny):
             for i in range(nx):
                 if use_prio and prio[k, j, i] == 0:
                     continue
-                p0 = fwd[k, j, i, 0]
-                p1 = fwd[k, j, i, 1]
-                p2 = fwd[k, j, i, 2]
-                a = int(np.floor(tgt_w[0, 0] * p0 + tgt_w[0, 1] * p1 + tgt_w[0, 2] * p2 + tgt_w[0, 3]))
-                b = int(np.floor(tgt_w[1, 0] * p0 + tgt_w[1, 1] * p1 + tgt_w[1, 2] * p2 + tgt_w[1, 3]))
-                c = int(np.floor(tgt_w[2, 0] * p0 + tgt_w[2, 1] * p1 + tgt_w[2, 2] * p2 + tgt_w[2, 3]))
+                a = int(np.floor(tidx[k, j, i, 0]))
+                b = int(np.floor(tidx[k, j, i, 1]))
+                c = int(np.floor(tidx[k, j, i, 2]))
                 for dc in range(2):
                     cc = c + dc
                     if cc < 0 or cc >= tz:
@@ -207,45 +217,67 @@ def _splat(fwd, prio, use_prio, tgt_w, occ):
 
 
 @nb.njit(cache=True, parallel=True)
-def _cover_cells(fwd, tgt_w, max_extent, cover):
+def _cover_cells(tidx, max_extent, cover):
     """Mark every target voxel inside the bounding box of each template cell's 8 forward-mapped corners.
 
     A superset of the image of the trilinear forward map (each cell's image lies in its corners'
-    convex hull), so a voxel left unmarked has no preimage.  Cells whose box is wider than
-    ``max_extent`` voxels (torn apart across a fold) mark only their corners' voxels.
+    convex hull), so a voxel left unmarked has no preimage.  Cells wider than ``max_extent`` voxels
+    (torn apart across a fold) are skipped; :func:`_splat` marks their corners' voxels.
     """
-    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    nz, ny, nx = tidx.shape[0], tidx.shape[1], tidx.shape[2]
     tz, ty, tx = cover.shape
     for k in nb.prange(nz - 1):
-        lo = np.empty(3)
-        hi = np.empty(3)
         for j in range(ny - 1):
             for i in range(nx - 1):
-                for q in range(3):
-                    lo[q] = np.inf
-                    hi[q] = -np.inf
+                lo0 = hi0 = tidx[k, j, i, 0]
+                lo1 = hi1 = tidx[k, j, i, 1]
+                lo2 = hi2 = tidx[k, j, i, 2]
                 for dk in range(2):
                     for dj in range(2):
                         for di in range(2):
-                            p0 = fwd[k + dk, j + dj, i + di, 0]
-                            p1 = fwd[k + dk, j + dj, i + di, 1]
-                            p2 = fwd[k + dk, j + dj, i + di, 2]
-                            for q in range(3):
-                                v = tgt_w[q, 0] * p0 + tgt_w[q, 1] * p1 + tgt_w[q, 2] * p2 + tgt_w[q, 3]
-                                lo[q] = min(lo[q], v)
-                                hi[q] = max(hi[q], v)
-                a0 = max(int(np.ceil(lo[0])), 0)
-                a1 = min(int(np.floor(hi[0])), tx - 1)
-                b0 = max(int(np.ceil(lo[1])), 0)
-                b1 = min(int(np.floor(hi[1])), ty - 1)
-                c0 = max(int(np.ceil(lo[2])), 0)
-                c1 = min(int(np.floor(hi[2])), tz - 1)
+                            v0 = tidx[k + dk, j + dj, i + di, 0]
+                            v1 = tidx[k + dk, j + dj, i + di, 1]
+                            v2 = tidx[k + dk, j + dj, i + di, 2]
+                            lo0 = min(lo0, v0)
+                            hi0 = max(hi0, v0)
+                            lo1 = min(lo1, v1)
+                            hi1 = max(hi1, v1)
+                            lo2 = min(lo2, v2)
+                            hi2 = max(hi2, v2)
+                a0 = max(int(np.ceil(lo0)), 0)
+                a1 = min(int(np.floor(hi0)), tx - 1)
+                b0 = max(int(np.ceil(lo1)), 0)
+                b1 = min(int(np.floor(hi1)), ty - 1)
+                c0 = max(int(np.ceil(lo2)), 0)
+                c1 = min(int(np.floor(hi2)), tz - 1)
                 if a1 - a0 > max_extent or b1 - b0 > max_extent or c1 - c0 > max_extent:
-                    continue  # the corners' own voxels are marked by _splat
+                    continue
                 for cc in range(c0, c1 + 1):
                     for bb in range(b0, b1 + 1):
                         for aa in range(a0, a1 + 1):
                             cover[cc, bb, aa] = 1
+
+
+@nb.njit(cache=True)
+def _scatter_guess(tidx, prio, use_prio, guess):
+    """For each target voxel, a template voxel whose forward position is nearest to it (a Newton start).
+
+    Serial and in increasing template order (the last writer wins), so the result is deterministic;
+    with ``prio`` a second pass lets preferred (body) voxels overwrite the others.
+    """
+    nz, ny, nx = tidx.shape[0], tidx.shape[1], tidx.shape[2]
+    tz, ty, tx = guess.shape
+    for rep in range(2 if use_prio else 1):
+        for k in range(nz):
+            for j in range(ny):
+                for i in range(nx):
+                    if rep == 1 and prio[k, j, i] == 0:
+                        continue
+                    a = int(np.floor(tidx[k, j, i, 0] + 0.5))
+                    b = int(np.floor(tidx[k, j, i, 1] + 0.5))
+                    c = int(np.floor(tidx[k, j, i, 2] + 0.5))
+                    if 0 <= a < tx and 0 <= b < ty and 0 <= c < tz:
+                        guess[c, b, a] = (k * ny + j) * nx + i
 
 
 @nb.njit(cache=True, inline="always")
@@ -302,12 +334,14 @@ def _restart(fwd, cands, u0, u1, u2, y, tol, max_iter, max_step, n_try, prio, ne
 
 
 @nb.njit(cache=True, parallel=True)
-def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, cover, out_x, out_res,
-                     out_status):
+def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, cover, guess, out_x,
+                     out_res, out_status):
     """For every target voxel (rows in parallel) solve F(x) = y; x in template continuous index (i, j, k).
 
-    Each solve starts from the previous voxel's answer in the row; the first voxel of a row, and
-    any voxel where that fails, restarts from the candidates (:func:`_restart`).  ``prio``
+    Each solve starts from the previous voxel's answer in the row, moved by the local inverse
+    Jacobian times the step to this voxel (one Newton evaluation usually suffices); the first voxel
+    of a row, and any voxel where that fails, starts from the template voxel that landed nearest
+    (``guess``, :func:`_scatter_guess`), then from the candidates (:func:`_restart`).  ``prio``
     (template grid, uint8) and ``occ`` (target grid) implement the preference for body preimages:
     where ``occ`` is set and the solution found lies where ``prio`` is 0, the candidates are
     tried for a converged solution with ``prio`` 1.  Target voxels that no template voxel reaches
@@ -327,6 +361,7 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
         jac = np.empty((3, 3))
         xr = np.empty(3)
         cres = np.empty(nc)
+        jl = np.empty((3, 3))
         have = False
         for ii in range(tx):
             for c in range(3):
@@ -345,7 +380,38 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
             res = np.inf
             det = 0.0
             if have:
+                # predictor: x += J⁻¹ Δy with J at the previous solution and Δy the step along the row
+                dj = _det3(jl)
+                if dj != 0.0:
+                    inv = 1.0 / dj
+                    r0 = tgt_a[0, 0]
+                    r1 = tgt_a[1, 0]
+                    r2 = tgt_a[2, 0]
+                    x[0] += inv * ((jl[1, 1] * jl[2, 2] - jl[1, 2] * jl[2, 1]) * r0
+                                   - (jl[0, 1] * jl[2, 2] - jl[0, 2] * jl[2, 1]) * r1
+                                   + (jl[0, 1] * jl[1, 2] - jl[0, 2] * jl[1, 1]) * r2)
+                    x[1] += inv * (-(jl[1, 0] * jl[2, 2] - jl[1, 2] * jl[2, 0]) * r0
+                                   + (jl[0, 0] * jl[2, 2] - jl[0, 2] * jl[2, 0]) * r1
+                                   - (jl[0, 0] * jl[1, 2] - jl[0, 2] * jl[1, 0]) * r2)
+                    x[2] += inv * ((jl[1, 0] * jl[2, 1] - jl[1, 1] * jl[2, 0]) * r0
+                                   - (jl[0, 0] * jl[2, 1] - jl[0, 1] * jl[2, 0]) * r1
+                                   + (jl[0, 0] * jl[1, 1] - jl[0, 1] * jl[1, 0]) * r2)
+                    x[0] = min(max(x[0], 0.0), nx - 1.0)
+                    x[1] = min(max(x[1], 0.0), ny - 1.0)
+                    x[2] = min(max(x[2], 0.0), nz - 1.0)
                 res, det = _newton(fwd, y, x, tol, max_iter, max_step, f, jac)
+            if res > tol and guess[kk, jj, ii] >= 0:
+                g = guess[kk, jj, ii]
+                xr[0] = g % nx
+                xr[1] = (g // nx) % ny
+                xr[2] = g // (nx * ny)
+                r2, d2 = _newton(fwd, y, xr, tol, max_iter, max_step, f, jac)
+                if r2 < res:
+                    x[0] = xr[0]
+                    x[1] = xr[1]
+                    x[2] = xr[2]
+                    res = r2
+                    det = d2
             if res > tol:
                 # far from the posed body one restart is enough: whatever is found there is air
                 r2, d2 = _restart(fwd, cands, ii, jj, kk, y, tol, max_iter, max_step,
@@ -369,6 +435,9 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
             if res <= tol:
                 out_status[kk, jj, ii] = 0 if det > 0.0 else 1
                 have = True
+                for q in range(3):  # _newton stopped right after evaluating at x: jac is J(x)
+                    for r in range(3):
+                        jl[q, r] = jac[q, r]
             elif _on_border(x, nx, ny, nz):
                 out_status[kk, jj, ii] = 3
                 have = False
@@ -495,35 +564,31 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
     cands = _candidates(template_geometry, target, transforms)
     tol = float(tol_voxels) * min(template_geometry.spacing)
     shape = target.array_shape
-    out_x = np.empty(shape + (3,), dtype=np.float64)
+    out_x = np.empty(shape + (3,), dtype=np.float32)
     out_res = np.empty(shape, dtype=np.float32)
     out_status = np.empty(shape, dtype=np.uint8)
     tgt_a = np.ascontiguousarray(target.index_to_world_matrix[:3])
     tgt_w = np.ascontiguousarray(target.world_to_index_matrix[:3])
+    tidx = np.empty(fwd.shape, dtype=np.float32)
+    _target_index(fwd, tgt_w, tidx)
     if prefer is not None:
         prio = np.ascontiguousarray(prefer, dtype=np.uint8)
         if prio.shape != template_geometry.array_shape:
             raise ValueError(f"prefer must be a mask on the template grid {template_geometry.array_shape}, "
                              f"got {prio.shape}")
         occ = np.zeros(shape, dtype=np.uint8)
-        _splat(fwd, prio, True, tgt_w, occ)
+        _splat(tidx, prio, True, occ)
     else:
         prio = np.zeros((1, 1, 1), dtype=np.uint8)
         occ = np.zeros((1, 1, 1), dtype=np.uint8)
     cover = np.zeros(shape, dtype=np.uint8)
-    _splat(fwd, prio, False, tgt_w, cover)
-    _cover_cells(fwd, tgt_w, 16, cover)
-    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, out_x,
+    _splat(tidx, prio, False, cover)
+    _cover_cells(tidx, 16, cover)
+    guess = np.full(shape, -1, dtype=np.int64)
+    _scatter_guess(tidx, prio, prefer is not None, guess)
+    del tidx
+    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, guess, out_x,
                      out_res, out_status)
-    retry = out_status == NOT_CONVERGED
-    if prefer is not None:
-        retry &= occ.astype(bool)  # far air: whatever was found is air
-    if np.any(retry):
-        sel = np.nonzero(retry.reshape(-1))[0]
-        bx, br, bs = out_x.reshape(-1, 3)[sel], out_res.reshape(-1)[sel], out_status.reshape(-1)[sel]
-        _nearest_restarts(fwd, template_geometry, bx, br, bs, target.world_coordinates().reshape(-1, 3)[sel],
-                          tol, int(max_iter), prefer=prio if prefer is not None else None)
-        out_x.reshape(-1, 3)[sel], out_res.reshape(-1)[sel], out_status.reshape(-1)[sel] = bx, br, bs
     return BackwardMap(template_geometry, target, out_x, out_res, out_status)
 
 
