@@ -14,7 +14,8 @@ DEB_PACKAGES := libusb-1.0-0 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libosme
 .PHONY: demo test test-slow system-deps venv clean help
 
 help:
-	@echo "make demo       set up, then build a phantom knee study in $(DEMO_DIR)/ and summarise it"
+	@echo "make demo       set up, build a phantom knee study in $(DEMO_DIR)/, its skinning weights and EVD model,"
+	@echo "                and deform it to a 45° bend ($(DEMO_DIR)/bend45.nii.gz)"
 	@echo "make test       set up, then run the test suite (slow tests excluded)"
 	@echo "make test-slow  paper-size tests (minutes)"
 	@echo "make clean      remove .venv and $(DEMO_DIR)/"
@@ -49,6 +50,9 @@ venv: system-deps $(STAMP)
 
 demo: venv
 	$(VENV)/bin/workbench phantom knee --out $(DEMO_DIR) --size test --force
+	$(VENV)/bin/workbench weights $(DEMO_DIR)
+	$(VENV)/bin/workbench model $(DEMO_DIR)
+	$(VENV)/bin/workbench deform $(DEMO_DIR) --pose examples/knee_bend45.json --out $(DEMO_DIR)/bend45.nii.gz --force
 
 test: venv
 	$(VENV)/bin/pytest

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from deformation.geometry import Volume  # noqa: E402
 from deformation.evd import ExampleVolumeDeformation, vbd_forward  # noqa: E402
-from deformation.posespace import PoseSpace, psd_training, skin  # noqa: E402
+from deformation.posespace import PoseSpace, psd_training, skin, wpsd_deform  # noqa: E402
 from deformation.resample import backward_map, resample_forward  # noqa: E402
 from deformation.skinning import distance_weights, lbs, stack_transforms  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
@@ -155,11 +155,11 @@ def mesh_benchmark(n_vertices: int, n_poses: int, repeats: int):
     t = stack_transforms(query.transforms, w.bones)
     skin(v, w, t)
     skin(base, w, t, space.weights(query))
-    skin(base, w, t, pts_space.weights(query))
+    wpsd_deform(base, w, pts_space, query, t)
     t_lbs, _ = best_of(lambda: skin(v, w, t), repeats * 3)
     t_np, _ = best_of(lambda: lbs(v, w, t), repeats)
     t_psd, _ = best_of(lambda: skin(base, w, t, space.weights(query)), repeats * 3)
-    t_wpsd, _ = best_of(lambda: skin(base, w, t, pts_space.weights(query)), repeats * 3)
+    t_wpsd, _ = best_of(lambda: wpsd_deform(base, w, pts_space, query, t), repeats * 3)
     print(f"mesh: {n_vertices:,} vertices near the hand phantom's skin, {n_poses} example poses "
           f"({sk.n_dof} DOF)")
     print(f"LBS (compiled):  {t_lbs * 1e3:7.2f} ms   (NumPy LBS {t_np * 1e3:.2f} ms)")

@@ -31,7 +31,7 @@ import numpy as np
 
 from .geometry import GridGeometry
 from .posespace import PoseSpace, U_FLOOR, _chol_factor, _chol_subst, dof_bones
-from .skinning import SkinningWeights, _as_stack
+from .skinning import SkinningWeights, _as_stack, blend_point
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -58,17 +58,7 @@ def _forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out):
                     p0 += sp * disp[v, p, 0]
                     p1 += sp * disp[v, p, 1]
                     p2 += sp * disp[v, p, 2]
-                o0 = 0.0
-                o1 = 0.0
-                o2 = 0.0
-                for m in range(idx.shape[1]):
-                    w = val[v, m]
-                    if w == 0.0:
-                        continue
-                    b = idx[v, m]
-                    o0 += w * (t[b, 0, 0] * p0 + t[b, 0, 1] * p1 + t[b, 0, 2] * p2 + t[b, 0, 3])
-                    o1 += w * (t[b, 1, 0] * p0 + t[b, 1, 1] * p1 + t[b, 1, 2] * p2 + t[b, 1, 3])
-                    o2 += w * (t[b, 2, 0] * p0 + t[b, 2, 1] * p1 + t[b, 2, 2] * p2 + t[b, 2, 3])
+                o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)
                 out[k, j, i, 0] = o0
                 out[k, j, i, 1] = o1
                 out[k, j, i, 2] = o2
@@ -144,17 +134,7 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
                     p0 += sp * disp[v, p, 0]
                     p1 += sp * disp[v, p, 1]
                     p2 += sp * disp[v, p, 2]
-                o0 = 0.0
-                o1 = 0.0
-                o2 = 0.0
-                for m in range(idx.shape[1]):
-                    w = val[v, m]
-                    if w == 0.0:
-                        continue
-                    b = idx[v, m]
-                    o0 += w * (t[b, 0, 0] * p0 + t[b, 0, 1] * p1 + t[b, 0, 2] * p2 + t[b, 0, 3])
-                    o1 += w * (t[b, 1, 0] * p0 + t[b, 1, 1] * p1 + t[b, 1, 2] * p2 + t[b, 1, 3])
-                    o2 += w * (t[b, 2, 0] * p0 + t[b, 2, 1] * p1 + t[b, 2, 2] * p2 + t[b, 2, 3])
+                o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)
                 out[k, j, i, 0] = o0
                 out[k, j, i, 1] = o1
                 out[k, j, i, 2] = o2

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .skinning import SkinningWeights, _as_stack, inverse_lbs, lbs
+from .skinning import SkinningWeights, _as_stack, blend_point, inverse_lbs, lbs
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -286,15 +286,22 @@ class PointPoseSpace:
 def _wpsd_weights(idx, val, bone_q, coef, inv_sigma2, out):
     n = idx.shape[0]
     n_bones, P = bone_q.shape[0], bone_q.shape[1]
+    glob_q = np.zeros(P)
+    for b in range(n_bones):
+        for i in range(P):
+            glob_q[i] += bone_q[b, i]
     for j in nb.prange(n):
         phi = np.empty(P)
-        ubone = np.empty(n_bones)
-        _point_u(idx, val, j, n_bones, ubone)
         for i in range(P):
-            d2 = 0.0
-            for b in range(n_bones):
-                d2 += ubone[b] * bone_q[b, i]
-            phi[i] = np.exp(-d2 * inv_sigma2[j])
+            phi[i] = U_FLOOR * glob_q[i]
+        for m in range(idx.shape[1]):
+            w = val[j, m]
+            if w == 0.0:
+                continue
+            for i in range(P):
+                phi[i] += w * bone_q[idx[j, m], i]
+        for i in range(P):
+            phi[i] = np.exp(-phi[i] * inv_sigma2[j])
         tot = 0.0
         for i in range(P):
             f = 0.0
@@ -345,17 +352,7 @@ def _skin_kernel(base, s, per_point, idx, val, t, out):
             u0 += si * base[j, i, 0]
             u1 += si * base[j, i, 1]
             u2 += si * base[j, i, 2]
-        o0 = 0.0
-        o1 = 0.0
-        o2 = 0.0
-        for m in range(idx.shape[1]):
-            w = val[j, m]
-            if w == 0.0:
-                continue
-            b = idx[j, m]
-            o0 += w * (t[b, 0, 0] * u0 + t[b, 0, 1] * u1 + t[b, 0, 2] * u2 + t[b, 0, 3])
-            o1 += w * (t[b, 1, 0] * u0 + t[b, 1, 1] * u1 + t[b, 1, 2] * u2 + t[b, 1, 3])
-            o2 += w * (t[b, 2, 0] * u0 + t[b, 2, 1] * u1 + t[b, 2, 2] * u2 + t[b, 2, 3])
+        o0, o1, o2 = blend_point(idx, val, j, t, u0, u1, u2)
         out[j, 0] = o0
         out[j, 1] = o1
         out[j, 2] = o2
@@ -381,8 +378,67 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
     return out
 
 
+@nb.njit(cache=True, parallel=True)
+def _wpsd_skin_kernel(base, idx, val, t, coef, inv_sigma2, bone_q, glob_q, out):
+    """WPSD fused: per point, s = normalise(C_j φ_j(a)) (Eq. 16, 12–14), u0 = Σ s_i base_i (Eq. 7), SSD (Eq. 8).
+
+    ``glob_q[i] = Σ_b bone_q[b, i]`` carries the U_FLOOR term, so only the point's ≤ K bones are visited.
+    """
+    n, P = base.shape[0], base.shape[1]
+    for j in nb.prange(n):
+        phi = np.empty(P)
+        for i in range(P):
+            phi[i] = U_FLOOR * glob_q[i]
+        for m in range(idx.shape[1]):
+            w = val[j, m]
+            if w == 0.0:
+                continue
+            b = idx[j, m]
+            for i in range(P):
+                phi[i] += w * bone_q[b, i]
+        inv = inv_sigma2[j]
+        for i in range(P):
+            phi[i] = np.exp(-phi[i] * inv)
+        tot = 0.0
+        u0 = 0.0
+        u1 = 0.0
+        u2 = 0.0
+        for i in range(P):
+            f = 0.0
+            for l in range(P):
+                f += coef[j, i, l] * phi[l]
+            tot += f
+            u0 += f * base[j, i, 0]
+            u1 += f * base[j, i, 1]
+            u2 += f * base[j, i, 2]
+        u0 /= tot
+        u1 /= tot
+        u2 /= tot
+        o0, o1, o2 = blend_point(idx, val, j, t, u0, u1, u2)
+        out[j, 0] = o0
+        out[j, 1] = o1
+        out[j, 2] = o2
+
+
 def wpsd_deform(base_samples_per_point: np.ndarray, weights: SkinningWeights, point_space: PointPoseSpace,
                 pose, transforms) -> np.ndarray:
-    """WPSD (Kurihara §5.2): per-vertex pose weights (Eq. 16), morph (Eq. 7), SSD (Eq. 8)."""
-    return skin(base_samples_per_point, weights, transforms, point_space.weights(pose))
+    """WPSD (Kurihara §5.2): per-vertex pose weights (Eq. 16), morph (Eq. 7), SSD (Eq. 8), in one pass.
+
+    ``base_samples_per_point`` is ``(n, P, 3)``: each vertex's base-pose position in every sample
+    (:func:`psd_training`, transposed).  Equal to ``skin(base, weights, transforms,
+    point_space.weights(pose))`` without the ``(n, P)`` intermediate.
+    """
+    if point_space.weights_ is not weights and point_space.weights_.n_points != weights.n_points:
+        raise ValueError("the point pose space was built for other points")
+    base = np.ascontiguousarray(base_samples_per_point, dtype=np.float64)
+    if base.shape != (weights.n_points, point_space.space.n_poses, 3):
+        raise ValueError(f"base samples must be (n_points, n_poses, 3) = "
+                         f"{(weights.n_points, point_space.space.n_poses, 3)}, got {base.shape}")
+    a = point_space.space.vector(pose)
+    bone_q = point_space._per_bone((a[None, :] - point_space.space.train)[None])[:, 0]
+    t = _as_stack(transforms, weights)[:, :3, :]
+    out = np.empty((weights.n_points, 3))
+    _wpsd_skin_kernel(base, weights.index, weights.value, np.ascontiguousarray(t), point_space.coef,
+                      point_space.inv_sigma2, np.ascontiguousarray(bone_q), bone_q.sum(axis=0), out)
+    return out
 

@@ -21,7 +21,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
+
+if nb.config.THREADING_LAYER == "default":
+    nb.config.THREADING_LAYER = "omp"
 
 __all__ = ["SkinningWeights", "MAX_INFLUENCES", "blend_matrices", "lbs", "vbd_points", "inverse_lbs",
            "stack_transforms", "distance_weights"]
@@ -152,6 +156,26 @@ class SkinningWeights:
             raise ValueError(f"bones {missing} are not in the new bone list {bones}")
         lut = np.array([bones.index(b) for b in self.bones], dtype=np.int64)
         return SkinningWeights(bones, lut[self.index.astype(np.int64)], self.value)
+
+
+@nb.njit(cache=True, inline="always")
+def blend_point(idx, val, v, t, p0, p1, p2):
+    """``(Σ_m w_m T_{b_m}) p`` for point ``v`` of sparse weights (compiled kernels' inner step, Eq. 2).
+
+    ``t`` is ``(n_bones, 3, 4)``; returns the blended point as a tuple ``(x, y, z)``.
+    """
+    o0 = 0.0
+    o1 = 0.0
+    o2 = 0.0
+    for m in range(idx.shape[1]):
+        w = val[v, m]
+        if w == 0.0:
+            continue
+        b = idx[v, m]
+        o0 += w * (t[b, 0, 0] * p0 + t[b, 0, 1] * p1 + t[b, 0, 2] * p2 + t[b, 0, 3])
+        o1 += w * (t[b, 1, 0] * p0 + t[b, 1, 1] * p1 + t[b, 1, 2] * p2 + t[b, 1, 3])
+        o2 += w * (t[b, 2, 0] * p0 + t[b, 2, 1] * p1 + t[b, 2, 2] * p2 + t[b, 2, 3])
+    return o0, o1, o2
 
 
 def stack_transforms(transforms, bones) -> np.ndarray:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deformation.posespace import PoseSpace, pose_vector, pose_weights, psd_deform, psd_training, skin
+from deformation.posespace import (PoseSpace, pose_vector, pose_weights, psd_deform, psd_training, skin,
+                                   wpsd_deform)
 from deformation.skinning import SkinningWeights, lbs, stack_transforms
 from validation.phantoms import hand
 
@@ -69,6 +70,11 @@ def test_psd_and_wpsd_reproduce_every_training_example(hand_setup):
         np.testing.assert_allclose(sw.sum(1), 1.0, atol=1e-9)
         np.testing.assert_allclose(sw, np.eye(len(poses))[np.full(len(p), k)], atol=1e-6)
         np.testing.assert_allclose(skin(per_point, w, pose.transforms, sw), samples[k], atol=1e-5)
+        np.testing.assert_allclose(wpsd_deform(per_point, w, pts, pose, pose.transforms), samples[k], atol=1e-5)
+    # away from the training poses the fused kernel equals the two-step evaluation (round-off only)
+    q = space.train.mean(axis=0)
+    two_step = skin(per_point, w, poses[0].transforms, pts.weights(q))
+    np.testing.assert_allclose(wpsd_deform(per_point, w, pts, q, poses[0].transforms), two_step, atol=1e-9)
 
 
 def test_wpsd_follows_only_the_dofs_that_move_the_points_bone(hand_setup):
