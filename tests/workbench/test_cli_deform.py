@@ -136,3 +136,27 @@ def test_deform_reports_bad_input(study, tmp_path, capsys):
     s = read_study(study)
     with pytest.raises(InputFileError, match="workbench weights"):
         load_weights(type(s)(tmp_path, s.manifest))  # a study folder without skinning/
+
+
+def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
+    """pytetwild has no seed: the mesh is made once and kept; recomputing from it gives identical weights."""
+    from validation.phantoms import make_phantom
+    from workbench.study import write_phantom_study
+
+    root = write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=1, seed=5),
+                               tmp_path / "study").root
+    assert main(["weights", str(root), "--edge-length-mm", "14", "--quiet"]) == 0
+    files = ("tetmesh.vtu", "weights_index.mha", "weights_value.mha")
+    first = {f: hashlib.sha256((root / "skinning" / f).read_bytes()).hexdigest() for f in files}
+    assert main(["weights", str(root), "--quiet"]) == 1  # refuses to replace without --force
+    assert main(["weights", str(root), "--force", "--quiet"]) == 0
+    again = {f: hashlib.sha256((root / "skinning" / f).read_bytes()).hexdigest() for f in files}
+    assert again == first
+    w, g, meta = read_voxel_weights(root / "skinning" / "weights.json")
+    s = read_study(root)
+    lab = s.template_labels().data.reshape(-1)
+    dense = w.dense()
+    np.testing.assert_allclose(dense.sum(1), 1.0, atol=1e-6)  # float32 storage
+    for b in s.skeleton().bone_names:
+        np.testing.assert_array_equal(dense[lab == s.skeleton().label_of(b), w.bones.index(b)], 1.0)
+    assert meta["method"] == "harmonic" and not list(tmp_path.glob("*.stl")) and not list(root.glob("*.stl"))
