@@ -256,7 +256,6 @@ def run_model_stage(folder, *, source: str = "truth", scan_ids=None, overwrite: 
     poses, fields, unmatched = [], [], {}
     t0 = time.perf_counter()
     for k, sid in enumerate(ids):
-        say(f"[{k + 1}/{len(ids)}] {sid}: template → scan positions from the truth field")
         pose = study.truth_pose(sid)
         poses.append(pose)
         if study.has_truth_template_to_scan(sid):  # the exact forward map (phantom studies)
@@ -264,8 +263,10 @@ def run_model_stage(folder, *, source: str = "truth", scan_ids=None, overwrite: 
             g.check_same(f.geometry, names=("template", f"{sid} template_to_scan"))
             pos = f.data + g.world_coordinates()
             found = np.ones(g.array_shape, bool)
+            say(f"[{k + 1}/{len(ids)}] {sid}: the truth's exact template → scan map")
         else:
             pos, found = _template_to_scan(study, sid, pose, body.data)
+            say(f"[{k + 1}/{len(ids)}] {sid}: template → scan map by inverting the truth's scan → template field")
         # voxels with no correspondence in the scan (outside its field of view) keep VBD: d_k = 0
         pos[~found] = vbd_forward(g, weights, pose.transforms)[~found]
         unmatched[sid] = int((~found).sum())
@@ -361,7 +362,9 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     t1 = time.perf_counter()
     say("backward map and resampling ...")
     bm = backward_map(fwd, g, transforms=t, prefer=body.data.astype(bool))
-    vol = resample_forward(bm, template, fill=float(np.percentile(template.data, 1)))
+    air = np.asarray(template.data)[body.data == 0]
+    fill = float(np.median(air)) if air.size else float(np.min(template.data))  # the template's air
+    vol = resample_forward(bm, template, fill=fill)
     lab = resample_forward(bm, study.template_labels(), labels=True)
     t2 = time.perf_counter()
     write_volume(vol, out, overwrite=overwrite)
