@@ -14,7 +14,8 @@
   reproduced exactly).
 
 With ``weighting="wpsd"`` the pose weights are per voxel, from the weighted
-pose distance of Kurihara Eq. 16 (:mod:`.posespace`), computed on the fly
+pose distance of Kurihara Eq. 16 (:mod:`.posespace`), computed on the fly (a
+voxel whose kernel matrix is numerically singular takes uniform weights 1/P)
 (a precomputed ``n_pose²`` matrix per voxel would be 4.6 GB for the
 paper-size hand).
 
@@ -74,7 +75,6 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
         pair = np.empty((P, P))
         phi = np.empty(P)
         work = np.empty(P)
-        ub = np.zeros(n_bones)
         glob_pair = np.zeros((P, P))
         glob_q = np.zeros(P)
         for b in range(n_bones):
@@ -221,7 +221,13 @@ class ExampleVolumeDeformation:
                 for s in range(weights.max_influences):
                     m += weights.value[lo:hi, s, None, None] * t[weights.index[lo:hi, s].astype(np.int64), :3, :]
                 rhs = pos[lo:hi] - m[:, :, 3]
-                d[lo:hi, k] = np.linalg.solve(m[:, :, :3], rhs[:, :, None])[:, :, 0] - grid[lo:hi]
+                try:
+                    d[lo:hi, k] = np.linalg.solve(m[:, :, :3], rhs[:, :, None])[:, :, 0] - grid[lo:hi]
+                except np.linalg.LinAlgError:
+                    n_sing = int(np.sum(np.abs(np.linalg.det(m[:, :, :3])) < 1e-12))
+                    raise ValueError(f"correspondence {k}: the blended matrix (Σ w T) of {n_sing} voxel(s) is "
+                                     "singular, so VBD cannot be undone there (Rhee Eq. 7); the pose's "
+                                     "transforms or the weights are degenerate") from None
             if progress is not None:
                 progress(k + 1, len(poses))
         return cls(geometry, weights, space, d)

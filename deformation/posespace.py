@@ -73,6 +73,9 @@ def dof_bones(skeleton, bones) -> np.ndarray:
     bones = tuple(bones)
     out = []
     for j in skeleton.joints:
+        if j.child not in bones:
+            raise ValueError(f"joint {j.name!r} moves bone {j.child!r}, which the skinning weights do not have "
+                             f"(they cover {list(bones)})")
         out += [bones.index(j.child)] * j.dof
     return np.asarray(out, dtype=np.int64)
 
@@ -110,7 +113,11 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
         raise ValueError("two training poses coincide (zero pose distance): Φ of Kurihara Eq. 13 is singular")
     phi = np.exp(-pair / sigma ** 2)
     dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
-    f = np.linalg.solve(phi, np.exp(-dq / sigma ** 2).T).T  # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹
+    try:
+        f = np.linalg.solve(phi, np.exp(-dq / sigma ** 2).T).T  # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹
+    except np.linalg.LinAlgError:
+        raise ValueError("Φ of Kurihara Eq. 13 is singular: two training poses coincide in this pose distance "
+                         "(drop one)") from None
     s = f / f.sum(axis=1, keepdims=True)
     return s[0] if single else s
 
@@ -367,9 +374,15 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
     t = _as_stack(transforms, weights)[:, :3, :]
     base = np.asarray(base_points, dtype=np.float64)
     if base.ndim == 2:
+        if s is not None:
+            raise ValueError("pose weights s only apply to (n, P, 3) base samples; (n, 3) points are plain SSD")
         base = base[:, None, :]
         s = np.ones((1, 1))
+    elif s is None:
+        raise ValueError("pose weights s are needed with (n, P, 3) base samples")
     s = np.atleast_2d(np.asarray(s, dtype=np.float64))
+    if s.ndim != 2 or s.shape[0] not in (1, base.shape[0]):
+        raise ValueError(f"pose weights must be (P,) or (n_points, P), got {s.shape}")
     if base.shape[0] != weights.n_points or s.shape[-1] != base.shape[1]:
         raise ValueError(f"base points {base.shape}, pose weights {s.shape} and {weights.n_points} weighted "
                          "points do not agree")
@@ -428,8 +441,9 @@ def wpsd_deform(base_samples_per_point: np.ndarray, weights: SkinningWeights, po
     (:func:`psd_training`, transposed).  Equal to ``skin(base, weights, transforms,
     point_space.weights(pose))`` without the ``(n, P)`` intermediate.
     """
-    if point_space.weights_ is not weights and point_space.weights_.n_points != weights.n_points:
-        raise ValueError("the point pose space was built for other points")
+    if point_space.weights_ is not weights:
+        raise ValueError("the point pose space was built for other skinning weights: build it with "
+                         "PoseSpace.point_space(weights) for these")
     base = np.ascontiguousarray(base_samples_per_point, dtype=np.float64)
     if base.shape != (weights.n_points, point_space.space.n_poses, 3):
         raise ValueError(f"base samples must be (n_points, n_poses, 3) = "

@@ -416,7 +416,7 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
                 # far from the posed body one restart is enough: whatever is found there is air
                 r2, d2 = _restart(fwd, cands, ii, jj, kk, y, tol, max_iter, max_step,
                                   n_restarts if occupied else 1, prio, False, xr, f, jac, xb, cres)
-                if not have or r2 < res:
+                if r2 < res:
                     x[0] = xr[0]
                     x[1] = xr[1]
                     x[2] = xr[2]
@@ -512,6 +512,22 @@ class BackwardMap:
         return out
 
 
+def _orient_status(status: np.ndarray, template: GridGeometry) -> None:
+    """The kernels test ``det ∂F/∂(i, j, k) > 0`` in *index* space; a template grid whose direction is a
+    reflection flips that sign, so OK and FOLDED swap back here (in place)."""
+    if np.linalg.det(template.direction_matrix) < 0:
+        ok, folded = status == OK, status == FOLDED
+        status[ok] = FOLDED
+        status[folded] = OK
+
+
+def _check_solver_args(max_iter, n_restarts, tol_voxels) -> None:
+    if int(max_iter) < 1 or int(n_restarts) < 1:
+        raise ValueError(f"max_iter and n_restarts must be at least 1, got {max_iter} and {n_restarts}")
+    if not tol_voxels > 0:
+        raise ValueError(f"tol_voxels must be positive, got {tol_voxels}")
+
+
 def _candidates(template: GridGeometry, target: GridGeometry, transforms) -> np.ndarray:
     """Matrices target index → template index for the inverse of each transform (plus the identity)."""
     w = template.world_to_index_matrix
@@ -560,6 +576,7 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
                          f"{template_geometry.describe()}, components x, y, z), got {fwd.shape}")
     if min(template_geometry.size) < 2:
         raise ValueError("the template grid needs at least 2 voxels along each axis")
+    _check_solver_args(max_iter, n_restarts, tol_voxels)
     target = template_geometry if target_geometry is None else target_geometry
     cands = _candidates(template_geometry, target, transforms)
     tol = float(tol_voxels) * min(template_geometry.spacing)
@@ -583,12 +600,16 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
         occ = np.zeros((1, 1, 1), dtype=np.uint8)
     cover = np.zeros(shape, dtype=np.uint8)
     _splat(tidx, prio, False, cover)
-    _cover_cells(tidx, 16, cover)
+    # a cell torn wider than this (across a fold) is skipped; scaled by the resolution ratio so that an
+    # upsampling target (fine grid) still sees its undeformed cells
+    ratio = max(template_geometry.spacing) / min(target.spacing)
+    _cover_cells(tidx, int(np.ceil(16 * max(1.0, ratio))), cover)
     guess = np.full(shape, -1, dtype=np.int64)
     _scatter_guess(tidx, prio, prefer is not None, guess)
     del tidx
     _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, guess, out_x,
                      out_res, out_status)
+    _orient_status(out_status, template_geometry)
     return BackwardMap(template_geometry, target, out_x, out_res, out_status)
 
 
@@ -662,6 +683,9 @@ def backward_points(forward_positions, template_geometry: GridGeometry, points, 
     fwd = np.ascontiguousarray(forward_positions, dtype=np.float32)
     if fwd.shape != template_geometry.array_shape + (3,):
         raise ValueError(f"forward_positions must be {template_geometry.array_shape + (3,)}, got {fwd.shape}")
+    if min(template_geometry.size) < 2:
+        raise ValueError("the template grid needs at least 2 voxels along each axis")
+    _check_solver_args(max_iter, n_restarts, tol_voxels)
     pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
     world = GridGeometry((1, 1, 1), (1.0, 1.0, 1.0))  # candidates act on world points: identity "grid"
     cands = _candidates(template_geometry, world, transforms)
@@ -671,6 +695,7 @@ def backward_points(forward_positions, template_geometry: GridGeometry, points, 
     status = np.empty(len(pts), dtype=np.uint8)
     _points_kernel(fwd, pts, cands, tol, int(max_iter), 2.0, int(n_restarts), x, res, status)
     _nearest_restarts(fwd, template_geometry, x, res, status, pts, tol, int(max_iter))
+    _orient_status(status, template_geometry)
     return template_geometry.index_to_world(x), res, status
 
 

@@ -56,8 +56,11 @@ def leave_one_out(phantom, weights: SkinningWeights, *, weighting: str = "psd", 
     n = len(poses)
     if n < 3:
         raise ValueError(f"leave-one-out needs at least 3 poses (2 to train on), got {n}")
+    indices = list(range(n)) if pose_indices is None else [int(i) for i in pose_indices]
+    if any(not 0 <= i < n for i in indices):
+        raise ValueError(f"pose_indices must lie in 0..{n - 1}, got {indices}")
     out = []
-    for k in (range(n) if pose_indices is None else pose_indices):
+    for k in indices:
         rest = [i for i in range(n) if i != k]
         model = ExampleVolumeDeformation.from_correspondences(g, weights, phantom.skeleton,
                                                               [poses[i] for i in rest], [fields[i] for i in rest])

@@ -117,6 +117,8 @@ def run_weights_stage(folder, *, method: str = "harmonic", edge_length_mm: float
 
             old_mesh = final / "tetmesh.vtu"
             if old_mesh.exists() and not remesh:
+                if edge_length_mm is not None:
+                    say(f"note: --edge-length-mm is ignored: the study's kept mesh is used (pass --remesh)")
                 mesh, _ = read_tetmesh(old_mesh)
                 say(f"using the study's tet mesh {old_mesh} ({mesh.n_vertices} vertices, {mesh.n_tets} tets)")
                 info["mesh"] = "kept"
@@ -133,6 +135,8 @@ def run_weights_stage(folder, *, method: str = "harmonic", edge_length_mm: float
             weights = weights_on_grid(mesh, dense, bones, g, labels, bone_labels)
             info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets))
         else:
+            if (final / "tetmesh.vtu").exists():  # keep the study's mesh for a later harmonic run
+                shutil.copy2(final / "tetmesh.vtu", staging / "tetmesh.vtu")
             lab = np.asarray(labels.data)
             sp = np.asarray(g.spacing)[::-1]  # array order (z, y, x)
             dist = np.empty((g.n_voxels, len(bones)))
@@ -151,12 +155,23 @@ def run_weights_stage(folder, *, method: str = "harmonic", edge_length_mm: float
         shutil.rmtree(staging, ignore_errors=True)
         raise
     entry = {"method": method, "folder": SKINNING_DIR, "weights": f"{SKINNING_DIR}/weights.json",
-             "tetmesh": f"{SKINNING_DIR}/tetmesh.vtu" if method == "harmonic" else None,
+             "tetmesh": f"{SKINNING_DIR}/tetmesh.vtu" if (final / "tetmesh.vtu").exists() else None,
              "body_mask": f"{SKINNING_DIR}/body_mask.nii.gz", "seconds": round(seconds, 2),
              "workbench_version": __version__}
     _update_manifest(root, "skinning", entry)
     info["seconds"] = seconds
     return info
+
+
+def _weights_digest(weights) -> str:
+    """A digest of a weight map's arrays: an EVD model is only valid with the weights it was built with."""
+    import hashlib
+
+    h = hashlib.sha256()
+    h.update("\n".join(weights.bones).encode())
+    h.update(np.ascontiguousarray(weights.index).tobytes())
+    h.update(np.ascontiguousarray(weights.value).tobytes())
+    return h.hexdigest()
 
 
 def load_weights(study: Study):
@@ -201,7 +216,7 @@ def read_target_pose(path, skeleton) -> Pose:
 
 
 # -- EVD models ------------------------------------------------------------------------------------
-def _template_to_scan(study: Study, scan_id: str, pose: Pose, body: np.ndarray) -> np.ndarray:
+def _template_to_scan(study: Study, scan_id: str, pose: Pose, body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Template → scan positions of every template voxel from the truth's scan → template field.
 
     The truth field gives, on the scan grid, each scan voxel's template
@@ -285,7 +300,8 @@ def run_model_stage(folder, *, source: str = "truth", scan_ids=None, overwrite: 
                     "displacements": "evd_displacements.mha",
                     "layout": "per voxel: (d_x, d_y, d_z) of each training scan in turn, mm, template frame "
                               "(Rhee Eq. 7)",
-                    "weights": f"../{SKINNING_DIR}/weights.json", "seconds": round(seconds, 2),
+                    "weights": f"../{SKINNING_DIR}/weights.json", "weights_sha256": _weights_digest(weights),
+                    "seconds": round(seconds, 2),
                     "unmatched_voxels": unmatched,
                     "unmatched": "template voxels with no correspondence in that scan (they leave its field of "
                                  "view): d_k = 0 there, i.e. VBD",
@@ -311,11 +327,24 @@ def load_model(study: Study, weights=None):
     doc = read_json(path)
     if doc.get("format") != "avw-evd":
         raise InputFileError(f"{path}: not an EVD model ('format' is {doc.get('format')!r}).", path)
+    missing = [k for k in ("scans", "pose_vectors", "displacements", "joint_order") if k not in doc]
+    if missing or any(s not in doc["pose_vectors"] for s in doc.get("scans", [])):
+        raise InputFileError(f"{path}: the model lacks {missing or 'a pose vector of a training scan'}; rebuild it "
+                             f"with `workbench model {study.root} --force`.", path)
     if weights is None:
         weights, _ = load_weights(study)
+    stale = f"rebuild the model with `workbench model {study.root} --force`"
+    if doc.get("weights_sha256") != _weights_digest(weights):
+        raise InputFileError(f"{path}: the model was built with other skinning weights than the study's "
+                             f"skinning/weights.json (recomputed since?); {stale}.", path)
     sk = study.skeleton()
+    if doc["joint_order"] != [j.name for j in sk.joints]:
+        raise InputFileError(f"{path}: the model's joints {doc['joint_order']} are not the skeleton's "
+                             f"{[j.name for j in sk.joints]}; {stale}.", path)
     vol = read_vector_image(path.parent / doc["displacements"])
     g = vol.geometry
+    study.template().geometry.check_same(g, names=("template", str(path.parent / doc["displacements"])),
+                                         remedy=stale)
     n = len(doc["scans"])
     if vol.n_components != 3 * n:
         raise InputFileError(f"{path.parent / doc['displacements']}: {vol.n_components} components, expected "
@@ -337,14 +366,36 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     from deformation.skinning import stack_transforms
     from workbench.atomic import split_suffix
 
+    from workbench.volume_io import image_format
+
+    if method not in ("auto", "vbd", "evd"):
+        raise ValueError(f"method must be 'auto', 'vbd' or 'evd', got {method!r}")
+    if weighting not in ("psd", "wpsd"):
+        raise ValueError(f"weighting must be 'psd' or 'wpsd', got {weighting!r}")
     say = progress or (lambda line: None)
     study = read_study(folder)
     out = Path(out)
     stem, suffix = split_suffix(out.name)
     labels_out = Path(labels_out) if labels_out else out.with_name(f"{stem}_labels{suffix}")
-    for p in [out, labels_out] + ([Path(field_out)] if field_out else []):
+    outputs = [out, labels_out] + ([Path(field_out)] if field_out else [])
+    # every check before any work, so that no output set is left half-written
+    for p in outputs:
+        image_format(p, for_writing=True)
         if p.exists() and not overwrite:
             raise OutputExistsError(p, f"{p} exists; pass --force to replace it.")
+    resolved = [p.resolve() for p in outputs]
+    if len(set(resolved)) != len(resolved):
+        raise ValueError(f"the output files must differ: {[str(p) for p in outputs]}")
+    root = study.root.resolve()
+    protected = {root / MANIFEST, root / study.manifest["template"]}
+    if study.manifest.get("template_labels"):
+        protected.add(root / study.manifest["template_labels"])
+    for p in resolved:
+        inside = root in p.parents
+        if p in protected or (inside and p.relative_to(root).parts[0] in
+                              ("scans", "truth", "poses", SKINNING_DIR, MODEL_DIR)):
+            raise ValueError(f"{p}: would overwrite one of the study's own files; write the posed volume "
+                             "elsewhere (or in a new subfolder of the study)")
     sk = study.skeleton()
     pose = read_target_pose(pose_path, sk)
     weights, body = load_weights(study)
@@ -353,6 +404,8 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
         raise InputFileError(f"{study.root / MODEL_DIR / 'evd.json'}: the study has no EVD model; build one with "
                              f"`workbench model {study.root}` or use --method vbd.", study.root / MODEL_DIR)
     used = "evd" if model is not None else "vbd"
+    if used == "vbd" and weighting != "psd":
+        say("note: --weighting applies to EVD only; this is VBD")
     template = study.template()
     g = template.geometry
     t = stack_transforms(pose.transforms, weights.bones)

@@ -5,7 +5,7 @@ A weight map is three files side by side::
     weights.json          {"format": "avw-weights", "version": 1, "bones": [...],
                            "max_influences": 4, "index": "weights_index.mha",
                            "value": "weights_value.mha", "method": "harmonic", ...}
-    weights_index.mha     uint8 vector image, K components: the bone (position in
+    weights_index.mha     uint8 (uint16 beyond 256 bones) vector image, K components: the bone (position in
                           "bones") of each influence, strongest first
     weights_value.mha     float32 vector image, K components: the weights, summing to one
 

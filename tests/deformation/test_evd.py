@@ -160,3 +160,33 @@ def test_evd_between_poses_beats_vbd(knee, knee_examples):
     med_vbd = np.linalg.norm(vbd_forward(g, w, held[0].transforms).reshape(-1, 3)[body] - truth, axis=1).mean()
     med_evd = np.linalg.norm(model.forward(held[0]).reshape(-1, 3)[body] - truth, axis=1).mean()
     assert med_evd < med_vbd, (med_evd, med_vbd)
+
+
+def test_reflected_grid_direction_is_not_a_fold():
+    """The fold test is on the index-space Jacobian: a reflection in the grid's direction must not flip it."""
+    from deformation.geometry import GridGeometry
+
+    for direction in (np.eye(3), np.diag([1.0, 1.0, -1.0])):
+        g = GridGeometry((8, 7, 6), (2.0, 1.5, 3.0), (5.0, -4.0, 2.0), tuple(direction.ravel()))
+        bm = backward_map(g.world_coordinates().astype(np.float32), g)
+        assert np.all(bm.status == OK), direction
+        _, _, st = backward_points(g.world_coordinates().astype(np.float32), g, g.world_coordinates()[2:5, 2:5, 2:5])
+        assert np.all(st == OK)
+
+
+def test_upsampling_onto_a_much_finer_grid_keeps_every_preimage():
+    from deformation.geometry import GridGeometry
+
+    coarse = GridGeometry((4, 4, 4), (4.0, 4.0, 4.0), (0.0, 0.0, 0.0))
+    fine = GridGeometry((60, 60, 60), (0.2, 0.2, 0.2), (0.1, 0.1, 0.1))  # 20× finer, inside the coarse box
+    bm = backward_map(coarse.world_coordinates().astype(np.float32), coarse, fine)
+    assert np.all(bm.status == OK)
+    # float32 positions; 1e-2 voxel tolerance of the 4 mm template grid
+    np.testing.assert_allclose(bm.template_positions(), fine.world_coordinates(), atol=0.05)
+
+
+def test_solver_arguments_are_checked(knee):
+    ph, _ = knee
+    fwd = ph.geometry.world_coordinates().astype(np.float32)
+    with pytest.raises(ValueError, match="n_restarts"):
+        backward_map(fwd, ph.geometry, n_restarts=0)

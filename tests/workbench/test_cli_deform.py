@@ -131,6 +131,16 @@ def test_deform_reports_bad_input(study, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "bad.json" in err and "elbow" in err
     assert not (tmp_path / "x.nii.gz").exists()
+    good = study / "truth" / "pose01_pose.json"
+    # outputs are checked before any work: a clash with the study's own files, or with each other
+    assert main(["deform", str(study), "--pose", str(good), "--out", str(study / "template.nii.gz"), "--force",
+                 "--quiet"]) == 1
+    assert "study's own files" in capsys.readouterr().err
+    assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "a.nii.gz"), "--labels-out",
+                 str(tmp_path / "a.nii.gz"), "--quiet"]) == 1
+    assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "a.nii.gz"), "--field-out",
+                 str(tmp_path / "f.xyz"), "--quiet"]) == 1
+    assert not (tmp_path / "a.nii.gz").exists()
     from workbench.deform_stage import load_weights
 
     s = read_study(study)
@@ -160,3 +170,13 @@ def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
     for b in s.skeleton().bone_names:
         np.testing.assert_array_equal(dense[lab == s.skeleton().label_of(b), w.bones.index(b)], 1.0)
     assert meta["method"] == "harmonic" and not list(tmp_path.glob("*.stl")) and not list(root.glob("*.stl"))
+    # an EVD model is tied to the weights it was built with
+    assert main(["model", str(root), "--quiet"]) == 0
+    # distance weights replace the weights but keep the mesh for a later harmonic run ...
+    assert main(["weights", str(root), "--method", "distance", "--force", "--quiet"]) == 0
+    assert hashlib.sha256((root / "skinning" / "tetmesh.vtu").read_bytes()).hexdigest() == first["tetmesh.vtu"]
+    # ... and the model built on the harmonic weights is now refused
+    from workbench.deform_stage import load_model
+
+    with pytest.raises(InputFileError, match="other skinning weights"):
+        load_model(read_study(root))
