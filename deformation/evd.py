@@ -42,27 +42,32 @@ __all__ = ["vbd_forward", "ExampleVolumeDeformation", "EVD_WEIGHTINGS"]
 EVD_WEIGHTINGS = ("psd", "wpsd")
 
 
+@nb.njit(cache=True, inline="always")
+def _evd_point(a, i, j, k, v, disp, s, idx, val, t, out):
+    """Rhee Eq. 6 at grid point (i, j, k) = voxel v: E(v0 + Σ_p s_p d_p) with v0 = a·(i, j, k, 1)."""
+    p0 = a[0, 0] * i + a[0, 1] * j + a[0, 2] * k + a[0, 3]
+    p1 = a[1, 0] * i + a[1, 1] * j + a[1, 2] * k + a[1, 3]
+    p2 = a[2, 0] * i + a[2, 1] * j + a[2, 2] * k + a[2, 3]
+    for p in range(disp.shape[1]):
+        sp = s[p]
+        p0 += sp * disp[v, p, 0]
+        p1 += sp * disp[v, p, 1]
+        p2 += sp * disp[v, p, 2]
+    o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)
+    out[k, j, i, 0] = o0
+    out[k, j, i, 1] = o1
+    out[k, j, i, 2] = o2
+
+
 @nb.njit(cache=True, parallel=True)
 def _forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out):
     """out[v] = (Σ_m w_m T_{b_m}) (v + Σ_p s_p disp[v, p]) for every grid point v (index → world a)."""
-    P = disp.shape[1]
     nxy = nx * ny
     for k in nb.prange(nz):
         for j in range(ny):
             for i in range(nx):
                 v = k * nxy + j * nx + i
-                p0 = a[0, 0] * i + a[0, 1] * j + a[0, 2] * k + a[0, 3]
-                p1 = a[1, 0] * i + a[1, 1] * j + a[1, 2] * k + a[1, 3]
-                p2 = a[2, 0] * i + a[2, 1] * j + a[2, 2] * k + a[2, 3]
-                for p in range(P):
-                    sp = s[p]
-                    p0 += sp * disp[v, p, 0]
-                    p1 += sp * disp[v, p, 1]
-                    p2 += sp * disp[v, p, 2]
-                o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)
-                out[k, j, i, 0] = o0
-                out[k, j, i, 1] = o1
-                out[k, j, i, 2] = o2
+                _evd_point(a, i, j, k, v, disp, s, idx, val, t, out)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -126,18 +131,7 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
                 else:
                     for q in range(P):
                         phi[q] = 1.0 / P
-                p0 = a[0, 0] * i + a[0, 1] * j + a[0, 2] * k + a[0, 3]
-                p1 = a[1, 0] * i + a[1, 1] * j + a[1, 2] * k + a[1, 3]
-                p2 = a[2, 0] * i + a[2, 1] * j + a[2, 2] * k + a[2, 3]
-                for p in range(P):
-                    sp = phi[p]
-                    p0 += sp * disp[v, p, 0]
-                    p1 += sp * disp[v, p, 1]
-                    p2 += sp * disp[v, p, 2]
-                o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)
-                out[k, j, i, 0] = o0
-                out[k, j, i, 1] = o1
-                out[k, j, i, 2] = o2
+                _evd_point(a, i, j, k, v, disp, phi, idx, val, t, out)
 
 
 def _check_grid_weights(geometry: GridGeometry, weights: SkinningWeights) -> None:

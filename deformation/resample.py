@@ -616,7 +616,6 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
 @nb.njit(cache=True, parallel=True)
 def _guess_kernel(fwd, pts, guesses, tol, max_iter, max_step, out_x, out_res, out_status):
     """Newton from explicit guesses (template index) for each world point; keeps the best."""
-    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     for n in nb.prange(pts.shape[0]):
         y = np.empty(3)
         xb = np.empty(3)

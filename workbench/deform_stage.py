@@ -118,7 +118,7 @@ def run_weights_stage(folder, *, method: str = "harmonic", edge_length_mm: float
             old_mesh = final / "tetmesh.vtu"
             if old_mesh.exists() and not remesh:
                 if edge_length_mm is not None:
-                    say(f"note: --edge-length-mm is ignored: the study's kept mesh is used (pass --remesh)")
+                    say("note: --edge-length-mm is ignored: the study's kept mesh is used (pass --remesh)")
                 mesh, _ = read_tetmesh(old_mesh)
                 say(f"using the study's tet mesh {old_mesh} ({mesh.n_vertices} vertices, {mesh.n_tets} tets)")
                 info["mesh"] = "kept"

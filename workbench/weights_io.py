@@ -72,7 +72,7 @@ def read_voxel_weights(path: str | os.PathLike) -> tuple[SkinningWeights, GridGe
     idx = read_vector_image(path.parent / doc["index"])
     val = read_vector_image(path.parent / doc["value"], components=idx.n_components)
     idx.geometry.check_same(val.geometry, names=(doc["index"], doc["value"]),
-                            remedy=f"write the weight map again (workbench weights --force)")
+                            remedy="write the weight map again (workbench weights --force)")
     if idx.data.dtype.kind not in "iu":
         raise InputFileError(f"{path.parent / doc['index']}: bone indices must be integers, got "
                              f"{idx.data.dtype}.", path.parent / doc["index"])
