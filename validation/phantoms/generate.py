@@ -82,7 +82,10 @@ class PhantomScan:
     ``correspondence`` is the ``scan_to_template`` displacement field on the
     scan grid: for every scan voxel at world ``x``, ``x + u(x)`` is the template
     world position it came from (mm).  ``markers`` is a list of
-    ``{"name", "template": [x,y,z], "scan": [x,y,z]}``.
+    ``{"name", "template": [x,y,z], "scan": [x,y,z]}``.  ``template_to_scan``
+    is the exact forward map on the template grid (scan position − template
+    voxel, mm): what EVD (Rhee Eq. 7) needs, and not recoverable from
+    ``correspondence`` where the posing folds.
     """
 
     id: str
