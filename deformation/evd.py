@@ -31,7 +31,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry
-from .posespace import PoseSpace, U_FLOOR, _chol_factor, _chol_subst, dof_bones
+from .posespace import PoseSpace, _chol_factor, _chol_subst, _weighted_sq, _width, dof_bones
 from .skinning import SkinningWeights, _as_stack, blend_point
 
 if nb.config.THREADING_LAYER == "default":
@@ -76,43 +76,21 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
     P = disp.shape[1]
     n_bones = bone_pair.shape[0]
     nxy = nx * ny
+    flat = bone_pair.reshape(n_bones, P * P)
+    glob_pair = flat.sum(axis=0)
+    glob_q = bone_q.sum(axis=0)
     for k in nb.prange(nz):
-        pair = np.empty((P, P))
+        pair_flat = np.empty(P * P)
         phi = np.empty(P)
         work = np.empty(P)
-        glob_pair = np.zeros((P, P))
-        glob_q = np.zeros(P)
-        for b in range(n_bones):
-            for q in range(P):
-                glob_q[q] += bone_q[b, q]
-                for r in range(P):
-                    glob_pair[q, r] += bone_pair[b, q, r]
         for j in range(ny):
             for i in range(nx):
                 v = k * nxy + j * nx + i
-                # pair distances d_v²(a_q, a_r) = Σ_b u_b D_b[q, r] with u_b = U_FLOOR + w_b
-                for q in range(P):
-                    phi[q] = U_FLOOR * glob_q[q]
-                    for r in range(P):
-                        pair[q, r] = U_FLOOR * glob_pair[q, r]
-                for m in range(idx.shape[1]):
-                    w = val[v, m]
-                    if w == 0.0:
-                        continue
-                    b = idx[v, m]
-                    for q in range(P):
-                        phi[q] += w * bone_q[b, q]
-                        for r in range(P):
-                            pair[q, r] += w * bone_pair[b, q, r]
-                # Gaussian width: mean nearest-neighbour training distance in this metric
-                tot = 0.0
-                for q in range(P):
-                    mn = np.inf
-                    for r in range(P):
-                        if r != q and pair[q, r] < mn:
-                            mn = pair[q, r]
-                    tot += np.sqrt(max(mn, 0.0))
-                sig = tot / P
+                # Kurihara Eq. 16 per voxel: squared pose distances to the query and between the examples
+                _weighted_sq(idx, val, v, bone_q, glob_q, phi)
+                _weighted_sq(idx, val, v, flat, glob_pair, pair_flat)
+                pair = pair_flat.reshape(P, P)
+                sig = _width(pair, P)  # Gaussian width: mean nearest-neighbour distance in this metric
                 inv = 1.0 / (sig * sig) if sig > 0.0 else 0.0
                 for q in range(P):
                     phi[q] = np.exp(-phi[q] * inv)

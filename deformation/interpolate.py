@@ -180,18 +180,23 @@ def _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, row):
                 out[row, c] = _lerp_component(f, b, di, dj, dk, ti, tj, tk, c)
 
 
+@nb.njit(cache=True, inline="always")
+def _interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill):
+    """Scalar ``f`` at continuous index (ci, cj, ck): ``fill`` outside, nearest or trilinear inside."""
+    if not _inside(ci, cj, ck, nx, ny, nz):
+        return fill
+    if order == 0:
+        return f[_nearest(ci, cj, ck, nx, ny, nz)]
+    b, di, dj, dk, ti, tj, tk = _linear(ci, cj, ck, nx, ny, nz)
+    return _lerp_scalar(f, b, di, dj, dk, ti, tj, tk)
+
+
 @nb.njit(cache=True, parallel=True)
 def _sample_points_scalar(f, nx, ny, nz, w2i, points, order, fill, out):
     """``out[p]`` = scalar data ``f`` sampled at world point ``points[p]``; ``w2i`` world → index."""
     for p in nb.prange(points.shape[0]):
         ci, cj, ck = _to_index(w2i, np.float64(points[p, 0]), np.float64(points[p, 1]), np.float64(points[p, 2]))
-        if not _inside(ci, cj, ck, nx, ny, nz):
-            out[p] = fill
-        elif order == 0:
-            out[p] = f[_nearest(ci, cj, ck, nx, ny, nz)]
-        else:
-            b, di, dj, dk, ti, tj, tk = _linear(ci, cj, ck, nx, ny, nz)
-            out[p] = _lerp_scalar(f, b, di, dj, dk, ti, tj, tk)
+        out[p] = _interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -221,14 +226,7 @@ def _sample_displaced_scalar(f, nx, ny, nz, w2i, i2w, disp, order, fill, out):
         for i in range(tx):
             x, y, z = _displaced_point(i2w, disp, k, j, i)
             ci, cj, ck = _to_index(w2i, x, y, z)
-            p = r * tx + i
-            if not _inside(ci, cj, ck, nx, ny, nz):
-                out[p] = fill
-            elif order == 0:
-                out[p] = f[_nearest(ci, cj, ck, nx, ny, nz)]
-            else:
-                b, di, dj, dk, ti, tj, tk = _linear(ci, cj, ck, nx, ny, nz)
-                out[p] = _lerp_scalar(f, b, di, dj, dk, ti, tj, tk)
+            out[r * tx + i] = _interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill)
 
 
 @nb.njit(cache=True, parallel=True)

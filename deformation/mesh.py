@@ -12,7 +12,30 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _graph_components
 
-__all__ = ["SurfaceMesh", "connected_components", "submesh"]
+__all__ = ["SurfaceMesh", "connected_components", "submesh", "checked_cells"]
+
+
+def checked_cells(vertices, cells, corners: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only float64 ``(n, 3)`` vertices and int64 ``(m, corners)`` cells, validated (meshes' shared check)."""
+    v = np.array(vertices, dtype=np.float64, copy=True)
+    t = np.asarray(cells)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices must have shape (n, 3), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        bad = int(np.argmin(np.isfinite(v).all(axis=1)))
+        raise ValueError(f"vertices must be finite; vertex {bad} is {v[bad].tolist()}")
+    if t.size == 0:
+        t = np.zeros((0, corners), dtype=np.int64)
+    if t.ndim != 2 or t.shape[1] != corners:
+        raise ValueError(f"{name} must have shape (m, {corners}), got {t.shape}")
+    if t.dtype.kind not in "iu" and not np.all(t == np.round(t)):
+        raise ValueError(f"{name} must hold integer vertex indices")
+    t = np.array(t, dtype=np.int64, copy=True)
+    if t.size and (t.min() < 0 or t.max() >= len(v)):
+        raise ValueError(f"{name[:-1]} indices must lie in [0, {len(v)}), got range [{t.min()}, {t.max()}]")
+    v.flags.writeable = False
+    t.flags.writeable = False
+    return v, t
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,27 +65,7 @@ class SurfaceMesh:
     triangles: np.ndarray
 
     def __post_init__(self):
-        v = np.array(self.vertices, dtype=np.float64, copy=True)
-        t = np.asarray(self.triangles)
-        if v.ndim != 2 or v.shape[1] != 3:
-            raise ValueError(f"vertices must have shape (n, 3), got {v.shape}")
-        if not np.all(np.isfinite(v)):
-            bad = int(np.argmin(np.isfinite(v).all(axis=1)))
-            raise ValueError(f"vertices must be finite; vertex {bad} is {v[bad].tolist()}")
-        if t.size == 0:
-            t = np.zeros((0, 3), dtype=np.int64)
-        if t.ndim != 2 or t.shape[1] != 3:
-            raise ValueError(f"triangles must have shape (m, 3), got {t.shape}")
-        if t.dtype.kind not in "iu":
-            if not np.all(t == np.round(t)):
-                raise ValueError("triangles must hold integer vertex indices")
-        t = np.array(t, dtype=np.int64, copy=True)
-        if t.size and (t.min() < 0 or t.max() >= len(v)):
-            raise ValueError(
-                f"triangle indices must lie in [0, {len(v)}), got range [{t.min()}, {t.max()}]"
-            )
-        v.flags.writeable = False
-        t.flags.writeable = False
+        v, t = checked_cells(self.vertices, self.triangles, 3, "triangles")
         object.__setattr__(self, "vertices", v)
         object.__setattr__(self, "triangles", t)
 

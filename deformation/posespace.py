@@ -188,24 +188,22 @@ def _chol_subst(a, b, n, work):
 
 
 @nb.njit(cache=True, inline="always")
-def _point_u(idx, val, j, n_bones, ubone):
-    for b in range(n_bones):
-        ubone[b] = U_FLOOR
-    for s in range(idx.shape[1]):
-        ubone[idx[j, s]] += val[j, s]
+def _weighted_sq(idx, val, j, per_bone, glob, out):
+    """Kurihara Eq. 16 squared: ``out[r] = Σ_b u_jb per_bone[b, r]`` with ``u_jb = U_FLOOR + w_jb``.
 
-
-@nb.njit(cache=True, inline="always")
-def _point_pair(bone_pair, ubone, pair):
-    n_bones, P = bone_pair.shape[0], bone_pair.shape[1]
-    for i in range(P):
-        for l in range(P):
-            pair[i, l] = 0.0
-    for b in range(n_bones):
-        u = ubone[b]
-        for i in range(P):
-            for l in range(P):
-                pair[i, l] += u * bone_pair[b, i, l]
+    ``per_bone (n_bones, R)`` holds the squared DOF differences summed per bone (for the query pose,
+    ``R = P``; for the training pairs, ``R = P²``) and ``glob (R,)`` their sum over bones, which carries
+    the floor, so only the point's ≤ K influencing bones are visited.
+    """
+    for r in range(out.shape[0]):
+        out[r] = U_FLOOR * glob[r]
+    for m in range(idx.shape[1]):
+        w = val[j, m]
+        if w == 0.0:
+            continue
+        b = idx[j, m]
+        for r in range(out.shape[0]):
+            out[r] += w * per_bone[b, r]
 
 
 @nb.njit(cache=True, inline="always")
@@ -225,14 +223,15 @@ def _wpsd_coefficients(idx, val, bone_pair, out_c, out_inv_sigma2):
     """Per point: C = Φ⁻¹ (P×P) and 1/σ² (Kurihara: "we can precompute coefficient c_ij for every vertex")."""
     n = idx.shape[0]
     n_bones, P = bone_pair.shape[0], bone_pair.shape[1]
+    flat = bone_pair.reshape(n_bones, P * P)
+    glob = flat.sum(axis=0)
     for j in nb.prange(n):
-        ubone = np.empty(n_bones)
-        pair = np.empty((P, P))
+        pair_flat = np.empty(P * P)
         a = np.empty((P, P))
         col = np.empty(P)
         work = np.empty(P)
-        _point_u(idx, val, j, n_bones, ubone)
-        _point_pair(bone_pair, ubone, pair)
+        _weighted_sq(idx, val, j, flat, glob, pair_flat)
+        pair = pair_flat.reshape(P, P)
         sig = _width(pair, P)
         inv = 1.0 / (sig * sig)
         out_inv_sigma2[j] = inv
@@ -292,21 +291,11 @@ class PointPoseSpace:
 @nb.njit(cache=True, parallel=True)
 def _wpsd_weights(idx, val, bone_q, coef, inv_sigma2, out):
     n = idx.shape[0]
-    n_bones, P = bone_q.shape[0], bone_q.shape[1]
-    glob_q = np.zeros(P)
-    for b in range(n_bones):
-        for i in range(P):
-            glob_q[i] += bone_q[b, i]
+    P = bone_q.shape[1]
+    glob_q = bone_q.sum(axis=0)
     for j in nb.prange(n):
         phi = np.empty(P)
-        for i in range(P):
-            phi[i] = U_FLOOR * glob_q[i]
-        for m in range(idx.shape[1]):
-            w = val[j, m]
-            if w == 0.0:
-                continue
-            for i in range(P):
-                phi[i] += w * bone_q[idx[j, m], i]
+        _weighted_sq(idx, val, j, bone_q, glob_q, phi)
         for i in range(P):
             phi[i] = np.exp(-phi[i] * inv_sigma2[j])
         tot = 0.0
@@ -400,15 +389,7 @@ def _wpsd_skin_kernel(base, idx, val, t, coef, inv_sigma2, bone_q, glob_q, out):
     n, P = base.shape[0], base.shape[1]
     for j in nb.prange(n):
         phi = np.empty(P)
-        for i in range(P):
-            phi[i] = U_FLOOR * glob_q[i]
-        for m in range(idx.shape[1]):
-            w = val[j, m]
-            if w == 0.0:
-                continue
-            b = idx[j, m]
-            for i in range(P):
-                phi[i] += w * bone_q[b, i]
+        _weighted_sq(idx, val, j, bone_q, glob_q, phi)
         inv = inv_sigma2[j]
         for i in range(P):
             phi[i] = np.exp(-phi[i] * inv)

@@ -59,7 +59,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _graph_components
 
 from .geometry import GridGeometry, Volume
-from .mesh import SurfaceMesh
+from .mesh import SurfaceMesh, checked_cells
 
 __all__ = ["TetMesh", "TIE_DIRECTION", "body_surface", "tetrahedralize", "rasterize", "locate"]
 
@@ -105,24 +105,7 @@ class TetMesh:
     tets: np.ndarray
 
     def __post_init__(self):
-        v = np.array(self.vertices, dtype=np.float64, copy=True)
-        t = np.asarray(self.tets)
-        if v.ndim != 2 or v.shape[1] != 3:
-            raise ValueError(f"vertices must have shape (n, 3), got {v.shape}")
-        if not np.all(np.isfinite(v)):
-            bad = int(np.argmin(np.isfinite(v).all(axis=1)))
-            raise ValueError(f"vertices must be finite; vertex {bad} is {v[bad].tolist()}")
-        if t.size == 0:
-            t = np.zeros((0, 4), dtype=np.int64)
-        if t.ndim != 2 or t.shape[1] != 4:
-            raise ValueError(f"tets must have shape (m, 4), got {t.shape}")
-        if t.dtype.kind not in "iu" and not np.all(t == np.round(t)):
-            raise ValueError("tets must hold integer vertex indices")
-        t = np.array(t, dtype=np.int64, copy=True)
-        if t.size and (t.min() < 0 or t.max() >= len(v)):
-            raise ValueError(f"tet indices must lie in [0, {len(v)}), got range [{t.min()}, {t.max()}]")
-        v.flags.writeable = False
-        t.flags.writeable = False
+        v, t = checked_cells(self.vertices, self.tets, 4, "tets")
         object.__setattr__(self, "vertices", v)
         object.__setattr__(self, "tets", t)
 
