@@ -310,7 +310,7 @@ def cmd_pose(args) -> int:
     if args.outlier_factor < 0 or 0 < args.outlier_factor <= 1:
         raise ValueError(f"--outlier-factor must be 0 (off) or above 1 (a multiple of the joint's median miss), "
                          f"got {args.outlier_factor}")
-    say = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    say = _say(args)
     report = run_pose_stage(args.study, method=args.method, seeds=args.seeds, modality=args.modality,
                             threshold=args.threshold, init=args.init, scan_ids=args.scan, metric=args.metric,
                             interpolation=3 if args.interpolation == "bspline" else 1,

@@ -39,9 +39,9 @@ def test_vbd_forward_is_the_blend_of_the_bones_transforms(knee):
     np.testing.assert_allclose(fwd, expect, atol=1e-4)
     # bone voxels (one-hot weights) move exactly rigidly
     lab = ph.template()[1].data.reshape(-1)
-    femur = lab == ph.skeleton.label_of("tibia")
+    tibia_voxels = lab == ph.skeleton.label_of("tibia")
     tt = pose.transforms["tibia"]
-    np.testing.assert_allclose(fwd[femur], x[femur] @ tt[:3, :3].T + tt[:3, 3], atol=1e-4)
+    np.testing.assert_allclose(fwd[tibia_voxels], x[tibia_voxels] @ tt[:3, :3].T + tt[:3, 3], atol=1e-4)
 
 
 @pytest.mark.parametrize("pose_index", [1, 2])
@@ -64,6 +64,7 @@ def test_vbd_forward_then_backward_returns_every_unfolded_voxel(knee, pose_index
     # proves that F folds over at that place (distance-based VBD at 70° does, over a few % of the body).
     other = err_vox > 0.1
     assert np.all(res[other] <= tol)
+    # measured 1.1 % at 35° and 3.9 % at 70°; the bounds allow ~1.5× that for another phantom seed
     assert other.mean() < (0.02 if pose_index == 1 else 0.06), other.mean()
     # where the forward map is locally one-to-one (no folded voxel within 3 voxels) nearly all
     # are recovered; the few left are overlaps with folds further away
@@ -72,6 +73,7 @@ def test_vbd_forward_then_backward_returns_every_unfolded_voxel(knee, pose_index
     from scipy import ndimage
 
     near_fold = ndimage.binary_dilation(np.linalg.det(jac) <= 0, iterations=3).reshape(-1)[body]
+    # measured 0.02 % and 0.05 %: overlaps of folds further away than 3 voxels
     assert np.mean(other[~near_fold]) < 0.005
 
 
