@@ -1,0 +1,180 @@
+"""General-purpose B-spline registrations, run in the same harness as the adaptive one.
+
+The peers a researcher would otherwise reach for, on the same inputs and
+returning the same thing — a ``scan_to_template`` field on the scan grid — so
+that every comparison (``benchmarks/registration.py``,
+:mod:`validation.registration_protocol`) is made in one run on the same data:
+
+* :func:`sitk_bspline` — SimpleITK's multi-resolution free-form deformation
+  (cubic B-spline transform, MI or mean squares, gradient descent with line search, a control grid
+  refined ×2 per level);
+* :func:`elastix_bspline` — elastix's B-spline registration through
+  ``itk-elastix`` (the optional ``bench`` extra: ``pip install -e '.[bench]'``),
+  its default B-spline parameter map with a stated final grid spacing.
+
+With an initial field ``φ₀`` (e.g. VBD), the template is first resampled onto
+the scan grid through ``φ₀``; the baseline registers the scan to that image,
+giving ``T`` (scan point → point of the initialised image), and the result is
+``φ₀ ∘ T`` (:func:`deformation.fields.compose`), never a sum.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+
+from deformation.fields import compose, from_transform
+from deformation.geometry import Volume
+from deformation.interpolate import sample_displaced_array
+
+__all__ = ["BaselineResult", "sitk_bspline", "elastix_bspline", "elastix_available", "warp_template"]
+
+
+@dataclass
+class BaselineResult:
+    name: str
+    correspondence: Volume  #: scan_to_template (mm) on the scan grid
+    registered: Volume  #: the template resampled onto the scan grid through it
+    seconds: float
+    parameters: dict
+
+
+def _air(moving: Volume) -> float:
+    d = moving.data
+    border = np.concatenate([d[[0, -1]].ravel(), d[:, [0, -1]].ravel(), d[:, :, [0, -1]].ravel()])
+    return float(np.median(border))
+
+
+def warp_template(moving: Volume, field: Volume) -> Volume:
+    """The template pulled onto ``field``'s grid through a ``scan_to_template`` field (trilinear, air outside)."""
+    g = field.geometry
+    out = sample_displaced_array(moving.data, moving.geometry.world_to_index_matrix, g, field.data, 1, _air(moving))
+    return Volume(out.astype(np.float32), g)
+
+
+def _initialised(fixed: Volume, moving: Volume, initial: Volume | None) -> Volume:
+    if initial is None:
+        if moving.geometry.is_close(fixed.geometry):
+            return Volume(moving.data.astype(np.float32), fixed.geometry)
+        initial = Volume(np.zeros(fixed.geometry.array_shape + (3,)), fixed.geometry)
+    fixed.geometry.check_same(initial.geometry, names=("fixed image", "initial correspondence"))
+    return warp_template(moving, initial)
+
+
+def _finish(name, fixed, moving, initial, t_field: Volume, seconds, params) -> BaselineResult:
+    corr = t_field if initial is None else compose(initial, t_field)
+    corr = Volume(corr.data.astype(np.float32), fixed.geometry)
+    return BaselineResult(name, corr, warp_template(moving, corr), seconds, params)
+
+
+def sitk_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = None, metric: str = "mi",
+                 grid_spacing_mm: float = 40.0, shrink=(4, 2, 1), smoothing_voxels=(2.0, 1.0, 0.0),
+                 iterations: int = 100, sampling: float = 0.25, bins: int = 32, seed: int = 0) -> BaselineResult:
+    """SimpleITK multi-resolution B-spline registration of the template to a scan.
+
+    ``grid_spacing_mm`` is the control-point spacing at the finest level (the
+    coarsest is ``2**(levels-1)`` times coarser: the mesh is refined ×2 per
+    level).  ``metric`` is ``"mi"`` (Mattes, ``bins`` bins) or ``"ssd"`` (mean
+    squares).  Random metric sampling (``sampling`` of the voxels) uses
+    ``seed``.
+    """
+    if metric not in ("mi", "ssd"):
+        raise ValueError(f"metric must be 'mi' or 'ssd', got {metric!r}")
+    if len(shrink) != len(smoothing_voxels):
+        raise ValueError("shrink and smoothing_voxels need one entry per level")
+    t0 = time.perf_counter()
+    f = sitk.Cast(fixed.to_sitk(), sitk.sitkFloat32)
+    m = sitk.Cast(_initialised(fixed, moving, initial).to_sitk(), sitk.sitkFloat32)
+    levels = len(shrink)
+    extent = np.asarray(fixed.geometry.extent_mm)
+    coarse = grid_spacing_mm * 2 ** (levels - 1)
+    mesh = [max(1, int(round(e / coarse))) for e in extent]
+    tx = sitk.BSplineTransformInitializer(f, mesh, 3)
+    r = sitk.ImageRegistrationMethod()
+    if metric == "mi":
+        r.SetMetricAsMattesMutualInformation(numberOfHistogramBins=bins)
+    else:
+        r.SetMetricAsMeanSquares()
+    r.SetMetricSamplingStrategy(r.RANDOM)
+    r.SetMetricSamplingPercentage(float(sampling), int(seed))
+    r.SetInterpolator(sitk.sitkLinear)
+    # Gradient descent with line search and physical-shift scales (SimpleITK's multi-resolution B-spline
+    # example): L-BFGS-B keeps the scales of the first mesh and fails once the mesh is refined.
+    r.SetOptimizerAsGradientDescentLineSearch(learningRate=5.0, numberOfIterations=iterations,
+                                              convergenceMinimumValue=1e-5, convergenceWindowSize=5)
+    r.SetOptimizerScalesFromPhysicalShift()
+    r.SetShrinkFactorsPerLevel(list(shrink))
+    r.SetSmoothingSigmasPerLevel(list(smoothing_voxels))
+    r.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
+    r.SetInitialTransformAsBSpline(tx, inPlace=True, scaleFactors=[2 ** k for k in range(levels)])
+    out = r.Execute(f, m)
+    field = from_transform(out, fixed.geometry)
+    params = {"metric": metric, "grid_spacing_mm": grid_spacing_mm, "shrink": list(shrink),
+              "smoothing_voxels": list(smoothing_voxels), "iterations": iterations, "sampling": sampling,
+              "bins": bins, "seed": seed, "initial_mesh": mesh, "final_metric": float(r.GetMetricValue()),
+              "stop": r.GetOptimizerStopConditionDescription()}
+    return _finish("sitk-bspline", fixed, moving, initial, field, time.perf_counter() - t0, params)
+
+
+def elastix_available() -> bool:
+    try:
+        import itk  # noqa: F401
+        return hasattr(itk, "elastix_registration_method")
+    except ImportError:
+        return False
+
+
+def _to_itk(vol: Volume):
+    import itk
+
+    img = itk.image_from_array(np.ascontiguousarray(vol.data, dtype=np.float32))
+    g = vol.geometry
+    img.SetSpacing([float(v) for v in g.spacing])
+    img.SetOrigin([float(v) for v in g.origin])
+    img.SetDirection(itk.matrix_from_array(np.ascontiguousarray(g.direction_matrix, dtype=np.float64)))
+    return img
+
+
+def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = None, metric: str = "mi",
+                    grid_spacing_mm: float = 20.0, resolutions: int = 3, iterations: int = 500,
+                    seed: int = 0) -> BaselineResult:
+    """elastix B-spline registration (itk-elastix), its default B-spline map with the given grid and metric.
+
+    Raises ``ImportError`` naming the extra to install when itk-elastix is absent.
+    """
+    if not elastix_available():
+        raise ImportError("elastix baseline needs itk-elastix: pip install -e '.[bench]' (or pip install itk-elastix)")
+    import itk
+
+    if metric not in ("mi", "ssd"):
+        raise ValueError(f"metric must be 'mi' or 'ssd', got {metric!r}")
+    t0 = time.perf_counter()
+    f = _to_itk(fixed)
+    m = _to_itk(_initialised(fixed, moving, initial))
+    po = itk.ParameterObject.New()
+    p = po.GetDefaultParameterMap("bspline", int(resolutions))
+    p["FinalGridSpacingInPhysicalUnits"] = [str(float(grid_spacing_mm))]
+    p["Metric"] = ["AdvancedMattesMutualInformation" if metric == "mi" else "AdvancedMeanSquares"]
+    p["MaximumNumberOfIterations"] = [str(int(iterations))]
+    p["RandomSeed"] = [str(int(seed))]
+    p["WriteResultImage"] = ["false"]
+    po.AddParameterMap(p)
+    with tempfile.TemporaryDirectory(prefix="avw-elastix-") as tmp:
+        cwd = os.getcwd()
+        os.chdir(tmp)  # elastix may drop log files into the working folder
+        try:
+            _, result = itk.elastix_registration_method(f, m, parameter_object=po, log_to_console=False,
+                                                        output_directory=tmp)
+            field = itk.transformix_deformation_field(m, result)
+        finally:
+            os.chdir(cwd)
+    u = np.asarray(itk.array_from_image(field), dtype=np.float64)  # (nz, ny, nx, 3): fixed x → x + u in moving
+    t_field = Volume(u, fixed.geometry)
+    params = {"metric": metric, "grid_spacing_mm": grid_spacing_mm, "resolutions": resolutions,
+              "iterations": iterations, "seed": seed, "parameter_map": "elastix default 'bspline'"}
+    return _finish("elastix-bspline", fixed, moving, initial, t_field, time.perf_counter() - t0, params)
