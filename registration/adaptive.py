@@ -75,7 +75,7 @@ from deformation.splines import cps_green
 
 from .metrics import HistogramBins, MI_BINS, block_statistics, similarity
 
-__all__ = ["AdaptiveSettings", "AdaptiveResult", "StepRecord", "LevelRecord", "register_adaptive",
+__all__ = ["AdaptiveSettings", "AdaptiveResult", "StepRecord", "LevelRecord", "register_adaptive", "register_block",
            "block_layout", "local_step_basis", "OPTIMIZERS"]
 
 numba.config.THREADING_LAYER = "omp"
@@ -142,6 +142,15 @@ class AdaptiveSettings:
         """Rhee et al. 2011 as published: levels 3–5, Nelder–Mead, tolerance 1.5 × base, no regulariser."""
         d = dict(levels=(3, 5), optimizer="neldermead", tolerance_factor=1.5, regularization=0.0,
                  max_visits=3, min_improvement=0.005, eval_voxels=10)
+        d.update(overrides)
+        return cls(**d)
+
+    @classmethod
+    def initialised(cls, **overrides) -> "AdaptiveSettings":
+        """Ours after an articulated (VBD) initialisation: the large motion is done, so start at level 3
+        and regularise harder (measured on the soft-posed knee: level 1 starts and λ = 1 moved
+        well-initialised soft tissue away from the truth)."""
+        d = dict(levels=(3, 4), regularization=3.0)
         d.update(overrides)
         return cls(**d)
 
@@ -815,6 +824,25 @@ def _run_simplex(name, cost, x0, bound, step, max_evals, xtol):
     except (nlopt.RoundoffLimited, RuntimeError, ValueError):
         pass  # keep the best point seen (NLopt raises on round-off; the best iterate is still valid)
     return best[0], best[1]
+
+
+def register_block(fixed: Volume, moving: Volume, level: int, block, *, initial: Volume | None = None,
+                   rigid_mask: Volume | None = None, settings: AdaptiveSettings | None = None):
+    """One local step (Algorithm 1, lines 6–10) on block ``(i, j, k)`` of ``level``, whatever its mismatch.
+
+    Returns ``(StepRecord, correspondence)``: the step's record and the
+    ``scan_to_template`` field after it.  For tests and for inspecting what a
+    step does; :func:`register_adaptive` runs the whole loop.
+    """
+    settings = settings or AdaptiveSettings()
+    reg = _Registration(fixed, moving, initial, rigid_mask, settings, None)
+    lv = _Level(reg, int(level))
+    nx, ny, nz = lv.nb
+    i, j, k = (int(v) for v in block)
+    if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
+        raise ValueError(f"block {tuple(block)} is outside level {level}'s {nx}×{ny}×{nz} blocks")
+    rec = reg._step(lv, (k * ny + j) * nx + i, 0)
+    return rec, Volume(reg.disp.astype(np.float32), reg.g)
 
 
 def register_adaptive(fixed: Volume, moving: Volume, *, initial: Volume | None = None,

@@ -35,6 +35,7 @@ examples:
   workbench weights knee-study                            # harmonic skinning weights (tet mesh kept in the study)
   workbench model knee-study                              # EVD model from the ground-truth correspondences
   workbench deform knee-study --pose bend.json --out bent.nii.gz
+  workbench register knee-study                           # locally adaptive registration (Rhee §4)
 """
 
 WEIGHTS_HELP = """Skinning weights for every template voxel (Kurihara Eq. 3; DESIGN step 4).
@@ -61,6 +62,38 @@ ground truth (phantom studies); registrations (issue D) will follow.
 Writes model/evd.json and model/evd_displacements.mha.  Needs `workbench
 weights` first.
 """
+
+REGISTER_HELP = """\
+Register the template to each scan by intensity alone with the locally
+adaptive block registration of Rhee et al. 2011 (§4, Algorithm 1): the
+worst-matching block of a hierarchy gets 8 clamped-plate-spline control
+points, their 24 displacement values are optimised by an NLopt simplex over
+the block's 3x3x3 neighbourhood, each accepted step is composed into the
+running field, and the blocks are refined level by level.
+
+--init vbd (default) starts from VBD (Rhee Eq. 2) to the scan's pose: the
+estimated pose of `workbench pose`, or the ground-truth pose of a phantom
+when there is none (--pose).  It needs `workbench weights` first.  The bone
+labels then become zero-displacement control points.  --init none starts
+from the identity (Rhee's Table 2 protocol).
+
+Writes registration/<scan>/ (correspondence.mha: scan -> template field in
+mm on the scan grid, the convention of the truth field; template_to_scan.mha;
+registered.nii.gz; log.json) and names them in study.json.  Open the field in
+3D Slicer as a transform, the registered volume beside the scan.
+
+--preset paper gives the published settings (levels 3-5, Nelder-Mead,
+tolerance 1.5 x the base MI, no regulariser); the default preset differs
+where measurements on the phantoms favour it (README, "Registration"):
+BOBYQA, a bending-energy regulariser, coarser first levels without an
+initialisation (1-4), levels 3-4 and a stiffer regulariser after VBD.
+
+examples:
+  workbench register knee-study                       # all scans, VBD init
+  workbench register knee-study --scan pose01 --init none --levels 3 5
+  workbench register knee-study --preset paper --seed 3
+"""
+
 
 DEFORM_HELP = """Deform the template to a pose and write the posed volume and its label map
 on the template's grid (same geometry), by EVD (Rhee Eq. 6) when the study
@@ -255,6 +288,33 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--force", action="store_true", help="replace existing output files")
     de.add_argument("--quiet", action="store_true", help="no progress lines")
     de.set_defaults(func=cmd_deform)
+
+    rg = sub.add_parser("register", help="locally adaptive non-rigid registration of the template to the scans "
+                                         "(Rhee §4)", description=REGISTER_HELP,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    rg.add_argument("study", type=Path, help="study folder (holding study.json)")
+    rg.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
+    rg.add_argument("--init", choices=["vbd", "none"], default="vbd",
+                    help="start from VBD to the scan's pose, or from the identity. Default: vbd")
+    rg.add_argument("--pose", choices=["auto", "estimated", "truth"], default="auto", dest="pose_source",
+                    help="pose for --init vbd: 'auto' = estimated if present, else the phantom's truth. "
+                         "Default: auto")
+    rg.add_argument("--preset", choices=["default", "paper"], default="default",
+                    help="settings: ours, or Rhee's as published. Default: default")
+    rg.add_argument("--levels", nargs=2, type=int, metavar=("FIRST", "LAST"),
+                    help="block levels (2**level blocks a side; level 3 = 32^3-voxel blocks on a 256^3 grid). "
+                         "Default: 3 4 after --init vbd, 1 4 after --init none (paper preset: 3 5)")
+    rg.add_argument("--optimizer", choices=["neldermead", "sbplx", "bobyqa", "cobyla"],
+                    help="NLopt algorithm of each local step. Default: bobyqa (paper preset: neldermead)")
+    rg.add_argument("--metric", choices=["auto", "ssd", "mi"],
+                    help="'auto': normalised MI at coarse levels, SSD from level 4 (Rhee §4.1). Default: auto")
+    rg.add_argument("--max-steps", type=int, metavar="N", help="local steps per level at most. Default: 200")
+    rg.add_argument("--seed", type=int, default=0, help="seed of the simplex restarts. Default: 0")
+    rg.add_argument("--no-fix-bones", action="store_true",
+                    help="do not put zero-displacement control points on bone voxels")
+    rg.add_argument("--force", action="store_true", help="replace earlier registrations of these scans")
+    rg.add_argument("--quiet", action="store_true", help="no progress lines")
+    rg.set_defaults(func=cmd_register)
     return p
 
 
@@ -297,6 +357,52 @@ def cmd_deform(args) -> int:
           f"({100 * s['fraction_folded']:.3f} %), {s['n_not_converged']:,} not converged, {s['n_outside']:,} "
           f"outside the template (fill value)")
     print(f"wrote {s['out']} and {s['labels']}" + (f" and {s['field']}" if s["field"] else ""))
+    return 0
+
+
+def cmd_register(args) -> int:
+    from registration.adaptive import AdaptiveSettings
+    from workbench.register_stage import format_summary, run_register_stage
+
+    over = {"seed": args.seed}
+    if args.levels is not None:
+        over["levels"] = tuple(args.levels)
+    for name in ("optimizer", "metric"):
+        if getattr(args, name) is not None:
+            over[name] = getattr(args, name)
+    if args.max_steps is not None:
+        over["max_steps_per_level"] = args.max_steps
+    if args.no_fix_bones:
+        over["fix_bones"] = False
+    if args.preset == "paper":
+        settings = AdaptiveSettings.paper(**over)
+    elif args.init == "vbd":
+        settings = AdaptiveSettings.initialised(**over)
+    else:
+        settings = AdaptiveSettings(**over)
+    say = _say(args)
+    last = [0.0]
+
+    def step(info):
+        if say is None:
+            return
+        if "level_done" in info:
+            lv = info["level_done"]
+            say(f"  level {lv.level}: {lv.steps} steps ({lv.accepted} accepted), {lv.control_points} control "
+                f"points, {lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, stopped: {lv.stopped}, "
+                f"{lv.seconds:.1f} s")
+            return
+        now = time.perf_counter()
+        if now - last[0] >= 2.0:  # one line every 2 s at most
+            last[0] = now
+            say(f"  level {info['level']} step {info['step']} block {tuple(info['block'])}: {info['metric']} "
+                f"{info['block_before']:.4g} -> {info['block_after']:.4g}; {info['elapsed']:.0f} s elapsed, "
+                f"~{info['eta']:.0f} s left in this level")
+
+    out = run_register_stage(args.study, scan_ids=args.scan, init=args.init, pose_source=args.pose_source,
+                             settings=settings, overwrite=args.force, progress=say, step_progress=step)
+    print(format_summary(out))
+    print(f"wrote {args.study / 'registration'}")
     return 0
 
 

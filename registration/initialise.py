@@ -1,0 +1,51 @@
+"""Articulated initialisation and inversion of correspondence fields (Rhee §3.3, Eq. 2; §4 result).
+
+* :func:`vbd_initial_field` — VBD (Rhee Eq. 2) of the template to a scan's
+  pose, as the ``scan_to_template`` field on the scan grid that
+  :func:`registration.adaptive.register_adaptive` starts from;
+* :func:`invert_correspondence` — the inverse of a ``scan_to_template``
+  field: ``template_to_scan`` on the template grid (what EVD, Rhee Eq. 7,
+  needs).
+
+Both invert a forward map by the Newton backward map of
+:mod:`deformation.resample` (seeded by the bones' rigid transforms, so large
+articulated motions converge).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from deformation.evd import vbd_forward
+from deformation.geometry import GridGeometry, Volume
+from deformation.resample import backward_map
+
+__all__ = ["vbd_initial_field", "invert_correspondence"]
+
+
+def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeometry, weights, transforms,
+                      *, body=None) -> tuple[Volume, dict]:
+    """``scan_to_template`` field of VBD (Rhee Eq. 2) on the scan grid, and the backward map's summary.
+
+    ``transforms`` ``(n_bones, 4, 4)`` template → scan, in ``weights.bones``
+    order; ``body`` (template-grid bool array) prefers tissue where the blend
+    is not one-to-one.
+    """
+    t = np.asarray(transforms, float)
+    fwd = vbd_forward(template_geometry, weights, t)
+    bm = backward_map(fwd, template_geometry, scan_geometry, transforms=t,
+                      prefer=None if body is None else np.asarray(body, bool))
+    return bm.scan_to_template(), bm.summary()
+
+
+def invert_correspondence(field: Volume, template_geometry: GridGeometry, *, transforms=None) -> tuple[Volume, dict]:
+    """``template_to_scan`` field on ``template_geometry`` inverting a ``scan_to_template`` ``field``.
+
+    ``transforms`` (optional, ``(n, 4, 4)`` template → scan) seed the solves.
+    Template voxels no scan voxel maps to are marked ``outside`` in the summary.
+    """
+    g = field.geometry
+    fwd = (np.asarray(field.data, np.float64) + g.world_coordinates()).astype(np.float32)
+    inv = None if transforms is None else np.stack([np.linalg.inv(t) for t in np.asarray(transforms, float)])
+    bm = backward_map(fwd, g, template_geometry, transforms=inv)
+    return bm.scan_to_template(), bm.summary()
