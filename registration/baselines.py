@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,17 +122,27 @@ def sitk_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = None
     return _finish("sitk-bspline", fixed, moving, initial, field, time.perf_counter() - t0, params)
 
 
+def _itk():
+    """``import itk`` with its import-time warnings silenced: under ``-W error`` (our test suite) a warning
+    raised half-way through ITK's lazy module loading crashes the interpreter."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import itk
+
+        _ = itk.elastix_registration_method  # the lazy loader imports the elastix module here
+    return itk
+
+
 def elastix_available() -> bool:
     try:
-        import itk  # noqa: F401
-        return hasattr(itk, "elastix_registration_method")
-    except ImportError:
+        _itk()
+        return True
+    except (ImportError, AttributeError):
         return False
 
 
 def _to_itk(vol: Volume):
-    import itk
-
+    itk = _itk()
     img = itk.image_from_array(np.ascontiguousarray(vol.data, dtype=np.float32))
     g = vol.geometry
     img.SetSpacing([float(v) for v in g.spacing])
@@ -149,7 +160,7 @@ def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = N
     """
     if not elastix_available():
         raise ImportError("elastix baseline needs itk-elastix: pip install -e '.[bench]' (or pip install itk-elastix)")
-    import itk
+    itk = _itk()
 
     if metric not in ("mi", "ssd"):
         raise ValueError(f"metric must be 'mi' or 'ssd', got {metric!r}")
@@ -164,7 +175,8 @@ def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = N
     p["RandomSeed"] = [str(int(seed))]
     p["WriteResultImage"] = ["false"]
     po.AddParameterMap(p)
-    with tempfile.TemporaryDirectory(prefix="avw-elastix-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="avw-elastix-") as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ITK's lazy loader imports more modules here (see _itk)
         cwd = os.getcwd()
         os.chdir(tmp)  # elastix may drop log files into the working folder
         try:
