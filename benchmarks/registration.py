@@ -1,0 +1,175 @@
+"""Registration benchmark: the locally adaptive registration against B-spline baselines, one run, same data.
+
+Cases (phantoms with exact ground truth):
+
+* ``table2`` — Rhee §6.1 / Table 2: the knee bent 10° by VBD (``--posing
+  vbd``), no initialisation.  The paper's figures are printed beside ours.
+* ``knee`` — Rhee Table 3: the soft-posed knee (4 poses), the template
+  registered to the 3 other scans after VBD initialisation from the
+  ground-truth poses; MED over body voxels and at the skin markers.
+* ``hand`` — Rhee Table 4: the hand (10 poses), template to the 9 others
+  (slow: add it explicitly).
+
+For every case and method (source = nothing, initialised = VBD, ours,
+SimpleITK's B-spline, elastix's B-spline when itk-elastix is installed — the
+``bench`` extra) it prints MED, marker MED, SSD, CC, MI, the fraction of
+folded body voxels and the time, averaged over the scans, then the ratios of
+our MED and time to each baseline's.  Times are measured in this run on a
+shared machine: compare ratios, not seconds.
+
+Usage::
+
+    .venv/bin/python benchmarks/registration.py                    # table2 and knee, test size (~10 min)
+    .venv/bin/python benchmarks/registration.py --cases table2 --paper-preset
+    .venv/bin/python benchmarks/registration.py --cases hand
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from deformation.geometry import Volume  # noqa: E402
+from deformation.skinning import stack_transforms  # noqa: E402
+from registration.adaptive import AdaptiveSettings, register_adaptive  # noqa: E402
+from registration.baselines import elastix_available, elastix_bspline, sitk_bspline, warp_template  # noqa: E402
+from registration.initialise import vbd_initial_field  # noqa: E402
+from validation.phantoms import make_phantom  # noqa: E402
+from validation.registration_measures import MEASURE_KEYS, body_on_scan, registration_measures  # noqa: E402
+
+PAPER = {"table2": {"source": {"med_mm": 5.5, "ssd": 21.3, "cc": 0.63, "mi": 0.52},
+                    "registered": {"med_mm": 3.5, "ssd": 15.6, "cc": 0.80, "mi": 0.73}},
+         "knee": {"source": {"marker_med_mm": 18.5, "ssd": 41.1, "cc": 0.31, "mi": 0.11},
+                  "initialised": {"marker_med_mm": 5.8, "ssd": 18.3, "cc": 0.72, "mi": 0.55},
+                  "registered": {"marker_med_mm": 3.8, "ssd": 15.7, "cc": 0.79, "mi": 0.65}},
+         "hand": {"source": {"ssd": 31.6, "cc": 0.01, "mi": 0.07},
+                  "initialised": {"ssd": 19.4, "cc": 0.53, "mi": 0.23},
+                  "registered": {"ssd": 17.8, "cc": 0.60, "mi": 0.28}}}
+
+
+def _cases(args):
+    if "table2" in args.cases:
+        ph = make_phantom("knee", size=args.size, posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),),
+                          seed=args.seed)
+        yield "table2", ph, False
+    if "knee" in args.cases:
+        yield "knee", make_phantom("knee", size=args.size, seed=args.seed), True
+    if "hand" in args.cases:
+        yield "hand", make_phantom("hand", size=args.size, seed=args.seed), True
+
+
+def _weights(ph, method):
+    """Skinning weights of the phantom's template through the study pipeline (a temporary study)."""
+    from workbench.deform_stage import load_weights, run_weights_stage
+    from workbench.study import read_study, write_phantom_study
+
+    tmp = tempfile.mkdtemp(prefix="avw-bench-")
+    root = write_phantom_study(ph, Path(tmp) / "study").root
+    run_weights_stage(root, method=method)
+    return load_weights(read_study(root))
+
+
+def run_case(name, ph, articulated, args):
+    template, labels = ph.template()
+    body_t = Volume((ph.anatomy.distances_fast(ph.geometry.world_coordinates().reshape(-1, 3))[:, -1] < 0)
+                    .reshape(ph.geometry.array_shape).astype(np.uint8), ph.geometry)
+    weights = _weights(ph, args.weights)[0] if articulated else None
+    rows: dict[str, list] = {}
+    scans = list(ph.scans())
+    if articulated:
+        scans = scans[1:]  # the template is pose 0 (Rhee: the template registered to the others)
+    for sc in scans:
+        truth = sc.correspondence
+        body = body_on_scan(truth, body_t)
+        markers = sc.markers if articulated else None
+        zero = Volume(np.zeros(truth.data.shape, np.float32), truth.geometry)
+
+        def add(method, field, registered, seconds):
+            m = registration_measures(sc.image, registered, field, truth=truth, body=body, markers=markers)
+            m["seconds"] = seconds
+            rows.setdefault(method, []).append(m)
+
+        add("source", zero, warp_template(template, zero), 0.0)
+        initial = None
+        if articulated:
+            t0 = time.perf_counter()
+            t = stack_transforms(sc.pose.transforms, weights.bones)
+            initial, _ = vbd_initial_field(ph.geometry, sc.image.geometry, weights, t, body=body_t.data)
+            add("initialised", initial, warp_template(template, initial), time.perf_counter() - t0)
+        if articulated:
+            st = AdaptiveSettings.initialised(seed=args.seed)
+        else:
+            st = AdaptiveSettings(seed=args.seed)
+        res = register_adaptive(sc.image, template, initial=initial, rigid_mask=labels if articulated else None,
+                                settings=st)
+        add("ours", res.correspondence, res.registered, res.seconds)
+        rows["ours"][-1]["control_points"] = res.control_points
+        if args.paper_preset:
+            res = register_adaptive(sc.image, template, initial=initial,
+                                    rigid_mask=labels if articulated else None,
+                                    settings=AdaptiveSettings.paper(seed=args.seed))
+            add("ours (paper preset)", res.correspondence, res.registered, res.seconds)
+        b = sitk_bspline(sc.image, template, initial=initial, metric="mi", seed=args.seed)
+        add("sitk-bspline", b.correspondence, b.registered, b.seconds)
+        if elastix_available() and not args.no_elastix:
+            b = elastix_bspline(sc.image, template, initial=initial, metric="mi", seed=args.seed)
+            add("elastix-bspline", b.correspondence, b.registered, b.seconds)
+        print(f"  {name}/{sc.id}: ours MED {rows['ours'][-1]['med_mm']:.2f} mm, sitk "
+              f"{rows['sitk-bspline'][-1]['med_mm']:.2f} mm", flush=True)
+    return rows
+
+
+def report(name, rows):
+    keys = list(MEASURE_KEYS) + ["seconds"]
+    mean = {m: {k: float(np.nanmean([r[k] for r in rs])) for k in keys} for m, rs in rows.items()}
+    print(f"\n## {name} ({len(next(iter(rows.values())))} scans, means)\n")
+    print("| volume | MED mm | marker MED mm | SSD | CC | MI | folded | s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for m, v in mean.items():
+        print(f"| {m} | {v['med_mm']:.2f} | {v['marker_med_mm']:.2f} | {v['ssd']:.1f} | {v['cc']:.3f} | "
+              f"{v['mi']:.3f} | {v['folded_fraction']:.5f} | {v['seconds']:.1f} |")
+    for m, v in PAPER.get(name, {}).items():
+        print(f"| paper {m} | {v.get('med_mm', float('nan')):.2f} | {v.get('marker_med_mm', float('nan')):.2f} | "
+              f"{v.get('ssd', float('nan')):.1f} | {v.get('cc', float('nan')):.3f} | "
+              f"{v.get('mi', float('nan')):.3f} | | |")
+    src = mean["source"]["med_mm"]
+    ours = mean["ours"]
+    print(f"\nours: MED reduced by {100 * (1 - ours['med_mm'] / src):.0f} % from the source; "
+          f"{np.mean([r.get('control_points', 0) for r in rows['ours']]):.0f} control points per scan")
+    if "initialised" in mean:
+        better = sum(o["med_mm"] < i["med_mm"] for o, i in zip(rows["ours"], rows["initialised"]))
+        print(f"ours beats the initialisation on MED on {better}/{len(rows['ours'])} scans")
+    for base in ("sitk-bspline", "elastix-bspline"):
+        if base in mean:
+            b = mean[base]
+            print(f"ours / {base}: MED ratio {ours['med_mm'] / b['med_mm']:.2f}, time ratio "
+                  f"{ours['seconds'] / b['seconds']:.2f}")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", nargs="+", choices=["table2", "knee", "hand"], default=["table2", "knee"])
+    p.add_argument("--size", choices=["test", "paper"], default="test")
+    p.add_argument("--weights", choices=["distance", "harmonic"], default="distance",
+                   help="skinning weights for the VBD initialisation. Default: distance (fast)")
+    p.add_argument("--paper-preset", action="store_true", help="also run Rhee's settings (levels 3-5, NM)")
+    p.add_argument("--no-elastix", action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    print(f"registration benchmark, {args.size} size, seed {args.seed}; elastix "
+          f"{'available' if elastix_available() else 'not installed (pip install -e .[bench])'}")
+    for name, ph, articulated in _cases(args):
+        print(f"\n{name}: {ph.geometry.describe()}", flush=True)
+        report(name, run_case(name, ph, articulated, args))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
