@@ -128,7 +128,11 @@ def run_case(name, ph, articulated, args):
 
 def report(name, rows):
     keys = list(MEASURE_KEYS) + ["seconds"]
-    mean = {m: {k: float(np.nanmean([r[k] for r in rs])) for k in keys} for m, rs in rows.items()}
+    def avg(values):
+        v = np.asarray(values, float)
+        return float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else float("nan")
+
+    mean = {m: {k: avg([r[k] for r in rs]) for k in keys} for m, rs in rows.items()}
     print(f"\n## {name} ({len(next(iter(rows.values())))} scans, means)\n")
     print("| volume | MED mm | marker MED mm | SSD | CC | MI | folded | s |")
     print("|---|---|---|---|---|---|---|---|")

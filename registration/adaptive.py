@@ -73,7 +73,7 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.interpolate import sample_array
 from deformation.splines import cps_green
 
-from .metrics import HistogramBins, MI_BINS, block_statistics, similarity
+from .metrics import MI_BINS, HistogramBins, _entropies, _joint_hist, block_statistics, similarity
 
 __all__ = ["AdaptiveSettings", "AdaptiveResult", "StepRecord", "LevelRecord", "register_adaptive", "register_block",
            "block_layout", "local_step_basis", "OPTIMIZERS"]
@@ -380,42 +380,14 @@ def _ssd_cost(e, B, base, box, fixed, buf):
 
 @numba.njit(cache=True, nogil=True)
 def _neg_mi_cost(e, B, base, box, fixed_bin, lo, scale, bins, buf, hist):
-    """−MI (nats): moving values triangular-binned, fixed values pre-binned (see :mod:`registration.metrics`)."""
+    """−MI (nats): moving values triangular-binned, fixed values pre-binned (:mod:`registration.metrics`)."""
     _moved_values(e, B, base, box, buf)
-    hist[:, :] = 0.0
     top = bins - 1.0
-    for p in range(buf.shape[0]):
-        q = (buf[p] - lo) * scale - 0.5
-        q = min(max(q, 0.0), top)
-        i0 = int(q)
-        if i0 >= bins - 1:
-            i0 = bins - 2
-        t = q - i0
-        j = fixed_bin[p]
-        hist[i0, j] += 1.0 - t
-        hist[i0 + 1, j] += t
-    n = float(buf.shape[0])
-    hab = 0.0
-    ha = 0.0
-    for i in range(bins):
-        row = 0.0
-        for j in range(bins):
-            v = hist[i, j]
-            if v > 0:
-                row += v
-                pr = v / n
-                hab -= pr * math.log(pr)
-        if row > 0:
-            pr = row / n
-            ha -= pr * math.log(pr)
-    hb = 0.0
-    for j in range(bins):
-        col = 0.0
-        for i in range(bins):
-            col += hist[i, j]
-        if col > 0:
-            pr = col / n
-            hb -= pr * math.log(pr)
+    for p in range(buf.shape[0]):  # value → continuous bin coordinate (HistogramBins.position)
+        buf[p] = min(max((buf[p] - lo) * scale - 0.5, 0.0), top)
+    hist[:, :] = 0.0
+    _joint_hist(buf, fixed_bin, bins, hist)
+    ha, hb, hab = _entropies(hist)
     return -(ha + hb - hab)
 
 

@@ -96,7 +96,6 @@ def run_register_stage(folder, *, scan_ids=None, init: str = "vbd", pose_source:
                                 "to register them again.")
     template = study.template()
     g_t = template.geometry
-    sk = study.skeleton()
     weights = body_t = rigid = None
     if init == "vbd":
         weights, body_t = load_weights(study)
