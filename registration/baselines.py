@@ -134,11 +134,15 @@ def _itk():
 
 
 def elastix_available() -> bool:
+    """Whether itk-elastix is installed — checked without importing ITK (importing it into a process that
+    also runs our test suite made the interpreter crash at exit)."""
+    from importlib import metadata
+
     try:
-        _itk()
-        return True
-    except (ImportError, AttributeError):
+        metadata.version("itk-elastix")
+    except metadata.PackageNotFoundError:
         return False
+    return True
 
 
 def _to_itk(vol: Volume):
