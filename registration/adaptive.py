@@ -15,9 +15,9 @@ scan (``fixed``) by intensity alone, a few degrees of freedom at a time:
    levels; the paper switches at ≈32³ → ≈16³ blocks, i.e. from level 4 on).
    Only blocks with tissue in them take part (featureless air has no
    information); a block is *mismatched* while its measure is worse than the
-   tolerance, ``tolerance_factor`` (1.5, as in §6.1) times better than the
-   whole volume's value before registration: ``NMI < 1.5 · NMI₀`` or
-   ``SSD > SSD₀ / 1.5``.
+   tolerance, ``tolerance_factor`` times better than the whole volume's value
+   before registration: ``NMI < f · NMI₀`` or ``SSD > SSD₀ / f`` (Rhee §6.1:
+   f ≈ 1.5, :meth:`AdaptiveSettings.paper`; our default 3 visits more blocks).
 3. **One local step** (lines 6–9): 8 control points in a 2×2×2 pattern a
    quarter of the half-block inside the block's corners; the region is the
    block's 3×3×3 neighbourhood, scaled per axis and centred so that it spans
@@ -27,8 +27,11 @@ scan (``fixed``) by intensity alone, a few degrees of freedom at a time:
    (§4.2, :func:`deformation.splines.cps_green`) through the 8 control points
    and, optionally, up to ``max_fixed_points`` zero-displacement control points
    on bone voxels (§4.3, "to maintain rigidity in the bone region").  The 24
-   displacement values (mm) are optimised by an NLopt simplex with seeded
-   random restarts (Nelder–Mead, the paper's choice, by default); the cost
+   displacement values (mm) are optimised by an NLopt derivative-free method
+   with seeded random restarts (Nelder–Mead is the paper's choice and
+   :meth:`AdaptiveSettings.paper`'s; BOBYQA, our default, reached the same
+   accuracy with ~3× fewer evaluations), plus — our addition — the spline's
+   bending energy as a regulariser (``regularization``); the cost
    (SSD, or −MI) is evaluated over the whole region *through the running
    deformation* (§4.3: "previously computed displacements affecting the
    neighboring blocks are considered").
