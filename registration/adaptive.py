@@ -76,7 +76,7 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.interpolate import sample_array
 from deformation.splines import cps_green
 
-from .metrics import MI_BINS, HistogramBins, _entropies, _joint_hist, block_statistics, similarity
+from .metrics import MI_BINS, HistogramBins, _entropies, _joint_hist, air_level, block_statistics, similarity
 
 __all__ = ["AdaptiveSettings", "AdaptiveResult", "StepRecord", "LevelRecord", "register_adaptive", "register_block",
            "block_layout", "local_step_basis", "OPTIMIZERS"]
@@ -448,9 +448,7 @@ class _Registration:
         self.w2i_m = moving.geometry.world_to_index_matrix
         self.i2w = g.index_to_world_matrix
         self.w2i = g.world_to_index_matrix
-        border = np.concatenate([moving.data[[0, -1]].ravel(), moving.data[:, [0, -1]].ravel(),
-                                 moving.data[:, :, [0, -1]].ravel()])
-        self.fill = float(np.median(border))  # air: what lies beyond the template's field of view
+        self.fill = air_level(moving)  # what lies beyond the template's field of view
         self.rigid = rigid
         if rigid is not None:
             moving.geometry.check_same(rigid.geometry, names=("moving image", "bone mask"))
@@ -516,7 +514,7 @@ class _Registration:
         q = (samp - centre) / half
         inball = np.einsum("ij,ij->i", q, q) < 1.0
         controls = _control_points_unit(s.inset)
-        fixed_pts = self._fixed_points(q, inball, controls, rlo, rhi, centre, half) if (
+        fixed_pts = self._fixed_points(controls, rlo, rhi, centre, half) if (
             self.rigid is not None and s.fix_bones and s.max_fixed_points > 0) else np.zeros((0, 3))
         all_controls = np.vstack([controls, fixed_pts])
         b, db = local_step_basis(q, all_controls, 8, gradient=True)
@@ -597,7 +595,7 @@ class _Registration:
         improved = (c0 - best_f) > s.min_improvement * abs(c0) if c0 != 0 else best_f < c0
         if not improved:
             return False, d, 1.0
-        vox, q = self._ball_voxels(centre, half, rlo, rhi)
+        _, q = self._ball_voxels(centre, half, rlo, rhi)
         _, db = local_step_basis(q, controls, 8, gradient=True)
         db = db / half[None, :, None]
         for _ in range(4):
@@ -662,7 +660,7 @@ class _Registration:
                            tuple(self.g.index_to_world(np.asarray(lo, float))), self.g.direction)
         return jacobian_determinant(Volume(np.ascontiguousarray(sub), geo))
 
-    def _fixed_points(self, q, inball, controls, rlo, rhi, centre, half) -> np.ndarray:
+    def _fixed_points(self, controls, rlo, rhi, centre, half) -> np.ndarray:
         """Up to ``max_fixed_points`` bone voxels of the region (farthest-point order), in unit coordinates."""
         s = self.settings
         vox, qv = self._ball_voxels(centre, half, rlo, rhi)

@@ -33,6 +33,8 @@ from deformation.fields import compose, from_transform
 from deformation.geometry import Volume
 from deformation.interpolate import sample_displaced_array
 
+from .metrics import air_level
+
 __all__ = ["BaselineResult", "sitk_bspline", "elastix_bspline", "elastix_available", "warp_template"]
 
 
@@ -45,16 +47,10 @@ class BaselineResult:
     parameters: dict
 
 
-def _air(moving: Volume) -> float:
-    d = moving.data
-    border = np.concatenate([d[[0, -1]].ravel(), d[:, [0, -1]].ravel(), d[:, :, [0, -1]].ravel()])
-    return float(np.median(border))
-
-
 def warp_template(moving: Volume, field: Volume) -> Volume:
     """The template pulled onto ``field``'s grid through a ``scan_to_template`` field (trilinear, air outside)."""
     g = field.geometry
-    out = sample_displaced_array(moving.data, moving.geometry.world_to_index_matrix, g, field.data, 1, _air(moving))
+    out = sample_displaced_array(moving.data, moving.geometry.world_to_index_matrix, g, field.data, 1, air_level(moving))
     return Volume(out.astype(np.float32), g)
 
 

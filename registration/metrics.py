@@ -41,7 +41,7 @@ import SimpleITK as sitk
 from deformation.geometry import Volume
 
 __all__ = ["HistogramBins", "ssd", "cc", "entropy", "mutual_information", "normalized_mi", "joint_histogram",
-           "similarity", "sitk_metric", "block_statistics", "MI_BINS", "LOG_BASE"]
+           "similarity", "sitk_metric", "block_statistics", "air_level", "MI_BINS", "LOG_BASE"]
 
 numba.config.THREADING_LAYER = "omp"
 
@@ -84,6 +84,12 @@ class HistogramBins:
 
     def __repr__(self) -> str:
         return f"HistogramBins({self.bins} bins over [{self.lo:g}, {self.hi:g}])"
+
+
+def air_level(image) -> float:
+    """The median of an image's outermost voxel layer: what lies beyond its field of view (air)."""
+    d = np.asarray(image.data if isinstance(image, Volume) else image)
+    return float(np.median(np.concatenate([d[[0, -1]].ravel(), d[:, [0, -1]].ravel(), d[:, :, [0, -1]].ravel()])))
 
 
 def _pair(a, b, mask=None) -> tuple[np.ndarray, np.ndarray]:

@@ -118,7 +118,7 @@ def run_register_stage(folder, *, scan_ids=None, init: str = "vbd", pose_source:
         result = register_adaptive(scan, template, initial=initial, rigid_mask=rigid, settings=settings,
                                    progress=step_progress)
         inverse, inv_info = invert_correspondence(result.correspondence, g_t,
-                                                  transforms=None if transforms is None else transforms)
+                                                  transforms=transforms)
         summary = {"scan": sid, "seconds": round(time.perf_counter() - t0, 2),
                    "registration_seconds": round(result.seconds, 2), "control_points": result.control_points,
                    "steps": len(result.steps), "evaluations": result.evaluations, **init_info,
