@@ -101,7 +101,8 @@ def run_case(name, ph, articulated, args):
         if articulated:
             t0 = time.perf_counter()
             t = stack_transforms(sc.pose.transforms, weights.bones)
-            initial, _ = vbd_initial_field(ph.geometry, sc.image.geometry, weights, t, body=body_t.data)
+            initial, _ = vbd_initial_field(ph.geometry, sc.image.geometry, weights, t, body=body_t.data,
+                                           unfold=args.unfold_init)
             add("initialised", initial, warp_template(template, initial), time.perf_counter() - t0)
         if articulated:
             st = AdaptiveSettings.initialised(seed=args.seed)
@@ -164,10 +165,13 @@ def main(argv=None) -> int:
     p.add_argument("--weights", choices=["distance", "harmonic"], default="distance",
                    help="skinning weights for the VBD initialisation. Default: distance (fast)")
     p.add_argument("--paper-preset", action="store_true", help="also run Rhee's settings (levels 3-5, NM)")
+    p.add_argument("--unfold-init", action="store_true",
+                   help="repair the folds of the VBD initialisation (deformation.fields.unfold) before every method")
     p.add_argument("--no-elastix", action="store_true")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
-    print(f"registration benchmark, {args.size} size, seed {args.seed}; elastix "
+    print(f"registration benchmark, {args.size} size, seed {args.seed}, "
+          f"{'unfolded' if args.unfold_init else 'raw'} VBD initialisation; elastix "
           f"{'available' if elastix_available() else 'not installed (pip install -e .[bench])'}")
     for name, ph, articulated in _cases(args):
         print(f"\n{name}: {ph.geometry.describe()}", flush=True)

@@ -622,9 +622,9 @@ class _Registration:
         The composed field's Jacobian determinant (the finite differences of
         :func:`deformation.fields.jacobian_determinant`, the measure the
         folding statistics report) is checked on the ball's voxels: where the
-        step would make it fall below ``min_jacobian / 4`` — or below the
-        running field's own minimum there, if that is lower — the step is
-        undone.  Returns ``(accepted, min det of the composed field)``.
+        step would bring a voxel above ``min_jacobian / 4`` below it, or lower
+        the ball's minimum when it is already below (a fold inherited from the
+        initialisation), the step is undone.  Returns ``(accepted, min det of the composed field)``.
         """
         vox, q = self._ball_voxels(centre, half, rlo, rhi)
         b = local_step_basis(q, controls, 8)
@@ -643,9 +643,12 @@ class _Registration:
         det_after = self._det(crop, lo)
         inside = np.zeros(det_after.shape, bool)
         inside[iz - lo[2], iy - lo[1], ix - lo[0]] = True
-        floor = min(0.25 * self.settings.min_jacobian, float(det_before[inside].min()))
-        mj = float(det_after[inside].min())
-        if mj <= max(floor, 0.0) and mj < float(det_before[inside].min()):
+        floor = 0.25 * self.settings.min_jacobian
+        before, after = det_before[inside], det_after[inside]
+        mj = float(after.min())
+        # reject a step that folds a voxel that was not folded, or deepens an inherited fold
+        # (a VBD initialisation can bring folds: they must not spread)
+        if np.any((after <= floor) & (before > floor)) or mj < min(float(before.min()), floor):
             self.disp[iz, iy, ix] = saved
             return False, mj
         newpos = moved + old

@@ -68,18 +68,23 @@ def _pose_for(study: Study, sid: str, pose_source: str, say):
 
 def run_register_stage(folder, *, scan_ids=None, init: str = "vbd", pose_source: str = "auto",
                        settings: AdaptiveSettings | None = None, overwrite: bool = False, progress=None,
-                       step_progress=None) -> list[dict]:
+                       step_progress=None, unfold_init: bool = False) -> list[dict]:
     """Register the template to each scan (all by default) and write ``registration/<id>/``.
 
     ``init``: ``"vbd"`` (Rhee §3.3: the template moved by VBD to the scan's
     pose — the estimated pose, or the truth's when there is none and
     ``pose_source`` is ``"auto"``) or ``"none"``.  With ``"vbd"`` the
     template's bone labels become zero-displacement control points (Rhee
-    §4.3) unless ``settings.fix_bones`` is off.  Returns one summary dict per
+    §4.3) unless ``settings.fix_bones`` is off.  ``unfold_init`` repairs the
+    folds of the VBD field in the crease of a flexed joint first
+    (:func:`registration.initialise.vbd_initial_field`): a one-to-one result
+    at some cost in accuracy.  Returns one summary dict per
     scan (also written into its ``log.json``).
     """
     if init not in INIT_MODES:
         raise ValueError(f"init must be one of {INIT_MODES}, got {init!r}")
+    if unfold_init and init != "vbd":
+        raise ValueError("unfold_init repairs the VBD initialisation: it needs init='vbd' (--init vbd)")
     if pose_source not in ("auto", "estimated", "truth"):
         raise ValueError(f"pose_source must be 'auto', 'estimated' or 'truth', got {pose_source!r}")
     say = progress or (lambda line: None)
@@ -112,7 +117,8 @@ def run_register_stage(folder, *, scan_ids=None, init: str = "vbd", pose_source:
         if init == "vbd":
             pose, source = _pose_for(study, sid, pose_source, say)
             transforms = stack_transforms(pose.transforms, weights.bones)
-            initial, bm = vbd_initial_field(g_t, scan.geometry, weights, transforms, body=body_t.data)
+            initial, bm = vbd_initial_field(g_t, scan.geometry, weights, transforms, body=body_t.data,
+                                            unfold=unfold_init)
             init_info.update({"pose": source, "backward_map": bm})
             say(f"{sid}: VBD initialisation ({source} pose): {time.perf_counter() - t0:.1f} s")
         result = register_adaptive(scan, template, initial=initial, rigid_mask=rigid, settings=settings,

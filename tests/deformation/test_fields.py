@@ -504,3 +504,47 @@ def test_from_transform_of_an_euler_transform_is_the_transform_applied(geom):
     np.testing.assert_allclose(F.positions(f).reshape(-1, 3)[::37], got, rtol=0, atol=ROUNDOFF_MM)
     # a rigid map: Jacobian determinant 1 (round-off only)
     np.testing.assert_allclose(F.jacobian_determinant(f), 1.0, rtol=0, atol=1e-12)
+
+
+def _bump_fold(g: GridGeometry, amplitude_per_width: float) -> tuple[Volume, np.ndarray]:
+    """u = A·g(p) along e, g a Gaussian of width w about the grid centre: ∂(e·u)/∂(e·p) reaches
+    -A/(w√e) on the axis, so the map folds when A/w > √e ≈ 1.65 and only within ~2w of the centre."""
+    e = np.array([0.6, -0.3, 0.74])
+    e /= np.linalg.norm(e)
+    w = 2.0  # mm
+    p = g.world_coordinates() - _centre(g)
+    r2 = np.einsum("...i,...i->...", p, p)
+    u = e * (amplitude_per_width * w * np.exp(-r2 / (2 * w * w)))[..., None]
+    return Volume(u.astype(np.float32), g), np.sqrt(r2)
+
+
+def test_unfold_removes_a_planted_fold_and_leaves_the_rest_of_the_field_alone():
+    g = _geom(size=(26, 22, 16))
+    field, r = _bump_fold(g, 2.5)
+    before = F.folding_statistics(field)
+    assert before["n_folded"] > 0  # the planted fold (A/w = 2.5 > 1.65)
+    original = field.data.copy()
+    out, info = F.unfold(field)
+    assert np.array_equal(field.data, original)  # input untouched
+    assert info["n_folded_before"] == before["n_folded"]
+    after = F.folding_statistics(out)
+    assert after["n_folded"] == info["n_folded_after"] == 0
+    assert after["min_det"] >= 0.05  # the requested floor (min_det default)
+    # the repair is local: the bump is < 1e-6 of its peak beyond 5.5 w = 11 mm, where nothing may change
+    far = r > 11.0
+    assert far.sum() > 0.4 * far.size
+    assert np.array_equal(out.data[far], original[far])
+    assert 0 < info["n_changed"] <= far.size - far.sum()
+    assert out.geometry == field.geometry and out.data.dtype == field.data.dtype
+
+
+def test_unfold_keeps_a_one_to_one_field_and_checks_its_arguments():
+    g = _geom(size=(20, 18, 12))
+    field, _ = _bump_fold(g, 1.0)  # A/w = 1 < 1.65: det ≥ 1 - 1/√e ≈ 0.39 everywhere
+    out, info = F.unfold(field)
+    assert info["iterations"] == 0 and info["n_changed"] == 0
+    assert np.array_equal(out.data, field.data)
+    with pytest.raises(ValueError, match="min_det"):
+        F.unfold(field, min_det=0.0)
+    with pytest.raises(ValueError, match="sigma"):
+        F.unfold(field, sigma=-1.0)

@@ -89,3 +89,22 @@ def test_register_init_none_is_deterministic(tmp_path, study):
     fa = read_displacement(a / "registration" / "pose01" / "correspondence.mha").data
     fb = read_displacement(b / "registration" / "pose01" / "correspondence.mha").data
     assert np.array_equal(fa, fb)
+
+
+def test_register_unfold_init_gives_a_one_to_one_field(tmp_path, study, capsys):
+    from deformation.fields import folding_statistics
+
+    d = tmp_path / "u"
+    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration"))
+    assert main(["register", str(d), "--scan", "pose01", "--unfold-init", *FAST, "--quiet"]) == 0
+    st = read_study(d)
+    entry = next(s for s in st.manifest["scans"] if s["id"] == "pose01")["registration"]
+    log = json.loads((d / entry["log"]).read_text())
+    repair = log["summary"]["backward_map"]["unfold"]
+    assert repair["n_folded_before"] > 0 and repair["n_folded_after"] == 0  # VBD folds in the crease
+    corr = read_displacement(d / entry["correspondence"])
+    # the registration's steps are guarded, so a fold-free start stays fold-free on every voxel
+    assert folding_statistics(corr)["n_folded"] == 0
+    assert main(["register", str(d), "--scan", "pose01", "--init", "none", "--unfold-init", "--force", *FAST,
+                 "--quiet"]) == 1
+    assert "--init vbd" in capsys.readouterr().err
