@@ -31,7 +31,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .geometry import GeometryMismatchError, GridGeometry, Volume
-from .interpolate import _interp_vector, _native, _to_index, sample_displaced_array
+from .interpolate import _SERIAL_BELOW, _interp_vector, _native, _to_index, sample_displaced_array
 
 __all__ = [
     "positions",
@@ -166,6 +166,9 @@ def _jacobian_det(u, m, out):
 
 
 # -- helpers --------------------------------------------------------------------------------
+_jacobian_det_serial = nb.njit(cache=True)(_jacobian_det.py_func)  # small crops: no thread team
+
+
 def _check_field(field: Volume, name: str = "field") -> np.ndarray:
     if not isinstance(field, Volume):
         raise TypeError(f"{name} must be a Volume (data plus grid geometry), got {type(field).__name__}")
@@ -344,7 +347,7 @@ def jacobian_determinant(field: Volume) -> np.ndarray:
     u = _check_field(field)
     m = np.ascontiguousarray(np.linalg.inv(field.geometry.index_to_world_matrix[:3, :3]))
     out = np.empty(field.geometry.array_shape, dtype=np.float64)
-    _jacobian_det(u, m, out)
+    (_jacobian_det_serial if out.size < _SERIAL_BELOW else _jacobian_det)(u, m, out)
     return out
 
 

@@ -207,6 +207,14 @@ def _sample_points_vector(f, nx, ny, nz, w2i, points, order, fill, out):
         _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, p)
 
 
+# Serial twins for small inputs (a local registration step samples a few thousand points many times):
+# below _SERIAL_BELOW points, starting the thread team costs more than the work, the more so on a busy
+# machine.  Same arithmetic per point, so the same result.
+_SERIAL_BELOW = 32768
+_sample_points_scalar_serial = nb.njit(cache=True)(_sample_points_scalar.py_func)
+_sample_points_vector_serial = nb.njit(cache=True)(_sample_points_vector.py_func)
+
+
 @nb.njit(cache=True)
 def _displaced_point(i2w, disp, k, j, i):
     """World point x(i, j, k) + disp[k, j, i] of a target voxel."""
@@ -333,7 +341,10 @@ def sample_array(data, world_to_index, points, order: int = 1, fill: float = 0.0
     pts = _as_points(points)
     lead = np.shape(points)[:-1]
     out = _output(pts.shape[0], 1 if scalar else f.shape[1], scalar, odt)
-    kernel = _sample_points_scalar if scalar else _sample_points_vector
+    if pts.shape[0] < _SERIAL_BELOW:
+        kernel = _sample_points_scalar_serial if scalar else _sample_points_vector_serial
+    else:
+        kernel = _sample_points_scalar if scalar else _sample_points_vector
     kernel(f, nx, ny, nz, w2i, pts, order, _fill_value(fill, odt), out)
     if odt == np.bool_:
         out = out.view(np.bool_)

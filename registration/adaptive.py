@@ -99,7 +99,7 @@ class AdaptiveSettings:
     tolerance_factor: float = 3.0  #: Rhee §6.1 used ≈ 1.5 × the base MI
     bins: int = MI_BINS  #: MI histogram bins (nats)
     optimizer: str = "bobyqa"  #: key of :data:`OPTIMIZERS` (Rhee: Nelder–Mead)
-    restarts: int = 2  #: random restarts of the simplex after the first run from zero
+    restarts: int = 1  #: random restarts of the simplex after the first run from zero
     max_evals: int = 1500  #: evaluations per simplex run
     initial_step: float = 0.5  #: simplex's initial step, in voxels (of the largest spacing)
     max_displacement: float = 0.5  #: bound on each control displacement, in block sizes (smallest axis)
@@ -152,8 +152,9 @@ class AdaptiveSettings:
     def initialised(cls, **overrides) -> "AdaptiveSettings":
         """Ours after an articulated (VBD) initialisation: the large motion is done, so start at level 3
         and regularise harder (measured on the soft-posed knee: level 1 starts and λ = 1 moved
-        well-initialised soft tissue away from the truth)."""
-        d = dict(levels=(3, 4), regularization=3.0)
+        well-initialised soft tissue away from the truth); no restarts (on the three knee scans the
+        MED was the same to 0.01 mm with 0, 1 or 2, at 2.5× fewer evaluations with 0)."""
+        d = dict(levels=(3, 4), regularization=3.0, restarts=0)
         d.update(overrides)
         return cls(**d)
 
@@ -292,14 +293,14 @@ def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient
     ``B`` along each unit axis (central differences, step ``h``).
     """
     c = np.asarray(controls_unit, float)
-    gram = cps_green(c, c)
-    chol = np.linalg.cholesky(gram)
+    # B = K G⁻¹ restricted to the moving columns; G (≤ 12 × 12, symmetric positive definite) is inverted
+    # once through its Cholesky factor, so each sample costs one small matrix product
+    chol = np.linalg.cholesky(cps_green(c, c))
+    linv = np.linalg.inv(chol)
+    ginv_moving = np.ascontiguousarray((linv.T @ linv)[:, :n_moving])
 
     def basis(p):
-        k = cps_green(p, c)  # (m, n)
-        # B = K G⁻¹ (G symmetric positive definite): solve G Bᵀ = Kᵀ
-        bt = np.linalg.solve(chol.T, np.linalg.solve(chol, k.T))
-        return np.ascontiguousarray(bt.T[:, :n_moving])
+        return cps_green(p, c) @ ginv_moving  # (m, n) @ (n, n_moving)
 
     s = np.asarray(samples_unit, float)
     b = basis(s)
@@ -483,10 +484,24 @@ class _Registration:
         if blocks is None:
             st = block_statistics(self.fixed.data, self.warped, lv.ids, lv.n_blocks, self.bins, self.bins)
             return st
-        # recompute only the given blocks (those a step touched): restrict to their voxels
-        sub = np.isin(lv.ids, blocks)
-        ids = np.where(sub, lv.ids, -1)
-        return block_statistics(self.fixed.data, self.warped, ids, lv.n_blocks, self.bins, self.bins)
+        # recompute only the given blocks (those a step touched) on the box that holds them, numbered
+        # locally, so a step costs O(its neighbourhood) and not O(grid × blocks × bins²)
+        blocks = np.asarray(blocks, np.int64)
+        nx, ny, _ = lv.nb
+        bi = np.stack([blocks % nx, (blocks // nx) % ny, blocks // (nx * ny)], axis=1)  # x y z
+        lo = [lv.edges[a][bi[:, a].min()] for a in range(3)]
+        hi = [lv.edges[a][bi[:, a].max() + 1] for a in range(3)]
+        box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+        local = np.full(lv.n_blocks, -1, np.int64)
+        local[blocks] = np.arange(blocks.size)
+        st = block_statistics(self.fixed.data[box], self.warped[box], local[lv.ids[box]], blocks.size,
+                              self.bins, self.bins)
+        out = {}
+        for key, v in st.items():
+            full = np.full(lv.n_blocks, 0 if key == "count" else np.nan, dtype=v.dtype)
+            full[blocks] = v
+            out[key] = full
+        return out
 
     def _whole(self, metric: str) -> float:
         if metric == "ssd":
