@@ -548,3 +548,29 @@ def test_unfold_keeps_a_one_to_one_field_and_checks_its_arguments():
         F.unfold(field, min_det=0.0)
     with pytest.raises(ValueError, match="sigma"):
         F.unfold(field, sigma=-1.0)
+
+
+def test_small_inputs_take_the_serial_kernels_with_the_same_result(geom):
+    # below _SERIAL_BELOW points the interpolation and the Jacobian run serially: same arithmetic per point,
+    # so a large call and the same points sampled in small chunks must agree bit for bit
+    from deformation.interpolate import _SERIAL_BELOW
+
+    rng = np.random.default_rng(4)
+    data = rng.normal(size=geom.array_shape).astype(np.float32)
+    vec = rng.normal(size=geom.array_shape + (3,)).astype(np.float32)
+    lo, hi = geom.index_to_world(np.zeros(3)), geom.index_to_world(np.asarray(geom.size) - 1.0)
+    pts = rng.uniform(np.minimum(lo, hi) - 2, np.maximum(lo, hi) + 2, (_SERIAL_BELOW + 1000, 3))
+    for arr in (data, vec):
+        big = sample_array(arr, geom.world_to_index_matrix, pts)
+        chunks = np.concatenate([sample_array(arr, geom.world_to_index_matrix, pts[i:i + 5000])
+                                 for i in range(0, pts.shape[0], 5000)])
+        assert np.array_equal(big, chunks)
+    field = Volume(0.3 * vec, geom)
+    det = F.jacobian_determinant(field)  # geom has fewer voxels than _SERIAL_BELOW: the serial kernel
+    assert det.size < _SERIAL_BELOW
+    from deformation.fields import _jacobian_det
+
+    m = np.ascontiguousarray(np.linalg.inv(geom.index_to_world_matrix[:3, :3]))
+    par = np.empty(geom.array_shape)
+    _jacobian_det(np.ascontiguousarray(field.data), m, par)
+    assert np.array_equal(det, par)

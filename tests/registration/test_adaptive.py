@@ -141,3 +141,23 @@ def test_rhee_table2_protocol_on_the_test_knee():
     assert after < 0.4 * before
     assert res.similarity_after["cc"] > 0.95
     assert res.folding["n_folded"] == 0
+
+
+def test_block_measures_of_a_neighbourhood_equal_those_of_the_whole_grid():
+    # the loop refreshes only the 3×3×3 blocks a step touched, on their bounding box; the values must be
+    # those of the whole-grid pass (same voxels, same order of summation: exactly equal)
+    from registration.adaptive import _Level, _Registration
+
+    blobs = _blobs(3)
+    x = G.world_coordinates()
+    fixed = Volume(_image(x, blobs).astype(np.float32), G)
+    moving = Volume(_image(x + np.array([0.7, -0.4, 0.3]), blobs).astype(np.float32), G)
+    reg = _Registration(fixed, moving, None, None, AdaptiveSettings(), None)
+    for level in (2, 3):
+        lv = _Level(reg, level)
+        whole = reg._block_measures(lv)
+        for block in (0, lv.n_blocks // 2 + 1, lv.n_blocks - 1):  # a corner, the middle, the far corner
+            touched = reg._neighbours(lv, block)
+            part = reg._block_measures(lv, touched)
+            for key in ("ssd", "nmi", "count"):
+                assert np.array_equal(part[key][touched], whole[key][touched]), (level, block, key)
