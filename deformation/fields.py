@@ -383,11 +383,11 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     Each iteration replaces the displacement on the voxels whose determinant
     is below ``min_det``, grown by ``margin`` voxels, with its Gaussian-smoothed
     value (``sigma`` in voxels, per component, ``mode='nearest'``); elsewhere
-    the field is untouched.  Smoothing a displacement pulls ``∂u`` towards its
-    local mean, and the mean of a field whose neighbourhood maps one-to-one has
-    a positive determinant, so the folded patch shrinks; the margin grows by
-    one voxel every 20 iterations without progress, so a fold wider than the
-    kernel is still reached.  This is the usual repair of a non-invertible
+    the field is untouched.  Smoothing pulls ``∂u`` towards its local mean,
+    which in practice raises the determinant of a thin fold, so the folded
+    patch shrinks; the margin grows by one voxel every 20 iterations without
+    progress, so a fold wider than the kernel is still reached.  There is no
+    guarantee of success: ``n_folded_after`` says what is left.  This is the usual repair of a non-invertible
     initial field (e.g. the backward map of linear-blend VBD, Rhee Eq. 2, in
     the crease of a flexed joint, where the forward blend is not one-to-one):
     it changes the field only in and next to the folded voxels.

@@ -34,11 +34,13 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
 
     Where the linear blend is many-to-one (the crease of a flexed joint) its
     inverse must jump between the two sheets of tissue, and the field folds
-    (≈0.2 % of the knee phantom's body voxels at 30–90°).  ``unfold=True``
-    repairs those voxels with :func:`deformation.fields.unfold` (the summary
-    gains an ``unfold`` entry); this makes the field one-to-one at a cost in
-    accuracy, since the repaired band maps to tissue between the two sheets
-    (measured on the soft knee: MED +0.1 to +1.2 mm).
+    (≈0.2 % of the body voxels of the test-size knee and hand phantoms).
+    ``unfold=True`` repairs those voxels with :func:`deformation.fields.unfold`
+    (the summary gains an ``unfold`` entry); this makes the field one-to-one
+    at a cost in accuracy, since the repaired band maps to tissue between the
+    two sheets: measured on the soft knee, MED +0.1 to +1.2 mm per scan; on
+    the hand, where the creases lie between thin fingers, far more (README,
+    "Registration").
     """
     t = np.asarray(transforms, float)
     fwd = vbd_forward(template_geometry, weights, t)

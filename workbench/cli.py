@@ -80,7 +80,8 @@ from the identity (Rhee's Table 2 protocol).
 VBD is not one-to-one in the crease of a flexed joint, so its inverse folds
 (~0.2 % of the body voxels); the registration never adds a fold but keeps
 those.  --unfold-init repairs them first (local smoothing of the folded
-voxels): a one-to-one field, at ~0.1-1 mm more MED on the knee phantom.
+voxels): a one-to-one field, at ~0.1-1 mm more MED on the knee phantom and
+far more on the hand (creases between thin fingers) - see the README.
 
 Writes registration/<scan>/ (correspondence.mha: scan -> template field in
 mm on the scan grid, the convention of the truth field; template_to_scan.mha;
@@ -304,7 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="start from VBD to the scan's pose, or from the identity. Default: vbd")
     rg.add_argument("--unfold-init", action="store_true",
                     help="repair the folds of the VBD initialisation in the crease of a flexed joint before "
-                         "registering (a one-to-one field, ~0.1-1 mm less accurate on the knee phantom)")
+                         "registering (a one-to-one field; ~0.1-1 mm less accurate on the knee phantom, "
+                         "more on the hand)")
     rg.add_argument("--pose", choices=["auto", "estimated", "truth"], default="auto", dest="pose_source",
                     help="pose for --init vbd: 'auto' = estimated if present, else the phantom's truth. "
                          "Default: auto")
