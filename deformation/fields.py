@@ -26,6 +26,8 @@ well under a second.
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 import SimpleITK as sitk
@@ -423,8 +425,16 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     while bad.any() and it < max_iterations:
         it += 1
         region = ndi.binary_dilation(bad, iterations=grow) if grow > 0 else bad
-        sm = np.stack([ndi.gaussian_filter(u[..., c], sigma, mode="nearest") for c in range(3)], axis=-1)
-        u[region] = sm[region]
+        # smooth only the region's bounding box grown by the kernel's reach (truncate=4σ): the values on
+        # the region are those of smoothing the whole grid, at the cost of the folds' neighbourhood only
+        reach = int(math.ceil(4.0 * sigma))
+        nz_ = np.nonzero(region)
+        box = tuple(slice(max(int(a.min()) - reach, 0), int(a.max()) + reach + 1) for a in nz_)
+        sub = u[box]
+        sm = np.stack([ndi.gaussian_filter(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)],
+                      axis=-1)
+        r = region[box]
+        sub[r] = sm[r]
         changed |= region
         bad = low()
         n_bad = int(np.count_nonzero(bad))
