@@ -19,12 +19,13 @@ components.
 
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 import scipy.linalg
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-__all__ = ["cps_green", "ClampedPlateSpline", "RBFDeformation", "KURIHARA_D_MM"]
+__all__ = ["cps_green", "cps_green_gradient", "ClampedPlateSpline", "RBFDeformation", "KURIHARA_D_MM"]
 
 #: Kurihara & Miyata 2004, §4.2: "we used D = 1600 [mm] for our experiment".
 KURIHARA_D_MM = 1600.0
@@ -137,6 +138,66 @@ def cps_green(x, y) -> np.ndarray:
         np.divide(p * p, den, out=out[rows], where=den > 0)
         out[rows][den <= 0] = 0.0
     return out
+
+
+def cps_green_gradient(x, y) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cps_green` and its gradient in the first argument, ``∂G(x_i, y_j)/∂x_i``.
+
+    Differentiating ``G = P² / (S (S + r)²)`` (notation of :func:`cps_green`),
+    with ``∂P/∂x = −2x (1 − |y|²)``, ``∂r/∂x = (x − y)/r`` and
+    ``∂S/∂x = ((x − y) + ½ ∂P/∂x) / S``::
+
+        ∂G = 2P ∂P / (S (S + r)²) − G ∂S / S − 2G (∂S + ∂r) / (S + r)
+
+    — the same sums of non-negative terms, so as accurate as ``G``; one pass
+    instead of the six extra evaluations of central differences (the fold
+    check of every local step of :mod:`registration.adaptive` needs it on
+    every voxel of the step's ball).  At ``x = y`` the biharmonic kernel has
+    the cone singularity of ``r``; there ``∂r/∂x`` is taken as 0, the
+    symmetric (central-difference) value.  Zero outside the ball.
+
+    Returns ``(G (n, m), dG (n, m, 3))``.
+    """
+    x = np.ascontiguousarray(_as_points(x, "x"), dtype=np.float64)
+    y = np.ascontiguousarray(_as_points(y, "y"), dtype=np.float64)
+    g = np.empty((x.shape[0], y.shape[0]), dtype=np.float64)
+    dg = np.empty((x.shape[0], y.shape[0], 3), dtype=np.float64)
+    _cps_green_gradient(x, y, g, dg)
+    return g, dg
+
+
+@nb.njit(cache=True, nogil=True)
+def _cps_green_gradient(x, y, g, dg):
+    for i in range(x.shape[0]):
+        x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+        px = 1.0 - (x0 * x0 + x1 * x1 + x2 * x2)
+        inside = px > 0.0
+        if not inside:
+            px = 0.0
+        for j in range(y.shape[0]):
+            py = 1.0 - (y[j, 0] * y[j, 0] + y[j, 1] * y[j, 1] + y[j, 2] * y[j, 2])
+            if py < 0.0:
+                py = 0.0
+            d0, d1, d2 = x0 - y[j, 0], x1 - y[j, 1], x2 - y[j, 2]
+            r = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            p = px * py
+            s = np.sqrt(r * r + p)
+            if not s > 0.0:  # r = 0 and P = 0: the same point on/outside the sphere, G = 0
+                g[i, j] = 0.0
+                dg[i, j, 0] = dg[i, j, 1] = dg[i, j, 2] = 0.0
+                continue
+            sr = s + r
+            q = p / (s * sr * sr)
+            gg = p * q
+            g[i, j] = gg
+            c = -2.0 * py if inside else 0.0  # ∂P/∂x = c x
+            ir = 1.0 / r if r > 0.0 else 0.0
+            for a in range(3):
+                xa = x0 if a == 0 else (x1 if a == 1 else x2)
+                da = d0 if a == 0 else (d1 if a == 1 else d2)
+                dp = c * xa
+                ds = (da + 0.5 * dp) / s
+                dg[i, j, a] = 2.0 * q * dp - gg * ds / s - 2.0 * gg * (ds + da * ir) / sr
 
 
 # -- the clamped plate spline ----------------------------------------------------------------------

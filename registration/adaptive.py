@@ -74,7 +74,7 @@ import SimpleITK as sitk
 from deformation.fields import folding_statistics
 from deformation.geometry import GridGeometry, Volume
 from deformation.interpolate import sample_array
-from deformation.splines import cps_green
+from deformation.splines import cps_green, cps_green_gradient
 
 from .metrics import MI_BINS, HistogramBins, _entropies, _joint_hist, air_level, block_statistics, similarity
 
@@ -283,14 +283,16 @@ def _control_points_unit(inset: float) -> np.ndarray:
     return np.array([[x, y, z] for z in (-a, a) for y in (-a, a) for x in (-a, a)], float)
 
 
-def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient: bool = False, h: float = 1e-5):
+def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient: bool = False,
+                     h: float | None = None):
     """Clamped-plate-spline basis of one local step (Rhee §4.2) in region-unit coordinates.
 
     Returns ``B (m, n_moving)`` with the displacement at sample ``p`` equal to
     ``B[p] @ d`` for the moving control points' displacements ``d``; the
     remaining control points (fixed, e.g. on bone) have zero displacement.
     With ``gradient=True`` also ``dB (m, 3, n_moving)``, the derivative of
-    ``B`` along each unit axis (central differences, step ``h``).
+    ``B`` along each unit axis: analytic (:func:`deformation.splines.cps_green_gradient`), or central
+    differences of step ``h`` when ``h`` is given.
     """
     c = np.asarray(controls_unit, float)
     # B = K G⁻¹ restricted to the moving columns; G (≤ 12 × 12, symmetric positive definite) is inverted
@@ -306,12 +308,15 @@ def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient
     b = basis(s)
     if not gradient:
         return b
-    db = np.empty((s.shape[0], 3, n_moving))
-    for a in range(3):
-        e = np.zeros(3)
-        e[a] = h
-        db[:, a, :] = (basis(s + e) - basis(s - e)) / (2 * h)
-    return b, db
+    if h is not None:  # central differences (the reference the analytic gradient is tested against)
+        db = np.empty((s.shape[0], 3, n_moving))
+        for a in range(3):
+            e = np.zeros(3)
+            e[a] = h
+            db[:, a, :] = (basis(s + e) - basis(s - e)) / (2 * h)
+        return b, db
+    _, dg = cps_green_gradient(s, c)  # (m, n, 3)
+    return b, np.ascontiguousarray(np.matmul(dg.transpose(0, 2, 1), ginv_moving))  # (m, 3, n_moving)
 
 
 # -- compiled cost kernels -----------------------------------------------------------------------------
@@ -337,21 +342,33 @@ def _trilinear_box(box, x, y, z):
 
 @numba.njit(cache=True, nogil=True)
 def _min_jacobian(e, dB):
-    """min over check points of det(I + Σ_k e_k ⊗ ∇B_k), index space; ``e (8, 3)``, ``dB (c, 3, 8)``."""
+    """min over check points of det(I + Σ_k e_k ⊗ ∇B_k), index space; ``e (8, 3)``, ``dB (c, 3, 8)``.
+
+    Nine scalar accumulators, no per-point array (the inner loop of every cost evaluation)."""
     best = 1e30
+    nk = e.shape[0]
     for p in range(dB.shape[0]):
-        a = np.zeros((3, 3))
-        for r in range(3):
-            for s in range(3):
-                acc = 0.0
-                for k in range(e.shape[0]):
-                    acc += e[k, r] * dB[p, s, k]
-                a[r, s] = acc
-        a[0, 0] += 1.0
-        a[1, 1] += 1.0
-        a[2, 2] += 1.0
-        det = (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]) - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
-               + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+        a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0
+        for k in range(nk):
+            g0 = dB[p, 0, k]
+            g1 = dB[p, 1, k]
+            g2 = dB[p, 2, k]
+            e0 = e[k, 0]
+            e1 = e[k, 1]
+            e2 = e[k, 2]
+            a00 += e0 * g0
+            a01 += e0 * g1
+            a02 += e0 * g2
+            a10 += e1 * g0
+            a11 += e1 * g1
+            a12 += e1 * g2
+            a20 += e2 * g0
+            a21 += e2 * g1
+            a22 += e2 * g2
+        a00 += 1.0
+        a11 += 1.0
+        a22 += 1.0
+        det = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
         if det < best:
             best = det
     return best
@@ -532,12 +549,13 @@ class _Registration:
         fixed_pts = self._fixed_points(controls, rlo, rhi, centre, half) if (
             self.rigid is not None and s.fix_bones and s.max_fixed_points > 0) else np.zeros((0, 3))
         all_controls = np.vstack([controls, fixed_pts])
-        b, db = local_step_basis(q, all_controls, 8, gradient=True)
+        b = local_step_basis(q, all_controls, 8)
         b[~inball] = 0.0
-        db = db[inball] / half[None, :, None]  # d/d(index) = d/dq / half
-        # check points for the fold test: at most ~1500 of the in-ball samples
-        every = max(1, int(math.ceil(db.shape[0] / 1500)))
-        dbc = np.ascontiguousarray(db[::every])
+        # check points for the fold test: at most ~1500 of the in-ball samples (the gradient only there)
+        qin = q[inball]
+        every = max(1, int(math.ceil(qin.shape[0] / 1500)))
+        _, dbc = local_step_basis(qin[::every], all_controls, 8, gradient=True)
+        dbc = np.ascontiguousarray(dbc / half[None, :, None])  # d/d(index) = d/dq / half
         # moving image of the level through the running deformation on the region's box (+ margin)
         lin = self.w2i[:3, :3]  # world mm → index offsets
         spacing_min = min(self.g.spacing)
