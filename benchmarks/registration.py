@@ -22,6 +22,7 @@ Usage::
     .venv/bin/python benchmarks/registration.py                    # table2 and knee, test size (~10 min)
     .venv/bin/python benchmarks/registration.py --cases table2 --paper-preset
     .venv/bin/python benchmarks/registration.py --cases hand
+    .venv/bin/python benchmarks/registration.py --cases knee hand --from-truth   # the intensity floor
 """
 
 from __future__ import annotations
@@ -98,13 +99,16 @@ def run_case(name, ph, articulated, args):
 
         add("source", zero, warp_template(template, zero), 0.0)
         initial = None
-        if articulated:
+        if args.from_truth:  # the intensity floor: how far each method drifts from the exact answer
+            initial = truth
+            add("initialised", truth, warp_template(template, truth), 0.0)
+        elif articulated:
             t0 = time.perf_counter()
             t = stack_transforms(sc.pose.transforms, weights.bones)
             initial, _ = vbd_initial_field(ph.geometry, sc.image.geometry, weights, t, body=body_t.data,
                                            unfold=args.unfold_init)
             add("initialised", initial, warp_template(template, initial), time.perf_counter() - t0)
-        if articulated:
+        if articulated or args.from_truth:
             st = AdaptiveSettings.initialised(seed=args.seed)
         else:
             st = AdaptiveSettings(seed=args.seed)
@@ -167,11 +171,18 @@ def main(argv=None) -> int:
     p.add_argument("--paper-preset", action="store_true", help="also run Rhee's settings (levels 3-5, NM)")
     p.add_argument("--unfold-init", action="store_true",
                    help="repair the folds of the VBD initialisation (deformation.fields.unfold) before every method")
+    p.add_argument("--from-truth", action="store_true",
+                   help="start every method from the ground-truth field instead (the 'initialised' row is then "
+                        "the truth): each method's MED is how far intensity alone pulls it off the exact answer, "
+                        "the floor below which no start can be improved")
     p.add_argument("--no-elastix", action="store_true")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if args.from_truth and args.unfold_init:
+        p.error("--from-truth starts from the ground truth, --unfold-init repairs the VBD start: give one of them")
     print(f"registration benchmark, {args.size} size, seed {args.seed}, "
-          f"{'unfolded' if args.unfold_init else 'raw'} VBD initialisation; elastix "
+          f"{'ground-truth' if args.from_truth else 'unfolded VBD' if args.unfold_init else 'raw VBD'} "
+          f"initialisation; elastix "
           f"{'available' if elastix_available() else 'not installed (pip install -e .[bench])'}")
     for name, ph, articulated in _cases(args):
         print(f"\n{name}: {ph.geometry.describe()}", flush=True)

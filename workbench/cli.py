@@ -92,7 +92,8 @@ registered.nii.gz; log.json) and names them in study.json.  Open the field in
 tolerance 1.5 x the base MI, no regulariser); the default preset differs
 where measurements on the phantoms favour it (README, "Registration"):
 BOBYQA, a bending-energy regulariser, coarser first levels without an
-initialisation (1-4), levels 3-4 and a stiffer regulariser after VBD.
+initialisation (1-4); after VBD levels 3-4, a stiffer regulariser and only
+steps that gain at least 1 % (smaller gains follow noise, not anatomy).
 
 examples:
   workbench register knee-study                       # all scans, VBD init
