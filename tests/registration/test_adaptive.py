@@ -116,7 +116,8 @@ def test_initial_field_is_the_starting_point():
 
 
 @pytest.mark.parametrize("bad, match", [({"levels": (3, 2)}, "levels"), ({"optimizer": "x"}, "optimizer"),
-                                        ({"metric": "ncc"}, "metric"), ({"min_jacobian": 1.0}, "min_jacobian")])
+                                        ({"metric": "ncc"}, "metric"), ({"min_jacobian": 1.0}, "min_jacobian"),
+                                        ({"ftol_rel": 0.0}, "ftol_rel")])
 def test_settings_are_checked(bad, match):
     with pytest.raises(ValueError, match=match):
         AdaptiveSettings(**bad)
