@@ -77,6 +77,16 @@ def _weights(ph, method):
     return load_weights(read_study(root))
 
 
+def _level_progress(tag):
+    """Print each finished block level of our registration (paper-size runs take many minutes)."""
+    def show(info):
+        lv = info.get("level_done")
+        if lv is not None:
+            print(f"    {tag} level {lv.level}: {lv.steps} steps, {lv.accepted} accepted, "
+                  f"{lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, {lv.seconds:.1f} s", flush=True)
+    return show
+
+
 def run_case(name, ph, articulated, args):
     template, labels = ph.template()
     body_t = Volume((ph.anatomy.distances_fast(ph.geometry.world_coordinates().reshape(-1, 3))[:, -1] < 0)
@@ -113,21 +123,22 @@ def run_case(name, ph, articulated, args):
         else:
             st = AdaptiveSettings(seed=args.seed)
         res = register_adaptive(sc.image, template, initial=initial, rigid_mask=labels if articulated else None,
-                                settings=st)
+                                settings=st, progress=_level_progress(f"{sc.id} ours"))
         add("ours", res.correspondence, res.registered, res.seconds)
         rows["ours"][-1]["control_points"] = res.control_points
         if args.paper_preset:
             res = register_adaptive(sc.image, template, initial=initial,
                                     rigid_mask=labels if articulated else None,
-                                    settings=AdaptiveSettings.paper(seed=args.seed))
+                                    settings=AdaptiveSettings.paper(seed=args.seed),
+                                    progress=_level_progress(f"{sc.id} ours (paper preset)"))
             add("ours (paper preset)", res.correspondence, res.registered, res.seconds)
         b = sitk_bspline(sc.image, template, initial=initial, metric="mi", seed=args.seed)
         add("sitk-bspline", b.correspondence, b.registered, b.seconds)
         if elastix_available() and not args.no_elastix:
             b = elastix_bspline(sc.image, template, initial=initial, metric="mi", seed=args.seed)
             add("elastix-bspline", b.correspondence, b.registered, b.seconds)
-        print(f"  {name}/{sc.id}: ours MED {rows['ours'][-1]['med_mm']:.2f} mm, sitk "
-              f"{rows['sitk-bspline'][-1]['med_mm']:.2f} mm", flush=True)
+        line = "; ".join(f"{m} {rows[m][-1]['med_mm']:.2f}" for m in rows if m != "source")
+        print(f"  {name}/{sc.id} MED mm: {line}", flush=True)
     return rows
 
 

@@ -164,8 +164,8 @@ class AdaptiveSettings:
           the ground truth, every intensity registration drifts off it (ours by 0.13–0.24 mm on the
           hand, ``benchmarks/registration.py --from-truth``): the many steps that gain < 1 % follow
           noise and resampling error, not anatomy.  With these two the hand's MED fell below its VBD
-          start on 7 of 9 scans (0 of 9 before), the knee's rose from 1.67 to 1.80 mm (still below every
-          baseline's on every scan), and both run 2× faster.
+          start on 7 of 9 scans (0 of 9 before), the knee's rose from 1.67 to 1.80 mm (still below both
+          baselines' means, and SimpleITK's on every scan), and both run 2–3× faster.
         """
         d = dict(levels=(3, 4), regularization=3.0, restarts=0, min_improvement=0.01, ftol_rel=1e-4)
         d.update(overrides)
