@@ -48,8 +48,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from deformation.geometry import GridGeometry, Volume
-from deformation.transforms import apply, compose, rotation_about_point, rotation_angle_deg
+from deformation.geometry import Volume
+from deformation.transforms import apply, compose, rotation_angle_deg
 
 __all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish_with_prior", "ssd", "ncc", "PRIOR_MM",
            "coarse_rotation_search", "refine_intensity", "refine_surface", "isosurface_points", "auto_iso_level"]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from registration.pose import contact_point, estimate_poses, register_scan
+from registration.pose import contact_point, estimate_poses
 from registration.report import accuracy
 from registration.rigid import bone_regions
 
