@@ -91,7 +91,7 @@ def run_case(name, ph, articulated, args):
     template, labels = ph.template()
     body_t = Volume((ph.anatomy.distances_fast(ph.geometry.world_coordinates().reshape(-1, 3))[:, -1] < 0)
                     .reshape(ph.geometry.array_shape).astype(np.uint8), ph.geometry)
-    weights = _weights(ph, args.weights)[0] if articulated else None
+    weights = _weights(ph, args.weights)[0] if articulated and not args.from_truth else None  # VBD only
     rows: dict[str, list] = {}
     scans = list(ph.scans())
     if articulated:

@@ -297,7 +297,7 @@ def _control_points_unit(inset: float) -> np.ndarray:
 
 
 def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient: bool = False,
-                     h: float | None = None):
+                     h: float | None = None, values: bool = True):
     """Clamped-plate-spline basis of one local step (Rhee §4.2) in region-unit coordinates.
 
     Returns ``B (m, n_moving)`` with the displacement at sample ``p`` equal to
@@ -305,7 +305,8 @@ def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient
     remaining control points (fixed, e.g. on bone) have zero displacement.
     With ``gradient=True`` also ``dB (m, 3, n_moving)``, the derivative of
     ``B`` along each unit axis: analytic (:func:`deformation.splines.cps_green_gradient`), or central
-    differences of step ``h`` when ``h`` is given.
+    differences of step ``h`` when ``h`` is given.  ``values=False`` (with the analytic gradient) skips ``B``
+    and returns ``(None, dB)``: the fold checks need only the gradient.
     """
     c = np.asarray(controls_unit, float)
     # B = K G⁻¹ restricted to the moving columns; G (≤ 12 × 12, symmetric positive definite) is inverted
@@ -318,7 +319,9 @@ def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient
         return cps_green(p, c) @ ginv_moving  # (m, n) @ (n, n_moving)
 
     s = np.asarray(samples_unit, float)
-    b = basis(s)
+    if not values and (not gradient or h is not None):
+        raise ValueError("local_step_basis: values=False needs gradient=True and the analytic gradient (h=None)")
+    b = basis(s) if values else None
     if not gradient:
         return b
     if h is not None:  # central differences (the reference the analytic gradient is tested against)
@@ -564,7 +567,14 @@ class _Registration:
         q = (samp - centre) / half
         inball = np.einsum("ij,ij->i", q, q) < 1.0
         controls = _control_points_unit(s.inset)
-        fixed_pts = self._fixed_points(controls, rlo, rhi, centre, half) if (
+        cache = []
+
+        def ball():  # the ball's voxels and unit coordinates, computed once per step when first needed
+            if not cache:
+                cache.append(self._ball_voxels(centre, half, rlo, rhi))
+            return cache[0]
+
+        fixed_pts = self._fixed_points(controls, ball()) if (
             self.rigid is not None and s.fix_bones and s.max_fixed_points > 0) else np.zeros((0, 3))
         all_controls = np.vstack([controls, fixed_pts])
         b = local_step_basis(q, all_controls, 8)
@@ -572,7 +582,7 @@ class _Registration:
         # check points for the fold test: at most ~1500 of the in-ball samples (the gradient only there)
         qin = q[inball]
         every = max(1, int(math.ceil(qin.shape[0] / 1500)))
-        _, dbc = local_step_basis(qin[::every], all_controls, 8, gradient=True)
+        _, dbc = local_step_basis(qin[::every], all_controls, 8, gradient=True, values=False)
         dbc = np.ascontiguousarray(dbc / half[None, :, None])  # d/d(index) = d/dq / half
         # moving image of the level through the running deformation on the region's box (+ margin)
         lin = self.w2i[:3, :3]  # world mm → index offsets
@@ -627,11 +637,11 @@ class _Registration:
             if fr < best_f:
                 best_x, best_f = xr, fr
         # verify on every voxel of the ball (full resolution) and accept
-        accepted, d, mj_full = self._accept(best_x.reshape(8, 3), best_f * norm, c0, data_cost, lin,
-                                            all_controls, centre, half, rlo, rhi)
+        accepted, d, mj_full = self._accept(best_x.reshape(8, 3), best_f * norm, c0, data_cost, lin, ball,
+                                            all_controls, half)
         region_after = data_cost(d @ lin.T) if accepted else c0
         if accepted:
-            accepted, mj_full = self._compose(d, all_controls, centre, half, rlo, rhi, mj_full)
+            accepted, mj_full = self._compose(d, all_controls, ball(), mj_full)
             if not accepted:
                 region_after = c0
         rec = StepRecord(level=lv.level, block=tuple(int(v) for v in bi), metric=metric, block_before=math.nan,
@@ -641,17 +651,17 @@ class _Registration:
                          min_jacobian=float(mj_full), seconds=time.perf_counter() - t0)
         return rec
 
-    def _accept(self, d, best_f, c0, data_cost, lin, controls, centre, half, rlo, rhi):
+    def _accept(self, d, best_f, c0, data_cost, lin, ball, controls, half):
         s = self.settings
         improved = (c0 - best_f) > s.min_improvement * abs(c0) if c0 != 0 else best_f < c0
         if not improved:
             return False, d, 1.0
-        _, q = self._ball_voxels(centre, half, rlo, rhi)
+        q = ball()[1]
         if q.shape[0] > _STEP_CHECK_MAX:
             # a paper-size level-1 ball holds millions of voxels: check the smooth step on an even subset;
             # the composed field is still checked on every voxel (_compose), so no fold can slip through
             q = q[::int(math.ceil(q.shape[0] / _STEP_CHECK_MAX))]
-        _, db = local_step_basis(q, controls, 8, gradient=True)
+        _, db = local_step_basis(q, controls, 8, gradient=True, values=False)
         db = db / half[None, :, None]
         for _ in range(4):
             mj = _min_jacobian(d @ lin.T, db)
@@ -671,7 +681,7 @@ class _Registration:
         keep = np.einsum("ij,ij->i", q, q) < 1.0
         return vox[keep].astype(np.int64), q[keep]
 
-    def _compose(self, d, controls, centre, half, rlo, rhi, mj_step):
+    def _compose(self, d, controls, ball, mj_step):
         """φ ← φ ∘ U on the ball's voxels: new disp(y) = u(y) + disp(y + u(y)) (Algorithm 1, line 10).
 
         The composed field's Jacobian determinant (the finite differences of
@@ -681,7 +691,7 @@ class _Registration:
         the ball's minimum when it is already below (a fold inherited from the
         initialisation), the step is undone.  Returns ``(accepted, min det of the composed field)``.
         """
-        vox, q = self._ball_voxels(centre, half, rlo, rhi)
+        vox, q = ball
         b = local_step_basis(q, controls, 8)
         u = b @ d  # world mm
         iz, iy, ix = vox[:, 2], vox[:, 1], vox[:, 0]
@@ -718,10 +728,10 @@ class _Registration:
                            tuple(self.g.index_to_world(np.asarray(lo, float))), self.g.direction)
         return jacobian_determinant(Volume(np.ascontiguousarray(sub), geo))
 
-    def _fixed_points(self, controls, rlo, rhi, centre, half) -> np.ndarray:
+    def _fixed_points(self, controls, ball) -> np.ndarray:
         """Up to ``max_fixed_points`` bone voxels of the region (farthest-point order), in unit coordinates."""
         s = self.settings
-        vox, qv = self._ball_voxels(centre, half, rlo, rhi)
+        vox, qv = ball
         pos = self.x[vox[:, 2], vox[:, 1], vox[:, 0]] + self.disp[vox[:, 2], vox[:, 1], vox[:, 0]]
         lab = sample_array(self.rigid.data, self.w2i_m, pos, 0, 0)
         r = np.sqrt(np.einsum("ij,ij->i", qv, qv))

@@ -321,8 +321,9 @@ def build_parser() -> argparse.ArgumentParser:
     rg.add_argument("--metric", choices=["auto", "ssd", "mi"],
                     help="'auto': normalised MI at coarse levels, SSD from level 4 (Rhee §4.1). Default: auto")
     rg.add_argument("--max-steps", type=int, metavar="N", help="local steps per level at most. Default: 200")
-    rg.add_argument("--seed", type=int, default=0, help="seed of the simplex restarts (after --init vbd the default preset makes "
-                         "none, so the seed has no effect there). Default: 0")
+    rg.add_argument("--seed", type=int, default=0,
+                    help="seed of the simplex restarts (after --init vbd the default preset makes none, so the "
+                         "seed has no effect there). Default: 0")
     rg.add_argument("--no-fix-bones", action="store_true",
                     help="do not put zero-displacement control points on bone voxels")
     rg.add_argument("--force", action="store_true", help="replace earlier registrations of these scans")

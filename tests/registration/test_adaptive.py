@@ -190,6 +190,8 @@ def test_local_step_basis_gradient_is_the_derivative_of_the_basis():
     b, db = local_step_basis(q, controls, 8, gradient=True)
     b2, db_num = local_step_basis(q, controls, 8, gradient=True, h=1e-6)
     np.testing.assert_array_equal(b, b2)
+    none, db_only = local_step_basis(q, controls, 8, gradient=True, values=False)
+    assert none is None and np.array_equal(db_only, db)
     assert db.shape == (q.shape[0], 3, 8)
     # analytic vs central differences of step 1e-6 (error ~1e-9 against a scale of ~5): a wrong index
     # order of the (sample, axis, control) layout or of the G⁻¹ product would be off by O(1)
