@@ -24,6 +24,7 @@ import os
 import secrets
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -354,6 +355,78 @@ def load_model(study: Study, weights=None):
 
 
 # -- posed volumes -----------------------------------------------------------------------------------
+@dataclass
+class PosedTemplate:
+    """The template deformed to one pose, on the template's grid."""
+
+    volume: Volume
+    labels: Volume | None
+    backward: object  #: the :class:`deformation.resample.BackwardMap`
+    forward_seconds: float
+    backward_seconds: float
+
+
+class TemplatePoser:
+    """A study's template, skinning weights and (when present) EVD model, loaded once, posed many times.
+
+    ``method``: ``auto`` (EVD when the study has a model, VBD otherwise),
+    ``vbd`` (Rhee Eq. 2) or ``evd`` (Eq. 6–7; an error without a model).
+    :meth:`pose` deforms the template (and its labels) to a pose: forward
+    map, backward map (Newton, seeded by the bones' transforms), resampling
+    — what ``workbench deform`` writes and ``workbench animate`` renders.
+    """
+
+    def __init__(self, study: Study, *, method: str = "auto", weighting: str = "psd", progress=None):
+        if method not in ("auto", "vbd", "evd"):
+            raise ValueError(f"method must be 'auto', 'vbd' or 'evd', got {method!r}")
+        if weighting not in ("psd", "wpsd"):
+            raise ValueError(f"weighting must be 'psd' or 'wpsd', got {weighting!r}")
+        say = progress or (lambda line: None)
+        self.study = study
+        self.skeleton = study.skeleton()
+        self.weights, self.body = load_weights(study)
+        self.model = load_model(study, self.weights) if method in ("auto", "evd") else None
+        if method == "evd" and self.model is None:
+            raise InputFileError(f"{study.root / MODEL_DIR / 'evd.json'}: the study has no EVD model; build one "
+                                 f"with `workbench model {study.root}` or use --method vbd.", study.root / MODEL_DIR)
+        self.method = "evd" if self.model is not None else "vbd"
+        self.weighting = weighting
+        if self.method == "vbd" and weighting != "psd":
+            say("note: --weighting applies to EVD only; this is VBD")
+        self.template = study.template()
+        self.template_labels = study.template_labels() if study.has_template_labels else None
+        air = np.asarray(self.template.data)[self.body.data == 0]
+        self.fill = float(np.median(air)) if air.size else float(np.min(self.template.data))  # the template's air
+        self._say = say
+
+    def forward(self, pose) -> np.ndarray:
+        """Template voxels' posed world positions ``(nz, ny, nx, 3)`` (EVD or VBD)."""
+        from deformation.evd import vbd_forward
+        from deformation.skinning import stack_transforms
+
+        if self.method == "evd":
+            return self.model.forward(pose, weighting=self.weighting)
+        return vbd_forward(self.template.geometry, self.weights, stack_transforms(pose.transforms, self.weights.bones))
+
+    def pose(self, pose, *, labels: bool = True) -> PosedTemplate:
+        from deformation.resample import backward_map, resample_forward
+        from deformation.skinning import stack_transforms
+
+        g = self.template.geometry
+        t = stack_transforms(pose.transforms, self.weights.bones)
+        t0 = time.perf_counter()
+        self._say(f"forward map ({self.method.upper()}) of {g.n_voxels:,} template voxels ...")
+        fwd = self.forward(pose)
+        t1 = time.perf_counter()
+        self._say("backward map and resampling ...")
+        bm = backward_map(fwd, g, transforms=t, prefer=self.body.data.astype(bool))
+        vol = resample_forward(bm, self.template, fill=self.fill)
+        lab = (resample_forward(bm, self.template_labels, labels=True)
+               if labels and self.template_labels is not None else None)
+        t2 = time.perf_counter()
+        return PosedTemplate(vol, lab, bm, t1 - t0, t2 - t1)
+
+
 def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str = "psd", labels_out=None,
                  field_out=None, overwrite: bool = False, progress=None) -> dict:
     """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Eq. 6) and write the posed volume and labels.
@@ -361,11 +434,7 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     The posed volume lies on the template's grid (same geometry).  Returns a
     summary: the method, the backward map's status counts, timings.
     """
-    from deformation.evd import vbd_forward
-    from deformation.resample import backward_map, resample_forward
-    from deformation.skinning import stack_transforms
     from workbench.atomic import split_suffix
-
     from workbench.volume_io import image_format
 
     if method not in ("auto", "vbd", "evd"):
@@ -396,37 +465,20 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
                               ("scans", "truth", "poses", SKINNING_DIR, MODEL_DIR)):
             raise ValueError(f"{p}: would overwrite one of the study's own files; write the posed volume "
                              "elsewhere (or in a new subfolder of the study)")
-    sk = study.skeleton()
-    pose = read_target_pose(pose_path, sk)
-    weights, body = load_weights(study)
-    model = load_model(study, weights) if method in ("auto", "evd") else None
-    if method == "evd" and model is None:
-        raise InputFileError(f"{study.root / MODEL_DIR / 'evd.json'}: the study has no EVD model; build one with "
-                             f"`workbench model {study.root}` or use --method vbd.", study.root / MODEL_DIR)
-    used = "evd" if model is not None else "vbd"
-    if used == "vbd" and weighting != "psd":
-        say("note: --weighting applies to EVD only; this is VBD")
-    template = study.template()
-    g = template.geometry
-    t = stack_transforms(pose.transforms, weights.bones)
-    t0 = time.perf_counter()
-    say(f"forward map ({used.upper()}) of {g.n_voxels:,} template voxels ...")
-    fwd = model.forward(pose, weighting=weighting) if used == "evd" else vbd_forward(g, weights, t)
-    t1 = time.perf_counter()
-    say("backward map and resampling ...")
-    bm = backward_map(fwd, g, transforms=t, prefer=body.data.astype(bool))
-    air = np.asarray(template.data)[body.data == 0]
-    fill = float(np.median(air)) if air.size else float(np.min(template.data))  # the template's air
-    vol = resample_forward(bm, template, fill=fill)
-    lab = resample_forward(bm, study.template_labels(), labels=True)
-    t2 = time.perf_counter()
-    write_volume(vol, out, overwrite=overwrite)
-    write_labels(lab, labels_out, overwrite=overwrite)
+    poser = TemplatePoser(study, method=method, weighting=weighting, progress=say)
+    pose = read_target_pose(pose_path, poser.skeleton)
+    used = poser.method
+    posed = poser.pose(pose)
+    bm = posed.backward
+    write_volume(posed.volume, out, overwrite=overwrite)
+    if posed.labels is not None:
+        write_labels(posed.labels, labels_out, overwrite=overwrite)
     if field_out:
         from workbench.volume_io import write_displacement
 
         write_displacement(bm.scan_to_template(), field_out, overwrite=overwrite)
     summary = {"method": used, "weighting": weighting if used == "evd" else None, "out": str(out),
-               "labels": str(labels_out), "field": str(field_out) if field_out else None,
-               "forward_seconds": t1 - t0, "backward_seconds": t2 - t1, **bm.summary()}
+               "labels": str(labels_out) if posed.labels is not None else None,
+               "field": str(field_out) if field_out else None,
+               "forward_seconds": posed.forward_seconds, "backward_seconds": posed.backward_seconds, **bm.summary()}
     return summary

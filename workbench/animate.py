@@ -1,0 +1,348 @@
+"""Keyframe animations of a study's template: pose, deform, render, encode (Rhee's "accompanying video").
+
+A keyframe file (``avw-keyframes``, JSON) lists joint angles at times::
+
+    {"format": "avw-keyframes", "version": 1, "skeleton": "knee",
+     "interpolation": "smooth",            # or "linear"
+     "fps": 24,                            # optional; --fps overrides
+     "camera": {"view": "auto", "azimuth": 0, "elevation": 0, "zoom": 1.0, "orbit": 0},
+     "keyframes": [{"time": 0.0, "angles": {"knee": [0, 0, 0]}},
+                   {"time": 1.25, "angles": {"knee": [60, 0, 0]}}, ...]}
+
+Joints a keyframe leaves out stay at 0 (the template's pose), as in
+``workbench deform --pose``.  Between two keyframes every angle moves with
+the smoothstep ``s = u²(3 − 2u)`` of the segment's time fraction ``u``
+(``smooth``: the motion starts and stops gently at each keyframe) or
+linearly.  ``camera.orbit`` turns the camera by that many degrees of azimuth
+over the animation.
+
+Each frame: the pose by forward kinematics, the template deformed to it (EVD,
+Rhee Eq. 6–7, when the study has a model; VBD, Eq. 2, otherwise), rendered by
+one reused :class:`workbench.render.VolumeRenderer` whose camera is fitted
+once to the anatomy over all keyframe poses, and encoded: MP4 (H.264 through
+the ffmpeg binary imageio-ffmpeg ships), GIF, or numbered PNGs.
+Ready keyframes for the knee (bend and straighten) and the hand (open, fist,
+point with the index finger) are in ``workbench/keyframes/``.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from deformation.skeleton import SkeletonError
+from workbench.errors import InputFileError, OutputExistsError
+from workbench.jsonio import read_json
+
+__all__ = ["Keyframes", "read_keyframes", "builtin_keyframes", "animate_study", "FORMATS"]
+
+KEYFRAMES_FORMAT = "avw-keyframes"
+FORMATS = (".mp4", ".gif", ".png")
+_INTERPOLATIONS = ("smooth", "linear")
+
+
+@dataclass
+class Keyframes:
+    """Keyframe times (s, increasing) and full joint-angle dicts, with the interpolation and camera."""
+
+    times: np.ndarray
+    angles: list  #: one ``{joint: np.ndarray}`` per keyframe, every joint of the skeleton present
+    interpolation: str = "smooth"
+    fps: float | None = None
+    camera: dict = field(default_factory=dict)
+    names: list = field(default_factory=list)
+    source: str = ""
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1] - self.times[0])
+
+    def at(self, t: float) -> dict:
+        """Joint angles at time ``t`` (clamped to the first and last keyframe)."""
+        ts = self.times
+        t = min(max(float(t), float(ts[0])), float(ts[-1]))
+        i = int(np.clip(np.searchsorted(ts, t, side="right") - 1, 0, len(ts) - 2))
+        span = float(ts[i + 1] - ts[i])
+        u = 0.0 if span <= 0 else (t - float(ts[i])) / span
+        s = u * u * (3.0 - 2.0 * u) if self.interpolation == "smooth" else u
+        a, b = self.angles[i], self.angles[i + 1]
+        return {k: (1.0 - s) * a[k] + s * b[k] for k in a}
+
+    def frame_times(self, n_frames: int) -> np.ndarray:
+        """``n_frames`` evenly spaced times from the first keyframe to the last, both included."""
+        if n_frames < 2:
+            raise ValueError(f"an animation needs at least 2 frames, got {n_frames}")
+        return np.linspace(float(self.times[0]), float(self.times[-1]), int(n_frames))
+
+
+def _keyframes_from_dict(d, skeleton, where: str) -> Keyframes:
+    def bad(msg):
+        return InputFileError(f"{where}: {msg}", Path(where) if where and not where.startswith("<") else None)
+
+    if not isinstance(d, dict) or d.get("format") != KEYFRAMES_FORMAT:
+        raise bad(f"not a keyframe file ('format' must be {KEYFRAMES_FORMAT!r}); see `workbench animate --help`")
+    if d.get("skeleton") not in (None, skeleton.name):
+        raise bad(f"keyframes for the skeleton {d.get('skeleton')!r}, but the study's skeleton is "
+                  f"{skeleton.name!r}")
+    interp = d.get("interpolation", "smooth")
+    if interp not in _INTERPOLATIONS:
+        raise bad(f"interpolation {interp!r}: expected one of {_INTERPOLATIONS}")
+    kfs = d.get("keyframes")
+    if not isinstance(kfs, list) or len(kfs) < 2:
+        raise bad("needs a list 'keyframes' of at least 2 entries {\"time\": s, \"angles\": {joint: [deg, ...]}}")
+    times, angles, names = [], [], []
+    zero = skeleton.zero_angles()
+    for n, kf in enumerate(kfs):
+        if not isinstance(kf, dict) or "time" not in kf or not isinstance(kf.get("angles", {}), dict):
+            raise bad(f"keyframe {n} needs 'time' (s) and 'angles' {{joint: [degrees, ...]}}")
+        full = {k: np.asarray(v, float).copy() for k, v in zero.items()}
+        for j, v in kf.get("angles", {}).items():
+            if j not in full:
+                raise bad(f"keyframe {n}: unknown joint {j!r}; the skeleton's joints are {sorted(full)}")
+            a = np.asarray(v, float)
+            if a.shape != full[j].shape:
+                raise bad(f"keyframe {n}: joint {j!r} takes {full[j].size} values (degrees, then mm for a "
+                          f"6-DOF joint), got {a.size}")
+            if not np.all(np.isfinite(a)):
+                raise bad(f"keyframe {n}: joint {j!r} has a non-finite angle {v!r}")
+            full[j] = a
+        try:
+            skeleton.pose(full)
+        except (SkeletonError, ValueError) as e:
+            raise bad(f"keyframe {n}: {e}") from e
+        times.append(float(kf["time"]))
+        angles.append(full)
+        names.append(str(kf.get("name", f"keyframe {n}")))
+    t = np.asarray(times)
+    if np.any(np.diff(t) <= 0):
+        raise bad(f"keyframe times must increase strictly, got {times}")
+    fps = d.get("fps")
+    if fps is not None and not (isinstance(fps, (int, float)) and fps > 0):
+        raise bad(f"fps must be a positive number, got {fps!r}")
+    cam = d.get("camera", {}) or {}
+    if not isinstance(cam, dict):
+        raise bad("'camera' must be an object {view, azimuth, elevation, zoom, orbit}")
+    unknown = set(cam) - {"view", "azimuth", "elevation", "zoom", "orbit"}
+    if unknown:
+        raise bad(f"camera: unknown keys {sorted(unknown)} (expected view, azimuth, elevation, zoom, orbit)")
+    return Keyframes(t, angles, interp, None if fps is None else float(fps), dict(cam), names, where)
+
+
+def read_keyframes(path, skeleton) -> Keyframes:
+    """Read and check a keyframe file against ``skeleton`` (clear errors naming the file and keyframe)."""
+    path = Path(path)
+    return _keyframes_from_dict(read_json(path), skeleton, str(path))
+
+
+def builtin_keyframes(skeleton) -> Keyframes:
+    """The ready keyframes for the knee or hand skeleton (``workbench/keyframes/<name>.json``)."""
+    res = resources.files("workbench") / "keyframes" / f"{skeleton.name}.json"
+    if not res.is_file():
+        have = sorted(p.name[:-5] for p in (resources.files("workbench") / "keyframes").iterdir()
+                      if p.name.endswith(".json"))
+        raise InputFileError(f"no ready keyframes for the skeleton {skeleton.name!r} (there are {have}); "
+                             "pass --keyframes FILE (see `workbench animate --help` for the format).")
+    import json
+
+    return _keyframes_from_dict(json.loads(res.read_text()), skeleton, f"<builtin {skeleton.name}.json>")
+
+
+# -- output ----------------------------------------------------------------------------------------------
+class _Writer:
+    """Frames to MP4 / GIF / numbered PNGs, written to a temporary name and moved into place at the end."""
+
+    def __init__(self, out: Path, fps: float, overwrite: bool):
+        import secrets
+
+        self.out, self.fps, self.kind = out, fps, out.suffix.lower()
+        if self.kind not in FORMATS:
+            raise ValueError(f"{out}: the animation format is chosen by the extension: .mp4 (H.264), .gif, or "
+                             ".png (numbered frames <name>_0000.png, ...)")
+        if not out.parent.is_dir():
+            raise FileNotFoundError(f"{out.parent}: the output folder does not exist; create it first")
+        self.token = secrets.token_hex(4)
+        self.n = 0
+        self._gif = []
+        if self.kind == ".png":
+            self.staging = out.parent / f".{out.stem}.frames-{self.token}"
+        else:
+            self.staging = out.parent / f".{out.stem}.tmp-{self.token}{self.kind}"
+        if not overwrite:
+            clash = self._existing()
+            if clash:
+                raise OutputExistsError(clash[0], f"{clash[0]} exists; pass --force to replace it.")
+        self.overwrite = overwrite
+        self._w = None
+        if self.kind == ".png":
+            self.staging.mkdir()
+        elif self.kind == ".mp4":
+            import imageio.v2 as iio2
+
+            # H.264 in yuv420p (what players and slide software accept); even sizes are checked by parse_size;
+            # macro_block_size=1: no silent resize to multiples of 16
+            self._w = iio2.get_writer(str(self.staging), format="FFMPEG", fps=fps, codec="libx264",
+                                      pixelformat="yuv420p", quality=8, macro_block_size=1,
+                                      ffmpeg_log_level="error", output_params=["-threads", "1"])
+
+    def _existing(self):
+        if self.kind == ".png":
+            return sorted(self.out.parent.glob(f"{self.out.stem}_[0-9][0-9][0-9][0-9].png"))
+        return [self.out] if self.out.exists() else []
+
+    def frame_name(self, i: int) -> str:
+        return f"{self.out.stem}_{i:04d}.png"
+
+    def add(self, img: np.ndarray) -> None:
+        if self.kind == ".mp4":
+            self._w.append_data(img)
+        elif self.kind == ".gif":
+            self._gif.append(img)
+        else:
+            import imageio.v3 as iio
+
+            iio.imwrite(self.staging / self.frame_name(self.n), img, extension=".png")
+        self.n += 1
+
+    def commit(self) -> list[Path]:
+        if self.kind == ".mp4":
+            self._w.close()
+            self._w = None
+        elif self.kind == ".gif":
+            import imageio.v3 as iio
+
+            # the GIF frame delay is in whole hundredths of a second: 24 fps plays at 25
+            iio.imwrite(self.staging, np.stack(self._gif), extension=".gif", duration=1000.0 / self.fps, loop=0)
+        if self.kind == ".png":
+            if self.overwrite:
+                for p in self._existing():
+                    p.unlink()
+            done = []
+            for i in range(self.n):
+                dst = self.out.parent / self.frame_name(i)
+                (self.staging / self.frame_name(i)).replace(dst)
+                done.append(dst)
+            self.staging.rmdir()
+            return done
+        if self.out.exists() and not self.overwrite:
+            raise OutputExistsError(self.out, f"{self.out} appeared while rendering; pass --force to replace it.")
+        self.staging.replace(self.out)
+        return [self.out]
+
+    def abort(self) -> None:
+        if self._w is not None:
+            try:
+                self._w.close()
+            except Exception:  # noqa: BLE001 - cleaning up after a failure
+                pass
+        if self.staging.is_dir():
+            shutil.rmtree(self.staging, ignore_errors=True)
+        elif self.staging.exists():
+            self.staging.unlink()
+
+
+# -- the animation -----------------------------------------------------------------------------------------
+def _camera_bounds(poser, keyframes: Keyframes, mask: np.ndarray, margin_mm: float) -> tuple:
+    """World box of the visible template tissue over every keyframe pose (forward maps only, no resampling)."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    step = max(1, int(mask.sum()) // 200_000)
+    for angles in keyframes.angles:
+        pts = poser.forward(poser.skeleton.pose(angles))[mask][::step]
+        a, b = np.percentile(pts, [0.1, 99.9], axis=0)
+        lo, hi = np.minimum(lo, a), np.maximum(hi, b)
+    return tuple(float(v) for pair in zip(lo - margin_mm, hi + margin_mm) for v in pair)
+
+
+def animate_study(folder, out, *, keyframes=None, method: str = "auto", weighting: str = "psd", fps=None,
+                  size=(640, 480), n_frames: int | None = None, transfer="mri", camera=None, orbit=None,
+                  clip=None, bones: bool = False, background=(0.0, 0.0, 0.0), overwrite: bool = False,
+                  progress=None) -> dict:
+    """Render the study's template moving through ``keyframes`` and write ``out`` (.mp4, .gif or .png frames).
+
+    ``keyframes``: a file, a :class:`Keyframes`, or ``None`` for the ready
+    ones of the study's skeleton.  ``fps`` (default: the file's, else 24) and
+    ``n_frames`` (default: duration × fps + 1) set the timing; ``camera``
+    (:class:`workbench.render.Camera`) and ``orbit`` (degrees of azimuth over
+    the animation) default to the file's ``camera``.  Returns a summary with
+    the frame count and the time spent deforming, rendering and encoding.
+    """
+    from workbench.deform_stage import TemplatePoser
+    from workbench.render import Camera, VolumeRenderer, _first_visible, _preset, _robust_range
+    from workbench.study import read_study
+    from scipy import ndimage as ndi
+
+    say = progress or (lambda line: None)
+    t_start = time.perf_counter()
+    study = read_study(folder)
+    out = Path(out)
+    poser = TemplatePoser(study, method=method, weighting=weighting)
+    sk = poser.skeleton
+    if keyframes is None:
+        kf = builtin_keyframes(sk)
+    elif isinstance(keyframes, Keyframes):
+        kf = keyframes
+    else:
+        kf = read_keyframes(keyframes, sk)
+    fps = float(fps if fps is not None else (kf.fps or 24.0))
+    if not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    n = int(n_frames) if n_frames is not None else int(round(kf.duration * fps)) + 1
+    if n < 2:
+        raise ValueError(f"an animation needs at least 2 frames, got {n} (duration {kf.duration:g} s at {fps:g} fps)")
+    cam_doc = kf.camera
+    if camera is None:
+        camera = Camera(view=str(cam_doc.get("view", "auto")), azimuth=float(cam_doc.get("azimuth", 0.0)),
+                        elevation=float(cam_doc.get("elevation", 0.0)), zoom=float(cam_doc.get("zoom", 1.0)))
+    orbit = float(cam_doc.get("orbit", 0.0) if orbit is None else orbit)
+    writer = _Writer(out, fps, overwrite)  # checks the target before any work
+    try:
+        template = poser.template
+        g = template.geometry
+        tf = _preset(transfer)
+        lo, hi = _robust_range(template.data)
+        thr = _first_visible(tf.resolved(lo, hi))
+        mask = ndi.uniform_filter(np.asarray(template.data, np.float32), size=3, mode="nearest") > thr
+        bounds = _camera_bounds(poser, kf, mask, 2.0 * max(g.spacing))
+        renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
+                                  background=background, bounds=bounds)
+        say(f"{n} frames at {fps:g} fps ({kf.duration:g} s, {len(kf.times)} keyframes, {kf.interpolation}); "
+            f"{poser.method.upper()} deformation; {renderer.backend.describe()}, {renderer.mapper_name} mapper")
+        t_deform = t_render = t_encode = 0.0
+        base_az = camera.azimuth
+        with renderer:
+            for i, t in enumerate(kf.frame_times(n)):
+                t0 = time.perf_counter()
+                posed = poser.pose(sk.pose(kf.at(t)), labels=bones)
+                t1 = time.perf_counter()
+                if orbit:
+                    renderer.set_camera(replace(camera, azimuth=base_az + orbit * i / (n - 1)))
+                if bones and posed.labels is not None:
+                    renderer.clear_labels()
+                    renderer.add_labels(posed.labels)
+                img = renderer.render(posed.volume)
+                t2 = time.perf_counter()
+                writer.add(img)
+                t3 = time.perf_counter()
+                t_deform, t_render, t_encode = t_deform + t1 - t0, t_render + t2 - t1, t_encode + t3 - t2
+                done = i + 1
+                elapsed = time.perf_counter() - t_start
+                left = (t_deform + t_render + t_encode) / done * (n - done)
+                say(f"frame {done}/{n}  t={t:.2f} s  deform {t1 - t0:.2f} s  render {t2 - t1:.2f} s  "
+                    f"elapsed {elapsed:.0f} s  ~{left:.0f} s left")
+        t4 = time.perf_counter()
+        files = writer.commit()
+        t_encode += time.perf_counter() - t4
+    except BaseException:
+        writer.abort()
+        raise
+    return {"out": str(out), "files": len(files), "frames": n, "fps": fps, "size": list(size),
+            "method": poser.method, "keyframes": kf.source, "backend": renderer.backend.describe(),
+            "mapper": renderer.mapper_name, "deform_seconds": t_deform, "render_seconds": t_render,
+            "encode_seconds": t_encode, "total_seconds": time.perf_counter() - t_start,
+            "render_seconds_per_frame": t_render / n, "deform_seconds_per_frame": t_deform / n,
+            "bounds_mm": [round(v, 2) for v in bounds]}
