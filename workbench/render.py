@@ -659,10 +659,10 @@ class VolumeRenderer:
 
     def _place(self, volumes) -> None:
         """Camera and clipping plane on the anatomy's world box (``bounds``, or the tissue of the first volume)."""
-        if self.bounds is None:
-            v = volumes[0]
-            thr = _first_visible(self._resolved[0])
-            self.bounds = content_bounds(v.data if isinstance(v, Volume) else v, self.geometry, thr)
+        if self.bounds is None:  # the union of every component's visible tissue
+            boxes = np.array([content_bounds(v.data if isinstance(v, Volume) else v, self.geometry,
+                                             _first_visible(t)) for v, t in zip(volumes, self._resolved)])
+            self.bounds = tuple(float(boxes[:, k].min() if k % 2 == 0 else boxes[:, k].max()) for k in range(6))
         cam = self._ren.GetActiveCamera()
         self.camera.place(cam, self.bounds, self.size[0] / self.size[1])
         if self._plane is not None:
