@@ -15,7 +15,8 @@ DEB_PACKAGES := libusb-1.0-0 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libosme
 
 help:
 	@echo "make demo       set up, build a phantom knee study in $(DEMO_DIR)/, its skinning weights and EVD model,"
-	@echo "                and deform it to a 45° bend ($(DEMO_DIR)/bend45.nii.gz)"
+	@echo "                deform it to a 45° bend ($(DEMO_DIR)/bend45.nii.gz), render it ($(DEMO_DIR)/bend45.png)"
+	@echo "                and animate a bend-and-straighten ($(DEMO_DIR)/knee.mp4)"
 	@echo "make test       set up, then run the test suite (slow tests excluded)"
 	@echo "make test-slow  paper-size tests (minutes)"
 	@echo "make clean      remove .venv and $(DEMO_DIR)/"
@@ -53,6 +54,8 @@ demo: venv
 	$(VENV)/bin/workbench weights $(DEMO_DIR)
 	$(VENV)/bin/workbench model $(DEMO_DIR)
 	$(VENV)/bin/workbench deform $(DEMO_DIR) --pose examples/knee_bend45.json --out $(DEMO_DIR)/bend45.nii.gz --force
+	$(VENV)/bin/workbench render $(DEMO_DIR)/bend45.nii.gz --out $(DEMO_DIR)/bend45.png --force
+	$(VENV)/bin/workbench animate $(DEMO_DIR) --out $(DEMO_DIR)/knee.mp4 --force
 
 test: venv
 	$(VENV)/bin/pytest

@@ -314,6 +314,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
             f"{poser.method.upper()} deformation; {renderer.backend.describe()}, {renderer.mapper_name} mapper")
         t_deform = t_render = t_encode = 0.0
         base_az = camera.azimuth
+        last_say = time.perf_counter()
         with renderer:
             for i, t in enumerate(kf.frame_times(n)):
                 t0 = time.perf_counter()
@@ -330,10 +331,12 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
                 t3 = time.perf_counter()
                 t_deform, t_render, t_encode = t_deform + t1 - t0, t_render + t2 - t1, t_encode + t3 - t2
                 done = i + 1
-                elapsed = time.perf_counter() - t_start
-                left = (t_deform + t_render + t_encode) / done * (n - done)
-                say(f"frame {done}/{n}  t={t:.2f} s  deform {t1 - t0:.2f} s  render {t2 - t1:.2f} s  "
-                    f"elapsed {elapsed:.0f} s  ~{left:.0f} s left")
+                now = time.perf_counter()
+                if done in (1, n) or now - last_say >= 2.0:  # a line every ~2 s, not one per frame
+                    last_say = now
+                    left = (t_deform + t_render + t_encode) / done * (n - done)
+                    say(f"frame {done}/{n}  t={t:.2f} s  deform {t1 - t0:.2f} s  render {t2 - t1:.2f} s  "
+                        f"elapsed {now - t_start:.0f} s  ~{left:.0f} s left")
         t4 = time.perf_counter()
         files = writer.commit()
         t_encode += time.perf_counter() - t4
