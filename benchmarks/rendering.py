@@ -7,8 +7,9 @@
    ratio, measured in this run, plus the mean pixel difference of the two
    images (they should show the same thing).
 2. ``workbench animate`` of the test-size hand (and knee): 60 frames at
-   640×480 to MP4 (ready keyframes, VBD), the time split into deformation,
-   rendering and encoding.
+   640×480 to MP4 (ready keyframes; EVD from a model built on the phantom's
+   truth, or ``--method vbd``), the time split into deformation, rendering
+   and encoding.
 
 Times are measured in one run on a shared machine: compare the ratios.
 
@@ -32,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from validation.phantoms import make_phantom  # noqa: E402
 from workbench.animate import animate_study  # noqa: E402
-from workbench.deform_stage import run_weights_stage  # noqa: E402
+from workbench.deform_stage import run_model_stage, run_weights_stage  # noqa: E402
 from workbench.render import Camera, VolumeRenderer, opengl_backend  # noqa: E402
 from workbench.study import write_phantom_study  # noqa: E402
 
@@ -54,6 +55,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=5, help="renders per mapper for the per-frame time")
     ap.add_argument("--weights", choices=["distance", "harmonic"], default="distance",
                     help="skinning weights of the animated study (the per-frame cost does not depend on it)")
+    ap.add_argument("--method", choices=["evd", "vbd"], default="evd",
+                    help="deformation per frame: EVD (a model is built from the phantom's truth first) or VBD")
     args = ap.parse_args(argv)
     size = (640, 480)
     print(f"OpenGL: {opengl_backend().describe()}")
@@ -70,7 +73,9 @@ def main(argv=None):
               f"{t_gpu / t_fixed:.1f}x; mean |pixel difference| {diff:.1f} of 255", flush=True)
         root = write_phantom_study(ph, tmp / case).root
         run_weights_stage(root, method=args.weights)
-        s = animate_study(root, tmp / f"{case}.mp4", size=size, n_frames=args.frames)
+        if args.method == "evd":
+            run_model_stage(root)
+        s = animate_study(root, tmp / f"{case}.mp4", size=size, n_frames=args.frames, method=args.method)
         rows.append((case, s, t_fixed, t_gpu))
         print(f"{case}: {s['frames']} frames {size[0]}x{size[1]} ({s['method'].upper()}, {s['mapper']} mapper): "
               f"deformation {s['deform_seconds']:.1f} s ({s['deform_seconds_per_frame']:.3f} s/frame), rendering "

@@ -589,7 +589,7 @@ def cmd_render(args) -> int:
     if args.overlay:
         img = render_overlay(vol, other, transfer=tf, **kw)
     elif args.difference:
-        img = render_difference(vol, other, **kw)
+        img = render_difference(vol, other, transfer=tf, **kw)
     else:
         with VolumeRenderer(vol.geometry, transfer=tf, **kw) as r:
             say(f"{r.backend.describe()}; {r.mapper_name} mapper")

@@ -755,16 +755,23 @@ DIFFERENCE = TransferFunction(
     opacity=((-1.0, 0.5), (-0.15, 0.08), (-0.05, 0.0), (0.05, 0.0), (0.15, 0.08), (1.0, 0.5)))
 
 
-def render_difference(a: Volume, b: Volume, **kw) -> np.ndarray:
+def render_difference(a: Volume, b: Volume, *, transfer="mri", **kw) -> np.ndarray:
     """The signed difference ``a − b`` (``b`` resampled onto ``a``'s grid), scaled by ``a``'s robust range.
 
     Red where ``a`` is brighter, blue where darker, transparent where they
-    agree within 5 % of the range: the misregistered edges stand out.
+    agree within 5 % of the range: the misregistered edges stand out.  The
+    camera is fitted to the tissue of both volumes as ``transfer`` shows it,
+    so the view matches :func:`render_volume` and :func:`render_overlay`.
     """
     b = _on_grid(b, a.geometry)
     lo, hi = _robust_range(a.data)
     d = (np.asarray(a.data, np.float64) - np.asarray(b.data, np.float64)) / (hi - lo)
     diff = Volume(np.clip(d, -1.0, 1.0).astype(np.float32), a.geometry)
+    if kw.get("bounds") is None:
+        tf = _preset(transfer)
+        boxes = np.array([content_bounds(v.data, a.geometry, _first_visible(tf.resolved(*_robust_range(v.data))))
+                          for v in (a, b)])
+        kw["bounds"] = tuple(float(boxes[:, k].min() if k % 2 == 0 else boxes[:, k].max()) for k in range(6))
     with VolumeRenderer(a.geometry, transfer=DIFFERENCE, **kw) as r:
         return r.render(diff)
 

@@ -12,7 +12,12 @@ from workbench.cli import main
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.render import offscreen_available
 
-needs_gl = pytest.mark.skipif(not offscreen_available(), reason="no off-screen OpenGL (EGL or OSMesa) here")
+_skip_no_gl = pytest.mark.skipif(not offscreen_available(), reason="no off-screen OpenGL (EGL or OSMesa) here")
+
+
+def needs_gl(test):
+    """Rendering tests: marked ``render`` and skipped where no off-screen OpenGL context exists."""
+    return pytest.mark.render(_skip_no_gl(test))
 
 
 @pytest.fixture(scope="module")
