@@ -27,6 +27,7 @@ point with the index finger) are in ``workbench/keyframes/``.
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 from dataclasses import dataclass, field, replace
@@ -39,7 +40,7 @@ from deformation.skeleton import SkeletonError
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.jsonio import read_json
 
-__all__ = ["Keyframes", "read_keyframes", "builtin_keyframes", "animate_study", "FORMATS"]
+__all__ = ["Keyframes", "read_keyframes", "builtin_keyframes", "camera_from", "animate_study", "FORMATS"]
 
 KEYFRAMES_FORMAT = "avw-keyframes"
 FORMATS = (".mp4", ".gif", ".png")
@@ -100,10 +101,14 @@ def _keyframes_from_dict(d, skeleton, where: str) -> Keyframes:
     for n, kf in enumerate(kfs):
         if not isinstance(kf, dict) or "time" not in kf or not isinstance(kf.get("angles", {}), dict):
             raise bad(f"keyframe {n} needs 'time' (s) and 'angles' {{joint: [degrees, ...]}}")
+        if not _is_number(kf["time"]):
+            raise bad(f"keyframe {n}: 'time' must be a number of seconds, got {kf['time']!r}")
         full = {k: np.asarray(v, float).copy() for k, v in zero.items()}
         for j, v in kf.get("angles", {}).items():
             if j not in full:
                 raise bad(f"keyframe {n}: unknown joint {j!r}; the skeleton's joints are {sorted(full)}")
+            if not isinstance(v, list) or not all(_is_number(x) for x in v):
+                raise bad(f"keyframe {n}: joint {j!r} needs a list of numbers (degrees), got {v!r}")
             a = np.asarray(v, float)
             if a.shape != full[j].shape:
                 raise bad(f"keyframe {n}: joint {j!r} takes {full[j].size} values (degrees, then mm for a "
@@ -122,7 +127,7 @@ def _keyframes_from_dict(d, skeleton, where: str) -> Keyframes:
     if np.any(np.diff(t) <= 0):
         raise bad(f"keyframe times must increase strictly, got {times}")
     fps = d.get("fps")
-    if fps is not None and not (isinstance(fps, (int, float)) and fps > 0):
+    if fps is not None and not (_is_number(fps) and fps > 0):
         raise bad(f"fps must be a positive number, got {fps!r}")
     cam = d.get("camera", {}) or {}
     if not isinstance(cam, dict):
@@ -130,7 +135,29 @@ def _keyframes_from_dict(d, skeleton, where: str) -> Keyframes:
     unknown = set(cam) - {"view", "azimuth", "elevation", "zoom", "orbit"}
     if unknown:
         raise bad(f"camera: unknown keys {sorted(unknown)} (expected view, azimuth, elevation, zoom, orbit)")
+    for k in ("azimuth", "elevation", "zoom", "orbit"):
+        if k in cam and not _is_number(cam[k]):
+            raise bad(f"camera: {k} must be a number, got {cam[k]!r}")
+    try:
+        camera_from(cam)
+    except ValueError as e:
+        raise bad(f"camera: {e}") from e
     return Keyframes(t, angles, interp, None if fps is None else float(fps), dict(cam), names, where)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def camera_from(doc: dict, **override):
+    """A :class:`workbench.render.Camera` from a keyframe file's ``camera`` block (``override`` wins)."""
+    from workbench.render import Camera
+
+    d = {"view": "auto", "azimuth": 0.0, "elevation": 0.0, "zoom": 1.0}
+    d.update({k: doc[k] for k in ("view", "azimuth", "elevation", "zoom") if k in doc})
+    d.update({k: v for k, v in override.items() if v is not None})
+    return Camera(view=str(d["view"]), azimuth=float(d["azimuth"]), elevation=float(d["elevation"]),
+                  zoom=float(d["zoom"]))
 
 
 def read_keyframes(path, skeleton) -> Keyframes:
@@ -217,20 +244,29 @@ class _Writer:
 
             # the GIF frame delay is in whole hundredths of a second: 24 fps plays at 25
             iio.imwrite(self.staging, np.stack(self._gif), extension=".gif", duration=1000.0 / self.fps, loop=0)
+        from workbench.atomic import _commit, _fsync_file
+
         if self.kind == ".png":
-            if self.overwrite:
-                for p in self._existing():
+            # A set of files cannot be swapped in one step: every frame is complete and flushed in the
+            # staging folder first, then the old frames (with --force) are removed and the new ones moved
+            # in, without clobbering a frame that appeared meanwhile unless --force.
+            names = [self.frame_name(i) for i in range(self.n)]
+            for name in names:
+                _fsync_file(self.staging / name)
+            stale = self._existing()
+            if stale and not self.overwrite:
+                raise OutputExistsError(stale[0], f"{stale[0]} appeared while rendering; pass --force to replace it.")
+            for p in stale:
+                if p.name not in names:
                     p.unlink()
             done = []
-            for i in range(self.n):
-                dst = self.out.parent / self.frame_name(i)
-                (self.staging / self.frame_name(i)).replace(dst)
-                done.append(dst)
+            for name in names:
+                _commit(self.staging / name, self.out.parent / name, self.overwrite)
+                done.append(self.out.parent / name)
             self.staging.rmdir()
             return done
-        if self.out.exists() and not self.overwrite:
-            raise OutputExistsError(self.out, f"{self.out} appeared while rendering; pass --force to replace it.")
-        self.staging.replace(self.out)
+        _fsync_file(self.staging)
+        _commit(self.staging, self.out, self.overwrite)  # no clobber without --force, even at the last moment
         return [self.out]
 
     def abort(self) -> None:
@@ -260,8 +296,8 @@ def _camera_bounds(poser, keyframes: Keyframes, mask: np.ndarray, margin_mm: flo
 
 def animate_study(folder, out, *, keyframes=None, method: str = "auto", weighting: str = "psd", fps=None,
                   size=(640, 480), n_frames: int | None = None, transfer="mri", camera=None, orbit=None,
-                  clip=None, bones: bool = False, background=(0.0, 0.0, 0.0), overwrite: bool = False,
-                  progress=None) -> dict:
+                  clip=None, bones: bool = False, background=(0.0, 0.0, 0.0), mapper: str = "auto",
+                  overwrite: bool = False, progress=None) -> dict:
     """Render the study's template moving through ``keyframes`` and write ``out`` (.mp4, .gif or .png frames).
 
     ``keyframes``: a file, a :class:`Keyframes`, or ``None`` for the ready
@@ -272,7 +308,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     the frame count and the time spent deforming, rendering and encoding.
     """
     from workbench.deform_stage import TemplatePoser
-    from workbench.render import Camera, VolumeRenderer, _first_visible, _preset, _robust_range
+    from workbench.render import VolumeRenderer, _first_visible, _preset, _robust_range
     from workbench.study import read_study
     from scipy import ndimage as ndi
 
@@ -296,8 +332,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         raise ValueError(f"an animation needs at least 2 frames, got {n} (duration {kf.duration:g} s at {fps:g} fps)")
     cam_doc = kf.camera
     if camera is None:
-        camera = Camera(view=str(cam_doc.get("view", "auto")), azimuth=float(cam_doc.get("azimuth", 0.0)),
-                        elevation=float(cam_doc.get("elevation", 0.0)), zoom=float(cam_doc.get("zoom", 1.0)))
+        camera = camera_from(cam_doc)
     orbit = float(cam_doc.get("orbit", 0.0) if orbit is None else orbit)
     writer = _Writer(out, fps, overwrite)  # checks the target before any work
     try:
@@ -309,7 +344,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         mask = ndi.uniform_filter(np.asarray(template.data, np.float32), size=3, mode="nearest") > thr
         bounds = _camera_bounds(poser, kf, mask, 2.0 * max(g.spacing))
         renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
-                                  background=background, bounds=bounds)
+                                  background=background, bounds=bounds, mapper=mapper)
         say(f"{n} frames at {fps:g} fps ({kf.duration:g} s, {len(kf.times)} keyframes, {kf.interpolation}); "
             f"{poser.method.upper()} deformation; {renderer.backend.describe()}, {renderer.mapper_name} mapper")
         t_deform = t_render = t_encode = 0.0

@@ -462,15 +462,10 @@ def _background(text: str) -> tuple:
     return rgb
 
 
-def _camera(args, defaults=None):
-    from workbench.render import Camera
+def _camera(args):
+    from workbench.animate import camera_from
 
-    d = dict(defaults or {})
-    view = args.camera if args.camera is not None else d.get("view", "auto")
-    return Camera(view=str(view),
-                  azimuth=float(args.azimuth if args.azimuth is not None else d.get("azimuth", 0.0)),
-                  elevation=float(args.elevation if args.elevation is not None else d.get("elevation", 0.0)),
-                  zoom=float(args.zoom if args.zoom is not None else d.get("zoom", 1.0)))
+    return camera_from({}, view=args.camera, azimuth=args.azimuth, elevation=args.elevation, zoom=args.zoom)
 
 
 def _say(args):
@@ -562,6 +557,9 @@ def _render_inputs(args, say):
         labels = read_labels(args.labels)
     if args.overlay and args.difference:
         raise ValueError("--overlay and --difference are two kinds of picture: pass one")
+    if (args.overlay or args.difference) and labels is not None:
+        raise ValueError("--bones/--labels draw surfaces on a single-volume render; leave them out with "
+                         "--overlay or --difference")
     other = resolve(args.overlay or args.difference) if (args.overlay or args.difference) else None
     say(f"{what}: {vol.geometry.describe()}")
     return vol, labels, other
@@ -609,18 +607,16 @@ def cmd_animate(args) -> int:
     size = parse_size(args.size)
     clip = ClipPlane.parse(args.clip) if args.clip else None
     bg = _background(args.background)
-    cam = None
-    if any(v is not None for v in (args.camera, args.azimuth, args.elevation, args.zoom)):
-        from workbench.animate import builtin_keyframes, read_keyframes
-        from workbench.study import read_study
+    from workbench.animate import builtin_keyframes, camera_from, read_keyframes
+    from workbench.study import read_study
 
-        sk = read_study(args.study).skeleton()
-        kf = read_keyframes(args.keyframes, sk) if args.keyframes else builtin_keyframes(sk)
-        cam = _camera(args, kf.camera)
-    s = animate_study(args.study, args.out, keyframes=args.keyframes, method=args.method, weighting=args.weighting,
+    sk = read_study(args.study).skeleton()
+    kf = read_keyframes(args.keyframes, sk) if args.keyframes else builtin_keyframes(sk)
+    cam = camera_from(kf.camera, view=args.camera, azimuth=args.azimuth, elevation=args.elevation, zoom=args.zoom)
+    s = animate_study(args.study, args.out, keyframes=kf, method=args.method, weighting=args.weighting,
                       fps=args.fps, size=size, n_frames=args.frames, transfer=args.preset, camera=cam,
-                      orbit=args.orbit, clip=clip, bones=args.bones, background=bg, overwrite=args.force,
-                      progress=_say(args))
+                      orbit=args.orbit, clip=clip, bones=args.bones, background=bg, mapper=args.mapper,
+                      overwrite=args.force, progress=_say(args))
     n = s["frames"]
     print(f"{n} frames {s['size'][0]}x{s['size'][1]} at {s['fps']:g} fps ({s['method'].upper()}, {s['mapper']} "
           f"mapper): deformation {s['deform_seconds']:.1f} s ({s['deform_seconds_per_frame']:.3f} s/frame), "

@@ -39,7 +39,7 @@ from workbench.volume_io import read_labels, read_vector_image, write_labels, wr
 from workbench.weights_io import read_voxel_weights, write_voxel_weights
 
 __all__ = ["run_weights_stage", "load_weights", "run_model_stage", "load_model", "read_target_pose",
-           "deform_study", "SKINNING_DIR", "MODEL_DIR", "WEIGHT_METHODS"]
+           "deform_study", "TemplatePoser", "PosedTemplate", "SKINNING_DIR", "MODEL_DIR", "WEIGHT_METHODS"]
 
 SKINNING_DIR = "skinning"
 MODEL_DIR = "model"
@@ -465,20 +465,21 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
                               ("scans", "truth", "poses", SKINNING_DIR, MODEL_DIR)):
             raise ValueError(f"{p}: would overwrite one of the study's own files; write the posed volume "
                              "elsewhere (or in a new subfolder of the study)")
+    pose = read_target_pose(pose_path, study.skeleton())  # a bad pose file is reported before any loading
     poser = TemplatePoser(study, method=method, weighting=weighting, progress=say)
-    pose = read_target_pose(pose_path, poser.skeleton)
+    if poser.template_labels is None:
+        raise InputFileError(f"{study.root / MANIFEST}: the study has no template label map; `workbench deform` "
+                             "writes the posed labels beside the posed volume and needs one.", study.root / MANIFEST)
     used = poser.method
     posed = poser.pose(pose)
     bm = posed.backward
     write_volume(posed.volume, out, overwrite=overwrite)
-    if posed.labels is not None:
-        write_labels(posed.labels, labels_out, overwrite=overwrite)
+    write_labels(posed.labels, labels_out, overwrite=overwrite)
     if field_out:
         from workbench.volume_io import write_displacement
 
         write_displacement(bm.scan_to_template(), field_out, overwrite=overwrite)
     summary = {"method": used, "weighting": weighting if used == "evd" else None, "out": str(out),
-               "labels": str(labels_out) if posed.labels is not None else None,
-               "field": str(field_out) if field_out else None,
+               "labels": str(labels_out), "field": str(field_out) if field_out else None,
                "forward_seconds": posed.forward_seconds, "backward_seconds": posed.backward_seconds, **bm.summary()}
     return summary

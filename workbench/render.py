@@ -4,9 +4,10 @@ Everything renders without a display.  :func:`opengl_backend` finds an
 off-screen OpenGL context — EGL first, then OSMesa (``AVW_OPENGL=egl`` or
 ``osmesa`` forces one) — and says which, with the OpenGL renderer string.  On
 a software renderer (Mesa's llvmpipe, as on machines without a GPU) the CPU
-ray caster ``vtkFixedPointVolumeRayCastMapper`` is used: it is 5–10× faster
-there than the GPU or Smart mappers, which then emulate the GPU on the CPU;
-with a hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
+ray caster ``vtkFixedPointVolumeRayCastMapper`` is used: it is faster there
+than the GPU ray caster, which then runs on the CPU through Mesa (measured
+here, ``benchmarks/rendering.py``: 2–2.8× at test size, 1.5× on a paper-size
+knee); with a hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
 
 Geometry is honest: the volume is placed in world millimetres (ITK physical
 space) by its origin, spacing *and* direction — the direction goes into the
@@ -91,6 +92,7 @@ def _probe(name: str) -> Backend | None:
         return None
     warn = vtkObject.GetGlobalWarningDisplay()
     vtkObject.GlobalWarningDisplayOff()  # a failed probe prints VTK errors; we report our own
+    win = None
     try:
         win = cls()
         win.SetOffScreenRendering(1)
@@ -102,10 +104,14 @@ def _probe(name: str) -> Backend | None:
         caps = win.ReportCapabilities() or ""
         m = re.search(r"OpenGL renderer string:\s*(.+)", caps)
         renderer = m.group(1).strip() if m else "unknown"
-        win.Finalize()
     except Exception:  # noqa: BLE001 - any failure means this backend is unusable here
         return None
     finally:
+        if win is not None:
+            try:
+                win.Finalize()
+            except Exception:  # noqa: BLE001 - releasing a context that never worked
+                pass
         vtkObject.SetGlobalWarningDisplay(warn)
     software = any(s in renderer.lower() for s in _SOFTWARE_GL)
     return Backend(name, _WINDOWS[name], renderer, software)
@@ -270,7 +276,8 @@ class Camera:
 
     ``view``: ``auto`` (from the + side of the volume's thinnest world axis,
     the longest axis up, then turned by 30° azimuth and 15° elevation — the
-    flexion plane of the knee and hand phantoms), ``iso`` (from
+    knee phantom's flexion plane; the hand's back, so its ready keyframes
+    look from ``+x``, the little-finger side), ``iso`` (from
     ``(+1, +1, +1)``), or a world axis ``+x -x +y -y +z -z`` (from that side,
     the longest remaining axis up); ``azimuth``/``elevation`` (degrees) turn
     the camera about the view-up axis and the horizontal axis (added to the
@@ -290,11 +297,14 @@ class Camera:
         if not self.zoom > 0:
             raise ValueError(f"camera zoom must be > 0, got {self.zoom}")
 
-    def place(self, cam, bounds, aspect: float = 4 / 3) -> None:
+    def place(self, cam, bounds, aspect: float = 4 / 3, distance: float | None = None) -> float:
         """Point a ``vtkCamera`` at the world box ``bounds`` (xmin, xmax, ymin, ymax, zmin, zmax).
 
         The distance is the smallest at which the box's eight corners fit the
-        30° view angle (and ``aspect`` = width / height), 5 % margin, then ``zoom``.
+        30° view angle (and ``aspect`` = width / height), 5 % margin, then
+        ``zoom``; or ``distance`` (mm, before the zoom) when given — an orbit
+        keeps its first frame's, so the picture does not breathe.  Returns the
+        distance used.
         """
         b = np.asarray(bounds, float).reshape(3, 2)
         centre, ext = b.mean(axis=1), b[:, 1] - b[:, 0]
@@ -328,11 +338,15 @@ class Camera:
         t = math.tan(math.radians(15.0))
         corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]]) - centre
         depth = corners @ back
-        dist = max(float(np.max(np.abs(corners @ vup) / t + depth)),
-                   float(np.max(np.abs(corners @ right) / (t * aspect) + depth)), 1e-3) * 1.05
+        if distance is None:
+            dist = max(float(np.max(np.abs(corners @ vup) / t + depth)),
+                       float(np.max(np.abs(corners @ right) / (t * aspect) + depth)), 1e-3) * 1.05
+        else:
+            dist = float(distance)
         cam.SetPosition(*(centre + dist * back))
         cam.Zoom(self.zoom)
         cam.SetClippingRange(max(dist - 2 * radius, 1e-3 * dist), dist + 2 * radius)
+        return dist
 
 
 @dataclass(frozen=True)
@@ -561,6 +575,12 @@ class VolumeRenderer:
             self._plane = vtkPlane()
             self._mapper.AddClippingPlane(self._plane)
         self._placed = False
+        self._distance = None
+
+    @staticmethod
+    def grid_bounds(geometry: GridGeometry) -> tuple:
+        """The world box of a grid's voxel centres (any direction): a fixed ``bounds`` for the camera."""
+        return _world_bounds(geometry)
 
     # -- inputs --
     def _set_scalars(self, arrays) -> None:
@@ -664,15 +684,20 @@ class VolumeRenderer:
                                              _first_visible(t)) for v, t in zip(volumes, self._resolved)])
             self.bounds = tuple(float(boxes[:, k].min() if k % 2 == 0 else boxes[:, k].max()) for k in range(6))
         cam = self._ren.GetActiveCamera()
-        self.camera.place(cam, self.bounds, self.size[0] / self.size[1])
-        if self._plane is not None:
+        first = self._distance is None
+        self._distance = self.camera.place(cam, self.bounds, self.size[0] / self.size[1], self._distance)
+        if self._plane is not None and first:  # the side an 'auto' plane keeps is chosen once, from here
             o, nrm = self.clip.plane(self.bounds, cam.GetPosition())
             self._plane.SetOrigin(*o)
             self._plane.SetNormal(*nrm)
         self._placed = True
 
     def set_camera(self, camera: Camera) -> None:
-        """A new camera (e.g. the next azimuth of an orbit) on the same world box."""
+        """A new camera (e.g. the next azimuth of an orbit) on the same world box, at the first fit's distance.
+
+        The clipping plane stays where the first placement put it: an orbit
+        does not flip the side an ``auto`` plane keeps.
+        """
         self.camera = camera
         self._placed = False
 

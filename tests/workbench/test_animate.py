@@ -68,7 +68,8 @@ def _keys(tmp_path, doc, name="keys.json"):
 def _bend(t1=1.0, deg=40.0, interpolation="smooth"):
     return {"format": "avw-keyframes", "version": 1, "skeleton": "knee", "interpolation": interpolation,
             "keyframes": [{"time": 0.0, "angles": {"knee": [0, 0, 0]}},
-                          {"time": t1, "angles": {"knee": [deg, 0, 0], "tibiofibular": [deg, 0, 0]}}]}
+                          {"time": t1, "angles": {"knee": [deg, 0, 0], "tibiofibular": [deg, 0, 0],
+                                                  "patellofemoral": [0.7 * deg, 0, 0]}}]}  # the phantom's couplings
 
 
 def test_interpolation_is_smoothstep_or_linear_between_keyframes(tmp_path, skeleton):
@@ -77,7 +78,10 @@ def test_interpolation_is_smoothstep_or_linear_between_keyframes(tmp_path, skele
     assert kf.at(0.5)["knee"][0] == pytest.approx(40.0 * 0.15625)
     assert kf.at(1.0)["knee"][0] == pytest.approx(20.0)
     assert kf.at(-1.0)["knee"][0] == 0.0 and kf.at(5.0)["knee"][0] == pytest.approx(40.0)
-    assert kf.at(1.0)["patellofemoral"][0] == 0.0  # joints left out stay at the template's 0
+    assert kf.at(1.0)["patellofemoral"][0] == pytest.approx(14.0)
+    one = _bend(2.0, 40.0)
+    del one["keyframes"][1]["angles"]["patellofemoral"]
+    assert read_keyframes(_keys(tmp_path, one, "one.json"), skeleton).at(1.0)["patellofemoral"][0] == 0.0  # left out: 0
     lin = read_keyframes(_keys(tmp_path, _bend(2.0, 40.0, "linear"), "lin.json"), skeleton)
     assert lin.at(0.5)["knee"][0] == pytest.approx(10.0)
     assert np.allclose(kf.frame_times(5), [0.0, 0.5, 1.0, 1.5, 2.0])
@@ -102,14 +106,40 @@ def test_bad_keyframe_files_name_the_problem(tmp_path, skeleton):
         read_keyframes(_keys(tmp_path, bad), skeleton)
     with pytest.raises(InputFileError, match="not a keyframe file"):
         read_keyframes(_keys(tmp_path, {"angles": {}}), skeleton)
+    for key, value, message in (("time", None, "'time' must be a number"), ("time", "a", "'time' must be a number")):
+        bad = _bend()
+        bad["keyframes"][0][key] = value
+        with pytest.raises(InputFileError, match=message):
+            read_keyframes(_keys(tmp_path, bad), skeleton)
+    bad = _bend()
+    bad["keyframes"][1]["angles"]["knee"] = ["x", 0, 0]
+    with pytest.raises(InputFileError, match="list of numbers"):
+        read_keyframes(_keys(tmp_path, bad), skeleton)
+    for camera, message in (({"zoom": None}, "zoom must be a number"), ({"view": "side"}, "camera view"),
+                            ({"zoom": -1}, "zoom must be > 0"), ({"spin": 1}, "unknown keys")):
+        bad = _bend()
+        bad["camera"] = camera
+        with pytest.raises(InputFileError, match=message) as e:
+            read_keyframes(_keys(tmp_path, bad), skeleton)
+        assert "keys.json" in str(e.value)  # the message names the file
+    bad = _bend()
+    bad["fps"] = True
+    with pytest.raises(InputFileError, match="fps must be a positive number"):
+        read_keyframes(_keys(tmp_path, bad), skeleton)
 
 
 def test_ready_keyframes_fit_the_phantom_skeletons():
     from validation.phantoms.hand import skeleton as hand_skeleton
     from validation.phantoms.knee import skeleton as knee_skeleton
 
+    from validation.phantoms.knee import complete_angles
+
     knee = builtin_keyframes(knee_skeleton())
     assert knee.angles[0]["knee"][0] == 0 and max(a["knee"][0] for a in knee.angles) == 60  # bend, straighten
+    for a in knee.angles:  # the phantom's couplings: fibula with the tibia, patella 70 % of the flexion
+        want = complete_angles({"knee": a["knee"]})
+        assert np.allclose(a["tibiofibular"], want["tibiofibular"]) and np.allclose(a["patellofemoral"],
+                                                                                   want["patellofemoral"])
     hand = builtin_keyframes(hand_skeleton())
     names = hand.names
     assert names[0] == "open" and "fist" in names and "point" in names
@@ -173,9 +203,13 @@ def test_cli_render_and_animate(tmp_path, study, capsys):
                  str(tmp_path / "ov.png"), "--size", "160x120", "--quiet"]) == 0
     assert main(["render", str(study), "--scan", "nope", "--out", str(tmp_path / "x.png"), "--quiet"]) == 1
     assert "no scan 'nope'" in capsys.readouterr().err
+    assert main(["render", str(study), "--overlay", "pose01", "--bones", "--out", str(tmp_path / "y.png")]) == 1
+    assert "leave them out" in capsys.readouterr().err
     mp4 = tmp_path / "a.mp4"
-    assert main(["animate", str(study), "--out", str(mp4), "--frames", "4", "--size", "96x72", "--quiet"]) == 0
-    assert "4 frames 96x72" in capsys.readouterr().out
+    assert main(["animate", str(study), "--out", str(mp4), "--frames", "4", "--size", "96x72", "--quiet",
+                 "--mapper", "gpu"]) == 0
+    out = capsys.readouterr().out
+    assert "4 frames 96x72" in out and "gpu mapper" in out  # --mapper reaches the renderer
     assert _read_mp4(mp4).shape == (4, 72, 96, 3)
 
 
