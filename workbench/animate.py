@@ -40,7 +40,8 @@ from deformation.skeleton import SkeletonError
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.jsonio import read_json
 
-__all__ = ["Keyframes", "read_keyframes", "builtin_keyframes", "camera_from", "animate_study", "FORMATS"]
+__all__ = ["Keyframes", "read_keyframes", "builtin_keyframes", "camera_from", "covering_grid", "animate_study",
+           "FORMATS"]
 
 KEYFRAMES_FORMAT = "avw-keyframes"
 FORMATS = (".mp4", ".gif", ".png")
@@ -282,16 +283,43 @@ class _Writer:
 
 
 # -- the animation -----------------------------------------------------------------------------------------
-def _camera_bounds(poser, keyframes: Keyframes, mask: np.ndarray, margin_mm: float) -> tuple:
-    """World box of the visible template tissue over every keyframe pose (forward maps only, no resampling)."""
+def _camera_bounds(poser, keyframes: Keyframes, mask: np.ndarray, margin_mm: float, per_segment: int = 4) -> tuple:
+    """World box of the visible template tissue over the motion (forward maps only, no resampling).
+
+    Sampled at every keyframe and ``per_segment − 1`` times between each two:
+    a curling finger sweeps beyond both its open and its closed position.
+    """
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     step = max(1, int(mask.sum()) // 200_000)
-    for angles in keyframes.angles:
-        pts = poser.forward(poser.skeleton.pose(angles))[mask][::step]
+    ts = keyframes.times
+    times = np.unique(np.concatenate([np.linspace(a, b, per_segment + 1) for a, b in zip(ts, ts[1:])]))
+    for t in times:
+        pts = poser.forward(poser.skeleton.pose(keyframes.at(t)))[mask][::step]
         a, b = np.percentile(pts, [0.1, 99.9], axis=0)
         lo, hi = np.minimum(lo, a), np.maximum(hi, b)
     return tuple(float(v) for pair in zip(lo - margin_mm, hi + margin_mm) for v in pair)
+
+
+def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
+    """``geometry`` extended (same spacing and direction, whole voxels) to cover the world box ``bounds``.
+
+    The posed anatomy can leave the template's grid (curling fingers pass
+    below a flat hand's slab); frames are resampled onto this grid so that
+    nothing is cut off.  Each side grows by at most ``max_growth`` − 1 times
+    the grid's extent along it.
+    """
+    from deformation.geometry import GridGeometry
+
+    b = np.asarray(bounds, float).reshape(3, 2)
+    corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]])
+    ijk = np.asarray(geometry.world_to_index(corners))
+    n = np.asarray(geometry.size, float)
+    lo = np.maximum(np.minimum(np.floor(ijk.min(axis=0)), 0.0), -(max_growth - 1.0) * n).astype(int)
+    hi = np.minimum(np.maximum(np.ceil(ijk.max(axis=0)), n - 1), (max_growth * n) - 1).astype(int)
+    size = tuple(int(v) for v in hi - lo + 1)
+    origin = tuple(float(v) for v in geometry.index_to_world(lo.astype(float)[None])[0])
+    return GridGeometry(size, geometry.spacing, origin, geometry.direction)
 
 
 def animate_study(folder, out, *, keyframes=None, method: str = "auto", weighting: str = "psd", fps=None,
@@ -343,6 +371,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         thr = _first_visible(tf.resolved(lo, hi))
         mask = ndi.uniform_filter(np.asarray(template.data, np.float32), size=3, mode="nearest") > thr
         bounds = _camera_bounds(poser, kf, mask, 2.0 * max(g.spacing))
+        g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
         renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
                                   background=background, bounds=bounds, mapper=mapper)
         say(f"{n} frames at {fps:g} fps ({kf.duration:g} s, {len(kf.times)} keyframes, {kf.interpolation}); "
@@ -353,7 +382,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         with renderer:
             for i, t in enumerate(kf.frame_times(n)):
                 t0 = time.perf_counter()
-                posed = poser.pose(sk.pose(kf.at(t)), labels=bones)
+                posed = poser.pose(sk.pose(kf.at(t)), labels=bones, target=g)
                 t1 = time.perf_counter()
                 if orbit:
                     renderer.set_camera(replace(camera, azimuth=base_az + orbit * i / (n - 1)))
@@ -383,4 +412,4 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
             "mapper": renderer.mapper_name, "deform_seconds": t_deform, "render_seconds": t_render,
             "encode_seconds": t_encode, "total_seconds": time.perf_counter() - t_start,
             "render_seconds_per_frame": t_render / n, "deform_seconds_per_frame": t_deform / n,
-            "bounds_mm": [round(v, 2) for v in bounds]}
+            "bounds_mm": [round(v, 2) for v in bounds], "grid": list(g.size)}

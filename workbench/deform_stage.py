@@ -408,7 +408,8 @@ class TemplatePoser:
             return self.model.forward(pose, weighting=self.weighting)
         return vbd_forward(self.template.geometry, self.weights, stack_transforms(pose.transforms, self.weights.bones))
 
-    def pose(self, pose, *, labels: bool = True) -> PosedTemplate:
+    def pose(self, pose, *, labels: bool = True, target=None) -> PosedTemplate:
+        """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry)."""
         from deformation.resample import backward_map, resample_forward
         from deformation.skinning import stack_transforms
 
@@ -419,7 +420,7 @@ class TemplatePoser:
         fwd = self.forward(pose)
         t1 = time.perf_counter()
         self._say("backward map and resampling ...")
-        bm = backward_map(fwd, g, transforms=t, prefer=self.body.data.astype(bool))
+        bm = backward_map(fwd, g, target, transforms=t, prefer=self.body.data.astype(bool))
         vol = resample_forward(bm, self.template, fill=self.fill)
         lab = (resample_forward(bm, self.template_labels, labels=True)
                if labels and self.template_labels is not None else None)

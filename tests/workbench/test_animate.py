@@ -217,3 +217,23 @@ def test_keyframes_dataclass_needs_two_frames():
     kf = Keyframes(np.array([0.0, 1.0]), [{"knee": np.zeros(3)}, {"knee": np.ones(3)}])
     with pytest.raises(ValueError, match="at least 2 frames"):
         kf.frame_times(1)
+
+
+def test_covering_grid_extends_the_grid_by_whole_voxels():
+    from deformation.geometry import GridGeometry
+    from workbench.animate import covering_grid
+
+    g = GridGeometry((10, 8, 6), (2.0, 1.5, 3.0), (-9.0, -5.25, 0.0), ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)))
+    w = g.index_to_world(np.array([[0, 0, 0], [9, 7, 5]], float))
+    lo, hi = w.min(axis=0), w.max(axis=0)
+    # a box 4 mm beyond the grid in -z and 2.9 mm beyond in +y (world), inside elsewhere
+    box = (lo[0] + 1, hi[0] - 1, lo[1] + 1, hi[1] + 2.9, lo[2] - 4.0, hi[2] - 1)
+    big = covering_grid(g, box)
+    ijk = big.world_to_index(g.index_to_world(np.array([[0, 0, 0]], float)))[0]
+    assert np.allclose(ijk, np.round(ijk))  # the old voxel centres are voxel centres of the new grid
+    # world +y is index axis i (column 0 of the direction): 2.9 mm / 2.0 mm spacing -> 2 more voxels;
+    # world -z is axis k: 4 mm / 3 mm -> 2 more voxels below; the rest unchanged
+    assert big.size == (12, 8, 8)
+    corners = big.index_to_world(np.array([[0, 0, 0], [11, 7, 7]], float))
+    assert corners.min(axis=0)[2] <= box[4] and corners.max(axis=0)[1] >= box[3]
+    assert covering_grid(g, box, max_growth=1.0).size == g.size  # growth capped
