@@ -448,10 +448,8 @@ def _world_bounds(g: GridGeometry) -> tuple:
 def _first_visible(tf: TransferFunction) -> float:
     """The intensity from which ``tf`` (absolute) is not fully transparent."""
     pts = tf.opacity
-    for (v0, a0), (v1, a1) in zip(pts, pts[1:]):
-        if a0 > 0:
-            return float(v0)
-        if a1 > 0:
+    for (v0, a0), (_, a1) in zip(pts, pts[1:]):
+        if a0 > 0 or a1 > 0:  # opacity rises from v0 on (piecewise linear)
             return float(v0)
     return float(pts[-1][0])
 
@@ -487,11 +485,12 @@ class VolumeRenderer:
     be on it); ``transfer`` a preset name, a :class:`TransferFunction` or a
     JSON file — relative functions are resolved once against
     ``reference`` (default: the first volume rendered), so an animation's
-    colours do not flicker; ``components`` > 1 renders that many volumes at
-    once with their own transfer functions (``transfers``) blended
-    (overlays).  ``mapper``: ``auto`` (:attr:`Backend.mapper`), ``fixed`` or
-    ``gpu``.  The camera and clipping plane are placed on ``bounds`` (world mm), by default the
-    box of the first volume's visible tissue (:func:`content_bounds`).
+    colours do not flicker; ``transfers`` (a list) renders that many volumes
+    at once, each with its own transfer function, blended (overlays).
+    ``mapper``: ``auto`` (:attr:`Backend.mapper`), ``fixed`` or ``gpu``.  The
+    camera and clipping plane are placed on ``bounds`` (world mm), by default
+    the box of the visible tissue of every volume of the first render
+    (:func:`content_bounds`).
     """
 
     def __init__(self, geometry: GridGeometry, *, size=(640, 480), transfer="mri", transfers=None,
