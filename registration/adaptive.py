@@ -79,7 +79,7 @@ from deformation.splines import cps_green, cps_green_gradient
 from .metrics import MI_BINS, HistogramBins, _entropies, _joint_hist, air_level, block_statistics, similarity
 
 __all__ = ["AdaptiveSettings", "AdaptiveResult", "StepRecord", "LevelRecord", "register_adaptive", "register_block",
-           "block_layout", "local_step_basis", "OPTIMIZERS"]
+           "block_layout", "step_control_points", "control_points_from_log", "local_step_basis", "OPTIMIZERS"]
 
 numba.config.THREADING_LAYER = "omp"
 
@@ -278,6 +278,40 @@ def block_layout(shape_zyx, level: int, min_block_voxels: int = 4) -> list[np.nd
     for n in (shape_zyx[2], shape_zyx[1], shape_zyx[0]):
         nb = max(1, min(2 ** level, n // max(1, min_block_voxels)))
         out.append(np.round(np.linspace(0, n, nb + 1)).astype(np.int64))
+    return out
+
+
+def step_control_points(shape_zyx, level: int, block, *, inset: float = 0.25,
+                        min_block_voxels: int = 4) -> np.ndarray:
+    """The 8 moving control points of a step on ``block`` (i, j, k) at ``level``: index coordinates (x, y, z).
+
+    Rhee §4.3: a 2×2×2 pattern ``inset`` of the half-block inside the
+    block's corners — the points :meth:`_Registration._step` places in
+    region-unit coordinates (:func:`_control_points_unit`; the region is
+    the 3×3×3 blocks, half-extent 1.5 blocks), mapped back to voxel indices.
+    """
+    edges = block_layout(shape_zyx, level, min_block_voxels)
+    lo = np.array([edges[a][int(block[a])] for a in range(3)], float)
+    hi = np.array([edges[a][int(block[a]) + 1] for a in range(3)], float)
+    centre = (lo + hi - 1.0) / 2.0
+    half = 1.5 * (hi - lo)
+    return centre + _control_points_unit(inset) * half
+
+
+def control_points_from_log(log: dict, geometry) -> list[tuple[int, np.ndarray]]:
+    """``[(level, world points (8, 3) mm), ...]`` of every accepted step in a registration log (``result.log()``).
+
+    ``geometry`` is the grid the registration ran on (the scan's).  This is
+    what Rhee's Fig. 9 draws: the control points allocated per block level.
+    """
+    st = log["settings"]
+    shape = geometry.array_shape
+    out = []
+    for step in log["steps"]:
+        if step["accepted"]:
+            ijk = step_control_points(shape, step["level"], step["block"], inset=st["inset"],
+                                      min_block_voxels=st["min_block_voxels"])
+            out.append((int(step["level"]), np.asarray(geometry.index_to_world(ijk))))
     return out
 
 

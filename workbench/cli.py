@@ -64,13 +64,16 @@ extent, removing the side facing the camera (Rhee Fig. 10); +AXIS keeps the larg
 coordinates, -AXIS the smaller.  --bones draws the template's label map as opaque
 surfaces; --overlay draws a second volume in magenta against the first in cyan
 (Rhee Figs. 1, 8, 9, 11); --difference shows the signed difference (red: first
-brighter, blue: darker).
+brighter, blue: darker).  --markers draws the ground truth's skin markers (white),
+--control-points the control points a registration allocated, coloured by block
+level (Rhee Fig. 9).
 
 examples:
   workbench render knee-study --out template.png
   workbench render knee-study --out interior.png --clip z:0.5 --bones
   workbench render knee-study --scan pose02 --out scan.png --preset mri --camera +z
   workbench render knee-study --registered pose02 --overlay pose02 --out overlay.png
+  workbench render knee-study --registered pose02 --overlay pose02 --control-points --markers --out fig9.png
   workbench render bent.nii.gz --out bent.png --size 1280x960 --background white
 """
 
@@ -373,6 +376,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="render the signed difference first − OTHER (file or scan ID) instead")
     re_.add_argument("--labels", type=Path, metavar="LABELS", help="a label map on the volume's grid, drawn as surfaces")
     re_.add_argument("--bones", action="store_true", help="with a study's template: draw its bone labels")
+    re_.add_argument("--markers", action="store_true",
+                     help="with a study: draw the skin markers of the ground truth (white; the scan's positions "
+                          "with --scan/--registered, the template's otherwise)")
+    re_.add_argument("--control-points", action="store_true",
+                     help="with --registered ID: draw the control points the registration allocated, coloured by "
+                          "block level (green 3, yellow 4, orange 5, ...; Rhee Fig. 9)")
     _render_options(re_)
     re_.add_argument("--force", action="store_true", help="replace an existing PNG")
     re_.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -511,7 +520,11 @@ def cmd_deform(args) -> int:
 
 
 def _render_inputs(args, say):
-    """``(volume, labels, other)`` for ``workbench render``: files, or a study's template / scan / registration."""
+    """``(volume, labels, other, points)`` for ``workbench render``: files, or a study's template / scan /
+    registration, and the marker and control-point sets to draw."""
+    import numpy as np
+
+    from workbench.render import LEVEL_COLOURS, MARKER_COLOUR
     from workbench.study import MANIFEST, read_study
     from workbench.volume_io import read_labels, read_volume
 
@@ -562,7 +575,34 @@ def _render_inputs(args, say):
                          "--overlay or --difference")
     other = resolve(args.overlay or args.difference) if (args.overlay or args.difference) else None
     say(f"{what}: {vol.geometry.describe()}")
-    return vol, labels, other
+    points = []
+    if args.markers or args.control_points:
+        if study is None:
+            raise ValueError("--markers and --control-points need a study folder")
+    if args.markers:
+        sid = args.scan or args.registered
+        ids = [sid] if sid else [s for s in study.scan_ids if study.has_truth(s)]
+        if not ids or not study.has_truth(ids[0]):
+            raise ValueError(f"--markers: {'scan ' + repr(sid) if sid else 'the study'} has no ground-truth markers")
+        key = "scan" if sid else "template"
+        pts = np.array([m[key] for m in study.truth_markers(ids[0])], float).reshape(-1, 3)
+        points.append((pts, MARKER_COLOUR, 0.8 * max(vol.geometry.spacing)))
+        say(f"{len(pts)} skin markers ({key} positions)")
+    if args.control_points:
+        if not args.registered:
+            raise ValueError("--control-points draws a registration's control points: pass --registered ID")
+        from registration.adaptive import control_points_from_log
+        from workbench.jsonio import read_json
+
+        entry = study._scan_entry(args.registered)["registration"]
+        cps = control_points_from_log(read_json(study.path(entry["log"]))["log"], vol.geometry)
+        levels = sorted({lv for lv, _ in cps})
+        for lv in levels:
+            pts = np.concatenate([p for l_, p in cps if l_ == lv])
+            colour = LEVEL_COLOURS[(lv - 3) % len(LEVEL_COLOURS)] if lv >= 3 else LEVEL_COLOURS[-1]
+            points.append((pts, colour, 0.4 * max(vol.geometry.spacing)))
+            say(f"level {lv}: {len(pts)} control points")
+    return vol, labels, other, points
 
 
 def cmd_render(args) -> int:
@@ -581,18 +621,22 @@ def cmd_render(args) -> int:
         from workbench.errors import OutputExistsError
 
         raise OutputExistsError(args.out, f"{args.out} exists; pass --force to replace it.")
-    vol, labels, other = _render_inputs(args, say)
+    vol, labels, other, points = _render_inputs(args, say)
     kw = dict(size=size, camera=cam, clip=clip, background=bg, mapper=args.mapper)
     t0 = time.perf_counter()
     if args.overlay:
-        img = render_overlay(vol, other, transfer=tf, **kw)
+        img = render_overlay(vol, other, transfer=tf, points=points, **kw)
     elif args.difference:
+        if points:
+            raise ValueError("--markers/--control-points are drawn on renders and overlays, not difference views")
         img = render_difference(vol, other, transfer=tf, **kw)
     else:
         with VolumeRenderer(vol.geometry, transfer=tf, **kw) as r:
             say(f"{r.backend.describe()}; {r.mapper_name} mapper")
             if labels is not None:
                 say(f"{r.add_labels(labels)} labels drawn as surfaces")
+            for pts, colour, radius in points:
+                r.add_points(pts, colour=colour, radius_mm=radius)
             img = r.render(vol)
     dt = time.perf_counter() - t0
     write_png(img, args.out, overwrite=args.force)

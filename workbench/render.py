@@ -50,10 +50,14 @@ from workbench.errors import InputFileError, WorkbenchError
 
 __all__ = ["Backend", "RenderError", "opengl_backend", "offscreen_available", "TransferFunction", "PRESETS",
            "Camera", "ClipPlane", "VolumeRenderer", "render_volume", "render_overlay", "render_difference",
-           "write_png", "parse_size", "label_colour", "content_bounds", "CONTRAST_COLOURS"]
+           "write_png", "parse_size", "label_colour", "content_bounds", "CONTRAST_COLOURS", "LEVEL_COLOURS",
+           "MARKER_COLOUR"]
 
 #: template and target colours of the papers' overlays (cyan and magenta; Rhee Figs. 1, 8, 9, 11)
 CONTRAST_COLOURS = ((0.0, 0.9, 1.0), (1.0, 0.1, 0.9))
+#: colours of registration control points by block level (Rhee Fig. 9 draws level 3), then cycling
+LEVEL_COLOURS = ((0.3, 1.0, 0.3), (1.0, 0.9, 0.2), (1.0, 0.5, 0.1), (1.0, 0.2, 0.2), (0.7, 0.4, 1.0))
+MARKER_COLOUR = (1.0, 1.0, 1.0)
 _SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software rasterizer", "lavapipe")
 
 
@@ -671,7 +675,48 @@ class VolumeRenderer:
             self._surfaces.append((img, act))
         return len(ids)
 
+    def add_points(self, points, *, colour=(1.0, 0.85, 0.1), radius_mm: float | None = None) -> int:
+        """Draw world points ``(n, 3)`` mm as small opaque spheres (markers, control points), clipped too.
+
+        ``radius_mm`` defaults to one voxel (the largest spacing).  Returns the number drawn.
+        """
+        from vtkmodules.vtkCommonCore import vtkPoints
+        from vtkmodules.vtkCommonDataModel import vtkPolyData
+        from vtkmodules.vtkFiltersCore import vtkGlyph3D
+        from vtkmodules.vtkFiltersSources import vtkSphereSource
+        from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
+
+        p = np.asarray(points, float).reshape(-1, 3)
+        if not np.all(np.isfinite(p)):
+            raise ValueError("add_points: the points must be finite world coordinates (mm)")
+        pts = vtkPoints()
+        for x in p:
+            pts.InsertNextPoint(*x)
+        poly = vtkPolyData()
+        poly.SetPoints(pts)
+        sphere = vtkSphereSource()
+        sphere.SetRadius(float(radius_mm or max(self.geometry.spacing)))
+        sphere.SetThetaResolution(12)
+        sphere.SetPhiResolution(8)
+        glyph = vtkGlyph3D()
+        glyph.SetInputData(poly)
+        glyph.SetSourceConnection(sphere.GetOutputPort())
+        glyph.ScalingOff()
+        glyph.Update()
+        mp = vtkPolyDataMapper()
+        mp.SetInputData(glyph.GetOutput())
+        mp.ScalarVisibilityOff()
+        if self._plane is not None:
+            mp.AddClippingPlane(self._plane)
+        act = vtkActor()
+        act.SetMapper(mp)
+        act.GetProperty().SetColor(*(float(c) for c in colour))
+        self._ren.AddActor(act)
+        self._surfaces.append((poly, act))
+        return int(p.shape[0])
+
     def clear_labels(self) -> None:
+        """Remove every label surface and point set added so far."""
         for _, act in self._surfaces:
             self._ren.RemoveActor(act)
         self._surfaces = []
@@ -733,12 +778,24 @@ class VolumeRenderer:
 
 
 # -- one-call forms ------------------------------------------------------------------------------------
-def render_volume(volume: Volume, *, labels: Volume | None = None, transfer="mri", **kw) -> np.ndarray:
-    """A still of ``volume`` (optionally with ``labels`` as bone surfaces); see :class:`VolumeRenderer`."""
+def render_volume(volume: Volume, *, labels: Volume | None = None, points=(), transfer="mri", **kw) -> np.ndarray:
+    """A still of ``volume``, optionally with ``labels`` as bone surfaces and ``points``.
+
+    ``points``: ``[(world points (n, 3) mm, (r, g, b)[, radius mm]), ...]``
+    drawn as small spheres (skin markers, registration control points).  See
+    :class:`VolumeRenderer`.
+    """
     with VolumeRenderer(volume.geometry, transfer=transfer, **kw) as r:
         if labels is not None:
             r.add_labels(labels)
+        _add_point_sets(r, points)
         return r.render(volume)
+
+
+def _add_point_sets(r: "VolumeRenderer", points) -> None:
+    for item in points:
+        pts, colour = item[0], item[1]
+        r.add_points(pts, colour=colour, radius_mm=item[2] if len(item) > 2 else None)
 
 
 def _on_grid(vol: Volume, g: GridGeometry) -> Volume:
@@ -755,19 +812,22 @@ def _on_grid(vol: Volume, g: GridGeometry) -> Volume:
     return Volume(sitk.GetArrayFromImage(out), g)
 
 
-def render_overlay(a: Volume, b: Volume, *, colours=CONTRAST_COLOURS, transfer="mri", **kw) -> np.ndarray:
+def render_overlay(a: Volume, b: Volume, *, colours=CONTRAST_COLOURS, transfer="mri", points=(),
+                   **kw) -> np.ndarray:
     """``a`` and ``b`` in contrasting colours (default cyan and magenta, as Rhee Figs. 1, 8, 9, 11).
 
     Where the two agree the colours mix (lavender for cyan and magenta);
     where ``a`` has tissue and ``b`` not the image is cyan, and magenta the
     other way.
     ``b`` is resampled onto ``a``'s grid when the grids differ (world
-    coordinates, linear).
+    coordinates, linear).  ``points`` as in :func:`render_volume` (Rhee
+    Fig. 9: the registration's control points over the overlay).
     """
     tf = _preset(transfer)
     b = _on_grid(b, a.geometry)
     with VolumeRenderer(a.geometry, transfers=[tf.tinted(colours[0]), tf.tinted(colours[1])],
                         reference=[a, b], **kw) as r:
+        _add_point_sets(r, points)
         return r.render(a, b)
 
 

@@ -197,3 +197,29 @@ def test_local_step_basis_gradient_is_the_derivative_of_the_basis():
     # order of the (sample, axis, control) layout or of the G⁻¹ product would be off by O(1)
     assert np.abs(db_num).max() > 1.0
     np.testing.assert_allclose(db, db_num, rtol=0, atol=1e-7)
+
+
+def test_step_control_points_lie_inset_inside_their_block_and_come_back_from_the_log():
+    from deformation.geometry import GridGeometry
+    from registration.adaptive import block_layout, control_points_from_log, step_control_points
+
+    shape = (20, 24, 32)  # z, y, x
+    edges = block_layout(shape, 2)
+    block = (1, 2, 0)
+    lo = np.array([edges[a][block[a]] for a in range(3)], float)
+    hi = np.array([edges[a][block[a] + 1] for a in range(3)], float)
+    p = step_control_points(shape, 2, block, inset=0.25)
+    # Rhee §4.3: a 2×2×2 pattern inside the block's corners.  The region-unit points ±(1 − inset)/3 times
+    # the region's half-extent (1.5 blocks) put them at the block centre ± 0.375 of the block size.
+    centre = (lo + hi - 1) / 2
+    assert p.shape == (8, 3)
+    assert np.allclose(np.abs(p - centre), 0.375 * (hi - lo))
+    assert np.all(p >= lo - 0.5) and np.all(p <= hi - 0.5)  # inside the block's voxels
+    g = GridGeometry((32, 24, 20), (1.5, 1.0, 2.0), (-3.0, 4.0, 5.0))
+    log = {"settings": {"inset": 0.25, "min_block_voxels": 4},
+           "steps": [{"level": 2, "block": list(block), "accepted": True},
+                     {"level": 2, "block": [0, 0, 0], "accepted": False},
+                     {"level": 3, "block": [2, 1, 1], "accepted": True}]}
+    cps = control_points_from_log(log, g)
+    assert [lv for lv, _ in cps] == [2, 3]  # rejected steps allocate nothing
+    assert np.allclose(cps[0][1], g.index_to_world(p))

@@ -205,6 +205,15 @@ def test_cli_render_and_animate(tmp_path, study, capsys):
     assert "no scan 'nope'" in capsys.readouterr().err
     assert main(["render", str(study), "--overlay", "pose01", "--bones", "--out", str(tmp_path / "y.png")]) == 1
     assert "leave them out" in capsys.readouterr().err
+    assert main(["render", str(study), "--control-points", "--out", str(tmp_path / "c.png")]) == 1
+    assert "pass --registered ID" in capsys.readouterr().err
+    plain, marked = tmp_path / "p.png", tmp_path / "m.png"
+    assert main(["render", str(study), "--scan", "pose01", "--out", str(plain), "--size", "160x120", "--quiet"]) == 0
+    assert main(["render", str(study), "--scan", "pose01", "--markers", "--out", str(marked), "--size", "160x120",
+                 "--quiet"]) == 0
+    a, b = iio.imread(plain).astype(int), iio.imread(marked).astype(int)
+    white = (b.min(axis=2) > 150) & (np.abs(b - a).sum(axis=2) > 60)  # the markers are white spheres
+    assert white.sum() > 3
     mp4 = tmp_path / "a.mp4"
     assert main(["animate", str(study), "--out", str(mp4), "--frames", "4", "--size", "96x72", "--quiet",
                  "--mapper", "gpu"]) == 0

@@ -221,3 +221,24 @@ def test_an_orbit_keeps_the_distance_and_the_side_an_auto_clip_keeps():
         r.render(vol)
         assert r._plane.GetNormal() == normal
         assert r._ren.GetActiveCamera().GetDistance() == pytest.approx(dist)
+
+
+@needs_gl
+def test_points_are_drawn_where_they_are_in_the_world():
+    vol = _blob()
+    box = VolumeRenderer.grid_bounds(vol.geometry)
+    centre = np.asarray(box, float).reshape(3, 2).mean(axis=1)
+    with VolumeRenderer(vol.geometry, size=SIZE, camera=Camera("+z"), bounds=box) as r:
+        plain = r.render(vol)
+        # a red sphere in front of the tissue on the line of sight through the image centre
+        front = centre + np.array([0.0, 0.0, 20.0])
+        assert r.add_points([front], colour=(1.0, 0.0, 0.0), radius_mm=3.0) == 1
+        img = r.render(vol)
+    h, w = SIZE[1] // 2, SIZE[0] // 2
+    px = img[h - 1:h + 2, w - 1:w + 2].reshape(-1, 3).astype(float).mean(axis=0)
+    assert px[0] > 150 and px[1] < 60 and px[2] < 60  # the point's colour, lit by the headlight
+    changed = np.abs(img.astype(int) - plain).sum(axis=2) > 30
+    rows, cols = np.nonzero(changed)
+    assert abs(rows.mean() - (SIZE[1] - 1) / 2) < 2 and abs(cols.mean() - (SIZE[0] - 1) / 2) < 2
+    with pytest.raises(ValueError, match="finite"):
+        VolumeRenderer(vol.geometry, size=SIZE).add_points([[np.nan, 0, 0]])
