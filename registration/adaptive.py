@@ -290,12 +290,16 @@ def step_control_points(shape_zyx, level: int, block, *, inset: float = 0.25,
     region-unit coordinates (:func:`_control_points_unit`; the region is
     the 3×3×3 blocks, half-extent 1.5 blocks), mapped back to voxel indices.
     """
-    edges = block_layout(shape_zyx, level, min_block_voxels)
+    _, _, centre, half = _block_frame(block_layout(shape_zyx, level, min_block_voxels), block)
+    return centre + _control_points_unit(inset) * half
+
+
+def _block_frame(edges, block):
+    """``(lo, hi, centre, half)`` of ``block`` (i, j, k), index space x y z: the block's voxel range, its
+    centre and the half-extent of its 3×3×3 region — the frame of region-unit coordinates (§4.3)."""
     lo = np.array([edges[a][int(block[a])] for a in range(3)], float)
     hi = np.array([edges[a][int(block[a]) + 1] for a in range(3)], float)
-    centre = (lo + hi - 1.0) / 2.0
-    half = 1.5 * (hi - lo)
-    return centre + _control_points_unit(inset) * half
+    return lo, hi, (lo + hi - 1.0) / 2.0, 1.5 * (hi - lo)
 
 
 def control_points_from_log(log: dict, geometry) -> list[tuple[int, np.ndarray]]:
@@ -588,10 +592,8 @@ class _Registration:
         t0 = time.perf_counter()
         nx, ny, _ = lv.nb
         bi = (block % nx, (block // nx) % ny, block // (nx * ny))  # x, y, z
-        lo = [lv.edges[a][bi[a]] for a in range(3)]
-        hi = [lv.edges[a][bi[a] + 1] for a in range(3)]
-        centre = np.array([(lo[a] + hi[a] - 1) / 2.0 for a in range(3)])  # index space, x y z
-        half = np.array([1.5 * (hi[a] - lo[a]) for a in range(3)])  # region half-extent (voxels)
+        lo, hi, centre, half = _block_frame(lv.edges, bi)  # index space, x y z; half: the region's half-extent
+        lo, hi = lo.astype(int), hi.astype(int)
         rlo = [max(0, lv.edges[a][max(bi[a] - 1, 0)]) for a in range(3)]
         rhi = [min(self.shape[2 - a], lv.edges[a][min(bi[a] + 2, len(lv.edges[a]) - 1)]) for a in range(3)]
         # cost samples: the region on the level's stride

@@ -289,16 +289,12 @@ def _camera_bounds(poser, keyframes: Keyframes, mask: np.ndarray, margin_mm: flo
     Sampled at every keyframe and ``per_segment − 1`` times between each two:
     a curling finger sweeps beyond both its open and its closed position.
     """
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    step = max(1, int(mask.sum()) // 200_000)
+    from workbench.render import points_bounds, union_bounds
+
     ts = keyframes.times
     times = np.unique(np.concatenate([np.linspace(a, b, per_segment + 1) for a, b in zip(ts, ts[1:])]))
-    for t in times:
-        pts = poser.forward(poser.skeleton.pose(keyframes.at(t)))[mask][::step]
-        a, b = np.percentile(pts, [0.1, 99.9], axis=0)
-        lo, hi = np.minimum(lo, a), np.maximum(hi, b)
-    return tuple(float(v) for pair in zip(lo - margin_mm, hi + margin_mm) for v in pair)
+    return union_bounds([points_bounds(poser.forward(poser.skeleton.pose(keyframes.at(t)))[mask], margin_mm)
+                         for t in times])
 
 
 def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
@@ -336,9 +332,8 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     the frame count and the time spent deforming, rendering and encoding.
     """
     from workbench.deform_stage import TemplatePoser
-    from workbench.render import VolumeRenderer, _first_visible, _preset, _robust_range
+    from workbench.render import VolumeRenderer, _first_visible, _preset, _robust_range, content_mask
     from workbench.study import read_study
-    from scipy import ndimage as ndi
 
     say = progress or (lambda line: None)
     t_start = time.perf_counter()
@@ -369,7 +364,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         tf = _preset(transfer)
         lo, hi = _robust_range(template.data)
         thr = _first_visible(tf.resolved(lo, hi))
-        mask = ndi.uniform_filter(np.asarray(template.data, np.float32), size=3, mode="nearest") > thr
+        mask = content_mask(template.data, thr)
         bounds = _camera_bounds(poser, kf, mask, 2.0 * max(g.spacing))
         g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
         renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
@@ -387,7 +382,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
                 if orbit:
                     renderer.set_camera(replace(camera, azimuth=base_az + orbit * i / (n - 1)))
                 if bones and posed.labels is not None:
-                    renderer.clear_labels()
+                    renderer.clear_surfaces()
                     renderer.add_labels(posed.labels)
                 img = renderer.render(posed.volume)
                 t2 = time.perf_counter()

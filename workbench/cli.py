@@ -606,8 +606,8 @@ def _render_inputs(args, say):
 
 
 def cmd_render(args) -> int:
-    from workbench.render import (ClipPlane, VolumeRenderer, parse_size, render_difference, render_overlay,
-                                  write_png, _preset)
+    from workbench.render import (ClipPlane, opengl_backend, parse_size, render_difference, render_overlay,
+                                  render_volume, write_png, _preset)
 
     say = _say(args) or (lambda line: None)
     size = parse_size(args.size)
@@ -623,6 +623,8 @@ def cmd_render(args) -> int:
         raise OutputExistsError(args.out, f"{args.out} exists; pass --force to replace it.")
     vol, labels, other, points = _render_inputs(args, say)
     kw = dict(size=size, camera=cam, clip=clip, background=bg, mapper=args.mapper)
+    b = opengl_backend()
+    say(f"{b.describe()}; {b.mapper if args.mapper == 'auto' else args.mapper} mapper")
     t0 = time.perf_counter()
     if args.overlay:
         img = render_overlay(vol, other, transfer=tf, points=points, **kw)
@@ -631,13 +633,7 @@ def cmd_render(args) -> int:
             raise ValueError("--markers/--control-points are drawn on renders and overlays, not difference views")
         img = render_difference(vol, other, transfer=tf, **kw)
     else:
-        with VolumeRenderer(vol.geometry, transfer=tf, **kw) as r:
-            say(f"{r.backend.describe()}; {r.mapper_name} mapper")
-            if labels is not None:
-                say(f"{r.add_labels(labels)} labels drawn as surfaces")
-            for pts, colour, radius in points:
-                r.add_points(pts, colour=colour, radius_mm=radius)
-            img = r.render(vol)
+        img = render_volume(vol, labels=labels, points=points, transfer=tf, **kw)
     dt = time.perf_counter() - t0
     write_png(img, args.out, overwrite=args.force)
     print(f"rendered {size[0]}x{size[1]} in {dt:.2f} s; wrote {args.out}")

@@ -6,8 +6,8 @@ off-screen OpenGL context — EGL first, then OSMesa (``AVW_OPENGL=egl`` or
 a software renderer (Mesa's llvmpipe, as on machines without a GPU) the CPU
 ray caster ``vtkFixedPointVolumeRayCastMapper`` is used: it is faster there
 than the GPU ray caster, which then runs on the CPU through Mesa (measured
-here, ``benchmarks/rendering.py``: 2–2.8× at test size, 1.5× on a paper-size
-knee); with a hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
+here, ``benchmarks/rendering.py``: 1.9–2.3× at test size, 1.5× on a
+paper-size knee); with a hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
 
 Geometry is honest: the volume is placed in world millimetres (ITK physical
 space) by its origin, spacing *and* direction — the direction goes into the
@@ -19,9 +19,10 @@ bounding boxes are all in world mm.
   :data:`PRESETS` (``mri``, ``ct``), or the user's own JSON file.
 * :class:`Camera` — a view (``auto``, ``iso``, or a world axis such as
   ``+z``), azimuth, elevation and zoom.
-* :class:`ClipPlane` — ``x|y|z:FRACTION``: the part of the volume below the
-  fraction of its world extent along that axis is cut away (``-x:0.4`` keeps
-  the part below instead), showing the interior (Rhee Fig. 10).
+* :class:`ClipPlane` — ``[+|-]x|y|z:FRACTION``: a plane across a world axis
+  at that fraction of the anatomy's extent; the side facing the camera is cut
+  away (``+``/``-`` keep the larger / smaller coordinates instead), showing
+  the interior (Rhee Fig. 10).
 * :class:`VolumeRenderer` — one render window and pipeline, reused from
   frame to frame (animations); :func:`render_volume`, :func:`render_overlay`
   (two volumes in contrasting colours: Rhee's green/cyan template against the
@@ -36,7 +37,6 @@ adjustment (which depends on the time a frame took) is switched off.
 from __future__ import annotations
 
 import functools
-import json
 import math
 import os
 import re
@@ -50,7 +50,8 @@ from workbench.errors import InputFileError, WorkbenchError
 
 __all__ = ["Backend", "RenderError", "opengl_backend", "offscreen_available", "TransferFunction", "PRESETS",
            "Camera", "ClipPlane", "VolumeRenderer", "render_volume", "render_overlay", "render_difference",
-           "write_png", "parse_size", "label_colour", "content_bounds", "CONTRAST_COLOURS", "LEVEL_COLOURS",
+           "write_png", "parse_size", "label_colour", "content_mask", "points_bounds", "union_bounds", "content_bounds",
+           "CONTRAST_COLOURS", "LEVEL_COLOURS",
            "MARKER_COLOUR"]
 
 #: template and target colours of the papers' overlays (cyan and magenta; Rhee Figs. 1, 8, 9, 11)
@@ -213,14 +214,11 @@ class TransferFunction:
     @classmethod
     def from_json(cls, path) -> "TransferFunction":
         """Read ``{"color": [[v, r, g, b], ...], "opacity": [[v, a], ...], "relative": bool, ...}``."""
+        from workbench.jsonio import read_json
+
         path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise InputFileError(f"{path}: no such transfer-function file", path) from None
-        except (OSError, ValueError) as e:
-            raise InputFileError(f"{path}: not a JSON transfer function ({e})", path) from e
-        if not isinstance(d, dict) or "color" not in d or "opacity" not in d:
+        d = read_json(path)  # missing file, syntax errors: errors naming the file and the line
+        if "color" not in d or "opacity" not in d:
             raise InputFileError(f"{path}: a transfer function needs 'color' [[value, r, g, b], ...] and "
                                  "'opacity' [[value, alpha], ...] (and optionally 'relative', 'unit_mm', "
                                  "'shade'); see `workbench render --help`.", path)
@@ -431,7 +429,7 @@ def _prop_matrix(g: GridGeometry):
     from vtkmodules.vtkCommonMath import vtkMatrix4x4
 
     m = np.eye(4)
-    m[:3, :3] = np.asarray(g.direction, float).reshape(3, 3)
+    m[:3, :3] = g.direction_matrix
     m[:3, 3] = np.asarray(g.origin, float)
     vm = vtkMatrix4x4()
     for i in range(4):
@@ -458,28 +456,40 @@ def _first_visible(tf: TransferFunction) -> float:
     return float(pts[-1][0])
 
 
-def content_bounds(data, geometry: GridGeometry, threshold: float, *, margin_mm: float | None = None) -> tuple:
-    """World box (xmin, xmax, ymin, ymax, zmin, zmax) of the voxels above ``threshold``.
-
-    Robust to noise: the volume is first averaged over 3×3×3 voxels (an
-    isolated noisy voxel in the air falls below the threshold), then the 0.1
-    and 99.9 percentiles of the voxels' world coordinates along each axis are
-    taken, widened by ``margin_mm`` (default: two of the largest voxel
-    spacing).  The grid's own box when no voxel is above.
-    """
+def content_mask(data, threshold: float) -> np.ndarray:
+    """Voxels whose 3×3×3 mean is above ``threshold``: the tissue, without the isolated noisy voxels of the air."""
     from scipy import ndimage as ndi
 
-    a = ndi.uniform_filter(np.asarray(data, np.float32), size=3, mode="nearest")
-    k = np.flatnonzero(a.reshape(-1) > threshold)
-    if k.size == 0:
+    return ndi.uniform_filter(np.asarray(data, np.float32), size=3, mode="nearest") > threshold
+
+
+def points_bounds(points, margin_mm: float) -> tuple:
+    """Robust world box of points ``(n, 3)`` mm: the 0.1 and 99.9 percentiles per axis, widened by ``margin_mm``."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    p = p[:: max(1, p.shape[0] // 200_000)]
+    lo, hi = np.percentile(p, [0.1, 99.9], axis=0)
+    return tuple(float(v) for pair in zip(lo - margin_mm, hi + margin_mm) for v in pair)
+
+
+def union_bounds(boxes) -> tuple:
+    """The world box holding every ``(xmin, xmax, ymin, ymax, zmin, zmax)`` box of ``boxes``."""
+    b = np.asarray(boxes, float).reshape(-1, 6)
+    return tuple(float(b[:, k].min() if k % 2 == 0 else b[:, k].max()) for k in range(6))
+
+
+def content_bounds(data, geometry: GridGeometry, threshold: float, *, margin_mm: float | None = None) -> tuple:
+    """World box (xmin, xmax, ymin, ymax, zmin, zmax) of the tissue above ``threshold``.
+
+    :func:`content_mask`, then :func:`points_bounds` of the voxel centres'
+    world positions, widened by ``margin_mm`` (default: two of the largest
+    voxel spacing).  The grid's own box when no voxel is above.
+    """
+    mask = content_mask(data, threshold)
+    if not mask.any():
         return _world_bounds(geometry)
-    k = k[:: max(1, k.size // 200_000)]
-    nz, ny, nx = a.shape
-    ijk = np.stack([k % nx, (k // nx) % ny, k // (nx * ny)], axis=1).astype(float)
-    w = np.asarray(geometry.index_to_world(ijk))
-    lo, hi = np.percentile(w, [0.1, 99.9], axis=0)
-    m = 2.0 * max(geometry.spacing) if margin_mm is None else float(margin_mm)
-    return tuple(float(v) for pair in zip(lo - m, hi + m) for v in pair)
+    kji = np.argwhere(mask)  # (z, y, x) index rows
+    w = geometry.index_to_world(kji[:, ::-1].astype(float))
+    return points_bounds(w, 2.0 * max(geometry.spacing) if margin_mm is None else float(margin_mm))
 
 
 class VolumeRenderer:
@@ -634,7 +644,6 @@ class VolumeRenderer:
         from vtkmodules.vtkCommonDataModel import vtkImageData
         from vtkmodules.vtkFiltersCore import vtkWindowedSincPolyDataFilter
         from vtkmodules.vtkFiltersGeneral import vtkDiscreteFlyingEdges3D
-        from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
 
         lab = np.asarray(labels.data if isinstance(labels, Volume) else labels)
         if isinstance(labels, Volume):
@@ -660,19 +669,9 @@ class VolumeRenderer:
             sm.SetPassBand(0.05)
             sm.NormalizeCoordinatesOn()
             sm.Update()
-            mp = vtkPolyDataMapper()
-            mp.SetInputData(sm.GetOutput())
-            mp.ScalarVisibilityOff()
-            if self._plane is not None:
-                mp.AddClippingPlane(self._plane)
-            act = vtkActor()
-            act.SetMapper(mp)
-            act.SetUserMatrix(_prop_matrix(self.geometry))
-            act.GetProperty().SetColor(*label_colour(lid))
-            act.GetProperty().SetOpacity(float(opacity))
-            act.GetProperty().SetSpecular(0.2)
-            self._ren.AddActor(act)
-            self._surfaces.append((img, act))
+            # the surface is in the image's (spacing-scaled) coordinates: the volume's matrix places it
+            self._add_surface(sm.GetOutput(), label_colour(lid), opacity=opacity,
+                              matrix=_prop_matrix(self.geometry))
         return len(ids)
 
     def add_points(self, points, *, colour=(1.0, 0.85, 0.1), radius_mm: float | None = None) -> int:
@@ -684,7 +683,6 @@ class VolumeRenderer:
         from vtkmodules.vtkCommonDataModel import vtkPolyData
         from vtkmodules.vtkFiltersCore import vtkGlyph3D
         from vtkmodules.vtkFiltersSources import vtkSphereSource
-        from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
 
         p = np.asarray(points, float).reshape(-1, 3)
         if not np.all(np.isfinite(p)):
@@ -703,30 +701,39 @@ class VolumeRenderer:
         glyph.SetSourceConnection(sphere.GetOutputPort())
         glyph.ScalingOff()
         glyph.Update()
+        self._add_surface(glyph.GetOutput(), colour)  # already in world mm
+        return int(p.shape[0])
+
+    def _add_surface(self, polydata, colour, *, opacity: float = 1.0, matrix=None) -> None:
+        """An opaque (or ``opacity``) surface actor, clipped by the renderer's plane."""
+        from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
+
         mp = vtkPolyDataMapper()
-        mp.SetInputData(glyph.GetOutput())
+        mp.SetInputData(polydata)
         mp.ScalarVisibilityOff()
         if self._plane is not None:
             mp.AddClippingPlane(self._plane)
         act = vtkActor()
         act.SetMapper(mp)
+        if matrix is not None:
+            act.SetUserMatrix(matrix)
         act.GetProperty().SetColor(*(float(c) for c in colour))
+        act.GetProperty().SetOpacity(float(opacity))
+        act.GetProperty().SetSpecular(0.2)
         self._ren.AddActor(act)
-        self._surfaces.append((poly, act))
-        return int(p.shape[0])
+        self._surfaces.append(act)
 
-    def clear_labels(self) -> None:
-        """Remove every label surface and point set added so far."""
-        for _, act in self._surfaces:
+    def clear_surfaces(self) -> None:
+        """Remove every label surface and point set added so far (an animation's bones, frame by frame)."""
+        for act in self._surfaces:
             self._ren.RemoveActor(act)
         self._surfaces = []
 
     def _place(self, volumes) -> None:
-        """Camera and clipping plane on the anatomy's world box (``bounds``, or the tissue of the first volume)."""
+        """Camera and clipping plane on the anatomy's world box (``bounds``, or the union of every volume's tissue)."""
         if self.bounds is None:  # the union of every component's visible tissue
-            boxes = np.array([content_bounds(v.data if isinstance(v, Volume) else v, self.geometry,
-                                             _first_visible(t)) for v, t in zip(volumes, self._resolved)])
-            self.bounds = tuple(float(boxes[:, k].min() if k % 2 == 0 else boxes[:, k].max()) for k in range(6))
+            self.bounds = union_bounds([content_bounds(v.data if isinstance(v, Volume) else v, self.geometry,
+                                                       _first_visible(t)) for v, t in zip(volumes, self._resolved)])
         cam = self._ren.GetActiveCamera()
         first = self._distance is None
         self._distance = self.camera.place(cam, self.bounds, self.size[0] / self.size[1], self._distance)
@@ -853,9 +860,9 @@ def render_difference(a: Volume, b: Volume, *, transfer="mri", **kw) -> np.ndarr
     diff = Volume(np.clip(d, -1.0, 1.0).astype(np.float32), a.geometry)
     if kw.get("bounds") is None:
         tf = _preset(transfer)
-        boxes = np.array([content_bounds(v.data, a.geometry, _first_visible(tf.resolved(*_robust_range(v.data))))
-                          for v in (a, b)])
-        kw["bounds"] = tuple(float(boxes[:, k].min() if k % 2 == 0 else boxes[:, k].max()) for k in range(6))
+        kw["bounds"] = union_bounds([content_bounds(v.data, a.geometry,
+                                                    _first_visible(tf.resolved(*_robust_range(v.data))))
+                                     for v in (a, b)])
     with VolumeRenderer(a.geometry, transfer=DIFFERENCE, **kw) as r:
         return r.render(diff)
 
