@@ -159,7 +159,7 @@ def run_wrist():
     from deformation.transforms import compose, from_rotation_translation, invert, rotation_angle_deg
     from registration.icp import icp_point_to_plane
     from registration.joint_centers import estimate_joint_center
-    from workbench.wrist_bones import find_wrist_data, load_wrist_study, true_motion, wrist_volunteers
+    from workbench.io.wrist_bones import find_wrist_data, load_wrist_study, true_motion, wrist_volunteers
 
     if find_wrist_data() is None:
         print("\n== real wrist bones: ../shared/data/wrist-bones-mri is absent, skipped")

@@ -32,9 +32,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from validation.phantoms import make_phantom  # noqa: E402
-from workbench.animate import animate_study  # noqa: E402
+from workbench.viz.animate import animate_study  # noqa: E402
 from workbench.deform_stage import run_model_stage, run_weights_stage  # noqa: E402
-from workbench.render import Camera, VolumeRenderer, opengl_backend  # noqa: E402
+from workbench.viz.render import Camera, VolumeRenderer, opengl_backend  # noqa: E402
 from workbench.study import write_phantom_study  # noqa: E402
 
 

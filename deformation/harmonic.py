@@ -56,6 +56,7 @@ renormalised.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
@@ -67,7 +68,8 @@ from .geometry import GridGeometry, Volume
 from .skinning import MAX_INFLUENCES, SkinningWeights
 from .tetmesh import TetMesh, locate, rasterize
 
-__all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "weights_on_grid", "weights_at_points"]
+__all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "weights_on_grid", "weights_at_points",
+           "harmonic_voxel_weights", "VoxelWeights"]
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -513,3 +515,46 @@ def weights_at_points(mesh: TetMesh, vertex_dense, bones, points, *,
     tet, bary, _ = locate(mesh, points)
     dense = np.einsum("nc,ncb->nb", bary, w[mesh.tets[tet]])
     return SkinningWeights.from_dense(dense, bones, max_influences=max_influences)
+
+
+@dataclass
+class VoxelWeights:
+    """Skinning weights of every voxel of a grid, with the mesh they were solved on."""
+
+    weights: SkinningWeights  #: per voxel, array order
+    mesh: TetMesh  #: the body's tetrahedral mesh (kept: pytetwild takes no seed)
+    vertex_weights: np.ndarray  #: (n_vertices, n_bones) harmonic weights, columns in ``bones`` order
+    bones: tuple
+    info: dict  #: solver statistics (plain numbers and strings)
+    new_mesh: bool  #: whether the mesh was made by this call
+
+
+def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, mesh: TetMesh | None = None,
+                           edge_length_mm: float | None = None, progress=None) -> VoxelWeights:
+    """Harmonic skinning weights (Kurihara Eq. 3's w) of every voxel of ``labels``' grid.
+
+    The body (``body``, a mask on the same grid) is meshed with tetrahedra by
+    pytetwild unless ``mesh`` is given (a study keeps its mesh, since
+    pytetwild's meshes differ from run to run); each bone's weight is the
+    harmonic function that is 1 on that bone's vertices and 0 on the other
+    bones' (:func:`harmonic_weights`), and every voxel takes the barycentric
+    interpolation of its tetrahedron's vertex weights (bones one-hot, at most
+    :data:`~deformation.skinning.MAX_INFLUENCES` influences;
+    :func:`weights_on_grid`).  ``progress(message)`` is told each step.
+    """
+    from .tetmesh import body_surface, tetrahedralize
+
+    say = progress or (lambda message: None)
+    labels.geometry.check_same(body.geometry, names=("labels", "body mask"))
+    new = mesh is None
+    if new:
+        say("meshing the body surface with pytetwild ...")
+        mesh = tetrahedralize(body_surface(body), edge_length_mm=edge_length_mm)
+    say(f"harmonic weights on {mesh.n_vertices} vertices ...")
+    dense, hinfo = harmonic_weights(mesh, labels, bone_labels)
+    say("weights of every voxel (barycentric; one-hot in bones) ...")
+    bones = tuple(bone_labels)
+    weights = weights_on_grid(mesh, dense, bones, labels.geometry, labels, bone_labels)
+    info = {k: v for k, v in hinfo.items() if isinstance(v, (int, float, str, bool))}
+    info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets))
+    return VoxelWeights(weights, mesh, dense, bones, info, new)

@@ -1,7 +1,7 @@
 """Triangle surface meshes: vertices in world millimetres and their triangles.
 
 Pure NumPy/SciPy; reading and writing mesh files lives in
-:mod:`workbench.meshio`.
+:mod:`workbench.io.meshes`.
 """
 
 from __future__ import annotations

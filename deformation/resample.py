@@ -55,7 +55,7 @@ from .interpolate import sample_array
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["BackwardMap", "backward_map", "backward_points", "resample_forward", "OK", "FOLDED", "NOT_CONVERGED",
+__all__ = ["BackwardMap", "backward_map", "backward_points", "resample_forward", "invert_scan_to_template", "OK", "FOLDED", "NOT_CONVERGED",
            "OUTSIDE", "STATUS_NAMES"]
 
 OK, FOLDED, NOT_CONVERGED, OUTSIDE = 0, 1, 2, 3
@@ -715,3 +715,29 @@ def resample_forward(bmap: BackwardMap, volume: Volume, *, labels: bool = False,
     out = sample_array(src, np.eye(4), bmap.template_index, order=0 if labels else 1, fill=fill)
     out[bmap.status == OUTSIDE] = fill
     return Volume(out, bmap.target_geometry)
+
+
+def invert_scan_to_template(field: Volume, template_geometry: GridGeometry, *, transforms=None,
+                            prefer=None) -> BackwardMap:
+    """Invert a ``scan_to_template`` field: where every *template* voxel lies in the scan (the one inversion).
+
+    ``field`` on the scan grid maps each scan voxel ``x`` to ``x + field(x)``
+    in the template: a forward map from the scan grid into template space,
+    inverted here by :func:`backward_map` onto ``template_geometry``.  The
+    result's :meth:`BackwardMap.scan_to_template` is then the
+    ``template_to_scan`` field (scan position − template voxel, mm) and its
+    ``status`` says where it was found (:data:`OK`, :data:`FOLDED`) and where
+    the template voxel leaves the scan's field of view (:data:`OUTSIDE`).
+    EVD (Rhee Eq. 7) needs these template → scan positions.
+
+    ``transforms`` (``(n, 4, 4)`` template → scan, e.g. the bones') seed the
+    Newton solves with their inverses, so large articulated motions converge;
+    ``prefer`` (a bool array on the *scan* grid) marks the scan voxels to
+    prefer where several map to one template voxel (e.g. those whose
+    template position lies in the body).
+    """
+    g = field.geometry
+    fwd = (np.asarray(field.data, np.float64) + g.world_coordinates()).astype(np.float32)
+    inv = None if transforms is None else np.stack([np.linalg.inv(t) for t in np.asarray(transforms, float)])
+    return backward_map(fwd, g, template_geometry, transforms=inv,
+                        prefer=None if prefer is None else np.asarray(prefer, bool))

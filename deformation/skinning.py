@@ -28,7 +28,7 @@ if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
 __all__ = ["SkinningWeights", "MAX_INFLUENCES", "blend_matrices", "lbs", "vbd_points", "inverse_lbs",
-           "stack_transforms", "distance_weights"]
+           "stack_transforms", "distance_weights", "distance_voxel_weights"]
 
 #: Influences kept per point (Kurihara's meshes and GPU skinning use four).
 MAX_INFLUENCES = 4
@@ -137,6 +137,16 @@ class SkinningWeights:
         val = np.zeros(idx.shape)
         val[:, 0] = 1.0
         return cls(bones, idx, val)
+
+    def digest(self) -> str:
+        """SHA-256 of the bones and arrays: a model built on these weights is valid only with them."""
+        import hashlib
+
+        h = hashlib.sha256()
+        h.update("\n".join(self.bones).encode())
+        h.update(np.ascontiguousarray(self.index).tobytes())
+        h.update(np.ascontiguousarray(self.value).tobytes())
+        return h.hexdigest()
 
     def dense(self) -> np.ndarray:
         """The weights as a dense ``(n, n_bones)`` float64 array."""
@@ -266,3 +276,25 @@ def distance_weights(bone_distances, bones, *, power: float = 4.0, falloff_mm: f
     if np.any(inside):
         w[inside] = (d[inside] <= dmin[inside]).astype(np.float64)
     return SkinningWeights.from_dense(w, bones, max_influences=max_influences)
+
+
+def distance_voxel_weights(labels, bone_labels: dict, **kwargs) -> SkinningWeights:
+    """:func:`distance_weights` of every voxel of a label map (``Volume``), on the distance (mm) to each bone.
+
+    The distances are Euclidean distance transforms with the grid's spacing;
+    ``bone_labels`` is ``{bone: label id}`` in the column order wanted.
+    Raises ``ValueError`` naming a bone without a voxel.
+    """
+    from scipy import ndimage
+
+    lab = np.asarray(labels.data)
+    g = labels.geometry
+    sp = np.asarray(g.spacing)[::-1]  # array order (z, y, x)
+    bones = tuple(bone_labels)
+    dist = np.empty((g.n_voxels, len(bones)))
+    for k, b in enumerate(bones):
+        inside = lab == bone_labels[b]
+        if not inside.any():
+            raise ValueError(f"the label map has no voxel of bone {b!r} (label {bone_labels[b]})")
+        dist[:, k] = np.where(inside, 0.0, ndimage.distance_transform_edt(~inside, sampling=sp)).ravel()
+    return distance_weights(dist, bones, **kwargs)

@@ -11,7 +11,7 @@ Pipeline step 4 ("Skinning weights") meshes the body once per study:
 
 pytetwild has no seed and its meshes differ from run to run (even with one
 thread), so a study meshes once and keeps the mesh as a VTU file
-(:mod:`workbench.tetmesh_io`); everything downstream of that file is
+(:mod:`workbench.io.tetmeshes`); everything downstream of that file is
 deterministic.
 
 Then, for any tet mesh — the template's, or later a *deformed* one:

@@ -1,15 +1,11 @@
-"""Articulated initialisation and inversion of correspondence fields (Rhee §3.3, Eq. 2; §4 result).
+"""Articulated initialisation of the registration (Rhee §3.3, Eq. 2).
 
-* :func:`vbd_initial_field` — VBD (Rhee Eq. 2) of the template to a scan's
-  pose, as the ``scan_to_template`` field on the scan grid that
-  :func:`registration.adaptive.register_adaptive` starts from;
-* :func:`invert_correspondence` — the inverse of a ``scan_to_template``
-  field: ``template_to_scan`` on the template grid (what EVD, Rhee Eq. 7,
-  needs).
-
-Both invert a forward map by the Newton backward map of
-:mod:`deformation.resample` (seeded by the bones' rigid transforms, so large
-articulated motions converge).
+:func:`vbd_initial_field` — VBD (Rhee Eq. 2) of the template to a scan's
+pose, as the ``scan_to_template`` field on the scan grid that
+:func:`registration.adaptive.register_adaptive` starts from, by the Newton
+backward map of :mod:`deformation.resample` (seeded by the bones' rigid
+transforms, so large articulated motions converge).  The inverse of a
+registration's field is :func:`deformation.resample.invert_scan_to_template`.
 """
 
 from __future__ import annotations
@@ -21,7 +17,7 @@ from deformation.fields import unfold as unfold_field
 from deformation.geometry import GridGeometry, Volume
 from deformation.resample import backward_map
 
-__all__ = ["vbd_initial_field", "invert_correspondence"]
+__all__ = ["vbd_initial_field"]
 
 
 def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeometry, weights, transforms,
@@ -50,16 +46,3 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
     if unfold:
         field, summary["unfold"] = unfold_field(field)
     return field, summary
-
-
-def invert_correspondence(field: Volume, template_geometry: GridGeometry, *, transforms=None) -> tuple[Volume, dict]:
-    """``template_to_scan`` field on ``template_geometry`` inverting a ``scan_to_template`` ``field``.
-
-    ``transforms`` (optional, ``(n, 4, 4)`` template → scan) seed the solves.
-    Template voxels no scan voxel maps to are marked ``outside`` in the summary.
-    """
-    g = field.geometry
-    fwd = (np.asarray(field.data, np.float64) + g.world_coordinates()).astype(np.float32)
-    inv = None if transforms is None else np.stack([np.linalg.inv(t) for t in np.asarray(transforms, float)])
-    bm = backward_map(fwd, g, template_geometry, transforms=inv)
-    return bm.scan_to_template(), bm.summary()

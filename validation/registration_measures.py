@@ -26,7 +26,7 @@ from deformation.geometry import Volume
 from deformation.interpolate import sample, sample_displaced_array
 from registration.metrics import similarity
 
-__all__ = ["body_on_scan", "med", "marker_med", "registration_measures", "MEASURE_KEYS"]
+__all__ = ["body_on_scan", "med", "marker_med", "registration_measures", "validation_rows", "MEASURE_KEYS"]
 
 MEASURE_KEYS = ("med_mm", "marker_med_mm", "ssd", "cc", "mi", "folded_fraction")
 
@@ -67,3 +67,20 @@ def registration_measures(scan: Volume, registered: Volume, field: Volume, *, tr
     if markers:
         out["marker_med_mm"] = marker_med(field, markers)
     return out
+
+
+def validation_rows(scan: Volume, template: Volume, *, truth: Volume, template_body: Volume, markers: list,
+                    registered: Volume, field: Volume, initial: Volume | None = None) -> dict:
+    """Rhee's Tables 2–4 rows for one scan: ``source`` (no deformation), ``initialised`` (when ``initial``
+    is given) and ``registered``, each with the measures of the module docstring over the same body voxels."""
+    from registration.baselines import warp_template
+
+    body = body_on_scan(truth, template_body)
+    zero = Volume(np.zeros(truth.data.shape, np.float32), truth.geometry)
+    rows = {"source": registration_measures(scan, warp_template(template, zero), zero, truth=truth, body=body,
+                                            markers=markers)}
+    if initial is not None:
+        rows["initialised"] = registration_measures(scan, warp_template(template, initial), initial, truth=truth,
+                                                    body=body, markers=markers)
+    rows["registered"] = registration_measures(scan, registered, field, truth=truth, body=body, markers=markers)
+    return rows

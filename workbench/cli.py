@@ -27,13 +27,14 @@ bone label map, the skeleton and the posed scans (see README.md).
 EPILOG = """\
 examples:
   workbench phantom knee --out knee-study                 # small MRI-like knee, 4 poses
+  workbench run knee-study                                # every stage: bones ... register, model, validate
   workbench phantom hand --out hand --size paper --modality ct
   workbench phantom knee --out bend10 --posing vbd --poses-file bend10.json
   workbench info knee-study
   workbench pose knee-study                               # bone poses, joint centres and angles
   workbench pose knee-study --method surface --force
   workbench weights knee-study                            # harmonic skinning weights (tet mesh kept in the study)
-  workbench model knee-study                              # EVD model from the ground-truth correspondences
+  workbench model knee-study                              # EVD model from the registrations (Rhee Eq. 7)
   workbench deform knee-study --pose bend.json --out bent.nii.gz
   workbench register knee-study                           # locally adaptive registration (Rhee §4)
   workbench render knee-study --out knee.png --clip z:0.5 --bones
@@ -88,7 +89,7 @@ the anatomy over all keyframe poses, so nothing leaves the picture.
 
 keyframes (--keyframes FILE, JSON; ready files for the knee - bend to 60 deg and
 straighten - and the hand - open, fist, point with the index finger - are used
-when it is omitted; see workbench/keyframes/):
+when it is omitted; see workbench/viz/keyframes/):
   {"format": "avw-keyframes", "version": 1, "skeleton": "knee",
    "interpolation": "smooth",      # smoothstep between keyframes, or "linear"
    "fps": 24, "camera": {"view": "auto", "azimuth": 0, "elevation": 0, "zoom": 1, "orbit": 0},
@@ -121,10 +122,18 @@ Writes skinning/weights.json with weights_index.mha and weights_value.mha
 
 MODEL_HELP = """Build an example-based volume deformation model (Rhee Eq. 7) from the
 study's scans: for each scan, the displacement of every template voxel in
-the template frame after undoing VBD with the scan's pose.  The source is the
-ground truth (phantom studies); registrations (issue D) will follow.
-Writes model/evd.json and model/evd_displacements.mha.  Needs `workbench
-weights` first.
+the template frame after undoing VBD with the scan's pose.
+
+--source registration (the default for a study without ground truth, and
+whenever the study has registrations): the correspondences of `workbench
+register` (their inverse fields) and the poses of `workbench pose` — a
+model from your own scans, no truth needed.  --source truth: a phantom's
+exact correspondences and true poses (a protocol's reference model).
+
+Writes model/evd.json and model/evd_displacements.mha; `workbench deform`
+and `workbench animate` then pose the template by EVD.  Runs the stages it
+needs first when they have not run (weights; pose and register for the
+registration source).
 """
 
 REGISTER_HELP = """\
@@ -136,9 +145,10 @@ the block's 3x3x3 neighbourhood, each accepted step is composed into the
 running field, and the blocks are refined level by level.
 
 --init vbd (default) starts from VBD (Rhee Eq. 2) to the scan's pose: the
-estimated pose of `workbench pose`, or the ground-truth pose of a phantom
-when there is none (--pose).  It needs `workbench weights` first.  The bone
-labels then become zero-displacement control points.  --init none starts
+estimated pose of `workbench pose` (--pose truth: a phantom's true pose, for
+protocols such as Rhee's Table 4; never taken silently).  The pose and
+weights stages run first when they have not.  The bone labels then become
+zero-displacement control points.  --init none starts
 from the identity (Rhee's Table 2 protocol).
 
 VBD is not one-to-one in the crease of a flexed joint, so its inverse folds
@@ -147,9 +157,12 @@ those.  --unfold-init repairs them first (local smoothing of the folded
 voxels): a one-to-one field, at ~0.1-1 mm more MED on the knee phantom and
 far more on the hand (creases between thin fingers) - see the README.
 
-Writes registration/<scan>/ (correspondence.mha: scan -> template field in
-mm on the scan grid, the convention of the truth field; template_to_scan.mha;
-registered.nii.gz; log.json) and names them in study.json.  Open the field in
+Writes init/<scan>/ (the start) and registration/<scan>/ (correspondence.mha:
+scan -> template field in mm on the scan grid, the convention of the truth
+field; template_to_scan.mha and inverse_status.nii.gz, its inverse on the
+template grid; registered.nii.gz; log.json) and records them in study.json,
+scan by scan: an interrupted run resumes with the first unfinished scan, and
+scans already registered with the same settings are skipped.  Open the field in
 3D Slicer as a transform, the registered volume beside the scan.
 
 --preset paper gives the published settings (levels 3-5, Nelder-Mead,
@@ -220,6 +233,45 @@ knee's angles automatically. Overrides --poses.
 """
 
 
+RUN_HELP = """\
+Run the whole pipeline on a study, stage by stage, each through one mechanism:
+
+  bones     the template's bone labels (given, or segmented from --seeds)
+  pose      every bone's transform in every scan, joint centres and angles
+  weights   harmonic skinning weights of every template voxel
+  init      VBD of the template to each scan's estimated pose    (per scan)
+  register  locally adaptive registration, Rhee Algorithm 1      (per scan)
+  model     EVD (Rhee Eq. 7) from the registrations and the estimated poses
+  validate  each scan against its ground truth, when it has one  (per scan)
+
+The ground truth of a phantom is read by `validate` alone.  Each stage
+records in study.json a digest of its inputs and settings; a stage whose
+digest is unchanged is skipped (and says so), so a second `run` does nothing
+and a changed setting reruns only the stages that depend on it.  Per-scan
+stages commit each scan as it finishes: after Ctrl-C (or SIGTERM) no partial
+file is left and the next `run` resumes with the first unfinished scan.
+
+Settings: each stage keeps the settings it last ran with (e.g. those given to
+`workbench register`); --set STAGE.SETTING=VALUE changes one for this run and
+after (JSON values: --set register.max_steps_per_level=50,
+--set register.levels=[3,4], --set weights.method=distance).
+
+examples:
+  workbench run knee-study                        # everything; truth only in validate
+  workbench run knee-study                        # again: every stage skipped
+  workbench run knee-study --until register       # stop after the registrations
+  workbench run knee-study --force register       # rerun register, then model and validate
+  workbench run my-ct-study --seeds seeds.json    # no label map: segment the bones first
+  workbench run knee-study --scan pose01 --until register
+"""
+
+
+def _common(p) -> None:
+    """--quiet / -v on every subcommand."""
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log lines (-vv: debug)")
+
+
 def _positive_int(text: str) -> int:
     try:
         v = int(text)
@@ -260,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--noise-free", action="store_true",
                     help="no noise and no bias field (for exact-resampling checks)")
     ph.add_argument("--force", action="store_true", help="replace DIR if it exists")
-    ph.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    _common(ph)
     ph.set_defaults(func=cmd_phantom)
 
     info = sub.add_parser("info", help="summarise a study folder",
@@ -275,20 +327,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="'intensity': Rhee Eq. 1, the bone region's intensities (SimpleITK, then a least-squares "
                          "polish); 'surface': Kurihara §3, ICP of bone isosurfaces (VTK flying edges + Open3D). "
                          "Default: intensity")
-    po.add_argument("--seeds", type=Path, metavar="FILE",
-                    help="seeds file (one or more world points in mm inside each bone): segment the template's "
-                         "bones from it instead of using the study's label map")
-    po.add_argument("--modality", choices=["ct", "mri"],
-                    help="segmentation method for --seeds (default: guessed from the intensities: CT if air is "
-                         "below -500 HU; a CT cropped to the limb, with no air, needs --modality ct and "
-                         "--bias-correction off)")
-    po.add_argument("--threshold", type=float, metavar="HU",
-                    help="bone threshold for CT segmentation (default 400)")
+    _bones_options(po)
     po.add_argument("--init", default="identity", metavar="identity|moments|FILE",
                     help="root bone's starting pose: 'identity' (scans share the template's scanner frame), "
                          "'moments' (align the images' centres of mass), or a JSON file (an avw-pose file, or "
                          "{'format': 'avw-initial-poses', 'version': 1, 'scans': {id: 4x4}}). Default: identity")
-    po.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
+    po.add_argument("--scan", action="append", metavar="ID",
+                    help="only this scan (repeatable; default: all — Kurihara Eq. 1 pools the scans estimated)")
     po.add_argument("--metric", choices=["ncc", "ssd"], default="ncc",
                     help="cost of the coarse search and the polish: 'ssd' is Eq. 1 as printed; 'ncc' is Eq. 1 "
                          "after the best linear intensity map per bone (insensitive to an MRI bias field). "
@@ -318,8 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "centre (estimated from all scans) by more than K times the joint's median miss, and by "
                          "more than half a voxel, is reported as 'joint_outlier'; 0 switches the check off. "
                          "Default: 4")
-    po.add_argument("--force", action="store_true", help="replace an earlier pose stage")
-    po.add_argument("--quiet", action="store_true", help="no progress lines")
+    po.add_argument("--force", action="store_true", help="rerun even when up to date")
+    _common(po)
     po.set_defaults(func=cmd_pose)
 
     we = sub.add_parser("weights", help="skinning weights of every template voxel (harmonic on a tet mesh)",
@@ -330,17 +375,20 @@ def build_parser() -> argparse.ArgumentParser:
     we.add_argument("--edge-length-mm", type=float, metavar="MM",
                     help="target tet edge length for a new mesh (default: 5%% of the body's bounding-box diagonal)")
     we.add_argument("--remesh", action="store_true", help="make a new tet mesh instead of reusing the study's")
-    we.add_argument("--force", action="store_true", help="replace earlier weights")
-    we.add_argument("--quiet", action="store_true", help="no progress lines")
+    we.add_argument("--force", action="store_true", help="rerun even when up to date (from the kept tet mesh)")
+    _common(we)
     we.set_defaults(func=cmd_weights)
 
     mo = sub.add_parser("model", help="build an EVD model (Rhee Eq. 7) from the study's correspondences",
                         description=MODEL_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     mo.add_argument("study", type=Path, help="study folder (holding study.json)")
-    mo.add_argument("--source", choices=["truth"], default="truth", help="correspondences to use. Default: truth")
+    mo.add_argument("--source", choices=["auto", "registration", "truth"], default="auto",
+                    help="correspondences: 'registration' (`workbench register` + estimated poses) or 'truth' (a "
+                         "phantom's). 'auto': registration when the study has registrations or no truth, else "
+                         "truth. Default: auto")
     mo.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
-    mo.add_argument("--force", action="store_true", help="replace an earlier model")
-    mo.add_argument("--quiet", action="store_true", help="no progress lines")
+    mo.add_argument("--force", action="store_true", help="rebuild even when up to date")
+    _common(mo)
     mo.set_defaults(func=cmd_model)
 
     de = sub.add_parser("deform", help="deform the template to a pose (EVD or VBD) and write the posed volume",
@@ -358,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="EVD pose weights: 'psd' one set for all voxels (Rhee); 'wpsd' per voxel from the "
                          "skinning weights (Kurihara Eq. 16). Default: psd")
     de.add_argument("--force", action="store_true", help="replace existing output files")
-    de.add_argument("--quiet", action="store_true", help="no progress lines")
+    _common(de)
     de.set_defaults(func=cmd_deform)
 
     re_ = sub.add_parser("render", help="volume-render a volume or a study off-screen to a PNG (presets, clipping, "
@@ -384,7 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "block level (green 3, yellow 4, orange 5, ...; Rhee Fig. 9)")
     _render_options(re_)
     re_.add_argument("--force", action="store_true", help="replace an existing PNG")
-    re_.add_argument("--quiet", action="store_true", help="no progress lines")
+    _common(re_)
     re_.set_defaults(func=cmd_render)
 
     an = sub.add_parser("animate", help="animate the template through keyframe poses to MP4, GIF or PNG frames",
@@ -403,7 +451,7 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--bones", action="store_true", help="draw the posed bone labels as surfaces")
     _render_options(an, camera_default=None)
     an.add_argument("--force", action="store_true", help="replace existing output")
-    an.add_argument("--quiet", action="store_true", help="no progress lines")
+    _common(an)
     an.set_defaults(func=cmd_animate)
 
     rg = sub.add_parser("register", help="locally adaptive non-rigid registration of the template to the scans "
@@ -417,11 +465,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="repair the folds of the VBD initialisation in the crease of a flexed joint before "
                          "registering (a one-to-one field; ~0.1-1 mm less accurate on the knee phantom, "
                          "more on the hand)")
-    rg.add_argument("--pose", choices=["auto", "estimated", "truth"], default="auto", dest="pose_source",
-                    help="pose for --init vbd: 'auto' = estimated if present, else the phantom's truth. "
-                         "Default: auto")
+    rg.add_argument("--pose", choices=["estimated", "truth"], default="estimated", dest="pose_source",
+                    help="pose for --init vbd: the pose stage's estimate, or a phantom's true pose (protocols). "
+                         "Default: estimated")
     rg.add_argument("--preset", choices=["default", "paper"], default="default",
-                    help="settings: ours, or Rhee's as published. Default: default")
+                    help="settings: ours (after --init vbd its 'initialised' variant), or Rhee's as published. "
+                         "Default: default")
     rg.add_argument("--levels", nargs=2, type=int, metavar=("FIRST", "LAST"),
                     help="block levels (2**level blocks a side; level 3 = 32^3-voxel blocks on a 256^3 grid). "
                          "Default: 3 4 after --init vbd, 1 4 after --init none (paper preset: 3 5)")
@@ -435,10 +484,62 @@ def build_parser() -> argparse.ArgumentParser:
                          "seed has no effect there). Default: 0")
     rg.add_argument("--no-fix-bones", action="store_true",
                     help="do not put zero-displacement control points on bone voxels")
-    rg.add_argument("--force", action="store_true", help="replace earlier registrations of these scans")
-    rg.add_argument("--quiet", action="store_true", help="no progress lines")
+    rg.add_argument("--force", action="store_true", help="register these scans again even when up to date")
+    _common(rg)
     rg.set_defaults(func=cmd_register)
+
+    bo = sub.add_parser("bones", help="the template's bone label map: given, or segmented from seeds",
+                        description="The bones stage (Rhee §3.1): the study's own label map, or one segmented "
+                                    "from a seeds file (CT: threshold and connected components; MRI: seeded "
+                                    "region growing), and each bone's oriented box.  Writes bones/; every later "
+                                    "stage uses these labels.  The seeds schema is in `workbench pose --help`.")
+    bo.add_argument("study", type=Path, help="study folder (holding study.json)")
+    _bones_options(bo)
+    bo.add_argument("--force", action="store_true", help="rerun even when up to date")
+    _common(bo)
+    bo.set_defaults(func=cmd_bones)
+
+    va = sub.add_parser("validate", help="each scan's registration and pose against its ground truth",
+                        description="The validate stage (Rhee §6.1, Tables 2-4): for each scan with ground truth, "
+                                    "MED over body voxels and at the markers (mm), SSD, CC, MI (nats, 32 bins) and "
+                                    "the folded fraction of body voxels for the source, the initialised and the "
+                                    "registered template, and the estimated pose's errors.  Writes "
+                                    "validation/<scan>/measures.json.  The only stage that reads the truth.")
+    va.add_argument("study", type=Path, help="study folder (holding study.json)")
+    va.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
+    va.add_argument("--force", action="store_true", help="rerun even when up to date")
+    _common(va)
+    va.set_defaults(func=cmd_validate)
+
+    ru = sub.add_parser("run", help="run every stage in order: bones, pose, weights, init, register, model, validate",
+                        description=RUN_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ru.add_argument("study", type=Path, help="study folder (holding study.json)")
+    ru.add_argument("--until", metavar="STAGE", choices=_stage_names(), help="stop after this stage")
+    ru.add_argument("--force", action="append", default=[], metavar="STAGE", choices=_stage_names(),
+                    help="rerun this stage even when up to date, and what depends on it (repeatable)")
+    ru.add_argument("--scan", action="append", metavar="ID", help="per-scan stages only for this scan (repeatable)")
+    ru.add_argument("--set", action="append", default=[], metavar="STAGE.SETTING=VALUE", dest="set_",
+                    help="change one stage setting (repeatable; see above)")
+    ru.add_argument("--seeds", type=Path, metavar="FILE",
+                    help="segment the template's bones from this seeds file (a study without a label map)")
+    _common(ru)
+    ru.set_defaults(func=cmd_run)
     return p
+
+
+def _stage_names():
+    return ["bones", "pose", "weights", "init", "register", "model", "validate"]
+
+
+def _bones_options(p) -> None:
+    p.add_argument("--seeds", type=Path, metavar="FILE",
+                   help="seeds file (one or more world points in mm inside each bone): segment the template's "
+                        "bones from it instead of using the study's label map")
+    p.add_argument("--modality", choices=["ct", "mri"],
+                   help="segmentation method for --seeds (default: guessed from the intensities: CT if air is "
+                        "below -500 HU; a CT cropped to the limb, with no air, needs --modality ct and "
+                        "--bias-correction off)")
+    p.add_argument("--threshold", type=float, metavar="HU", help="bone threshold for CT segmentation (default 400)")
 
 
 def _render_options(p, camera_default="auto") -> None:
@@ -472,7 +573,7 @@ def _background(text: str) -> tuple:
 
 
 def _camera(args):
-    from workbench.animate import camera_from
+    from workbench.viz.animate import camera_from
 
     return camera_from({}, view=args.camera, azimuth=args.azimuth, elevation=args.elevation, zoom=args.zoom)
 
@@ -481,30 +582,8 @@ def _say(args):
     return None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
 
 
-def cmd_weights(args) -> int:
-    from workbench.deform_stage import run_weights_stage
-
-    if args.edge_length_mm is not None and args.edge_length_mm <= 0:
-        raise ValueError(f"--edge-length-mm must be positive, got {args.edge_length_mm}")
-    info = run_weights_stage(args.study, method=args.method, edge_length_mm=args.edge_length_mm,
-                             remesh=args.remesh, overwrite=args.force, progress=_say(args))
-    extra = f", {info['n_vertices']} mesh vertices, {info['n_tets']} tets" if "n_tets" in info else ""
-    print(f"{args.method} weights{extra} in {info['seconds']:.1f} s; wrote {args.study / 'skinning'}")
-    return 0
-
-
-def cmd_model(args) -> int:
-    from workbench.deform_stage import run_model_stage
-
-    info = run_model_stage(args.study, source=args.source, scan_ids=args.scan, overwrite=args.force,
-                           progress=_say(args))
-    print(f"EVD model from {len(info['scans'])} scans ({', '.join(info['scans'])}) in {info['seconds']:.1f} s; "
-          f"wrote {args.study / 'model'}")
-    return 0
-
-
 def cmd_deform(args) -> int:
-    from workbench.deform_stage import deform_study
+    from workbench.deform import deform_study
 
     s = deform_study(args.study, args.pose, args.out, method=args.method, weighting=args.weighting,
                      labels_out=args.labels_out, field_out=args.field_out, overwrite=args.force,
@@ -519,14 +598,197 @@ def cmd_deform(args) -> int:
     return 0
 
 
+def _progress(args):
+    from workbench.progress import ProgressPrinter, setup_logging
+
+    setup_logging(-1 if args.quiet else args.verbose)
+    return ProgressPrinter(quiet=args.quiet)
+
+
+def _stages(args, targets, settings=None, *, force=(), scans=None, options=None):
+    """Run ``targets`` (and the stages they need) on the study of ``args``; returns (study, outcomes)."""
+    from workbench.stages.run import run_stages
+    from workbench.study import read_study
+
+    study = read_study(args.study)
+    printer = _progress(args)
+    try:
+        outcomes = run_stages(study, targets, settings=settings or {}, force=force, scans=scans, progress=printer,
+                              options=options)
+    finally:
+        printer.close()
+    return study.reload(), outcomes
+
+
+def _bones_settings(args, study_path):
+    from workbench.stages.bones import BonesSettings
+
+    if getattr(args, "seeds", None) is None:
+        if args.modality or args.threshold is not None:
+            raise ValueError("--modality and --threshold choose how --seeds segments the bones: pass --seeds FILE")
+        return None
+    return BonesSettings(source="seeds", seeds=str(args.seeds), modality=args.modality, threshold=args.threshold)
+
+
+def cmd_bones(args) -> int:
+    from workbench.stages.bones import BonesSettings
+
+    bs = _bones_settings(args, args.study) or BonesSettings(source="labels")
+    study, _ = _stages(args, ["bones"], {"bones": bs}, force={"bones"} if args.force else ())
+    counts = read_json_output(study, "bones", "bones.json")
+    print(f"bones ({counts['source']}): " + ", ".join(f"{b} {n}" for b, n in counts["voxels"].items()) + " voxels")
+    print(f"wrote {study.root / 'bones'}")
+    return 0
+
+
+def read_json_output(study, stage, name, scan=None):
+    from workbench.io.jsonio import read_json
+
+    return read_json(study.output(stage, name, scan))
+
+
+def cmd_pose(args) -> int:
+    from workbench.stages.pose import PoseSettings
+
+    ps = PoseSettings(method=args.method, init=str(args.init), metric=args.metric,
+                      interpolation=3 if args.interpolation == "bspline" else 1, prior_deg=args.prior_deg or None,
+                      min_ncc=args.min_ncc, bias_correction={"auto": None, "on": True, "off": False}[args.bias_correction],
+                      margin_mm=args.margin_mm, max_joint_gap_mm=args.max_joint_gap_mm or None,
+                      outlier_factor=args.outlier_factor or None, scans=tuple(args.scan) if args.scan else None)
+    settings = {"pose": ps}
+    bs = _bones_settings(args, args.study)
+    if bs is not None:
+        settings["bones"] = bs
+    study, _ = _stages(args, ["pose"], settings, force={"pose"} if args.force else ())
+    print(study.pose_report()["text"])
+    if any(study.has_truth(sid) for sid in study.scan_ids):
+        print(f"\n(accuracy against the ground truth: `workbench validate {study.root}`)")
+    print(f"\nwrote {study.root / 'poses'} and updated {study.manifest_path}")
+    return 0
+
+
+def cmd_weights(args) -> int:
+    from workbench.stages.weights import WeightsSettings
+
+    ws = WeightsSettings(method=args.method, edge_length_mm=args.edge_length_mm)
+    if args.remesh and args.method != "harmonic":
+        raise ValueError("--remesh makes a new tet mesh for --method harmonic")
+    study, out = _stages(args, ["weights"], {"weights": ws}, force={"weights"} if (args.force or args.remesh) else (),
+                         options={"weights": {"remesh": args.remesh}})
+    e = study.stage_entry("weights")
+    when = "up to date" if out[-1].status == "skipped" else f"{e['seconds']:.1f} s"
+    print(f"{e['settings']['method']} weights ({when}); in {study.root / 'skinning'}")
+    return 0
+
+
+def cmd_model(args) -> int:
+    from workbench.stages.model import ModelSettings
+    from workbench.study import read_study
+
+    source = args.source
+    if source == "auto":
+        st = read_study(args.study)
+        registered = (st.manifest.get("stages") or {}).get("register")
+        has_truth = all(st.has_truth(sid) for sid in st.scan_ids)
+        source = "registration" if registered or not has_truth else "truth"
+    ms = ModelSettings(source=source, scans=tuple(args.scan) if args.scan else None)
+    study, out = _stages(args, ["model"], {"model": ms}, force={"model"} if args.force else ())
+    doc = read_json_output(study, "model", "evd.json")
+    print(f"EVD model from the {doc.get('source', source)} correspondences of {len(doc['scans'])} scans "
+          f"({', '.join(doc['scans'])}){' (up to date)' if out[-1].status == 'skipped' else ''}; "
+          f"in {study.root / 'model'}")
+    return 0
+
+
+def _register_settings(args):
+    from workbench.stages.init import InitSettings
+    from workbench.stages.register import RegisterSettings
+
+    init = InitSettings(method="vbd" if args.init == "vbd" else "identity", pose=args.pose_source,
+                        unfold=args.unfold_init)
+    reg = RegisterSettings(preset="paper" if args.preset == "paper" else "auto",
+                           levels=tuple(args.levels) if args.levels else None, optimizer=args.optimizer,
+                           metric=args.metric, max_steps_per_level=args.max_steps, fix_bones=not args.no_fix_bones,
+                           seed=args.seed)
+    return {"init": init, "register": reg}
+
+
+def cmd_register(args) -> int:
+    force = {"init", "register"} if args.force else ()
+    study, _ = _stages(args, ["init", "register"], _register_settings(args), force=force, scans=args.scan)
+    print(format_registration_table(study, study.check_scan_ids(args.scan)))
+    print(f"in {study.root / 'registration'}")
+    return 0
+
+
+def cmd_validate(args) -> int:
+    study, _ = _stages(args, ["validate"], force={"validate"} if args.force else (), scans=args.scan)
+    print(format_registration_table(study, study.check_scan_ids(args.scan)))
+    return 0
+
+
+def cmd_run(args) -> int:
+    from workbench.stages import ORDER
+    from workbench.stages.run import merged_settings, parse_set
+    from workbench.study import read_study
+
+    study = read_study(args.study)
+    settings = merged_settings(study, parse_set(args.set_))
+    if args.seeds is not None:
+        from workbench.stages.bones import BonesSettings
+
+        settings["bones"] = BonesSettings(source="seeds", seeds=str(args.seeds))
+    targets = list(ORDER[:ORDER.index(args.until) + 1]) if args.until else list(ORDER)
+    from workbench.stages.run import dependents
+
+    force = dependents(args.force) & set(targets) if args.force else set()
+    t0 = time.perf_counter()
+    study, outcomes = _stages(args, targets, settings, force=force, scans=args.scan)
+    ran = [o for o in outcomes if o.status == "ran"]
+    print(f"{len(ran)} stage run(s), {len(outcomes) - len(ran)} up to date or nothing to do; "
+          f"{time.perf_counter() - t0:.1f} s")
+    if "validate" in targets:
+        print(format_registration_table(study, study.check_scan_ids(args.scan)))
+    return 0
+
+
+def format_registration_table(study, scans) -> str:
+    """One row per scan and volume (source / initialised / registered): the validate stage's measures when the
+    scan has truth, else the registration's similarity before and after (MED columns empty)."""
+    lines = ["| scan | volume | MED mm | marker MED mm | SSD | CC | MI | folded | control pts | s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+
+    def num(v, fmt):
+        return "" if v is None or v != v else format(v, fmt)
+    for sid in scans:
+        if not study.has_registration(sid):
+            continue
+        log = study.registration_log(sid)["summary"]
+        e = study.stage_entry("register", sid)
+        if study.has_output("validate", "measures.json", sid):
+            rows = study.validation(sid)["rows"]
+        else:
+            b, a = log["similarity_before"], log["similarity_after"]
+            rows = {"before": dict(b), "registered": {**a, "folded_fraction": log["folding"].get("fraction_folded")}}
+        for name in [k for k in ("source", "before", "initialised", "registered") if k in rows]:
+            r, last = rows[name], name == "registered"
+            lines.append(f"| {sid} | {name} | {num(r.get('med_mm'), '.2f')} | {num(r.get('marker_med_mm'), '.2f')} | "
+                         f"{num(r.get('ssd'), '.1f')} | {num(r.get('cc'), '.3f')} | {num(r.get('mi'), '.3f')} | "
+                         f"{num(r.get('folded_fraction'), '.4f')} | {log['control_points'] if last else ''} | "
+                         f"{e['seconds'] if last else ''} |")
+    lines.append("(MED: mean |recovered − true| template position over the scan's body voxels; folded: fraction of "
+                 "body voxels with det ≤ 0 when validated, else of the whole grid; MI in nats, 32 bins)")
+    return "\n".join(lines)
+
+
 def _render_inputs(args, say):
     """``(volume, labels, other, points)`` for ``workbench render``: files, or a study's template / scan /
     registration, and the marker and control-point sets to draw."""
     import numpy as np
 
-    from workbench.render import LEVEL_COLOURS, MARKER_COLOUR
+    from workbench.viz.render import LEVEL_COLOURS, MARKER_COLOUR
     from workbench.study import MANIFEST, read_study
-    from workbench.volume_io import read_labels, read_volume
+    from workbench.io.volumes import read_labels, read_volume
 
     study = read_study(args.source) if (args.source / MANIFEST).is_file() else None
     if study is None:
@@ -552,11 +814,11 @@ def _render_inputs(args, say):
     elif args.scan:
         vol, what = study.scan(args.scan), f"scan {args.scan}"
     elif args.registered:
-        entry = study._scan_entry(args.registered).get("registration")
-        if not entry:
+        study.check_scan_ids([args.registered])
+        if not study.has_registration(args.registered):
             raise ValueError(f"scan {args.registered!r} has no registration; run `workbench register "
                              f"{study.root} --scan {args.registered}` first")
-        vol, what = read_volume(study.path(entry["registered"])), f"template registered to {args.registered}"
+        vol, what = study.registered(args.registered), f"template registered to {args.registered}"
     else:
         vol, what = study.template(), "template"
         if args.bones:
@@ -592,10 +854,8 @@ def _render_inputs(args, say):
         if not args.registered:
             raise ValueError("--control-points draws a registration's control points: pass --registered ID")
         from registration.adaptive import control_points_from_log
-        from workbench.jsonio import read_json
 
-        entry = study._scan_entry(args.registered)["registration"]
-        cps = control_points_from_log(read_json(study.path(entry["log"]))["log"], vol.geometry)
+        cps = control_points_from_log(study.registration_log(args.registered)["log"], vol.geometry)
         levels = sorted({lv for lv, _ in cps})
         for lv in levels:
             pts = np.concatenate([p for l_, p in cps if l_ == lv])
@@ -606,7 +866,7 @@ def _render_inputs(args, say):
 
 
 def cmd_render(args) -> int:
-    from workbench.render import (ClipPlane, opengl_backend, parse_size, render_difference, render_overlay,
+    from workbench.viz.render import (ClipPlane, opengl_backend, parse_size, render_difference, render_overlay,
                                   render_volume, write_png, _preset)
 
     say = _say(args) or (lambda line: None)
@@ -641,13 +901,13 @@ def cmd_render(args) -> int:
 
 
 def cmd_animate(args) -> int:
-    from workbench.animate import animate_study
-    from workbench.render import ClipPlane, parse_size
+    from workbench.viz.animate import animate_study
+    from workbench.viz.render import ClipPlane, parse_size
 
     size = parse_size(args.size)
     clip = ClipPlane.parse(args.clip) if args.clip else None
     bg = _background(args.background)
-    from workbench.animate import builtin_keyframes, camera_from, read_keyframes
+    from workbench.viz.animate import builtin_keyframes, camera_from, read_keyframes
     from workbench.study import read_study
 
     sk = read_study(args.study).skeleton()
@@ -666,103 +926,6 @@ def cmd_animate(args) -> int:
     return 0
 
 
-def cmd_register(args) -> int:
-    from registration.adaptive import AdaptiveSettings
-    from workbench.register_stage import format_summary, run_register_stage
-
-    over = {"seed": args.seed}
-    if args.levels is not None:
-        over["levels"] = tuple(args.levels)
-    for name in ("optimizer", "metric"):
-        if getattr(args, name) is not None:
-            over[name] = getattr(args, name)
-    if args.max_steps is not None:
-        over["max_steps_per_level"] = args.max_steps
-    if args.no_fix_bones:
-        over["fix_bones"] = False
-    if args.preset == "paper":
-        settings = AdaptiveSettings.paper(**over)
-    elif args.init == "vbd":
-        settings = AdaptiveSettings.initialised(**over)
-    else:
-        settings = AdaptiveSettings(**over)
-    say = _say(args)
-    last = [0.0]
-
-    def step(info):
-        if say is None:
-            return
-        if "level_done" in info:
-            lv = info["level_done"]
-            say(f"  level {lv.level}: {lv.steps} steps ({lv.accepted} accepted), {lv.control_points} control "
-                f"points, {lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, stopped: {lv.stopped}, "
-                f"{lv.seconds:.1f} s")
-            return
-        now = time.perf_counter()
-        if now - last[0] >= 2.0:  # one line every 2 s at most
-            last[0] = now
-            say(f"  level {info['level']} step {info['step']} block {tuple(info['block'])}: {info['metric']} "
-                f"{info['block_before']:.4g} -> {info['block_after']:.4g}; {info['elapsed']:.0f} s elapsed, "
-                f"~{info['eta']:.0f} s left in this level")
-
-    out = run_register_stage(args.study, scan_ids=args.scan, init=args.init, pose_source=args.pose_source,
-                             settings=settings, overwrite=args.force, progress=say, step_progress=step,
-                             unfold_init=args.unfold_init)
-    print(format_summary(out))
-    print(f"wrote {args.study / 'registration'}")
-    return 0
-
-
-def cmd_pose(args) -> int:
-    from workbench.pose_stage import run_pose_stage
-
-    if args.prior_deg < 0:
-        raise ValueError(f"--prior-deg must be ≥ 0, got {args.prior_deg}")
-    if args.max_joint_gap_mm < 0:
-        raise ValueError(f"--max-joint-gap-mm must be ≥ 0 (0 switches the check off), got {args.max_joint_gap_mm}")
-    if args.outlier_factor < 0 or 0 < args.outlier_factor <= 1:
-        raise ValueError(f"--outlier-factor must be 0 (off) or above 1 (a multiple of the joint's median miss), "
-                         f"got {args.outlier_factor}")
-    say = _say(args)
-    report = run_pose_stage(args.study, method=args.method, seeds=args.seeds, modality=args.modality,
-                            threshold=args.threshold, init=args.init, scan_ids=args.scan, metric=args.metric,
-                            interpolation=3 if args.interpolation == "bspline" else 1,
-                            prior_deg=args.prior_deg or None, min_ncc=args.min_ncc, overwrite=args.force,
-                            bias_correction={"auto": None, "on": True, "off": False}[args.bias_correction],
-                            margin_mm=args.margin_mm, max_joint_gap_mm=args.max_joint_gap_mm or None,
-                            outlier_factor=args.outlier_factor or None, progress=say)
-    print(report["text"])
-    print(f"\nwrote {args.study / 'poses'} and updated {args.study / 'study.json'}")
-    return 0
-
-
-def _read_poses_file(path: Path):
-    from workbench.errors import InputFileError
-    from workbench.jsonio import read_json
-
-    d = read_json(path)
-    poses = d.get("poses") if isinstance(d, dict) else None
-    if not isinstance(poses, list) or not poses:
-        raise InputFileError(f"{path}: expected {{\"poses\": [{{\"id\": ..., \"angles\": {{joint: [...]}}}}]}} "
-                             "with at least one pose.", path)
-    out, seen = [], set()
-    for i, entry in enumerate(poses):
-        if not isinstance(entry, dict) or not isinstance(entry.get("angles"), dict):
-            raise InputFileError(f"{path}: poses[{i}] needs an 'angles' object mapping joint names to lists.", path)
-        pid = str(entry.get("id", f"pose{i:02d}"))
-        if pid in seen:
-            raise InputFileError(f"{path}: pose id {pid!r} appears twice.", path)
-        seen.add(pid)
-        angles = {}
-        for joint, values in entry["angles"].items():
-            if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
-                raise InputFileError(f"{path}: poses[{i}] joint {joint!r}: angles must be a list of numbers "
-                                     f"(degrees, then mm for 6-DOF joints), got {values!r}.", path)
-            angles[joint] = values
-        out.append((pid, angles))
-    return tuple(out)
-
-
 def cmd_phantom(args) -> int:
     from validation.phantoms import Phantom, PhantomSpec
     from workbench.errors import InputFileError, OutputExistsError
@@ -771,7 +934,9 @@ def cmd_phantom(args) -> int:
     if args.out.exists() and not args.force:
         raise OutputExistsError(args.out, f"{args.out}: already exists; choose another --out or pass --force "
                                           "to replace it.")
-    poses = _read_poses_file(args.poses_file) if args.poses_file else None
+    from workbench.io.inputs import read_poses_file
+
+    poses = read_poses_file(args.poses_file) if args.poses_file else None
     try:
         spec = PhantomSpec(region=args.region, size=args.size, modality=args.modality, n_poses=args.poses,
                            posing=args.posing, seed=args.seed, noise=not args.noise_free, poses=poses)
@@ -807,8 +972,8 @@ def summarize(study) -> str:
     """A human-readable summary of a study folder."""
     import numpy as np
 
-    from workbench.jsonio import read_json
-    from workbench.volume_io import read_image_geometry
+    from workbench.io.jsonio import read_json
+    from workbench.io.volumes import read_image_geometry
 
     m = study.manifest
     sk = study.skeleton()
@@ -871,14 +1036,23 @@ def main(argv=None) -> int:
         return 2
     from workbench.errors import WorkbenchError
 
+    import signal
+
+    def terminate(signum, frame):  # SIGTERM: unwind like Ctrl-C, so staging folders are removed
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, terminate)
     try:
         return args.func(args)
     except (WorkbenchError, ValueError, OSError) as e:
         print(f"workbench {args.command}: error: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"workbench {args.command}: interrupted; nothing was left half-written.", file=sys.stderr)
+        print(f"workbench {args.command}: interrupted; nothing was left half-written (run it again to resume).",
+              file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

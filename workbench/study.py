@@ -42,6 +42,7 @@ study.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import shutil
@@ -55,11 +56,11 @@ from deformation.geometry import Volume
 from deformation.skeleton import Pose, Skeleton
 from workbench import __version__
 from workbench.errors import InputFileError, MissingFileError, OutputExistsError
-from workbench.jsonio import read_json, write_json
-from workbench.volume_io import read_displacement, read_labels, read_volume, write_displacement, write_labels, \
-    write_volume
+from workbench.io.jsonio import read_json, write_json
+from workbench.io.volumes import read_displacement, read_image_geometry, read_labels, read_vector_image, \
+    read_volume, write_displacement, write_labels, write_volume
 
-__all__ = ["Study", "StudyError", "read_study", "write_phantom_study", "STUDY_FORMAT", "MANIFEST"]
+__all__ = ["Study", "StudyError", "StageOutputMissing", "STAGE_COMMANDS", "read_study", "write_phantom_study", "STUDY_FORMAT", "MANIFEST"]
 
 STUDY_FORMAT = "avw-study"
 MANIFEST = "study.json"
@@ -69,9 +70,36 @@ class StudyError(InputFileError):
     """A study folder or manifest that does not hold what it should."""
 
 
+# The command that produces each stage's outputs, for "run X first" messages.
+STAGE_COMMANDS = {"bones": "workbench bones", "pose": "workbench pose", "weights": "workbench weights",
+                  "init": "workbench register", "register": "workbench register", "model": "workbench model",
+                  "validate": "workbench validate"}
+LOCK_NAME = ".study.json.lock"
+
+
+class StageOutputMissing(StudyError):
+    """A stage's output that a later step needs has not been made yet (or was deleted)."""
+
+
 @dataclass
 class Study:
-    """A study folder opened through its manifest (paths resolved, files checked to exist)."""
+    """A study folder opened through its manifest (paths resolved, files checked to exist).
+
+    ``Study`` owns ``study.json``: stage outputs are found through the
+    accessors below (``template_labels()``, ``pose(sid)``, ``weights()``,
+    ``init_field(sid)``, ``registration(sid)``, ``model()``, ...), and every
+    change goes through :meth:`update`, which holds an exclusive lock on
+    ``.study.json.lock`` while it re-reads the manifest, applies the change and
+    renames the new manifest into place — so several processes (four
+    ``workbench register --scan`` at once, Dask workers' coordinator) never
+    lose each other's entries.
+
+    Stage entries live under ``stages[<name>]``; a whole-study stage's entry
+    holds ``digest``, ``settings``, ``inputs``, ``needs``, ``outputs`` (file
+    name → path relative to the study), ``outputs_digest``, ``seconds``,
+    ``finished``, versions; a per-scan stage's entry holds one such entry per
+    scan under ``scans``.
+    """
 
     root: Path
     manifest: dict
@@ -80,56 +108,157 @@ class Study:
         return self.root / relative
 
     @property
+    def manifest_path(self) -> Path:
+        return self.root / MANIFEST
+
+    @property
     def scan_ids(self) -> list[str]:
         return [s["id"] for s in self.manifest["scans"]]
+
+    def check_scan_ids(self, ids) -> list[str]:
+        """``ids`` as a list (all scans when empty), every one a scan of the study — else one clear error."""
+        ids = list(ids) if ids else self.scan_ids
+        unknown = [sid for sid in ids if sid not in self.scan_ids]
+        if unknown:
+            raise StudyError(f"{self.manifest_path}: no scan {unknown} in this study (--scan); its scans are "
+                             f"{self.scan_ids}.", self.manifest_path)
+        return ids
 
     def _scan_entry(self, scan_id: str) -> dict:
         for s in self.manifest["scans"]:
             if s["id"] == scan_id:
                 return s
-        raise StudyError(f"no scan {scan_id!r} in this study; scans: {self.scan_ids}", self.root / MANIFEST)
+        raise StudyError(f"no scan {scan_id!r} in this study; scans: {self.scan_ids}", self.manifest_path)
 
+    # -- the one writer ----------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def locked(self):
+        """Hold the study's manifest lock (exclusive, across processes) for the body."""
+        import fcntl
+
+        with open(self.root / LOCK_NAME, "a+") as f:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+    def update(self, change) -> dict:
+        """Apply ``change(manifest)`` (in place) to the manifest on disk, under the lock; returns the new one.
+
+        The manifest is re-read inside the lock, so a change made meanwhile by
+        another process is kept; it is written to a temporary file and renamed
+        (atomic), so a reader never sees half a manifest.
+        """
+        with self.locked():
+            m = read_json(self.manifest_path)
+            change(m)
+            write_json(m, self.manifest_path, overwrite=True)
+        self.manifest = m
+        return m
+
+    def reload(self) -> "Study":
+        self.manifest = read_json(self.manifest_path)
+        return self
+
+    def stage_entry(self, stage: str, scan_id: str | None = None) -> dict | None:
+        """The manifest entry of a stage (of one scan, for per-scan stages), or ``None``."""
+        e = (self.manifest.get("stages") or {}).get(stage)
+        if not isinstance(e, dict):
+            return None
+        if scan_id is not None:
+            e = (e.get("scans") or {}).get(scan_id)
+        elif "scans" in e and "digest" not in e:
+            return None  # a per-scan stage asked for as a whole
+        return e if isinstance(e, dict) and "digest" in e else None
+
+    def record(self, stage: str, entry: dict, scan_id: str | None = None, *, stage_info: dict | None = None) -> None:
+        """Record a stage's entry (one scan's, for per-scan stages) in ``study.json``."""
+        def change(m):
+            stages = m.setdefault("stages", {})
+            if scan_id is None:
+                stages[stage] = entry
+            else:
+                s = stages.get(stage)
+                if not isinstance(s, dict) or "scans" not in s:
+                    s = {"scans": {}}
+                s.update(stage_info or {})
+                s["scans"][scan_id] = entry
+                stages[stage] = s
+        self.update(change)
+
+    def forget(self, stage: str, scan_id: str | None = None) -> None:
+        """Remove a stage's entry (one scan's) from the manifest (its files are left to the caller)."""
+        def change(m):
+            stages = m.get("stages") or {}
+            if scan_id is None:
+                stages.pop(stage, None)
+            elif isinstance(stages.get(stage), dict):
+                (stages[stage].get("scans") or {}).pop(scan_id, None)
+        self.update(change)
+
+    def output(self, stage: str, name: str, scan_id: str | None = None) -> Path:
+        """Path of a stage's output file; a clear "run X first" when the stage has not made it."""
+        e = self.stage_entry(stage, scan_id)
+        what = f"{stage} stage" + (f" of scan {scan_id!r}" if scan_id else "")
+        run = f"run `{STAGE_COMMANDS.get(stage, 'workbench run')} {self.root}`" + (
+            f" (or `workbench run {self.root}`)" if stage in STAGE_COMMANDS else "")
+        if e is None:
+            raise StageOutputMissing(f"{self.manifest_path}: no {what} yet; {run} first.", self.manifest_path)
+        rel = (e.get("outputs") or {}).get(name)
+        if rel is None:
+            raise StageOutputMissing(f"{self.manifest_path}: the {what} has no output {name!r}; {run} again.",
+                                     self.manifest_path)
+        p = self.path(rel)
+        if not p.exists():
+            raise MissingFileError(f"{p}: named in {self.manifest_path} but missing; {run} again (with --force).", p)
+        return p
+
+    def has_output(self, stage: str, name: str, scan_id: str | None = None) -> bool:
+        e = self.stage_entry(stage, scan_id)
+        rel = None if e is None else (e.get("outputs") or {}).get(name)
+        return rel is not None and self.path(rel).exists()
+
+    # -- inputs ---------------------------------------------------------------------------------
     def skeleton(self) -> Skeleton:
         return Skeleton.from_dict(read_json(self.path(self.manifest["skeleton"])))
 
     def template(self) -> Volume:
         return read_volume(self.path(self.manifest["template"]))
 
-    @property
-    def has_template_labels(self) -> bool:
-        return bool(self.manifest.get("template_labels"))
-
-    def template_labels(self) -> Volume:
-        if not self.has_template_labels:
-            raise StudyError(f"{self.root / MANIFEST}: the study has no 'template_labels' (bone label map); give "
-                             "one, or segment the bones with `workbench pose STUDY --seeds FILE`.",
-                             self.root / MANIFEST)
-        return read_labels(self.path(self.manifest["template_labels"]),
-                           reference=self.path(self.manifest["template"]))
-
     def scan(self, scan_id: str) -> Volume:
         return read_volume(self.path(self._scan_entry(scan_id)["image"]))
 
+    def scan_path(self, scan_id: str) -> Path:
+        return self.path(self._scan_entry(scan_id)["image"])
+
+    # -- bones (template labels) -------------------------------------------------------------------
+    def template_labels_path(self) -> Path | None:
+        """The label map every stage uses: the bones stage's, else the study's own ``template_labels``."""
+        if self.has_output("bones", "template_labels.nii.gz"):
+            return self.output("bones", "template_labels.nii.gz")
+        if self.manifest.get("template_labels"):
+            return self.path(self.manifest["template_labels"])
+        return None
+
+    @property
+    def has_template_labels(self) -> bool:
+        return self.template_labels_path() is not None
+
+    def template_labels(self) -> Volume:
+        p = self.template_labels_path()
+        if p is None:
+            raise StudyError(f"{self.manifest_path}: the study has no bone label map ('template_labels'); give "
+                             "one, or segment the bones with `workbench bones STUDY --seeds FILE` (or `workbench "
+                             "pose STUDY --seeds FILE`).", self.manifest_path)
+        return read_labels(p, reference=self.path(self.manifest["template"]))
+
+    # -- ground truth (read by the validate stage and explicit protocols only) ---------------------
     def has_truth(self, scan_id: str) -> bool:
         return "truth" in self._scan_entry(scan_id)
 
     def truth_pose(self, scan_id: str) -> Pose:
         return Pose.from_dict(read_json(self.path(self._scan_entry(scan_id)["truth"]["pose"])))
-
-    def has_pose(self, scan_id: str) -> bool:
-        return "pose" in self._scan_entry(scan_id)
-
-    def pose(self, scan_id: str) -> Pose:
-        """The estimated pose of a scan (``workbench pose``); same schema as :meth:`truth_pose`."""
-        entry = self._scan_entry(scan_id)
-        if "pose" not in entry:
-            raise StudyError(f"scan {scan_id!r} has no estimated pose yet; run `workbench pose {self.root}`.",
-                             self.root / MANIFEST)
-        path = self.path(entry["pose"])
-        if not path.is_file():
-            raise MissingFileError(f"{path}: named in {self.root / MANIFEST} but missing; run `workbench pose "
-                                   f"{self.root} --force` to estimate the poses again.", path)
-        return Pose.from_dict(read_json(path))
 
     def truth_correspondence(self, scan_id: str) -> Volume:
         """The ``scan_to_template`` displacement field of a scan (template position − voxel position, mm)."""
@@ -144,6 +273,102 @@ class Study:
 
     def truth_markers(self, scan_id: str) -> list[dict]:
         return read_json(self.path(self._scan_entry(scan_id)["truth"]["markers"]))["markers"]
+
+    def truth_files(self, scan_id: str) -> dict[str, Path]:
+        return {k: self.path(v) for k, v in (self._scan_entry(scan_id).get("truth") or {}).items()}
+
+    # -- pose stage --------------------------------------------------------------------------------
+    def has_pose(self, scan_id: str) -> bool:
+        return self.has_output("pose", f"{scan_id}_pose.json")
+
+    def pose(self, scan_id: str) -> Pose:
+        """The estimated pose of a scan (``workbench pose``); same schema as :meth:`truth_pose`."""
+        return Pose.from_dict(read_json(self.output("pose", f"{scan_id}_pose.json")))
+
+    def pose_report(self) -> dict:
+        return read_json(self.output("pose", "report.json"))
+
+    # -- weights stage -----------------------------------------------------------------------------
+    def weights(self):
+        """``(SkinningWeights, body mask Volume)`` of the template (``workbench weights``), checked against its grid."""
+        from workbench.io.weights import read_voxel_weights
+
+        path = self.output("weights", "weights.json")
+        weights, geometry, _ = read_voxel_weights(path)
+        read_image_geometry(self.path(self.manifest["template"])).check_same(
+            geometry, names=("template", str(path)), remedy="recompute the weights: workbench weights --force")
+        return weights, read_labels(self.output("weights", "body_mask.nii.gz"))
+
+    # -- init and register stages ------------------------------------------------------------------
+    def init_field(self, scan_id: str) -> Volume | None:
+        """The registration's starting ``scan_to_template`` field of a scan (VBD), or ``None`` (identity)."""
+        if self.has_output("init", "field.mha", scan_id):
+            return read_displacement(self.output("init", "field.mha", scan_id))
+        self.output("init", "init.json", scan_id)  # "run register first" when the stage has not run
+        return None
+
+    def has_registration(self, scan_id: str) -> bool:
+        return self.has_output("register", "log.json", scan_id)
+
+    def registration_correspondence(self, scan_id: str) -> Volume:
+        """The registration's ``scan_to_template`` field on the scan grid (mm)."""
+        return read_displacement(self.output("register", "correspondence.mha", scan_id))
+
+    def registration_inverse(self, scan_id: str) -> tuple[Volume, Volume]:
+        """``(template_to_scan field, status labels)`` on the template grid (status 0 ok, 1 folded, 2 not
+        converged, 3 outside the scan: :data:`deformation.resample.STATUS_NAMES`)."""
+        return (read_displacement(self.output("register", "template_to_scan.mha", scan_id)),
+                read_labels(self.output("register", "inverse_status.nii.gz", scan_id)))
+
+    def registered(self, scan_id: str) -> Volume:
+        return read_volume(self.output("register", "registered.nii.gz", scan_id))
+
+    def registration_log(self, scan_id: str) -> dict:
+        return read_json(self.output("register", "log.json", scan_id))
+
+    # -- model stage -------------------------------------------------------------------------------
+    @property
+    def has_model(self) -> bool:
+        return self.has_output("model", "evd.json")
+
+    def model(self, weights=None):
+        """The study's EVD model (``workbench model``), or ``None`` when there is none."""
+        from deformation.evd import ExampleVolumeDeformation
+        from deformation.posespace import PoseSpace
+
+        if not self.has_model:
+            return None
+        path = self.output("model", "evd.json")
+        doc = read_json(path)
+        if doc.get("format") != "avw-evd":
+            raise InputFileError(f"{path}: not an EVD model ('format' is {doc.get('format')!r}).", path)
+        missing = [k for k in ("scans", "pose_vectors", "displacements", "joint_order") if k not in doc]
+        if missing or any(s not in doc["pose_vectors"] for s in doc.get("scans", [])):
+            raise InputFileError(f"{path}: the model lacks {missing or 'a pose vector of a training scan'}; "
+                                 f"rebuild it with `workbench model {self.root} --force`.", path)
+        if weights is None:
+            weights, _ = self.weights()
+        stale = f"rebuild the model with `workbench model {self.root} --force`"
+        if doc.get("weights_sha256") != weights.digest():
+            raise InputFileError(f"{path}: the model was built with other skinning weights than the study's "
+                                 f"(recomputed since?); {stale}.", path)
+        sk = self.skeleton()
+        if doc["joint_order"] != [j.name for j in sk.joints]:
+            raise InputFileError(f"{path}: the model's joints {doc['joint_order']} are not the skeleton's "
+                                 f"{[j.name for j in sk.joints]}; {stale}.", path)
+        dpath = path.parent / doc["displacements"]
+        vol = read_vector_image(dpath)
+        read_image_geometry(self.path(self.manifest["template"])).check_same(
+            vol.geometry, names=("template", str(dpath)), remedy=stale)
+        n = len(doc["scans"])
+        if vol.n_components != 3 * n:
+            raise InputFileError(f"{dpath}: {vol.n_components} components, expected 3 × {n} training scans.", dpath)
+        space = PoseSpace(sk, [np.asarray(doc["pose_vectors"][s], dtype=float) for s in doc["scans"]])
+        return ExampleVolumeDeformation(vol.geometry, weights, space, vol.data.reshape(-1, n, 3))
+
+    # -- validate stage ----------------------------------------------------------------------------
+    def validation(self, scan_id: str) -> dict:
+        return read_json(self.output("validate", "measures.json", scan_id))
 
 
 def read_study(folder: str | os.PathLike) -> Study:

@@ -22,7 +22,7 @@ from deformation.harmonic import (constrained_vertices, harmonic_weights, stiffn
 from deformation.skinning import SkinningWeights, distance_weights
 from deformation.tetmesh import TetMesh, body_surface, locate, rasterize, tetrahedralize
 from registration.segmentation import segment_body
-from workbench.tetmesh_io import read_tetmesh, weight_arrays, write_tetmesh
+from workbench.io.tetmeshes import read_tetmesh, weight_arrays, write_tetmesh
 
 KNEE_EDGE_MM = 10.0  # the test knee's grid is 4.98×4.98×3.69 mm; its patella ≈ 12 cm³
 

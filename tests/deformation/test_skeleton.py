@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from deformation.skeleton import Bone, Joint, Pose, Skeleton, SkeletonError
 from deformation.transforms import apply, compose, from_rotation_translation, invert, rotation_about_point
 from validation.phantoms import hand, knee
-from workbench.jsonio import read_json, write_json
+from workbench.io.jsonio import read_json, write_json
 
 # Transforms act on ~100 mm coordinates and chains are ≤ 6 products deep: float64
 # rounding stays below 1e-12 mm (and 1e-12 in the rotation entries).

@@ -12,7 +12,7 @@ from registration.icp import icp_point_to_plane
 
 @pytest.fixture(scope="module")
 def wrist():
-    from workbench.wrist_bones import find_wrist_data, load_wrist_study
+    from workbench.io.wrist_bones import find_wrist_data, load_wrist_study
 
     if find_wrist_data() is None:
         pytest.skip("../shared/data/wrist-bones-mri is absent")
@@ -20,7 +20,7 @@ def wrist():
 
 
 def test_icp_recovers_true_bone_motion(wrist):
-    from workbench.wrist_bones import true_motion
+    from workbench.io.wrist_bones import true_motion
 
     rng = np.random.default_rng(0)
     base = wrist.poses[0]

@@ -106,7 +106,7 @@ def test_all_identity_motions_are_an_error():
 
 def test_real_wrist_bone_motion():
     """Real wrist motion (Foster et al. 2019): relative motion of two carpal bones over three poses."""
-    from workbench.wrist_bones import find_wrist_data, load_wrist_study, true_motion
+    from workbench.io.wrist_bones import find_wrist_data, load_wrist_study, true_motion
 
     if find_wrist_data() is None:
         pytest.skip("../shared/data/wrist-bones-mri is absent")

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from workbench.animate import Keyframes, animate_study, builtin_keyframes, read_keyframes
+from workbench.viz.animate import Keyframes, animate_study, builtin_keyframes, read_keyframes
 from workbench.cli import main
 from workbench.errors import InputFileError, OutputExistsError
-from workbench.render import offscreen_available
+from workbench.viz.render import offscreen_available
 
 _skip_no_gl = pytest.mark.skipif(not offscreen_available(), reason="no off-screen OpenGL (EGL or OSMesa) here")
 
@@ -230,7 +230,7 @@ def test_keyframes_dataclass_needs_two_frames():
 
 def test_covering_grid_extends_the_grid_by_whole_voxels():
     from deformation.geometry import GridGeometry
-    from workbench.animate import covering_grid
+    from workbench.viz.animate import covering_grid
 
     g = GridGeometry((10, 8, 6), (2.0, 1.5, 3.0), (-9.0, -5.25, 0.0), ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)))
     w = g.index_to_world(np.array([[0, 0, 0], [9, 7, 5]], float))

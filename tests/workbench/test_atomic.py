@@ -1,4 +1,4 @@
-"""Atomic output (workbench.atomic) and the error hierarchy (workbench.errors)."""
+"""Atomic output (workbench.io.atomic) and the error hierarchy (workbench.errors)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 
 from deformation.geometry import GeometryMismatchError as GeometryMismatchFromGeometry
 from workbench import errors
-from workbench.atomic import atomic_file_group, atomic_path, split_suffix, write_text_atomic
+from workbench.io.atomic import atomic_file_group, atomic_path, split_suffix, write_text_atomic
 from workbench.errors import OutputExistsError
 
 

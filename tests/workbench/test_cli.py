@@ -16,7 +16,7 @@ from deformation.transforms import apply
 from workbench import __version__
 from workbench.cli import main
 from workbench.study import read_study
-from workbench.volume_io import read_image_geometry
+from workbench.io.volumes import read_image_geometry
 
 
 def _digest(folder: Path) -> dict:

@@ -15,8 +15,8 @@ from deformation.skinning import SkinningWeights
 from workbench.cli import main
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.study import read_study
-from workbench.volume_io import read_labels, read_volume
-from workbench.weights_io import read_voxel_weights, write_voxel_weights
+from workbench.io.volumes import read_labels, read_volume
+from workbench.io.weights import read_voxel_weights, write_voxel_weights
 
 
 @pytest.fixture(scope="module")

@@ -142,7 +142,7 @@ def test_initial_pose_file_formats(tmp_path, small_ct_study):
 def test_study_without_labels_and_a_bone_out_of_view(tmp_path, small_ct_study, capsys):
     """A user's study: no label map (so --seeds is required) and a scan that misses the shank; the
     missing bones are reported in fits.json and report.json (metrics that could not be computed are null)."""
-    from workbench.volume_io import write_volume
+    from workbench.io.volumes import write_volume
 
     root = tmp_path / "study"
     shutil.copytree(small_ct_study, root)

@@ -10,7 +10,7 @@ import pytest
 from deformation.interpolate import sample_displaced_array
 from workbench.cli import main
 from workbench.study import read_study
-from workbench.volume_io import read_displacement, read_volume
+from workbench.io.volumes import read_displacement, read_volume
 
 FAST = ["--levels", "3", "3", "--max-steps", "4"]
 
@@ -45,7 +45,7 @@ def test_register_writes_fields_in_the_truth_convention(study, capsys):
     log = json.loads((study / entry["log"]).read_text())
     rows = log["summary"]["validation"]
     from validation.registration_measures import body_on_scan, med
-    from workbench.volume_io import read_labels
+    from workbench.io.volumes import read_labels
 
     body = body_on_scan(st.truth_correspondence("pose01"), read_labels(study / "skinning" / "body_mask.nii.gz"))
     # the written float32 field against the in-memory one the log used: float32 rounding only

@@ -1,4 +1,4 @@
-"""JSON files (workbench.jsonio): exact floats, stable text, clear errors."""
+"""JSON files (workbench.io.jsonio): exact floats, stable text, clear errors."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from workbench.errors import MissingFileError, OutputExistsError, UnreadableFileError
-from workbench.jsonio import read_json, write_json
+from workbench.io.jsonio import read_json, write_json
 
 
 def test_exact_round_trip_of_floats_and_arrays(tmp_path):

@@ -1,4 +1,4 @@
-"""Mesh files (workbench.meshio): PLY, OBJ, STL, VTP."""
+"""Mesh files (workbench.io.meshes): PLY, OBJ, STL, VTP."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from deformation.mesh import SurfaceMesh, connected_components
 from workbench.errors import MissingFileError, OutputExistsError, UnknownFormatError, UnreadableFileError
-from workbench.meshio import read_mesh, write_mesh
+from workbench.io.meshes import read_mesh, write_mesh
 
 
 def _mesh() -> SurfaceMesh:
@@ -128,7 +128,7 @@ def test_overwrite_refused(tmp_path):
 
 
 def test_failing_write_leaves_no_temporary_file(tmp_path, monkeypatch):
-    import workbench.meshio as meshio
+    import workbench.io.meshes as meshio
 
     def half_write_then_fail(mesh, tmp):
         tmp.write_bytes(b"<?xml partial")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from workbench.render import (Camera, ClipPlane, TransferFunction, VolumeRenderer, content_bounds, label_colour,
+from workbench.viz.render import (Camera, ClipPlane, TransferFunction, VolumeRenderer, content_bounds, label_colour,
                               offscreen_available, parse_size, render_difference, render_overlay, render_volume,
                               write_png)
 

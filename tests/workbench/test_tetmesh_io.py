@@ -1,4 +1,4 @@
-"""Tetrahedral mesh files (workbench.tetmesh_io): VTK XML unstructured grids (.vtu)."""
+"""Tetrahedral mesh files (workbench.io.tetmeshes): VTK XML unstructured grids (.vtu)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from deformation.tetmesh import TetMesh
 from workbench.errors import MissingFileError, OutputExistsError, UnknownFormatError, UnreadableFileError
-from workbench.tetmesh_io import read_tetmesh, weight_arrays, weights_from_point_data, write_tetmesh
+from workbench.io.tetmeshes import read_tetmesh, weight_arrays, weights_from_point_data, write_tetmesh
 
 
 def _mesh() -> TetMesh:

@@ -1,4 +1,4 @@
-"""Round trips and error paths of workbench.volume_io on small synthetic volumes.
+"""Round trips and error paths of workbench.io.volumes on small synthetic volumes.
 
 Every grid is anisotropic (0.7, 1.3, 2.1) mm with a rotated direction and a
 non-zero origin, so that an x/z swap, a lost direction or a lost origin shows.
@@ -15,7 +15,7 @@ import SimpleITK as sitk
 from scipy.spatial.transform import Rotation
 
 from deformation.geometry import GeometryMismatchError, GridGeometry, Volume
-from workbench import volume_io
+from workbench.io import volumes as volume_io
 from workbench.errors import (
     DimensionError,
     MissingFileError,
@@ -25,7 +25,7 @@ from workbench.errors import (
     UnknownFormatError,
     UnreadableFileError,
 )
-from workbench.volume_io import (
+from workbench.io.volumes import (
     read_displacement,
     read_image_geometry,
     read_labels,

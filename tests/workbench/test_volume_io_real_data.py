@@ -1,4 +1,4 @@
-"""workbench.volume_io on real scans from ../shared/data/io-samples (skipped when absent)."""
+"""workbench.io.volumes on real scans from ../shared/data/io-samples (skipped when absent)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 import SimpleITK as sitk
 
 from workbench.errors import AmbiguousSeriesError, SeriesNotFoundError, UnreadableFileError
-from workbench.volume_io import read_image_geometry, read_volume, write_volume
+from workbench.io.volumes import read_image_geometry, read_volume, write_volume
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 HEAD_MHD = DATA / "io-samples" / "head-mr-mhd" / "HeadMRVolume.mhd"

@@ -1,4 +1,4 @@
-"""Real wrist bones in three poses (workbench.wrist_bones); skipped when the data are absent."""
+"""Real wrist bones in three poses (workbench.io.wrist_bones); skipped when the data are absent."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 
 from deformation.mesh import SurfaceMesh
 from workbench.errors import MissingFileError
-from workbench.meshio import write_mesh
-from workbench.wrist_bones import (
+from workbench.io.meshes import write_mesh
+from workbench.io.wrist_bones import (
     POSES,
     WristDataError,
     default_wrist_root,

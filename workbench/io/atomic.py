@@ -28,7 +28,7 @@ from pathlib import Path
 
 from workbench.errors import OutputExistsError
 
-__all__ = ["atomic_path", "atomic_file_group", "write_text_atomic", "split_suffix"]
+__all__ = ["atomic_path", "atomic_file_group", "write_text_atomic", "split_suffix", "replace_dir", "commit_file"]
 
 # Suffixes that only make sense together with the one before them.
 _COMPRESSION_SUFFIXES = {".gz", ".bz2", ".xz", ".zst"}
@@ -237,4 +237,39 @@ def write_text_atomic(
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
+    return final
+
+
+def replace_dir(staging: str | os.PathLike, final: str | os.PathLike) -> Path:
+    """Move the complete folder ``staging`` to ``final``, replacing an old ``final`` only once the new one is in place.
+
+    The old folder is renamed aside first and removed last; if the move
+    fails it is put back, so ``final`` is always either the old folder or the
+    new one.
+    """
+    staging, final = Path(staging), Path(final)
+    old = None
+    if final.exists():
+        old = final.parent / f".{final.name}.old-{secrets.token_hex(4)}"
+        os.replace(final, old)
+    try:
+        os.replace(staging, final)
+    except BaseException:
+        if old is not None:
+            os.replace(old, final)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def commit_file(tmp: str | os.PathLike, final: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """Flush the complete file ``tmp`` to disk and rename it to ``final`` (no clobber without ``overwrite``).
+
+    For writers that cannot go through :func:`atomic_path` (a video encoder
+    that streams frames into its own temporary file).
+    """
+    tmp, final = Path(tmp), Path(final)
+    _fsync_file(tmp)
+    _commit(tmp, final, overwrite)
     return final

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from workbench.atomic import write_text_atomic
+from workbench.io.atomic import write_text_atomic
 from workbench.errors import MissingFileError, UnreadableFileError
 
 __all__ = ["read_json", "write_json", "to_jsonable"]

@@ -18,11 +18,11 @@ over the animation.
 
 Each frame: the pose by forward kinematics, the template deformed to it (EVD,
 Rhee Eq. 6–7, when the study has a model; VBD, Eq. 2, otherwise), rendered by
-one reused :class:`workbench.render.VolumeRenderer` whose camera is fitted
+one reused :class:`workbench.viz.render.VolumeRenderer` whose camera is fitted
 once to the anatomy over all keyframe poses, and encoded: MP4 (H.264 through
 the ffmpeg binary imageio-ffmpeg ships), GIF, or numbered PNGs.
 Ready keyframes for the knee (bend and straighten) and the hand (open, fist,
-point with the index finger) are in ``workbench/keyframes/``.
+point with the index finger) are in ``workbench/viz/keyframes/``.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import numpy as np
 
 from deformation.skeleton import SkeletonError
 from workbench.errors import InputFileError, OutputExistsError
-from workbench.jsonio import read_json
+from workbench.io.jsonio import read_json
 
 __all__ = ["Keyframes", "read_keyframes", "builtin_keyframes", "camera_from", "covering_grid", "animate_study",
            "FORMATS"]
@@ -151,8 +151,8 @@ def _is_number(v) -> bool:
 
 
 def camera_from(doc: dict, **override):
-    """A :class:`workbench.render.Camera` from a keyframe file's ``camera`` block (``override`` wins)."""
-    from workbench.render import Camera
+    """A :class:`workbench.viz.render.Camera` from a keyframe file's ``camera`` block (``override`` wins)."""
+    from workbench.viz.render import Camera
 
     d = {"view": "auto", "azimuth": 0.0, "elevation": 0.0, "zoom": 1.0}
     d.update({k: doc[k] for k in ("view", "azimuth", "elevation", "zoom") if k in doc})
@@ -168,10 +168,10 @@ def read_keyframes(path, skeleton) -> Keyframes:
 
 
 def builtin_keyframes(skeleton) -> Keyframes:
-    """The ready keyframes for the knee or hand skeleton (``workbench/keyframes/<name>.json``)."""
-    res = resources.files("workbench") / "keyframes" / f"{skeleton.name}.json"
+    """The ready keyframes for the knee or hand skeleton (``workbench/viz/keyframes/<name>.json``)."""
+    res = resources.files("workbench.viz") / "keyframes" / f"{skeleton.name}.json"
     if not res.is_file():
-        have = sorted(p.name[:-5] for p in (resources.files("workbench") / "keyframes").iterdir()
+        have = sorted(p.name[:-5] for p in (resources.files("workbench.viz") / "keyframes").iterdir()
                       if p.name.endswith(".json"))
         raise InputFileError(f"no ready keyframes for the skeleton {skeleton.name!r} (there are {have}); "
                              "pass --keyframes FILE (see `workbench animate --help` for the format).")
@@ -245,15 +245,13 @@ class _Writer:
 
             # the GIF frame delay is in whole hundredths of a second: 24 fps plays at 25
             iio.imwrite(self.staging, np.stack(self._gif), extension=".gif", duration=1000.0 / self.fps, loop=0)
-        from workbench.atomic import _commit, _fsync_file
+        from workbench.io.atomic import commit_file
 
         if self.kind == ".png":
-            # A set of files cannot be swapped in one step: every frame is complete and flushed in the
-            # staging folder first, then the old frames (with --force) are removed and the new ones moved
+            # A set of files cannot be swapped in one step: every frame is complete in the
+            # staging folder first (each flushed as it is moved), then the old frames (with --force) are removed and the new ones moved
             # in, without clobbering a frame that appeared meanwhile unless --force.
             names = [self.frame_name(i) for i in range(self.n)]
-            for name in names:
-                _fsync_file(self.staging / name)
             stale = self._existing()
             if stale and not self.overwrite:
                 raise OutputExistsError(stale[0], f"{stale[0]} appeared while rendering; pass --force to replace it.")
@@ -262,12 +260,11 @@ class _Writer:
                     p.unlink()
             done = []
             for name in names:
-                _commit(self.staging / name, self.out.parent / name, self.overwrite)
+                commit_file(self.staging / name, self.out.parent / name, overwrite=self.overwrite)
                 done.append(self.out.parent / name)
             self.staging.rmdir()
             return done
-        _fsync_file(self.staging)
-        _commit(self.staging, self.out, self.overwrite)  # no clobber without --force, even at the last moment
+        commit_file(self.staging, self.out, overwrite=self.overwrite)  # no clobber without --force, even at the last moment
         return [self.out]
 
     def abort(self) -> None:
@@ -283,17 +280,17 @@ class _Writer:
 
 
 # -- the animation -----------------------------------------------------------------------------------------
-def _camera_bounds(poser, keyframes: Keyframes, mask: np.ndarray, margin_mm: float, per_segment: int = 4) -> tuple:
+def _camera_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, margin_mm: float, per_segment: int = 4) -> tuple:
     """World box of the visible template tissue over the motion (forward maps only, no resampling).
 
     Sampled at every keyframe and ``per_segment − 1`` times between each two:
     a curling finger sweeps beyond both its open and its closed position.
     """
-    from workbench.render import points_bounds, union_bounds
+    from workbench.viz.render import points_bounds, union_bounds
 
     ts = keyframes.times
     times = np.unique(np.concatenate([np.linspace(a, b, per_segment + 1) for a, b in zip(ts, ts[1:])]))
-    return union_bounds([points_bounds(poser.forward(poser.skeleton.pose(keyframes.at(t)))[mask], margin_mm)
+    return union_bounds([points_bounds(poser.forward(skeleton.pose(keyframes.at(t)))[mask], margin_mm)
                          for t in times])
 
 
@@ -327,20 +324,20 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     ``keyframes``: a file, a :class:`Keyframes`, or ``None`` for the ready
     ones of the study's skeleton.  ``fps`` (default: the file's, else 24) and
     ``n_frames`` (default: duration × fps + 1) set the timing; ``camera``
-    (:class:`workbench.render.Camera`) and ``orbit`` (degrees of azimuth over
+    (:class:`workbench.viz.render.Camera`) and ``orbit`` (degrees of azimuth over
     the animation) default to the file's ``camera``.  Returns a summary with
     the frame count and the time spent deforming, rendering and encoding.
     """
-    from workbench.deform_stage import TemplatePoser
-    from workbench.render import VolumeRenderer, _first_visible, _preset, _robust_range, content_mask
+    from workbench.deform import study_poser
+    from workbench.viz.render import VolumeRenderer, _first_visible, _preset, _robust_range, content_mask
     from workbench.study import read_study
 
     say = progress or (lambda line: None)
     t_start = time.perf_counter()
     study = read_study(folder)
     out = Path(out)
-    poser = TemplatePoser(study, method=method, weighting=weighting)
-    sk = poser.skeleton
+    poser = study_poser(study, method=method, weighting=weighting, progress=say)
+    sk = study.skeleton()
     if keyframes is None:
         kf = builtin_keyframes(sk)
     elif isinstance(keyframes, Keyframes):
@@ -365,7 +362,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         lo, hi = _robust_range(template.data)
         thr = _first_visible(tf.resolved(lo, hi))
         mask = content_mask(template.data, thr)
-        bounds = _camera_bounds(poser, kf, mask, 2.0 * max(g.spacing))
+        bounds = _camera_bounds(poser, sk, kf, mask, 2.0 * max(g.spacing))
         g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
         renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
                                   background=background, bounds=bounds, mapper=mapper)

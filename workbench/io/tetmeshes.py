@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from deformation.tetmesh import TetMesh
-from workbench.atomic import atomic_path, split_suffix
+from workbench.io.atomic import atomic_path, split_suffix
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
-from workbench.meshio import _capture_vtk_output  # VTK prints errors instead of raising: same capture
+from workbench.io.meshes import _capture_vtk_output  # VTK prints errors instead of raising: same capture
 
 __all__ = ["WEIGHT_PREFIX", "read_tetmesh", "write_tetmesh", "weight_arrays", "weights_from_point_data"]
 

@@ -36,7 +36,7 @@ Readers reject missing files (:class:`MissingFileError`), unknown suffixes
 that are not 3-D or have the wrong number of components
 (:class:`DimensionError`) and, unless asked, NaN or infinite voxels
 (:class:`NonFiniteError`).  Writers never modify their input, write atomically
-(:mod:`workbench.atomic`) and refuse to overwrite unless ``overwrite=True``.
+(:mod:`workbench.io.atomic`) and refuse to overwrite unless ``overwrite=True``.
 
 Three behaviours of ITK's NIfTI reader (niftilib) this module guards against:
 
@@ -72,7 +72,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from deformation.geometry import GridGeometry, Volume
-from workbench.atomic import atomic_file_group, atomic_path, split_suffix
+from workbench.io.atomic import atomic_file_group, atomic_path, split_suffix
 from workbench.errors import (
     AmbiguousSeriesError,
     DimensionError,

@@ -214,7 +214,7 @@ class TransferFunction:
     @classmethod
     def from_json(cls, path) -> "TransferFunction":
         """Read ``{"color": [[v, r, g, b], ...], "opacity": [[v, a], ...], "relative": bool, ...}``."""
-        from workbench.jsonio import read_json
+        from workbench.io.jsonio import read_json
 
         path = Path(path)
         d = read_json(path)  # missing file, syntax errors: errors naming the file and the line
@@ -871,7 +871,7 @@ def write_png(image: np.ndarray, path, *, overwrite: bool = False) -> Path:
     """Write an ``(h, w, 3)`` uint8 image as PNG, atomically (temporary file, then rename)."""
     import imageio.v3 as iio
 
-    from workbench.atomic import atomic_path
+    from workbench.io.atomic import atomic_path
 
     path = Path(path)
     if path.suffix.lower() != ".png":

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from deformation.mesh import SurfaceMesh
-from workbench.atomic import atomic_path, split_suffix
+from workbench.io.atomic import atomic_path, split_suffix
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
 
 __all__ = ["MESH_SUFFIXES", "read_mesh", "write_mesh"]

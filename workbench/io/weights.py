@@ -26,8 +26,8 @@ import numpy as np
 from deformation.geometry import GridGeometry, Volume
 from deformation.skinning import SkinningWeights
 from workbench.errors import InputFileError
-from workbench.jsonio import read_json, write_json
-from workbench.volume_io import read_vector_image, write_vector_image
+from workbench.io.jsonio import read_json, write_json
+from workbench.io.volumes import read_vector_image, write_vector_image
 
 __all__ = ["WEIGHTS_FORMAT", "write_voxel_weights", "read_voxel_weights"]
 

@@ -28,7 +28,7 @@ import numpy as np
 from deformation.mesh import SurfaceMesh, connected_components, submesh
 from deformation.rigid_fit import fit_rigid, rigid_residuals
 from workbench.errors import InputFileError, MissingFileError
-from workbench.meshio import read_mesh
+from workbench.io.meshes import read_mesh
 
 __all__ = [
     "POSES",

@@ -1,0 +1,111 @@
+"""Using a study's model: the template posed by EVD or VBD (``workbench deform``; ``workbench animate`` too).
+
+:func:`study_poser` loads a study's template, labels, skinning weights and
+EVD model once into a :class:`deformation.posed_template.TemplatePoser` and
+says which deformation it will use; :func:`deform_study` writes one posed
+volume, its labels and (optionally) its field.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from deformation.posed_template import TemplatePoser
+from workbench.errors import InputFileError, OutputExistsError
+from workbench.io.inputs import read_target_pose
+from workbench.io.volumes import write_labels, write_volume
+from workbench.study import MANIFEST, Study, read_study
+
+__all__ = ["study_poser", "deform_study", "METHODS"]
+
+METHODS = ("auto", "vbd", "evd")
+# Folders of a study that `deform` never writes into (its inputs and the stages' outputs).
+PROTECTED_FOLDERS = ("scans", "truth", "bones", "poses", "skinning", "init", "registration", "model", "validation")
+
+
+def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", progress=None) -> TemplatePoser:
+    """A :class:`~deformation.posed_template.TemplatePoser` of the study, saying which deformation it uses.
+
+    ``method``: ``auto`` (EVD when the study has a model, else VBD — and says
+    so), ``vbd`` (Rhee Eq. 2) or ``evd`` (Rhee Eq. 6–7; an error without a model).
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    say = progress or (lambda line: None)
+    weights, body = study.weights()
+    model = None
+    if method in ("auto", "evd"):
+        model = study.model(weights)
+        if model is None and method == "evd":
+            raise InputFileError(f"{study.manifest_path}: the study has no EVD model; build one with `workbench "
+                                 f"model {study.root}` (after `workbench register`, or --source truth for a "
+                                 "phantom) or use --method vbd.", study.manifest_path)
+        if model is None:
+            say(f"no EVD model in the study (`workbench model {study.root}` builds one): posing by VBD (Rhee Eq. 2)")
+    if model is not None:
+        e = study.stage_entry("model") or {}
+        say(f"posing by EVD (Rhee Eq. 6), model from {(e.get('settings') or {}).get('source', '?')} "
+            f"correspondences of {len(model.space.train)} scans")
+    if weighting != "psd" and model is None:
+        say("note: --weighting applies to EVD only; this is VBD")
+    return TemplatePoser(study.template(), weights, body,
+                         labels=study.template_labels() if study.has_template_labels else None, model=model,
+                         weighting=weighting, progress=say)
+
+
+def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str = "psd", labels_out=None,
+                 field_out=None, overwrite: bool = False, progress=None) -> dict:
+    """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Eq. 6) and write the posed volume and labels.
+
+    The posed volume lies on the template's grid (same geometry).  Returns a
+    summary: the method, the backward map's status counts, timings.
+    """
+    from workbench.io.atomic import split_suffix
+    from workbench.io.volumes import image_format
+
+    if method not in ("auto", "vbd", "evd"):
+        raise ValueError(f"method must be 'auto', 'vbd' or 'evd', got {method!r}")
+    if weighting not in ("psd", "wpsd"):
+        raise ValueError(f"weighting must be 'psd' or 'wpsd', got {weighting!r}")
+    say = progress or (lambda line: None)
+    study = read_study(folder)
+    out = Path(out)
+    stem, suffix = split_suffix(out.name)
+    labels_out = Path(labels_out) if labels_out else out.with_name(f"{stem}_labels{suffix}")
+    outputs = [out, labels_out] + ([Path(field_out)] if field_out else [])
+    # every check before any work, so that no output set is left half-written
+    for p in outputs:
+        image_format(p, for_writing=True)
+        if p.exists() and not overwrite:
+            raise OutputExistsError(p, f"{p} exists; pass --force to replace it.")
+    resolved = [p.resolve() for p in outputs]
+    if len(set(resolved)) != len(resolved):
+        raise ValueError(f"the output files must differ: {[str(p) for p in outputs]}")
+    root = study.root.resolve()
+    protected = {root / MANIFEST, root / study.manifest["template"]}
+    if study.manifest.get("template_labels"):
+        protected.add(root / study.manifest["template_labels"])
+    for p in resolved:
+        inside = root in p.parents
+        if p in protected or (inside and p.relative_to(root).parts[0] in
+                              PROTECTED_FOLDERS):
+            raise ValueError(f"{p}: would overwrite one of the study's own files; write the posed volume "
+                             "elsewhere (or in a new subfolder of the study)")
+    pose = read_target_pose(pose_path, study.skeleton())  # a bad pose file is reported before any loading
+    if not study.has_template_labels:
+        raise InputFileError(f"{study.root / MANIFEST}: the study has no template label map; `workbench deform` "
+                             "writes the posed labels beside the posed volume and needs one.", study.root / MANIFEST)
+    poser = study_poser(study, method=method, weighting=weighting, progress=say)
+    used = poser.method
+    posed = poser.pose(pose)
+    bm = posed.backward
+    write_volume(posed.volume, out, overwrite=overwrite)
+    write_labels(posed.labels, labels_out, overwrite=overwrite)
+    if field_out:
+        from workbench.io.volumes import write_displacement
+
+        write_displacement(bm.scan_to_template(), field_out, overwrite=overwrite)
+    summary = {"method": used, "weighting": weighting if used == "evd" else None, "out": str(out),
+               "labels": str(labels_out), "field": str(field_out) if field_out else None,
+               "forward_seconds": posed.forward_seconds, "backward_seconds": posed.backward_seconds, **bm.summary()}
+    return summary

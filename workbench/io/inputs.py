@@ -1,0 +1,123 @@
+"""Readers of the files a user hands the workbench: poses, seeds, initial poses, phantom pose lists.
+
+Each checks the file before any work and raises one
+:class:`~workbench.errors.InputFileError` naming the file and the fix.
+(Keyframe files are read by :func:`workbench.viz.animate.read_keyframes`.)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from deformation.skeleton import Pose, SkeletonError
+from deformation.transforms import check_rigid
+from registration.segmentation import SEEDS_FORMAT
+from workbench.errors import InputFileError
+from workbench.io.jsonio import read_json
+
+__all__ = ["read_target_pose", "read_seeds", "read_initial_poses", "read_poses_file", "SEEDS_FORMAT"]
+
+
+def read_target_pose(path, skeleton) -> Pose:
+    """A target pose from a file: an ``avw-pose`` (bone transforms) or joint angles.
+
+    Joint angles: ``{"angles": {joint: [degrees...]}}`` (missing joints stay at
+    0; 6-DOF joints add mm), run through the skeleton's forward kinematics.
+    """
+    path = Path(path)
+    d = read_json(path)
+    if isinstance(d, dict) and d.get("format") == "avw-pose":
+        try:
+            pose = Pose.from_dict(d)
+        except (SkeletonError, ValueError) as e:
+            raise InputFileError(f"{path}: {e}", path) from e
+        missing = set(skeleton.bone_names) - set(pose.transforms)
+        if missing:
+            raise InputFileError(f"{path}: the pose lacks transforms for bones {sorted(missing)}.", path)
+        return pose
+    if isinstance(d, dict) and isinstance(d.get("angles"), dict):
+        try:
+            return skeleton.pose({k: np.asarray(v, dtype=float) for k, v in d["angles"].items()})
+        except (SkeletonError, ValueError) as e:
+            raise InputFileError(f"{path}: {e}", path) from e
+    raise InputFileError(f"{path}: expected an avw-pose file (bone transforms) or {{\"angles\": {{joint: "
+                         "[degrees, ...]}}}}.", path)
+
+
+def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
+    """Read a seeds file; every skeleton bone needs at least one point."""
+    d = read_json(path)
+    if d.get("format") != SEEDS_FORMAT:
+        raise InputFileError(f"{path}: not a seeds file ('format' is {d.get('format')!r}, expected "
+                             f"{SEEDS_FORMAT!r}); see `workbench pose --help` for the schema.", path)
+    seeds = d.get("seeds")
+    if not isinstance(seeds, dict):
+        raise InputFileError(f"{path}: 'seeds' must map bone names to lists of [x, y, z] points (mm).", path)
+    unknown = sorted(set(seeds) - set(skeleton.bone_names))
+    if unknown:
+        raise InputFileError(f"{path}: unknown bones {unknown}; the skeleton has {skeleton.bone_names}.", path)
+    missing = [b for b in skeleton.bone_names if b not in seeds]
+    if missing:
+        raise InputFileError(f"{path}: no seed for bones {missing}; give at least one point inside each bone.", path)
+    out = {}
+    for b, pts in seeds.items():
+        a = np.asarray(pts, dtype=float)
+        if a.ndim == 1:
+            a = a[None]
+        if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0 or not np.all(np.isfinite(a)):
+            raise InputFileError(f"{path}: seeds of {b!r} must be a list of [x, y, z] points in mm, got {pts!r}.",
+                                 path)
+        out[b] = a
+    return out
+
+
+def read_initial_poses(path, scan_ids, skeleton) -> dict[str, np.ndarray]:
+    """Root-bone initial transforms per scan from a JSON file.
+
+    Either an ``avw-pose`` file (its root transform is used for every scan) or
+    ``{"format": "avw-initial-poses", "version": 1, "scans": {"<id>": [[4x4]], ...}}``.
+    """
+    d = read_json(path)
+    try:
+        if d.get("format") == "avw-pose":
+            t = Pose.from_dict(d).transforms.get(skeleton.root)
+            if t is None:
+                raise InputFileError(f"{path}: the pose has no transform for the root bone {skeleton.root!r}.", path)
+            return {sid: t for sid in list(scan_ids)}
+        if d.get("format") == "avw-initial-poses":
+            scans = d.get("scans", {})
+            unknown = sorted(set(scans) - set(list(scan_ids)))
+            if unknown:
+                raise InputFileError(f"{path}: unknown scans {unknown}; the study has {list(scan_ids)}.", path)
+            return {sid: check_rigid(np.asarray(t, float), name=f"initial pose of {sid}") for sid, t in scans.items()}
+    except ValueError as e:
+        raise InputFileError(f"{path}: {e}", path) from e
+    raise InputFileError(f"{path}: expected an 'avw-pose' file or {{'format': 'avw-initial-poses', 'version': 1, "
+                         "'scans': {scan id: 4x4 root transform}}.", path)
+
+
+def read_poses_file(path) -> tuple:
+    """A phantom poses file: ``{"poses": [{"id": ..., "angles": {joint: [...]}}]}`` → ``((id, angles), ...)``."""
+    d = read_json(path)
+    poses = d.get("poses") if isinstance(d, dict) else None
+    if not isinstance(poses, list) or not poses:
+        raise InputFileError(f"{path}: expected {{\"poses\": [{{\"id\": ..., \"angles\": {{joint: [...]}}}}]}} "
+                             "with at least one pose.", path)
+    out, seen = [], set()
+    for i, entry in enumerate(poses):
+        if not isinstance(entry, dict) or not isinstance(entry.get("angles"), dict):
+            raise InputFileError(f"{path}: poses[{i}] needs an 'angles' object mapping joint names to lists.", path)
+        pid = str(entry.get("id", f"pose{i:02d}"))
+        if pid in seen:
+            raise InputFileError(f"{path}: pose id {pid!r} appears twice.", path)
+        seen.add(pid)
+        angles = {}
+        for joint, values in entry["angles"].items():
+            if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
+                raise InputFileError(f"{path}: poses[{i}] joint {joint!r}: angles must be a list of numbers "
+                                     f"(degrees, then mm for 6-DOF joints), got {values!r}.", path)
+            angles[joint] = values
+        out.append((pid, angles))
+    return tuple(out)

@@ -1,0 +1,93 @@
+"""One progress protocol for the command line: stage events to progress bars or plain lines, and logging.
+
+Stages report :class:`workbench.stages.mechanism.Event` records to one
+callback.  :class:`ProgressPrinter` is that callback for the CLI: on a
+terminal, a tqdm bar per unit of work with a total (bones of a pose
+estimate, scans of a model) and the unit's messages above it; elsewhere
+(a log file, CI) plain lines, progress messages at most one every
+``interval`` seconds.  Start, done and skip events are always printed unless
+``quiet``.  :func:`setup_logging` routes ``logging.getLogger("workbench")``
+to standard error at the level ``-v``/``--quiet`` choose.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+__all__ = ["ProgressPrinter", "setup_logging"]
+
+
+def setup_logging(verbosity: int = 0) -> logging.Logger:
+    """``verbosity`` −1 (``--quiet``: warnings only), 0 (default), 1 (``-v``: info), 2 (``-vv``: debug)."""
+    log = logging.getLogger("workbench")
+    level = {-1: logging.WARNING, 0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
+    log.setLevel(level)
+    if not any(getattr(h, "_workbench", False) for h in log.handlers):
+        h = logging.StreamHandler(sys.stderr)
+        h.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        h._workbench = True
+        log.addHandler(h)
+    return log
+
+
+class ProgressPrinter:
+    """The CLI's progress callback (see the module docstring)."""
+
+    def __init__(self, *, quiet: bool = False, stream=None, interval: float = 2.0, bars: bool | None = None):
+        self.quiet = quiet
+        self.stream = stream or sys.stderr
+        self.interval = interval
+        self.bars = self.stream.isatty() if bars is None else bars
+        self._bar = None
+        self._bar_key = None
+        self._last = 0.0
+
+    def line(self, text: str) -> None:
+        if self.quiet:
+            return
+        if self._bar is not None:
+            self._bar.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
+
+    def __call__(self, event) -> None:
+        if self.quiet:
+            return
+        if event.kind == "message":
+            self.line(f"  {event.message}")
+            return
+        if event.kind in ("start", "done", "skip"):
+            self._close()
+            self.line(event.message)
+            self._last = 0.0
+            return
+        key = (event.stage, event.scan)
+        if self.bars and event.total > 0:
+            if self._bar_key != key or self._bar is None:
+                from tqdm import tqdm
+
+                self._close()
+                self._bar = tqdm(total=event.total, desc=f"{event.stage}" + (f" {event.scan}" if event.scan else ""),
+                                 file=self.stream, leave=False)
+                self._bar_key = key
+            self._bar.n = min(event.done, event.total)
+            self._bar.set_postfix_str(event.message[-60:], refresh=True)
+            return
+        now = time.perf_counter()
+        if event.total > 0 and event.done >= event.total:
+            self.line(f"  {event.message}")  # the last of a unit always shows
+            self._last = now
+        elif now - self._last >= self.interval:
+            self.line(f"  {event.message}" + (f"  [{event.done}/{event.total}]" if event.total > 0 else ""))
+            self._last = now
+
+    def _close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+            self._bar_key = None
+
+    def close(self) -> None:
+        self._close()

@@ -1,0 +1,80 @@
+"""The ``init`` stage: the registration's articulated start for each scan (Rhee §3.3, Eq. 2; DESIGN step 5).
+
+``method="vbd"``: every template voxel moved by the weighted blend of its
+bones' transforms (VBD, Rhee Eq. 2) to the scan's pose — the *estimated*
+pose of the pose stage, or with ``pose="truth"`` the phantom's true pose (an
+explicit protocol choice, e.g. Rhee's Table 4; the pipeline never falls back
+to it) — inverted onto the scan grid by the backward map
+(:func:`registration.initialise.vbd_initial_field`).  ``unfold`` repairs the
+folds of VBD in the crease of a flexed joint (:func:`deformation.fields.unfold`).
+``method="identity"``: no start (Rhee's Table 2 protocol).
+
+Outputs (``init/<scan>/``): ``field.mha`` (``scan_to_template`` on the scan
+grid, mm; VBD only) and ``init.json`` (the backward map's summary).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from workbench.stages.mechanism import Field, Json, Stage
+
+__all__ = ["InitSettings", "STAGE"]
+
+
+@dataclass(frozen=True)
+class InitSettings:
+    method: str = "vbd"  #: "vbd" or "identity"
+    pose: str = "estimated"  #: "estimated" (the pose stage's) or "truth" (a phantom's, for protocols)
+    unfold: bool = False
+
+    def __post_init__(self):
+        if self.method not in ("vbd", "identity"):
+            raise ValueError(f"--init must be 'vbd' or 'none', got {self.method!r}")
+        if self.pose not in ("estimated", "truth"):
+            raise ValueError(f"--pose must be 'estimated' or 'truth', got {self.pose!r}")
+        if self.unfold and self.method != "vbd":
+            raise ValueError("--unfold-init repairs the VBD initialisation: it needs --init vbd")
+
+
+def _needs(s: InitSettings):
+    if s.method == "identity":
+        return ()
+    return ("weights",) if s.pose == "truth" else ("weights", "pose")
+
+
+def _inputs(study, s: InitSettings, scan):
+    files = {"template": study.path(study.manifest["template"]), "scan": study.scan_path(scan)}
+    if s.method == "vbd" and s.pose == "truth":
+        if not study.has_truth(scan):
+            from workbench.study import StudyError
+
+            raise StudyError(f"{study.manifest_path}: scan {scan!r} has no ground truth for --pose truth; use the "
+                             "estimated pose (`workbench pose`).", study.manifest_path)
+        files["truth_pose"] = study.truth_files(scan)["pose"]
+    return files
+
+
+def _run(ctx) -> dict:
+    from deformation.skinning import stack_transforms
+    from registration.initialise import vbd_initial_field
+    from workbench.io.volumes import read_image_geometry
+
+    study, s, sid = ctx.study, ctx.settings, ctx.scan
+    if s.method == "identity":
+        return {"init.json": Json({"format": "avw-init", "version": 1, "method": "identity"})}
+    weights, body = study.weights()
+    pose = study.truth_pose(sid) if s.pose == "truth" else study.pose(sid)
+    g_t = read_image_geometry(study.path(study.manifest["template"]))
+    g_s = read_image_geometry(study.scan_path(sid))
+    ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()} ...")
+    field, summary = vbd_initial_field(g_t, g_s, weights, stack_transforms(pose.transforms, weights.bones),
+                                       body=body.data, unfold=s.unfold)
+    return {"field.mha": Field(field),
+            "init.json": Json({"format": "avw-init", "version": 1, "method": "vbd", "pose": s.pose,
+                               "direction": "scan_to_template: template position − scan voxel, mm",
+                               "backward_map": summary})}
+
+
+STAGE = Stage(name="init", folder="init", per_scan=True, settings_type=InitSettings, run=_run, needs=_needs,
+              inputs=_inputs)

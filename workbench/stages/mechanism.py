@@ -1,0 +1,457 @@
+"""The one stage mechanism: digest, skip, staging folder, atomic swap, manifest entry, progress.
+
+A :class:`Stage` declares its name, its folder in the study, the stages it
+needs, whether it runs per scan, a frozen settings dataclass, the input files
+it reads, and a ``run`` that wires library functions and *returns* its outputs
+(``{file name: Image(...) | Labels(...) | Field(...) | Json(...) | ...}``).
+:func:`execute` does the rest, the same way for every stage:
+
+1. **needs** — each needed stage must have an entry (for per-scan needs: for
+   each scan in question) that is up to date with its own inputs; otherwise
+   one clear line: "run `workbench X STUDY` first" or "... is out of date".
+2. **digest** — SHA-256 of the stage's name and version, the workbench
+   version, the settings (canonical JSON), the content of its input files and
+   the ``outputs_digest`` of every needed stage's entry.  A stage whose
+   recorded digest matches and whose outputs exist is skipped (and says so).
+3. **staging** — ``run`` returns the outputs; they are written into a private
+   staging folder (``.<folder>.partial-<pid>-<random>``) beside the final
+   one, which is then swapped in atomically (the old one removed only once
+   the new one is in place).  Any exception, Ctrl-C (SIGINT) or SIGTERM
+   (turned into :class:`KeyboardInterrupt` by the CLI) removes the staging
+   folder: no partial file is ever left where a reader looks.  Staging
+   folders of processes that died (SIGKILL) are removed by the next
+   :func:`execute` of the stage.
+4. **manifest** — one entry per stage, and per scan for per-scan stages
+   (inputs with digests, settings, needs, outputs with their digest, seed,
+   timings, versions), recorded through :meth:`workbench.study.Study.record`
+   (locked, re-read, renamed).  Per-scan stages commit each scan as it
+   finishes, so an interrupted run resumes from the first unfinished scan.
+
+Progress: stages report :class:`Event` records ``(stage, scan, done, total,
+message)`` to one callback; the CLI turns them into progress bars or plain
+lines (:mod:`workbench.progress`).  Everything else goes to
+``logging.getLogger("workbench")``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import secrets
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+from workbench import __version__
+from workbench.errors import WorkbenchError
+from workbench.io.atomic import replace_dir
+from workbench.io.jsonio import to_jsonable, write_json
+from workbench.study import STAGE_COMMANDS, Study, StudyError
+
+__all__ = ["Stage", "Event", "Outcome", "StageNotReady", "execute", "stage_status", "file_digest",
+           "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "settings_dict"]
+
+log = logging.getLogger("workbench")
+
+
+class StageNotReady(StudyError):
+    """A stage cannot run: a stage it needs has not run (or is out of date)."""
+
+
+# -- outputs: what a stage's run returns, written by the mechanism ----------------------------------
+@dataclass(frozen=True)
+class Image:
+    """An intensity volume (float32 NIfTI/MHA/NRRD with its geometry)."""
+    volume: object
+
+
+@dataclass(frozen=True)
+class Labels:
+    """A label map (unsigned integers)."""
+    volume: object
+
+
+@dataclass(frozen=True)
+class Field:
+    """A displacement field (ITK vector image, mm), usable by ``sitk.DisplacementFieldTransform``."""
+    volume: object
+
+
+@dataclass(frozen=True)
+class VectorImage:
+    """A multi-component image (any number of components)."""
+    volume: object
+
+
+@dataclass(frozen=True)
+class Json:
+    """A JSON document (keys sorted, floats round-trip exactly)."""
+    doc: object
+
+
+@dataclass(frozen=True)
+class Text:
+    """A UTF-8 text file."""
+    text: str
+
+
+@dataclass(frozen=True)
+class WeightMap:
+    """A voxel weight map (``.json`` + two vector images, :mod:`workbench.io.weights`)."""
+    weights: object
+    geometry: object
+    meta: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TetMeshFile:
+    """A tetrahedral mesh (VTU) with point arrays."""
+    mesh: object
+    point_data: dict = field(default_factory=dict)
+
+
+def _write_output(obj, path: Path) -> list[Path]:
+    """Write one output into the staging folder; returns every file written (companions included)."""
+    from workbench.io import volumes
+
+    if isinstance(obj, Image):
+        volumes.write_volume(obj.volume, path)
+    elif isinstance(obj, Labels):
+        volumes.write_labels(obj.volume, path)
+    elif isinstance(obj, Field):
+        volumes.write_displacement(obj.volume, path)
+    elif isinstance(obj, VectorImage):
+        volumes.write_vector_image(obj.volume, path)
+    elif isinstance(obj, Json):
+        write_json(obj.doc, path)
+    elif isinstance(obj, Text):
+        path.write_text(obj.text if obj.text.endswith("\n") else obj.text + "\n", encoding="utf-8")
+    elif isinstance(obj, WeightMap):
+        from workbench.io.weights import write_voxel_weights
+
+        write_voxel_weights(obj.weights, obj.geometry, path, **obj.meta)
+        return [path, path.with_name(f"{path.stem}_index.mha"), path.with_name(f"{path.stem}_value.mha")]
+    elif isinstance(obj, TetMeshFile):
+        from workbench.io.tetmeshes import write_tetmesh
+
+        write_tetmesh(obj.mesh, path, point_data=obj.point_data)
+    else:
+        raise TypeError(f"{path.name}: a stage output must be Image, Labels, Field, VectorImage, Json, Text, "
+                        f"WeightMap or TetMeshFile, got {type(obj).__name__}")
+    return [path]
+
+
+# -- events and results ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Event:
+    """One progress report: ``stage``, ``scan`` (or None), ``done`` of ``total`` units, a message.
+
+    ``kind`` is ``"progress"`` (work inside a unit: ``done`` of ``total``,
+    ``total`` 0 when unknown; shown as a bar or a rate-limited line),
+    ``"message"`` (a line always shown), ``"start"``, ``"done"`` or ``"skip"``
+    (a unit begun, finished or skipped).
+    """
+
+    stage: str
+    scan: str | None
+    done: int
+    total: int
+    message: str = ""
+    kind: str = "progress"
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What :func:`execute` did with one unit (the study, or one scan)."""
+
+    stage: str
+    scan: str | None
+    status: str  #: "ran" or "skipped"
+    seconds: float
+    entry: dict
+
+
+@dataclass(frozen=True)
+class StageContext:
+    """What a stage's ``run`` gets: the study, its settings, the scan, the previous outputs, progress."""
+
+    study: Study
+    settings: object
+    scan: str | None
+    previous: dict  #: file name → path of the outputs of the previous run (e.g. a kept mesh), if any
+    report: Callable  #: report(done, total, message="")
+    options: dict = field(default_factory=dict)  #: run-time options that do not change the result's meaning
+    stage_name: str = ""
+    emit: Callable = lambda event: None
+
+    def say(self, message: str) -> None:
+        """A message worth every line (always shown, unlike ``report``'s rate-limited progress)."""
+        self.emit(Event(self.stage_name, self.scan, 0, 0, message, "message"))
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A pipeline stage (see the module docstring).
+
+    ``needs(settings)`` names the stages whose outputs it reads; ``inputs(study,
+    settings, scan)`` maps names to the input files it reads (their content
+    goes into the digest); ``applies(study, settings, scan)`` returns ``None``
+    when the stage has work for that unit, else the reason it has none (e.g.
+    validate without ground truth); ``run(ctx)`` returns ``{file name:
+    output}``.  Bump ``version`` when the stage's results change for the same
+    inputs and settings.
+    """
+
+    name: str
+    folder: str
+    per_scan: bool
+    settings_type: type
+    run: Callable
+    needs: Callable = lambda settings: ()
+    inputs: Callable = lambda study, settings, scan: {}
+    applies: Callable = lambda study, settings, scan: None
+    uses: Callable = lambda study, settings: None  #: scans a whole-study stage reads of per-scan needs (None: all)
+    version: int = 1
+
+
+def settings_dict(settings) -> dict:
+    """A settings dataclass as plain JSON (paths as strings, tuples as lists)."""
+    return to_jsonable(dataclasses.asdict(settings))
+
+
+_DIGESTS: dict = {}
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's content (cached per process by path, size and modification time)."""
+    path = Path(path)
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _DIGESTS:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 22), b""):
+                h.update(chunk)
+        _DIGESTS[key] = h.hexdigest()
+    return _DIGESTS[key]
+
+
+def _needs_of(stage: Stage, settings) -> tuple:
+    return tuple(stage.needs(settings))
+
+
+def _input_digests(study: Study, stage: Stage, settings, scan) -> dict:
+    files = stage.inputs(study, settings, scan)
+    out = {}
+    for k, p in sorted(files.items()):
+        if p is None:
+            continue
+        p = Path(p)
+        if not p.exists():
+            raise StudyError(f"{p}: an input of the {stage.name} stage is missing.", p)
+        try:
+            rel = str(p.resolve().relative_to(study.root.resolve()))
+        except ValueError:
+            rel = str(p)
+        out[k] = {"path": rel, "sha256": file_digest(p)}
+    return out
+
+
+def _need_units(study: Study, need: Stage, stage: Stage, scan, scans) -> list:
+    if not need.per_scan:
+        return [None]
+    return [scan] if scan is not None else list(scans)
+
+
+def _need_digests(study: Study, stage: Stage, settings, scan, scans, registry) -> dict:
+    """``{need: outputs_digest}`` (per-scan needs: ``{need/scan: ...}``); raises :class:`StageNotReady`."""
+    out = {}
+    for name in _needs_of(stage, settings):
+        need = registry[name]
+        for unit in _need_units(study, need, stage, scan, scans):
+            e = study.stage_entry(name, unit)
+            what = f"the {name} stage" + (f" of scan {unit!r}" if unit else "")
+            cmd = f"`{STAGE_COMMANDS.get(name, 'workbench run')} {study.root}`"
+            if e is None or e.get("skipped"):
+                if e is not None and e.get("skipped"):
+                    continue  # the need had no work for this unit (e.g. validate without truth)
+                raise StageNotReady(f"{study.manifest_path}: {stage.name} needs {what}; run {cmd} (or `workbench "
+                                    f"run {study.root}`) first.", study.manifest_path)
+            if stage_status(study, need, unit, registry=registry) == "stale":
+                raise StageNotReady(f"{study.manifest_path}: {what} is out of date (its inputs or a stage before "
+                                    f"it changed since it ran); run {cmd} or `workbench run {study.root}` first.",
+                                    study.manifest_path)
+            out[name if unit is None else f"{name}/{unit}"] = e["outputs_digest"]
+    return out
+
+
+def _digest(stage: Stage, settings_json, inputs: dict, needs: dict) -> str:
+    doc = {"stage": stage.name, "stage_version": stage.version, "workbench_version": __version__,
+           "settings": settings_json, "inputs": {k: v["sha256"] for k, v in inputs.items()}, "needs": needs}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
+
+def _outputs_exist(study: Study, entry: dict) -> bool:
+    return all(study.path(p).exists() for p in (entry.get("outputs") or {}).values())
+
+
+def stage_status(study: Study, stage: Stage, scan=None, *, registry=None) -> str:
+    """``"missing"``, ``"stale"`` (its inputs or needs changed since it ran) or ``"done"``, from its recorded settings."""
+    e = study.stage_entry(stage.name, scan)
+    if e is None:
+        return "missing"
+    if e.get("skipped"):
+        return "done"
+    if not _outputs_exist(study, e):
+        return "missing"
+    try:
+        settings = stage.settings_type(**_settings_from_json(stage.settings_type, e.get("settings") or {}))
+        inputs = _input_digests(study, stage, settings, scan)
+        needs = {}
+        for name in _needs_of(stage, settings):
+            need = (registry or {}).get(name)
+            units = [None] if need is None or not need.per_scan else (
+                [scan] if scan is not None else [k.split("/", 1)[1] for k in e.get("needs", {}) if "/" in k
+                                                 and k.split("/", 1)[0] == name])
+            for unit in units:
+                ne = study.stage_entry(name, unit)
+                if ne is None:
+                    return "stale"
+                if ne.get("skipped"):
+                    continue
+                needs[name if unit is None else f"{name}/{unit}"] = ne["outputs_digest"]
+    except (WorkbenchError, OSError, TypeError, ValueError):
+        return "stale"
+    return "done" if _digest(stage, e.get("settings"), inputs, needs) == e["digest"] else "stale"
+
+
+def _settings_from_json(cls, d: dict) -> dict:
+    """Recorded settings back into constructor arguments (lists → tuples where the default is a tuple)."""
+    out = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in d:
+            continue
+        v = d[f.name]
+        if isinstance(v, list):
+            v = tuple(v)
+        out[f.name] = v
+    return out
+
+
+def _clean_dead_staging(folder: Path) -> None:
+    """Remove staging folders left by processes that no longer run (killed with SIGKILL, power loss)."""
+    if not folder.is_dir():
+        return
+    for p in folder.iterdir():
+        parts = p.name.split(".partial-")
+        if len(parts) != 2 or not p.name.startswith("."):
+            continue
+        pid = parts[1].split("-", 1)[0]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(p, ignore_errors=True)
+        except PermissionError:
+            pass
+
+
+def _dir_digest(files: list[Path], base: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(files):
+        h.update(str(p.relative_to(base)).encode())
+        h.update(file_digest(p).encode())
+    return h.hexdigest()
+
+
+def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None, force: bool = False,
+            progress: Callable | None = None, options: dict | None = None) -> list[Outcome]:
+    """Run ``stage`` on ``study`` with ``settings`` (every scan, or ``scans``); see the module docstring.
+
+    ``registry`` maps stage names to :class:`Stage` objects (for ``needs``);
+    ``options`` reach the stage's ``run`` as ``ctx.options`` and stay out of
+    the digest (e.g. the weights stage's ``remesh``: a new random mesh).
+    Returns one :class:`Outcome` per unit (the study, or each scan).
+    """
+    if not isinstance(settings, stage.settings_type):
+        raise TypeError(f"{stage.name}: settings must be {stage.settings_type.__name__}, got {type(settings).__name__}")
+    emit = progress or (lambda event: None)
+    scans = study.check_scan_ids(scans)
+    units = list(scans) if stage.per_scan else [None]
+    settings_json = settings_dict(settings)
+    need_scans = scans if stage.per_scan else study.check_scan_ids(stage.uses(study, settings))
+    # every need is checked before any work, so that a missing stage is reported at once
+    need_digests = {u: _need_digests(study, stage, settings, u, need_scans, registry) for u in units}
+    root = study.root
+    folder = root / stage.folder
+    _clean_dead_staging(folder if stage.per_scan else root)
+    outcomes = []
+    n = len(units)
+    for i, unit in enumerate(units):
+        t0 = time.perf_counter()
+        label = f"{stage.name}" + (f" {unit}" if unit else "")
+        reason = stage.applies(study, settings, unit)
+        if reason:
+            entry = {"digest": "", "skipped": reason, "outputs": {}, "outputs_digest": "",
+                     "settings": settings_json, "finished": _now()}
+            if study.stage_entry(stage.name, unit) is None or force:
+                study.record(stage.name, entry, unit, stage_info=_stage_info(stage, settings_json))
+            emit(Event(stage.name, unit, i + 1, n, f"{label}: nothing to do ({reason})", "skip"))
+            outcomes.append(Outcome(stage.name, unit, "skipped", 0.0, entry))
+            continue
+        inputs = _input_digests(study, stage, settings, unit)
+        digest = _digest(stage, settings_json, inputs, need_digests[unit])
+        old = study.stage_entry(stage.name, unit)
+        if not force and old is not None and old.get("digest") == digest and _outputs_exist(study, old):
+            emit(Event(stage.name, unit, i + 1, n, f"{label}: up to date, skipped", "skip"))
+            outcomes.append(Outcome(stage.name, unit, "skipped", 0.0, old))
+            continue
+        emit(Event(stage.name, unit, i, n, f"{label}: running", "start"))
+        final = folder / unit if unit else folder
+        final.parent.mkdir(parents=True, exist_ok=True)
+        previous = {p.name: p for p in final.iterdir()} if final.is_dir() else {}
+
+        def report(done, total, message="", _unit=unit):
+            emit(Event(stage.name, _unit, done, total, message))
+
+        ctx = StageContext(study, settings, unit, previous, report, dict(options or {}), stage.name, emit)
+        staging = final.parent / f".{final.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
+        staging.mkdir()
+        try:
+            outputs = stage.run(ctx)
+            files = []
+            for name, obj in outputs.items():
+                files += _write_output(obj, staging / name)
+            out_digest = _dir_digest(files, staging)
+            replace_dir(staging, final)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        seconds = time.perf_counter() - t0
+        rel = final.relative_to(root)
+        entry = {"digest": digest, "settings": settings_json, "inputs": inputs, "needs": need_digests[unit],
+                 "outputs": {name: str(rel / name) for name in outputs}, "outputs_digest": out_digest,
+                 "seconds": round(seconds, 3), "finished": _now(), "workbench_version": __version__,
+                 "stage_version": stage.version}
+        if "seed" in settings_json:
+            entry["seed"] = settings_json["seed"]
+        study.record(stage.name, entry, unit, stage_info=_stage_info(stage, settings_json))
+        emit(Event(stage.name, unit, i + 1, n, f"{label}: done in {seconds:.1f} s", "done"))
+        log.info("%s: done in %.1f s", label, seconds)
+        outcomes.append(Outcome(stage.name, unit, "ran", seconds, entry))
+    return outcomes
+
+
+def _stage_info(stage: Stage, settings_json) -> dict:
+    return {"per_scan": True, "folder": stage.folder}
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")

@@ -1,0 +1,127 @@
+"""The ``model`` stage: the example-based volume deformation model (EVD, Rhee §5, Eq. 6–7; DESIGN step 7).
+
+For each training scan ``k``, the displacement of every template voxel in the
+template frame after undoing VBD with the scan's pose (Rhee Eq. 7):
+``d_k(v) = (Σ_b w_b(v) T_b,k)⁻¹ v̂_k − v``, where ``v̂_k`` is where voxel ``v``
+lies in scan ``k``.
+
+* ``source="registration"`` (the pipeline's): ``v̂_k`` from the register
+  stage's inverse field (``template_to_scan``) and the pose stage's
+  *estimated* poses — a model from the user's own scans, no truth needed;
+* ``source="truth"`` (phantom protocols): the phantom's exact forward map
+  and true poses.
+
+Template voxels with no correspondence in a scan (they leave its field of
+view, or the inverse did not converge there) keep VBD: ``d_k = 0``.
+
+Outputs (``model/``): ``evd.json`` and ``evd_displacements.mha``
+(3 components per training scan, mm, on the template grid).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workbench import __version__
+from workbench.stages.mechanism import Json, Stage, VectorImage
+
+__all__ = ["ModelSettings", "STAGE", "SOURCES"]
+
+SOURCES = ("registration", "truth")
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    source: str = "registration"
+    scans: tuple | None = None  #: training scans (None: all)
+
+    def __post_init__(self):
+        if self.source not in SOURCES:
+            raise ValueError(f"--source must be one of {SOURCES}, got {self.source!r}")
+        if self.scans is not None:
+            object.__setattr__(self, "scans", tuple(str(v) for v in self.scans))
+
+
+def _needs(s: ModelSettings):
+    return ("weights", "register", "pose") if s.source == "registration" else ("weights",)
+
+
+def _inputs(study, s: ModelSettings, scan):
+    files = {"template": study.path(study.manifest["template"]), "skeleton": study.path(study.manifest["skeleton"])}
+    if s.source == "truth":
+        for sid in study.check_scan_ids(s.scans):
+            t = study.truth_files(sid)
+            if not t:
+                from workbench.study import StudyError
+
+                raise StudyError(f"{study.manifest_path}: scan {sid!r} has no ground truth to build a model from; "
+                                 "use --source registration (after `workbench register`).", study.manifest_path)
+            files[f"truth_pose/{sid}"] = t["pose"]
+            files[f"truth/{sid}"] = t.get("template_to_scan", t["correspondence"])
+    return files
+
+
+def _run(ctx) -> dict:
+    from deformation.evd import ExampleVolumeDeformation, vbd_forward
+    from deformation.geometry import Volume
+    from deformation.resample import FOLDED, invert_scan_to_template
+    from deformation.posespace import pose_vector
+    from deformation.skinning import stack_transforms
+
+    study, s = ctx.study, ctx.settings
+    ids = study.check_scan_ids(s.scans)
+    weights, body = study.weights()
+    sk = study.skeleton()
+    g = study.template().geometry
+    poses, fields, unmatched = [], [], {}
+    for k, sid in enumerate(ids):
+        if s.source == "registration":
+            pose = study.pose(sid)
+            inv, status = study.registration_inverse(sid)
+            g.check_same(inv.geometry, names=("template", f"{sid} template_to_scan"))
+            pos = inv.data + g.world_coordinates()
+            found = np.asarray(status.data) <= FOLDED
+            how = "the registration's inverse field and the estimated pose"
+        else:
+            pose = study.truth_pose(sid)
+            if study.has_truth_template_to_scan(sid):  # the exact forward map (phantom studies)
+                f = study.truth_template_to_scan(sid)
+                g.check_same(f.geometry, names=("template", f"{sid} template_to_scan"))
+                pos, found = f.data + g.world_coordinates(), np.ones(g.array_shape, bool)
+                how = "the truth's exact template → scan map"
+            else:
+                truth = study.truth_correspondence(sid)
+                # prefer scan voxels that came from the template's body (where the map is not one-to-one)
+                ijk = np.rint(g.world_to_index((truth.data + truth.geometry.world_coordinates()).reshape(-1, 3)))
+                ijk = np.clip(ijk.astype(np.int64), 0, np.asarray(g.size) - 1)
+                prefer = body.data[ijk[:, 2], ijk[:, 1], ijk[:, 0]].reshape(truth.geometry.array_shape).astype(bool)
+                bm = invert_scan_to_template(truth, g, transforms=stack_transforms(pose.transforms, sk.bone_names),
+                                             prefer=prefer)
+                pos, found = bm.template_positions(), bm.status <= FOLDED
+                how = "inverting the truth's scan → template field"
+        pos = np.array(pos, dtype=np.float64)
+        pos[~found] = vbd_forward(g, weights, pose.transforms)[~found]
+        unmatched[sid] = int((~found).sum())
+        poses.append(pose)
+        fields.append(pos)
+        ctx.report(k + 1, len(ids), f"{sid}: template → scan positions from {how}")
+    model = ExampleVolumeDeformation.from_correspondences(g, weights, sk, poses, fields)
+    del fields
+    disp = model.displacements.reshape(g.array_shape + (3 * len(ids),))
+    doc = {"format": "avw-evd", "version": 1, "source": s.source, "scans": list(ids),
+           "joint_order": [j.name for j in sk.joints],
+           "pose_vectors": {sid: pose_vector(sk, p).tolist() for sid, p in zip(ids, poses)},
+           "displacements": "evd_displacements.mha",
+           "layout": "per voxel: (d_x, d_y, d_z) of each training scan in turn, mm, template frame (Rhee Eq. 7)",
+           "poses": "estimated (pose stage)" if s.source == "registration" else "ground truth",
+           "weights_sha256": weights.digest(), "unmatched_voxels": unmatched,
+           "unmatched": "template voxels with no correspondence in that scan (outside its field of view, or the "
+                        "inverse not found): d_k = 0 there, i.e. VBD",
+           "workbench_version": __version__}
+    return {"evd_displacements.mha": VectorImage(Volume(disp, g)), "evd.json": Json(doc)}
+
+
+STAGE = Stage(name="model", folder="model", per_scan=False, settings_type=ModelSettings, run=_run, needs=_needs,
+              inputs=_inputs, uses=lambda study, s: s.scans)

@@ -1,0 +1,140 @@
+"""The ``pose`` stage: bone transforms, joint centres and joint angles of every scan (Rhee §3.1, Kurihara §3).
+
+Every bone of every scan is registered root first, then down the skeleton
+(:func:`registration.pose.estimate_poses`: Rhee Eq. 1 by intensity, or
+Kurihara's ICP of bone surfaces), then each joint's centre of rotation from
+all scans (Kurihara Eq. 1, closed form) and each scan's joint angles.  The
+stage covers all scans at once: Kurihara Eq. 1 pools them.
+
+Outputs (``poses/``)::
+
+    <scan>_pose.json          estimated pose, the same schema as truth/<scan>_pose.json
+    skeleton_estimated.json   the skeleton with the estimated joint centres
+    pose_vectors.json         each scan's joint angles, concatenated in the skeleton's joint order
+    joints.json               per joint: centre, hinge axis, Kurihara Eq. 1 residuals, conditioning
+    fits.json                 per scan and bone: status, metric before/after, iterations, time
+    report.json / report.txt  the summary tables
+
+The ground truth is not read here; the validate stage compares the poses with it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from workbench.io.inputs import read_initial_poses
+from workbench.stages.mechanism import Json, Stage, Text
+
+__all__ = ["PoseSettings", "STAGE", "finite"]
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    method: str = "intensity"  #: "intensity" (Rhee Eq. 1) or "surface" (Kurihara §3 ICP)
+    init: str = "identity"  #: root start: "identity", "moments", or an initial-pose file
+    metric: str = "ncc"
+    interpolation: int = 3  #: 3 cubic B-spline, 1 linear (the papers')
+    prior_deg: float | None = 2.0
+    min_ncc: float = 0.5
+    bias_correction: bool | None = None  #: None: N4 for MRI-like images
+    margin_mm: float | None = None
+    max_joint_gap_mm: float | None = 10.0
+    outlier_factor: float | None = 4.0
+    scans: tuple | None = None  #: only these scans (None: all; Kurihara Eq. 1 pools the scans estimated)
+
+    def __post_init__(self):
+        if self.scans is not None:
+            object.__setattr__(self, "scans", tuple(str(v) for v in self.scans))
+        if self.method not in ("intensity", "surface"):
+            raise ValueError(f"--method must be 'intensity' or 'surface', got {self.method!r}")
+        if self.metric not in ("ncc", "ssd"):
+            raise ValueError(f"--metric must be 'ncc' or 'ssd', got {self.metric!r}")
+        if self.interpolation not in (1, 3):
+            raise ValueError(f"interpolation must be 1 (linear) or 3 (B-spline), got {self.interpolation!r}")
+        if self.prior_deg is not None and self.prior_deg < 0:
+            raise ValueError(f"--prior-deg must be ≥ 0, got {self.prior_deg}")
+        if self.max_joint_gap_mm is not None and self.max_joint_gap_mm < 0:
+            raise ValueError(f"--max-joint-gap-mm must be ≥ 0 (0 switches the check off), got {self.max_joint_gap_mm}")
+        if self.outlier_factor is not None and (self.outlier_factor < 0 or 0 < self.outlier_factor <= 1):
+            raise ValueError(f"--outlier-factor must be 0 (off) or above 1 (a multiple of the joint's median miss), "
+                             f"got {self.outlier_factor}")
+
+
+def finite(obj):
+    """Non-finite floats (a metric never computed for a bone out of view) → None, so JSON can hold them."""
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def _inputs(study, s: PoseSettings, scan):
+    files = {"template": study.path(study.manifest["template"]), "skeleton": study.path(study.manifest["skeleton"]),
+             "labels": study.template_labels_path()}
+    files.update({f"scan/{sid}": study.scan_path(sid) for sid in study.check_scan_ids(s.scans)})
+    if s.init not in ("identity", "moments"):
+        files["init"] = Path(s.init)
+    return files
+
+
+def _run(ctx) -> dict:
+    from registration.pose import estimate_poses
+    from registration.report import format_fits
+
+    study, s = ctx.study, ctx.settings
+    skeleton = study.skeleton()
+    template, labels = study.template(), study.template_labels()
+    ids = study.check_scan_ids(s.scans)
+    if s.init in ("identity", "moments"):
+        root_init = None if s.init == "identity" else "moments"
+    else:
+        root_init = read_initial_poses(s.init, ids, skeleton)
+    scans = {sid: (lambda sid=sid: study.scan(sid)) for sid in ids}
+    n_bones = len(skeleton.bones)
+
+    def cb(sid, si, n_scans, bone, done, total, fit):
+        ctx.report(si * n_bones + done, n_scans * n_bones,
+                   f"{sid} bone {done}/{total} {bone:<18} {fit.status:<14} ncc {fit.ncc:.3f}  {fit.seconds:.1f} s")
+
+    t0 = time.perf_counter()
+    result = estimate_poses(template, labels, scans, skeleton, method=s.method, root_init=root_init, metric=s.metric,
+                            interpolation=s.interpolation, prior_deg=s.prior_deg, min_ncc=s.min_ncc,
+                            bias_correction=s.bias_correction, margin_mm=s.margin_mm,
+                            max_joint_gap_mm=s.max_joint_gap_mm, outlier_factor=s.outlier_factor, progress=cb)
+    total = time.perf_counter() - t0
+    text = f"workbench pose — {study.manifest.get('name', study.root.name)} — method {s.method}\n\n{format_fits(result)}"
+    report = finite({"method": s.method, "metric": s.metric, "seconds_total": round(total, 2),
+                     "seconds_per_scan": {r.scan_id: round(r.seconds, 2) for r in result.scans},
+                     "failures": result.failures(), "eq1_rms_mm": result.overall_rms_mm(),
+                     "eq1_base_pose_counted": False, "text": text})
+    out = {f"{r.scan_id}_pose.json": Json(r.pose.to_dict()) for r in result.scans}
+    out["skeleton_estimated.json"] = Json(result.skeleton.to_dict())
+    order = [j.name for j in skeleton.joints]
+    out["pose_vectors.json"] = Json({
+        "format": "avw-pose-vectors", "version": 1, "joint_order": order, "dof": [j.dof for j in skeleton.joints],
+        "units": "degrees (6-DOF joints: three angles, then mm)",
+        "missing": "null: a joint with a bone flagged in that scan (see fits.json)",
+        "scans": {r.scan_id: [v for j in order for v in (np.asarray(r.pose.joint_angles[j]).tolist()
+                                                         if j in r.pose.joint_angles else [None] * skeleton.joint(j).dof)]
+                  for r in result.scans}})
+    out["joints.json"] = Json(finite({"format": "avw-joints", "version": 1, "method": s.method, "units": "mm",
+                                      "eq1_rms_mm": result.overall_rms_mm(), "eq1_base_pose_counted": False,
+                                      "joints": result.joints_dict()}))
+    out["fits.json"] = Json(finite({"format": "avw-fits", "version": 1, "method": s.method,
+                                    "scans": {r.scan_id: {"seconds": r.seconds,
+                                                          "bones": {b: f.to_dict() for b, f in r.fits.items()}}
+                                              for r in result.scans}}))
+    out["report.json"] = Json(report)
+    out["report.txt"] = Text(text)
+    return out
+
+
+STAGE = Stage(name="pose", folder="poses", per_scan=False, settings_type=PoseSettings, run=_run,
+              needs=lambda s: ("bones",), inputs=_inputs)

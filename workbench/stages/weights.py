@@ -1,0 +1,84 @@
+"""The ``weights`` stage: skinning weights of every template voxel (Kurihara Eq. 3's w; DESIGN step 4).
+
+``method="harmonic"``: the body (segmented from the template,
+:func:`registration.segmentation.segment_body`) is meshed with tetrahedra and
+each bone's weight solved as a harmonic function
+(:func:`deformation.harmonic.harmonic_voxel_weights`); ``"distance"``:
+inverse-distance weights (:func:`deformation.skinning.distance_voxel_weights`).
+
+Outputs (``skinning/``): ``body_mask.nii.gz``, ``weights.json`` with
+``weights_index.mha`` and ``weights_value.mha`` (:mod:`workbench.io.weights`),
+and ``tetmesh.vtu`` (with one point array per bone, ``weight_<bone>``: open
+it in ParaView).  pytetwild's meshes differ from run to run (it takes no
+seed), so the mesh is made once and kept: a rerun reuses the previous
+``tetmesh.vtu`` (deterministic weights) unless ``remesh`` is asked for.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from workbench import __version__
+from workbench.errors import InputFileError
+from workbench.stages.mechanism import Labels, Stage, TetMeshFile, WeightMap
+
+__all__ = ["WeightsSettings", "STAGE", "WEIGHT_METHODS"]
+
+WEIGHT_METHODS = ("harmonic", "distance")
+
+
+@dataclass(frozen=True)
+class WeightsSettings:
+    method: str = "harmonic"
+    edge_length_mm: float | None = None  #: target tet edge length of a new mesh (None: 5 % of the body's diagonal)
+
+    def __post_init__(self):
+        if self.method not in WEIGHT_METHODS:
+            raise ValueError(f"weights method must be one of {WEIGHT_METHODS}, got {self.method!r}")
+        if self.edge_length_mm is not None and not self.edge_length_mm > 0:
+            raise ValueError(f"--edge-length-mm must be positive, got {self.edge_length_mm}")
+
+
+def _inputs(study, s, scan):
+    return {"template": study.path(study.manifest["template"]), "labels": study.template_labels_path(),
+            "skeleton": study.path(study.manifest["skeleton"])}
+
+
+def _run(ctx) -> dict:
+    from deformation.harmonic import harmonic_voxel_weights
+    from deformation.skinning import distance_voxel_weights
+    from registration.segmentation import segment_body
+    from workbench.io.tetmeshes import read_tetmesh, weight_arrays
+
+    study, s = ctx.study, ctx.settings
+    sk = study.skeleton()
+    bone_labels = {b: sk.label_of(b) for b in sk.bone_names}
+    template, labels = study.template(), study.template_labels()
+    body = segment_body(template, labels=labels)
+    out = {"body_mask.nii.gz": Labels(body)}
+    kept = ctx.previous.get("tetmesh.vtu")
+    info = {"method": s.method}
+    if s.method == "harmonic":
+        mesh = None
+        if kept is not None and not ctx.options.get("remesh"):
+            mesh, _ = read_tetmesh(kept)
+            ctx.say(f"using the study's tet mesh {kept} ({mesh.n_vertices} vertices, {mesh.n_tets} tets)")
+        r = harmonic_voxel_weights(labels, bone_labels, body, mesh=mesh, edge_length_mm=s.edge_length_mm,
+                                   progress=ctx.say)
+        weights = r.weights
+        info.update(r.info, mesh="new" if r.new_mesh else "kept")
+        out["tetmesh.vtu"] = TetMeshFile(r.mesh, weight_arrays(r.bones, r.vertex_weights))
+    else:
+        try:
+            weights = distance_voxel_weights(labels, bone_labels)
+        except ValueError as e:
+            raise InputFileError(f"{study.template_labels_path()}: {e}", study.template_labels_path()) from e
+        if kept is not None:  # keep the study's mesh for a later harmonic run
+            mesh, point_data = read_tetmesh(kept)
+            out["tetmesh.vtu"] = TetMeshFile(mesh, point_data)
+    out["weights.json"] = WeightMap(weights, template.geometry, {**info, "workbench_version": __version__})
+    return out
+
+
+STAGE = Stage(name="weights", folder="skinning", per_scan=False, settings_type=WeightsSettings, run=_run,
+              needs=lambda s: ("bones",), inputs=_inputs)

@@ -1,0 +1,1 @@
+"""Off-screen volume rendering and keyframe animation (VTK, imageio-ffmpeg)."""
