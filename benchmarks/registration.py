@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -67,14 +66,18 @@ def _cases(args):
 
 
 def _weights(ph, method):
-    """Skinning weights of the phantom's template through the study pipeline (a temporary study)."""
-    from workbench.deform_stage import load_weights, run_weights_stage
-    from workbench.study import read_study, write_phantom_study
+    """Skinning weights and body mask of the phantom's template, from the library (as the weights stage does)."""
+    from deformation.harmonic import harmonic_voxel_weights
+    from deformation.skinning import distance_voxel_weights
+    from registration.segmentation import segment_body
 
-    tmp = tempfile.mkdtemp(prefix="avw-bench-")
-    root = write_phantom_study(ph, Path(tmp) / "study").root
-    run_weights_stage(root, method=method)
-    return load_weights(read_study(root))
+    template, labels = ph.template()
+    sk = ph.skeleton
+    bone_labels = {b: sk.label_of(b) for b in sk.bone_names}
+    body = segment_body(template, labels=labels)
+    if method == "harmonic":
+        return harmonic_voxel_weights(labels, bone_labels, body).weights, body
+    return distance_voxel_weights(labels, bone_labels), body
 
 
 def _level_progress(tag):

@@ -33,7 +33,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from validation.phantoms import make_phantom  # noqa: E402
 from workbench.viz.animate import animate_study  # noqa: E402
-from workbench.deform_stage import run_model_stage, run_weights_stage  # noqa: E402
+from workbench.stages.model import ModelSettings  # noqa: E402
+from workbench.stages.run import run_stages  # noqa: E402
+from workbench.stages.weights import WeightsSettings  # noqa: E402
 from workbench.viz.render import Camera, VolumeRenderer, opengl_backend  # noqa: E402
 from workbench.study import write_phantom_study  # noqa: E402
 
@@ -71,10 +73,10 @@ def main(argv=None):
         print(f"{case}: render {size[0]}x{size[1]} of {template.geometry.size} voxels: fixed-point CPU ray cast "
               f"{t_fixed:.3f} s/frame, GPU ray cast on this OpenGL {t_gpu:.3f} s/frame; ratio gpu/fixed "
               f"{t_gpu / t_fixed:.1f}x; mean |pixel difference| {diff:.1f} of 255", flush=True)
-        root = write_phantom_study(ph, tmp / case).root
-        run_weights_stage(root, method=args.weights)
-        if args.method == "evd":
-            run_model_stage(root)
+        study = write_phantom_study(ph, tmp / case)
+        root = study.root
+        run_stages(study, ["weights"] + (["model"] if args.method == "evd" else []),
+                   settings={"weights": WeightsSettings(method=args.weights), "model": ModelSettings(source="truth")})
         s = animate_study(root, tmp / f"{case}.mp4", size=size, n_frames=args.frames, method=args.method)
         rows.append((case, s, t_fixed, t_gpu))
         print(f"{case}: {s['frames']} frames {size[0]}x{size[1]} ({s['method'].upper()}, {s['mapper']} mapper): "

@@ -37,7 +37,7 @@ from .skinning import SkinningWeights, _as_stack, blend_point
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["vbd_forward", "ExampleVolumeDeformation", "EVD_WEIGHTINGS"]
+__all__ = ["vbd_forward", "fill_unmatched", "ExampleVolumeDeformation", "EVD_WEIGHTINGS"]
 
 EVD_WEIGHTINGS = ("psd", "wpsd")
 
@@ -133,6 +133,19 @@ def vbd_forward(geometry: GridGeometry, weights: SkinningWeights, transforms) ->
     _forward_kernel(np.ascontiguousarray(geometry.index_to_world_matrix[:3]), nx, ny, nz, weights.index,
                     weights.value, t, disp, np.zeros(0), out)
     return out
+
+
+def fill_unmatched(geometry: GridGeometry, weights: SkinningWeights, transforms, positions, found) -> np.ndarray:
+    """``positions`` ``(nz, ny, nx, 3)`` of template voxels in a scan, VBD (Rhee Eq. 2) where ``found`` is false.
+
+    Voxels with no correspondence in a scan (outside its field of view, or an
+    inverse not found) then contribute ``d_k = 0`` to EVD (Rhee Eq. 7).
+    """
+    pos = np.array(positions, dtype=np.float64)
+    miss = ~np.asarray(found, bool)
+    if miss.any():
+        pos[miss] = vbd_forward(geometry, weights, transforms)[miss]
+    return pos
 
 
 class ExampleVolumeDeformation:

@@ -3,7 +3,7 @@
 The pose pipeline needs each bone's voxels in the template.  When the study
 has a label map it is used as it is.  Otherwise the bones are segmented from
 the template image and seeds (``{bone: (n, 3) world points}``; the file is
-read by :func:`workbench.pose_stage.read_seeds`), a **seeds file** — one or more world points (mm)
+read by :func:`workbench.io.inputs.read_seeds`), a **seeds file** — one or more world points (mm)
 inside each bone, the manual step both papers had (Rhee segmented MRI by
 graph cut from user strokes, Kurihara thresholded CT)::
 

@@ -320,6 +320,17 @@ class Study:
         return (read_displacement(self.output("register", "template_to_scan.mha", scan_id)),
                 read_labels(self.output("register", "inverse_status.nii.gz", scan_id)))
 
+    def registration_positions(self, scan_id: str):
+        """``(positions (nz, ny, nx, 3), found)``: where each template voxel lies in the scan by the registration
+        (world mm), and where the inverse found it (ok or folded; elsewhere it left the scan's field of view)."""
+        from deformation.resample import FOLDED
+
+        inv, status = self.registration_inverse(scan_id)
+        read_image_geometry(self.path(self.manifest["template"])).check_same(
+            inv.geometry, names=("template", f"{scan_id} template_to_scan"),
+            remedy=f"register again: workbench register {self.root} --scan {scan_id} --force")
+        return inv.data + inv.geometry.world_coordinates(), np.asarray(status.data) <= FOLDED
+
     def registered(self, scan_id: str) -> Volume:
         return read_volume(self.output("register", "registered.nii.gz", scan_id))
 

@@ -9,7 +9,7 @@ import pytest
 
 from registration.segmentation import guess_modality, seeds_from_labels, segment_bones
 from workbench.errors import InputFileError
-from workbench.pose_stage import read_seeds
+from workbench.io.inputs import read_seeds
 
 
 def dice(a, b):

@@ -62,7 +62,7 @@ def test_weights_stage_writes_a_partition_of_unity_on_the_template_grid(study):
     sk = s.skeleton()
     for b in sk.bone_names:  # bone voxels are one-hot on their bone
         np.testing.assert_array_equal(dense[lab == sk.label_of(b), w.bones.index(b)], 1.0)
-    assert s.manifest["stages"]["skinning"]["weights"] == "skinning/weights.json"
+    assert s.stage_entry("weights")["outputs"]["weights.json"] == "skinning/weights.json"
     body = read_labels(study / "skinning" / "body_mask.nii.gz").data
     # the segmented body holds every bone
     assert np.all(body[s.template_labels().data > 0] == 1)
@@ -141,11 +141,9 @@ def test_deform_reports_bad_input(study, tmp_path, capsys):
     assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "a.nii.gz"), "--field-out",
                  str(tmp_path / "f.xyz"), "--quiet"]) == 1
     assert not (tmp_path / "a.nii.gz").exists()
-    from workbench.deform_stage import load_weights
-
     s = read_study(study)
     with pytest.raises(InputFileError, match="workbench weights"):
-        load_weights(type(s)(tmp_path, s.manifest))  # a study folder without skinning/
+        type(s)(s.root, {**s.manifest, "stages": {}}).weights()  # a study whose weights stage has not run
 
 
 def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
@@ -158,7 +156,8 @@ def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
     assert main(["weights", str(root), "--edge-length-mm", "14", "--quiet"]) == 0
     files = ("tetmesh.vtu", "weights_index.mha", "weights_value.mha")
     first = {f: hashlib.sha256((root / "skinning" / f).read_bytes()).hexdigest() for f in files}
-    assert main(["weights", str(root), "--quiet"]) == 1  # refuses to replace without --force
+    assert main(["weights", str(root), "--quiet"]) == 0  # up to date: skipped, nothing rewritten
+    assert {f: hashlib.sha256((root / "skinning" / f).read_bytes()).hexdigest() for f in files} == first
     assert main(["weights", str(root), "--force", "--quiet"]) == 0
     again = {f: hashlib.sha256((root / "skinning" / f).read_bytes()).hexdigest() for f in files}
     assert again == first
@@ -176,7 +175,10 @@ def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
     assert main(["weights", str(root), "--method", "distance", "--force", "--quiet"]) == 0
     assert hashlib.sha256((root / "skinning" / "tetmesh.vtu").read_bytes()).hexdigest() == first["tetmesh.vtu"]
     # ... and the model built on the harmonic weights is now refused
-    from workbench.deform_stage import load_model
-
     with pytest.raises(InputFileError, match="other skinning weights"):
-        load_model(read_study(root))
+        read_study(root).model()
+    # ... and the model stage knows it is out of date
+    from workbench.stages import STAGES
+    from workbench.stages.mechanism import stage_status
+
+    assert stage_status(read_study(root), STAGES["model"], registry=STAGES) == "stale"

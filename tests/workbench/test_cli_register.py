@@ -1,5 +1,6 @@
-"""`workbench register`: files, conventions, manifest, refusals (a tiny budget: this checks plumbing, the
-accuracy is tested in tests/registration/test_adaptive.py)."""
+"""`workbench register`: files, conventions, manifest, skips and reruns, refusals (a tiny budget: this checks
+plumbing, the accuracy is tested in tests/registration/test_adaptive.py).  VBD starts from the phantom's true
+pose (--pose truth) so that these tests need no pose stage; tests/workbench/test_run.py runs the estimated one."""
 
 import json
 import shutil
@@ -12,7 +13,7 @@ from workbench.cli import main
 from workbench.study import read_study
 from workbench.io.volumes import read_displacement, read_volume
 
-FAST = ["--levels", "3", "3", "--max-steps", "4"]
+FAST = ["--levels", "3", "3", "--max-steps", "4", "--pose", "truth"]
 
 
 @pytest.fixture(scope="module")
@@ -26,10 +27,16 @@ def study(tmp_path_factory):
 def test_register_writes_fields_in_the_truth_convention(study, capsys):
     assert main(["register", str(study), "--scan", "pose01", *FAST, "--quiet"]) == 0
     table = capsys.readouterr().out
-    assert "| pose01 | registered |" in table and "| pose01 | initialised |" in table
+    assert "| pose01 | registered |" in table and "| pose01 | before |" in table  # similarity: no truth read
     st = read_study(study)
-    entry = next(s for s in st.manifest["scans"] if s["id"] == "pose01")["registration"]
-    assert entry["init"] == "vbd" and entry["control_points"] % 8 == 0
+    entry = st.stage_entry("register", "pose01")
+    assert entry["settings"]["max_steps_per_level"] == 4 and entry["settings"]["levels"] == [3, 3]
+    assert st.stage_entry("init", "pose01")["settings"] == {"method": "vbd", "pose": "truth", "unfold": False}
+    entry = {k: f"registration/pose01/{n}" for k, n in (("correspondence", "correspondence.mha"),
+                                                        ("template_to_scan", "template_to_scan.mha"),
+                                                        ("registered", "registered.nii.gz"), ("log", "log.json"))}
+    assert all(st.stage_entry("register", "pose01")["outputs"][p.split("/")[-1]] == p for p in entry.values())
+    assert st.registration_log("pose01")["summary"]["control_points"] % 8 == 0
     corr = read_displacement(study / entry["correspondence"])
     scan = st.scan("pose01")
     corr.geometry.check_same(scan.geometry)
@@ -41,9 +48,10 @@ def test_register_writes_fields_in_the_truth_convention(study, capsys):
     again = sample_displaced_array(t.data, t.geometry.world_to_index_matrix, corr.geometry, corr.data, 1, 0.0)
     body = again > 0.1 * float(t.data.max())
     assert np.allclose(reg.data[body], again[body], rtol=1e-4, atol=1e-2)
-    # MED in the log is one subtraction against the truth field
-    log = json.loads((study / entry["log"]).read_text())
-    rows = log["summary"]["validation"]
+    # MED of the validate stage is one subtraction against the truth field
+    assert main(["validate", str(study), "--scan", "pose01", "--quiet"]) == 0
+    assert "| pose01 | initialised |" in capsys.readouterr().out
+    rows = read_study(study).validation("pose01")["rows"]
     from validation.registration_measures import body_on_scan, med
     from workbench.io.volumes import read_labels
 
@@ -62,22 +70,35 @@ def test_register_writes_fields_in_the_truth_convention(study, capsys):
     assert np.median(resid) < 0.5  # mm, a tenth of a voxel (5 mm); folds of VBD leave a few outliers
 
 
-def test_register_refuses_to_overwrite_and_names_bad_scans(study, capsys):
-    if not (study / "registration" / "pose01").exists():
-        assert main(["register", str(study), "--scan", "pose01", *FAST, "--quiet"]) == 0
-    before = (study / "registration" / "pose01" / "log.json").read_bytes()
-    assert main(["register", str(study), "--scan", "pose01", *FAST, "--quiet"]) == 1
-    assert "--force" in capsys.readouterr().err
-    assert (study / "registration" / "pose01" / "log.json").read_bytes() == before
-    assert main(["register", str(study), "--scan", "nope", *FAST, "--quiet"]) == 1
-    assert "no scan 'nope'" in capsys.readouterr().err
+def test_register_skips_what_is_up_to_date_and_names_bad_scans(tmp_path, study, capsys):
+    d = tmp_path / "s"
+    shutil.copytree(study, d)
+    if not (d / "registration" / "pose01").exists():
+        assert main(["register", str(d), "--scan", "pose01", *FAST, "--quiet"]) == 0
+    before = (d / "registration" / "pose01" / "log.json").read_bytes()
+    manifest = (d / "study.json").read_bytes()
+    assert main(["register", str(d), "--scan", "pose01", *FAST]) == 0
+    assert "register pose01: up to date, skipped" in capsys.readouterr().err
+    assert (d / "registration" / "pose01" / "log.json").read_bytes() == before
+    assert (d / "study.json").read_bytes() == manifest
+    # --force reruns it: the same settings give the same field to the bit (deterministic)
+    field = (d / "registration" / "pose01" / "correspondence.mha").read_bytes()
+    assert main(["register", str(d), "--scan", "pose01", *FAST, "--force", "--quiet"]) == 0
+    assert (d / "registration" / "pose01" / "correspondence.mha").read_bytes() == field
+    assert main(["register", str(d), "--scan", "nope", *FAST, "--quiet"]) == 1
+    assert "no scan ['nope']" in capsys.readouterr().err
 
 
-def test_register_without_weights_says_what_to_run(tmp_path, study, capsys):
+def test_register_on_a_study_without_bones_says_what_to_run(tmp_path, study, capsys):
     bare = tmp_path / "bare"
-    shutil.copytree(study, bare, ignore=shutil.ignore_patterns("skinning", "registration"))
+    shutil.copytree(study, bare, ignore=shutil.ignore_patterns("skinning", "registration", "init", "bones"))
+    m = json.loads((bare / "study.json").read_text())
+    del m["template_labels"]
+    m["stages"] = {}
+    (bare / "study.json").write_text(json.dumps(m))
     assert main(["register", str(bare), "--scan", "pose01", *FAST, "--quiet"]) == 1
-    assert "workbench weights" in capsys.readouterr().err
+    assert "--seeds FILE" in capsys.readouterr().err
+    assert not (bare / "registration").exists() and not (bare / "skinning").exists()
 
 
 def test_register_init_none_is_deterministic(tmp_path, study):
@@ -97,12 +118,10 @@ def test_register_unfold_init_gives_a_one_to_one_field(tmp_path, study, capsys):
     d = tmp_path / "u"
     shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration"))
     assert main(["register", str(d), "--scan", "pose01", "--unfold-init", *FAST, "--quiet"]) == 0
-    st = read_study(d)
-    entry = next(s for s in st.manifest["scans"] if s["id"] == "pose01")["registration"]
-    log = json.loads((d / entry["log"]).read_text())
-    repair = log["summary"]["backward_map"]["unfold"]
+    init = json.loads((d / "init" / "pose01" / "init.json").read_text())
+    repair = init["backward_map"]["unfold"]
     assert repair["n_folded_before"] > 0 and repair["n_folded_after"] == 0  # VBD folds in the crease
-    corr = read_displacement(d / entry["correspondence"])
+    corr = read_displacement(d / "registration" / "pose01" / "correspondence.mha")
     # the registration's steps are guarded, so a fold-free start stays fold-free on every voxel
     assert folding_statistics(corr)["n_folded"] == 0
     assert main(["register", str(d), "--scan", "pose01", "--init", "none", "--unfold-init", "--force", *FAST,

@@ -55,7 +55,8 @@ from workbench.io.jsonio import to_jsonable, write_json
 from workbench.study import STAGE_COMMANDS, Study, StudyError
 
 __all__ = ["Stage", "Event", "Outcome", "StageNotReady", "execute", "stage_status", "file_digest",
-           "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "settings_dict"]
+           "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "CopyFile",
+           "settings_dict"]
 
 log = logging.getLogger("workbench")
 
@@ -116,6 +117,12 @@ class TetMeshFile:
     point_data: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class CopyFile:
+    """A file copied as it is (e.g. a kept mesh, byte for byte)."""
+    source: Path
+
+
 def _write_output(obj, path: Path) -> list[Path]:
     """Write one output into the staging folder; returns every file written (companions included)."""
     from workbench.io import volumes
@@ -137,13 +144,15 @@ def _write_output(obj, path: Path) -> list[Path]:
 
         write_voxel_weights(obj.weights, obj.geometry, path, **obj.meta)
         return [path, path.with_name(f"{path.stem}_index.mha"), path.with_name(f"{path.stem}_value.mha")]
+    elif isinstance(obj, CopyFile):
+        shutil.copy2(obj.source, path)
     elif isinstance(obj, TetMeshFile):
         from workbench.io.tetmeshes import write_tetmesh
 
         write_tetmesh(obj.mesh, path, point_data=obj.point_data)
     else:
         raise TypeError(f"{path.name}: a stage output must be Image, Labels, Field, VectorImage, Json, Text, "
-                        f"WeightMap or TetMeshFile, got {type(obj).__name__}")
+                        f"WeightMap, TetMeshFile or CopyFile, got {type(obj).__name__}")
     return [path]
 
 

@@ -64,7 +64,7 @@ def _inputs(study, s: ModelSettings, scan):
 
 
 def _run(ctx) -> dict:
-    from deformation.evd import ExampleVolumeDeformation, vbd_forward
+    from deformation.evd import ExampleVolumeDeformation, fill_unmatched
     from deformation.geometry import Volume
     from deformation.resample import FOLDED, invert_scan_to_template
     from deformation.posespace import pose_vector
@@ -79,10 +79,7 @@ def _run(ctx) -> dict:
     for k, sid in enumerate(ids):
         if s.source == "registration":
             pose = study.pose(sid)
-            inv, status = study.registration_inverse(sid)
-            g.check_same(inv.geometry, names=("template", f"{sid} template_to_scan"))
-            pos = inv.data + g.world_coordinates()
-            found = np.asarray(status.data) <= FOLDED
+            pos, found = study.registration_positions(sid)
             how = "the registration's inverse field and the estimated pose"
         else:
             pose = study.truth_pose(sid)
@@ -101,8 +98,7 @@ def _run(ctx) -> dict:
                                              prefer=prefer)
                 pos, found = bm.template_positions(), bm.status <= FOLDED
                 how = "inverting the truth's scan → template field"
-        pos = np.array(pos, dtype=np.float64)
-        pos[~found] = vbd_forward(g, weights, pose.transforms)[~found]
+        pos = fill_unmatched(g, weights, pose.transforms, pos, found)
         unmatched[sid] = int((~found).sum())
         poses.append(pose)
         fields.append(pos)

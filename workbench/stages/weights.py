@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from workbench import __version__
 from workbench.errors import InputFileError
-from workbench.stages.mechanism import Labels, Stage, TetMeshFile, WeightMap
+from workbench.stages.mechanism import CopyFile, Labels, Stage, TetMeshFile, WeightMap
 
 __all__ = ["WeightsSettings", "STAGE", "WEIGHT_METHODS"]
 
@@ -74,8 +74,7 @@ def _run(ctx) -> dict:
         except ValueError as e:
             raise InputFileError(f"{study.template_labels_path()}: {e}", study.template_labels_path()) from e
         if kept is not None:  # keep the study's mesh for a later harmonic run
-            mesh, point_data = read_tetmesh(kept)
-            out["tetmesh.vtu"] = TetMeshFile(mesh, point_data)
+            out["tetmesh.vtu"] = CopyFile(kept)
     out["weights.json"] = WeightMap(weights, template.geometry, {**info, "workbench_version": __version__})
     return out
 

@@ -1,0 +1,142 @@
+"""The stage mechanism and the manifest writer, on toy stages (no registration): digest, skip, needs,
+staleness, atomic outputs, interrupted runs, concurrent writers."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deformation.geometry import GridGeometry, Volume
+from workbench.stages.mechanism import Image, Json, Stage, StageNotReady, execute, stage_status
+from workbench.study import read_study
+
+
+@pytest.fixture()
+def study(tmp_path):
+    """A minimal study: a template, a skeleton and two scans (anisotropic grid, rotated direction)."""
+    from workbench.io.jsonio import write_json
+    from workbench.io.volumes import write_volume
+
+    c, s = np.cos(0.3), np.sin(0.3)
+    g = GridGeometry((6, 5, 4), (1.5, 0.8, 2.0), (1.0, -2.0, 3.0), (c, -s, 0, s, c, 0, 0, 0, 1))
+    root = tmp_path / "study"
+    (root / "scans").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    write_volume(Volume(rng.random(g.array_shape, dtype=np.float32), g), root / "template.nii.gz")
+    for sid in ("a", "b"):
+        write_volume(Volume(rng.random(g.array_shape, dtype=np.float32), g), root / "scans" / f"{sid}.nii.gz")
+    write_json({"format": "avw-skeleton", "version": 1, "name": "toy", "bones": [{"name": "r", "label": 1,
+                                                                                  "parent": None}], "joints": []},
+               root / "skeleton.json")
+    write_json({"format": "avw-study", "version": 1, "units": "mm", "template": "template.nii.gz",
+                "skeleton": "skeleton.json", "stages": {},
+                "scans": [{"id": sid, "image": f"scans/{sid}.nii.gz"} for sid in ("a", "b")]}, root / "study.json")
+    return read_study(root)
+
+
+@dataclass(frozen=True)
+class Gain:
+    factor: float = 2.0
+
+
+def _scaled(ctx):
+    if ctx.options.get("fail"):
+        raise RuntimeError("boom")
+    img = ctx.study.scan(ctx.scan)
+    return {"scaled.nii.gz": Image(Volume(img.data * ctx.settings.factor, img.geometry)),
+            "info.json": Json({"factor": ctx.settings.factor})}
+
+
+def _mean(ctx):
+    vals = [float(Path(ctx.study.output("scale", "info.json", sid)).stat().st_size) for sid in ctx.study.scan_ids]
+    return {"mean.json": Json({"n": len(vals)})}
+
+
+SCALE = Stage(name="scale", folder="scaled", per_scan=True, settings_type=Gain, run=_scaled,
+              inputs=lambda study, s, scan: {"scan": study.scan_path(scan)})
+MEAN = Stage(name="mean", folder="mean", per_scan=False, settings_type=Gain, run=_mean, needs=lambda s: ("scale",))
+REG = {"scale": SCALE, "mean": MEAN}
+
+
+def test_a_stage_runs_skips_and_reruns_on_a_new_setting(study):
+    out = execute(study, SCALE, Gain(), registry=REG)
+    assert [o.status for o in out] == ["ran", "ran"]
+    v = study.scan("a")
+    from workbench.io.volumes import read_volume
+
+    got = read_volume(study.output("scale", "scaled.nii.gz", "a"))
+    got.geometry.check_same(v.geometry)  # geometry travels with the output
+    np.testing.assert_array_equal(got.data, v.data * 2.0)
+    e = study.stage_entry("scale", "a")
+    assert e["settings"] == {"factor": 2.0} and e["inputs"]["scan"]["path"] == "scans/a.nii.gz"
+    assert e["outputs"] == {"scaled.nii.gz": "scaled/a/scaled.nii.gz", "info.json": "scaled/a/info.json"}
+    assert [o.status for o in execute(study, SCALE, Gain(), registry=REG)] == ["skipped", "skipped"]
+    assert [o.status for o in execute(study, SCALE, Gain(3.0), registry=REG)] == ["ran", "ran"]
+    assert [o.status for o in execute(study, SCALE, Gain(3.0), registry=REG, force=True)] == ["ran", "ran"]
+
+
+def test_needs_are_checked_before_any_work_and_staleness_is_seen(study):
+    with pytest.raises(StageNotReady, match="needs the scale stage of scan 'a'"):
+        execute(study, MEAN, Gain(), registry=REG)
+    assert not (study.root / "mean").exists()
+    execute(study, SCALE, Gain(), registry=REG)
+    execute(study, MEAN, Gain(), registry=REG)
+    assert stage_status(study, MEAN, registry=REG) == "done"
+    # a changed input makes the stage that read it, and the stage after it, out of date
+    from workbench.io.volumes import write_volume
+
+    v = study.scan("b")
+    write_volume(Volume(v.data + 1, v.geometry), study.scan_path("b"), overwrite=True)
+    assert stage_status(study, SCALE, "b", registry=REG) == "stale"
+    assert stage_status(study, SCALE, "a", registry=REG) == "done"
+    with pytest.raises(StageNotReady, match="out of date"):
+        execute(study, MEAN, Gain(), registry=REG)
+    assert [o.status for o in execute(study, SCALE, Gain(), registry=REG)] == ["skipped", "ran"]
+    # the rerun scan's outputs changed, so the whole-study stage after it must run again
+    assert stage_status(study, MEAN, registry=REG) == "stale"
+    assert execute(study, MEAN, Gain(), registry=REG)[0].status == "ran"
+
+
+def test_a_failing_stage_leaves_no_partial_output_and_keeps_the_old_one(study):
+    execute(study, SCALE, Gain(), registry=REG)
+    before = (study.root / "study.json").read_bytes()
+    files = sorted(p.name for p in (study.root / "scaled").rglob("*"))
+    with pytest.raises(RuntimeError, match="boom"):
+        execute(study, SCALE, Gain(5.0), registry=REG, options={"fail": True})
+    assert sorted(p.name for p in (study.root / "scaled").rglob("*")) == files  # no staging folder left
+    assert (study.root / "study.json").read_bytes() == before
+
+
+def test_staging_folders_of_dead_processes_are_removed(study):
+    (study.root / "scaled").mkdir()
+    dead = study.root / "scaled" / ".a.partial-999999999-abcd"  # no such process
+    alive = study.root / "scaled" / f".b.partial-{os.getpid()}-abcd"  # this process: kept
+    dead.mkdir()
+    alive.mkdir()
+    execute(study, SCALE, Gain(), registry=REG)
+    assert not dead.exists() and alive.exists()
+
+
+def _hammer(root, k, n):
+    st = read_study(root)
+    for i in range(n):
+        st.record("toy", {"digest": f"{k}-{i}", "outputs": {}, "outputs_digest": ""}, f"w{k}-{i}")
+
+
+def test_concurrent_writers_lose_no_entry(study):
+    """Four processes record 25 entries each at once: every one is in the manifest afterwards."""
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_hammer, args=(str(study.root), k, 25)) for k in range(4)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+        assert p.exitcode == 0
+    m = json.loads((study.root / "study.json").read_text())
+    assert len(m["stages"]["toy"]["scans"]) == 100
