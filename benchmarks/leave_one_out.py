@@ -40,8 +40,12 @@ def _say(event):
 
 
 def run_case(case: str, size: str, seed: int, out: Path) -> list[tuple]:
-    ph = make_phantom(case, size=size, seed=seed)
-    study = write_phantom_study(ph, out / case, overwrite=True)
+    from workbench.study import read_study
+
+    if (out / case / "study.json").exists():  # a study from an earlier run: its stages skip what is up to date
+        study = read_study(out / case)
+    else:
+        study = write_phantom_study(make_phantom(case, size=size, seed=seed), out / case)
     t0 = time.perf_counter()
     run_stages(study, ["bones", "pose", "weights", "init", "register"], progress=_say)
     print(f"{case}: pipeline {time.perf_counter() - t0:.1f} s", flush=True)
@@ -73,7 +77,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="+", default=["knee", "hand"], choices=["knee", "hand"])
     ap.add_argument("--size", choices=["test", "paper"], default="test")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, help="where the studies are written (default: a temporary folder)")
+    ap.add_argument("--out", type=Path, help="where the studies are written (default: a temporary folder); studies "
+                                             "already there are reused, their stages rerun only where out of date")
     args = ap.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="avw-loo-"))
     out.mkdir(parents=True, exist_ok=True)

@@ -717,27 +717,68 @@ def resample_forward(bmap: BackwardMap, volume: Volume, *, labels: bool = False,
     return Volume(out, bmap.target_geometry)
 
 
-def invert_scan_to_template(field: Volume, template_geometry: GridGeometry, *, transforms=None,
-                            prefer=None) -> BackwardMap:
+def invert_scan_to_template(field: Volume, template_geometry: GridGeometry, *, transforms=None, prefer=None,
+                            forward=None, tol_mm: float | None = None) -> BackwardMap:
     """Invert a ``scan_to_template`` field: where every *template* voxel lies in the scan (the one inversion).
 
-    ``field`` on the scan grid maps each scan voxel ``x`` to ``x + field(x)``
-    in the template: a forward map from the scan grid into template space,
-    inverted here by :func:`backward_map` onto ``template_geometry``.  The
-    result's :meth:`BackwardMap.scan_to_template` is then the
-    ``template_to_scan`` field (scan position − template voxel, mm) and its
-    ``status`` says where it was found (:data:`OK`, :data:`FOLDED`) and where
-    the template voxel leaves the scan's field of view (:data:`OUTSIDE`).
-    EVD (Rhee Eq. 7) needs these template → scan positions.
+    ``field`` on the scan grid maps each scan voxel ``x`` to ``φ(x) = x +
+    field(x)`` in the template.  The result's :meth:`BackwardMap.scan_to_template`
+    is the ``template_to_scan`` field (scan position − template voxel, mm) on
+    ``template_geometry``, and its ``status`` says where it was found
+    (:data:`OK`, :data:`FOLDED`), where the inverse did not hold
+    (:data:`NOT_CONVERGED`) and where the template voxel leaves the scan's
+    field of view (:data:`OUTSIDE`).  EVD (Rhee Eq. 7) needs these
+    template → scan positions.
 
-    ``transforms`` (``(n, 4, 4)`` template → scan, e.g. the bones') seed the
-    Newton solves with their inverses, so large articulated motions converge;
-    ``prefer`` (a bool array on the *scan* grid) marks the scan voxels to
-    prefer where several map to one template voxel (e.g. those whose
-    template position lies in the body).
+    Two routes:
+
+    * ``forward`` given — the registration started from an articulated map
+      whose *forward* map ``F`` (template voxel → scan position, ``(nz, ny,
+      nx, 3)`` on the template grid, e.g. VBD, Rhee Eq. 2) is known, and its
+      steps were composed on the right, ``φ = F⁻¹ ∘ U`` (Rhee Algorithm 1,
+      :mod:`registration.adaptive`).  Then ``U = F ∘ φ`` is a forward
+      evaluation (no inversion), a near-identity one-to-one map of scan space
+      (each step was guarded against folding), inverted by the fixed-point
+      iteration of :func:`deformation.fields.invert`, and ``φ⁻¹ = U⁻¹ ∘ F``.
+      The articulated part is inverted exactly by its own forward map; only
+      the registration's small correction is inverted numerically.  Inverting
+      ``φ`` as a whole instead is many-to-one wherever the start's backward
+      map filled air with tissue (between the fingers), and picks the wrong
+      sheet there.  A template voxel whose result does not map back to it
+      within ``tol_mm`` (default: half the template's largest spacing; folds
+      of ``F`` in a flexed crease) is marked :data:`NOT_CONVERGED`.
+    * otherwise — ``φ`` itself is inverted by the Newton :func:`backward_map`
+      onto ``template_geometry`` (a ground-truth field, or a registration
+      without an articulated start); ``transforms`` (``(n, 4, 4)`` template
+      → scan, e.g. the bones') seed the solves with their inverses, so large
+      articulated motions converge, and ``prefer`` (a bool array on the
+      *scan* grid) marks the scan voxels to prefer where several map to one
+      template voxel.
     """
     g = field.geometry
-    fwd = (np.asarray(field.data, np.float64) + g.world_coordinates()).astype(np.float32)
-    inv = None if transforms is None else np.stack([np.linalg.inv(t) for t in np.asarray(transforms, float)])
-    return backward_map(fwd, g, template_geometry, transforms=inv,
-                        prefer=None if prefer is None else np.asarray(prefer, bool))
+    if forward is None:
+        fwd = (np.asarray(field.data, np.float64) + g.world_coordinates()).astype(np.float32)
+        inv = None if transforms is None else np.stack([np.linalg.inv(t) for t in np.asarray(transforms, float)])
+        return backward_map(fwd, g, template_geometry, transforms=inv,
+                            prefer=None if prefer is None else np.asarray(prefer, bool))
+    from .fields import invert
+    from .interpolate import sample, sample_displaced_array
+
+    f = np.asarray(forward, np.float64)
+    if f.shape != template_geometry.array_shape + (3,):
+        raise ValueError(f"forward must be (nz, ny, nx, 3) = {template_geometry.array_shape + (3,)} on the template "
+                         f"grid, got {f.shape}")
+    phi = np.asarray(field.data, np.float64)
+    # U = F ∘ φ on the scan grid (F trilinear between template voxels; undefined where φ leaves the template grid)
+    ux = sample_displaced_array(f, template_geometry.world_to_index_matrix, g, phi, 1, np.nan)
+    u = ux - g.world_coordinates()
+    u[~np.isfinite(u).all(axis=-1)] = 0.0  # outside the template: the identity
+    w, _ = invert(Volume(u, g))
+    pos = f + sample(w, f.reshape(-1, 3), order=1, fill=0.0).reshape(f.shape)  # φ⁻¹(v) = U⁻¹(F(v))
+    back = pos + sample(field, pos.reshape(-1, 3), order=1, fill=0.0).reshape(f.shape)
+    resid = np.linalg.norm(back - template_geometry.world_coordinates(), axis=-1)
+    tol = 0.5 * max(template_geometry.spacing) if tol_mm is None else float(tol_mm)
+    status = np.where(resid <= tol, OK, NOT_CONVERGED).astype(np.uint8)
+    inside = g.contains_world(pos.reshape(-1, 3)).reshape(template_geometry.array_shape)
+    status[~inside] = OUTSIDE
+    return BackwardMap(g, template_geometry, g.world_to_index(pos.reshape(-1, 3)).reshape(f.shape), resid, status)

@@ -706,7 +706,7 @@ def cmd_model(args) -> int:
     source = args.source
     if source == "auto":
         st = read_study(args.study)
-        registered = (st.manifest.get("stages") or {}).get("register")
+        registered = st.recorded_settings("register") is not None
         has_truth = all(st.has_truth(sid) for sid in st.scan_ids)
         source = "registration" if registered or not has_truth else "truth"
     ms = ModelSettings(source=source, scans=tuple(args.scan) if args.scan else None)
@@ -885,14 +885,14 @@ def _render_inputs(args, say):
 
 def cmd_render(args) -> int:
     from workbench.viz.render import (ClipPlane, opengl_backend, parse_size, render_difference, render_overlay,
-                                  render_volume, write_png, _preset)
+                                  render_volume, write_png, transfer_function)
 
     say = _say(args) or (lambda line: None)
     size = parse_size(args.size)
     clip = ClipPlane.parse(args.clip) if args.clip else None
     cam = _camera(args)
     bg = _background(args.background)
-    tf = _preset(args.preset)
+    tf = transfer_function(args.preset)
     if args.out.suffix.lower() != ".png":
         raise ValueError(f"--out {args.out}: stills are PNG; name it *.png")
     if args.out.exists() and not args.force:

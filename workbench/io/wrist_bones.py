@@ -147,7 +147,7 @@ class BoneMotion:
 
 def default_wrist_root() -> Path:
     """``<project root>/../shared/data/wrist-bones-mri`` (resolved from this file)."""
-    return (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "wrist-bones-mri").resolve()
+    return (Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "wrist-bones-mri").resolve()
 
 
 def find_wrist_data(root: str | os.PathLike | None = None) -> Path | None:

@@ -6,14 +6,16 @@ displacements an NLopt simplex optimises; each accepted step is composed into
 the running field (:func:`registration.adaptive.register_adaptive`).  After
 VBD the template's bone voxels are zero-displacement control points (Rhee
 §4.3).  The result is inverted onto the template grid
-(:func:`deformation.resample.invert_scan_to_template`) for EVD (Rhee Eq. 7).
+(:func:`deformation.resample.invert_scan_to_template`; after VBD through its
+exact forward map, so that only the registration's own correction is
+inverted numerically) for EVD (Rhee Eq. 7).
 
 Outputs (``registration/<scan>/``)::
 
     correspondence.mha     scan_to_template on the scan grid (template position − voxel, mm; the convention
                            of truth/<id>_correspondence.mha, usable by sitk.DisplacementFieldTransform)
     template_to_scan.mha   its inverse on the template grid (scan position − voxel, mm)
-    inverse_status.nii.gz  where the inverse was found: 0 ok, 1 folded, 2 not converged, 3 outside the scan
+    inverse_status.nii.gz  where the inverse was found: 0 ok, 1 folded, 2 not found, 3 outside the scan
     registered.nii.gz      the template resampled onto the scan grid through the field
     log.json               settings, per-level and per-step log, similarity before/after, folding
 """
@@ -85,6 +87,7 @@ def _inputs(study, s, scan):
 
 
 def _run(ctx) -> dict:
+    from deformation.evd import vbd_forward
     from deformation.geometry import Volume
     from deformation.resample import invert_scan_to_template
     from deformation.skinning import stack_transforms
@@ -96,12 +99,12 @@ def _run(ctx) -> dict:
     template, scan = study.template(), study.scan(sid)
     initial = study.init_field(sid)
     rigid = study.template_labels() if (method == "vbd" and settings.fix_bones and study.has_template_labels) else None
-    transforms = None
+    forward = None
     if method == "vbd":
         init_pose = (study.stage_entry("init", sid) or {}).get("settings", {}).get("pose", "estimated")
         weights, _ = study.weights()
         pose = study.truth_pose(sid) if init_pose == "truth" else study.pose(sid)
-        transforms = stack_transforms(pose.transforms, weights.bones)
+        forward = vbd_forward(template.geometry, weights, stack_transforms(pose.transforms, weights.bones))
 
     def step(info):
         if "level_done" in info:
@@ -115,7 +118,8 @@ def _run(ctx) -> dict:
 
     result = register_adaptive(scan, template, initial=initial, rigid_mask=rigid, settings=settings, progress=step)
     ctx.say(f"{sid}: inverting the field onto the template grid ...")
-    bm = invert_scan_to_template(result.correspondence, template.geometry, transforms=transforms)
+    # φ = VBD⁻¹ ∘ U: only the registration's own correction U is inverted numerically
+    bm = invert_scan_to_template(result.correspondence, template.geometry, forward=forward)
     summary = {"scan": sid, "init": method, "registration_seconds": round(result.seconds, 2),
                "control_points": result.control_points, "steps": len(result.steps),
                "evaluations": result.evaluations, "inverse": bm.summary(), "folding": result.folding,
@@ -133,4 +137,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones"), inputs=_inputs)
+              needs=lambda s: ("init", "bones", "weights"), inputs=_inputs, version=2)

@@ -27,10 +27,7 @@ def settings_for(study: Study, name: str, given: dict | None = None):
     stage = STAGES[name]
     if given and name in given:
         return given[name]
-    e = (study.manifest.get("stages") or {}).get(name) or {}
-    recorded = e.get("settings")
-    if recorded is None and isinstance(e.get("scans"), dict) and e["scans"]:
-        recorded = next(iter(e["scans"].values())).get("settings")
+    recorded = study.recorded_settings(name)
     if recorded:
         try:
             return stage.settings_type(**_settings_from_json(stage.settings_type, recorded))

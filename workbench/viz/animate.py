@@ -329,7 +329,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     the frame count and the time spent deforming, rendering and encoding.
     """
     from workbench.deform import study_poser
-    from workbench.viz.render import VolumeRenderer, _first_visible, _preset, _robust_range, content_mask
+    from workbench.viz.render import VolumeRenderer, first_visible, transfer_function, robust_range, content_mask
     from workbench.study import read_study
 
     say = progress or (lambda line: None)
@@ -358,9 +358,9 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     try:
         template = poser.template
         g = template.geometry
-        tf = _preset(transfer)
-        lo, hi = _robust_range(template.data)
-        thr = _first_visible(tf.resolved(lo, hi))
+        tf = transfer_function(transfer)
+        lo, hi = robust_range(template.data)
+        thr = first_visible(tf.resolved(lo, hi))
         mask = content_mask(template.data, thr)
         bounds = _camera_bounds(poser, sk, kf, mask, 2.0 * max(g.spacing))
         g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in

@@ -51,7 +51,7 @@ from workbench.errors import InputFileError, WorkbenchError
 __all__ = ["Backend", "RenderError", "opengl_backend", "offscreen_available", "TransferFunction", "PRESETS",
            "Camera", "ClipPlane", "VolumeRenderer", "render_volume", "render_overlay", "render_difference",
            "write_png", "parse_size", "label_colour", "content_mask", "points_bounds", "union_bounds", "content_bounds",
-           "CONTRAST_COLOURS", "LEVEL_COLOURS",
+           "CONTRAST_COLOURS", "LEVEL_COLOURS", "transfer_function", "robust_range", "first_visible",
            "MARKER_COLOUR"]
 
 #: template and target colours of the papers' overlays (cyan and magenta; Rhee Figs. 1, 8, 9, 11)
@@ -247,7 +247,8 @@ PRESETS = {
 }
 
 
-def _robust_range(data) -> tuple[float, float]:
+def robust_range(data) -> tuple[float, float]:
+    """The 0.5–99.5 % intensity range of ``data`` (finite values; ``(0, 1)`` when there are none)."""
     a = np.asarray(data, np.float64)
     a = a[np.isfinite(a)]
     if a.size == 0:
@@ -257,7 +258,8 @@ def _robust_range(data) -> tuple[float, float]:
     return float(lo), float(hi if hi > lo else lo + 1.0)
 
 
-def _preset(tf) -> TransferFunction:
+def transfer_function(tf) -> TransferFunction:
+    """A :class:`TransferFunction` from a preset name (``mri``, ``ct``), a JSON file, or one already made."""
     if isinstance(tf, TransferFunction):
         return tf
     if isinstance(tf, (str, os.PathLike)) and str(tf) in PRESETS:
@@ -447,7 +449,7 @@ def _world_bounds(g: GridGeometry) -> tuple:
     return tuple(float(v) for pair in zip(lo, hi) for v in pair)
 
 
-def _first_visible(tf: TransferFunction) -> float:
+def first_visible(tf: TransferFunction) -> float:
     """The intensity from which ``tf`` (absolute) is not fully transparent."""
     pts = tf.opacity
     for (v0, a0), (_, a1) in zip(pts, pts[1:]):
@@ -528,7 +530,7 @@ class VolumeRenderer:
         self.geometry = geometry
         self.camera = camera or Camera()
         self.clip = clip
-        tfs = [_preset(t) for t in (transfers if transfers is not None else [transfer])]
+        tfs = [transfer_function(t) for t in (transfers if transfers is not None else [transfer])]
         self.n_components = len(tfs)
         self._tfs, self._resolved = tfs, None
         self._reference = reference
@@ -623,7 +625,7 @@ class VolumeRenderer:
         self._resolved = []
         for c, tf in enumerate(self._tfs):
             r = refs[c] if c < len(refs) else refs[0]
-            lo, hi = _robust_range(r.data if isinstance(r, Volume) else r)
+            lo, hi = robust_range(r.data if isinstance(r, Volume) else r)
             t = tf.resolved(lo, hi)
             self._resolved.append(t)
             self._ctf[c].RemoveAllPoints()
@@ -733,7 +735,7 @@ class VolumeRenderer:
         """Camera and clipping plane on the anatomy's world box (``bounds``, or the union of every volume's tissue)."""
         if self.bounds is None:  # the union of every component's visible tissue
             self.bounds = union_bounds([content_bounds(v.data if isinstance(v, Volume) else v, self.geometry,
-                                                       _first_visible(t)) for v, t in zip(volumes, self._resolved)])
+                                                       first_visible(t)) for v, t in zip(volumes, self._resolved)])
         cam = self._ren.GetActiveCamera()
         first = self._distance is None
         self._distance = self.camera.place(cam, self.bounds, self.size[0] / self.size[1], self._distance)
@@ -830,7 +832,7 @@ def render_overlay(a: Volume, b: Volume, *, colours=CONTRAST_COLOURS, transfer="
     coordinates, linear).  ``points`` as in :func:`render_volume` (Rhee
     Fig. 9: the registration's control points over the overlay).
     """
-    tf = _preset(transfer)
+    tf = transfer_function(transfer)
     b = _on_grid(b, a.geometry)
     with VolumeRenderer(a.geometry, transfers=[tf.tinted(colours[0]), tf.tinted(colours[1])],
                         reference=[a, b], **kw) as r:
@@ -855,13 +857,13 @@ def render_difference(a: Volume, b: Volume, *, transfer="mri", **kw) -> np.ndarr
     so the view matches :func:`render_volume` and :func:`render_overlay`.
     """
     b = _on_grid(b, a.geometry)
-    lo, hi = _robust_range(a.data)
+    lo, hi = robust_range(a.data)
     d = (np.asarray(a.data, np.float64) - np.asarray(b.data, np.float64)) / (hi - lo)
     diff = Volume(np.clip(d, -1.0, 1.0).astype(np.float32), a.geometry)
     if kw.get("bounds") is None:
-        tf = _preset(transfer)
+        tf = transfer_function(transfer)
         kw["bounds"] = union_bounds([content_bounds(v.data, a.geometry,
-                                                    _first_visible(tf.resolved(*_robust_range(v.data))))
+                                                    first_visible(tf.resolved(*robust_range(v.data))))
                                      for v in (a, b)])
     with VolumeRenderer(a.geometry, transfer=DIFFERENCE, **kw) as r:
         return r.render(diff)
