@@ -404,6 +404,9 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--labels-out", type=Path, metavar="LABELS", help="posed label map (default: beside --out)")
     de.add_argument("--field-out", type=Path, metavar="FIELD",
                     help="also write the posed-to-template displacement field (ITK vector image, mm)")
+    de.add_argument("--grow", action="store_true",
+                    help="write the posed volume on the template's grid extended (same spacing and direction) to "
+                         "hold the whole posed body, instead of the template's grid itself")
     de.add_argument("--method", choices=["auto", "vbd", "evd"], default="auto",
                     help="'auto': EVD when the study has a model, else VBD. Default: auto")
     de.add_argument("--weighting", choices=["psd", "wpsd"], default="psd",
@@ -597,14 +600,21 @@ def _camera(args):
 
 
 def _say(args):
-    return None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    """A line printer for the commands that are not stages (deform, render, animate), through the same
+    progress printer as the stages' events (``None`` with --quiet)."""
+    if args.quiet:
+        return None
+    from workbench.stages.mechanism import Event
+
+    printer = _progress(args)
+    return lambda line: printer(Event(args.command, None, 0, 0, line, "message"))
 
 
 def cmd_deform(args) -> int:
     from workbench.deform import deform_study
 
     s = deform_study(args.study, args.pose, args.out, method=args.method, weighting=args.weighting,
-                     labels_out=args.labels_out, field_out=args.field_out, overwrite=args.force,
+                     labels_out=args.labels_out, field_out=args.field_out, grow=args.grow, overwrite=args.force,
                      progress=_say(args))
     n = s["n_voxels"]
     print(f"{s['method'].upper()}: forward {s['forward_seconds']:.2f} s, backward map + resampling "

@@ -54,10 +54,12 @@ def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", p
 
 
 def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str = "psd", labels_out=None,
-                 field_out=None, overwrite: bool = False, progress=None) -> dict:
+                 field_out=None, grow: bool = False, overwrite: bool = False, progress=None) -> dict:
     """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Eq. 6) and write the posed volume and labels.
 
-    The posed volume lies on the template's grid (same geometry).  Returns a
+    The posed volume lies on the template's grid (same geometry), or with
+    ``grow`` on that grid extended by whole voxels to hold the posed body
+    (a bent limb leaves a slab scanned straight).  Returns a
     summary: the method, the backward map's status counts, timings.
     """
     from workbench.io.atomic import split_suffix
@@ -97,7 +99,15 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
                              "writes the posed labels beside the posed volume and needs one.", study.root / MANIFEST)
     poser = study_poser(study, method=method, weighting=weighting, progress=say)
     used = poser.method
-    posed = poser.pose(pose)
+    target = None
+    if grow:  # the template's grid (same spacing and direction) extended to hold the posed body
+        from workbench.viz.animate import covering_grid
+        from workbench.viz.render import points_bounds
+
+        g = poser.template.geometry
+        target = covering_grid(g, points_bounds(poser.forward(pose)[poser.body.data > 0], 2.0 * max(g.spacing)))
+        say(f"posed volume on the grid grown to hold the posed body: {target.describe()}")
+    posed = poser.pose(pose, target=target)
     bm = posed.backward
     write_volume(posed.volume, out, overwrite=overwrite)
     write_labels(posed.labels, labels_out, overwrite=overwrite)
