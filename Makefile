@@ -59,7 +59,7 @@ demo: venv
 	$(VENV)/bin/workbench run $(DEMO_DIR); \
 	$(VENV)/bin/workbench deform $(DEMO_DIR) --pose examples/knee_bend45.json --out $(DEMO_DIR)/bend45.nii.gz --grow --force; \
 	$(VENV)/bin/workbench render $(DEMO_DIR)/bend45.nii.gz --labels $(DEMO_DIR)/bend45_labels.nii.gz --clip z:0.5 \
-	  --zoom 1.3 --out $(DEMO_DIR)/bend45.png --size 960x720 --force; \
+	  --zoom 1.15 --out $(DEMO_DIR)/bend45.png --size 960x720 --force; \
 	$(VENV)/bin/workbench animate $(DEMO_DIR) --out $(DEMO_DIR)/knee.mp4 --force; \
 	echo; echo "outputs in $(DEMO_DIR)/:"; \
 	echo "  study.json                  the manifest: every stage's settings, inputs, outputs and timings"; \

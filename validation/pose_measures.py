@@ -25,7 +25,9 @@ def pose_errors(estimate, truth, centroids: dict) -> dict:
         e = {}
         a_est = (estimate.joint_angles or {}).get(name)
         if a_est is not None:
-            e["angle_error_deg"] = np.abs(np.asarray(a_est, float) - np.asarray(a_true, float)).tolist()
+            d = np.asarray(a_est, float) - np.asarray(a_true, float)
+            d[:3] = (d[:3] + 180.0) % 360.0 - 180.0  # angles wrap; a 6-DOF joint's last three values are mm
+            e["angle_error_deg"] = np.abs(d).tolist()
         c_true = (truth.joint_centers or {}).get(name)
         c_est = (estimate.joint_centers or {}).get(name)
         if c_true is not None and c_est is not None:

@@ -8,6 +8,7 @@ status.  Heavy imports happen inside the subcommands so ``--help`` is fast.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -215,10 +216,17 @@ contact.  Angles are intrinsic XYZ in the skeleton's joint frame (degrees).
 
 Writes poses/<scan>_pose.json (the same schema as the phantoms' truth),
 joints.json, fits.json (per bone: status, metric, iterations, time) and
-report.txt into the study, and names each scan's pose in study.json.  Bones
-that leave the field of view, do not converge or match poorly are listed,
-with the scan and the metric.  With ground truth (phantoms) the report
-prints the errors.
+report.txt into the study, and records them in study.json.  Bones that leave
+the field of view, do not converge or match poorly are listed, with the scan
+and the metric.  The pose stage never reads a phantom's ground truth:
+`workbench validate` compares the poses with it.  With --seeds the bones
+stage first segments the template's bones (bones/template_labels.nii.gz,
+used by every later stage).
+
+Like every stage command it skips work that is up to date (same images,
+labels and settings) and runs with the settings its options give (their
+defaults where left out); `workbench run` keeps the settings a stage last
+ran with.
 
 Seeds file for --seeds:
   {"format": "avw-seeds", "version": 1, "units": "mm",
@@ -386,10 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
     mo = sub.add_parser("model", help="build an EVD model (Rhee Eq. 7) from the study's correspondences",
                         description=MODEL_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     mo.add_argument("study", type=Path, help="study folder (holding study.json)")
-    mo.add_argument("--source", choices=["auto", "registration", "truth"], default="auto",
+    mo.add_argument("--source", choices=["registration", "truth"], default="registration",
                     help="correspondences: 'registration' (`workbench register` + estimated poses) or 'truth' (a "
-                         "phantom's). 'auto': registration when the study has registrations or no truth, else "
-                         "truth. Default: auto")
+                         "phantom's exact ones and true poses; never taken unless asked). Default: registration")
     mo.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
     mo.add_argument("--force", action="store_true", help="rebuild even when up to date")
     _common(mo)
@@ -648,7 +655,7 @@ def _stages(args, targets, settings=None, *, force=(), scans=None, options=None)
     return study.reload(), outcomes
 
 
-def _bones_settings(args, study_path):
+def _bones_settings(args):
     from workbench.stages.bones import BonesSettings
 
     if getattr(args, "seeds", None) is None:
@@ -661,7 +668,7 @@ def _bones_settings(args, study_path):
 def cmd_bones(args) -> int:
     from workbench.stages.bones import BonesSettings
 
-    bs = _bones_settings(args, args.study) or BonesSettings(source="labels")
+    bs = _bones_settings(args) or BonesSettings(source="auto")
     study, _ = _stages(args, ["bones"], {"bones": bs}, force={"bones"} if args.force else ())
     counts = read_json_output(study, "bones", "bones.json")
     print(f"bones ({counts['source']}): " + ", ".join(f"{b} {n}" for b, n in counts["voxels"].items()) + " voxels")
@@ -684,7 +691,7 @@ def cmd_pose(args) -> int:
                       margin_mm=args.margin_mm, max_joint_gap_mm=args.max_joint_gap_mm or None,
                       outlier_factor=args.outlier_factor or None, scans=tuple(args.scan) if args.scan else None)
     settings = {"pose": ps}
-    bs = _bones_settings(args, args.study)
+    bs = _bones_settings(args)
     if bs is not None:
         settings["bones"] = bs
     study, _ = _stages(args, ["pose"], settings, force={"pose"} if args.force else ())
@@ -711,14 +718,8 @@ def cmd_weights(args) -> int:
 
 def cmd_model(args) -> int:
     from workbench.stages.model import ModelSettings
-    from workbench.study import read_study
 
     source = args.source
-    if source == "auto":
-        st = read_study(args.study)
-        registered = st.recorded_settings("register") is not None
-        has_truth = all(st.has_truth(sid) for sid in st.scan_ids)
-        source = "registration" if registered or not has_truth else "truth"
     ms = ModelSettings(source=source, scans=tuple(args.scan) if args.scan else None)
     study, out = _stages(args, ["model"], {"model": ms}, force={"model"} if args.force else ())
     doc = read_json_output(study, "model", "evd.json")
@@ -763,9 +764,10 @@ def cmd_run(args) -> int:
     study = read_study(args.study)
     settings = merged_settings(study, parse_set(args.set_))
     if args.seeds is not None:
-        from workbench.stages.bones import BonesSettings
+        from workbench.stages.run import settings_for
 
-        settings["bones"] = BonesSettings(source="seeds", seeds=str(args.seeds))
+        settings["bones"] = dataclasses.replace(settings.get("bones") or settings_for(study, "bones"),
+                                                source="seeds", seeds=str(args.seeds))
     targets = list(ORDER[:ORDER.index(args.until) + 1]) if args.until else list(ORDER)
     from workbench.stages.run import dependents
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deformation.posed_template import TemplatePoser
+from deformation.posed_template import WEIGHTINGS, TemplatePoser
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.inputs import read_target_pose
 from workbench.io.volumes import write_labels, write_volume
@@ -65,10 +65,10 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     from workbench.io.atomic import split_suffix
     from workbench.io.volumes import image_format
 
-    if method not in ("auto", "vbd", "evd"):
-        raise ValueError(f"method must be 'auto', 'vbd' or 'evd', got {method!r}")
-    if weighting not in ("psd", "wpsd"):
-        raise ValueError(f"weighting must be 'psd' or 'wpsd', got {weighting!r}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
     say = progress or (lambda line: None)
     study = read_study(folder)
     out = Path(out)

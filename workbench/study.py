@@ -15,8 +15,7 @@ every file by role, with paths relative to the folder::
          "truth": {"correspondence": "truth/pose00_correspondence.mha",
                    "template_to_scan": "truth/pose00_template_to_scan.mha",
                    "pose": "truth/pose00_pose.json",
-                   "markers": "truth/pose00_markers.json"},
-         "pose": "poses/pose00_pose.json"},
+                   "markers": "truth/pose00_markers.json"}},
         ...
       ],
       "phantom": {...generator parameters...},
@@ -24,16 +23,17 @@ every file by role, with paths relative to the folder::
     }
 
 ``template_labels`` and ``truth`` are optional (a user's own study may have
-neither; ``workbench pose --seeds`` segments the bones); ``pose`` appears once
-``workbench pose`` has run, in the same schema as the truth pose.  The correspondence
+neither; ``workbench bones --seeds`` segments the bones).  The correspondence
 field is ``scan_to_template``: an ITK displacement field on the scan's grid
 whose vector at scan voxel ``x`` is ``template_position − x`` in mm, so
 ``sitk.DisplacementFieldTransform`` resamples the template onto the scan
 directly.  The optional ``template_to_scan`` field is the exact forward map
 on the template grid (scan position − template voxel position, mm); it
 differs from the inverse of ``correspondence`` where the posing folds.  Markers are ``{"markers": [{"name", "template": [x,y,z],
-"scan": [x,y,z]}]}``.  Later pipeline stages record their outputs under
-``stages``.
+"scan": [x,y,z]}]}``.  The pipeline's stages record their outputs under
+``stages`` (see :class:`Study`, and :mod:`workbench.stages.mechanism`); the
+estimated pose of a scan is the pose stage's ``poses/<id>_pose.json``, in the
+same schema as the truth pose.
 
 Phantom studies are written into a staging folder beside the target and
 renamed into place at the end, so an interrupted run leaves no half-written

@@ -35,7 +35,7 @@ def _write_seeds(study, path):
 
 def _hashes(root):
     return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and p.relative_to(root).parts[0] not in ("poses", "bones")
+            for p in sorted(root.rglob("*")) if p.is_file() and p.relative_to(root).parts[0] not in ("poses", "bones", ".locks")
             and p.name not in ("study.json", ".study.json.lock")}
 
 

@@ -129,7 +129,7 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 600
-    while not (bare / "registration" / "pose00").exists():  # the first registration is committed
+    while not _registered(bare, "pose00"):  # the first registration is committed and recorded
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline
         time.sleep(0.05)
@@ -154,6 +154,14 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
         (root / "model" / "evd_displacements.mha").read_bytes()
 
 
+def _registered(root: Path, sid: str) -> bool:
+    try:
+        m = json.loads((root / "study.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return sid in (m.get("stages", {}).get("register", {}).get("scans") or {})
+
+
 def test_four_concurrent_register_processes_leave_a_complete_manifest(done, tmp_path):
     root, _, _ = done
     copy = tmp_path / "study"
@@ -174,4 +182,24 @@ def test_four_concurrent_register_processes_leave_a_complete_manifest(done, tmp_
     entries = st.manifest["stages"]["register"]["scans"]
     assert set(entries) == set(ids)
     assert all(st.has_registration(sid) for sid in ids)
-    assert not (copy / "study.json.tmp").exists() and not list(copy.glob(".study.tmp-*"))
+    assert not list(copy.glob(".study.tmp-*"))  # no manifest write left half-done
+
+
+def test_sigterm_in_the_middle_of_a_stage_leaves_nothing_partial(phantom, tmp_path):
+    """SIGTERM (a batch system's kill) unwinds like Ctrl-C: the pose stage's staging folder is removed, the
+    stages before it stay recorded, and nothing of the pose stage is recorded."""
+    root = _strip(phantom, tmp_path / "study")
+    proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(root), "--until", "pose"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not list(root.glob(".poses.partial-*")):  # the pose stage is at work
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert not [p for p in root.rglob("*") if ".partial-" in p.name or ".tmp-" in p.name]
+    st = read_study(root)
+    assert st.stage_entry("bones") is not None and st.stage_entry("pose") is None and not (root / "poses").exists()

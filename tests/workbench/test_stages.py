@@ -106,21 +106,27 @@ def test_needs_are_checked_before_any_work_and_staleness_is_seen(study):
 def test_a_failing_stage_leaves_no_partial_output_and_keeps_the_old_one(study):
     execute(study, SCALE, Gain(), registry=REG)
     before = (study.root / "study.json").read_bytes()
-    files = sorted(p.name for p in (study.root / "scaled").rglob("*"))
+    files = {p: p.read_bytes() for p in sorted((study.root / "scaled").rglob("*")) if p.is_file()}
     with pytest.raises(RuntimeError, match="boom"):
         execute(study, SCALE, Gain(5.0), registry=REG, options={"fail": True})
-    assert sorted(p.name for p in (study.root / "scaled").rglob("*")) == files  # no staging folder left
+    # no staging folder left, the old outputs as they were, the manifest untouched
+    assert {p: p.read_bytes() for p in sorted((study.root / "scaled").rglob("*")) if p.is_file()} == files
     assert (study.root / "study.json").read_bytes() == before
 
 
 def test_staging_folders_of_dead_processes_are_removed(study):
     (study.root / "scaled").mkdir()
-    dead = study.root / "scaled" / ".a.partial-999999999-abcd"  # no such process
-    alive = study.root / "scaled" / f".b.partial-{os.getpid()}-abcd"  # this process: kept
-    dead.mkdir()
-    alive.mkdir()
+    import socket
+
+    host = socket.gethostname()
+    dead = study.root / "scaled" / f".a.partial-{host}-999999999-abcd"  # no such process on this host
+    old = study.root / "scaled" / f".a.old-{host}-999999999-abcd"  # a replaced folder its process left
+    alive = study.root / "scaled" / f".b.partial-{host}-{os.getpid()}-abcd"  # this process: kept
+    other = study.root / "scaled" / ".b.partial-elsewhere-1-abcd"  # another host's: kept
+    for p in (dead, old, alive, other):
+        p.mkdir()
     execute(study, SCALE, Gain(), registry=REG)
-    assert not dead.exists() and alive.exists()
+    assert not dead.exists() and not old.exists() and alive.exists() and other.exists()
 
 
 def _hammer(root, k, n):
@@ -140,3 +146,25 @@ def test_concurrent_writers_lose_no_entry(study):
         assert p.exitcode == 0
     m = json.loads((study.root / "study.json").read_text())
     assert len(m["stages"]["toy"]["scans"]) == 100
+
+
+def _execute_forced(root):
+    st = read_study(root)
+    execute(st, SCALE, Gain(4.0), registry=REG, force=True)
+    execute(st, MEAN, Gain(), registry=REG, force=True)
+
+
+def test_concurrent_executions_of_the_same_stages_all_succeed(study):
+    """Three processes rerun the same per-scan and whole-study stages at once: each unit runs one at a time
+    (a lock per unit), every process succeeds and the study ends complete and consistent."""
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_execute_forced, args=(str(study.root),)) for _ in range(3)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+        assert p.exitcode == 0
+    st = read_study(study.root)
+    assert stage_status(st, MEAN, registry=REG) == "done"
+    assert all(stage_status(st, SCALE, sid, registry=REG) == "done" for sid in st.scan_ids)
+    assert not [p for p in study.root.rglob("*") if ".partial-" in p.name or ".old-" in p.name]

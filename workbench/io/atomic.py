@@ -241,16 +241,19 @@ def write_text_atomic(
 
 
 def replace_dir(staging: str | os.PathLike, final: str | os.PathLike) -> Path:
-    """Move the complete folder ``staging`` to ``final``, replacing an old ``final`` only once the new one is in place.
+    """Move the complete folder ``staging`` to ``final``, replacing an old ``final`` only once the new one is complete.
 
-    The old folder is renamed aside first and removed last; if the move
-    fails it is put back, so ``final`` is always either the old folder or the
-    new one.
+    The old folder is renamed aside (``.<name>.old-<host>-<pid>-<random>``)
+    and removed last; if the move fails it is put back.  A reader sees the old
+    folder or the new one, never a mixture — and, for the instant between the
+    two renames, none (POSIX has no atomic exchange of two folders).
     """
+    import socket
+
     staging, final = Path(staging), Path(final)
     old = None
     if final.exists():
-        old = final.parent / f".{final.name}.old-{secrets.token_hex(4)}"
+        old = final.parent / f".{final.name}.old-{socket.gethostname()}-{os.getpid()}-{secrets.token_hex(4)}"
         os.replace(final, old)
     try:
         os.replace(staging, final)

@@ -4,7 +4,8 @@
 * ``source="seeds"``: segmented from a seeds file (one world point in mm
   inside each bone) — thresholding and connected components for CT, seeded
   region growing for MRI (:func:`registration.segmentation.segment_bones`);
-* ``source="auto"``: the given labels when the study has them, else seeds.
+* ``source="auto"``: segmented when a seeds file is given, else the study's
+  own labels.
 
 Outputs (``bones/``): ``bone_frames.json`` (each bone's oriented box from the
 principal axes of its voxels, the centre of the box's base its origin),
@@ -58,6 +59,10 @@ def _segments(study, s: BonesSettings) -> bool:
 
 def _inputs(study, s: BonesSettings, scan):
     files = {"template": study.path(study.manifest["template"]), "skeleton": study.path(study.manifest["skeleton"])}
+    if s.source == "labels" and not study.manifest.get("template_labels"):
+        raise InputFileError(f"{study.manifest_path}: the study has no bone label map ('template_labels'); pass "
+                             "--seeds FILE to segment the template's bones (see `workbench pose --help`).",
+                             study.manifest_path)
     if _segments(study, s):
         if s.seeds is None:
             raise InputFileError(f"{study.root}: the study has no bone label map; pass --seeds FILE to segment the "

@@ -30,7 +30,7 @@ class InitSettings:
 
     def __post_init__(self):
         if self.method not in ("vbd", "identity"):
-            raise ValueError(f"--init must be 'vbd' or 'none', got {self.method!r}")
+            raise ValueError(f"the init method must be 'vbd' or 'identity' (--init vbd|none), got {self.method!r}")
         if self.pose not in ("estimated", "truth"):
             raise ValueError(f"--pose must be 'estimated' or 'truth', got {self.pose!r}")
         if self.unfold and self.method != "vbd":

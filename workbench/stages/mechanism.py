@@ -35,6 +35,7 @@ lines (:mod:`workbench.progress`).  Everything else goes to
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -42,6 +43,7 @@ import logging
 import os
 import secrets
 import shutil
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -251,10 +253,6 @@ def file_digest(path: Path) -> str:
     return _DIGESTS[key]
 
 
-def _needs_of(stage: Stage, settings) -> tuple:
-    return tuple(stage.needs(settings))
-
-
 def _input_digests(study: Study, stage: Stage, settings, scan) -> dict:
     files = stage.inputs(study, settings, scan)
     out = {}
@@ -272,7 +270,8 @@ def _input_digests(study: Study, stage: Stage, settings, scan) -> dict:
     return out
 
 
-def _need_units(study: Study, need: Stage, stage: Stage, scan, scans) -> list:
+def _need_units(need: Stage, scan, scans) -> list:
+    """The units of ``need`` a unit reads: the study, the same scan, or (for a whole-study stage) ``scans``."""
     if not need.per_scan:
         return [None]
     return [scan] if scan is not None else list(scans)
@@ -281,18 +280,20 @@ def _need_units(study: Study, need: Stage, stage: Stage, scan, scans) -> list:
 def _need_digests(study: Study, stage: Stage, settings, scan, scans, registry) -> dict:
     """``{need: outputs_digest}`` (per-scan needs: ``{need/scan: ...}``); raises :class:`StageNotReady`."""
     out = {}
-    for name in _needs_of(stage, settings):
+    for name in stage.needs(settings):
         need = registry[name]
-        for unit in _need_units(study, need, stage, scan, scans):
-            e = study.stage_entry(name, unit)
+        for unit in _need_units(need, scan, scans):
+            with _unit_lock(study.root, name, unit):  # not while another process swaps that unit's outputs
+                study.reload()
+                e = study.stage_entry(name, unit)
             what = f"the {name} stage" + (f" of scan {unit!r}" if unit else "")
             cmd = f"`{STAGE_COMMANDS.get(name, 'workbench run')} {study.root}`"
-            if e is None or e.get("skipped"):
-                if e is not None and e.get("skipped"):
-                    continue  # the need had no work for this unit (e.g. validate without truth)
+            if e is not None and e.get("skipped"):
+                continue  # the need had no work for this unit (e.g. validate without truth)
+            if e is None:
                 raise StageNotReady(f"{study.manifest_path}: {stage.name} needs {what}; run {cmd} (or `workbench "
                                     f"run {study.root}`) first.", study.manifest_path)
-            if stage_status(study, need, unit, registry=registry) == "stale":
+            if stage_status(study, need, unit, registry=registry) != "done":
                 raise StageNotReady(f"{study.manifest_path}: {what} is out of date (its inputs or a stage before "
                                     f"it changed since it ran); run {cmd} or `workbench run {study.root}` first.",
                                     study.manifest_path)
@@ -310,31 +311,31 @@ def _outputs_exist(study: Study, entry: dict) -> bool:
     return all(study.path(p).exists() for p in (entry.get("outputs") or {}).values())
 
 
-def stage_status(study: Study, stage: Stage, scan=None, *, registry=None) -> str:
-    """``"missing"``, ``"stale"`` (its inputs or needs changed since it ran) or ``"done"``, from its recorded settings."""
+def stage_status(study: Study, stage: Stage, scan=None, *, registry: dict) -> str:
+    """``"missing"``, ``"stale"`` (its inputs or needs changed since it ran) or ``"done"``, from its recorded settings.
+
+    A unit recorded as having nothing to do (validate without truth) is done
+    while that still holds, and missing once it has work.
+    """
     e = study.stage_entry(stage.name, scan)
     if e is None:
         return "missing"
-    if e.get("skipped"):
-        return "done"
-    if not _outputs_exist(study, e):
-        return "missing"
     try:
         settings = stage.settings_type(**_settings_from_json(stage.settings_type, e.get("settings") or {}))
+        if e.get("skipped"):
+            return "done" if stage.applies(study, settings, scan) else "missing"
+        if not _outputs_exist(study, e):
+            return "missing"
         inputs = _input_digests(study, stage, settings, scan)
+        scans = None if stage.per_scan else study.check_scan_ids(stage.uses(study, settings))
         needs = {}
-        for name in _needs_of(stage, settings):
-            need = (registry or {}).get(name)
-            units = [None] if need is None or not need.per_scan else (
-                [scan] if scan is not None else [k.split("/", 1)[1] for k in e.get("needs", {}) if "/" in k
-                                                 and k.split("/", 1)[0] == name])
-            for unit in units:
+        for name in stage.needs(settings):
+            for unit in _need_units(registry[name], scan, scans or []):
                 ne = study.stage_entry(name, unit)
                 if ne is None:
                     return "stale"
-                if ne.get("skipped"):
-                    continue
-                needs[name if unit is None else f"{name}/{unit}"] = ne["outputs_digest"]
+                if not ne.get("skipped"):
+                    needs[name if unit is None else f"{name}/{unit}"] = ne["outputs_digest"]
     except (WorkbenchError, OSError, TypeError, ValueError):
         return "stale"
     return "done" if _digest(stage, e.get("settings"), inputs, needs) == e["digest"] else "stale"
@@ -353,23 +354,28 @@ def _settings_from_json(cls, d: dict) -> dict:
     return out
 
 
+_HOST = socket.gethostname()
+
+
 def _clean_dead_staging(folder: Path) -> None:
-    """Remove staging folders left by processes that no longer run (killed with SIGKILL, power loss)."""
+    """Remove staging (``.partial-``) and replaced (``.old-``) folders left by processes of this host that no
+    longer run (killed with SIGKILL, power loss).  Another host's folders are left alone: its processes may
+    still be writing them (a shared file system)."""
     if not folder.is_dir():
         return
     for p in folder.iterdir():
-        parts = p.name.split(".partial-")
-        if len(parts) != 2 or not p.name.startswith("."):
+        if not p.name.startswith("."):
             continue
-        pid = parts[1].split("-", 1)[0]
-        if not pid.isdigit():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            shutil.rmtree(p, ignore_errors=True)
-        except PermissionError:
-            pass
+        for marker in (".partial-", ".old-"):
+            if marker in p.name:
+                tail = p.name.split(marker, 1)[1].rsplit("-", 2)  # host (may hold '-'), pid, random
+                if len(tail) == 3 and tail[0] == _HOST and tail[1].isdigit():
+                    try:
+                        os.kill(int(tail[1]), 0)
+                    except ProcessLookupError:
+                        shutil.rmtree(p, ignore_errors=True)
+                    except PermissionError:
+                        pass
 
 
 def _dir_digest(files: list[Path], base: Path) -> str:
@@ -404,62 +410,84 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
     outcomes = []
     n = len(units)
     for i, unit in enumerate(units):
-        t0 = time.perf_counter()
-        label = f"{stage.name}" + (f" {unit}" if unit else "")
-        reason = stage.applies(study, settings, unit)
-        if reason:
-            entry = {"digest": "", "skipped": reason, "outputs": {}, "outputs_digest": "",
-                     "settings": settings_json, "finished": _now()}
-            if study.stage_entry(stage.name, unit) is None or force:
-                study.record(stage.name, entry, unit, stage_info=_stage_info(stage, settings_json))
-            emit(Event(stage.name, unit, i + 1, n, f"{label}: nothing to do ({reason})", "skip"))
-            outcomes.append(Outcome(stage.name, unit, "skipped", 0.0, entry))
-            continue
-        inputs = _input_digests(study, stage, settings, unit)
-        digest = _digest(stage, settings_json, inputs, need_digests[unit])
-        old = study.stage_entry(stage.name, unit)
-        if not force and old is not None and old.get("digest") == digest and _outputs_exist(study, old):
-            emit(Event(stage.name, unit, i + 1, n, f"{label}: up to date, skipped", "skip"))
-            outcomes.append(Outcome(stage.name, unit, "skipped", 0.0, old))
-            continue
-        emit(Event(stage.name, unit, i, n, f"{label}: running", "start"))
-        final = folder / unit if unit else folder
-        final.parent.mkdir(parents=True, exist_ok=True)
-        previous = {p.name: p for p in final.iterdir()} if final.is_dir() else {}
-
-        def report(done, total, message="", _unit=unit):
-            emit(Event(stage.name, _unit, done, total, message))
-
-        ctx = StageContext(study, settings, unit, previous, report, dict(options or {}), stage.name, emit)
-        staging = final.parent / f".{final.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-        staging.mkdir()
-        try:
-            outputs = stage.run(ctx)
-            files = []
-            for name, obj in outputs.items():
-                files += _write_output(obj, staging / name)
-            out_digest = _dir_digest(files, staging)
-            replace_dir(staging, final)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
-        seconds = time.perf_counter() - t0
-        rel = final.relative_to(root)
-        entry = {"digest": digest, "settings": settings_json, "inputs": inputs, "needs": need_digests[unit],
-                 "outputs": {name: str(rel / name) for name in outputs}, "outputs_digest": out_digest,
-                 "seconds": round(seconds, 3), "finished": _now(), "workbench_version": __version__,
-                 "stage_version": stage.version}
-        if "seed" in settings_json:
-            entry["seed"] = settings_json["seed"]
-        study.record(stage.name, entry, unit, stage_info=_stage_info(stage, settings_json))
-        emit(Event(stage.name, unit, i + 1, n, f"{label}: done in {seconds:.1f} s", "done"))
-        log.info("%s: done in %.1f s", label, seconds)
-        outcomes.append(Outcome(stage.name, unit, "ran", seconds, entry))
+        # One process at a time per unit: a second one waits, then finds the work done (and skips it).
+        with _unit_lock(root, stage.name, unit):
+            study.reload()
+            outcomes.append(_execute_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit],
+                                          force, emit, options))
     return outcomes
 
 
-def _stage_info(stage: Stage, settings_json) -> dict:
-    return {"per_scan": True, "folder": stage.folder}
+@contextlib.contextmanager
+def _unit_lock(root: Path, stage: str, unit):
+    import fcntl
+
+    locks = root / ".locks"
+    locks.mkdir(exist_ok=True)
+    with open(locks / (f"{stage}-{unit}.lock" if unit else f"{stage}.lock"), "a+") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _execute_unit(study: Study, stage: Stage, settings, settings_json, unit, i: int, n: int, need_digests: dict,
+                  force: bool, emit, options) -> Outcome:
+    t0 = time.perf_counter()
+    root = study.root
+    label = f"{stage.name}" + (f" {unit}" if unit else "")
+    old = study.stage_entry(stage.name, unit)
+    reason = stage.applies(study, settings, unit)
+    if reason:
+        entry = {"digest": "", "skipped": reason, "outputs": {}, "outputs_digest": "", "settings": settings_json,
+                 "finished": _now()}
+        if old is None or old.get("skipped") != reason or old.get("settings") != settings_json:
+            study.record(stage.name, entry, unit, stage_info={"folder": stage.folder})
+        emit(Event(stage.name, unit, i + 1, n, f"{label}: nothing to do ({reason})", "skip"))
+        return Outcome(stage.name, unit, "skipped", 0.0, entry)
+    inputs = _input_digests(study, stage, settings, unit)
+    digest = _digest(stage, settings_json, inputs, need_digests)
+    if not force and old is not None and old.get("digest") == digest and _outputs_exist(study, old):
+        emit(Event(stage.name, unit, i + 1, n, f"{label}: up to date, skipped", "skip"))
+        return Outcome(stage.name, unit, "skipped", 0.0, old)
+    emit(Event(stage.name, unit, i, n, f"{label}: running", "start"))
+    final = root / stage.folder / unit if unit else root / stage.folder
+    final.parent.mkdir(parents=True, exist_ok=True)
+    previous = {p.name: p for p in final.iterdir()} if final.is_dir() else {}
+
+    def report(done, total, message=""):
+        emit(Event(stage.name, unit, done, total, message))
+
+    ctx = StageContext(study, settings, unit, previous, report, dict(options or {}), stage.name, emit)
+    staging = final.parent / f".{final.name}.partial-{_HOST}-{os.getpid()}-{secrets.token_hex(4)}"
+    staging.mkdir()
+    try:
+        outputs = stage.run(ctx)
+        files = []
+        for name, obj in outputs.items():
+            files += _write_output(obj, staging / name)
+        out_digest = _dir_digest(files, staging)
+        if old is not None:
+            # Forget the old entry before its files go: interrupted between the swap and the record below,
+            # the unit is then missing (and reruns), never recorded with another run's files.
+            study.forget(stage.name, unit)
+        replace_dir(staging, final)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    seconds = time.perf_counter() - t0
+    rel = final.relative_to(root)
+    entry = {"digest": digest, "settings": settings_json, "inputs": inputs, "needs": need_digests,
+             "outputs": {name: str(rel / name) for name in outputs}, "outputs_digest": out_digest,
+             "seconds": round(seconds, 3), "finished": _now(), "workbench_version": __version__,
+             "stage_version": stage.version}
+    if "seed" in settings_json:
+        entry["seed"] = settings_json["seed"]
+    study.record(stage.name, entry, unit, stage_info={"folder": stage.folder})
+    emit(Event(stage.name, unit, i + 1, n, f"{label}: done in {seconds:.1f} s", "done"))
+    log.info("%s: done in %.1f s", label, seconds)
+    return Outcome(stage.name, unit, "ran", seconds, entry)
 
 
 def _now() -> str:

@@ -59,7 +59,7 @@ def _inputs(study, s: ModelSettings, scan):
                 raise StudyError(f"{study.manifest_path}: scan {sid!r} has no ground truth to build a model from; "
                                  "use --source registration (after `workbench register`).", study.manifest_path)
             files[f"truth_pose/{sid}"] = t["pose"]
-            files[f"truth/{sid}"] = t.get("template_to_scan", t["correspondence"])
+            files[f"truth/{sid}"] = t.get("template_to_scan") or t["correspondence"]
     return files
 
 

@@ -98,9 +98,9 @@ def _run(ctx) -> dict:
     settings = s.adaptive(method)
     template, scan = study.template(), study.scan(sid)
     initial = study.init_field(sid)
-    rigid = study.template_labels() if (method == "vbd" and settings.fix_bones and study.has_template_labels) else None
+    rigid = study.template_labels() if (method == "vbd" and settings.fix_bones) else None
     forward = None
-    if method == "vbd":
+    if method == "vbd":  # the weights and pose reach the digest through the init stage's outputs
         init_pose = (study.stage_entry("init", sid) or {}).get("settings", {}).get("pose", "estimated")
         weights, _ = study.weights()
         pose = study.truth_pose(sid) if init_pose == "truth" else study.pose(sid)
@@ -137,4 +137,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones", "weights"), inputs=_inputs, version=2)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=2)

@@ -51,16 +51,13 @@ def _closure(targets, settings: dict) -> list[str]:
 
 
 def dependents(names) -> set[str]:
-    """Stages that need any of ``names``, directly or not (with default settings' needs, plus the
-    registration-sourced model)."""
+    """Stages that need any of ``names``, directly or not (by their default settings' needs)."""
     out = set(names)
     changed = True
     while changed:
         changed = False
         for n, st in STAGES.items():
             needs = set(st.needs(st.settings_type()))
-            if n == "model":
-                needs |= {"register", "pose"}
             if n not in out and needs & out:
                 out.add(n)
                 changed = True
@@ -71,7 +68,9 @@ def run_stages(study: Study, targets, *, settings: dict | None = None, force=(),
                progress: Callable | None = None, options: dict | None = None) -> list[Outcome]:
     """Run ``targets`` (stage names) and what they need; see the module docstring.
 
-    ``settings``: ``{stage: settings}`` for this call; ``force``: stage names
+    ``settings``: ``{stage: settings}`` for this call (a stage given settings
+    runs with them — and is skipped only when up to date with them — even
+    when it is not a target); ``force``: stage names
     to rerun even when up to date; ``scans``: per-scan stages only for these
     (whole-study stages still cover every scan they are set to);
     ``options``: ``{stage: {option: value}}`` (:func:`~workbench.stages.mechanism.execute`).
@@ -86,7 +85,7 @@ def run_stages(study: Study, targets, *, settings: dict | None = None, force=(),
     scan_ids = study.check_scan_ids(scans)
     for name in order:
         stage = STAGES[name]
-        if name not in targets and name not in force:
+        if name not in targets and name not in force and name not in (settings or {}):
             units = scan_ids if stage.per_scan else [None]
             if all(stage_status(study, stage, u, registry=STAGES) == "done" for u in units):
                 emit(Event(name, None, len(units), len(units), f"{name}: up to date, skipped", "skip"))
