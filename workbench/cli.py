@@ -125,11 +125,11 @@ MODEL_HELP = """Build an example-based volume deformation model (Rhee Eq. 7) fro
 study's scans: for each scan, the displacement of every template voxel in
 the template frame after undoing VBD with the scan's pose.
 
---source registration (the default for a study without ground truth, and
-whenever the study has registrations): the correspondences of `workbench
+--source registration (the default): the correspondences of `workbench
 register` (their inverse fields) and the poses of `workbench pose` — a
 model from your own scans, no truth needed.  --source truth: a phantom's
-exact correspondences and true poses (a protocol's reference model).
+exact correspondences and true poses (a protocol's reference model; never
+taken unless asked).
 
 Writes model/evd.json and model/evd_displacements.mha; `workbench deform`
 and `workbench animate` then pose the template by EVD.  Runs the stages it

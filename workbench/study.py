@@ -56,6 +56,7 @@ from deformation.geometry import Volume
 from deformation.skeleton import Pose, Skeleton
 from workbench import __version__
 from workbench.errors import InputFileError, MissingFileError, OutputExistsError
+from workbench.io.atomic import replace_dir
 from workbench.io.jsonio import read_json, write_json
 from workbench.io.volumes import read_displacement, read_image_geometry, read_labels, read_vector_image, \
     read_volume, write_displacement, write_labels, write_volume
@@ -521,17 +522,7 @@ def write_phantom_study(phantom, out: str | os.PathLike, *, overwrite: bool = Fa
         log["total_seconds"] = round(time.perf_counter() - t0, 3)
         write_json(log, stage / "logs" / "phantom.json")
         write_json(manifest, stage / MANIFEST)
-        if out.exists():
-            trash = out.parent / f".{out.name}.old-{secrets.token_hex(4)}"
-            os.replace(out, trash)
-            try:
-                os.replace(stage, out)
-            except BaseException:
-                os.replace(trash, out)  # put the old study back
-                raise
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(stage, out)
+        replace_dir(stage, out)  # an old study is replaced only once the new one is complete
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise

@@ -28,7 +28,7 @@ def study(tmp_path_factory):
     root = write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=3, seed=2, noise=False),
                                tmp_path_factory.mktemp("cli-deform") / "study").root
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
-    assert main(["model", str(root), "--quiet"]) == 0
+    assert main(["model", str(root), "--source", "truth", "--quiet"]) == 0
     return root
 
 
@@ -170,7 +170,7 @@ def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
         np.testing.assert_array_equal(dense[lab == s.skeleton().label_of(b), w.bones.index(b)], 1.0)
     assert meta["method"] == "harmonic" and not list(tmp_path.glob("*.stl")) and not list(root.glob("*.stl"))
     # an EVD model is tied to the weights it was built with
-    assert main(["model", str(root), "--quiet"]) == 0
+    assert main(["model", str(root), "--source", "truth", "--quiet"]) == 0
     # distance weights replace the weights but keep the mesh for a later harmonic run ...
     assert main(["weights", str(root), "--method", "distance", "--force", "--quiet"]) == 0
     assert hashlib.sha256((root / "skinning" / "tetmesh.vtu").read_bytes()).hexdigest() == first["tetmesh.vtu"]
