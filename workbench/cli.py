@@ -811,90 +811,6 @@ def format_registration_table(study, scans) -> str:
     return "\n".join(lines)
 
 
-def _render_inputs(args, say):
-    """``(volume, labels, other, points)`` for ``workbench render``: files, or a study's template / scan /
-    registration, and the marker and control-point sets to draw."""
-    import numpy as np
-
-    from workbench.viz.render import LEVEL_COLOURS, MARKER_COLOUR
-    from workbench.study import MANIFEST, read_study
-    from workbench.io.volumes import read_labels, read_volume
-
-    study = read_study(args.source) if (args.source / MANIFEST).is_file() else None
-    if study is None:
-        for flag in ("scan", "registered", "bones"):
-            if getattr(args, flag):
-                raise ValueError(f"--{flag} needs a study folder; {args.source} is not one (no {MANIFEST})")
-    if args.scan and args.registered:
-        raise ValueError("--scan and --registered each choose the volume to render: pass one")
-
-    def resolve(ref):
-        if study is not None and ref in study.scan_ids:
-            return study.scan(ref)
-        p = Path(ref)
-        if not p.exists():
-            hint = f" nor a scan of the study ({', '.join(study.scan_ids)})" if study is not None else ""
-            raise FileNotFoundError(f"{ref}: no such file{hint}")
-        return read_volume(p)
-
-    labels = None
-    if study is None:
-        vol = read_volume(args.source)
-        what = str(args.source)
-    elif args.scan:
-        vol, what = study.scan(args.scan), f"scan {args.scan}"
-    elif args.registered:
-        study.check_scan_ids([args.registered])
-        if not study.has_registration(args.registered):
-            raise ValueError(f"scan {args.registered!r} has no registration; run `workbench register "
-                             f"{study.root} --scan {args.registered}` first")
-        vol, what = study.registered(args.registered), f"template registered to {args.registered}"
-    else:
-        vol, what = study.template(), "template"
-        if args.bones:
-            if not study.has_template_labels:
-                raise ValueError(f"{study.root}: the study has no template label map for --bones")
-            labels = study.template_labels()
-    if args.bones and (args.scan or args.registered):
-        raise ValueError("--bones draws the template's labels: render the template (no --scan/--registered), "
-                         "or pass --labels FILE on the volume's grid")
-    if args.labels:
-        labels = read_labels(args.labels)
-    if args.overlay and args.difference:
-        raise ValueError("--overlay and --difference are two kinds of picture: pass one")
-    if (args.overlay or args.difference) and labels is not None:
-        raise ValueError("--bones/--labels draw surfaces on a single-volume render; leave them out with "
-                         "--overlay or --difference")
-    other = resolve(args.overlay or args.difference) if (args.overlay or args.difference) else None
-    say(f"{what}: {vol.geometry.describe()}")
-    points = []
-    if args.markers or args.control_points:
-        if study is None:
-            raise ValueError("--markers and --control-points need a study folder")
-    if args.markers:
-        sid = args.scan or args.registered
-        ids = [sid] if sid else [s for s in study.scan_ids if study.has_truth(s)]
-        if not ids or not study.has_truth(ids[0]):
-            raise ValueError(f"--markers: {'scan ' + repr(sid) if sid else 'the study'} has no ground-truth markers")
-        key = "scan" if sid else "template"
-        pts = np.array([m[key] for m in study.truth_markers(ids[0])], float).reshape(-1, 3)
-        points.append((pts, MARKER_COLOUR, 0.8 * max(vol.geometry.spacing)))
-        say(f"{len(pts)} skin markers ({key} positions)")
-    if args.control_points:
-        if not args.registered:
-            raise ValueError("--control-points draws a registration's control points: pass --registered ID")
-        from registration.adaptive import control_points_from_log
-
-        cps = control_points_from_log(study.registration_log(args.registered)["log"], vol.geometry)
-        levels = sorted({lv for lv, _ in cps})
-        for lv in levels:
-            pts = np.concatenate([p for l_, p in cps if l_ == lv])
-            colour = LEVEL_COLOURS[(lv - 3) % len(LEVEL_COLOURS)] if lv >= 3 else LEVEL_COLOURS[-1]
-            points.append((pts, colour, 0.4 * max(vol.geometry.spacing)))
-            say(f"level {lv}: {len(pts)} control points")
-    return vol, labels, other, points
-
-
 def cmd_render(args) -> int:
     from workbench.viz.render import (ClipPlane, opengl_backend, parse_size, render_difference, render_overlay,
                                   render_volume, write_png, transfer_function)
@@ -911,7 +827,12 @@ def cmd_render(args) -> int:
         from workbench.errors import OutputExistsError
 
         raise OutputExistsError(args.out, f"{args.out} exists; pass --force to replace it.")
-    vol, labels, other, points = _render_inputs(args, say)
+    from workbench.viz.scene import render_inputs
+
+    vol, labels, other, points = render_inputs(args.source, scan=args.scan, registered=args.registered,
+                                               bones=args.bones, labels=args.labels, overlay=args.overlay,
+                                               difference=args.difference, markers=args.markers,
+                                               control_points=args.control_points, progress=say)
     kw = dict(size=size, camera=cam, clip=clip, background=bg, mapper=args.mapper)
     b = opengl_backend()
     say(f"{b.describe()}; {b.mapper if args.mapper == 'auto' else args.mapper} mapper")
