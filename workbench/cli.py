@@ -119,6 +119,8 @@ ParaView); --force recomputes from it, --remesh makes a new mesh.
 
 Writes skinning/weights.json with weights_index.mha and weights_value.mha
 (4-component images on the template grid) and skinning/body_mask.nii.gz.
+Options left out keep the setting the stage last ran with in this study
+(else the default shown); an up-to-date stage is skipped.
 """
 
 MODEL_HELP = """Build an example-based volume deformation model (Rhee Eq. 7) from the
@@ -173,6 +175,9 @@ BOBYQA, a bending-energy regulariser, coarser first levels without an
 initialisation (1-4); after VBD levels 3-4, a stiffer regulariser and only
 steps that gain at least 1 % (smaller gains follow noise, not anatomy).
 
+Options left out keep the setting the stage last ran with in this study (else
+the default shown), so a scan registered later is treated like the others.
+
 examples:
   workbench register knee-study                       # all scans, VBD init
   workbench register knee-study --scan pose01 --init none --levels 3 5
@@ -224,9 +229,9 @@ stage first segments the template's bones (bones/template_labels.nii.gz,
 used by every later stage).
 
 Like every stage command it skips work that is up to date (same images,
-labels and settings) and runs with the settings its options give (their
-defaults where left out); `workbench run` keeps the settings a stage last
-ran with.
+labels and settings).  Options left out keep the setting the stage last ran
+with in this study (else the default shown), so every scan of a study is
+treated alike; --scan chooses this run's scans only.
 
 Seeds file for --seeds:
   {"format": "avw-seeds", "version": 1, "units": "mm",
@@ -335,42 +340,42 @@ def build_parser() -> argparse.ArgumentParser:
     po = sub.add_parser("pose", help="recover bone poses, joint centres and joint angles of a study's scans",
                         description=POSE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     po.add_argument("study", type=Path, help="study folder (holding study.json)")
-    po.add_argument("--method", choices=["intensity", "surface"], default="intensity",
+    po.add_argument("--method", choices=["intensity", "surface"], default=argparse.SUPPRESS,
                     help="'intensity': Rhee Eq. 1, the bone region's intensities (SimpleITK, then a least-squares "
                          "polish); 'surface': Kurihara §3, ICP of bone isosurfaces (VTK flying edges + Open3D). "
                          "Default: intensity")
     _bones_options(po)
-    po.add_argument("--init", default="identity", metavar="identity|moments|FILE",
+    po.add_argument("--init", default=argparse.SUPPRESS, metavar="identity|moments|FILE",
                     help="root bone's starting pose: 'identity' (scans share the template's scanner frame), "
                          "'moments' (align the images' centres of mass), or a JSON file (an avw-pose file, or "
                          "{'format': 'avw-initial-poses', 'version': 1, 'scans': {id: 4x4}}). Default: identity")
     po.add_argument("--scan", action="append", metavar="ID",
                     help="only this scan (repeatable; default: all — Kurihara Eq. 1 pools the scans estimated)")
-    po.add_argument("--metric", choices=["ncc", "ssd"], default="ncc",
+    po.add_argument("--metric", choices=["ncc", "ssd"], default=argparse.SUPPRESS,
                     help="cost of the coarse search and the polish: 'ssd' is Eq. 1 as printed; 'ncc' is Eq. 1 "
                          "after the best linear intensity map per bone (insensitive to an MRI bias field). "
                          "Default: ncc")
-    po.add_argument("--interpolation", choices=["linear", "bspline"], default="bspline",
+    po.add_argument("--interpolation", choices=["linear", "bspline"], default=argparse.SUPPRESS,
                     help="'linear' is the papers' trilinear; 'bspline' (cubic) leaves a residual about 4x smaller "
                          "for a rotated bone on coarse grids. Default: bspline")
-    po.add_argument("--prior-deg", type=float, default=2.0, metavar="DEG",
+    po.add_argument("--prior-deg", type=float, default=argparse.SUPPRESS, metavar="DEG",
                     help="width (degrees) of the weak prior tying each bone's rotation to its hierarchical "
                          "initialisation (the translation prior is 2 mm); 0 turns the polish off (plain Eq. 1 "
                          "through SimpleITK). Default: 2")
-    po.add_argument("--margin-mm", type=float, metavar="MM",
+    po.add_argument("--margin-mm", default=argparse.SUPPRESS, type=float, metavar="MM",
                     help="dilation of each bone's region for the intensity cost (Rhee: 'slightly dilated'); "
                          "default one voxel, at least 2 mm.  Smaller keeps non-rigid soft tissue out on fine grids")
-    po.add_argument("--bias-correction", choices=["auto", "on", "off"], default="auto",
+    po.add_argument("--bias-correction", choices=["auto", "on", "off"], default=argparse.SUPPRESS,
                     help="N4 bias-field correction of template and scans before registration; 'auto' does it "
                          "for MRI-like images. Default: auto")
-    po.add_argument("--min-ncc", type=float, default=0.5,
+    po.add_argument("--min-ncc", type=float, default=argparse.SUPPRESS,
                     help="a bone whose final correlation with the template is lower is reported as a poor "
                          "match. Default: 0.5")
-    po.add_argument("--max-joint-gap-mm", type=float, default=10.0, metavar="MM",
+    po.add_argument("--max-joint-gap-mm", type=float, default=argparse.SUPPRESS, metavar="MM",
                     help="a bone whose joint centre (from skeleton.json) lands farther than this from where its "
                          "parent puts it has left its joint and is reported as 'joint_detached'; raise it for a "
                          "rough skeleton, 0 switches the check off. Default: 10")
-    po.add_argument("--outlier-factor", type=float, default=4.0, metavar="K",
+    po.add_argument("--outlier-factor", type=float, default=argparse.SUPPRESS, metavar="K",
                     help="Eq. 1 consistency check: with 4 or more scans, a bone whose motion misses its joint's "
                          "centre (estimated from all scans) by more than K times the joint's median miss, and by "
                          "more than half a voxel, is reported as 'joint_outlier'; 0 switches the check off. "
@@ -382,9 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     we = sub.add_parser("weights", help="skinning weights of every template voxel (harmonic on a tet mesh)",
                         description=WEIGHTS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     we.add_argument("study", type=Path, help="study folder (holding study.json)")
-    we.add_argument("--method", choices=["harmonic", "distance"], default="harmonic",
+    we.add_argument("--method", choices=["harmonic", "distance"], default=argparse.SUPPRESS,
                     help="'harmonic' (tet mesh + Laplace solve) or 'distance' (inverse distance). Default: harmonic")
-    we.add_argument("--edge-length-mm", type=float, metavar="MM",
+    we.add_argument("--edge-length-mm", default=argparse.SUPPRESS, type=float, metavar="MM",
                     help="target tet edge length for a new mesh (default: 5%% of the body's bounding-box diagonal)")
     we.add_argument("--remesh", action="store_true", help="make a new tet mesh instead of reusing the study's")
     we.add_argument("--force", action="store_true", help="rerun even when up to date (from the kept tet mesh)")
@@ -473,30 +478,32 @@ def build_parser() -> argparse.ArgumentParser:
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     rg.add_argument("study", type=Path, help="study folder (holding study.json)")
     rg.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
-    rg.add_argument("--init", choices=["vbd", "none"], default="vbd",
+    rg.add_argument("--init", choices=["vbd", "none"], default=argparse.SUPPRESS,
                     help="start from VBD to the scan's pose, or from the identity. Default: vbd")
-    rg.add_argument("--unfold-init", action="store_true",
+    rg.add_argument("--unfold-init", default=argparse.SUPPRESS, action="store_true",
                     help="repair the folds of the VBD initialisation in the crease of a flexed joint before "
                          "registering (a one-to-one field; ~0.1-1 mm less accurate on the knee phantom, "
                          "more on the hand)")
-    rg.add_argument("--pose", choices=["estimated", "truth"], default="estimated", dest="pose_source",
+    rg.add_argument("--pose", choices=["estimated", "truth"], default=argparse.SUPPRESS, dest="pose_source",
                     help="pose for --init vbd: the pose stage's estimate, or a phantom's true pose (protocols). "
                          "Default: estimated")
-    rg.add_argument("--preset", choices=["default", "paper"], default="default",
+    rg.add_argument("--preset", choices=["default", "paper"], default=argparse.SUPPRESS,
                     help="settings: ours (after --init vbd its 'initialised' variant), or Rhee's as published. "
                          "Default: default")
-    rg.add_argument("--levels", nargs=2, type=int, metavar=("FIRST", "LAST"),
+    rg.add_argument("--levels", default=argparse.SUPPRESS, nargs=2, type=int, metavar=("FIRST", "LAST"),
                     help="block levels (2**level blocks a side; level 3 = 32^3-voxel blocks on a 256^3 grid). "
                          "Default: 3 4 after --init vbd, 1 4 after --init none (paper preset: 3 5)")
-    rg.add_argument("--optimizer", choices=["neldermead", "sbplx", "bobyqa", "cobyla"],
+    rg.add_argument("--optimizer", default=argparse.SUPPRESS, choices=["neldermead", "sbplx", "bobyqa", "cobyla"],
                     help="NLopt algorithm of each local step. Default: bobyqa (paper preset: neldermead)")
-    rg.add_argument("--metric", choices=["auto", "ssd", "mi"],
+    rg.add_argument("--metric", default=argparse.SUPPRESS, choices=["auto", "ssd", "mi"],
                     help="'auto': normalised MI at coarse levels, SSD from level 4 (Rhee §4.1). Default: auto")
-    rg.add_argument("--max-steps", type=int, metavar="N", help="local steps per level at most. Default: 200")
-    rg.add_argument("--seed", type=int, default=0,
+    rg.add_argument("--max-steps", default=argparse.SUPPRESS, type=int, metavar="N", help="local steps per level at most. Default: 200")
+    rg.add_argument("--seed", type=int, default=argparse.SUPPRESS,
                     help="seed of the simplex restarts (after --init vbd the default preset makes none, so the "
                          "seed has no effect there). Default: 0")
-    rg.add_argument("--no-fix-bones", action="store_true",
+    rg.add_argument("--no-unfold-init", action="store_false", dest="unfold_init", default=argparse.SUPPRESS,
+                    help="start from the plain VBD field again after an earlier --unfold-init")
+    rg.add_argument("--no-fix-bones", default=argparse.SUPPRESS, action="store_true",
                     help="do not put zero-displacement control points on bone voxels")
     rg.add_argument("--force", action="store_true", help="register these scans again even when up to date")
     _common(rg)
@@ -655,6 +662,21 @@ def _stages(args, targets, settings=None, *, force=(), scans=None, options=None)
     return study.reload(), outcomes
 
 
+def _given(args, study_path, stage: str, options: dict):
+    """The stage's settings for a single-stage command: those it last ran with in the study (else the
+    defaults), with the options given on the command line — ``{setting: (attribute, convert)}`` — applied."""
+    from workbench.stages.run import settings_for
+    from workbench.study import read_study
+
+    base = settings_for(read_study(study_path), stage)
+    over = {k: conv(getattr(args, a)) for k, (a, conv) in options.items() if hasattr(args, a)}
+    return dataclasses.replace(base, **over)
+
+
+def _same(v):
+    return v
+
+
 def _bones_settings(args):
     from workbench.stages.bones import BonesSettings
 
@@ -683,13 +705,14 @@ def read_json_output(study, stage, name, scan=None):
 
 
 def cmd_pose(args) -> int:
-    from workbench.stages.pose import PoseSettings
-
-    ps = PoseSettings(method=args.method, init=str(args.init), metric=args.metric,
-                      interpolation=3 if args.interpolation == "bspline" else 1, prior_deg=args.prior_deg or None,
-                      min_ncc=args.min_ncc, bias_correction={"auto": None, "on": True, "off": False}[args.bias_correction],
-                      margin_mm=args.margin_mm, max_joint_gap_mm=args.max_joint_gap_mm or None,
-                      outlier_factor=args.outlier_factor or None, scans=tuple(args.scan) if args.scan else None)
+    ps = _given(args, args.study, "pose", {
+        "method": ("method", _same), "init": ("init", str), "metric": ("metric", _same),
+        "interpolation": ("interpolation", lambda v: 3 if v == "bspline" else 1),
+        "prior_deg": ("prior_deg", lambda v: v or None), "min_ncc": ("min_ncc", _same),
+        "bias_correction": ("bias_correction", {"auto": None, "on": True, "off": False}.get),
+        "margin_mm": ("margin_mm", _same), "max_joint_gap_mm": ("max_joint_gap_mm", lambda v: v or None),
+        "outlier_factor": ("outlier_factor", lambda v: v or None)})
+    ps = dataclasses.replace(ps, scans=tuple(args.scan) if args.scan else None)  # --scan: this run's scans only
     settings = {"pose": ps}
     bs = _bones_settings(args)
     if bs is not None:
@@ -703,10 +726,8 @@ def cmd_pose(args) -> int:
 
 
 def cmd_weights(args) -> int:
-    from workbench.stages.weights import WeightsSettings
-
-    ws = WeightsSettings(method=args.method, edge_length_mm=args.edge_length_mm)
-    if args.remesh and args.method != "harmonic":
+    ws = _given(args, args.study, "weights", {"method": ("method", _same), "edge_length_mm": ("edge_length_mm", _same)})
+    if args.remesh and ws.method != "harmonic":
         raise ValueError("--remesh makes a new tet mesh for --method harmonic")
     study, out = _stages(args, ["weights"], {"weights": ws}, force={"weights"} if (args.force or args.remesh) else (),
                          options={"weights": {"remesh": args.remesh}})
@@ -730,15 +751,14 @@ def cmd_model(args) -> int:
 
 
 def _register_settings(args):
-    from workbench.stages.init import InitSettings
-    from workbench.stages.register import RegisterSettings
-
-    init = InitSettings(method="vbd" if args.init == "vbd" else "identity", pose=args.pose_source,
-                        unfold=args.unfold_init)
-    reg = RegisterSettings(preset="paper" if args.preset == "paper" else "auto",
-                           levels=tuple(args.levels) if args.levels else None, optimizer=args.optimizer,
-                           metric=args.metric, max_steps_per_level=args.max_steps, fix_bones=not args.no_fix_bones,
-                           seed=args.seed)
+    init = _given(args, args.study, "init", {"method": ("init", lambda v: "vbd" if v == "vbd" else "identity"),
+                                            "pose": ("pose_source", _same), "unfold": ("unfold_init", _same)})
+    reg = _given(args, args.study, "register", {
+        "preset": ("preset", lambda v: "paper" if v == "paper" else "auto"), "levels": ("levels", tuple),
+        "optimizer": ("optimizer", _same), "metric": ("metric", _same), "max_steps_per_level": ("max_steps", _same),
+        "fix_bones": ("no_fix_bones", lambda v: not v), "seed": ("seed", _same)})
+    if init.method == "identity" and not hasattr(args, "unfold_init"):
+        init = dataclasses.replace(init, unfold=False)  # an earlier --unfold-init repaired a VBD start
     return {"init": init, "register": reg}
 
 

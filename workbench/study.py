@@ -174,16 +174,14 @@ class Study:
         return e if isinstance(e, dict) and "digest" in e else None
 
     def recorded_settings(self, stage: str) -> dict | None:
-        """The settings a stage last ran with (for per-scan stages, those of its first recorded scan), or None."""
+        """The settings a stage last ran with (for per-scan stages, those of the scan it finished last), or None."""
         e = (self.manifest.get("stages") or {}).get(stage)
         if not isinstance(e, dict):
             return None
         if "digest" in e:
             return e.get("settings")
-        for se in (e.get("scans") or {}).values():
-            if isinstance(se, dict) and se.get("settings") is not None:
-                return se["settings"]
-        return None
+        done = [se for se in (e.get("scans") or {}).values() if isinstance(se, dict) and se.get("settings") is not None]
+        return max(done, key=lambda se: se.get("finished", ""))["settings"] if done else None
 
     def record(self, stage: str, entry: dict, scan_id: str | None = None, *, stage_info: dict | None = None) -> None:
         """Record a stage's entry (one scan's, for per-scan stages) in ``study.json``."""

@@ -81,6 +81,9 @@ def test_register_skips_what_is_up_to_date_and_names_bad_scans(tmp_path, study, 
     assert "register pose01: up to date, skipped" in capsys.readouterr().err
     assert (d / "registration" / "pose01" / "log.json").read_bytes() == before
     assert (d / "study.json").read_bytes() == manifest
+    # options left out keep the settings the scan was registered with: still up to date
+    assert main(["register", str(d), "--scan", "pose01"]) == 0
+    assert "register pose01: up to date, skipped" in capsys.readouterr().err
     # --force reruns it: the same settings give the same field to the bit (deterministic)
     field = (d / "registration" / "pose01" / "correspondence.mha").read_bytes()
     assert main(["register", str(d), "--scan", "pose01", *FAST, "--force", "--quiet"]) == 0
