@@ -549,6 +549,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _stage_names():
+    """workbench.stages.ORDER, written out so that --help does not import every stage (a test keeps them equal)."""
     return ["bones", "pose", "weights", "init", "register", "model", "validate"]
 
 
@@ -692,13 +693,13 @@ def cmd_bones(args) -> int:
 
     bs = _bones_settings(args) or BonesSettings(source="auto")
     study, _ = _stages(args, ["bones"], {"bones": bs}, force={"bones"} if args.force else ())
-    counts = read_json_output(study, "bones", "bones.json")
+    counts = _read_output(study, "bones", "bones.json")
     print(f"bones ({counts['source']}): " + ", ".join(f"{b} {n}" for b, n in counts["voxels"].items()) + " voxels")
     print(f"wrote {study.root / 'bones'}")
     return 0
 
 
-def read_json_output(study, stage, name, scan=None):
+def _read_output(study, stage, name, scan=None):
     from workbench.io.jsonio import read_json
 
     return read_json(study.output(stage, name, scan))
@@ -743,7 +744,7 @@ def cmd_model(args) -> int:
     source = args.source
     ms = ModelSettings(source=source, scans=tuple(args.scan) if args.scan else None)
     study, out = _stages(args, ["model"], {"model": ms}, force={"model"} if args.force else ())
-    doc = read_json_output(study, "model", "evd.json")
+    doc = _read_output(study, "model", "evd.json")
     print(f"EVD model from the {doc.get('source', source)} correspondences of {len(doc['scans'])} scans "
           f"({', '.join(doc['scans'])}){' (up to date)' if out[-1].status == 'skipped' else ''}; "
           f"in {study.root / 'model'}")

@@ -318,6 +318,10 @@ class Study:
         self.output("init", "init.json", scan_id)  # "run register first" when the stage has not run
         return None
 
+    def init_info(self, scan_id: str) -> dict:
+        """The init stage's record of a scan: ``method`` and, for VBD, the ``bones`` and their ``transforms``."""
+        return read_json(self.output("init", "init.json", scan_id))
+
     def has_registration(self, scan_id: str) -> bool:
         return self.has_output("register", "log.json", scan_id)
 

@@ -168,3 +168,10 @@ def test_concurrent_executions_of_the_same_stages_all_succeed(study):
     assert stage_status(st, MEAN, registry=REG) == "done"
     assert all(stage_status(st, SCALE, sid, registry=REG) == "done" for sid in st.scan_ids)
     assert not [p for p in study.root.rglob("*") if ".partial-" in p.name or ".old-" in p.name]
+
+
+def test_the_cli_names_the_stages_in_the_pipeline_order():
+    from workbench.cli import _stage_names
+    from workbench.stages import ORDER
+
+    assert _stage_names() == list(ORDER)

@@ -10,7 +10,9 @@ folds of VBD in the crease of a flexed joint (:func:`deformation.fields.unfold`)
 ``method="identity"``: no start (Rhee's Table 2 protocol).
 
 Outputs (``init/<scan>/``): ``field.mha`` (``scan_to_template`` on the scan
-grid, mm; VBD only) and ``init.json`` (the backward map's summary).
+grid, mm; VBD only) and ``init.json`` (the method, the bone transforms VBD
+blended — what the register stage needs to invert its result — and the
+backward map's summary).
 """
 
 from __future__ import annotations
@@ -68,13 +70,15 @@ def _run(ctx) -> dict:
     g_t = read_image_geometry(study.path(study.manifest["template"]))
     g_s = read_image_geometry(study.scan_path(sid))
     ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()} ...")
-    field, summary = vbd_initial_field(g_t, g_s, weights, stack_transforms(pose.transforms, weights.bones),
-                                       body=body.data, unfold=s.unfold)
+    transforms = stack_transforms(pose.transforms, weights.bones)
+    field, summary = vbd_initial_field(g_t, g_s, weights, transforms, body=body.data, unfold=s.unfold)
     return {"field.mha": Field(field),
             "init.json": Json({"format": "avw-init", "version": 1, "method": "vbd", "pose": s.pose,
                                "direction": "scan_to_template: template position − scan voxel, mm",
+                               "bones": list(weights.bones), "transforms": transforms,
+                               "transforms_are": "each bone's template → scan 4x4 that VBD blended",
                                "backward_map": summary})}
 
 
 STAGE = Stage(name="init", folder="init", per_scan=True, settings_type=InitSettings, run=_run, needs=_needs,
-              inputs=_inputs)
+              inputs=_inputs, version=2)

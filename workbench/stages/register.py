@@ -76,11 +76,6 @@ class RegisterSettings:
         return AdaptiveSettings(**over)
 
 
-def _init_method(study, scan) -> str:
-    e = study.stage_entry("init", scan)
-    return (e or {}).get("settings", {}).get("method", "vbd")
-
-
 def _inputs(study, s, scan):
     return {"template": study.path(study.manifest["template"]), "scan": study.scan_path(scan),
             "labels": study.template_labels_path()}
@@ -90,21 +85,19 @@ def _run(ctx) -> dict:
     from deformation.evd import vbd_forward
     from deformation.geometry import Volume
     from deformation.resample import invert_scan_to_template
-    from deformation.skinning import stack_transforms
     from registration.adaptive import register_adaptive
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
-    method = _init_method(study, sid)
+    start = study.init_info(sid)  # the start, as the init stage made it: no pose (nor truth) is read here
+    method = start["method"]
     settings = s.adaptive(method)
     template, scan = study.template(), study.scan(sid)
     initial = study.init_field(sid)
     rigid = study.template_labels() if (method == "vbd" and settings.fix_bones) else None
     forward = None
-    if method == "vbd":  # the weights and pose reach the digest through the init stage's outputs
-        init_pose = (study.stage_entry("init", sid) or {}).get("settings", {}).get("pose", "estimated")
-        weights, _ = study.weights()
-        pose = study.truth_pose(sid) if init_pose == "truth" else study.pose(sid)
-        forward = vbd_forward(template.geometry, weights, stack_transforms(pose.transforms, weights.bones))
+    if method == "vbd":
+        weights, _ = study.weights()  # the weights that made the start (their digest reaches ours through it)
+        forward = vbd_forward(template.geometry, weights.reorder(start["bones"]), np.asarray(start["transforms"]))
 
     def step(info):
         if "level_done" in info:
@@ -113,8 +106,9 @@ def _run(ctx) -> dict:
                     f"control points, {lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, stopped: "
                     f"{lv.stopped}, {lv.seconds:.1f} s")
         else:
-            ctx.report(info["step"], 0, f"{sid} level {info['level']} step {info['step']} block {tuple(info['block'])}: {info['metric']} "
-                    f"{info['block_before']:.4g} -> {info['block_after']:.4g}; ~{info['eta']:.0f} s left in this level")
+            ctx.report(info["step"], 0, f"{sid} level {info['level']} step {info['step']} block "
+                                        f"{tuple(info['block'])}: {info['metric']} {info['block_before']:.4g} -> "
+                                        f"{info['block_after']:.4g}; ~{info['eta']:.0f} s left in this level")
 
     result = register_adaptive(scan, template, initial=initial, rigid_mask=rigid, settings=settings, progress=step)
     ctx.say(f"{sid}: inverting the field onto the template grid ...")
@@ -137,4 +131,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=2)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=3)
