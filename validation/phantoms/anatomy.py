@@ -43,17 +43,28 @@ class Contrast:
     noise_sigma: float
     texture_amplitude: float  # relative modulation of soft tissue and marrow
     bias_amplitude: float  # relative amplitude of the smooth multiplicative bias field
+    tendon: float = 0.0  # tendons and fibrous tissue (soft_tissue.SoftTissue)
+    vessel: float = 0.0
+
+
+def _box(s, half_width, edge):
+    """A sheet or tube ``|s| < half_width`` blurred by ``edge`` (mass-preserving partial volume); ``s ≥ 0``."""
+    return 0.5 * (np.tanh((s + half_width) / edge) - np.tanh((s - half_width) / edge))
 
 
 # MRI-like: T1-weighted appearance. Cortical bone is dark, marrow and fat are
 # bright and overlap once texture, bias and noise are added; skin and muscle
 # overlap likewise (Rhee §2: "overlapping intensity ranges between different
 # tissues"). Arbitrary units on a 0..1000 scale.
+# Tendons are dark on T1 (short T2*), slow-flowing vessels intermediate-bright.
 MRI = Contrast("mri", air=0.0, skin=520.0, fat=900.0, muscle=380.0, cortex=60.0, marrow=780.0,
-               noise="rician", noise_sigma=30.0, texture_amplitude=0.08, bias_amplitude=0.12)
+               noise="rician", noise_sigma=30.0, texture_amplitude=0.08, bias_amplitude=0.12,
+               tendon=90.0, vessel=640.0)
 # CT-like: Hounsfield units; bright cortical bone (Kurihara §2), no bias field.
+# CT: tendons a little denser than muscle, vessels contrast-enhanced (an angiographic phase).
 CT = Contrast("ct", air=-1000.0, skin=30.0, fat=-100.0, muscle=45.0, cortex=1300.0, marrow=250.0,
-              noise="gaussian", noise_sigma=20.0, texture_amplitude=0.05, bias_amplitude=0.0)
+              noise="gaussian", noise_sigma=20.0, texture_amplitude=0.05, bias_amplitude=0.0,
+              tendon=95.0, vessel=180.0)
 CONTRASTS = {"mri": MRI, "ct": CT}
 
 
@@ -61,8 +72,9 @@ CONTRASTS = {"mri": MRI, "ct": CT}
 class Texture:
     """A smooth random texture attached to the tissue: a sum of plane waves in template mm.
 
-    Zero mean, unit RMS; wavelengths between ``min_wavelength_mm`` and
-    ``max_wavelength_mm`` keep it smooth relative to the paper grids.
+    Zero mean, unit RMS; wavelengths log-uniform between ``min_wavelength_mm``
+    and ``max_wavelength_mm`` (the phantom keeps the shortest at 4 voxels, so
+    that the texture is resolved on its grid).
     """
 
     wavevectors: np.ndarray  # (K, 3) rad/mm
@@ -74,7 +86,8 @@ class Texture:
                min_wavelength_mm: float = 12.0, max_wavelength_mm: float = 45.0) -> "Texture":
         dirs = rng.normal(size=(n_waves, 3))
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        lam = rng.uniform(min_wavelength_mm, max_wavelength_mm, size=n_waves)
+        # Log-uniform wavelengths: as many waves per octave at every scale (multi-scale texture).
+        lam = np.exp(rng.uniform(np.log(min_wavelength_mm), np.log(max_wavelength_mm), size=n_waves))
         amps = rng.uniform(0.5, 1.0, size=n_waves)
         amps *= np.sqrt(2.0 / np.sum(amps**2))  # unit RMS for independent random phases
         return cls(dirs * (2 * np.pi / lam)[:, None], rng.uniform(0, 2 * np.pi, size=n_waves), amps)
@@ -106,6 +119,14 @@ class Anatomy:
     bulge_gain: float = 0.10
     slide_gain: float = 0.08
     bone_fade_mm: float = 3.0  # soft-tissue offsets fade in over this distance from the bones
+    # ``soft`` posing: a smooth random soft-tissue motion near each flexed joint of amplitude up to
+    # residual_gain·R·|sin θ| — muscles sliding and bulging unevenly, which no skinning of the bones captures.
+    residual_gain: float = 0.05
+    residual_wavelength_mm: float = 90.0  #: wavelength of that motion (its Lipschitz constant stays < 0.3)
+    # Sizes of the soft-tissue structure (soft_tissue.SoftTissue): cells, septa, tubes (mm; offsets in joint radii).
+    structure: dict = field(default_factory=lambda: dict(
+        muscle_cell_mm=16.0, fat_cell_mm=6.0, muscle_septum_mm=0.8, fat_septum_mm=0.4, cell_amplitude=0.10,
+        lobule_amplitude=0.06, tendon_offset=0.6, tendon_radius_mm=3.5, vessel_offset=0.65, vessel_radius_mm=2.5))
     bone_names: list = field(init=False)
     _tables: tuple | None = field(init=False, repr=False, default=None)
 
@@ -138,18 +159,25 @@ class Anatomy:
 
     # -- appearance ---------------------------------------------------------------
     def intensity_fast(self, p: np.ndarray, contrast: Contrast, *, edge_mm: float,
-                       texture: Texture | None = None, bone_frames: tuple | None = None) -> np.ndarray:
+                       texture: Texture | None = None, bone_frames: tuple | None = None,
+                       tissue=None) -> np.ndarray:
         """Compiled, parallel equivalent of :meth:`intensity`."""
         from . import kernels
 
         tex = texture or Texture(np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-        c = (contrast.air, contrast.skin, contrast.fat, contrast.muscle, contrast.cortex, contrast.marrow)
+        c = (contrast.air, contrast.skin, contrast.fat, contrast.muscle, contrast.cortex, contrast.marrow,
+             contrast.tendon, contrast.vessel)
         p = np.ascontiguousarray(p, dtype=float)
         scan, frames = self._bone_frames(p, bone_frames)
+        if tissue is None:
+            tparams, keys, tubes, info = np.zeros(0), np.zeros(2, np.uint64), np.zeros((0, 18)), np.zeros((0, 2))
+        else:
+            tparams, keys = tissue.params(), tissue.keys()
+            tubes, info = tissue.tube_table()
         return kernels.intensity_map(p, self.tables, len(self.bone_names),
                                      c, float(edge_mm), (self.skin_mm, self.fat_mm, self.cortex_mm),
                                      tex.wavevectors, tex.phases, tex.amplitudes, contrast.texture_amplitude,
-                                     scan, frames)
+                                     scan, frames, tparams, keys, tubes, info)
 
     def _bone_frames(self, p: np.ndarray, bone_frames) -> tuple[np.ndarray, np.ndarray]:
         """``(scan points (n, 3), scan → bone template frames (n_bones, 3, 4))``; empty when not given."""
@@ -172,7 +200,8 @@ class Anatomy:
         return kernels.distances_map(np.ascontiguousarray(p, dtype=float), self.tables, len(self.bone_names) + 1)
 
     def intensity(self, p: np.ndarray, contrast: Contrast, *, edge_mm: float,
-                  texture: Texture | None = None, bone_frames: tuple | None = None) -> np.ndarray:
+                  texture: Texture | None = None, bone_frames: tuple | None = None,
+                  tissue=None) -> np.ndarray:
         """Noise-free, bias-free intensity at template points ``p`` (n, 3).
 
         Tissues are layered (air, skin, fat, muscle, cortex, marrow), each edge
@@ -187,6 +216,11 @@ class Anatomy:
         tissue slides (up to a few mm within a voxel of a knee bone at 70° of
         flexion) and would otherwise drag the edge's halo with it, a
         non-rigid bone edge that no rigid registration can fit.
+
+        ``tissue`` (:class:`~validation.phantoms.soft_tissue.SoftTissue`) adds
+        the soft tissue's structure: muscle cells of their own intensity split
+        by fat septa, fat lobules split by fibrous (skin-intensity) septa, then
+        tendons and vessels, all at the template position.
         """
 
         def inside(sdf):  # 1 inside (sdf < 0), 0 outside, smooth edge
@@ -202,7 +236,20 @@ class Anatomy:
         tex = 0.0 if texture is None else contrast.texture_amplitude * texture(p)
 
         val = contrast.muscle * (1.0 + tex)
-        val += (contrast.fat * (1.0 + tex) - val) * (1.0 - inside(b + self.skin_mm + self.fat_mm))
+        fat = contrast.fat * (1.0 + tex)
+        if tissue is not None:
+            from .soft_tissue import cell_boundary_distance
+
+            sm, um = cell_boundary_distance(p, tissue.muscle_cell_mm, tissue.muscle_key)
+            val = val * (1.0 + tissue.cell_amplitude * (2.0 * um - 1.0))
+            val += (fat - val) * _box(sm, tissue.muscle_septum_mm, edge_mm)  # intermuscular fat septa
+            sf, uf = cell_boundary_distance(p, tissue.fat_cell_mm, tissue.fat_key)
+            fat = fat * (1.0 + tissue.lobule_amplitude * (2.0 * uf - 1.0))
+            fat += (contrast.skin - fat) * _box(sf, tissue.fat_septum_mm, edge_mm)  # fibrous septa of lobules
+        val += (fat - val) * (1.0 - inside(b + self.skin_mm + self.fat_mm))
+        if tissue is not None:
+            val += (contrast.tendon - val) * tissue.tube_fraction(p, 0, edge_mm)
+            val += (contrast.vessel - val) * tissue.tube_fraction(p, 1, edge_mm)
         val += (contrast.skin - val) * (1.0 - inside(b + self.skin_mm))
         val += (contrast.cortex - val) * inside(db)
         val += (contrast.marrow * (1.0 + tex) - val) * inside(db + self.cortex_mm)

@@ -23,7 +23,8 @@ from deformation.skeleton import Pose, Skeleton
 
 from . import hand, knee
 from .anatomy import CONTRASTS, Anatomy, Texture
-from .posing import POSING_MODES, PosingModel
+from .posing import POSING_MODES, PosingModel, residual_waves
+from .soft_tissue import SoftTissue
 
 __all__ = ["PhantomSpec", "PhantomScan", "Phantom", "REGIONS", "make_phantom", "SIZES", "MODALITIES"]
 
@@ -133,11 +134,17 @@ class Phantom:
         # through the true correspondence reproduces a posed scan.
         self.edge_mm = 0.8 * max(spacing)
         ss = np.random.SeedSequence(spec.seed)
-        self._tex_seq, self._pose_seq, self._marker_seq, self._noise_seq = ss.spawn(4)
-        # Texture wavelengths of at least 6 voxels (12 mm on the paper grids).
-        wl = max(12.0, 6.0 * max(spacing))
-        self.texture = Texture.random(np.random.default_rng(self._tex_seq), min_wavelength_mm=wl,
+        self._tex_seq, self._pose_seq, self._marker_seq, self._noise_seq, motion_seq = ss.spawn(5)
+        # The soft tissue's own uneven motion (posing.residual_waves): a property of this body, the same in
+        # every pose and scaled by each pose's flexion.
+        self.residual = residual_waves(self.anatomy, np.random.default_rng(motion_seq))
+        # Texture: 48 plane waves from 4 voxels (at least 6 mm) to 45 mm, several scales of muscle texture;
+        # then the structure (septa, lobules, tendons, vessels) from the same stream.
+        wl = max(6.0, 4.0 * max(spacing))
+        tex_rng = np.random.default_rng(self._tex_seq)
+        self.texture = Texture.random(tex_rng, n_waves=48, min_wavelength_mm=wl,
                                       max_wavelength_mm=max(45.0, 3.0 * wl))
+        self.tissue = SoftTissue.random(self.anatomy, tex_rng)
         self.poses = self._make_poses()
         # One independent noise/bias stream per image: [template, scan 0, scan 1, ...].
         self._image_seqs = self._noise_seq.spawn(len(self.poses) + 1)
@@ -186,7 +193,7 @@ class Phantom:
         for sl in _chunks(len(out)):
             frames = None if scan_points is None else (scan_points[sl], pose.transforms)
             out[sl] = self.anatomy.intensity_fast(template_points[sl], self.contrast, edge_mm=self.edge_mm,
-                                                  texture=self.texture, bone_frames=frames)
+                                                  texture=self.texture, bone_frames=frames, tissue=self.tissue)
         return out
 
     def _bias_field(self, rng: np.random.Generator) -> np.ndarray:
@@ -247,7 +254,8 @@ class Phantom:
 
     def posing_model(self, angles: dict, *, mode: str | None = None) -> PosingModel:
         pose = self.pose_of(angles)
-        return PosingModel(self.anatomy, pose.transforms, angles, mode=mode or self.spec.posing)
+        return PosingModel(self.anatomy, pose.transforms, angles, mode=mode or self.spec.posing,
+                           residual=self.residual)
 
     def correspondence(self, model: PosingModel) -> tuple[np.ndarray, np.ndarray]:
         """Template position of every scan voxel ``(nz, ny, nx, 3)`` and the inversion residual (mm).

@@ -163,7 +163,10 @@ def anatomy() -> Anatomy:
             digits.append(RoundCone(tuple(a), tuple(b), ra + SOFT["bone"], rb + SOFT["bone"]))
     body = SmoothUnion((SmoothUnion(tuple(palm_parts), k=12.0), *digits), k=5.0)
     return Anatomy(skeleton(), shapes, body, joint_radius_mm=radius, cortex_mm=1.2, skin_mm=1.5, fat_mm=3.0,
-                   bulge_gain=0.5, slide_gain=0.3, bone_fade_mm=1.5)
+                   bulge_gain=0.5, slide_gain=0.3, bone_fade_mm=1.5, residual_gain=0.1, residual_wavelength_mm=30.0,
+                   structure=dict(muscle_cell_mm=6.0, fat_cell_mm=3.0, muscle_septum_mm=0.35, fat_septum_mm=0.2,
+                                  cell_amplitude=0.10, lobule_amplitude=0.06, tendon_offset=0.6,
+                                  tendon_radius_mm=1.0, vessel_offset=0.65, vessel_radius_mm=0.6))
 
 
 def complete_angles(angles: dict) -> dict:

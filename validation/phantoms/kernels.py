@@ -173,7 +173,7 @@ def _weights(d, power, falloff, w):
 def _forward_point(x, y, z, tabs, params, out, jac, d, w):
     """F(p) for one template point; writes F into ``out`` and the 3x3 linear part into ``jac``."""
     prims, groups, group_k, table, shape_k = tabs
-    t12, dq, sign, joints, mode, power, falloff, fade_mm = params
+    t12, dq, sign, joints, mode, power, falloff, fade_mm, waves, resid_gain = params
     nbones = t12.shape[0]
     for k in range(nbones):
         d[k] = _shape_sdf(prims, groups, group_k, table, shape_k, k, x, y, z)
@@ -227,6 +227,13 @@ def _forward_point(x, y, z, tabs, params, out, jac, d, w):
                 px -= slide * jt[5]
                 py -= slide * jt[8]
                 pz -= slide * jt[11]
+            amp = resid_gain * radius * abs(math.sin(th)) * along * member * fade
+            for q in range(waves.shape[1]):
+                wv = waves[j, q]
+                sq = amp * wv[7] * math.sin(wv[0] * x + wv[1] * y + wv[2] * z + wv[6])
+                px += sq * wv[3]
+                py += sq * wv[4]
+                pz += sq * wv[5]
     piv = 0
     for k in range(nbones):
         if w[k] > w[piv]:
@@ -383,20 +390,86 @@ def inverse_map(targets, guesses, use_guess, tabs, params, t_inv12, tol, max_ite
     return p_out, r_out
 
 
+# -- soft-tissue structure (soft_tissue.py defines it in NumPy) -------------------------------------
+_OFFSET = 1 << 20
+_JITTER = 0.9
+
+
+@nb.njit(cache=True, inline="always")
+def _mix64(z):
+    z = z + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@nb.njit(cache=True)
+def _uniform(i, j, k, key, channel):
+    h = _mix64(key)
+    h = _mix64(h ^ np.uint64(i + _OFFSET))
+    h = _mix64(h ^ np.uint64(j + _OFFSET))
+    h = _mix64(h ^ np.uint64(k + _OFFSET))
+    h = _mix64(h ^ np.uint64(channel))
+    return np.float64(h >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@nb.njit(cache=True)
+def _site(i, j, k, key, cell):
+    return ((i + 0.5 + _JITTER * (_uniform(i, j, k, key, 0) - 0.5)) * cell,
+            (j + 0.5 + _JITTER * (_uniform(i, j, k, key, 1) - 0.5)) * cell,
+            (k + 0.5 + _JITTER * (_uniform(i, j, k, key, 2) - 0.5)) * cell)
+
+
+@nb.njit(cache=True)
+def _cell(x, y, z, cell, key):
+    """Distance to the boundary of the jittered-lattice Voronoi cell containing (x, y, z), and its value."""
+    bi, bj, bk = int(math.floor(x / cell)), int(math.floor(y / cell)), int(math.floor(z / cell))
+    best = np.inf
+    s1x = s1y = s1z = 0.0
+    ni = nj = nk = 0
+    for di in range(-2, 3):
+        for dj in range(-2, 3):
+            for dk in range(-2, 3):
+                sx, sy, sz = _site(bi + di, bj + dj, bk + dk, key, cell)
+                d2 = (sx - x) ** 2 + (sy - y) ** 2 + (sz - z) ** 2
+                if d2 < best:
+                    best, s1x, s1y, s1z, ni, nj, nk = d2, sx, sy, sz, bi + di, bj + dj, bk + dk
+    bound = np.inf
+    for di in range(-2, 3):
+        for dj in range(-2, 3):
+            for dk in range(-2, 3):
+                sx, sy, sz = _site(bi + di, bj + dj, bk + dk, key, cell)
+                gap = math.sqrt((sx - s1x) ** 2 + (sy - s1y) ** 2 + (sz - s1z) ** 2)
+                if gap > 0.0:
+                    d2 = (sx - x) ** 2 + (sy - y) ** 2 + (sz - z) ** 2
+                    bound = min(bound, (d2 - best) / (2.0 * gap))
+    return bound, _uniform(ni, nj, nk, key, 3)
+
+
+@nb.njit(cache=True, inline="always")
+def _box(s, half, edge):
+    return 0.5 * (math.tanh((s + half) / edge) - math.tanh((s - half) / edge))
+
+
 # -- appearance ----------------------------------------------------------------------------------
 @nb.njit(cache=True, parallel=True)
 def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, phases, amplitudes, tex_amp,
-                  scan_points, bone_frames):
+                  scan_points, bone_frames, tissue, keys, tubes, tube_info):
     """Noise-free intensity at template points (see :meth:`Anatomy.intensity`).
 
     ``bone_frames`` ``(nbones, 3, 4)``, when not empty, maps ``scan_points``
     into each bone's template frame, where that bone's distance is taken.
+    ``tissue`` (empty: none) holds :meth:`SoftTissue.params`, ``keys`` its two
+    lattice keys, ``tubes``/``tube_info`` its round cones and (kind, radius).
+    Structure is skipped where its layer's weight is below 1e-15 (it would
+    change the intensity by less than 1e-11).
     """
     prims, groups, group_k, table, shape_k = tabs
-    air, skin_i, fat, muscle, cortex, marrow = contrast
+    air, skin_i, fat, muscle, cortex, marrow, tendon, vessel = contrast
     skin_mm, fat_mm, cortex_mm = layers
     n = points.shape[0]
     rigid = bone_frames.shape[0] > 0
+    structured = tissue.shape[0] > 0
     out = np.empty(n)
     for i in nb.prange(n):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
@@ -420,11 +493,32 @@ def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, pha
                                             + wavevectors[q, 2] * z + phases[q])
         tex *= tex_amp
         val = muscle * (1.0 + tex)
-        val += (fat * (1.0 + tex) - val) * (1.0 - 0.5 * (1.0 - math.tanh((b + skin_mm + fat_mm) / edge)))
+        fat_v = fat * (1.0 + tex)
+        in_body = 0.5 * (1.0 - math.tanh(b / edge))
+        muscle_w = 0.5 * (1.0 - math.tanh((b + skin_mm + fat_mm) / edge))
+        if structured and in_body > 1e-15:
+            if muscle_w > 1e-15:
+                sm, um = _cell(x, y, z, tissue[0], keys[0])
+                val = val * (1.0 + tissue[4] * (2.0 * um - 1.0))
+                val += (fat_v - val) * _box(sm, tissue[2], edge)
+            if muscle_w < 1.0 - 1e-15:
+                sf, uf = _cell(x, y, z, tissue[1], keys[1])
+                fat_v = fat_v * (1.0 + tissue[5] * (2.0 * uf - 1.0))
+                fat_v += (skin_i - fat_v) * _box(sf, tissue[3], edge)
+        val += (fat_v - val) * (1.0 - muscle_w)
+        if structured and in_body > 1e-15:
+            for kind in range(2):
+                frac = 0.0
+                for t in range(tubes.shape[0]):
+                    if tube_info[t, 0] == kind:
+                        d = _prim_sdf(tubes[t], x, y, z)
+                        r = tube_info[t, 1]
+                        frac = max(frac, 0.5 * (math.tanh((d + 2.0 * r) / edge) - math.tanh(d / edge)))
+                val += ((tendon if kind == 0 else vessel) - val) * frac
         val += (skin_i - val) * (1.0 - 0.5 * (1.0 - math.tanh((b + skin_mm) / edge)))
         val += (cortex - val) * 0.5 * (1.0 - math.tanh(db / edge))
         val += (marrow * (1.0 + tex) - val) * 0.5 * (1.0 - math.tanh((db + cortex_mm) / edge))
-        out[i] = air + (val - air) * 0.5 * (1.0 - math.tanh(b / edge))
+        out[i] = air + (val - air) * in_body
     return out
 
 

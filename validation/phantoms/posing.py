@@ -12,7 +12,9 @@ Two models, both leaving every bone exactly rigid:
     the joint instead of collapsing towards it, as skin does over a flexed
     joint), applied after ``δ``, which adds near each flexed joint a bulge of
     the soft tissue on the flexor side and a proximal sliding of the skin on
-    the extensor side.  ``δ`` vanishes inside bones and fades in over the first
+    the extensor side, and a smooth random motion of the soft tissue (shear
+    waves of random direction, amplitude growing with the flexion: muscles
+    sliding and bulging unevenly).  ``δ`` vanishes inside bones and fades in over the first
     millimetres of soft tissue (``Anatomy.bone_fade_mm``).  A VBD initialisation cannot represent either effect,
     so it leaves a real residual.
 
@@ -45,7 +47,7 @@ from deformation import dual_quaternion
 from . import kernels
 from .anatomy import Anatomy
 
-__all__ = ["PosingModel", "blend_weights", "POSING_MODES"]
+__all__ = ["PosingModel", "blend_weights", "residual_waves", "POSING_MODES"]
 
 POSING_MODES = ("soft", "vbd")
 
@@ -69,6 +71,32 @@ def blend_weights(bone_distances: np.ndarray, *, power: float = 4.0, falloff_mm:
     w[any_in] = inside[any_in].astype(float)
     w /= w.sum(axis=1, keepdims=True)
     return w
+
+
+def residual_waves(anatomy: Anatomy, rng: np.random.Generator, *, n_waves: int = 3) -> np.ndarray:
+    """Random shear waves of the ``soft`` posing's uneven soft-tissue motion, per soft-tissue joint.
+
+    Each wave has wavelength ``anatomy.residual_wavelength_mm`` (±20 %), a
+    random direction ``k``, a displacement direction ``e ⊥ k`` (a shear wave:
+    no change of volume to first order) and a weight; the weights sum to one,
+    so the motion's amplitude is at most ``residual_gain·R·|sin θ|`` and its
+    Lipschitz constant about that times ``2π / wavelength`` (kept < 0.3 by the
+    anatomies' settings, so that the posing stays one-to-one).
+    """
+    out = np.zeros((len(anatomy.joint_radius_mm), n_waves, 8))
+    for j in range(out.shape[0]):
+        for q in range(n_waves):
+            k = rng.normal(size=3)
+            k /= np.linalg.norm(k)
+            e = np.cross(k, rng.normal(size=3))
+            e /= np.linalg.norm(e)
+            lam = anatomy.residual_wavelength_mm * rng.uniform(0.8, 1.2)
+            out[j, q, :3] = k * (2.0 * np.pi / lam)
+            out[j, q, 3:6] = e
+            out[j, q, 6] = rng.uniform(0.0, 2.0 * np.pi)
+        w = rng.uniform(0.5, 1.0, size=n_waves)
+        out[j, :, 7] = w / w.sum()
+    return out
 
 
 def _smoothstep(x):
@@ -102,9 +130,13 @@ class PosingModel:
     joint_angles : dict joint name → angles (degrees); the first angle of each
         soft-tissue joint (its flexion) drives the ``soft`` bulge and sliding
     mode : "soft" or "vbd"
+    residual : ``(n_soft_joints, n_waves, 8)`` shear waves per soft-tissue joint,
+        rows ``k (3, rad/mm), e (3, unit, ⊥ k), phase, weight`` (see
+        :func:`residual_waves`); ``None``: no random motion.
     """
 
-    def __init__(self, anatomy: Anatomy, transforms: dict, joint_angles: dict, *, mode: str = "soft"):
+    def __init__(self, anatomy: Anatomy, transforms: dict, joint_angles: dict, *, mode: str = "soft",
+                 residual: np.ndarray | None = None):
         if mode not in POSING_MODES:
             raise ValueError(f"posing mode must be one of {POSING_MODES}, got {mode!r}")
         self.anatomy = anatomy
@@ -115,6 +147,11 @@ class PosingModel:
         self._t12 = np.ascontiguousarray(self.t[:, :3, :].reshape(len(names), 12))
         self._dq = dual_quaternion.from_transforms(self.t)
         self._kparams = None
+        n_soft = len(anatomy.joint_radius_mm)
+        self.residual = (np.zeros((n_soft, 0, 8)) if residual is None
+                         else np.ascontiguousarray(residual, dtype=float))
+        if self.residual.shape[0] != n_soft or self.residual.shape[2:] != (8,):
+            raise ValueError(f"residual waves must be (n_soft_joints={n_soft}, n_waves, 8), got {self.residual.shape}")
         sk = anatomy.skeleton
         self.soft_joints = [
             _SoftJoint(np.asarray(sk.joint(j).center), sk.joint(j).axes,
@@ -139,7 +176,7 @@ class PosingModel:
             return out
         fade = _smoothstep(np.min(bone_d, axis=1) / self.anatomy.bone_fade_mm)
         body = None
-        for j in self.soft_joints:
+        for j, waves in zip(self.soft_joints, self.residual):
             if j.flexion_deg == 0.0:
                 continue
             lx, ly, lz = ((p - j.center) @ j.axes).T
@@ -158,6 +195,9 @@ class PosingModel:
             skin = np.exp(-0.5 * (body / (0.15 * j.radius)) ** 2)
             slide = self.anatomy.slide_gain * j.radius * abs(th) * along * extensor * skin * member * fade
             out += slide[:, None] * (-j.axes[:, 2])
+            amp = self.anatomy.residual_gain * j.radius * abs(np.sin(th)) * along * member * fade
+            for wave in waves:  # uneven sliding and bulging: transverse (shear) waves, zero in the bones
+                out += (amp * wave[7] * np.sin(p @ wave[:3] + wave[6]))[:, None] * wave[3:6]
         return out
 
     def forward_reference(self, p: np.ndarray) -> np.ndarray:
@@ -181,7 +221,8 @@ class PosingModel:
                 joints[i, 12:18] = (j.flexion_deg, j.radius, j.parent_index, j.child_index,
                                   self.anatomy.bulge_gain, self.anatomy.slide_gain)
             self._kparams = (self._t12, self._dq, sign, joints, 0 if self.mode == "vbd" else 1,
-                             float(self.anatomy.weight_power), float(self.anatomy.weight_falloff_mm), float(self.anatomy.bone_fade_mm))
+                             float(self.anatomy.weight_power), float(self.anatomy.weight_falloff_mm),
+                             float(self.anatomy.bone_fade_mm), self.residual, float(self.anatomy.residual_gain))
         return self._kparams
 
     def forward(self, p: np.ndarray) -> np.ndarray:
