@@ -14,7 +14,7 @@ DEMO_SPACING ?= 2.5
 # Debian packages Open3D (libusb, libgomp) and off-screen VTK (GL, EGL, OSMesa) load at run time.
 DEB_PACKAGES := libusb-1.0-0 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libgomp1
 
-.PHONY: demo test test-slow system-deps venv clean help
+.PHONY: demo test test-slow system-deps venv clean help bench bench-ants
 
 help:
 	@echo "make demo       set up, build a phantom knee study in $(DEMO_DIR)/ and run the pipeline on it (bones, pose,"
@@ -23,7 +23,10 @@ help:
 	@echo "                bend-and-straighten ($(DEMO_DIR)/knee.mp4)"
 	@echo "make test       set up, then run the test suite (slow tests excluded)"
 	@echo "make test-slow  paper-size tests (minutes)"
-	@echo "make clean      remove .venv and $(DEMO_DIR)/"
+	@echo "make bench      add the benchmarks' peers to .venv (itk-elastix, psutil)"
+	@echo "make bench-ants ANTs SyN for benchmarks/registration.py, in its own .venv-ants (antspyx pins an"
+	@echo "                older NumPy/SciPy than the project's)"
+	@echo "make clean      remove .venv, .venv-ants and $(DEMO_DIR)/"
 
 system-deps:
 	@missing=""; for p in $(DEB_PACKAGES); do \
@@ -74,5 +77,14 @@ test: venv
 test-slow: venv
 	$(VENV)/bin/pytest -m slow
 
+bench: venv
+	$(PY) -m pip install --quiet -e '.[test,bench]'
+
+# antspyx needs NumPy < 2.4 and an older SciPy: installed beside the project it would downgrade them, so it
+# gets an environment of its own, called by registration.baselines.ants_syn with image files.
+bench-ants: bench
+	@test -x .venv-ants/bin/python || $(PYTHON) -m venv .venv-ants
+	.venv-ants/bin/python -m pip install --quiet antspyx
+
 clean:
-	rm -rf $(VENV) $(DEMO_DIR)
+	rm -rf $(VENV) .venv-ants $(DEMO_DIR)

@@ -35,7 +35,8 @@ from deformation.interpolate import sample_displaced_array
 
 from .metrics import air_level
 
-__all__ = ["BaselineResult", "sitk_bspline", "elastix_bspline", "elastix_available", "warp_template"]
+__all__ = ["BaselineResult", "sitk_bspline", "elastix_bspline", "elastix_available", "ants_syn", "ants_available",
+           "warp_template"]
 
 
 @dataclass
@@ -153,8 +154,15 @@ def _to_itk(vol: Volume):
 
 def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = None, metric: str = "mi",
                     grid_spacing_mm: float = 20.0, resolutions: int = 3, iterations: int = 500,
-                    seed: int = 0) -> BaselineResult:
+                    seed: int = 0, rigidity_labels: Volume | None = None,
+                    rigidity_weight: float = 0.1) -> BaselineResult:
     """elastix B-spline registration (itk-elastix), its default B-spline map with the given grid and metric.
+
+    ``rigidity_labels`` (the template's bone label map) adds elastix's
+    ``TransformRigidityPenalty`` (Staring et al. 2007) on the bones, weighted
+    ``rigidity_weight`` against the similarity: the strongest bone-aware
+    general-purpose peer.  The bones are pulled through ``initial`` onto the
+    scan grid (where elastix's moving image lives) and dilated by one voxel.
 
     Raises ``ImportError`` naming the extra to install when itk-elastix is absent.
     """
@@ -174,9 +182,29 @@ def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = N
     p["MaximumNumberOfIterations"] = [str(int(iterations))]
     p["RandomSeed"] = [str(int(seed))]
     p["WriteResultImage"] = ["false"]
-    po.AddParameterMap(p)
     with tempfile.TemporaryDirectory(prefix="avw-elastix-") as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # ITK's lazy loader imports more modules here (see _itk)
+        if rigidity_labels is not None:
+            from scipy import ndimage
+
+            from deformation.interpolate import sample_displaced_array
+
+            g = fixed.geometry
+            u = initial.data if initial is not None else np.zeros(g.array_shape + (3,), np.float32)
+            bones = sample_displaced_array(np.asarray(rigidity_labels.data), rigidity_labels.geometry.world_to_index_matrix,
+                                           g, u, 0, 0) > 0
+            bones = ndimage.binary_dilation(bones)
+            path = os.path.join(tmp, "rigidity.mha")
+            itk.imwrite(_to_itk(Volume(bones.astype(np.float32), g)), path)
+            p["Registration"] = ["MultiMetricMultiResolutionRegistration"]
+            p["Metric"] = [p["Metric"][0], "TransformRigidityPenalty"]
+            p["Metric0Weight"] = ["1.0"]
+            p["Metric1Weight"] = [str(float(rigidity_weight))]
+            p["MovingRigidityImageName"] = [path]
+            p["UseLinearityCondition"] = ["true"]
+            p["UseOrthonormalityCondition"] = ["true"]
+            p["UsePropernessCondition"] = ["true"]
+        po.AddParameterMap(p)
         cwd = os.getcwd()
         os.chdir(tmp)  # elastix may drop log files into the working folder
         try:
@@ -188,5 +216,51 @@ def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = N
     u = np.asarray(itk.array_from_image(field), dtype=np.float64)  # (nz, ny, nx, 3): fixed x → x + u in moving
     t_field = Volume(u, fixed.geometry)
     params = {"metric": metric, "grid_spacing_mm": grid_spacing_mm, "resolutions": resolutions,
-              "iterations": iterations, "seed": seed, "parameter_map": "elastix default 'bspline'"}
-    return _finish("elastix-bspline", fixed, moving, initial, t_field, time.perf_counter() - t0, params)
+              "iterations": iterations, "seed": seed, "parameter_map": "elastix default 'bspline'",
+              "rigidity_weight": rigidity_weight if rigidity_labels is not None else None}
+    name = "elastix-bspline" if rigidity_labels is None else "elastix-bspline-rigidity"
+    return _finish(name, fixed, moving, initial, t_field, time.perf_counter() - t0, params)
+
+
+def _ants_python() -> str | None:
+    """The interpreter with antspyx: ``$AVW_ANTS_PYTHON``, else ``.venv-ants`` at the project root (``make bench-ants``)."""
+    from pathlib import Path
+
+    exe = os.environ.get("AVW_ANTS_PYTHON") or str(Path(__file__).resolve().parents[1] / ".venv-ants" / "bin" / "python")
+    return exe if os.path.exists(exe) else None
+
+
+def ants_available() -> bool:
+    return _ants_python() is not None
+
+
+def ants_syn(fixed: Volume, moving: Volume, *, initial: Volume | None = None, seed: int = 0,
+             threads: int | None = None) -> BaselineResult:
+    """ANTs SyN (antspyx's ``SyNOnly``, Mattes MI) of the template to a scan, in antspyx's own interpreter.
+
+    antspyx pins older NumPy/SciPy than this project, so it runs in
+    ``.venv-ants`` (``make bench-ants``) through ``registration/_ants_runner.py``
+    with image files; raises ``RuntimeError`` naming that target when it is absent.
+    """
+    import subprocess
+    from pathlib import Path
+
+    exe = _ants_python()
+    if exe is None:
+        raise RuntimeError("the ANTs baseline needs antspyx in its own environment: run `make bench-ants`, "
+                           "or set AVW_ANTS_PYTHON to a Python that has antspyx")
+    t0 = time.perf_counter()
+    m = _initialised(fixed, moving, initial)
+    env = dict(os.environ, ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS=str(threads or os.cpu_count() or 1))
+    with tempfile.TemporaryDirectory(prefix="avw-ants-") as tmp:
+        fp, mp, wp = (os.path.join(tmp, n) for n in ("fixed.nii.gz", "moving.nii.gz", "warp.nii.gz"))
+        sitk.WriteImage(sitk.Cast(fixed.to_sitk(), sitk.sitkFloat32), fp)
+        sitk.WriteImage(sitk.Cast(m.to_sitk(), sitk.sitkFloat32), mp)
+        run = subprocess.run([exe, str(Path(__file__).with_name("_ants_runner.py")), fp, mp, wp, str(int(seed))],
+                             capture_output=True, text=True, env=env, cwd=tmp)
+        if run.returncode != 0:
+            raise RuntimeError(f"ANTs SyN failed: {run.stderr.strip().splitlines()[-1] if run.stderr.strip() else run.returncode}")
+        warp = sitk.ReadImage(wp, sitk.sitkVectorFloat64)
+    t_field = Volume(sitk.GetArrayFromImage(warp), fixed.geometry)
+    params = {"transform": "SyNOnly", "metric": "mattes", "seed": seed}
+    return _finish("ants-syn", fixed, moving, initial, t_field, time.perf_counter() - t0, params)

@@ -1,5 +1,10 @@
 """Articulated initialisation of the registration (Rhee §3.3, Eq. 2).
 
+:func:`polyrigid_initial_field` — the one-to-one alternative: the bones'
+motions blended as a flow (:mod:`deformation.polyrigid`), whose backward
+map has no fold in the crease where VBD's must fold, and keeps every bone
+exactly rigid.
+
 :func:`vbd_initial_field` — VBD (Rhee Eq. 2) of the template to a scan's
 pose, as the ``scan_to_template`` field on the scan grid that
 :func:`registration.adaptive.register_adaptive` starts from, by the Newton
@@ -17,7 +22,42 @@ from deformation.fields import unfold as unfold_field
 from deformation.geometry import GridGeometry, Volume
 from deformation.resample import backward_map
 
-__all__ = ["vbd_initial_field"]
+__all__ = ["vbd_initial_field", "polyrigid_initial_field"]
+
+
+def polyrigid_initial_field(template_labels: Volume, bone_labels: dict, parents: dict, transforms: dict,
+                            scan_geometry: GridGeometry, *, power: float = 4.0,
+                            falloff_mm: float = 20.0) -> tuple[Volume, "PolyrigidFlow"]:
+    """``scan_to_template`` field of the polyrigid flow on the scan grid, and the flow (for its forward map).
+
+    ``bone_labels`` ``{bone: label id}`` and ``parents`` ``{bone: parent bone or None}`` describe the
+    skeleton; ``transforms`` ``{bone: 4x4 template → scan}`` the scan's (estimated) pose.  The weights are
+    the distance weights of :func:`deformation.skinning.distance_weights` (``power``, ``falloff_mm``), taken
+    to the bones where they are at each moment of the motion.
+    """
+    from deformation.polyrigid import PolyrigidFlow, bone_distance_maps
+
+    order = list(bone_labels)
+    missing = [b for b in order if b not in transforms]
+    if missing:
+        raise ValueError(f"the pose has no transform for bones {missing}")
+    # parents before children, as the flow composes the skeleton's motions from the root down
+    ranked, seen = [], set()
+    while len(ranked) < len(order):
+        progressed = False
+        for b in order:
+            p = parents.get(b)
+            if b not in seen and (p is None or p in seen):
+                ranked.append(b)
+                seen.add(b)
+                progressed = True
+        if not progressed:
+            raise ValueError(f"the skeleton's parents form a cycle or name unknown bones: {parents}")
+    maps = bone_distance_maps(template_labels, {b: bone_labels[b] for b in ranked})
+    par = tuple(-1 if parents.get(b) is None else ranked.index(parents[b]) for b in ranked)
+    flow = PolyrigidFlow(np.stack([np.asarray(transforms[b], float) for b in ranked]), par, maps,
+                         template_labels.geometry, power=power, falloff_mm=falloff_mm)
+    return flow.scan_to_template(scan_geometry), flow
 
 
 def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeometry, weights, transforms,
