@@ -268,6 +268,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     for _, wgt in bone_w.values():
                         keep = np.minimum(keep, 1.0 - wgt)
                     u *= keep[None]
+                elif bone_w:  # smoothing bent the bones: back to each one's rigid motion
+                    for m, wgt in bone_w.values():
+                        u = _rigid_project(u, m, grid_mm, wgt)
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history),
                "lncc_before": before, "lncc_after": history[-1] if history else None, "halvings": halvings}
         levels.append(rec)
