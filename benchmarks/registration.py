@@ -113,8 +113,8 @@ def _flex_phantoms(seed, args):
 
 def run_flex(args):
     """Issue I's protocol (module docstring): one table per case, methods side by side on the same start."""
-    from deformation.polyrigid import PolyrigidFlow, bone_distance_maps
     from registration.dense import DenseSettings, register_dense
+    from registration.initialise import polyrigid_initial_field
     from registration.pose import estimate_poses
 
     seeds = TUNING_SEEDS if args.split == "tuning" else HELD_OUT_SEEDS
@@ -134,9 +134,7 @@ def run_flex(args):
             poses = {s.scan_id: s.pose for s in est.scans}
             print(f"\n{region} seed {seed} ({args.split}): {ph.geometry.describe()}; poses estimated in "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
-            maps = bone_distance_maps(labels, bl)
-            parents = tuple(-1 if sk.bone(b).parent is None else sk.bone_names.index(sk.bone(b).parent)
-                            for b in sk.bone_names)
+            parents = {b: sk.bone(b).parent for b in sk.bone_names}
             for sid in wanted:
                 sc = scans[sid]
                 truth = sc.correspondence
@@ -157,9 +155,8 @@ def run_flex(args):
 
                 with PeakMemory() as pm:
                     t1 = time.perf_counter()
-                    flow = PolyrigidFlow(stack_transforms(poses[sid].transforms, sk.bone_names), parents, maps,
-                                         ph.geometry)
-                    init = flow.scan_to_template(sc.image.geometry)
+                    init, _ = polyrigid_initial_field(labels, bl, parents, poses[sid].transforms,
+                                                      sc.image.geometry)
                     t_init = time.perf_counter() - t1
                 add("initialised (polyrigid, estimated poses)", init, t_init, pm.mib)
                 with PeakMemory() as pm:

@@ -18,11 +18,13 @@ at every iteration, and keeps what an articulated body needs:
   (``u ← f + u ∘ (id + f)``).  A step with ``det(I + ∇f) ≤ min_jacobian``
   anywhere is halved until it has none, so every step is one-to-one and so is
   their composition: no fold is created.
-* **Rigid bones**: on every bone's voxels (the template's labels pulled
-  through the current map) the step is replaced by its least-squares rigid
-  motion (a small rotation and a translation), blended back into the
-  smoothed step over ``bone_margin_mm``: bones stay exactly rigid, and a
-  pose estimate that is off by a little is corrected as a rigid body.
+* **Bones** (the template's labels pulled through the current map):
+  ``bones="fixed"`` (default) keeps ``U = id`` on them — the pose stage's
+  rigid intensity registration placed them, more precisely than a dense
+  force can — fading into the smooth step over ``bone_margin_mm``;
+  ``"rigid"`` replaces the step (and the smoothed field) on each bone by
+  its least-squares rigid motion, so a pose estimate that is a little off is
+  corrected as a rigid body; ``"free"`` ignores the labels.
 * **Multi-resolution**: the images are smoothed and subsampled by
   ``shrink`` per level, coarse to fine; ``u`` is carried up by trilinear
   interpolation.
@@ -70,7 +72,6 @@ class DenseSettings:
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
     elastic_mm: float = 2.0  #: σ of the smoothing of the accumulated field after each step (0: none)
     tolerance: float = 1e-4  #: a level stops when 10 iterations gain less than this much LNCC
-    seed: int = 0  #: unused (the method is deterministic); kept for the stage's record
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -198,6 +199,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     m0 /= scale
     sp_full = np.asarray(g.spacing, float)[::-1]  # array axes (z, y, x)
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
+    prev_s = None  # the previous level's shrink factor
     levels = []
     for lv, (s, iters) in enumerate(zip(st.shrink, st.iterations)):
         s = int(s)

@@ -15,12 +15,17 @@ registration's field is :func:`deformation.resample.invert_scan_to_template`.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from deformation.evd import vbd_forward
 from deformation.fields import unfold as unfold_field
 from deformation.geometry import GridGeometry, Volume
 from deformation.resample import backward_map
+
+if TYPE_CHECKING:
+    from deformation.polyrigid import PolyrigidFlow
 
 __all__ = ["vbd_initial_field", "polyrigid_initial_field"]
 

@@ -8,7 +8,7 @@ zero on the bone.  Tolerances:
 * the registration must remove ≥ 60 % of the start's mean error over the
   tissue (the warp is smooth and the texture has structure at every voxel, so
   only interpolation error and the regulariser's bias at the warp's peak are
-  left — it measured ~80 %);
+  left — measured: 0.72 → 0.077 mm, 89 % removed);
 * on the bone, fixed bones mean ``U = id``: the result equals the start
   exactly there (float32 round-off of the composition, < 1e-4 mm);
 * every step is one-to-one (det(I + ∇f) > min_jacobian), so no voxel folds;

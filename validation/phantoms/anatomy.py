@@ -47,11 +47,6 @@ class Contrast:
     vessel: float = 0.0
 
 
-def _box(s, half_width, edge):
-    """A sheet or tube ``|s| < half_width`` blurred by ``edge`` (mass-preserving partial volume); ``s ≥ 0``."""
-    return 0.5 * (np.tanh((s + half_width) / edge) - np.tanh((s - half_width) / edge))
-
-
 # MRI-like: T1-weighted appearance. Cortical bone is dark, marrow and fat are
 # bright and overlap once texture, bias and noise are added; skin and muscle
 # overlap likewise (Rhee §2: "overlapping intensity ranges between different
@@ -238,14 +233,14 @@ class Anatomy:
         val = contrast.muscle * (1.0 + tex)
         fat = contrast.fat * (1.0 + tex)
         if tissue is not None:
-            from .soft_tissue import cell_boundary_distance
+            from .soft_tissue import blurred_box, cell_boundary_distance
 
             sm, um = cell_boundary_distance(p, tissue.muscle_cell_mm, tissue.muscle_key)
             val = val * (1.0 + tissue.cell_amplitude * (2.0 * um - 1.0))
-            val += (fat - val) * _box(sm, tissue.muscle_septum_mm, edge_mm)  # intermuscular fat septa
+            val += (fat - val) * blurred_box(sm, tissue.muscle_septum_mm, edge_mm)  # intermuscular fat septa
             sf, uf = cell_boundary_distance(p, tissue.fat_cell_mm, tissue.fat_key)
             fat = fat * (1.0 + tissue.lobule_amplitude * (2.0 * uf - 1.0))
-            fat += (contrast.skin - fat) * _box(sf, tissue.fat_septum_mm, edge_mm)  # fibrous septa of lobules
+            fat += (contrast.skin - fat) * blurred_box(sf, tissue.fat_septum_mm, edge_mm)  # fibrous septa of lobules
         val += (fat - val) * (1.0 - inside(b + self.skin_mm + self.fat_mm))
         if tissue is not None:
             val += (contrast.tendon - val) * tissue.tube_fraction(p, 0, edge_mm)

@@ -25,7 +25,7 @@ import numpy as np
 
 from .shapes import Ellipsoid, RoundCone, SmoothUnion
 
-__all__ = ["compile_shapes", "PRIM_WIDTH"]
+__all__ = ["compile_shapes", "prim_row", "PRIM_WIDTH"]
 
 # Open3D ships an older TBB; once it is loaded, numba's default threading layer
 # tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
@@ -36,7 +36,7 @@ PRIM_WIDTH = 18
 
 
 # -- compiling shape objects into tables -------------------------------------------------
-def _prim_row(s) -> np.ndarray:
+def prim_row(s) -> np.ndarray:
     row = np.zeros(PRIM_WIDTH)
     if isinstance(s, RoundCone):
         row[0] = 0
@@ -55,7 +55,7 @@ def compile_shapes(shapes) -> tuple:
 
     def add_group(parts, k):
         start = len(prims)
-        prims.extend(_prim_row(p) for p in parts)
+        prims.extend(prim_row(p) for p in parts)
         groups.append((start, len(prims)))
         group_k.append(k)
 

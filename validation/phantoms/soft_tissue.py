@@ -38,12 +38,19 @@ import numpy as np
 
 from .shapes import RoundCone
 
-__all__ = ["SoftTissue", "hash_uniform", "cell_boundary_distance", "LATTICE_REACH"]
+__all__ = ["SoftTissue", "hash_uniform", "cell_boundary_distance", "blurred_box", "LATTICE_REACH"]
 
 MASK64 = (1 << 64) - 1
 OFFSET = 1 << 20  # lattice indices are shifted positive before hashing (|index| < 2^20 cells)
 JITTER = 0.9  # a site lies anywhere in the central 90 % of its lattice cell
 LATTICE_REACH = 2  # neighbouring lattice cells searched per axis (5×5×5): enough for JITTER ≤ 1
+
+
+def blurred_box(s, half_width, edge_mm):
+    """A sheet or tube ``|s| < half_width`` blurred by ``edge_mm`` (mass-preserving partial volume), ``s ≥ 0``:
+    ``0.5·(tanh((s + w)/e) − tanh((s − w)/e))``, whose integral across stays ``2w`` on a coarse grid
+    instead of swelling to a blur width."""
+    return 0.5 * (np.tanh((s + half_width) / edge_mm) - np.tanh((s - half_width) / edge_mm))
 
 
 def _mix(z: np.ndarray) -> np.ndarray:
@@ -151,18 +158,17 @@ class SoftTissue:
         out = np.zeros(len(p))
         for t, k in zip(self.tubes, self.tube_kind):
             if k == kind:
-                d = t(p)
                 r = 0.5 * (t.ra + t.rb)
-                out = np.maximum(out, 0.5 * (np.tanh((d + 2.0 * r) / edge_mm) - np.tanh(d / edge_mm)))
+                out = np.maximum(out, blurred_box(t(p) + r, r, edge_mm))  # ρ = distance to the axis
         return out
 
     def tube_table(self) -> tuple[np.ndarray, np.ndarray]:
         """``(rows (T, PRIM_WIDTH) as :func:`kernels.compile_shapes` writes round cones, (T, 2) kind and radius)``."""
-        from .kernels import PRIM_WIDTH, _prim_row
+        from .kernels import PRIM_WIDTH, prim_row
 
         if not self.tubes:
             return np.zeros((0, PRIM_WIDTH)), np.zeros((0, 2))
-        rows = np.stack([_prim_row(t) for t in self.tubes])
+        rows = np.stack([prim_row(t) for t in self.tubes])
         info = np.array([[k, 0.5 * (t.ra + t.rb)] for t, k in zip(self.tubes, self.tube_kind)], float)
         return rows, info
 
