@@ -166,13 +166,16 @@ class Anatomy:
         scan, frames = self._bone_frames(p, bone_frames)
         if tissue is None:
             tparams, keys, tubes, info = np.zeros(0), np.zeros(2, np.uint64), np.zeros((0, 18)), np.zeros((0, 2))
+            none = (np.zeros((0, 0, 0, 4)), np.zeros(3, np.int64))
+            sites = none + none
         else:
             tparams, keys = tissue.params(), tissue.keys()
             tubes, info = tissue.tube_table()
+            sites = tissue.site_tables(p) if len(p) else tissue.site_tables(np.zeros((1, 3)))
         return kernels.intensity_map(p, self.tables, len(self.bone_names),
                                      c, float(edge_mm), (self.skin_mm, self.fat_mm, self.cortex_mm),
                                      tex.wavevectors, tex.phases, tex.amplitudes, contrast.texture_amplitude,
-                                     scan, frames, tparams, keys, tubes, info)
+                                     scan, frames, tparams, keys, tubes, info, sites)
 
     def _bone_frames(self, p: np.ndarray, bone_frames) -> tuple[np.ndarray, np.ndarray]:
         """``(scan points (n, 3), scan → bone template frames (n_bones, 3, 4))``; empty when not given."""

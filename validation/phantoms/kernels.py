@@ -420,29 +420,45 @@ def _site(i, j, k, key, cell):
             (k + 0.5 + _JITTER * (_uniform(i, j, k, key, 2) - 0.5)) * cell)
 
 
+@nb.njit(cache=True, inline="always")
+def _site_at(i, j, k, key, cell, table, first):
+    """A lattice cell's site: from the table (SoftTissue.site_tables) when it covers the cell, else hashed."""
+    a, b, c = i - first[0], j - first[1], k - first[2]
+    if (0 <= a < table.shape[0]) and (0 <= b < table.shape[1]) and (0 <= c < table.shape[2]):
+        return table[a, b, c, 0], table[a, b, c, 1], table[a, b, c, 2]
+    return _site(i, j, k, key, cell)
+
+
 @nb.njit(cache=True)
-def _cell(x, y, z, cell, key):
-    """Distance to the boundary of the jittered-lattice Voronoi cell containing (x, y, z), and its value."""
+def _cell(x, y, z, cell, key, table, first, sites, d2s):
+    """Distance to the boundary of the jittered-lattice Voronoi cell containing (x, y, z), and its value.
+
+    ``sites (125, 3)`` and ``d2s (125,)`` are the caller's scratch space (one allocation per point, not per call).
+    """
     bi, bj, bk = int(math.floor(x / cell)), int(math.floor(y / cell)), int(math.floor(z / cell))
     best = np.inf
-    s1x = s1y = s1z = 0.0
+    nearest = 0
     ni = nj = nk = 0
+    q = 0
     for di in range(-2, 3):
         for dj in range(-2, 3):
             for dk in range(-2, 3):
-                sx, sy, sz = _site(bi + di, bj + dj, bk + dk, key, cell)
+                sx, sy, sz = _site_at(bi + di, bj + dj, bk + dk, key, cell, table, first)
+                sites[q, 0], sites[q, 1], sites[q, 2] = sx, sy, sz
                 d2 = (sx - x) ** 2 + (sy - y) ** 2 + (sz - z) ** 2
+                d2s[q] = d2
                 if d2 < best:
-                    best, s1x, s1y, s1z, ni, nj, nk = d2, sx, sy, sz, bi + di, bj + dj, bk + dk
+                    best, nearest, ni, nj, nk = d2, q, bi + di, bj + dj, bk + dk
+                q += 1
     bound = np.inf
-    for di in range(-2, 3):
-        for dj in range(-2, 3):
-            for dk in range(-2, 3):
-                sx, sy, sz = _site(bi + di, bj + dj, bk + dk, key, cell)
-                gap = math.sqrt((sx - s1x) ** 2 + (sy - s1y) ** 2 + (sz - s1z) ** 2)
-                if gap > 0.0:
-                    d2 = (sx - x) ** 2 + (sy - y) ** 2 + (sz - z) ** 2
-                    bound = min(bound, (d2 - best) / (2.0 * gap))
+    s1x, s1y, s1z = sites[nearest, 0], sites[nearest, 1], sites[nearest, 2]
+    for q in range(125):
+        gap = math.sqrt((sites[q, 0] - s1x) ** 2 + (sites[q, 1] - s1y) ** 2 + (sites[q, 2] - s1z) ** 2)
+        if gap > 0.0:
+            bound = min(bound, (d2s[q] - best) / (2.0 * gap))
+    a, b, c = ni - first[0], nj - first[1], nk - first[2]
+    if (0 <= a < table.shape[0]) and (0 <= b < table.shape[1]) and (0 <= c < table.shape[2]):
+        return bound, table[a, b, c, 3]
     return bound, _uniform(ni, nj, nk, key, 3)
 
 
@@ -454,13 +470,14 @@ def _box(s, half, edge):
 # -- appearance ----------------------------------------------------------------------------------
 @nb.njit(cache=True, parallel=True)
 def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, phases, amplitudes, tex_amp,
-                  scan_points, bone_frames, tissue, keys, tubes, tube_info):
+                  scan_points, bone_frames, tissue, keys, tubes, tube_info, sites):
     """Noise-free intensity at template points (see :meth:`Anatomy.intensity`).
 
     ``bone_frames`` ``(nbones, 3, 4)``, when not empty, maps ``scan_points``
     into each bone's template frame, where that bone's distance is taken.
     ``tissue`` (empty: none) holds :meth:`SoftTissue.params`, ``keys`` its two
-    lattice keys, ``tubes``/``tube_info`` its round cones and (kind, radius).
+    lattice keys, ``tubes``/``tube_info`` its round cones and (kind, radius), ``sites`` its
+    :meth:`SoftTissue.site_tables`.
     Structure is skipped where its layer's weight is below 1e-15 (it would
     change the intensity by less than 1e-11).
     """
@@ -497,12 +514,14 @@ def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, pha
         in_body = 0.5 * (1.0 - math.tanh(b / edge))
         muscle_w = 0.5 * (1.0 - math.tanh((b + skin_mm + fat_mm) / edge))
         if structured and in_body > 1e-15:
+            scratch = np.empty((125, 3))
+            d2s = np.empty(125)
             if muscle_w > 1e-15:
-                sm, um = _cell(x, y, z, tissue[0], keys[0])
+                sm, um = _cell(x, y, z, tissue[0], keys[0], sites[0], sites[1], scratch, d2s)
                 val = val * (1.0 + tissue[4] * (2.0 * um - 1.0))
                 val += (fat_v - val) * _box(sm, tissue[2], edge)
             if muscle_w < 1.0 - 1e-15:
-                sf, uf = _cell(x, y, z, tissue[1], keys[1])
+                sf, uf = _cell(x, y, z, tissue[1], keys[1], sites[2], sites[3], scratch, d2s)
                 fat_v = fat_v * (1.0 + tissue[5] * (2.0 * uf - 1.0))
                 fat_v += (skin_i - fat_v) * _box(sf, tissue[3], edge)
         val += (fat_v - val) * (1.0 - muscle_w)
@@ -512,8 +531,9 @@ def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, pha
                 for t in range(tubes.shape[0]):
                     if tube_info[t, 0] == kind:
                         d = _prim_sdf(tubes[t], x, y, z)
-                        r = tube_info[t, 1]
-                        frac = max(frac, 0.5 * (math.tanh((d + 2.0 * r) / edge) - math.tanh(d / edge)))
+                        if d < 14.0 * edge:  # beyond, the blurred tube is below e^-28 (< 1e-9 of intensity)
+                            r = tube_info[t, 1]
+                            frac = max(frac, 0.5 * (math.tanh((d + 2.0 * r) / edge) - math.tanh(d / edge)))
                 val += ((tendon if kind == 0 else vessel) - val) * frac
         val += (skin_i - val) * (1.0 - 0.5 * (1.0 - math.tanh((b + skin_mm) / edge)))
         val += (cortex - val) * 0.5 * (1.0 - math.tanh(db / edge))

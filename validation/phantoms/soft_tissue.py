@@ -175,6 +175,31 @@ class SoftTissue:
     def keys(self) -> np.ndarray:
         return np.array([self.muscle_key, self.fat_key], dtype=np.uint64)
 
+    def site_tables(self, p: np.ndarray, *, max_cells: int = 1 << 22) -> tuple:
+        """Each lattice's sites and values over the cells the points ``p`` can reach, for the compiled kernel.
+
+        ``(muscle table, muscle first cell, fat table, fat first cell)``; a table is ``(ni, nj, nk, 4)``:
+        site x, y, z (mm) and the cell's value, from the same hash as :func:`cell_boundary_distance`, so
+        the kernel hashes each lattice cell once instead of 125 times per point.  A lattice whose box
+        would hold more than ``max_cells`` cells gets an empty table (the kernel then hashes per point).
+        """
+        out = []
+        lo, hi = np.min(p, axis=0), np.max(p, axis=0)
+        for cell, key in ((self.muscle_cell_mm, self.muscle_key), (self.fat_cell_mm, self.fat_key)):
+            first = np.floor(lo / cell).astype(np.int64) - LATTICE_REACH
+            last = np.floor(hi / cell).astype(np.int64) + LATTICE_REACH
+            n = last - first + 1
+            if np.prod(n.astype(float)) > max_cells:
+                out += [np.zeros((0, 0, 0, 4)), np.zeros(3, np.int64)]
+                continue
+            idx = np.stack(np.meshgrid(*(np.arange(a, b + 1) for a, b in zip(first, last)), indexing="ij"), -1)
+            u = [hash_uniform(idx[..., 0], idx[..., 1], idx[..., 2], key, c) for c in range(4)]
+            table = np.empty(tuple(n) + (4,))
+            table[..., :3] = (idx + 0.5 + JITTER * (np.stack(u[:3], axis=-1) - 0.5)) * cell
+            table[..., 3] = u[3]
+            out += [table, first]
+        return tuple(out)
+
     def params(self) -> np.ndarray:
         """The scalar parameters in the order the compiled kernel reads them."""
         return np.array([self.muscle_cell_mm, self.fat_cell_mm, self.muscle_septum_mm, self.fat_septum_mm,
