@@ -379,7 +379,7 @@ def folding_statistics(field: Volume, mask=None) -> dict:
 
 
 def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: int = 1,
-           max_iterations: int = 200, mask=None) -> tuple[Volume, dict]:
+           max_iterations: int = 200, mask=None, frozen=None) -> tuple[Volume, dict]:
     """Remove folds from ``field`` by smoothing it locally where ``det ∂U/∂x < min_det``.
 
     Each iteration replaces the displacement on the voxels whose determinant
@@ -396,6 +396,9 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
 
     ``mask`` (optional bool array or Volume on the grid) restricts the voxels
     whose determinant is checked (e.g. the body); all voxels by default.
+    ``frozen`` (optional bool array or Volume on the grid) marks voxels whose
+    displacement is never changed (e.g. bones held rigid); folds are then
+    removed from the voxels around them.
     Returns the new field (``field`` is not modified) and ``dict(iterations,
     n_folded_before, n_folded_after, n_changed, max_change_mm)``; folded
     counts are of ``det ≤ 0`` over the mask.
@@ -410,6 +413,7 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     u = np.array(u0, dtype=np.float64)
     g = field.geometry
     m = None if mask is None else np.asarray(_grid_array(mask, g, "mask", trailing=()), dtype=bool)
+    fz = None if frozen is None else np.asarray(_grid_array(frozen, g, "frozen", trailing=()), dtype=bool)
     m_inv = np.ascontiguousarray(np.linalg.inv(g.index_to_world_matrix[:3, :3]))
     det = np.empty(g.array_shape, dtype=np.float64)
 
@@ -425,6 +429,13 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     while bad.any() and it < max_iterations:
         it += 1
         region = ndi.binary_dilation(bad, iterations=grow) if grow > 0 else bad
+        if fz is not None:
+            region = region & ~fz
+            if not region.any():
+                stall, grow = 0, grow + 1
+                if grow > 50:
+                    break
+                continue
         # smooth only the region's bounding box grown by the kernel's reach (truncate=4σ): the values on
         # the region are those of smoothing the whole grid, at the cost of the folds' neighbourhood only
         reach = int(math.ceil(4.0 * sigma))

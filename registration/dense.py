@@ -47,10 +47,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from deformation.fields import compose
+from deformation.fields import folding_statistics, unfold
 from deformation.geometry import Volume
 
 from .baselines import warp_template
+from .metrics import similarity
 
 __all__ = ["DenseSettings", "DenseResult", "register_dense"]
 
@@ -71,7 +72,11 @@ class DenseSettings:
     bones: str = "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
     elastic_mm: float = 2.0  #: σ of the smoothing of the accumulated field after each step (0: none)
+    fluid_voxels: float | None = None  #: if set, fluid σ in voxels of each level instead of fluid_mm
+    elastic_voxels: float | None = None  #: if set, elastic σ in voxels of each level instead of elastic_mm
     tolerance: float = 1e-4  #: a level stops when 10 iterations gain less than this much LNCC
+    body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
+    unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -92,8 +97,12 @@ class DenseResult:
     correspondence: Volume  #: scan_to_template (mm) on the scan grid: φ₀ ∘ U
     registered: Volume  #: the template resampled through it
     seconds: float
-    levels: list = field(default_factory=list)  #: per level: shape, iterations, LNCC before/after, halvings
+    levels: list = field(default_factory=list)  #: per level: shape, iterations, LNCC before/after, halvings, s
     settings: dict = field(default_factory=dict)
+    similarity_before: dict = field(default_factory=dict)  #: SSD/CC/MI of the scan and the start's template
+    similarity_after: dict = field(default_factory=dict)  #: … and the registered template
+    folding: dict = field(default_factory=dict)  #: det statistics of the result (deformation.fields)
+    unfold: dict | None = None  #: what the final repair changed (deformation.fields.unfold), None if nothing
 
 
 def _smooth(a, sigma_vox):
@@ -115,6 +124,21 @@ def _lncc_force(f, w, sig):
     cc = sfw * sfw / (sff * sww)
     dcc = 2.0 * sfw / (sff * sww) * ((f - mf) - sfw / sww * (w - mw))
     return float(np.mean(cc, dtype=np.float64)), dcc
+
+
+def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
+    """Voxels inside either image's body (:func:`registration.segmentation.segment_body`) or within ``grow_mm``.
+
+    ``None`` when an image has no air/tissue boundary (then every voxel takes part).
+    """
+    from .segmentation import segment_body
+
+    try:
+        body = (segment_body(fixed).data > 0) | (segment_body(moving).data > 0)
+    except ValueError:
+        return None
+    d = ndimage.distance_transform_edt(~body, sampling=np.asarray(fixed.geometry.spacing, float)[::-1])
+    return (d <= grow_mm).astype(np.float32)
 
 
 def _sample(a, coords, order=1):
@@ -198,10 +222,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     f0 /= scale
     m0 /= scale
     sp_full = np.asarray(g.spacing, float)[::-1]  # array axes (z, y, x)
+    region = _body_region(Volume(f0, g), Volume(m0, g), 2.0 * st.window_mm) if st.body_only else None
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
     prev_s = None  # the previous level's shrink factor
     levels = []
     for lv, (s, iters) in enumerate(zip(st.shrink, st.iterations)):
+        t_level = time.perf_counter()
         s = int(s)
         sp = sp_full * s
         sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
@@ -218,8 +244,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             coords = [np.minimum(coords[a], u.shape[a + 1] - 1) for a in range(3)]
             u = np.stack([_sample(u[a], coords) for a in range(3)]).astype(np.float32)
         labl = lab0[::s, ::s, ::s] if lab0 is not None else None
+        regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
         win = st.window_mm / sp
-        fluid = st.fluid_mm / sp
+        fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
+        elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
         step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
         bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
         history = []
@@ -236,6 +264,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             if it >= 10 and history[-1] - history[-11] < st.tolerance:
                 break
             gw = np.gradient(w)
+            if regl is not None:
+                dcc = dcc * regl
             force = np.stack([_smooth(dcc * gw[a] / sp[a], fluid) for a in range(3)])
             mag = float(np.sqrt((force ** 2).sum(axis=0)).max())
             if mag <= 0:
@@ -263,8 +293,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             # compose: u ← f + u ∘ (id + f)
             c2 = [grid[a] + fstep[a] / sp[a] for a in range(3)]
             u = np.stack([fstep[a] + _sample(u[a], c2) for a in range(3)]).astype(np.float32)
-            if st.elastic_mm > 0:
-                u = np.stack([_smooth(u[a], st.elastic_mm / sp) for a in range(3)])
+            if np.any(elastic > 0):
+                u = np.stack([_smooth(u[a], elastic) for a in range(3)])
                 if bone_w and st.bones == "fixed":
                     keep = np.ones(shape, np.float32)
                     for _, wgt in bone_w.values():
@@ -274,7 +304,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     for m, wgt in bone_w.values():
                         u = _rigid_project(u, m, grid_mm, wgt)
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history),
-               "lncc_before": before, "lncc_after": history[-1] if history else None, "halvings": halvings}
+               "lncc_before": before, "lncc_after": history[-1] if history else None, "halvings": halvings,
+               "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
         log.info("dense level %d (shrink %d): %d iterations, LNCC %.4f -> %.4f", lv, s, len(history),
                  rec["lncc_before"] or 0, rec["lncc_after"] or 0)
@@ -291,6 +322,30 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     # written out, not a matrix product: BLAS kernels may round differently with the arrays' alignment
     u_world = np.stack([d[r, 0] * u_ijk[0] + d[r, 1] * u_ijk[1] + d[r, 2] * u_ijk[2] for r in range(3)],
                        axis=-1).astype(np.float32)
-    corr = compose(initial, Volume(u_world, g))
-    corr = Volume(corr.data.astype(np.float32), g)
-    return DenseResult(corr, warp_template(moving, corr), time.perf_counter() - t0, levels, st.to_dict())
+    # φ = φ₀ ∘ U: φ₀ sampled at x + u(x), extended by its edge values beyond the grid as the images were
+    # in every step (deformation.fields.compose takes φ₀ as zero there, which tears a limb cut by the edge)
+    coords = [np.indices(g.array_shape, dtype=np.float32)[a] + u[a] / sp_full[a] for a in range(3)]
+    phi0 = np.stack([_sample(np.asarray(initial.data[..., c], np.float32), coords) for c in range(3)], axis=-1)
+    corr = Volume((u_world + phi0).astype(np.float32), g)
+    repair = None
+    if st.unfold:
+        # Every step was one-to-one on its level's grid, and so is U; but φ₀ ∘ U, sampled on the scan grid,
+        # can show det ≤ 0 where the start compresses the crease below the voxel size (as the phantoms' exact
+        # fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are smoothed
+        # locally, inside the body only (air carries no anatomy).
+        mask = region if region is not None else None
+        frozen = None
+        if lab0 is not None:  # the bones' interiors keep the start's rigid motion: the repair works around them
+            frozen = ndimage.binary_erosion(_sample(lab0.astype(np.float32), coords, order=0) > 0)
+        if folding_statistics(corr, mask)["n_folded"]:
+            fixed_c, repair = unfold(corr, mask=mask, frozen=frozen)
+            if repair["n_folded_after"] and frozen is not None:  # a fold pressed against a bone: free it too
+                fixed_c, repair = unfold(corr, mask=mask)
+                repair["bones_released"] = True
+            corr = Volume(fixed_c.data.astype(np.float32), g)
+    registered = warp_template(moving, corr)
+    seconds = time.perf_counter() - t0
+    return DenseResult(corr, registered, seconds, levels, st.to_dict(),
+                       similarity_before=similarity(fixed.data, warp_template(moving, initial).data),
+                       similarity_after=similarity(fixed.data, registered.data), folding=folding_statistics(corr),
+                       unfold=repair)

@@ -140,25 +140,30 @@ registration source).
 """
 
 REGISTER_HELP = """\
-Register the template to each scan by intensity alone with the locally
-adaptive block registration of Rhee et al. 2011 (§4, Algorithm 1): the
-worst-matching block of a hierarchy gets 8 clamped-plate-spline control
-points, their 24 displacement values are optimised by an NLopt simplex over
-the block's 3x3x3 neighbourhood, each accepted step is composed into the
-running field, and the blocks are refined level by level.
+Register the template to each scan by intensity alone, starting from an
+articulated start to the scan's estimated pose.
 
---init vbd (default) starts from VBD (Rhee Eq. 2) to the scan's pose: the
-estimated pose of `workbench pose` (--pose truth: a phantom's true pose, for
-protocols such as Rhee's Table 4; never taken silently).  The pose and
-weights stages run first when they have not.  The bone labels then become
-zero-displacement control points.  --init none starts
-from the identity (Rhee's Table 2 protocol).
+--method dense (default) moves every voxel at every iteration: local
+normalised cross-correlation (5 mm window) pulls the template, each step is
+smoothed and composed so that no step folds (det > 0.2 everywhere), the bones
+stay where the pose stage put them, coarse to fine over 3 levels
+(registration.dense).  --method adaptive is Rhee et al. 2011's locally
+adaptive block registration (§4, Algorithm 1): the worst-matching block gets
+8 clamped-plate-spline control points whose 24 displacements an NLopt simplex
+optimises, level by level; --preset paper gives its published settings
+(levels 3-5, Nelder-Mead, tolerance 1.5 x the base MI, no regulariser) and
+selects --method adaptive.  Issue I's benchmark (README, "Registration")
+compares both with elastix, SimpleITK and ANTs on the same starts.
 
-VBD is not one-to-one in the crease of a flexed joint, so its inverse folds
-(~0.2 % of the body voxels); the registration never adds a fold but keeps
-those.  --unfold-init repairs them first (local smoothing of the folded
-voxels): a one-to-one field, at ~0.1-1 mm more MED on the knee phantom and
-far more on the hand (creases between thin fingers) - see the README.
+--init polyrigid (default) starts from the bones' rigid motions to the
+scan's pose blended as a flow: one-to-one by construction (no fold in the
+crease), bones exactly rigid.  --init vbd starts from VBD (Rhee Eq. 2), which
+folds in the crease of a flexed joint (~0.2 % of the body voxels; the
+registration never adds a fold but keeps those; --unfold-init repairs them
+by local smoothing).  --init none starts from the identity (Rhee's Table 2
+protocol).  The pose comes from `workbench pose` (--pose truth: a phantom's
+true pose, for protocols such as Rhee's Table 4; never taken silently); the
+stages a start needs run first when they have not.
 
 Writes init/<scan>/ (the start) and registration/<scan>/ (correspondence.mha:
 scan -> template field in mm on the scan grid, the convention of the truth
@@ -168,21 +173,14 @@ scan by scan: an interrupted run resumes with the first unfinished scan, and
 scans already registered with the same settings are skipped.  Open the field in
 3D Slicer as a transform, the registered volume beside the scan.
 
---preset paper gives the published settings (levels 3-5, Nelder-Mead,
-tolerance 1.5 x the base MI, no regulariser); the default preset differs
-where measurements on the phantoms favour it (README, "Registration"):
-BOBYQA, a bending-energy regulariser, coarser first levels without an
-initialisation (1-4); after VBD levels 3-4, a stiffer regulariser and only
-steps that gain at least 1 % (smaller gains follow noise, not anatomy).
-
 Options left out keep the setting the stage last ran with in this study (else
 the default shown), so a scan registered later is treated like the others.
 
 examples:
-  workbench register knee-study                       # all scans, VBD init
-  workbench register knee-study --scan pose01 --init none --levels 3 5
-  workbench register knee-study --preset paper --seed 3
-  workbench register knee-study --unfold-init           # no folded voxel in the result
+  workbench register knee-study                       # all scans: polyrigid start, dense
+  workbench register knee-study --scan pose01 --init none
+  workbench register knee-study --preset paper --init vbd --seed 3   # Rhee as published
+  workbench register knee-study --method adaptive --levels 3 5
 """
 
 
@@ -473,33 +471,41 @@ def build_parser() -> argparse.ArgumentParser:
     _common(an)
     an.set_defaults(func=cmd_animate)
 
-    rg = sub.add_parser("register", help="locally adaptive non-rigid registration of the template to the scans "
-                                         "(Rhee §4)", description=REGISTER_HELP,
+    rg = sub.add_parser("register", help="non-rigid registration of the template to the scans (dense, or Rhee §4's "
+                                         "locally adaptive one)", description=REGISTER_HELP,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     rg.add_argument("study", type=Path, help="study folder (holding study.json)")
     rg.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
-    rg.add_argument("--init", choices=["vbd", "none"], default=argparse.SUPPRESS,
-                    help="start from VBD to the scan's pose, or from the identity. Default: vbd")
+    rg.add_argument("--method", choices=["dense", "adaptive"], default=argparse.SUPPRESS,
+                    help="dense LNCC steps over the whole scan, or Rhee's Algorithm 1. Default: dense (adaptive "
+                         "with --preset paper)")
+    rg.add_argument("--init", choices=["polyrigid", "vbd", "none"], default=argparse.SUPPRESS,
+                    help="start from the bones' motions blended as a one-to-one flow, from VBD (Rhee Eq. 2), or "
+                         "from the identity. Default: polyrigid")
     rg.add_argument("--unfold-init", default=argparse.SUPPRESS, action="store_true",
                     help="repair the folds of the VBD initialisation in the crease of a flexed joint before "
                          "registering (a one-to-one field; ~0.1-1 mm less accurate on the knee phantom, "
                          "more on the hand)")
     rg.add_argument("--pose", choices=["estimated", "truth"], default=argparse.SUPPRESS, dest="pose_source",
-                    help="pose for --init vbd: the pose stage's estimate, or a phantom's true pose (protocols). "
+                    help="pose of the start: the pose stage's estimate, or a phantom's true pose (protocols). "
                          "Default: estimated")
     rg.add_argument("--preset", choices=["default", "paper"], default=argparse.SUPPRESS,
-                    help="settings: ours (after --init vbd its 'initialised' variant), or Rhee's as published. "
-                         "Default: default")
+                    help="--method adaptive's settings: ours (after an articulated start its 'initialised' "
+                         "variant), or Rhee's as published (selects --method adaptive). Default: default")
     rg.add_argument("--levels", default=argparse.SUPPRESS, nargs=2, type=int, metavar=("FIRST", "LAST"),
                     help="block levels (2**level blocks a side; level 3 = 32^3-voxel blocks on a 256^3 grid). "
-                         "Default: 3 4 after --init vbd, 1 4 after --init none (paper preset: 3 5)")
+                         "--method adaptive only. Default: 3 4 after an articulated start, 1 4 after --init none "
+                         "(paper preset: 3 5)")
     rg.add_argument("--optimizer", default=argparse.SUPPRESS, choices=["neldermead", "sbplx", "bobyqa", "cobyla"],
-                    help="NLopt algorithm of each local step. Default: bobyqa (paper preset: neldermead)")
+                    help="NLopt algorithm of each local step (--method adaptive). Default: bobyqa (paper preset: "
+                         "neldermead)")
     rg.add_argument("--metric", default=argparse.SUPPRESS, choices=["auto", "ssd", "mi"],
-                    help="'auto': normalised MI at coarse levels, SSD from level 4 (Rhee §4.1). Default: auto")
-    rg.add_argument("--max-steps", default=argparse.SUPPRESS, type=int, metavar="N", help="local steps per level at most. Default: 200")
+                    help="--method adaptive: 'auto' is normalised MI at coarse levels, SSD from level 4 (Rhee §4.1). "
+                         "Default: auto")
+    rg.add_argument("--max-steps", default=argparse.SUPPRESS, type=int, metavar="N", help="local steps per level at most (--method adaptive). Default: 200")
     rg.add_argument("--seed", type=int, default=argparse.SUPPRESS,
-                    help="seed of the simplex restarts (after --init vbd the default preset makes none, so the "
+                    help="seed of the simplex restarts (--method adaptive; after an articulated start the default "
+                         "preset makes none, so the "
                          "seed has no effect there). Default: 0")
     rg.add_argument("--no-unfold-init", action="store_false", dest="unfold_init", default=argparse.SUPPRESS,
                     help="start from the plain VBD field again after an earlier --unfold-init")
@@ -752,13 +758,14 @@ def cmd_model(args) -> int:
 
 
 def _register_settings(args):
-    init = _given(args, args.study, "init", {"method": ("init", lambda v: "vbd" if v == "vbd" else "identity"),
+    init = _given(args, args.study, "init", {"method": ("init", lambda v: "identity" if v == "none" else v),
                                             "pose": ("pose_source", _same), "unfold": ("unfold_init", _same)})
     reg = _given(args, args.study, "register", {
-        "preset": ("preset", lambda v: "paper" if v == "paper" else "auto"), "levels": ("levels", tuple),
+        "method": ("method", _same), "preset": ("preset", lambda v: "paper" if v == "paper" else "auto"),
+        "levels": ("levels", tuple),
         "optimizer": ("optimizer", _same), "metric": ("metric", _same), "max_steps_per_level": ("max_steps", _same),
         "fix_bones": ("no_fix_bones", lambda v: not v), "seed": ("seed", _same)})
-    if init.method == "identity" and not hasattr(args, "unfold_init"):
+    if init.method != "vbd" and not hasattr(args, "unfold_init"):
         init = dataclasses.replace(init, unfold=False)  # an earlier --unfold-init repaired a VBD start
     return {"init": init, "register": reg}
 
@@ -825,7 +832,7 @@ def format_registration_table(study, scans) -> str:
             r, last = rows[name], name == "registered"
             lines.append(f"| {sid} | {name} | {num(r.get('med_mm'), '.2f')} | {num(r.get('marker_med_mm'), '.2f')} | "
                          f"{num(r.get('ssd'), '.1f')} | {num(r.get('cc'), '.3f')} | {num(r.get('mi'), '.3f')} | "
-                         f"{num(r.get('folded_fraction'), '.4f')} | {log['control_points'] if last else ''} | "
+                         f"{num(r.get('folded_fraction'), '.4f')} | {(log.get('control_points') or '') if last else ''} | "
                          f"{e['seconds'] if last else ''} |")
     lines.append("(MED: mean |recovered − true| template position over the scan's body voxels; folded: fraction of "
                  "body voxels with det ≤ 0 when validated, else of the whole grid; MI in nats, 32 bins)")

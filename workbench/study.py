@@ -318,6 +318,10 @@ class Study:
         self.output("init", "init.json", scan_id)  # "run register first" when the stage has not run
         return None
 
+    def init_forward(self, scan_id: str) -> Volume:
+        """The polyrigid start's forward map: ``template_to_scan`` on the template grid (mm)."""
+        return read_displacement(self.output("init", "forward.mha", scan_id))
+
     def init_info(self, scan_id: str) -> dict:
         """The init stage's record of a scan: ``method`` and, for VBD, the ``bones`` and their ``transforms``."""
         return read_json(self.output("init", "init.json", scan_id))

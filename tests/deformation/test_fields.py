@@ -538,6 +538,25 @@ def test_unfold_removes_a_planted_fold_and_leaves_the_rest_of_the_field_alone():
     assert out.geometry == field.geometry and out.data.dtype == field.data.dtype
 
 
+def test_unfold_leaves_frozen_voxels_alone_and_repairs_around_them():
+    # a bone held rigid on one side of a fold: its voxels keep their displacement to the bit, and the fold is
+    # still removed (by the free voxels on the other side)
+    from scipy import ndimage
+
+    g = _geom(size=(26, 22, 16))
+    field, r = _bump_fold(g, 2.5)
+    bad = F.jacobian_determinant(field) <= 0
+    free, _ = F.unfold(field)
+    touched = np.any(free.data != field.data, axis=-1)
+    below = np.indices(bad.shape)[0] < int(np.median(np.nonzero(bad)[0]))
+    frozen = touched & ~ndimage.binary_dilation(bad, iterations=1) & below  # beside the fold, on one side
+    assert frozen.sum() >= 5
+    out, info = F.unfold(field, frozen=frozen)
+    assert not np.array_equal(out.data, field.data)
+    assert np.array_equal(out.data[frozen], field.data[frozen])
+    assert info["n_folded_after"] == 0 == F.folding_statistics(out)["n_folded"]
+
+
 def test_unfold_keeps_a_one_to_one_field_and_checks_its_arguments():
     g = _geom(size=(20, 18, 12))
     field, _ = _bump_fold(g, 1.0)  # A/w = 1 < 1.65: det ≥ 1 - 1/√e ≈ 0.39 everywhere

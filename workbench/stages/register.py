@@ -1,14 +1,22 @@
-"""The ``register`` stage: the locally adaptive registration of the template to each scan (Rhee §4, Algorithm 1).
+"""The ``register`` stage: the non-rigid registration of the template to each scan.
 
-From the init stage's start (VBD, or the identity), the worst-matching block
+``method="dense"`` (default): :func:`registration.dense.register_dense` —
+local-correlation diffeomorphic steps over the whole scan, every step
+one-to-one, the bones held where the pose stage put them.  Issue I's
+benchmark (README, "Registration") measured it against Rhee's Algorithm 1,
+elastix, SimpleITK and ANTs on phantoms with structured soft tissue.
+
+``method="adaptive"`` (``--preset paper`` selects it; Rhee §4, Algorithm 1):
+from the init stage's start (polyrigid, VBD, or the identity), the worst-matching block
 of a hierarchy gets 8 clamped-plate-spline control points whose
 displacements an NLopt simplex optimises; each accepted step is composed into
 the running field (:func:`registration.adaptive.register_adaptive`).  After
 VBD the template's bone voxels are zero-displacement control points (Rhee
 §4.3).  The result is inverted onto the template grid
 (:func:`deformation.resample.invert_scan_to_template`; after VBD through its
-exact forward map, so that only the registration's own correction is
-inverted numerically) for EVD (Rhee Eq. 7).
+exact forward map — VBD's, or the polyrigid flow's ``forward.mha`` — so
+that only the registration's own correction is inverted numerically) for
+EVD (Rhee Eq. 7).
 
 Outputs (``registration/<scan>/``)::
 
@@ -33,17 +41,23 @@ from workbench.stages.mechanism import Field, Image, Json, Labels, Stage
 __all__ = ["RegisterSettings", "STAGE", "PRESETS"]
 
 PRESETS = ("auto", "default", "initialised", "paper")
+METHODS = ("auto", "dense", "adaptive")
 
 
 @dataclass(frozen=True)
 class RegisterSettings:
     """The registration's settings: a preset and the overrides the command line exposes.
 
-    ``preset``: ``auto`` (``initialised`` after a VBD start, ``default``
-    after none), ``default``, ``initialised`` or ``paper`` (Rhee's published
-    settings) — :class:`registration.adaptive.AdaptiveSettings`.
+    ``method``: ``dense`` (:mod:`registration.dense`), ``adaptive`` (Rhee's
+    Algorithm 1) or ``auto`` (adaptive with the paper preset, else dense).
+    ``preset`` (adaptive): ``auto`` (``initialised`` after an articulated
+    start, ``default`` after none), ``default``, ``initialised`` or ``paper``
+    (Rhee's published settings) — :class:`registration.adaptive.AdaptiveSettings`.
+    ``levels``/``optimizer``/``metric``/``max_steps_per_level`` are the adaptive
+    method's; ``fix_bones`` is both methods'.
     """
 
+    method: str = "auto"
     preset: str = "auto"
     levels: tuple | None = None
     optimizer: str | None = None
@@ -55,9 +69,26 @@ class RegisterSettings:
     def __post_init__(self):
         if self.preset not in PRESETS:
             raise ValueError(f"--preset must be one of {PRESETS}, got {self.preset!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"--method must be one of {METHODS[1:]}, got {self.method!r}")
+        if self.method == "dense" and self.preset == "paper":
+            raise ValueError("--preset paper is Rhee's Algorithm 1 as published: give --method adaptive (or leave "
+                             "--method out)")
         if self.levels is not None:
             object.__setattr__(self, "levels", tuple(int(v) for v in self.levels))
         self.adaptive("vbd")  # validates the overrides now, not after the first scan
+
+    @property
+    def resolved_method(self) -> str:
+        if self.method != "auto":
+            return self.method
+        return "adaptive" if self.preset == "paper" else "dense"
+
+    def dense(self):
+        """The :class:`~registration.dense.DenseSettings` of the dense method."""
+        from registration.dense import DenseSettings
+
+        return DenseSettings(bones="fixed" if self.fix_bones else "free")
 
     def adaptive(self, init_method: str):
         """The :class:`~registration.adaptive.AdaptiveSettings` for a start made by ``init_method``."""
@@ -68,7 +99,7 @@ class RegisterSettings:
         over.update(fix_bones=self.fix_bones, seed=self.seed)
         preset = self.preset
         if preset == "auto":
-            preset = "initialised" if init_method == "vbd" else "default"
+            preset = "initialised" if init_method in ("vbd", "polyrigid") else "default"
         if preset == "paper":
             return AdaptiveSettings.paper(**over)
         if preset == "initialised":
@@ -81,23 +112,38 @@ def _inputs(study, s, scan):
             "labels": study.template_labels_path()}
 
 
-def _run(ctx) -> dict:
+def _forward(study, sid, start, template_geometry):
+    """The start's forward map (template voxel → scan position, ``(nz, ny, nx, 3)``), or ``None`` (identity)."""
     from deformation.evd import vbd_forward
+
+    if start["method"] == "vbd":
+        weights, _ = study.weights()  # the weights that made the start (their digest reaches ours through it)
+        return vbd_forward(template_geometry, weights.reorder(start["bones"]), np.asarray(start["transforms"]))
+    if start["method"] == "polyrigid":
+        fwd = study.init_forward(sid)
+        template_geometry.check_same(fwd.geometry, names=("template", "init forward.mha"),
+                                     remedy="rerun the init stage: workbench register --force")
+        return np.asarray(fwd.data, np.float64) + template_geometry.world_coordinates()
+    return None
+
+
+def _run(ctx) -> dict:
     from deformation.geometry import Volume
     from deformation.resample import invert_scan_to_template
-    from registration.adaptive import register_adaptive
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
     start = study.init_info(sid)  # the start, as the init stage made it: no pose (nor truth) is read here
     method = start["method"]
-    settings = s.adaptive(method)
     template, scan = study.template(), study.scan(sid)
     initial = study.init_field(sid)
-    rigid = study.template_labels() if (method == "vbd" and settings.fix_bones) else None
-    forward = None
-    if method == "vbd":
-        weights, _ = study.weights()  # the weights that made the start (their digest reaches ours through it)
-        forward = vbd_forward(template.geometry, weights.reorder(start["bones"]), np.asarray(start["transforms"]))
+    articulated = method in ("vbd", "polyrigid")
+    if s.resolved_method == "dense":
+        return _run_dense(ctx, start, template, scan, initial, articulated)
+    from registration.adaptive import register_adaptive
+
+    settings = s.adaptive(method)
+    rigid = study.template_labels() if (articulated and settings.fix_bones) else None
+    forward = _forward(study, sid, start, template.geometry)
 
     def step(info):
         if "level_done" in info:
@@ -130,5 +176,39 @@ def _run(ctx) -> dict:
                               "workbench_version": __version__})}
 
 
+def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
+    from deformation.geometry import Volume
+    from deformation.resample import invert_scan_to_template
+    from registration.dense import register_dense
+
+    study, s, sid = ctx.study, ctx.settings, ctx.scan
+    settings = s.dense()
+    labels = study.template_labels() if (articulated and s.fix_bones) else None
+    forward = _forward(study, sid, start, template.geometry)
+
+    def level(rec):
+        ctx.say(f"{sid} level {rec['level']} (1/{rec['shrink']} of the grid): {rec['iterations']} iterations, "
+                f"LNCC {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}, {rec['seconds']:.1f} s")
+
+    result = register_dense(scan, template, initial=initial, moving_labels=labels, settings=settings,
+                            progress=level)
+    ctx.say(f"{sid}: inverting the field onto the template grid ...")
+    bm = invert_scan_to_template(result.correspondence, template.geometry, forward=forward)
+    summary = {"scan": sid, "init": start["method"], "registration_seconds": round(result.seconds, 2),
+               "control_points": None, "levels": result.levels, "inverse": bm.summary(),
+               "folding": result.folding, "unfold": result.unfold, "similarity_before": result.similarity_before,
+               "similarity_after": result.similarity_after}
+    return {"correspondence.mha": Field(result.correspondence),
+            "template_to_scan.mha": Field(bm.scan_to_template()),
+            "inverse_status.nii.gz": Labels(Volume(bm.status.astype(np.uint8), template.geometry)),
+            "registered.nii.gz": Image(result.registered),
+            "log.json": Json({"format": "avw-registration", "version": 1,
+                              "method": "dense (LNCC diffeomorphic steps, bones fixed; registration.dense)",
+                              "direction": "correspondence: scan_to_template on the scan grid (template position − "
+                                           "voxel, mm); template_to_scan: its inverse on the template grid",
+                              "settings": dataclasses.asdict(s), "dense_settings": settings.to_dict(),
+                              "summary": summary, "workbench_version": __version__})}
+
+
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=3)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=4)
