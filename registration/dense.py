@@ -63,17 +63,20 @@ class DenseSettings:
     """Settings of :func:`register_dense` (lengths in mm, so that they mean the same on any grid)."""
 
     shrink: tuple = (4, 2, 1)  #: subsampling per level, coarse to fine
-    iterations: tuple = (80, 50, 25)  #: iterations per level
+    iterations: tuple = (80, 150, 25)  #: iterations per level (at most; see tolerance)
     window_mm: float = 5.0  #: LNCC Gaussian window σ
-    fluid_mm: float = 4.0  #: σ of the smoothing of each step
+    fluid_mm: float = 4.0  #: σ of the smoothing of each step, when fluid_voxels is None
     step_mm: float = 0.5  #: largest displacement of one step, in units of the level's voxel (see step_voxels)
     step_voxels: bool = True  #: step_mm is in voxels of the level (True) or mm (False)
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
     bones: str = "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
-    elastic_mm: float = 2.0  #: σ of the smoothing of the accumulated field after each step (0: none)
-    fluid_voxels: float | None = None  #: if set, fluid σ in voxels of each level instead of fluid_mm
-    elastic_voxels: float | None = None  #: if set, elastic σ in voxels of each level instead of elastic_mm
+    elastic_mm: float = 2.0  #: σ of the smoothing of the field after each step (0: none), when elastic_voxels is None
+    #: fluid σ in voxels of each level (None: fluid_mm).  In voxels, as ANTs SyN's update field: each level
+    #: regularises at its own scale (coarse levels smoothly, the fine one locally).  On the tuning knee at 70°
+    #: (seed 0) 3 voxels gave MED 1.07 mm against 1.32 with a fixed 4 mm and 1.09 with 10 mm.
+    fluid_voxels: float | None = 3.0
+    elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
     tolerance: float = 1e-4  #: a level stops when 10 iterations gain less than this much LNCC
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)

@@ -28,6 +28,10 @@ from registration.dense import DenseSettings, register_dense
 
 @pytest.fixture(scope="module")
 def case():
+    return make_case()
+
+
+def make_case():
     c, s = np.cos(np.deg2rad(15)), np.sin(np.deg2rad(15))
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     size, spacing = (36, 32, 24), (1.5, 1.8, 2.2)
@@ -54,7 +58,8 @@ def case():
 
 def test_recovers_soft_tissue_warp_and_keeps_bone_fixed(case):
     template, labels, scan, truth, bone = case
-    st = DenseSettings(shrink=(2, 1), iterations=(40, 30), window_mm=4.0, fluid_mm=4.0, elastic_mm=1.5)
+    st = DenseSettings(shrink=(2, 1), iterations=(40, 30), window_mm=4.0, fluid_mm=4.0, elastic_mm=1.5,
+                       fluid_voxels=None, elastic_voxels=None)
     before = [v.data.copy() for v in (scan, template, labels)]
     res = register_dense(scan, template, moving_labels=labels, settings=st)
     assert all(np.array_equal(b, v.data) for b, v in zip(before, (scan, template, labels)))  # inputs untouched
@@ -94,3 +99,34 @@ def test_rigid_bones_move_as_rigid_bodies(case):
     t = fit_rigid(x, y)
     resid = np.linalg.norm(x @ t[:3, :3].T + t[:3, 3] - y, axis=1)
     assert resid.max() < 0.05, resid.max()
+
+
+_THREADS_SCRIPT = """
+import sys, hashlib
+sys.path.insert(0, sys.argv[1])
+from test_dense import make_case
+from registration.dense import DenseSettings, register_dense
+template, labels, scan, truth, bone = make_case()
+r = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(shrink=(2, 1), iterations=(20, 10)))
+print(hashlib.sha256(r.correspondence.data.tobytes()).hexdigest())
+"""
+
+
+def test_same_bits_with_one_and_two_threads():
+    # numba kernels (sampling, Jacobians, the fold repair) and BLAS may split work by thread: every voxel's
+    # arithmetic must not depend on it.  Each run is a fresh process, as the thread count is fixed at start.
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    here = str(Path(__file__).resolve().parent)
+    root = str(Path(__file__).resolve().parents[2])
+    digests = []
+    for n in ("1", "2"):
+        env = dict(os.environ, NUMBA_NUM_THREADS=n, OMP_NUM_THREADS=n, OPENBLAS_NUM_THREADS=n, MKL_NUM_THREADS=n,
+                   PYTHONPATH=root)
+        out = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT, here], env=env, capture_output=True, text=True,
+                             check=True, timeout=600)
+        digests.append(out.stdout.strip().splitlines()[-1])
+    assert digests[0] == digests[1] and len(digests[0]) == 64
