@@ -168,11 +168,20 @@ class PolyrigidFlow:
 
 @nb.njit(cache=True, inline="always")
 def _sdf(maps, k, w2i, x, y, z):
-    """Trilinear lookup of bone ``k``'s distance map at world (x, y, z), clamped to the grid."""
+    """Bone ``k``'s distance at world (x, y, z): trilinear in its map, plus the way to the grid outside it.
+
+    A point beyond the template grid (a bone turned far, its inverse motion carrying the point out) takes the
+    map's value at the nearest grid point plus its distance to that point, in mm: an upper bound of the true
+    distance (the bone lies inside the grid), continuous, and never the small edge value alone — clamping
+    alone let a fingertip turned into a fist claim the palm's tissue (issue I, the hand's strongest curl).
+    """
     nz, ny, nx = maps.shape[1], maps.shape[2], maps.shape[3]
-    ci = min(max(w2i[0, 0] * x + w2i[0, 1] * y + w2i[0, 2] * z + w2i[0, 3], 0.0), nx - 1.0)
-    cj = min(max(w2i[1, 0] * x + w2i[1, 1] * y + w2i[1, 2] * z + w2i[1, 3], 0.0), ny - 1.0)
-    ck = min(max(w2i[2, 0] * x + w2i[2, 1] * y + w2i[2, 2] * z + w2i[2, 3], 0.0), nz - 1.0)
+    ri = w2i[0, 0] * x + w2i[0, 1] * y + w2i[0, 2] * z + w2i[0, 3]
+    rj = w2i[1, 0] * x + w2i[1, 1] * y + w2i[1, 2] * z + w2i[1, 3]
+    rk = w2i[2, 0] * x + w2i[2, 1] * y + w2i[2, 2] * z + w2i[2, 3]
+    ci = min(max(ri, 0.0), nx - 1.0)
+    cj = min(max(rj, 0.0), ny - 1.0)
+    ck = min(max(rk, 0.0), nz - 1.0)
     i0, j0, k0 = min(int(ci), nx - 2), min(int(cj), ny - 2), min(int(ck), nz - 2)
     ti, tj, tk = ci - i0, cj - j0, ck - k0
     m = maps[k]
@@ -180,7 +189,13 @@ def _sdf(maps, k, w2i, x, y, z):
     c01 = m[k0, j0 + 1, i0] * (1 - ti) + m[k0, j0 + 1, i0 + 1] * ti
     c10 = m[k0 + 1, j0, i0] * (1 - ti) + m[k0 + 1, j0, i0 + 1] * ti
     c11 = m[k0 + 1, j0 + 1, i0] * (1 - ti) + m[k0 + 1, j0 + 1, i0 + 1] * ti
-    return (c00 * (1 - tj) + c01 * tj) * (1 - tk) + (c10 * (1 - tj) + c11 * tj) * tk
+    d = (c00 * (1 - tj) + c01 * tj) * (1 - tk) + (c10 * (1 - tj) + c11 * tj) * tk
+    if ri != ci or rj != cj or rk != ck:  # outside: index offsets → mm (row a of w2i has norm 1/spacing_a)
+        si = 1.0 / math.sqrt(w2i[0, 0] ** 2 + w2i[0, 1] ** 2 + w2i[0, 2] ** 2)
+        sj = 1.0 / math.sqrt(w2i[1, 0] ** 2 + w2i[1, 1] ** 2 + w2i[1, 2] ** 2)
+        sk = 1.0 / math.sqrt(w2i[2, 0] ** 2 + w2i[2, 1] ** 2 + w2i[2, 2] ** 2)
+        d += math.sqrt(((ri - ci) * si) ** 2 + ((rj - cj) * sj) ** 2 + ((rk - ck) * sk) ** 2)
+    return d
 
 
 @nb.njit(cache=True)

@@ -337,14 +337,16 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are smoothed
         # locally, inside the body only (air carries no anatomy).
         mask = region if region is not None else None
-        frozen = None
-        if lab0 is not None:  # the bones' interiors keep the start's rigid motion: the repair works around them
-            frozen = ndimage.binary_erosion(_sample(lab0.astype(np.float32), coords, order=0) > 0)
+        bone_now = None if lab0 is None else _sample(lab0.astype(np.float32), coords, order=0) > 0
         if folding_statistics(corr, mask)["n_folded"]:
-            fixed_c, repair = unfold(corr, mask=mask, frozen=frozen)
-            if repair["n_folded_after"] and frozen is not None:  # a fold pressed against a bone: free it too
-                fixed_c, repair = unfold(corr, mask=mask)
-                repair["bones_released"] = True
+            # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
+            # pressed against a bone frees one more voxel layer of it at a time (at most 3), then all of it
+            for peel in ((1, 2, 3, None) if bone_now is not None else (None,)):
+                frozen = None if peel is None else ndimage.binary_erosion(bone_now, iterations=peel)
+                fixed_c, repair = unfold(corr, mask=mask, frozen=frozen)
+                if not repair["n_folded_after"]:
+                    break
+            repair["bone_layers_released"] = "all" if peel is None and bone_now is not None else peel
             corr = Volume(fixed_c.data.astype(np.float32), g)
     registered = warp_template(moving, corr)
     seconds = time.perf_counter() - t0
