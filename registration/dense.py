@@ -338,16 +338,25 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # locally, inside the body only (air carries no anatomy).
         mask = region if region is not None else None
         bone_now = None if lab0 is None else _sample(lab0.astype(np.float32), coords, order=0) > 0
-        if folding_statistics(corr, mask)["n_folded"]:
+        n_folded = folding_statistics(corr, mask)["n_folded"]
+        if n_folded:
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
-            # pressed against a bone frees one more voxel layer of it at a time (at most 3), then all of it
-            for peel in ((1, 2, 3, None) if bone_now is not None else (None,)):
+            # pressed against a bone frees one more voxel layer of it at a time (at most 3; never the whole
+            # bone).  Only a complete repair is taken: a failing one smooths an ever larger region (it moved
+            # tissue by 100 mm on the hand's fist), so then the folds stay, reported in ``folding``.
+            best = None
+            for peel in ((1, 2, 3) if bone_now is not None else (None,)):
                 frozen = None if peel is None else ndimage.binary_erosion(bone_now, iterations=peel)
-                fixed_c, repair = unfold(corr, mask=mask, frozen=frozen)
-                if not repair["n_folded_after"]:
+                fixed_c, info = unfold(corr, mask=mask, frozen=frozen)
+                info["bone_layers_released"] = peel
+                if best is None or info["n_folded_after"] < best[1]["n_folded_after"]:
+                    best = (fixed_c, info)
+                if not info["n_folded_after"]:
                     break
-            repair["bone_layers_released"] = "all" if peel is None and bone_now is not None else peel
-            corr = Volume(fixed_c.data.astype(np.float32), g)
+            repair = best[1]
+            repair["taken"] = repair["n_folded_after"] == 0
+            if repair["taken"]:
+                corr = Volume(best[0].data.astype(np.float32), g)
     registered = warp_template(moving, corr)
     seconds = time.perf_counter() - t0
     return DenseResult(corr, registered, seconds, levels, st.to_dict(),
