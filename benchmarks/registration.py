@@ -105,9 +105,10 @@ class PeakMemory:
 
 
 def _flex_phantoms(seed, args):
-    knee = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
-                        poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + FLEX_KNEE)
-    yield "knee", knee, ["bend10", "bend45", "bend70"]
+    if not args.hand_only:
+        knee = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
+                            poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + FLEX_KNEE)
+        yield "knee", knee, ["bend10", "bend45", "bend70"]
     if not args.knee_only:
         hand = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4)
         yield "hand", hand, [hand.poses[-1][0]]  # the strongest curl
@@ -375,6 +376,7 @@ def main(argv=None) -> int:
                    help="flex: the seeds settings were tuned on, or the held-out ones (default)")
     p.add_argument("--seeds", type=int, nargs="+", help="flex: these seeds instead of the split's")
     p.add_argument("--knee-only", action="store_true", help="flex: leave the hand out")
+    p.add_argument("--hand-only", action="store_true", help="flex: leave the knee out")
     p.add_argument("--no-adaptive", action="store_true", help="flex: leave Rhee's Algorithm 1 out")
     p.add_argument("--no-sitk", action="store_true")
     p.add_argument("--no-vbd-starts", action="store_true",
