@@ -128,7 +128,6 @@ def _forward(study, sid, start, template_geometry):
 
 
 def _run(ctx) -> dict:
-    from deformation.geometry import Volume
     from deformation.resample import invert_scan_to_template
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
@@ -158,26 +157,32 @@ def _run(ctx) -> dict:
 
     result = register_adaptive(scan, template, initial=initial, rigid_mask=rigid, settings=settings, progress=step)
     ctx.say(f"{sid}: inverting the field onto the template grid ...")
-    # φ = VBD⁻¹ ∘ U: only the registration's own correction U is inverted numerically
+    # φ = F⁻¹ ∘ U (F the start's forward map): only the registration's own correction U is inverted numerically
     bm = invert_scan_to_template(result.correspondence, template.geometry, forward=forward)
     summary = {"scan": sid, "init": method, "registration_seconds": round(result.seconds, 2),
                "control_points": result.control_points, "steps": len(result.steps),
                "evaluations": result.evaluations, "inverse": bm.summary(), "folding": result.folding,
                "similarity_before": result.similarity_before, "similarity_after": result.similarity_after}
+    return _outputs(result, bm, template, {"method": "locally adaptive (Rhee §4, Alg. 1)",
+                                           "settings": dataclasses.asdict(s), "summary": summary,
+                                           "log": result.log()})
+
+
+def _outputs(result, bm, template, log: dict) -> dict:
+    """The register stage's files, the same for both methods; ``log`` fills log.json beside the conventions."""
+    from deformation.geometry import Volume
+
     return {"correspondence.mha": Field(result.correspondence),
             "template_to_scan.mha": Field(bm.scan_to_template()),
             "inverse_status.nii.gz": Labels(Volume(bm.status.astype(np.uint8), template.geometry)),
             "registered.nii.gz": Image(result.registered),
             "log.json": Json({"format": "avw-registration", "version": 1,
-                              "method": "locally adaptive (Rhee §4, Alg. 1)",
                               "direction": "correspondence: scan_to_template on the scan grid (template position − "
                                            "voxel, mm); template_to_scan: its inverse on the template grid",
-                              "settings": dataclasses.asdict(s), "summary": summary, "log": result.log(),
-                              "workbench_version": __version__})}
+                              **log, "workbench_version": __version__})}
 
 
 def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
-    from deformation.geometry import Volume
     from deformation.resample import invert_scan_to_template
     from registration.dense import register_dense
 
@@ -198,16 +203,9 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
                "control_points": None, "levels": result.levels, "inverse": bm.summary(),
                "folding": result.folding, "unfold": result.unfold, "similarity_before": result.similarity_before,
                "similarity_after": result.similarity_after}
-    return {"correspondence.mha": Field(result.correspondence),
-            "template_to_scan.mha": Field(bm.scan_to_template()),
-            "inverse_status.nii.gz": Labels(Volume(bm.status.astype(np.uint8), template.geometry)),
-            "registered.nii.gz": Image(result.registered),
-            "log.json": Json({"format": "avw-registration", "version": 1,
-                              "method": "dense (LNCC diffeomorphic steps, bones fixed; registration.dense)",
-                              "direction": "correspondence: scan_to_template on the scan grid (template position − "
-                                           "voxel, mm); template_to_scan: its inverse on the template grid",
-                              "settings": dataclasses.asdict(s), "dense_settings": settings.to_dict(),
-                              "summary": summary, "workbench_version": __version__})}
+    return _outputs(result, bm, template, {
+        "method": f"dense (LNCC diffeomorphic steps, bones {settings.bones}; registration.dense)",
+        "settings": dataclasses.asdict(s), "dense_settings": settings.to_dict(), "summary": summary})
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
