@@ -99,6 +99,9 @@ class DenseSettings:
             raise ValueError(f"bones must be 'fixed', 'rigid' or 'free', got {self.bones!r}")
         if self.window_mm <= 0 or self.fluid_mm < 0 or self.step_mm <= 0 or not 0 <= self.min_jacobian < 1:
             raise ValueError("window_mm > 0, fluid_mm ≥ 0, step_mm > 0 and 0 ≤ min_jacobian < 1 are required")
+        if any(v is not None and not v >= 0 for v in (self.fluid_voxels, self.elastic_voxels)):
+            raise ValueError(f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, "
+                             f"{self.elastic_voxels}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -151,6 +154,24 @@ def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
         return None
     d = ndimage.distance_transform_edt(~body, sampling=np.asarray(fixed.geometry.spacing, float)[::-1])
     return (d <= grow_mm).astype(np.float32)
+
+
+def _bone_cores(labels: np.ndarray, peel: int, sp) -> np.ndarray:
+    """Each bone's voxels deeper than ``peel`` voxels inside it — or its deepest ones, so no bone is freed whole.
+
+    Depth is measured per bone (within its own bounding box grown by one voxel) in voxels of the smallest
+    spacing; the grid's edge does not count as a surface (a limb cut by the field of view stays frozen there).
+    """
+    out = np.zeros(labels.shape, bool)
+    unit = float(np.min(sp))
+    for lab, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None:
+            continue
+        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        m = labels[box] == lab
+        d = ndimage.distance_transform_edt(m, sampling=sp) / unit  # to the nearest non-bone voxel of the box
+        out[box] |= m & (d > min(float(peel), float(d.max()) - 1e-6))
+    return out
 
 
 def _sample(a, coords, order=1):
@@ -297,11 +318,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         fstep = _rigid_project(fstep, m, grid_mm, wgt)
                     else:
                         fstep *= (1.0 - wgt)[None]
-            while _jacobian_min(fstep, sp) <= st.min_jacobian:
+            for _ in range(60):  # 2⁻⁶⁰: a step that still folds is then nothing
+                if _jacobian_min(fstep, sp) > st.min_jacobian:
+                    break
                 fstep *= 0.5
                 halvings += 1
-                if halvings > 1000:
-                    break
             # compose: u ← f + u ∘ (id + f)
             c2 = [grid[a] + fstep[a] / sp[a] for a in range(3)]
             u = np.stack([fstep[a] + _sample(u[a], c2) for a in range(3)]).astype(np.float32)
@@ -341,21 +362,22 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     corr = Volume((u_world + phi0).astype(np.float32), g)
     repair = None
     if st.unfold:
-        # Every step was one-to-one on its level's grid, and so is U; but φ₀ ∘ U, sampled on the scan grid,
+        # Every step was one-to-one on its level's grid (the smoothing of U between steps is not checked, but
+        # has not folded in any measured run); φ₀ ∘ U, sampled on the scan grid,
         # can show det ≤ 0 where the start compresses the crease below the voxel size (as the phantoms' exact
         # fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are smoothed
         # locally, inside the body only (air carries no anatomy).
         mask = None if region is None else region > 0
-        bone_now = None if lab0 is None else _sample(lab0.astype(np.float32), coords, order=0) > 0
+        lab_now = None if lab0 is None else _sample(lab0.astype(np.float32), coords, order=0).astype(np.int32)
         n_folded = folding_statistics(corr, mask)["n_folded"]
         if n_folded:
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
-            # pressed against a bone frees one more voxel layer of it at a time (at most 3; never the whole
-            # bone).  Only a complete repair is taken: a failing one smooths an ever larger region (it moved
+            # pressed against a bone frees one more voxel layer of it at a time (at most 3; a bone's deepest
+            # voxels always stay, _bone_cores).  Only a complete repair is taken: a failing one smooths an ever larger region (it moved
             # tissue by 100 mm on the hand's fist), so then the folds stay, reported in ``folding``.
             best = None
-            for peel in ((1, 2, 3) if bone_now is not None else (None,)):
-                frozen = None if peel is None else ndimage.binary_erosion(bone_now, iterations=peel)
+            for peel in ((1, 2, 3) if lab_now is not None else (None,)):
+                frozen = None if peel is None else _bone_cores(lab_now, peel, sp_full)
                 fixed_c, info = unfold(corr, mask=mask, frozen=frozen)
                 info["bone_layers_released"] = peel
                 if best is None or info["n_folded_after"] < best[1]["n_folded_after"]:

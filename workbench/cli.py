@@ -37,7 +37,7 @@ examples:
   workbench weights knee-study                            # harmonic skinning weights (tet mesh kept in the study)
   workbench model knee-study                              # EVD model from the registrations (Rhee Eq. 7)
   workbench deform knee-study --pose bend.json --out bent.nii.gz
-  workbench register knee-study                           # locally adaptive registration (Rhee §4)
+  workbench register knee-study                           # polyrigid start + dense registration
   workbench render knee-study --out knee.png --clip z:0.5 --bones
   workbench animate knee-study --out knee.mp4             # bend and straighten (ready keyframes)
 """
@@ -158,9 +158,9 @@ compares both with elastix, SimpleITK and ANTs on the same starts.
 --init polyrigid (default) starts from the bones' rigid motions to the
 scan's pose blended as a flow: one-to-one by construction (no fold in the
 crease), bones exactly rigid.  --init vbd starts from VBD (Rhee Eq. 2), which
-folds in the crease of a flexed joint (~0.2 % of the body voxels; the
-registration never adds a fold but keeps those; --unfold-init repairs them
-by local smoothing).  --init none starts from the identity (Rhee's Table 2
+folds in the crease of a flexed joint (~0.2 % of the body voxels; --method
+adaptive never adds a fold but keeps those; dense's final local repair cannot
+remove them; --unfold-init repairs them first by local smoothing).  --init none starts from the identity (Rhee's Table 2
 protocol).  The pose comes from `workbench pose` (--pose truth: a phantom's
 true pose, for protocols such as Rhee's Table 4; never taken silently); the
 stages a start needs run first when they have not.
@@ -250,8 +250,8 @@ Run the whole pipeline on a study, stage by stage, each through one mechanism:
   bones     the template's bone labels (given, or segmented from --seeds)
   pose      every bone's transform in every scan, joint centres and angles
   weights   harmonic skinning weights of every template voxel
-  init      VBD of the template to each scan's estimated pose    (per scan)
-  register  locally adaptive registration, Rhee Algorithm 1      (per scan)
+  init      the articulated start to each scan's estimated pose  (per scan)
+  register  dense registration (or Rhee Algorithm 1, --method)  (per scan)
   model     EVD (Rhee Eq. 7) from the registrations and the estimated poses
   validate  each scan against its ground truth, when it has one  (per scan)
 
@@ -502,15 +502,17 @@ def build_parser() -> argparse.ArgumentParser:
     rg.add_argument("--metric", default=argparse.SUPPRESS, choices=["auto", "ssd", "mi"],
                     help="--method adaptive: 'auto' is normalised MI at coarse levels, SSD from level 4 (Rhee §4.1). "
                          "Default: auto")
-    rg.add_argument("--max-steps", default=argparse.SUPPRESS, type=int, metavar="N", help="local steps per level at most (--method adaptive). Default: 200")
+    rg.add_argument("--max-steps", default=argparse.SUPPRESS, type=int, metavar="N",
+                    help="local steps per level at most (--method adaptive). Default: 200")
     rg.add_argument("--seed", type=int, default=argparse.SUPPRESS,
                     help="seed of the simplex restarts (--method adaptive; after an articulated start the default "
-                         "preset makes none, so the "
-                         "seed has no effect there). Default: 0")
+                         "preset makes none, so the seed has no effect there; dense has no random choice). "
+                         "Default: 0")
     rg.add_argument("--no-unfold-init", action="store_false", dest="unfold_init", default=argparse.SUPPRESS,
                     help="start from the plain VBD field again after an earlier --unfold-init")
     rg.add_argument("--no-fix-bones", default=argparse.SUPPRESS, action="store_true",
-                    help="do not put zero-displacement control points on bone voxels")
+                    help="let the bones move with the soft tissue (dense: no force is zeroed on them; adaptive: no "
+                         "zero-displacement control points on bone voxels)")
     rg.add_argument("--force", action="store_true", help="register these scans again even when up to date")
     _common(rg)
     rg.set_defaults(func=cmd_register)
@@ -669,14 +671,18 @@ def _stages(args, targets, settings=None, *, force=(), scans=None, options=None)
     return study.reload(), outcomes
 
 
-def _given(args, study_path, stage: str, options: dict):
+def _given(args, study_path, stage: str, options: dict, implied: dict | None = None):
     """The stage's settings for a single-stage command: those it last ran with in the study (else the
-    defaults), with the options given on the command line — ``{setting: (attribute, convert)}`` — applied."""
+    defaults), with the options given on the command line — ``{setting: (attribute, convert)}`` — applied,
+    and ``implied`` settings (those the given options imply, e.g. no VBD repair after ``--init none``) for
+    whatever was not given itself."""
     from workbench.stages.run import settings_for
     from workbench.study import read_study
 
     base = settings_for(read_study(study_path), stage)
     over = {k: conv(getattr(args, a)) for k, (a, conv) in options.items() if hasattr(args, a)}
+    for k, v in (implied or {}).items():
+        over.setdefault(k, v)
     return dataclasses.replace(base, **over)
 
 
@@ -758,15 +764,22 @@ def cmd_model(args) -> int:
 
 
 def _register_settings(args):
+    # a recorded setting that a given option contradicts gives way to it: an earlier --unfold-init repaired a
+    # VBD start (not another), --preset paper is Rhee's method, --method dense has no preset
+    init_implied = {"unfold": False} if getattr(args, "init", "vbd") != "vbd" else {}
+    reg_implied = {}
+    if getattr(args, "preset", None) == "paper":
+        reg_implied["method"] = "auto"
+    if getattr(args, "method", None) == "dense":
+        reg_implied["preset"] = "auto"
     init = _given(args, args.study, "init", {"method": ("init", lambda v: "identity" if v == "none" else v),
-                                            "pose": ("pose_source", _same), "unfold": ("unfold_init", _same)})
+                                            "pose": ("pose_source", _same), "unfold": ("unfold_init", _same)},
+                  init_implied)
     reg = _given(args, args.study, "register", {
         "method": ("method", _same), "preset": ("preset", lambda v: "paper" if v == "paper" else "auto"),
         "levels": ("levels", tuple),
         "optimizer": ("optimizer", _same), "metric": ("metric", _same), "max_steps_per_level": ("max_steps", _same),
-        "fix_bones": ("no_fix_bones", lambda v: not v), "seed": ("seed", _same)})
-    if init.method != "vbd" and not hasattr(args, "unfold_init"):
-        init = dataclasses.replace(init, unfold=False)  # an earlier --unfold-init repaired a VBD start
+        "fix_bones": ("no_fix_bones", lambda v: not v), "seed": ("seed", _same)}, reg_implied)
     return {"init": init, "register": reg}
 
 

@@ -82,6 +82,8 @@ def test_settings_are_checked():
         DenseSettings(shrink=(2, 1), iterations=(10,))
     with pytest.raises(ValueError, match="bones"):
         DenseSettings(bones="loose")
+    with pytest.raises(ValueError, match="fluid_voxels"):
+        DenseSettings(fluid_voxels=-1.0)
 
 
 def test_rigid_bones_move_as_rigid_bodies(case):

@@ -171,7 +171,8 @@ def test_default_registration_is_the_polyrigid_start_and_dense_steps(tmp_path, s
     moved = np.abs(corr.data[inner] - init.data[inner]).max(axis=-1) > 1e-3
     # all of them, except where the final fold repair smoothed a crease fold that touches a bone (1 of 499
     # measured; the repair is logged)
-    assert moved.sum() <= max(1, log["summary"]["unfold"]["n_changed"] if log["summary"]["unfold"] else 0)
+    repair = log["summary"]["unfold"]
+    assert moved.sum() <= max(1, repair["n_changed"] if repair and repair["taken"] else 0)
     assert moved.mean() < 0.01
     # the inverse went through the start's exact forward map: template → scan → template returns
     inv, status = st.registration_inverse("pose01")
@@ -201,3 +202,23 @@ def test_register_refuses_paper_preset_with_dense(tmp_path, study, capsys):
     assert main(["register", str(d), "--scan", "pose01", "--method", "dense", "--preset", "paper", "--quiet"]) == 1
     assert "--method adaptive" in capsys.readouterr().err
     assert not (d / "registration").exists()
+
+
+def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path, study, capsys):
+    # a study last registered with VBD + --unfold-init and Rhee's paper preset: --init none and --method dense
+    # must not inherit the repair or the preset (both would be refused)
+    from workbench.cli import _register_settings, build_parser
+
+    d = tmp_path / "r"
+    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
+    m = json.loads((d / "study.json").read_text())
+    m.setdefault("stages", {})
+    m["stages"]["init"] = {"digest": "recorded", "settings": {"method": "vbd", "pose": "truth", "unfold": True}}
+    m["stages"]["register"] = {"digest": "recorded", "settings": {"method": "auto", "preset": "paper"}}
+    (d / "study.json").write_text(json.dumps(m))
+    args = build_parser().parse_args(["register", str(d), "--init", "none", "--method", "dense"])
+    s = _register_settings(args)
+    assert s["init"].method == "identity" and s["init"].unfold is False
+    assert s["register"].method == "dense" and s["register"].preset == "auto"
+    args = build_parser().parse_args(["register", str(d), "--preset", "paper"])
+    assert _register_settings(args)["register"].resolved_method == "adaptive"

@@ -49,7 +49,7 @@ class RegisterSettings:
     """The registration's settings: a preset and the overrides the command line exposes.
 
     ``method``: ``dense`` (:mod:`registration.dense`), ``adaptive`` (Rhee's
-    Algorithm 1) or ``auto`` (adaptive with the paper preset, else dense).
+    Algorithm 1) or ``auto`` (adaptive when a preset is named, else dense).
     ``preset`` (adaptive): ``auto`` (``initialised`` after an articulated
     start, ``default`` after none), ``default``, ``initialised`` or ``paper``
     (Rhee's published settings) — :class:`registration.adaptive.AdaptiveSettings`.
@@ -71,9 +71,9 @@ class RegisterSettings:
             raise ValueError(f"--preset must be one of {PRESETS}, got {self.preset!r}")
         if self.method not in METHODS:
             raise ValueError(f"--method must be one of {METHODS[1:]}, got {self.method!r}")
-        if self.method == "dense" and self.preset == "paper":
-            raise ValueError("--preset paper is Rhee's Algorithm 1 as published: give --method adaptive (or leave "
-                             "--method out)")
+        if self.method == "dense" and self.preset != "auto":
+            raise ValueError(f"the preset {self.preset!r} is a setting of Rhee's Algorithm 1: give --method adaptive "
+                             "(or leave --method out)")
         if self.levels is not None:
             object.__setattr__(self, "levels", tuple(int(v) for v in self.levels))
         self.adaptive("vbd")  # validates the overrides now, not after the first scan
@@ -82,13 +82,14 @@ class RegisterSettings:
     def resolved_method(self) -> str:
         if self.method != "auto":
             return self.method
-        return "adaptive" if self.preset == "paper" else "dense"
+        return "adaptive" if self.preset != "auto" else "dense"  # a preset names Algorithm 1's settings
 
-    def dense(self):
-        """The :class:`~registration.dense.DenseSettings` of the dense method."""
+    def dense(self, articulated: bool = True):
+        """The :class:`~registration.dense.DenseSettings` of the dense method (bones held after an articulated
+        start, which placed them)."""
         from registration.dense import DenseSettings
 
-        return DenseSettings(bones="fixed" if self.fix_bones else "free")
+        return DenseSettings(bones="fixed" if (self.fix_bones and articulated) else "free")
 
     def adaptive(self, init_method: str):
         """The :class:`~registration.adaptive.AdaptiveSettings` for a start made by ``init_method``."""
@@ -187,8 +188,8 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
     from registration.dense import register_dense
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
-    settings = s.dense()
-    labels = study.template_labels() if (articulated and s.fix_bones) else None
+    settings = s.dense(articulated)
+    labels = study.template_labels() if settings.bones == "fixed" else None
     forward = _forward(study, sid, start, template.geometry)
 
     def level(rec):

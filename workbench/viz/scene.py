@@ -89,7 +89,11 @@ def render_inputs(source, *, scan=None, registered=None, bones: bool = False, la
             raise ValueError("--control-points draws a registration's control points: pass --registered ID")
         from registration.adaptive import control_points_from_log
 
-        cps = control_points_from_log(study.registration_log(registered)["log"], vol.geometry)
+        reg_log = study.registration_log(registered)
+        if "log" not in reg_log:
+            raise ValueError(f"scan {registered!r} was registered by {reg_log.get('method', 'a method')}, which has "
+                             "no control points: --control-points needs `workbench register --method adaptive`")
+        cps = control_points_from_log(reg_log["log"], vol.geometry)
         levels = sorted({lv for lv, _ in cps})
         for lv in levels:
             pts = np.concatenate([p for l_, p in cps if l_ == lv])
