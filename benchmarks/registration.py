@@ -361,11 +361,11 @@ def report(name, rows):
     if "initialised" in mean:
         better = sum(o["med_mm"] < i["med_mm"] for o, i in zip(rows["ours"], rows["initialised"]))
         print(f"ours beats the initialisation on MED on {better}/{len(rows['ours'])} scans")
-    for name in ("ours", "ours (dense)"):
+    for method in ("ours", "ours (dense)"):
         for base in ("sitk-bspline", "elastix-bspline"):
-            if base in mean and name in mean:
-                b, o = mean[base], mean[name]
-                print(f"{name} / {base}: MED ratio {o['med_mm'] / b['med_mm']:.2f}, time ratio "
+            if base in mean and method in mean:
+                b, o = mean[base], mean[method]
+                print(f"{method} / {base}: MED ratio {o['med_mm'] / b['med_mm']:.2f}, time ratio "
                       f"{o['seconds'] / b['seconds']:.2f}")
 
 
@@ -394,6 +394,8 @@ def main(argv=None) -> int:
     p.add_argument("--no-elastix", action="store_true")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if args.knee_only and args.hand_only:
+        p.error("--knee-only and --hand-only leave nothing to run: give one of them")
     if args.from_truth and args.unfold_init:
         p.error("--from-truth starts from the ground truth, --unfold-init repairs the VBD start: give one of them")
     print(f"registration benchmark, {args.size} size, seed {args.seed}, "

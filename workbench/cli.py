@@ -845,7 +845,7 @@ def format_registration_table(study, scans) -> str:
             r, last = rows[name], name == "registered"
             lines.append(f"| {sid} | {name} | {num(r.get('med_mm'), '.2f')} | {num(r.get('marker_med_mm'), '.2f')} | "
                          f"{num(r.get('ssd'), '.1f')} | {num(r.get('cc'), '.3f')} | {num(r.get('mi'), '.3f')} | "
-                         f"{num(r.get('folded_fraction'), '.4f')} | {(log.get('control_points') or '') if last else ''} | "
+                         f"{num(r.get('folded_fraction'), '.4f')} | {num(log.get('control_points'), 'd') if last else ''} | "
                          f"{e['seconds'] if last else ''} |")
     lines.append("(MED: mean |recovered − true| template position over the scan's body voxels; folded: fraction of "
                  "body voxels with det ≤ 0 when validated, else of the whole grid; MI in nats, 32 bins)")
