@@ -171,6 +171,20 @@ def _jacobian_det(u, m, out):
 _jacobian_det_serial = nb.njit(cache=True)(_jacobian_det.py_func)  # small crops: no thread team
 
 
+def _update_jacobian_det(u, m, det, box) -> None:
+    """Recompute ``det`` (``_jacobian_det`` of ``u``) after ``u`` changed inside ``box`` (a tuple of slices):
+    the values within one voxel of the box, computed on a crop two voxels wider whose own border planes
+    (one-sided differences) are used only where they are the grid's."""
+    shape = det.shape
+    crop = tuple(slice(max(b.start - 2, 0), min(b.stop + 2, n)) for b, n in zip(box, shape))
+    sub = np.ascontiguousarray(u[crop])
+    d = np.empty(sub.shape[:3])
+    _jacobian_det_serial(sub, m, d)
+    inner = tuple(slice(0 if c.start == 0 else 1, (c.stop - c.start) if c.stop == n else (c.stop - c.start - 1))
+                  for c, n in zip(crop, shape))
+    det[tuple(slice(c.start + i.start, c.start + i.stop) for c, i in zip(crop, inner))] = d[inner]
+
+
 def _check_field(field: Volume, name: str = "field") -> np.ndarray:
     if not isinstance(field, Volume):
         raise TypeError(f"{name} must be a Volume (data plus grid geometry), got {type(field).__name__}")
@@ -416,9 +430,18 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     fz = None if frozen is None else np.asarray(_grid_array(frozen, g, "frozen", trailing=()), dtype=bool)
     m_inv = np.ascontiguousarray(np.linalg.inv(g.index_to_world_matrix[:3, :3]))
     det = np.empty(g.array_shape, dtype=np.float64)
+    _jacobian_det(u, m_inv, det)
+    shape = np.asarray(g.array_shape)
+
+    def grown_box(where, by):
+        """Bounding box of ``where`` grown by ``by`` voxels, clipped to the grid."""
+        box = []
+        for ax, n in enumerate(shape):
+            hit = np.flatnonzero(np.any(where, axis=tuple(a for a in range(3) if a != ax)))
+            box.append(slice(max(int(hit[0]) - by, 0), min(int(hit[-1]) + by + 1, int(n))))
+        return tuple(box)
 
     def low():
-        _jacobian_det(u, m_inv, det)
         bad = det < min_det
         return bad if m is None else bad & m
 
@@ -428,7 +451,11 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     grow, best, stall, it = int(margin), int(np.count_nonzero(bad)), 0, 0
     while bad.any() and it < max_iterations:
         it += 1
-        region = ndi.binary_dilation(bad, iterations=grow) if grow > 0 else bad
+        # dilate on the folds' bounding box only (grown by the dilation's reach): the same voxels, at the cost
+        # of the folds' neighbourhood
+        bbox = grown_box(bad, grow + 1)
+        region = np.zeros(g.array_shape, dtype=bool)
+        region[bbox] = ndi.binary_dilation(bad[bbox], iterations=grow) if grow > 0 else bad[bbox]
         if fz is not None:
             region = region & ~fz
             if not region.any():
@@ -439,14 +466,14 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
         # smooth only the region's bounding box grown by the kernel's reach (truncate=4σ): the values on
         # the region are those of smoothing the whole grid, at the cost of the folds' neighbourhood only
         reach = int(math.ceil(4.0 * sigma))
-        nz_ = np.nonzero(region)
-        box = tuple(slice(max(int(a.min()) - reach, 0), int(a.max()) + reach + 1) for a in nz_)
+        box = grown_box(region, reach)
         sub = u[box]
         sm = np.stack([ndi.gaussian_filter(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)],
                       axis=-1)
         r = region[box]
         sub[r] = sm[r]
         changed |= region
+        _update_jacobian_det(u, m_inv, det, grown_box(region, 0))
         bad = low()
         n_bad = int(np.count_nonzero(bad))
         if n_bad < best:

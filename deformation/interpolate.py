@@ -48,7 +48,7 @@ import numpy as np
 
 from .geometry import GeometryMismatchError, GridGeometry, Volume
 
-__all__ = ["sample", "sample_array", "warp", "sample_displaced_array"]
+__all__ = ["sample", "sample_array", "warp", "sample_displaced_array", "sample_shifted"]
 
 # Open3D ships an older TBB; once it is loaded, numba's default threading layer
 # tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
@@ -250,6 +250,29 @@ def _sample_displaced_vector(f, nx, ny, nz, w2i, i2w, disp, order, fill, out):
             _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, r * tx + i)
 
 
+@nb.njit(cache=True, parallel=True)
+def _sample_shifted(f, nx, ny, nz, shift, scale, order, out):
+    """``f`` (nc, nvox) at index ``(k, j, i) + scale · shift[:, k, j, i]`` (array axes) into ``out`` (nc, nvox),
+    extended by the edge values beyond the grid."""
+    nc = f.shape[0]
+    for r in nb.prange(nz * ny):
+        k = r // ny
+        j = r - k * ny
+        for i in range(nx):
+            p = r * nx + i
+            ck = k + scale[0] * np.float64(shift[0, p])
+            cj = j + scale[1] * np.float64(shift[1, p])
+            ci = i + scale[2] * np.float64(shift[2, p])
+            if order == 0:
+                b = _nearest(ci, cj, ck, nx, ny, nz)
+                for c in range(nc):
+                    out[c, p] = f[c, b]
+            else:
+                b, di, dj, dk, ti, tj, tk = _linear(ci, cj, ck, nx, ny, nz)
+                for c in range(nc):
+                    out[c, p] = _lerp_scalar(f[c], b, di, dj, dk, ti, tj, tk)
+
+
 # -- helpers --------------------------------------------------------------------------------
 def _check_order(order) -> int:
     if order not in (0, 1):
@@ -391,6 +414,40 @@ def sample_displaced_array(data, world_to_index, target_geometry: GridGeometry, 
         out = out.view(np.bool_)
     shape = target_geometry.array_shape
     return out.reshape(shape) if scalar else out.reshape(shape + (f.shape[1],))
+
+
+def sample_shifted(data, shift, scale=(1.0, 1.0, 1.0), order: int = 1) -> np.ndarray:
+    """Sample ``data`` on its own grid at every voxel's index moved by ``scale · shift``, edge-extended.
+
+    Index-space resampling for iterative registration on one grid: ``data`` is
+    ``(nz, ny, nx)`` or a stack ``(c, nz, ny, nx)`` sampled at the same points;
+    ``shift`` is ``(3, nz, ny, nx)`` along the array axes (z, y, x) and
+    ``scale`` its factor per axis (e.g. ``1 / spacing`` for a shift in mm).
+    Beyond the grid the edge values continue (``scipy.ndimage.map_coordinates``
+    with ``mode="nearest"``), as an image cut by the field of view would.
+    Float32 in, float32 out (arithmetic in float64, as every kernel here); the
+    numba kernel runs over rows in parallel and gives the same bits for any
+    number of threads.
+    """
+    order = _check_order(order)
+    a = np.asarray(data)
+    scalar = a.ndim == 3
+    stack = a[None] if scalar else a
+    if stack.ndim != 4:
+        raise ValueError(f"data must be (nz, ny, nx) or (c, nz, ny, nx), got shape {a.shape}")
+    nz, ny, nx = stack.shape[1:]
+    sh = np.asarray(shift)
+    if sh.shape != (3, nz, ny, nx):
+        raise ValueError(f"shift must have shape {(3, nz, ny, nx)} (array axes z, y, x first), got {sh.shape}")
+    odt = np.float32 if stack.dtype == np.float32 else np.float64
+    f = _native(np.ascontiguousarray(stack.reshape(stack.shape[0], -1), dtype=odt))
+    sh = _native(np.ascontiguousarray(sh.reshape(3, -1)))
+    if sh.dtype not in (np.float32, np.float64):
+        sh = sh.astype(np.float64)
+    out = np.empty(f.shape, dtype=odt)
+    _sample_shifted(f, nx, ny, nz, sh, np.ascontiguousarray(scale, dtype=np.float64), order, out)
+    out = out.reshape(stack.shape)
+    return out[0] if scalar else out
 
 
 def warp(volume: Volume, positions, target_geometry: GridGeometry, *, order: int = 1,

@@ -593,3 +593,66 @@ def test_small_inputs_take_the_serial_kernels_with_the_same_result(geom):
     par = np.empty(geom.array_shape)
     _jacobian_det(np.ascontiguousarray(field.data), m, par)
     assert np.array_equal(det, par)
+
+
+def test_unfold_near_the_grid_edge_tracks_the_determinant_of_the_whole_grid():
+    # unfold recomputes det on crops around what it changed; a fold cut by the grid's edge exercises the crops'
+    # border planes, which must fall back to the grid's one-sided differences: the count it reports must be a
+    # full recomputation's
+    g = _geom(size=(26, 22, 16))
+    field, _ = _bump_fold(g, 2.5)
+    shifted = Volume(np.ascontiguousarray(np.roll(field.data, (6, 9, 11), axis=(0, 1, 2))), g)  # fold at a corner
+    before = F.folding_statistics(shifted)
+    assert before["n_folded"] > 0
+    for kw in ({}, {"max_iterations": 1}):  # a complete repair and a partial one
+        out, info = F.unfold(shifted, **kw)
+        assert info["n_folded_before"] == before["n_folded"]
+        assert F.folding_statistics(out)["n_folded"] == info["n_folded_after"]
+    assert info["n_folded_after"] > 0  # one iteration is not enough: the partial case is really partial
+
+
+def test_sample_shifted_is_scipy_map_coordinates_with_edge_extension():
+    # the index-space sampler of the dense registration: trilinear and nearest, scalar and stacked, shifts
+    # reaching beyond the grid (edge values continue, scipy's mode="nearest"); both compute in float64 from
+    # float32 data, so they agree to the float32 rounding of the result (observed: bit for bit)
+    from scipy import ndimage
+
+    from deformation.interpolate import sample_shifted
+
+    rng = np.random.default_rng(11)
+    a = rng.random((9, 12, 14)).astype(np.float32)
+    shift = (rng.standard_normal((3,) + a.shape) * 4.0).astype(np.float32)  # mm; many points leave the grid
+    sp = np.array([2.0, 1.5, 1.2])
+    grid = np.indices(a.shape, dtype=np.float64)
+    coords = [grid[i] + shift[i] / sp[i] for i in range(3)]
+    for order in (0, 1):
+        ref = ndimage.map_coordinates(a, coords, order=order, mode="nearest")
+        got = sample_shifted(a, shift, 1.0 / sp, order=order)
+        assert got.dtype == np.float32 and got.shape == a.shape
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+    both = sample_shifted(np.stack([a, 3.0 * a]), shift, 1.0 / sp)
+    np.testing.assert_allclose(both[1], 3.0 * both[0], rtol=1e-6)
+    with pytest.raises(ValueError, match="shift"):
+        sample_shifted(a, shift[:, :-1], 1.0 / sp)
+
+
+def test_the_cropped_determinant_update_matches_a_full_recomputation():
+    # unfold's incremental det: after u changes inside a box, the values within one voxel of it are recomputed
+    # on a crop; boxes in the middle, at faces and at a corner, on a field rough enough that one-sided and
+    # central differences differ — every value must be the full grid's, bit for bit
+    from deformation.fields import _jacobian_det, _update_jacobian_det
+
+    g = _geom(size=(14, 12, 10))
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=g.array_shape + (3,))
+    m = np.ascontiguousarray(np.linalg.inv(g.index_to_world_matrix[:3, :3]))
+    for box in ((slice(3, 6), slice(4, 7), slice(5, 9)), (slice(0, 2), slice(0, 3), slice(0, 4)),
+                (slice(7, 10), slice(9, 12), slice(11, 14)), (slice(0, 10), slice(5, 6), slice(13, 14))):
+        det = np.empty(g.array_shape)
+        _jacobian_det(u, m, det)
+        v = u.copy()
+        v[box] += rng.normal(size=v[box].shape)
+        _update_jacobian_det(v, m, det, box)
+        full = np.empty(g.array_shape)
+        _jacobian_det(v, m, full)
+        assert np.array_equal(det, full)
