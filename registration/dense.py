@@ -38,6 +38,14 @@ at every iteration, and keeps what an articulated body needs:
   (:func:`deformation.fields.unfold`) around the bones' interiors, and the
   repair is taken only when it removes every fold (``DenseResult.unfold``).
 
+Measured on the tuning seeds and not kept: ESM-style symmetric forces (the
+mean of both images' gradients; knee seed 1 at 70°: MED 1.52 mm against
+1.12), halving a level's step whenever its LNCC falls (worse on all four
+tuning cases, e.g. knee seed 1 at 45°: 0.71 against 0.63), bones moving
+rigidly (``bones="rigid"``; tuning hand: bone MED 0.41 against 0.29 held), and
+a level handing on its best iterate rather than its last (knee seed 0 at 70°:
+1.12 against 1.07) — it hands on its input only when it never improved it.
+
 References
 ----------
 Avants BB, Epstein CL, Grossman M, Gee JC. Symmetric diffeomorphic image
@@ -75,7 +83,9 @@ class DenseSettings:
     """Settings of :func:`register_dense` (lengths in mm, so that they mean the same on any grid)."""
 
     shrink: tuple = (4, 2, 1)  #: subsampling per level, coarse to fine
-    iterations: tuple = (80, 150, 25)  #: iterations per level (at most; see tolerance)
+    #: iterations per level (at most; see tolerance).  The fine level converges in 35–37 iterations at 70° on
+    #: the tuning knees (MED 1.037 / 1.116 mm, seeds 0 / 1; stopped at 25: 1.069 / 1.143)
+    iterations: tuple = (80, 150, 50)
     window_mm: float = 5.0  #: LNCC Gaussian window σ
     fluid_mm: float = 4.0  #: σ of the smoothing of each step, when fluid_voxels is None
     step_mm: float = 0.5  #: largest displacement of one step, in units of the level's voxel (see step_voxels)
