@@ -68,7 +68,7 @@ from .geometry import GridGeometry, Volume
 from .skinning import MAX_INFLUENCES, SkinningWeights
 from .tetmesh import TetMesh, locate, rasterize
 
-__all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "weights_on_grid", "weights_at_points",
+__all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "bbw_weights", "weights_on_grid", "weights_at_points",
            "harmonic_voxel_weights", "VoxelWeights"]
 
 if nb.config.THREADING_LAYER == "default":
@@ -322,6 +322,42 @@ def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
     return w, info
 
 
+def bbw_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *, snap_missing: bool = False):
+    """Bounded biharmonic weights (Jacobson et al. 2011) of every tet-mesh vertex, by libigl's ``igl.bbw``.
+
+    The same domain and boundary conditions as :func:`harmonic_weights` (each
+    bone's vertices one-hot, :func:`constrained_vertices`), but each weight
+    minimises the Laplacian energy ``∫ (Δw)²`` subject to ``0 ≤ w ≤ 1``
+    (libigl's active-set solver), then rows are normalised to sum to one, as
+    libigl's ``normalize_row_sums``.  Smoother than harmonic weights at the
+    constraints, with no local extrema.  Needs the optional ``libigl`` package
+    (``pip install -e '.[bench]'``).  Returns ``(vertex_dense, info)`` with
+    ``info``: ``bones``, ``n_free``, ``raw`` (libigl's solution), ``sum_error_raw`` and ``seconds``.
+
+    Jacobson A, Baran I, Popović J, Sorkine O. Bounded biharmonic weights for
+    real-time deformation. ACM Trans Graph 30(4) (2011) 78.
+    https://doi.org/10.1145/2010324.1964973
+    """
+    try:
+        import igl
+    except ImportError as e:
+        raise ImportError("bounded biharmonic weights need libigl: pip install -e '.[bench]'") from e
+    t0 = time.perf_counter()
+    bones = tuple(str(b) for b in bone_labels)
+    bone_of_vertex, _ = constrained_vertices(mesh, labels, bone_labels, snap_missing=snap_missing)
+    fixed = np.flatnonzero(bone_of_vertex >= 0)
+    bc = np.zeros((fixed.size, len(bones)))
+    bc[np.arange(fixed.size), bone_of_vertex[fixed]] = 1.0
+    raw = igl.bbw(np.ascontiguousarray(mesh.vertices, dtype=np.float64), np.ascontiguousarray(mesh.tets, dtype=np.int64),
+                  fixed.astype(np.int64), bc, partition_unity=False, max_iter=100)
+    w = np.clip(raw, 0.0, 1.0)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    info = {"bones": bones, "n_free": int(np.count_nonzero(bone_of_vertex < 0)), "raw": raw,
+            "sum_error_raw": float(np.abs(raw.sum(axis=1) - 1.0).max()),
+            "seconds": time.perf_counter() - t0}
+    return w, info
+
+
 # ---------------------------------------------------------------------------------------------
 # Weights on a voxel grid
 # ---------------------------------------------------------------------------------------------
@@ -530,7 +566,7 @@ class VoxelWeights:
 
 
 def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, mesh: TetMesh | None = None,
-                           edge_length_mm: float | None = None, progress=None) -> VoxelWeights:
+                           edge_length_mm: float | None = None, progress=None, kind: str = "harmonic") -> VoxelWeights:
     """Harmonic skinning weights (Kurihara Eq. 3's w) of every voxel of ``labels``' grid.
 
     The body (``body``, a mask on the same grid) is meshed with tetrahedra by
@@ -541,7 +577,11 @@ def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, m
     interpolation of its tetrahedron's vertex weights (bones one-hot, at most
     :data:`~deformation.skinning.MAX_INFLUENCES` influences;
     :func:`weights_on_grid`).  ``progress(message)`` is told each step.
+    ``kind="bbw"`` solves bounded biharmonic weights on the same mesh instead
+    (:func:`bbw_weights`, libigl).
     """
+    if kind not in ("harmonic", "bbw"):
+        raise ValueError(f"kind must be 'harmonic' or 'bbw', got {kind!r}")
     from .tetmesh import body_surface, tetrahedralize
 
     say = progress or (lambda message: None)
@@ -550,8 +590,8 @@ def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, m
     if new:
         say("meshing the body surface with pytetwild ...")
         mesh = tetrahedralize(body_surface(body), edge_length_mm=edge_length_mm)
-    say(f"harmonic weights on {mesh.n_vertices} vertices ...")
-    dense, hinfo = harmonic_weights(mesh, labels, bone_labels)
+    say(f"{kind} weights on {mesh.n_vertices} vertices ...")
+    dense, hinfo = (harmonic_weights if kind == "harmonic" else bbw_weights)(mesh, labels, bone_labels)
     say("weights of every voxel (barycentric; one-hot in bones) ...")
     bones = tuple(bone_labels)
     weights = weights_on_grid(mesh, dense, bones, labels.geometry, labels, bone_labels)

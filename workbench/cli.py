@@ -770,8 +770,8 @@ def _register_settings(args):
     reg_implied = {}
     if getattr(args, "preset", None) == "paper":
         reg_implied["method"] = "auto"
-    if getattr(args, "method", None) == "dense":
-        reg_implied["preset"] = "auto"
+    if getattr(args, "method", None) == "dense":  # nor Algorithm 1's options recorded by an earlier run
+        reg_implied.update(preset="auto", levels=None, optimizer=None, metric=None, max_steps_per_level=None)
     init = _given(args, args.study, "init", {"method": ("init", lambda v: "identity" if v == "none" else v),
                                             "pose": ("pose_source", _same), "unfold": ("unfold_init", _same)},
                   init_implied)

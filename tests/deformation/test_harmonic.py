@@ -471,3 +471,32 @@ def test_input_checks(knee, knee_mesh, knee_weights):
         weights_on_grid(knee_mesh, w[:, :3], info["bones"], g, knee["labels"], knee["bone_labels"])
     with pytest.raises(ValueError, match="no weight column"):
         weights_on_grid(knee_mesh, w, info["bones"], g, knee["labels"], dict(knee["bone_labels"], ulna=7))
+
+
+def test_bounded_biharmonic_weights_solve_their_quadratic_program(knee, knee_mesh, knee_weights):
+    # BBW (libigl) on the same mesh and constraints as the harmonic weights: a partition of unity in [0, 1],
+    # one-hot on the bones, and — each column minimising the Laplacian energy wᵀ L M⁻¹ L w over the bones'
+    # values and 0 ≤ w ≤ 1 — no column's energy above that of the harmonic column, which is feasible after
+    # clipping (checked to 1e-6 relative: the active-set solver's tolerance)
+    igl = pytest.importorskip("igl", reason="libigl is in the bench extra: pip install -e '.[bench]'")
+    import scipy.sparse as sp_
+
+    from deformation.harmonic import bbw_weights
+
+    w, info = bbw_weights(knee_mesh, knee["labels"], knee["bone_labels"])
+    hw, hinfo = knee_weights
+    assert w.shape == hw.shape and info["bones"] == hinfo["bones"]
+    assert w.min() >= 0 and w.max() <= 1
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-9)
+    bov = hinfo["bone_of_vertex"]
+    for k in range(w.shape[1]):
+        np.testing.assert_array_equal(w[bov == k, k], 1.0)
+    v, t = knee_mesh.vertices.astype(np.float64), knee_mesh.tets.astype(np.int64)
+    lap = igl.cotmatrix(v, t)
+    mass = igl.massmatrix(v, t)
+    q = lap.T @ sp_.diags(1.0 / mass.diagonal()) @ lap
+    harm = np.clip(hinfo["raw"], 0.0, 1.0)
+    for k in range(w.shape[1]):
+        col = np.clip(info["raw"][:, k], 0.0, 1.0)
+        e_bbw, e_harm = float(col @ (q @ col)), float(harm[:, k] @ (q @ harm[:, k]))
+        assert e_bbw <= e_harm * (1 + 1e-6), (k, e_bbw, e_harm)

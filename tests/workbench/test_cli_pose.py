@@ -203,7 +203,7 @@ def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, sma
     (root / "template_labels.nii.gz").unlink()
     assert main(["pose", str(root), "--seeds", str(sf), "--quiet"]) == 0
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
-    assert main(["register", str(root), "--levels", "3", "3", "--max-steps", "4", "--quiet"]) == 0
+    assert main(["register", str(root), "--method", "adaptive", "--levels", "3", "3", "--max-steps", "4", "--quiet"]) == 0
     assert main(["model", str(root), "--quiet"]) == 0
     assert "registration correspondences of 2 scans" in capsys.readouterr().out
     st = read_study(root)

@@ -204,6 +204,21 @@ def test_register_refuses_paper_preset_with_dense(tmp_path, study, capsys):
     assert not (d / "registration").exists()
 
 
+def test_register_refuses_algorithm_1_options_with_dense(tmp_path, study, capsys):
+    # --levels / --max-steps are Rhee's Algorithm 1's; the dense method would ignore them without a word
+    d = tmp_path / "a"
+    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
+    m = json.loads((d / "study.json").read_text())
+    for k in ("init", "register", "validate"):  # no recorded method: the default (dense) applies
+        m.get("stages", {}).pop(k, None)
+    (d / "study.json").write_text(json.dumps(m))
+    assert main(["register", str(d), "--scan", "pose01", "--levels", "3", "4", "--max-steps", "9", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "--levels, --max-steps are settings of Rhee's Algorithm 1" in err and "--method adaptive" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (d / "registration").exists() and not (d / "init").exists()
+
+
 def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path, study, capsys):
     # a study last registered with VBD + --unfold-init and Rhee's paper preset: --init none and --method dense
     # must not inherit the repair or the preset (both would be refused)
@@ -214,11 +229,13 @@ def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path
     m = json.loads((d / "study.json").read_text())
     m.setdefault("stages", {})
     m["stages"]["init"] = {"digest": "recorded", "settings": {"method": "vbd", "pose": "truth", "unfold": True}}
-    m["stages"]["register"] = {"digest": "recorded", "settings": {"method": "auto", "preset": "paper"}}
+    m["stages"]["register"] = {"digest": "recorded",
+                               "settings": {"method": "auto", "preset": "paper", "levels": [3, 4], "optimizer": "sbplx"}}
     (d / "study.json").write_text(json.dumps(m))
     args = build_parser().parse_args(["register", str(d), "--init", "none", "--method", "dense"])
     s = _register_settings(args)
     assert s["init"].method == "identity" and s["init"].unfold is False
     assert s["register"].method == "dense" and s["register"].preset == "auto"
+    assert s["register"].levels is None and s["register"].optimizer is None  # Algorithm 1's: dropped
     args = build_parser().parse_args(["register", str(d), "--preset", "paper"])
     assert _register_settings(args)["register"].resolved_method == "adaptive"

@@ -176,7 +176,7 @@ def test_four_concurrent_register_processes_leave_a_complete_manifest(done, tmp_
     ids = read_study(copy).scan_ids
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     procs = [subprocess.Popen([sys.executable, "-m", "workbench", "register", str(copy), "--scan", sid,
-                               "--levels", "3", "3", "--max-steps", "4", "--quiet"], env=env,
+                               "--method", "adaptive", "--levels", "3", "3", "--max-steps", "4", "--quiet"], env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for sid in ids]
     for p in procs:
         _, err = p.communicate(timeout=600)

@@ -76,6 +76,14 @@ class RegisterSettings:
                              "(or leave --method out)")
         if self.levels is not None:
             object.__setattr__(self, "levels", tuple(int(v) for v in self.levels))
+        if self.resolved_method == "dense":
+            given = [opt for opt, v in (("--levels", self.levels), ("--optimizer", self.optimizer),
+                                        ("--metric", self.metric), ("--max-steps", self.max_steps_per_level))
+                     if v is not None]
+            if given:  # the dense method would ignore them silently
+                raise ValueError(f"{', '.join(given)} {'is a setting' if len(given) == 1 else 'are settings'} of "
+                                 "Rhee's Algorithm 1, not of the dense registration: add --method adaptive, or "
+                                 f"leave {'it' if len(given) == 1 else 'them'} out")
         self.adaptive("vbd")  # validates the overrides now, not after the first scan
 
     @property
