@@ -221,6 +221,23 @@ def constrained_vertices(mesh: TetMesh, labels: Volume, bone_labels: dict, *, sn
 # Harmonic weights
 # ---------------------------------------------------------------------------------------------
 
+def _check_domain(mesh: TetMesh, bone_of_vertex: np.ndarray) -> None:
+    """Every vertex in a tetrahedron and every connected piece of the mesh holding a bone, or the weights
+    are undetermined there."""
+    used = np.zeros(mesh.n_vertices, dtype=bool)
+    used[mesh.tets.ravel()] = True
+    if not np.all(used):
+        raise ValueError(f"the mesh has {int((~used).sum())} vertices used by no tetrahedron; remove them first")
+    n_comp, comp = _graph_components(mesh.edge_graph(), directed=False)
+    has_bone = np.zeros(n_comp, dtype=bool)
+    has_bone[comp[bone_of_vertex >= 0]] = True
+    if not np.all(has_bone):
+        bad = np.flatnonzero(~has_bone)
+        raise ValueError(f"{bad.size} connected component(s) of the mesh ({int(np.isin(comp, bad).sum())} vertices) "
+                         "contain no bone vertex, so their weights are undetermined; keep only the body's main "
+                         "component (tetrahedralize(..., keep_largest_component=True))")
+
+
 def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
                      max_influences: int = MAX_INFLUENCES, snap_missing: bool = False):
     """Harmonic skinning weights of every tet-mesh vertex, each bone a Dirichlet boundary.
@@ -264,19 +281,7 @@ def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
     bones = tuple(str(b) for b in bone_labels)
     n_bones = len(bones)
     bone_of_vertex, snapped = constrained_vertices(mesh, labels, bone_labels, snap_missing=snap_missing)
-    used = np.zeros(mesh.n_vertices, dtype=bool)
-    used[mesh.tets.ravel()] = True
-    if not np.all(used):
-        raise ValueError(f"the mesh has {int((~used).sum())} vertices used by no tetrahedron; remove them first")
-    # Every connected piece of the mesh needs a bone, or its weights are undetermined.
-    n_comp, comp = _graph_components(mesh.edge_graph(), directed=False)
-    has_bone = np.zeros(n_comp, dtype=bool)
-    has_bone[comp[bone_of_vertex >= 0]] = True
-    if not np.all(has_bone):
-        bad = np.flatnonzero(~has_bone)
-        raise ValueError(f"{bad.size} connected component(s) of the mesh ({int(np.isin(comp, bad).sum())} vertices) "
-                         "contain no bone vertex, so their weights are undetermined; keep only the body's main "
-                         "component (tetrahedralize(..., keep_largest_component=True))")
+    _check_domain(mesh, bone_of_vertex)
     L = stiffness_matrix(mesh)
     t1 = time.perf_counter()
     free = np.flatnonzero(bone_of_vertex < 0)
@@ -345,6 +350,7 @@ def bbw_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *, snap_missin
     t0 = time.perf_counter()
     bones = tuple(str(b) for b in bone_labels)
     bone_of_vertex, _ = constrained_vertices(mesh, labels, bone_labels, snap_missing=snap_missing)
+    _check_domain(mesh, bone_of_vertex)
     fixed = np.flatnonzero(bone_of_vertex >= 0)
     bc = np.zeros((fixed.size, len(bones)))
     bc[np.arange(fixed.size), bone_of_vertex[fixed]] = 1.0
@@ -567,7 +573,7 @@ class VoxelWeights:
 
 def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, mesh: TetMesh | None = None,
                            edge_length_mm: float | None = None, progress=None, kind: str = "harmonic") -> VoxelWeights:
-    """Harmonic skinning weights (Kurihara Eq. 3's w) of every voxel of ``labels``' grid.
+    """Harmonic (or bounded biharmonic, ``kind="bbw"``) skinning weights (Kurihara Eq. 3's w) of every voxel.
 
     The body (``body``, a mask on the same grid) is meshed with tetrahedra by
     pytetwild unless ``mesh`` is given (a study keeps its mesh, since
@@ -596,5 +602,5 @@ def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, m
     bones = tuple(bone_labels)
     weights = weights_on_grid(mesh, dense, bones, labels.geometry, labels, bone_labels)
     info = {k: v for k, v in hinfo.items() if isinstance(v, (int, float, str, bool))}
-    info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets))
+    info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets), kind=kind)
     return VoxelWeights(weights, mesh, dense, bones, info, new)

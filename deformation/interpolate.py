@@ -425,7 +425,7 @@ def sample_shifted(data, shift, scale=(1.0, 1.0, 1.0), order: int = 1) -> np.nda
     ``scale`` its factor per axis (e.g. ``1 / spacing`` for a shift in mm).
     Beyond the grid the edge values continue (``scipy.ndimage.map_coordinates``
     with ``mode="nearest"``), as an image cut by the field of view would.
-    Float32 in, float32 out (arithmetic in float64, as every kernel here); the
+    Float32 in, float32 out, anything else float64 (arithmetic in float64, as every kernel here); the
     numba kernel runs over rows in parallel and gives the same bits for any
     number of threads.
     """
@@ -444,8 +444,11 @@ def sample_shifted(data, shift, scale=(1.0, 1.0, 1.0), order: int = 1) -> np.nda
     sh = _native(np.ascontiguousarray(sh.reshape(3, -1)))
     if sh.dtype not in (np.float32, np.float64):
         sh = sh.astype(np.float64)
+    sc = np.ascontiguousarray(np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)))
+    if not np.all(np.isfinite(sc)) or not np.all(np.isfinite(sh)):
+        raise ValueError("scale and shift must be finite")
     out = np.empty(f.shape, dtype=odt)
-    _sample_shifted(f, nx, ny, nz, sh, np.ascontiguousarray(scale, dtype=np.float64), order, out)
+    _sample_shifted(f, nx, ny, nz, sh, sc, order, out)
     out = out.reshape(stack.shape)
     return out[0] if scalar else out
 

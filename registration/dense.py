@@ -34,9 +34,12 @@ at every iteration, and keeps what an articulated body needs:
   air the noise alone moved the map by 18 mm on the test knee.
 * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
   grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
-  start compresses a crease below the voxel size; those are smoothed locally
-  (:func:`deformation.fields.unfold`) around the bones' interiors, and the
-  repair is taken only when it removes every fold (``DenseResult.unfold``).
+  start compresses a crease below the voxel size or curled fingers touch;
+  those voxels of the scan's body are smoothed locally
+  (:func:`deformation.fields.unfold`) around the bones' interiors (their
+  deepest voxels frozen, then fewer; as a last resort none), and the repair
+  is taken only when it removes every fold (``DenseResult.unfold`` says which
+  attempt, ``bone_layers_released`` None for the last resort).
 
 Measured on the tuning seeds and not kept: ESM-style symmetric forces (the
 mean of both images' gradients; knee seed 1 at 70°: MED 1.52 mm against
@@ -384,7 +387,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "halvings": halvings,
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
-        log.info("dense level %d (shrink %d): %d iterations, LNCC %.4f -> %.4f", lv, s, len(history),
+        log.info("dense level %d (shrink %d): %d iterations, LNCC %.4f -> %.4f", lv, s, rec["iterations"],
                  rec["lncc_before"] or 0, rec["lncc_after"] or 0)
         if progress is not None:
             progress(rec)
@@ -418,9 +421,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         n_folded = folding_statistics(corr, mask)["n_folded"]
         if n_folded:
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
-            # pressed against a bone frees one more voxel layer of it at a time (at most 3; a bone's deepest
-            # voxels always stay, _bone_cores).  Only a complete repair is taken: a failing one smooths an ever larger region (it moved
-            # tissue by 100 mm on the hand's fist), so then the folds stay, reported in ``folding``.
+            # pressed against a bone frees one more voxel layer of it at a time (up to 3, a bone's deepest
+            # voxels staying, _bone_cores); as a last resort nothing is frozen (the smoothing stays local to
+            # the folds, but may then bend a bone next to one: the bone MED measures it).  Only a complete
+            # repair is taken: a failing one smooths an ever larger region (it moved tissue by 100 mm on the
+            # hand's fist), so then the folds stay, reported in ``folding``.
             # Each attempt first smooths only the folded voxels with a narrow kernel (σ 0.7 voxel, no margin):
             # on the hand the folds sit where curled fingers touch, where neighbouring voxels map to different
             # fingers and a wider average lands between them (tuning hand, seed 1: MED 0.64 mm against 0.72

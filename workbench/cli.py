@@ -264,7 +264,7 @@ file is left and the next `run` resumes with the first unfinished scan.
 
 Settings: each stage keeps the settings it last ran with (e.g. those given to
 `workbench register`); --set STAGE.SETTING=VALUE changes one for this run and
-after (JSON values: --set register.max_steps_per_level=50,
+after (JSON values: --set register.method=adaptive,
 --set register.levels=[3,4], --set weights.method=distance).
 
 examples:
@@ -780,6 +780,12 @@ def _register_settings(args):
         "levels": ("levels", tuple),
         "optimizer": ("optimizer", _same), "metric": ("metric", _same), "max_steps_per_level": ("max_steps", _same),
         "fix_bones": ("no_fix_bones", lambda v: not v), "seed": ("seed", _same)}, reg_implied)
+    given = [opt for opt, a in (("--levels", "levels"), ("--optimizer", "optimizer"), ("--metric", "metric"),
+                                ("--max-steps", "max_steps")) if hasattr(args, a)]
+    if given and reg.resolved_method == "dense":  # the dense method would ignore them without a word
+        raise ValueError(f"{', '.join(given)} {'is a setting' if len(given) == 1 else 'are settings'} of Rhee's "
+                         "Algorithm 1, not of the dense registration: add --method adaptive, or leave "
+                         f"{'it' if len(given) == 1 else 'them'} out")
     return {"init": init, "register": reg}
 
 
@@ -848,7 +854,8 @@ def format_registration_table(study, scans) -> str:
                          f"{num(r.get('folded_fraction'), '.4f')} | {num(log.get('control_points'), 'd') if last else ''} | "
                          f"{e['seconds'] if last else ''} |")
     lines.append("(MED: mean |recovered − true| template position over the scan's body voxels; folded: fraction of "
-                 "body voxels with det ≤ 0 when validated, else of the whole grid; MI in nats, 32 bins)")
+                 "body voxels with det ≤ 0 when validated, else as the registration counted it: over the scan's body (dense) "
+                 "or the whole grid (adaptive); MI in nats, 32 bins)")
     return "\n".join(lines)
 
 

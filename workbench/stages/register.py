@@ -76,14 +76,6 @@ class RegisterSettings:
                              "(or leave --method out)")
         if self.levels is not None:
             object.__setattr__(self, "levels", tuple(int(v) for v in self.levels))
-        if self.resolved_method == "dense":
-            given = [opt for opt, v in (("--levels", self.levels), ("--optimizer", self.optimizer),
-                                        ("--metric", self.metric), ("--max-steps", self.max_steps_per_level))
-                     if v is not None]
-            if given:  # the dense method would ignore them silently
-                raise ValueError(f"{', '.join(given)} {'is a setting' if len(given) == 1 else 'are settings'} of "
-                                 "Rhee's Algorithm 1, not of the dense registration: add --method adaptive, or "
-                                 f"leave {'it' if len(given) == 1 else 'them'} out")
         self.adaptive("vbd")  # validates the overrides now, not after the first scan
 
     @property
@@ -218,4 +210,4 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=4)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=5)

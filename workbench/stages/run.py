@@ -4,7 +4,7 @@
 they need (transitively) that has not run or is out of date, each through
 :func:`workbench.stages.mechanism.execute`.  Each stage's settings are, in
 order of precedence: those given for this call, those recorded in the study
-by its last run (so ``workbench register --levels 3 5`` is remembered by a
+by its last run (so ``workbench register --method adaptive --levels 3 5`` is remembered by a
 later ``workbench run``), or the defaults.  A stage that is up to date is
 skipped and says so; ``force`` names stages to rerun, and everything after
 them that depends on them reruns because their outputs changed.
