@@ -68,8 +68,8 @@ from .geometry import GridGeometry, Volume
 from .skinning import MAX_INFLUENCES, SkinningWeights
 from .tetmesh import TetMesh, locate, rasterize
 
-__all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "bbw_weights", "weights_on_grid", "weights_at_points",
-           "harmonic_voxel_weights", "VoxelWeights"]
+__all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "bbw_weights", "weights_on_grid",
+           "weights_at_points", "harmonic_voxel_weights", "VoxelWeights"]
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -354,8 +354,9 @@ def bbw_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *, snap_missin
     fixed = np.flatnonzero(bone_of_vertex >= 0)
     bc = np.zeros((fixed.size, len(bones)))
     bc[np.arange(fixed.size), bone_of_vertex[fixed]] = 1.0
-    raw = igl.bbw(np.ascontiguousarray(mesh.vertices, dtype=np.float64), np.ascontiguousarray(mesh.tets, dtype=np.int64),
-                  fixed.astype(np.int64), bc, partition_unity=False, max_iter=100)
+    raw = igl.bbw(np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                  np.ascontiguousarray(mesh.tets, dtype=np.int64), fixed.astype(np.int64), bc,
+                  partition_unity=False, max_iter=100)
     w = np.clip(raw, 0.0, 1.0)
     w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
     info = {"bones": bones, "n_free": int(np.count_nonzero(bone_of_vertex < 0)), "raw": raw,
