@@ -191,6 +191,12 @@ def run_flex(args):
                     r = register_dense(sc.image, template, initial=init, moving_labels=labels,
                                        settings=DenseSettings())
                 add(OURS, r.correspondence, r.seconds, pm.mib)
+                if r.unfold:  # which repair attempt was taken (bones frozen down to which layer, which kernel)
+                    u = r.unfold
+                    print(f"  ours, fold repair: {u['n_folded_before']} -> {u['n_folded_after']} folded voxels of "
+                          f"the scan's body, {'taken' if u['taken'] else 'not taken'}; bone layers released "
+                          f"{u['bone_layers_released'] if u['bone_layers_released'] is not None else 'all'}, "
+                          f"kernel {u['kernel']}", flush=True)
                 if not args.no_adaptive:
                     with PeakMemory() as pm:
                         r = register_adaptive(sc.image, template, initial=init, rigid_mask=labels,
