@@ -333,15 +333,13 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         before = None
         bone_w = []
         inv_sp = 1.0 / sp
-        best_cc, best_u = -np.inf, u  # by reference: every step below makes a new u before changing it in place
+        u_in = u  # by reference: every step below makes a new u before changing it in place
         for it in range(int(iters) + 1):  # the last pass only measures the last step
             w = sample_shifted(ml, u, inv_sp)
             cc, dcc = _lncc_force(fl, w, win)
             if before is None:
                 before = cc
             history.append(cc)
-            if it == 0:  # a level that never betters its input's similarity hands the input on, unchanged
-                best_cc, best_u = cc, u
             if it == int(iters) or (it >= 10 and history[-1] - history[-11] < st.tolerance):
                 break
             gw = np.gradient(w)
@@ -379,11 +377,13 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 elif bone_w:  # smoothing bent the bones: back to each one's rigid motion
                     for box, m, wgt in bone_w:
                         _rigid_project(u[(slice(None),) + box], m, [gm[box] for gm in grid_mm], wgt)
-        kept = max(history) <= best_cc  # (the hand's coarsest level, 6.4 mm voxels: a finger is 3 voxels wide)
+        # a level that never betters its input's similarity hands the input on, unchanged (the hand's coarsest
+        # level, 6.4 mm voxels: a finger is 3 voxels wide)
+        kept = max(history) <= before
         if kept:
-            u = best_u
+            u = u_in
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
-               "lncc_before": before, "lncc_after": best_cc if kept else history[-1], "input_kept": kept,
+               "lncc_before": before, "lncc_after": before if kept else history[-1], "input_kept": kept,
                "halvings": halvings,
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
