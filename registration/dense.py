@@ -45,9 +45,11 @@ Measured on the tuning seeds and not kept: ESM-style symmetric forces (the
 mean of both images' gradients; knee seed 1 at 70°: MED 1.52 mm against
 1.12), halving a level's step whenever its LNCC falls (worse on all four
 tuning cases, e.g. knee seed 1 at 45°: 0.71 against 0.63), bones moving
-rigidly (``bones="rigid"``; tuning hand: bone MED 0.41 against 0.29 held), and
-a level handing on its best iterate rather than its last (knee seed 0 at 70°:
-1.12 against 1.07) — it hands on its input only when it never improved it.
+rigidly (``bones="rigid"``; tuning hand: bone MED 0.41 against 0.29 held), a
+level handing on its best iterate rather than its last (knee seed 0 at 70°:
+1.12 against 1.07; it hands on its input only when it never improved it), and
+continuing U into the air beyond the scan's body, which the skin markers'
+interpolation reads (knee seed 0 at 70°: markers 3.12 mm against 3.13).
 
 References
 ----------
@@ -92,7 +94,9 @@ class DenseSettings:
     #: LNCC Gaussian window σ: about the size of the soft tissue's structure (septa, vessels: a few mm), so that
     #: the correlation follows it rather than the skin's edge.  Tuning knees at 70° (seeds 0 / 1), MED mm:
     #: 5 mm 1.04 / 1.12, 3.5 mm 0.91 / 0.95, 3 mm 0.88 / 0.94, 2.5 mm 0.86 / 0.95, 2 mm 0.93 / 0.97; larger
-    #: windows on the coarse levels (2 or 3 voxels of each level) were worse (1.05 / 1.14, 1.26 / 1.33)
+    #: windows on the coarse levels (2 or 3 voxels of each level) were worse (1.05 / 1.14, 1.26 / 1.33).  Where
+    #: curled fingers touch, the narrower window leaves more grid-level folds for the repair (held-out hand,
+    #: seed 101: 172 against 98, and the repair failed)
     window_mm: float = 3.0
     fluid_mm: float = 4.0  #: σ of the smoothing of each step, when fluid_voxels is None
     step_mm: float = 0.5  #: largest displacement of one step, in units of the level's voxel (see step_voxels)
