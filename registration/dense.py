@@ -49,7 +49,12 @@ rigidly (``bones="rigid"``; tuning hand: bone MED 0.41 against 0.29 held), a
 level handing on its best iterate rather than its last (knee seed 0 at 70°:
 1.12 against 1.07; it hands on its input only when it never improved it), and
 continuing U into the air beyond the scan's body, which the skin markers'
-interpolation reads (knee seed 0 at 70°: markers 3.12 mm against 3.13).
+interpolation reads (knee seed 0 at 70°: markers 3.12 mm against 3.13).  The
+fold repair works over the segmented scan body, which may leave out a skin
+voxel that is partly air (tuning hand, seed 1: 2 folded voxels of the true
+body stay); repairing over the body grown by one voxel removed them but cost
+more than it gained (MED 0.63 → 0.71 mm: 136 folded voxels to repair instead
+of 89, most in the air where curled fingers touch).
 
 References
 ----------
@@ -180,11 +185,6 @@ def _lncc_force(f, w, sig):
 def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
     """The scan's body (:func:`registration.segmentation.segment_body`) and the voxels inside either image's
     body or within ``grow_mm`` of it (float32 0/1), where the force acts.
-
-    The segmentation's threshold may leave out a skin voxel that is partly air, and a fold there stays
-    (tuning hand, seed 1: 2 voxels of the true body).  Repairing over the body grown by one voxel removed
-    them but cost more than it gained (MED 0.63 → 0.71 mm: 136 folded voxels instead of 89, most in the air
-    where curled fingers touch).
 
     ``(None, None)`` when an image has no air/tissue boundary (then every voxel takes part).
     """
@@ -343,15 +343,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
         history = []
         halvings = 0
-        before = None
         bone_w = []
         inv_sp = 1.0 / sp
         u_in = u  # by reference: every step below makes a new u before changing it in place
         for it in range(int(iters) + 1):  # the last pass only measures the last step
             w = sample_shifted(ml, u, inv_sp)
             cc, dcc = _lncc_force(fl, w, win)
-            if before is None:
-                before = cc
             history.append(cc)
             if it == int(iters) or (it >= 10 and history[-1] - history[-11] < st.tolerance):
                 break
@@ -392,6 +389,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         _rigid_project(u[(slice(None),) + box], m, [gm[box] for gm in grid_mm], wgt)
         # a level that never betters its input's similarity hands the input on, unchanged (the hand's coarsest
         # level, 6.4 mm voxels: a finger is 3 voxels wide)
+        before = history[0]
         kept = max(history) <= before
         if kept:
             u = u_in
