@@ -72,10 +72,10 @@ demo: venv
 	echo "demo took $$(( $$(date +%s) - start )) s"
 
 test: venv
-	$(VENV)/bin/pytest
+	$(VENV)/bin/pytest -n 2 --dist loadfile
 
 test-slow: venv
-	$(VENV)/bin/pytest -m slow
+	$(VENV)/bin/pytest -n 2 --dist loadfile -m slow
 
 bench: venv
 	$(PY) -m pip install --quiet -e '.[test,bench]'

@@ -141,6 +141,9 @@ def test_settings_are_checked(bad, match):
         AdaptiveSettings(**bad)
 
 
+# slow: ~40 s; Algorithm 1 is no longer the default registration and its steps keep their unit tests here,
+# the default (dense) method's Table 2 protocol runs in tests/registration/test_dense.py
+@pytest.mark.slow
 def test_rhee_table2_protocol_on_the_test_knee():
     """Rhee §6.1 / Table 2: a 10° VBD bend of the knee, no initialisation (test size, ~1 min)."""
     from validation.phantoms import make_phantom

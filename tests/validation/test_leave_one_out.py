@@ -11,6 +11,10 @@ from registration.segmentation import segment_body
 from validation.leave_one_out import leave_one_out
 from validation.phantoms import make_phantom
 
+# slow: ~60 s (a 10-pose hand, its tet mesh and harmonic weights); EVD and PSD/WPSD keep their unit tests in
+# tests/deformation, and the study's EVD model is built from registrations in tests/workbench/test_run.py
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def hand():

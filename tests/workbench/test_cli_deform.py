@@ -146,6 +146,9 @@ def test_deform_reports_bad_input(study, tmp_path, capsys):
         type(s)(s.root, {**s.manifest, "stages": {}}).weights()  # a study whose weights stage has not run
 
 
+# slow: ~25 s (two Laplace solves on the test knee's mesh); the weights stage's distance path and the harmonic
+# solve itself (tests/deformation/test_harmonic.py) stay in the default suite
+@pytest.mark.slow
 def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
     """pytetwild has no seed: the mesh is made once and kept; recomputing from it gives identical weights."""
     from validation.phantoms import make_phantom

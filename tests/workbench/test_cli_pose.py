@@ -188,6 +188,9 @@ def test_pose_refuses_an_outlier_factor_that_is_not_a_multiple_of_the_median(sma
     assert (small_ct_study / "study.json").read_bytes() == manifest
 
 
+# slow: ~30 s; the stages end to end run in the default suite on the MRI study (tests/workbench/test_run.py),
+# the CT study's seeded segmentation and pose stage in the tests above
+@pytest.mark.slow
 def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, small_ct_study, capsys):
     """A user's CT study with no label map and no truth: pose --seeds segments the bones, and weights,
     register, model (from the registrations) and deform (by EVD) all find those labels."""
