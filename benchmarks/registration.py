@@ -50,6 +50,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -166,6 +167,9 @@ def run_flex(args):
                 bone = (ph.anatomy.distances_fast(phi.reshape(-1, 3))[:, :-1].min(axis=1) < 0).reshape(body.shape)
                 bone &= body
                 soft = body & ~bone
+                # the skin: the body's outermost voxel layer (face neighbours), thousands of points where the
+                # study's markers are a dozen (Rhee Table 3's measure, one marker moving the mean by ~0.3 mm)
+                skin = body & ~ndimage.binary_erosion(body)
                 rows = {}
 
                 def add(method, fld, seconds, mem):
@@ -173,6 +177,7 @@ def run_flex(args):
                                               markers=sc.markers)
                     err = np.linalg.norm(fld.data - truth.data, axis=-1)
                     m.update(bone_mm=float(err[bone].mean()), soft_mm=float(err[soft].mean()),
+                             skin_mm=float(err[skin].mean()),
                              n_folded=folding_statistics(fld, body)["n_folded"],
                              p95_mm=float(np.percentile(err[body], 95)), seconds=seconds, mem_mib=mem)
                     rows[method] = m
@@ -236,23 +241,25 @@ def flex_summary(summary, split):
     if not summary:
         return
     print(f"\n## summary ({split} seeds): ours (dense) against the best peer per case\n")
-    print("| case | best peer | MED ours / best | marker MED ours / best | folded voxels ours (truth's) | "
-          "bone MED ours mm | time ours / elastix |")
-    print("|---|---|---|---|---|---|---|")
+    print("| case | best peer | MED ours / best | marker MED ours / best | skin MED ours / lowest peer's | "
+          "folded voxels ours (truth's) | bone MED ours mm | time ours / elastix |")
+    print("|---|---|---|---|---|---|---|---|")
     for s in summary:
-        print(f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | {s['n_folded']} "
+        print(f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | {s['skin_ratio']:.2f} | "
+              f"{s['n_folded']} "
               f"({s['n_folded_truth']}) | "
               f"{s['bone_mm']:.3f} | {s['time_ratio']:.2f} |")
-    print("\n(issue I asks: MED ratio ≤ 0.8, marker ratio ≤ 1, 0 folded, bone ≤ 0.1 mm, time ratio ≤ 2)", flush=True)
+    print("\n(issue I asks: MED ratio ≤ 0.8, marker ratio ≤ 1, 0 folded, bone ≤ 0.1 mm, time ratio ≤ 2; the skin MED is "
+          "the markers' measure over the body's outer voxel layer)", flush=True)
 
 
 def flex_report(title, rows):
     print(f"\n### {title}\n")
-    print("| method | MED mm | bone | soft | P95 | marker MED | CC | folded (voxels) | s | peak MiB |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| method | MED mm | bone | soft | P95 | marker MED | skin MED | CC | folded (voxels) | s | peak MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for m, v in rows.items():
         print(f"| {m} | {v['med_mm']:.2f} | {v['bone_mm']:.3f} | {v['soft_mm']:.2f} | {v['p95_mm']:.2f} | "
-              f"{v['marker_med_mm']:.2f} | {v['cc']:.3f} | {v['folded_fraction']:.5f} ({v['n_folded']}) | "
+              f"{v['marker_med_mm']:.2f} | {v['skin_mm']:.2f} | {v['cc']:.3f} | {v['folded_fraction']:.5f} ({v['n_folded']}) | "
               f"{v['seconds']:.1f} | "
               f"{v['mem_mib']:.0f} |")
     peers = {m: v for m, v in rows.items() if not m.startswith(("ours", "initialised")) and m != TRUTH}
@@ -262,6 +269,7 @@ def flex_report(title, rows):
         el = peers.get("elastix B-spline")
         out = {"case": title, "best": best, "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
                "marker_ratio": ours["marker_med_mm"] / peers[best]["marker_med_mm"],
+               "skin_ratio": ours["skin_mm"] / min(v["skin_mm"] for v in peers.values()),
                "n_folded": ours["n_folded"], "n_folded_truth": rows[TRUTH]["n_folded"] if TRUTH in rows else -1,
                "bone_mm": ours["bone_mm"],
                "time_ratio": ours["seconds"] / el["seconds"] if el else float("nan")}

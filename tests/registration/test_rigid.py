@@ -184,7 +184,7 @@ def test_out_of_view_bone_is_reported(template):
 
 def test_coarse_search_finds_a_large_flexion():
     """A child bone flexed 65° about its joint: the grid search about the joint centre brings it within
-    the refinement's reach (the truth is off the grid; the final 1° grid leaves ≤ 1° per axis)."""
+    the refinement's reach, and the refinement from there to the truth."""
     g = GridGeometry((48, 48, 24), (1.5, 1.5, 2.0), (-36.0, -20.0, -23.0))
     sk = Skeleton([Bone("p", 1, None), Bone("c", 2, "p")],
                   [Joint("j", "p", "c", 3, (0.0, 0.0, 0.0), np.eye(3))])
@@ -204,10 +204,57 @@ def test_coarse_search_finds_a_large_flexion():
     region = bone_regions(tpl, lab, sk)["c"]
     t, cost, n, angles = coarse_rotation_search(region, Sampler(scan), np.eye(4), sk.joint("j"))
     rot, _ = errors(t, truth, region.centroid)
-    assert rot < 2.0, rot
-    np.testing.assert_allclose(angles, [65.0, 4.0, -3.0], atol=2.0)
+    # At 65° a fifth of the region lies beyond the grid's edge, and the search's last stage scores the points
+    # inside: its minimum on the final 1° grid sits 2.8° from the truth (measured; 0.9° when the outside points
+    # did not count in choosing the basin either, a local minimum of higher cost).  3° is well inside the
+    # refinement's reach, which must then land on the truth.
+    assert rot < 3.0, rot
+    np.testing.assert_allclose(angles, [65.0, 4.0, -3.0], atol=3.0)
     assert n > 100
+    fit = refine_intensity(region, Sampler(scan), t)
+    assert fit.status == "ok" and errors(fit.transform, truth, region.centroid)[0] < 0.2  # measured 0.07°
 
+
+
+def test_coarse_search_reports_the_other_local_winners():
+    """Two copies of the child bone in the scan, flexed 65° and −40°: one wins the grid search, the other is
+    among its runners-up (what register_scan refines when the winner's fit is flagged); runners-up come best
+    first, more than two grid steps from the winner and from each other, each transform its angles'."""
+    g = GridGeometry((48, 48, 24), (1.5, 1.5, 2.0), (-36.0, -20.0, -23.0))
+    sk = Skeleton([Bone("p", 1, None), Bone("c", 2, "p")],
+                  [Joint("j", "p", "c", 3, (0.0, 0.0, 0.0), np.eye(3))])
+    blobs = np.array([[0.0, 14.0, 0.0], [0.0, 26.0, 0.0], [4.0, 20.0, 3.0]])
+
+    def child(p):
+        d2 = ((p[:, None, :] - blobs[None]) ** 2).sum(-1)
+        return (np.array([600.0, 800.0, 300.0]) * np.exp(-d2 / (2 * 3.0**2))).sum(-1)
+
+    x = g.world_coordinates().reshape(-1, 3)
+    tpl = Volume((50.0 + child(x)).reshape(g.array_shape).astype(np.float32), g)
+    lab = np.where(child(x) > 200, 2, 0)
+    lab[(x[:, 1] < 0) & (np.abs(x[:, 0]) < 4) & (np.abs(x[:, 2]) < 4)] = 1
+    lab = Volume(lab.reshape(g.array_shape).astype(np.uint8), g)
+    poses = {65.0: sk.forward_kinematics({"j": [65.0, 0.0, 0.0]})["c"],
+             -40.0: sk.forward_kinematics({"j": [-40.0, 0.0, 0.0]})["c"]}
+    scan = Volume((50.0 + sum(child(apply(invert(t), x)) for t in poses.values()))
+                  .reshape(g.array_shape).astype(np.float32), g)
+    region = bone_regions(tpl, lab, sk)["c"]
+    others = []
+    _, cost, _, angles = coarse_rotation_search(region, Sampler(scan), np.eye(4), sk.joint("j"), runners_up=others)
+    assert others, "no runner-up reported"
+    costs = [c for c, _, _ in others]
+    assert costs == sorted(costs) and costs[0] >= cost
+    found = [angles] + [a for _, a, _ in others]
+    # one of them is each copy: the winner within the final 1° grid, a runner-up on the search's step grid
+    # (the step follows the bone: ≤ 15°, with the copies 105° apart)
+    assert any(np.abs(a - [65.0, 0.0, 0.0]).max() < 8.0 for a in found), found
+    assert any(np.abs(a - [-40.0, 0.0, 0.0]).max() < 8.0 for a in found), found
+    step = 2.0  # the grid step's lower bound: distinct winners are more than two steps apart
+    for i, a in enumerate(found):
+        for b in found[i + 1:]:
+            assert np.linalg.norm(a - b) > 2.0 * step
+    for _, a, t in others:
+        np.testing.assert_allclose(t, sk.forward_kinematics({"j": list(a)})["c"], atol=1e-9)
 
 def test_isosurface_is_in_world_millimetres():
     x = GRID.world_coordinates().reshape(-1, 3)
