@@ -208,8 +208,9 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             # A flagged fit gets second chances from the grid search's runners-up, refined at the fine scale: the
             # search's blur widens the basin but can rank a wrong pose of a thin bone first (tuning hand seed 1,
             # strongest curl: the middle finger's distal phalanx, from its true parent, scored 185 hyperextended
-            # against 207 at the truth blurred; 2849 against 441 at the fine scale).  The best passing one is
-            # taken; a bone none of them places stays flagged as before.
+            # against 207 at the truth blurred; 2849 against 441 at the fine scale).  There the search's own
+            # remedy (points turned out of the scan count as unmatched, coarse_rotation_search) was what placed
+            # it; this is the fallback.  The best passing one is taken; a bone none of them places stays flagged.
             if not fit.ok and runners_up and fits[joint.parent].ok:
                 for rank, (_, ang_k, t_k) in enumerate(runners_up[:RUNNERS_UP], start=2):
                     alt = refine(t_k, compose(parent_t, joint.motion(np.r_[ang_k[0], np.zeros(joint.dof - 1)])))

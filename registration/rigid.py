@@ -389,9 +389,8 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
         if ec[w] < best:
             best, best_angles = float(ec[w]), cand[w].copy()
     offsets = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
-    # Stage 3 polishes inside the chosen basin on the points inside the scan alone: counting the outside ones as
-    # unmatched chooses the basin, but within it would pull a bone cut by the field of view's edge inwards
-    # (a 65° flexion cut by the grid's edge: 2.8° off instead of < 2°)
+    # Stage 3 polishes inside the chosen basin on the points inside the scan alone, the cost the refinement then
+    # minimises: counting the outside ones as unmatched is there to choose the basin
     if outside_unmatched:
         best = float(_batch_ssd(pts, vals, sampler, transforms(best_angles[None]), metric=metric)[0])
     h = step / 2
