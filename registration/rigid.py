@@ -331,7 +331,7 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
     over its inside half; the truth's pose, all inside, 205), 15.6 mm off.
 
     ``runners_up`` (optional list) receives ``(cost, angles, transform)`` of
-    the other local winners of stage 2, best first, each more than two steps
+    the other local winners of stage 2 (cost as stage 2 scored it), best first, each more than two steps
     (a rotation that moves the bone's far end by its thickness) from the
     winner and from each other: the blur that widens the basin
     can rank a wrong pose of a thin bone first (a curled distal phalanx next
