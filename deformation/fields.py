@@ -146,25 +146,80 @@ def _diff(u, k, j, i, a, axis, n):
     return 0.5 * (u[k + 1, j, i, a] - u[k - 1, j, i, a])
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True)
+def _det_at(u, m, k, j, i):
+    """det(I + G @ m) at voxel (k, j, i); G[a, axis] = ∂u_a/∂index_axis, m = (direction·diag(spacing))⁻¹."""
+    nz, ny, nx = u.shape[0], u.shape[1], u.shape[2]
+    j00 = j01 = j02 = j10 = j11 = j12 = j20 = j21 = j22 = 0.0
+    for a in range(3):
+        gi = np.float64(_diff(u, k, j, i, a, 0, nx))
+        gj = np.float64(_diff(u, k, j, i, a, 1, ny))
+        gk = np.float64(_diff(u, k, j, i, a, 2, nz))
+        r0 = gi * m[0, 0] + gj * m[1, 0] + gk * m[2, 0]
+        r1 = gi * m[0, 1] + gj * m[1, 1] + gk * m[2, 1]
+        r2 = gi * m[0, 2] + gj * m[1, 2] + gk * m[2, 2]
+        if a == 0:
+            j00, j01, j02 = r0 + 1.0, r1, r2
+        elif a == 1:
+            j10, j11, j12 = r0, r1 + 1.0, r2
+        else:
+            j20, j21, j22 = r0, r1, r2 + 1.0
+    return (j00 * (j11 * j22 - j12 * j21) - j01 * (j10 * j22 - j12 * j20) + j02 * (j10 * j21 - j11 * j20))
+
+
+@nb.njit(parallel=True, cache=True)
 def _jacobian_det(u, m, out):
-    """det(I + G @ m) per voxel; G[a, axis] = ∂u_a/∂index_axis, m = (direction·diag(spacing))⁻¹."""
+    """det(I + G @ m) per voxel (:func:`_det_at`)."""
     nz, ny, nx = u.shape[0], u.shape[1], u.shape[2]
     for r in nb.prange(nz * ny):
         k = r // ny
         j = r - k * ny
-        jac = np.empty((3, 3))
         for i in range(nx):
+            out[k, j, i] = _det_at(u, m, k, j, i)
+
+
+@nb.njit(cache=True)
+def _restore_towards(u, u0, cand, mask, m, min_det, fractions):
+    """Move each candidate voxel of ``u`` (rows (k, j, i) of ``cand``, in that order, in place) back towards
+    ``u0`` by the largest of ``fractions`` that keeps ``det ≥ min_det`` at it and at its six face neighbours
+    that lie in ``mask`` (the only determinants its value enters, by central or one-sided differences).  One
+    pass, sequential (the result does not depend on threads); returns how many voxels moved."""
+    nz, ny, nx = u.shape[0], u.shape[1], u.shape[2]
+    moved = 0
+    old = np.empty(3)
+    for c in range(cand.shape[0]):
+        k, j, i = cand[c, 0], cand[c, 1], cand[c, 2]
+        for a in range(3):
+            old[a] = u[k, j, i, a]
+        for f in fractions:
             for a in range(3):
-                gi = np.float64(_diff(u, k, j, i, a, 0, nx))
-                gj = np.float64(_diff(u, k, j, i, a, 1, ny))
-                gk = np.float64(_diff(u, k, j, i, a, 2, nz))
-                for b in range(3):
-                    jac[a, b] = gi * m[0, b] + gj * m[1, b] + gk * m[2, b]
-                jac[a, a] += 1.0
-            out[k, j, i] = (jac[0, 0] * (jac[1, 1] * jac[2, 2] - jac[1, 2] * jac[2, 1])
-                            - jac[0, 1] * (jac[1, 0] * jac[2, 2] - jac[1, 2] * jac[2, 0])
-                            + jac[0, 2] * (jac[1, 0] * jac[2, 1] - jac[1, 1] * jac[2, 0]))
+                u[k, j, i, a] = old[a] + f * (u0[k, j, i, a] - old[a])
+            ok = True
+            for d in range(7):
+                kk, jj, ii = k, j, i
+                if d == 1:
+                    kk -= 1
+                elif d == 2:
+                    kk += 1
+                elif d == 3:
+                    jj -= 1
+                elif d == 4:
+                    jj += 1
+                elif d == 5:
+                    ii -= 1
+                elif d == 6:
+                    ii += 1
+                if kk < 0 or jj < 0 or ii < 0 or kk >= nz or jj >= ny or ii >= nx or not mask[kk, jj, ii]:
+                    continue
+                if _det_at(u, m, kk, jj, ii) < min_det:
+                    ok = False
+                    break
+            if ok:
+                moved += 1
+                break
+            for a in range(3):
+                u[k, j, i, a] = old[a]
+    return moved
 
 
 # -- helpers --------------------------------------------------------------------------------
@@ -392,8 +447,13 @@ def folding_statistics(field: Volume, mask=None) -> dict:
                 max_det=float(det.max()), p01=float(p01), p99=float(p99))
 
 
+RESTORE_FRACTIONS = (1.0, 0.75, 0.5, 0.25)  #: how far back towards the input a repaired voxel may go, tried in turn
+RESTORE_PASSES = 10  #: at most this many restoring passes (each pass moves fewer voxels; they stop when none moves)
+
+
 def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: int = 1,
-           max_iterations: int = 200, mask=None, frozen=None) -> tuple[Volume, dict]:
+           max_iterations: int = 200, mask=None, frozen=None,
+           restore: bool = True) -> tuple[Volume, dict]:
     """Remove folds from ``field`` by smoothing it locally where ``det ∂U/∂x < min_det``.
 
     Each iteration replaces the displacement on the voxels whose determinant
@@ -413,9 +473,25 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     ``frozen`` (optional bool array or Volume on the grid) marks voxels whose
     displacement is never changed (e.g. bones held rigid); folds are then
     removed from the voxels around them.
+
+    ``restore`` (default) then gives back what the smoothing changed and the
+    unfolding did not need: the smoothing replaces every voxel of a region,
+    but a fold is undone by a few of them.  Each changed voxel, in turn, goes
+    back towards its input value by the largest of
+    :data:`RESTORE_FRACTIONS` that keeps ``det ≥ min_det`` at it and its six
+    face neighbours (the only determinants it enters) wherever ``mask`` is,
+    the largest changes first; passes repeat until one moves nothing (at most
+    :data:`RESTORE_PASSES`).
+    No determinant of the mask drops below ``min_det`` by it, so it never
+    adds a fold, and it may finish a repair the smoothing left incomplete.
+    (Dense registration, tuning knee seed 0 at 70°, 195 folds repaired: bone
+    MED 0.079 → 0.054 mm, 0.051 before the repair; MED 0.883 → 0.874 mm,
+    0.871 before.  Taking the bones' voxels first instead: 0.053 mm.)
     Returns the new field (``field`` is not modified) and ``dict(iterations,
-    n_folded_before, n_folded_after, n_changed, max_change_mm)``; folded
-    counts are of ``det ≤ 0`` over the mask.
+    n_folded_before, n_folded_after, n_changed, n_restored, max_change_mm)``
+    (``n_changed``: voxels that differ from the input in the end,
+    ``n_restored``: of the smoothed ones, those that went back all the way);
+    folded counts are of ``det ≤ 0`` over the mask.
     """
     from scipy import ndimage as ndi
 
@@ -482,10 +558,26 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
             stall += 1
             if stall >= 20:
                 grow, stall = grow + 1, 0
+    n_smoothed = int(np.count_nonzero(changed))
+    if restore and n_smoothed:
+        u_in = np.asarray(u0, dtype=np.float64)
+        check = np.ones(g.array_shape, dtype=bool) if m is None else m
+        fractions = np.asarray(RESTORE_FRACTIONS, dtype=np.float64)
+        for _ in range(RESTORE_PASSES):
+            change = np.linalg.norm(u - u_in, axis=-1)
+            cand = np.argwhere(change > 0)
+            if not len(cand):
+                break
+            order = np.argsort(-change[tuple(cand.T)], kind="stable")  # the largest change first
+            if not _restore_towards(u, u_in, np.ascontiguousarray(cand[order]), check, m_inv, float(min_det),
+                                    fractions):
+                break
+        _jacobian_det(u, m_inv, det)
     n_after = int(np.count_nonzero((det <= 0) if m is None else (det <= 0) & m))
     diff = np.linalg.norm(u - u0, axis=-1)
-    info = dict(iterations=it, n_folded_before=n_before, n_folded_after=n_after,
-                n_changed=int(np.count_nonzero(changed)), max_change_mm=float(diff.max()) if diff.size else 0.0)
+    n_changed = int(np.count_nonzero(diff > 0))
+    info = dict(iterations=it, n_folded_before=n_before, n_folded_after=n_after, n_changed=n_changed,
+                n_restored=n_smoothed - n_changed, max_change_mm=float(diff.max()) if diff.size else 0.0)
     return Volume(u.astype(u0.dtype, copy=False), g), info
 
 
