@@ -171,6 +171,12 @@ def run_flex(args):
                 # study's markers are a dozen (Rhee Table 3's measure, one marker moving the mean by ~0.3 mm); a
                 # limb cut by the grid's edge has no skin there (border_value=1)
                 skin = body & ~ndimage.binary_erosion(body, border_value=1)
+                # … and its part near the joints, where the markers are drawn (validation.phantoms: a joint radius
+                # r from the axis, N(0, r/2) along it): template position within 1.5 r of a joint centre
+                near = np.zeros(body.shape, bool)
+                for jn, rad in ph.anatomy.joint_radius_mm.items():
+                    near |= np.linalg.norm(phi - np.asarray(sk.joint(jn).center), axis=-1) < 1.5 * rad
+                skin_joint = skin & near
                 rows = {}
 
                 def add(method, fld, seconds, mem):
@@ -178,7 +184,7 @@ def run_flex(args):
                                               markers=sc.markers)
                     err = np.linalg.norm(fld.data - truth.data, axis=-1)
                     m.update(bone_mm=float(err[bone].mean()), soft_mm=float(err[soft].mean()),
-                             skin_mm=float(err[skin].mean()),
+                             skin_mm=float(err[skin].mean()), skin_joint_mm=float(err[skin_joint].mean()),
                              n_folded=folding_statistics(fld, body)["n_folded"],
                              p95_mm=float(np.percentile(err[body], 95)), seconds=seconds, mem_mib=mem)
                     rows[method] = m
@@ -243,24 +249,26 @@ def flex_summary(summary, split):
         return
     print(f"\n## summary ({split} seeds): ours (dense) against the best peer per case\n")
     print("| case | best peer | MED ours / best | marker MED ours / best | skin MED ours / lowest peer's | "
-          "folded voxels ours (truth's) | bone MED ours mm | time ours / elastix |")
-    print("|---|---|---|---|---|---|---|---|")
+          "skin near joints ours / lowest peer's | folded voxels ours (truth's) | bone MED ours mm | "
+          "time ours / elastix |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for s in summary:
         print(f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | {s['skin_ratio']:.2f} | "
-              f"{s['n_folded']} "
+              f"{s['skin_joint_ratio']:.2f} | {s['n_folded']} "
               f"({s['n_folded_truth']}) | "
               f"{s['bone_mm']:.3f} | {s['time_ratio']:.2f} |")
     print("\n(issue I asks: MED ratio ≤ 0.8, marker ratio ≤ 1, 0 folded, bone ≤ 0.1 mm, time ratio ≤ 2; the skin MED is "
-          "the markers' measure over the body's outer voxel layer)", flush=True)
+          "the markers' measure over the body's outer voxel layer, near the joints its part where the markers are drawn)", flush=True)
 
 
 def flex_report(title, rows):
     print(f"\n### {title}\n")
-    print("| method | MED mm | bone | soft | P95 | marker MED | skin MED | CC | folded (voxels) | s | peak MiB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| method | MED mm | bone | soft | P95 | marker MED | skin MED | near joints | CC | folded (voxels) | s | "
+          "peak MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for m, v in rows.items():
         print(f"| {m} | {v['med_mm']:.2f} | {v['bone_mm']:.3f} | {v['soft_mm']:.2f} | {v['p95_mm']:.2f} | "
-              f"{v['marker_med_mm']:.2f} | {v['skin_mm']:.2f} | {v['cc']:.3f} | {v['folded_fraction']:.5f} ({v['n_folded']}) | "
+              f"{v['marker_med_mm']:.2f} | {v['skin_mm']:.2f} | {v['skin_joint_mm']:.2f} | {v['cc']:.3f} | {v['folded_fraction']:.5f} ({v['n_folded']}) | "
               f"{v['seconds']:.1f} | "
               f"{v['mem_mib']:.0f} |")
     peers = {m: v for m, v in rows.items() if not m.startswith(("ours", "initialised")) and m != TRUTH}
@@ -271,6 +279,7 @@ def flex_report(title, rows):
         out = {"case": title, "best": best, "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
                "marker_ratio": ours["marker_med_mm"] / peers[best]["marker_med_mm"],
                "skin_ratio": ours["skin_mm"] / min(v["skin_mm"] for v in peers.values()),
+               "skin_joint_ratio": ours["skin_joint_mm"] / min(v["skin_joint_mm"] for v in peers.values()),
                "n_folded": ours["n_folded"], "n_folded_truth": rows[TRUTH]["n_folded"],
                "bone_mm": ours["bone_mm"],
                "time_ratio": ours["seconds"] / el["seconds"] if el else float("nan")}
