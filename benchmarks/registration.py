@@ -62,7 +62,8 @@ from registration.baselines import (ants_available, ants_syn, elastix_available,
                                    sitk_bspline, warp_template)
 from registration.initialise import vbd_initial_field  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
-from validation.registration_measures import MEASURE_KEYS, body_on_scan, registration_measures  # noqa: E402
+from validation.registration_measures import (MEASURE_KEYS, body_on_scan, marker_med,  # noqa: E402
+                                             registration_measures)
 
 PAPER = {"table2": {"source": {"med_mm": 5.5, "ssd": 21.3, "cc": 0.63, "mi": 0.52},
                     "registered": {"med_mm": 3.5, "ssd": 15.6, "cc": 0.80, "mi": 0.73}},
@@ -78,6 +79,7 @@ OURS = "ours (dense, bones fixed)"
 TRUTH = "ground truth (sampled on the scan grid)"
 TUNING_SEEDS = (0, 1)
 HELD_OUT_SEEDS = (100, 101)
+MARKER_SAMPLE = 200  # flex: markers drawn beside the study's 12, by the same rule (validation.phantoms)
 FLEX_KNEE = (("bend10", {"knee": [10.0, 1.0, 2.0]}), ("bend45", {"knee": [45.0, 2.0, 5.0]}),
              ("bend70", {"knee": [70.0, 2.0, 8.0]}))
 
@@ -161,6 +163,9 @@ def run_flex(args):
             vbd_weights = {}
             for sid in wanted:
                 sc = scans[sid]
+                # the study's 12 markers estimate the mean over marker-like skin points with ~0.3 mm of sampling
+                # noise a marker: MARKER_SAMPLE more, drawn by the same rule, measure it without
+                many = ph.markers(ph.posing_model(dict(ph.poses)[sid]), n=MARKER_SAMPLE, sample=1)
                 truth = sc.correspondence
                 body = body_on_scan(truth, body_t)
                 phi = truth.data + sc.image.geometry.world_coordinates()
@@ -185,6 +190,7 @@ def run_flex(args):
                     err = np.linalg.norm(fld.data - truth.data, axis=-1)
                     m.update(bone_mm=float(err[bone].mean()), soft_mm=float(err[soft].mean()),
                              skin_mm=float(err[skin].mean()), skin_joint_mm=float(err[skin_joint].mean()),
+                             markers_many_mm=marker_med(fld, many),
                              n_folded=folding_statistics(fld, body)["n_folded"],
                              p95_mm=float(np.percentile(err[body], 95)), seconds=seconds, mem_mib=mem)
                     rows[method] = m
@@ -248,27 +254,29 @@ def flex_summary(summary, split):
     if not summary:
         return
     print(f"\n## summary ({split} seeds): ours (dense) against the best peer per case\n")
-    print("| case | best peer | MED ours / best | marker MED ours / best | skin MED ours / lowest peer's | "
-          "skin near joints ours / lowest peer's | folded voxels ours (truth's) | bone MED ours mm | "
-          "time ours / elastix |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(f"| case | best peer | MED ours / best | marker MED ours / best | {MARKER_SAMPLE} markers ours / best | "
+          "skin MED ours / lowest peer's | skin near joints ours / lowest peer's | folded voxels ours (truth's) | "
+          "bone MED ours mm | time ours / elastix |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for s in summary:
-        print(f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | {s['skin_ratio']:.2f} | "
+        print(f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | "
+              f"{s['many_ratio']:.2f} | {s['skin_ratio']:.2f} | "
               f"{s['skin_joint_ratio']:.2f} | {s['n_folded']} "
               f"({s['n_folded_truth']}) | "
               f"{s['bone_mm']:.3f} | {s['time_ratio']:.2f} |")
     print("\n(issue I asks: MED ratio ≤ 0.8, marker ratio ≤ 1, 0 folded, bone ≤ 0.1 mm, time ratio ≤ 2; the skin MED is "
-          "the markers' measure over the body's outer voxel layer, near the joints its part where the markers are drawn)", flush=True)
+          f"the markers' measure over the body's outer voxel layer, near the joints its part where the markers are drawn; "
+          f"{MARKER_SAMPLE} markers: drawn by the study's rule, beside its 12)", flush=True)
 
 
 def flex_report(title, rows):
     print(f"\n### {title}\n")
-    print("| method | MED mm | bone | soft | P95 | marker MED | skin MED | near joints | CC | folded (voxels) | s | "
-          "peak MiB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| method | MED mm | bone | soft | P95 | marker MED | {MARKER_SAMPLE} markers | skin MED | near joints | CC | "
+          "folded (voxels) | s | peak MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for m, v in rows.items():
         print(f"| {m} | {v['med_mm']:.2f} | {v['bone_mm']:.3f} | {v['soft_mm']:.2f} | {v['p95_mm']:.2f} | "
-              f"{v['marker_med_mm']:.2f} | {v['skin_mm']:.2f} | {v['skin_joint_mm']:.2f} | {v['cc']:.3f} | {v['folded_fraction']:.5f} ({v['n_folded']}) | "
+              f"{v['marker_med_mm']:.2f} | {v['markers_many_mm']:.2f} | {v['skin_mm']:.2f} | {v['skin_joint_mm']:.2f} | {v['cc']:.3f} | {v['folded_fraction']:.5f} ({v['n_folded']}) | "
               f"{v['seconds']:.1f} | "
               f"{v['mem_mib']:.0f} |")
     peers = {m: v for m, v in rows.items() if not m.startswith(("ours", "initialised")) and m != TRUTH}
@@ -278,6 +286,7 @@ def flex_report(title, rows):
         el = peers.get("elastix B-spline")
         out = {"case": title, "best": best, "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
                "marker_ratio": ours["marker_med_mm"] / peers[best]["marker_med_mm"],
+               "many_ratio": ours["markers_many_mm"] / peers[best]["markers_many_mm"],
                "skin_ratio": ours["skin_mm"] / min(v["skin_mm"] for v in peers.values()),
                "skin_joint_ratio": ours["skin_joint_mm"] / min(v["skin_joint_mm"] for v in peers.values()),
                "n_folded": ours["n_folded"], "n_folded_truth": rows[TRUTH]["n_folded"],

@@ -111,6 +111,30 @@ def test_markers_agree_with_field(which, request):
         assert max(errs) < 1.0, errs
 
 
+def test_more_markers_by_the_same_rule_from_a_stream_of_their_own(knee):
+    # sample > 0 draws markers beside the study's, by the same rule: on the skin, inside the grid in every pose,
+    # where the field agrees with the forward map; the study's markers are unchanged by it, and the draw is
+    # seeded (the same markers again, from a fresh phantom of the same seed too)
+    ph, _, _, scans = knee
+    study = ph.template_markers().copy()
+    more = ph.template_markers(n=30, sample=1)
+    assert len(more) == 30
+    np.testing.assert_array_equal(ph.template_markers(), study)
+    assert min(np.linalg.norm(more[:, None] - study[None], axis=-1).ravel()) > 1e-6  # a different draw
+    assert np.abs(ph.anatomy.body_distance(more)).max() < 1e-6
+    np.testing.assert_array_equal(make_phantom("knee", size="test", seed=5, noise=False).template_markers(
+        n=30, sample=1), more)
+    scan = scans[-1]
+    ms = ph.markers(ph.posing_model(dict(ph.poses)[scan.id]), n=30, sample=1)
+    u = scan.correspondence.data
+    errs = []
+    for m in ms:
+        ijk = ph.geometry.world_to_index(np.array(m["scan"]))
+        v = np.array([map_coordinates(u[..., c], [[ijk[2]], [ijk[1]], [ijk[0]]], order=3)[0] for c in range(3)])
+        errs.append(np.linalg.norm(np.array(m["scan"]) + v - np.array(m["template"])))
+    assert np.median(errs) < 0.02 and max(errs) < 1.0, errs  # as the study's markers (test above)
+
+
 def test_truth_pose_matches_forward_kinematics(knee):
     ph, _, _, scans = knee
     for (pid, angles), scan in zip(ph.poses, scans):

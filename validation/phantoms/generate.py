@@ -299,15 +299,22 @@ class Phantom:
         shape = self.geometry.array_shape
         return phi.reshape(shape + (3,)), res.reshape(shape)
 
-    def markers(self, model: PosingModel) -> list[dict]:
-        """Skin markers: template points on the skin near the joints, and their scan points ``F(p)``."""
-        pts = self.template_markers()
+    def markers(self, model: PosingModel, *, n: int = N_MARKERS, sample: int = 0) -> list[dict]:
+        """Skin markers: template points on the skin near the joints, and their scan points ``F(p)``.
+
+        ``sample`` 0 is the study's markers (:meth:`template_markers`); another ``sample`` number draws ``n``
+        more by the same rule from a stream of its own (e.g. a few hundred, to measure what the study's dozen
+        estimate without its sampling noise)."""
+        pts = self.template_markers(n=n, sample=sample)
         scan_pts = model.forward(pts)
         return [{"name": f"m{i + 1:02d}", "template": pts[i].tolist(), "scan": scan_pts[i].tolist()}
                 for i in range(len(pts))]
 
-    def template_markers(self, *, n: int = N_MARKERS) -> np.ndarray:
+    def template_markers(self, *, n: int = N_MARKERS, sample: int = 0) -> np.ndarray:
         """The study's skin markers in the template, the same for every scan (seeded).
+
+        ``sample`` > 0: an independent draw of ``n`` markers by the same rule (its own random stream, derived
+        from the markers' one).
 
         Candidates are drawn around the soft-tissue joints, projected onto the
         skin (body distance 0) and kept only if, in *every* pose, their scan
@@ -315,9 +322,12 @@ class Phantom:
         returns them — i.e. they are not where posed tissue overlaps other
         tissue, so the correspondence field and the markers agree.
         """
-        if getattr(self, "_markers", None) is not None:
-            return self._markers
-        rng = np.random.default_rng(self._marker_seq)
+        drawn = self.__dict__.setdefault("_marker_draws", {})
+        if (n, sample) in drawn:
+            return drawn[n, sample]
+        seq = self._marker_seq
+        rng = np.random.default_rng(seq if sample == 0 else np.random.SeedSequence(
+            seq.entropy, spawn_key=tuple(seq.spawn_key) + (int(sample),)))
         models = [self.posing_model(a) for _, a in self.poses]
         sk = self.skeleton
         joints = list(self.anatomy.joint_radius_mm)
@@ -347,8 +357,8 @@ class Phantom:
         if len(pts) < 8:
             raise ValueError(f"could only place {len(pts)} skin markers outside folds and inside the field of "
                              "view in every pose (need 8); use milder joint angles or fewer extreme poses")
-        self._markers = np.array(pts)
-        return self._markers
+        drawn[n, sample] = np.array(pts)
+        return drawn[n, sample]
 
     def _unfolded_around(self, model: PosingModel, q: np.ndarray, p: np.ndarray) -> bool:
         """True when the scan voxels around ``q`` map back next to ``p`` on one branch of ``F⁻¹``.
