@@ -42,6 +42,7 @@ __all__ = [
     "compose",
     "invert",
     "jacobian_determinant",
+    "jacobian_determinant_components",
     "folding_statistics",
     "unfold",
     "to_sitk_transform",
@@ -220,6 +221,52 @@ def _restore_towards(u, u0, cand, mask, m, min_det, fractions):
             for a in range(3):
                 u[k, j, i, a] = old[a]
     return moved
+
+
+@nb.njit(cache=True, inline="always")
+def _diff_zyx(u, a, k, j, i, axis, n):
+    """∂u[a]/∂(array axis ``axis``) per unit index of a (3, nz, ny, nx) field, as :func:`_diff`: central
+    differences inside, one-sided first differences on the two boundary planes."""
+    if n == 1:
+        return 0.0
+    if axis == 0:
+        if k == 0:
+            return u[a, 1, j, i] - u[a, 0, j, i]
+        if k == n - 1:
+            return u[a, n - 1, j, i] - u[a, n - 2, j, i]
+        return 0.5 * (u[a, k + 1, j, i] - u[a, k - 1, j, i])
+    if axis == 1:
+        if j == 0:
+            return u[a, k, 1, i] - u[a, k, 0, i]
+        if j == n - 1:
+            return u[a, k, n - 1, i] - u[a, k, n - 2, i]
+        return 0.5 * (u[a, k, j + 1, i] - u[a, k, j - 1, i])
+    if i == 0:
+        return u[a, k, j, 1] - u[a, k, j, 0]
+    if i == n - 1:
+        return u[a, k, j, n - 1] - u[a, k, j, n - 2]
+    return 0.5 * (u[a, k, j, i + 1] - u[a, k, j, i - 1])
+
+
+@nb.njit(parallel=True, cache=True)
+def _jacobian_det_zyx(u, inv_sp, out):
+    """det(I + ∂u/∂x) per voxel of a (3, nz, ny, nx) field ``u`` whose component a lies along array axis a, on
+    an axis-aligned grid (``inv_sp``: 1 / spacing per array axis).  The matrix is taken in (z, y, x) order:
+    the same determinant as (x, y, z) order (a permutation of both its rows and its columns)."""
+    nz, ny, nx = u.shape[1], u.shape[2], u.shape[3]
+    dims = (nz, ny, nx)
+    for r in nb.prange(nz * ny):
+        k = r // ny
+        j = r - k * ny
+        for i in range(nx):
+            g = np.empty((3, 3))
+            for a in range(3):
+                for b in range(3):
+                    g[a, b] = np.float64(_diff_zyx(u, a, k, j, i, b, dims[b])) * inv_sp[b]
+                g[a, a] += 1.0
+            out[k, j, i] = (g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1])
+                            - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
+                            + g[0, 2] * (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]))
 
 
 # -- helpers --------------------------------------------------------------------------------
@@ -422,6 +469,24 @@ def jacobian_determinant(field: Volume) -> np.ndarray:
     return out
 
 
+def jacobian_determinant_components(u: np.ndarray, spacing_zyx) -> np.ndarray:
+    """:func:`jacobian_determinant` of a displacement held as its components along the array axes.
+
+    ``u`` is ``(3, nz, ny, nx)`` in mm, ``u[0]`` along array axis 0 (z, index
+    k), on an axis-aligned grid of spacing ``spacing_zyx`` (per array axis) —
+    the layout of the dense registration's working fields
+    (:mod:`registration.dense`), read in place rather than stacked into a
+    Volume (a copy of the field at every step).  The same differences; the
+    determinant's terms are summed in another order (equal up to rounding).
+    """
+    u = np.ascontiguousarray(u)
+    if u.ndim != 4 or u.shape[0] != 3:
+        raise ValueError(f"u must be (3, nz, ny, nx), got {u.shape}")
+    out = np.empty(u.shape[1:], dtype=np.float64)
+    _jacobian_det_zyx(u, 1.0 / np.asarray(spacing_zyx, dtype=np.float64), out)
+    return out
+
+
 def folding_statistics(field: Volume, mask=None) -> dict:
     """Statistics of the Jacobian determinant of ``U`` over ``mask`` (all voxels by default).
 
@@ -509,31 +574,45 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     _jacobian_det(u, m_inv, det)
     shape = np.asarray(g.array_shape)
 
-    def grown_box(where, by):
-        """Bounding box of ``where`` grown by ``by`` voxels, clipped to the grid."""
+    def grown_box(where, by, within=None):
+        """Bounding box of ``where`` (looked for inside the box ``within``, the whole grid by default) grown
+        by ``by`` voxels, clipped to the grid."""
+        off = [0, 0, 0] if within is None else [w.start for w in within]
+        sub = where if within is None else where[within]
         box = []
         for ax, n in enumerate(shape):
-            hit = np.flatnonzero(np.any(where, axis=tuple(a for a in range(3) if a != ax)))
-            box.append(slice(max(int(hit[0]) - by, 0), min(int(hit[-1]) + by + 1, int(n))))
+            hit = np.flatnonzero(np.any(sub, axis=tuple(a for a in range(3) if a != ax)))
+            box.append(slice(max(int(hit[0]) + off[ax] - by, 0), min(int(hit[-1]) + off[ax] + by + 1, int(n))))
         return tuple(box)
 
-    def low():
-        bad = det < min_det
-        return bad if m is None else bad & m
+    def low(box=(slice(None),) * 3):
+        bad = det[box] < min_det
+        return bad if m is None else bad & m[box]
+
+    def union(a, b):
+        return tuple(slice(min(x.start, y.start), max(x.stop, y.stop)) for x, y in zip(a, b))
+
+    def rel(a, b):
+        """The box ``a`` in the coordinates of the box ``b`` that holds it."""
+        return tuple(slice(x.start - y.start, x.stop - y.start) for x, y in zip(a, b))
 
     bad = low()
     n_before = int(np.count_nonzero((det <= 0) if m is None else (det <= 0) & m))
     changed = np.zeros(g.array_shape, dtype=bool)
     grow, best, stall, it = int(margin), int(np.count_nonzero(bad)), 0, 0
-    while bad.any() and it < max_iterations:
+    # every array operation of the loop works on boxes around the folds: ``hull`` holds every voxel that is
+    # or has been low (the determinant changes only next to what was smoothed), so the loop costs the folds'
+    # neighbourhood, not the grid
+    hull = grown_box(bad, 0) if best else None
+    n_bad = best
+    while n_bad and it < max_iterations:
         it += 1
-        # dilate on the folds' bounding box only (grown by the dilation's reach): the same voxels, at the cost
-        # of the folds' neighbourhood
-        bbox = grown_box(bad, grow + 1)
-        region = np.zeros(g.array_shape, dtype=bool)
-        region[bbox] = ndi.binary_dilation(bad[bbox], iterations=grow) if grow > 0 else bad[bbox]
+        bb = grown_box(bad, 0, hull)
+        bbox = tuple(slice(max(b.start - grow - 1, 0), min(b.stop + grow + 1, int(n))) for b, n in zip(bb, shape))
+        rbox = bbox  # the region (the folds dilated) lies inside it
+        region = ndi.binary_dilation(bad[rbox], iterations=grow) if grow > 0 else bad[rbox].copy()
         if fz is not None:
-            region = region & ~fz
+            region &= ~fz[rbox]
             if not region.any():
                 stall, grow = 0, grow + 1
                 if grow > 50:
@@ -542,16 +621,21 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
         # smooth only the region's bounding box grown by the kernel's reach (truncate=4σ): the values on
         # the region are those of smoothing the whole grid, at the cost of the folds' neighbourhood only
         reach = int(math.ceil(4.0 * sigma))
-        box = grown_box(region, reach)
+        rb = grown_box(region, 0)  # the region's own box, in rbox's coordinates, then the grid's
+        rb = tuple(slice(r.start + o.start, r.stop + o.start) for r, o in zip(rb, rbox))
+        box = tuple(slice(max(b.start - reach, 0), min(b.stop + reach, int(n))) for b, n in zip(rb, shape))
         sub = u[box]
         sm = np.stack([ndi.gaussian_filter(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)],
                       axis=-1)
-        r = region[box]
-        sub[r] = sm[r]
-        changed |= region
-        _update_jacobian_det(u, m_inv, det, grown_box(region, 0))
-        bad = low()
-        n_bad = int(np.count_nonzero(bad))
+        full = np.zeros(sub.shape[:3], dtype=bool)  # the region, on the smoothing box
+        full[rel(rb, box)] = region[rel(rb, rbox)]
+        sub[full] = sm[full]
+        changed[box] |= full
+        _update_jacobian_det(u, m_inv, det, rb)
+        ub = tuple(slice(max(b.start - 1, 0), min(b.stop + 1, int(n))) for b, n in zip(rb, shape))
+        bad[ub] = low(ub)
+        hull = union(hull, ub)
+        n_bad = int(np.count_nonzero(bad[hull]))
         if n_bad < best:
             best, stall = n_bad, 0
         else:

@@ -81,7 +81,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from deformation.fields import folding_statistics, jacobian_determinant, unfold
+from deformation.fields import folding_statistics, jacobian_determinant_components, unfold
 from deformation.geometry import GridGeometry, Volume
 from deformation.interpolate import sample_shifted
 
@@ -160,20 +160,31 @@ def _smooth(a, sigma_vox):
     return ndimage.gaussian_filter(a, sigma_vox, mode="nearest", truncate=3.0) if np.any(np.asarray(sigma_vox) > 0) else a
 
 
+_POOL: dict = {}  # one thread pool per thread count, kept: starting threads at every step cost ~1 s a run
+
+
 def _smooth_all(arrays, sigma_vox) -> list:
     """:func:`_smooth` of each array, on as many threads as numba's setting allows (SciPy's filters release
     the GIL; each array is filtered whole by one thread, so the bits do not depend on the thread count)."""
     n = min(len(arrays), max(int(numba.get_num_threads()), 1))
     if n <= 1:
         return [_smooth(a, sigma_vox) for a in arrays]
-    with ThreadPoolExecutor(n) as ex:
-        return list(ex.map(lambda a: _smooth(a, sigma_vox), arrays))
+    if n not in _POOL:
+        _POOL[n] = ThreadPoolExecutor(n, thread_name_prefix="dense-smooth")
+    return list(_POOL[n].map(lambda a: _smooth(a, sigma_vox), arrays))
 
 
-def _lncc_force(f, w, sig):
-    """LNCC of ``f`` and ``w`` (mean over voxels) and its gradient with respect to ``w`` (Avants 2008, Eq. 5)."""
-    mf, mw, sff, sww, sfw = _smooth_all([f, w, f * f, w * w, f * w], sig)
-    sff = sff - mf * mf
+def _local_stats(f, sig):
+    """The fixed image's local mean and variance in the LNCC window (the same at every step of a level)."""
+    mf, sff = _smooth_all([f, f * f], sig)
+    return mf, sff - mf * mf
+
+
+def _lncc_force(f, w, sig, f_stats):
+    """LNCC of ``f`` and ``w`` (mean over voxels) and its gradient with respect to ``w`` (Avants 2008, Eq. 5);
+    ``f_stats`` = :func:`_local_stats` of ``f``."""
+    mf, sff = f_stats
+    mw, sww, sfw = _smooth_all([w, w * w, f * w], sig)
     sww = sww - mw * mw
     sfw = sfw - mf * mw
     # A floor on the local variances (intensities are normalised to ~[0, 1]): flat air or marrow has no
@@ -247,8 +258,7 @@ def _sample(a, coords, order=1):
 
 def _jacobian_min(u, sp):
     """Smallest det(I + ∇u) of a displacement ``u`` (3, nz, ny, nx) in mm along the array axes (spacing ``sp``)."""
-    level = GridGeometry(size=u.shape[1:][::-1], spacing=tuple(float(v) for v in sp[::-1]))
-    return float(jacobian_determinant(Volume(np.stack([u[2], u[1], u[0]], axis=-1), level)).min())
+    return float(jacobian_determinant_components(u, sp).min())
 
 
 def _rigid_project(f, mask, grid_mm, weight):
@@ -342,6 +352,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         labl = lab0[::s, ::s, ::s] if lab0 is not None else None
         regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
         win = st.window_mm / sp
+        f_stats = _local_stats(fl, win)
         fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
         elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
         step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
@@ -353,7 +364,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         u_in = u  # by reference: every step below makes a new u before changing it in place
         for it in range(int(iters) + 1):  # the last pass only measures the last step
             w = sample_shifted(ml, u, inv_sp)
-            cc, dcc = _lncc_force(fl, w, win)
+            cc, dcc = _lncc_force(fl, w, win, f_stats)
             history.append(cc)
             if it == int(iters) or (it >= 10 and history[-1] - history[-11] < st.tolerance):
                 break

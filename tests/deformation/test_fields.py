@@ -400,6 +400,21 @@ def test_jacobian_determinant_of_affine_maps_is_exact(geom, kind):
     assert stats["n_folded"] == (geom.n_voxels if kind == "reflection" else 0)
 
 
+def test_jacobian_determinant_of_components_along_array_axes_is_the_grids():
+    # the dense registration's layout (3, nz, ny, nx), component a along array axis a, on an anisotropic
+    # axis-aligned grid, boundary planes included; a random field folds in places, so both signs are tested
+    rng = np.random.default_rng(3)
+    sp_zyx = np.array([2.5, 1.25, 0.8])
+    u = rng.normal(scale=0.6, size=(3, 7, 9, 11)).astype(np.float32)
+    g = GridGeometry(size=(11, 9, 7), spacing=tuple(sp_zyx[::-1]))
+    ref = F.jacobian_determinant(Volume(np.stack([u[2], u[1], u[0]], axis=-1), g))
+    got = F.jacobian_determinant_components(u, sp_zyx)
+    assert (ref <= 0).any() and (ref > 0).any()
+    # the same float32 differences in float64; the 3x3 determinant's terms summed in another order: round-off
+    # of ~1e-16 relative on terms of order 10
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+
+
 def test_jacobian_determinant_agrees_with_sitk_filter_in_the_interior():
     modes = [(np.array([0.9, -0.5, 0.7]), np.array([0.18, 0.11, -0.14]), 0.3)]
     inner = (slice(1, -1),) * 3  # sitk uses zero-flux boundaries: compare off the boundary planes
