@@ -251,22 +251,26 @@ def _diff_zyx(u, a, k, j, i, axis, n):
 @nb.njit(parallel=True, cache=True)
 def _jacobian_det_zyx(u, inv_sp, out):
     """det(I + ∂u/∂x) per voxel of a (3, nz, ny, nx) field ``u`` whose component a lies along array axis a, on
-    an axis-aligned grid (``inv_sp``: 1 / spacing per array axis).  The matrix is taken in (z, y, x) order:
-    the same determinant as (x, y, z) order (a permutation of both its rows and its columns)."""
+    an axis-aligned grid (``inv_sp``: 1 / spacing per array axis), to the bit :func:`_jacobian_det`'s value of
+    the same field stacked (x, y, z)."""
     nz, ny, nx = u.shape[1], u.shape[2], u.shape[3]
-    dims = (nz, ny, nx)
     for r in nb.prange(nz * ny):
         k = r // ny
         j = r - k * ny
         for i in range(nx):
-            g = np.empty((3, 3))
-            for a in range(3):
-                for b in range(3):
-                    g[a, b] = np.float64(_diff_zyx(u, a, k, j, i, b, dims[b])) * inv_sp[b]
-                g[a, a] += 1.0
-            out[k, j, i] = (g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1])
-                            - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
-                            + g[0, 2] * (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]))
+            # g_ab = ∂u_a/∂x_b (+1 on the diagonal), a, b in array-axis order (z, y, x)
+            g00 = np.float64(_diff_zyx(u, 0, k, j, i, 0, nz)) * inv_sp[0] + 1.0
+            g01 = np.float64(_diff_zyx(u, 0, k, j, i, 1, ny)) * inv_sp[1]
+            g02 = np.float64(_diff_zyx(u, 0, k, j, i, 2, nx)) * inv_sp[2]
+            g10 = np.float64(_diff_zyx(u, 1, k, j, i, 0, nz)) * inv_sp[0]
+            g11 = np.float64(_diff_zyx(u, 1, k, j, i, 1, ny)) * inv_sp[1] + 1.0
+            g12 = np.float64(_diff_zyx(u, 1, k, j, i, 2, nx)) * inv_sp[2]
+            g20 = np.float64(_diff_zyx(u, 2, k, j, i, 0, nz)) * inv_sp[0]
+            g21 = np.float64(_diff_zyx(u, 2, k, j, i, 1, ny)) * inv_sp[1]
+            g22 = np.float64(_diff_zyx(u, 2, k, j, i, 2, nx)) * inv_sp[2] + 1.0
+            # expanded as _det_at expands the (x, y, z) matrix (its entry [a][b] is g[2-a][2-b]): the same bits
+            out[k, j, i] = (g22 * (g11 * g00 - g10 * g01) - g21 * (g12 * g00 - g10 * g02)
+                            + g20 * (g12 * g01 - g11 * g02))
 
 
 # -- helpers --------------------------------------------------------------------------------
@@ -476,8 +480,7 @@ def jacobian_determinant_components(u: np.ndarray, spacing_zyx) -> np.ndarray:
     k), on an axis-aligned grid of spacing ``spacing_zyx`` (per array axis) —
     the layout of the dense registration's working fields
     (:mod:`registration.dense`), read in place rather than stacked into a
-    Volume (a copy of the field at every step).  The same differences; the
-    determinant's terms are summed in another order (equal up to rounding).
+    Volume (a copy of the field at every step).  The same values, to the bit.
     """
     u = np.ascontiguousarray(u)
     if u.ndim != 4 or u.shape[0] != 3:

@@ -73,6 +73,8 @@ NeuroImage 45 (2009) S61–S72. https://doi.org/10.1016/j.neuroimage.2008.10.040
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -161,17 +163,53 @@ def _smooth(a, sigma_vox):
 
 
 _POOL: dict = {}  # one thread pool per thread count, kept: starting threads at every step cost ~1 s a run
+_POOL_LOCK = threading.Lock()
+# a forked child inherits the pools without their threads, and map() on one would wait forever
+os.register_at_fork(after_in_child=_POOL.clear)
 
 
 def _smooth_all(arrays, sigma_vox) -> list:
     """:func:`_smooth` of each array, on as many threads as numba's setting allows (SciPy's filters release
-    the GIL; each array is filtered whole by one thread, so the bits do not depend on the thread count)."""
+    the GIL).  Whole arrays go to the threads in turn; the ones left over (the third of three on two threads)
+    are cut into one slab per thread along their longest axis, each with a halo of the kernel's reach: a
+    Gaussian is a 1-D filter per axis, and every output voxel of a slab is computed from the same inputs in
+    the same order as on the whole array, so the bits do not depend on the thread count."""
     n = min(len(arrays), max(int(numba.get_num_threads()), 1))
-    if n <= 1:
+    if n <= 1 or not np.any(np.asarray(sigma_vox) > 0):
         return [_smooth(a, sigma_vox) for a in arrays]
-    if n not in _POOL:
-        _POOL[n] = ThreadPoolExecutor(n, thread_name_prefix="dense-smooth")
-    return list(_POOL[n].map(lambda a: _smooth(a, sigma_vox), arrays))
+    with _POOL_LOCK:
+        if n not in _POOL:
+            _POOL[n] = ThreadPoolExecutor(n, thread_name_prefix="dense-smooth")
+    n_whole = len(arrays) - len(arrays) % n
+    out = [None] * len(arrays)
+    jobs = [(i, None, None) for i in range(n_whole)]
+    sig = np.broadcast_to(np.asarray(sigma_vox, float), (arrays[0].ndim,))
+    for i in range(n_whole, len(arrays)):
+        a = arrays[i]
+        ax = int(np.argmax(a.shape))
+        reach = int(3.0 * float(sig[ax]) + 0.5)  # scipy's radius for truncate=3
+        cuts = np.linspace(0, a.shape[ax], n + 1).astype(int)
+        out[i] = np.empty_like(a)
+        for lo, hi in zip(cuts[:-1], cuts[1:]):
+            jobs.append((i, ax, (int(lo), int(hi), max(int(lo) - reach, 0), min(int(hi) + reach, a.shape[ax]))))
+
+    def run(job):
+        i, ax, cut = job
+        if ax is None:
+            out[i] = _smooth(arrays[i], sigma_vox)
+            return
+        lo, hi, lo_h, hi_h = cut
+        take = [slice(None)] * arrays[i].ndim
+        take[ax] = slice(lo_h, hi_h)
+        sm = _smooth(arrays[i][tuple(take)], sigma_vox)
+        keep = [slice(None)] * arrays[i].ndim
+        keep[ax] = slice(lo - lo_h, hi - lo_h)
+        dest = [slice(None)] * arrays[i].ndim
+        dest[ax] = slice(lo, hi)
+        out[i][tuple(dest)] = sm[tuple(keep)]
+
+    list(_POOL[n].map(run, jobs))
+    return out
 
 
 def _local_stats(f, sig):
