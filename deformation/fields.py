@@ -122,29 +122,28 @@ def _invert_step(f, nx, ny, nz, w2i_u, i2w_y, v, v_new, resid, done, tol):
     return n_active
 
 
+@nb.njit(cache=True, inline="always")
+def _stencil(idx, n):
+    """The two samples of a first derivative at ``idx`` on an axis of ``n`` voxels and the factor per unit
+    index: central differences inside (½), one-sided first differences on the two boundary planes (1), none
+    on a single plane (0) — the one rule of :func:`_diff` and :func:`_diff_zyx`."""
+    lo = max(idx - 1, 0)
+    hi = min(idx + 1, n - 1)
+    return lo, hi, (1.0 / (hi - lo) if hi > lo else 0.0)
+
+
 @nb.njit(cache=True)
 def _diff(u, k, j, i, a, axis, n):
-    """Derivative of component a along index axis ``axis`` (0=i, 1=j, 2=k) per unit index:
-    central differences inside, one-sided first differences on the two boundary planes."""
-    if n == 1:
-        return 0.0
+    """Derivative of component a along index axis ``axis`` (0=i, 1=j, 2=k) per unit index of a
+    (nz, ny, nx, 3) field (:func:`_stencil`)."""
     if axis == 0:
-        if i == 0:
-            return u[k, j, 1, a] - u[k, j, 0, a]
-        if i == n - 1:
-            return u[k, j, n - 1, a] - u[k, j, n - 2, a]
-        return 0.5 * (u[k, j, i + 1, a] - u[k, j, i - 1, a])
+        lo, hi, f = _stencil(i, n)
+        return f * (u[k, j, hi, a] - u[k, j, lo, a])
     if axis == 1:
-        if j == 0:
-            return u[k, 1, i, a] - u[k, 0, i, a]
-        if j == n - 1:
-            return u[k, n - 1, i, a] - u[k, n - 2, i, a]
-        return 0.5 * (u[k, j + 1, i, a] - u[k, j - 1, i, a])
-    if k == 0:
-        return u[1, j, i, a] - u[0, j, i, a]
-    if k == n - 1:
-        return u[n - 1, j, i, a] - u[n - 2, j, i, a]
-    return 0.5 * (u[k + 1, j, i, a] - u[k - 1, j, i, a])
+        lo, hi, f = _stencil(j, n)
+        return f * (u[k, hi, i, a] - u[k, lo, i, a])
+    lo, hi, f = _stencil(k, n)
+    return f * (u[hi, j, i, a] - u[lo, j, i, a])
 
 
 @nb.njit(cache=True)
@@ -225,27 +224,15 @@ def _restore_towards(u, u0, cand, mask, m, min_det, fractions):
 
 @nb.njit(cache=True, inline="always")
 def _diff_zyx(u, a, k, j, i, axis, n):
-    """∂u[a]/∂(array axis ``axis``) per unit index of a (3, nz, ny, nx) field, as :func:`_diff`: central
-    differences inside, one-sided first differences on the two boundary planes."""
-    if n == 1:
-        return 0.0
+    """∂u[a]/∂(array axis ``axis``) per unit index of a (3, nz, ny, nx) field (:func:`_stencil`)."""
     if axis == 0:
-        if k == 0:
-            return u[a, 1, j, i] - u[a, 0, j, i]
-        if k == n - 1:
-            return u[a, n - 1, j, i] - u[a, n - 2, j, i]
-        return 0.5 * (u[a, k + 1, j, i] - u[a, k - 1, j, i])
+        lo, hi, f = _stencil(k, n)
+        return f * (u[a, hi, j, i] - u[a, lo, j, i])
     if axis == 1:
-        if j == 0:
-            return u[a, k, 1, i] - u[a, k, 0, i]
-        if j == n - 1:
-            return u[a, k, n - 1, i] - u[a, k, n - 2, i]
-        return 0.5 * (u[a, k, j + 1, i] - u[a, k, j - 1, i])
-    if i == 0:
-        return u[a, k, j, 1] - u[a, k, j, 0]
-    if i == n - 1:
-        return u[a, k, j, n - 1] - u[a, k, j, n - 2]
-    return 0.5 * (u[a, k, j, i + 1] - u[a, k, j, i - 1])
+        lo, hi, f = _stencil(j, n)
+        return f * (u[a, k, hi, i] - u[a, k, lo, i])
+    lo, hi, f = _stencil(i, n)
+    return f * (u[a, k, j, hi] - u[a, k, j, lo])
 
 
 @nb.njit(parallel=True, cache=True)
@@ -595,6 +582,10 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     def union(a, b):
         return tuple(slice(min(x.start, y.start), max(x.stop, y.stop)) for x, y in zip(a, b))
 
+    def grow_box(box, by):
+        """``box`` grown by ``by`` voxels, clipped to the grid."""
+        return tuple(slice(max(b.start - by, 0), min(b.stop + by, int(n))) for b, n in zip(box, shape))
+
     def rel(a, b):
         """The box ``a`` in the coordinates of the box ``b`` that holds it."""
         return tuple(slice(x.start - y.start, x.stop - y.start) for x, y in zip(a, b))
@@ -610,9 +601,7 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     n_bad = best
     while n_bad and it < max_iterations:
         it += 1
-        bb = grown_box(bad, 0, hull)
-        bbox = tuple(slice(max(b.start - grow - 1, 0), min(b.stop + grow + 1, int(n))) for b, n in zip(bb, shape))
-        rbox = bbox  # the region (the folds dilated) lies inside it
+        rbox = grow_box(grown_box(bad, 0, hull), grow + 1)  # the region (the folds dilated) lies inside it
         region = ndi.binary_dilation(bad[rbox], iterations=grow) if grow > 0 else bad[rbox].copy()
         if fz is not None:
             region &= ~fz[rbox]
@@ -626,7 +615,7 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
         reach = int(math.ceil(4.0 * sigma))
         rb = grown_box(region, 0)  # the region's own box, in rbox's coordinates, then the grid's
         rb = tuple(slice(r.start + o.start, r.stop + o.start) for r, o in zip(rb, rbox))
-        box = tuple(slice(max(b.start - reach, 0), min(b.stop + reach, int(n))) for b, n in zip(rb, shape))
+        box = grow_box(rb, reach)
         sub = u[box]
         sm = np.stack([ndi.gaussian_filter(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)],
                       axis=-1)
@@ -635,7 +624,7 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
         sub[full] = sm[full]
         changed[box] |= full
         _update_jacobian_det(u, m_inv, det, rb)
-        ub = tuple(slice(max(b.start - 1, 0), min(b.stop + 1, int(n))) for b, n in zip(rb, shape))
+        ub = grow_box(rb, 1)
         bad[ub] = low(ub)
         hull = union(hull, ub)
         n_bad = int(np.count_nonzero(bad[hull]))
