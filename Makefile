@@ -13,8 +13,14 @@ DEMO_DIR ?= demo-study
 DEMO_SPACING ?= 2.5
 # Debian packages Open3D (libusb, libgomp) and off-screen VTK (GL, EGL, OSMesa) load at run time.
 DEB_PACKAGES := libusb-1.0-0 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libgomp1
+# The test set-up adds headless Chromium: a test opens the HTML report in it and checks its screenshot (skipped,
+# with the reason, where Chromium cannot be installed).
+TEST_DEB_PACKAGES := chromium
 
-.PHONY: demo test test-slow system-deps venv clean help bench bench-ants
+# Shell: the packages of $(1) that dpkg does not list as installed, in $$missing.
+missing_of = missing=""; for p in $(1); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; done
+
+.PHONY: demo test test-slow system-deps test-deps venv clean help bench bench-ants
 
 help:
 	@echo "make demo       set up, build a phantom knee study in $(DEMO_DIR)/ and run the pipeline on it (bones, pose,"
@@ -29,9 +35,7 @@ help:
 	@echo "make clean      remove .venv, .venv-ants and $(DEMO_DIR)/"
 
 system-deps:
-	@missing=""; for p in $(DEB_PACKAGES); do \
-	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
-	done; \
+	@$(call missing_of,$(DEB_PACKAGES)); \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
 	    echo "Installing Debian packages:$$missing"; \
@@ -46,6 +50,18 @@ system-deps:
 	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv; \
 	  else echo "Python's venv module is missing: sudo apt-get install python3-venv"; exit 1; fi; }
+
+test-deps:
+	@$(call missing_of,$(TEST_DEB_PACKAGES)); \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "Installing Debian packages for the tests:$$missing"; \
+	    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing; } \
+	      || echo "Could not install$$missing: the browser test of the HTML report will be skipped"; \
+	  else \
+	    echo "Not installed:$$missing (sudo apt-get install$$missing); the browser test of the HTML report will be skipped"; \
+	  fi; \
+	fi
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "$(PYTHON) not found: install Python 3.11 (python3.11, python3.11-venv) or run make PYTHON=/path/to/python3.11"; exit 1; }
@@ -71,10 +87,10 @@ demo: venv
 	echo "  knee.mp4                    bend and straighten"; \
 	echo "demo took $$(( $$(date +%s) - start )) s"
 
-test: venv
+test: venv test-deps
 	$(VENV)/bin/pytest -n 2 --dist loadfile
 
-test-slow: venv
+test-slow: venv test-deps
 	$(VENV)/bin/pytest -n 2 --dist loadfile -m slow
 
 bench: venv

@@ -450,7 +450,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             u = u_in
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
                "lncc_before": before, "lncc_after": before if kept else history[-1], "input_kept": kept,
-               "halvings": halvings,
+               "halvings": halvings, "lncc": [round(float(h), 6) for h in history],  # per iteration (reports)
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
         log.info("dense level %d (shrink %d): %d iterations, LNCC %.4f -> %.4f", lv, s, rec["iterations"],

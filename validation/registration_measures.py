@@ -26,7 +26,7 @@ from deformation.geometry import Volume
 from deformation.interpolate import sample, sample_displaced_array
 from registration.metrics import similarity
 
-__all__ = ["body_on_scan", "med", "marker_med", "registration_measures", "validation_rows", "MEASURE_KEYS"]
+__all__ = ["body_on_scan", "med", "marker_med", "marker_errors", "error_map", "registration_measures", "validation_rows", "MEASURE_KEYS"]
 
 MEASURE_KEYS = ("med_mm", "marker_med_mm", "ssd", "cc", "mi", "folded_fraction")
 
@@ -38,6 +38,16 @@ def body_on_scan(truth: Volume, template_body: Volume) -> np.ndarray:
     return np.asarray(inside, bool)
 
 
+def error_map(field: Volume, truth: Volume, mask: np.ndarray | None = None) -> np.ndarray:
+    """``|recovered − true|`` template position (mm, float32) at every voxel of the fields' common grid; 0
+    outside ``mask`` when one is given."""
+    field.geometry.check_same(truth.geometry, names=("registration field", "truth field"))
+    err = np.linalg.norm(np.asarray(field.data, np.float64) - truth.data, axis=-1).astype(np.float32)
+    if mask is not None:
+        err[~np.asarray(mask, bool)] = 0.0
+    return err
+
+
 def med(field: Volume, truth: Volume, mask: np.ndarray) -> float:
     """Mean |recovered − true| template position (mm) over ``mask`` (fields on one grid)."""
     field.geometry.check_same(truth.geometry, names=("registration field", "truth field"))
@@ -45,14 +55,20 @@ def med(field: Volume, truth: Volume, mask: np.ndarray) -> float:
     return float(err[mask].mean()) if mask.any() else float("nan")
 
 
-def marker_med(field: Volume, markers: list) -> float:
-    """Mean distance (mm) between each marker's true template position and the field's, at its scan position."""
+def marker_errors(field: Volume, markers: list) -> np.ndarray:
+    """Distance (mm) between each marker's true template position and the field's, at its scan position
+    (the field sampled trilinearly)."""
     if not markers:
-        return float("nan")
+        return np.zeros(0)
     scan = np.array([m["scan"] for m in markers], float)
     true = np.array([m["template"] for m in markers], float)
     rec = scan + sample(field, scan, order=1, fill=0.0)
-    return float(np.linalg.norm(rec - true, axis=1).mean())
+    return np.linalg.norm(rec - true, axis=1)
+
+
+def marker_med(field: Volume, markers: list) -> float:
+    """Mean of :func:`marker_errors` (NaN without markers)."""
+    return float(marker_errors(field, markers).mean()) if markers else float("nan")
 
 
 def registration_measures(scan: Volume, registered: Volume, field: Volume, *, truth: Volume | None = None,

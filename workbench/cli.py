@@ -40,6 +40,56 @@ examples:
   workbench register knee-study                           # polyrigid start + dense registration
   workbench render knee-study --out knee.png --clip z:0.5 --bones
   workbench animate knee-study --out knee.mp4             # bend and straighten (ready keyframes)
+  workbench reproduce all --out tables                    # the papers' tables on phantoms
+  workbench report knee-study --out report.html           # HTML validation report
+"""
+
+REPORT_HELP = """Write one self-contained HTML validation report (opens offline, in any browser).
+
+For a study (the report stage, which `workbench run` ends with; the file is
+also kept as STUDY/report/report.html):
+  - bone poses: joint angles per scan, Kurihara Eq. 1 residual per joint
+  - registration: similarity (SSD, CC, MI) before and after, folded voxels,
+    time, convergence plots, the registration's displacement and Jacobian maps
+  - overlays of the registered template (green) on its scan (magenta) on three
+    planes, with a toggle / flicker between the two
+  - with ground truth: MED (body, markers), SSD, CC, MI per volume, error maps,
+    each marker's error
+  - pictures in STUDY/renders/ (e.g. from `workbench render STUDY --out
+    STUDY/renders/knee.png`)
+  - software versions, every stage's settings, the study digest
+For a `workbench reproduce` folder: every table with its definitions, then the
+last registration of each study it ran.
+
+examples:
+  workbench report knee-study --out knee-report.html
+  workbench report tables --out tables.html
+"""
+
+REPRODUCE_HELP = """Reproduce the papers' tables on phantoms with exact ground truth.
+
+Each table runs the pipeline's stages (bones, pose, weights, init, register,
+validate) on a phantom study written under DIR/studies/, then writes
+DIR/<table>.csv, .md and .json with the paper's figures beside ours and the
+definition of every measure, and prints it:
+
+  table2      Rhee Table 2: the knee bent 10 deg by VBD, registered without initialisation
+  table3      Rhee Table 3: knee, 4 poses, template registered to the other 3 after VBD
+              from the estimated poses; MED (body, markers), SSD, CC, MI, folded
+  table4      Rhee Table 4: hand, 10 poses, the same over 9 registrations
+  loo         leave one scan out: VBD against EVD built from the other scans'
+              registrations, both against the held-out truth (knee and hand)
+  eigenposes  principal components of 71 documented grasp/sign/gesture hand poses
+  kurihara    Kurihara Eq. 1 joint centres of a CT hand in 5 poses (ICP of bones)
+  all         every one of them
+
+A second run into the same DIR reuses every finished stage (loo reuses the
+registrations of table3 and table4).  --size test takes minutes, --size paper
+(Rhee's grids) hours.
+
+examples:
+  workbench reproduce all --out tables
+  workbench reproduce table3 loo --out tables --with-peers
 """
 
 RENDER_HELP = """Render a volume (or a study's template, scan or registered template) off-screen to a PNG.
@@ -254,6 +304,7 @@ Run the whole pipeline on a study, stage by stage, each through one mechanism:
   register  dense registration (or Rhee Algorithm 1, --method)  (per scan)
   model     EVD (Rhee Eq. 7) from the registrations and the estimated poses
   validate  each scan against its ground truth, when it has one  (per scan)
+  report    one self-contained HTML validation report (report/report.html)
 
 The ground truth of a phantom is read by `validate` alone.  Each stage
 records in study.json a digest of its inputs and settings; a stage whose
@@ -540,7 +591,8 @@ def build_parser() -> argparse.ArgumentParser:
     _common(va)
     va.set_defaults(func=cmd_validate)
 
-    ru = sub.add_parser("run", help="run every stage in order: bones, pose, weights, init, register, model, validate",
+    ru = sub.add_parser("run", help="run every stage in order: bones, pose, weights, init, register, model, validate, "
+                                    "report",
                         description=RUN_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     ru.add_argument("study", type=Path, help="study folder (holding study.json)")
     ru.add_argument("--until", metavar="STAGE", choices=_stage_names(), help="stop after this stage")
@@ -553,12 +605,40 @@ def build_parser() -> argparse.ArgumentParser:
                     help="segment the template's bones from this seeds file (a study without a label map)")
     _common(ru)
     ru.set_defaults(func=cmd_run)
+
+    rr = sub.add_parser("report", help="one self-contained HTML validation report of a study or a reproduce folder",
+                        description=REPORT_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    rr.add_argument("source", type=Path, metavar="STUDY_OR_DIR",
+                    help="a study folder (holding study.json) or a `workbench reproduce` output folder")
+    rr.add_argument("--out", type=Path, required=True, metavar="FILE.html", help="the report to write")
+    rr.add_argument("--force", action="store_true", help="replace an existing --out file; for a study, also "
+                                                         "rebuild the report stage's report")
+    rr.add_argument("--no-pictures", action="store_true",
+                    help="tables and plots only, no slice pictures (a smaller file)")
+    _common(rr)
+    rr.set_defaults(func=cmd_report)
+
+    rp = sub.add_parser("reproduce", help="reproduce the papers' tables on phantoms (CSV, Markdown, JSON per table)",
+                        description=REPRODUCE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    rp.add_argument("tables", nargs="+", metavar="TABLE",
+                    choices=["table2", "table3", "table4", "loo", "eigenposes", "kurihara", "all"],
+                    help="table2, table3, table4, loo, eigenposes, kurihara, or all")
+    rp.add_argument("--out", type=Path, required=True, metavar="DIR",
+                    help="folder for the tables (<table>.csv/.md/.json) and the phantom studies they run on "
+                         "(DIR/studies/); an existing folder's finished stages are reused")
+    rp.add_argument("--size", choices=["test", "paper"], default="test",
+                    help="phantom grid: test (minutes for all) or paper (Rhee's grids; hours). Default: test")
+    rp.add_argument("--seed", type=int, default=0, help="phantom seed (noise, texture, pose jitter). Default: 0")
+    rp.add_argument("--with-peers", action="store_true",
+                    help="add elastix's and SimpleITK's B-spline registrations from the same start (tables 2-4)")
+    _common(rp)
+    rp.set_defaults(func=cmd_reproduce)
     return p
 
 
 def _stage_names():
     """workbench.stages.ORDER, written out so that --help does not import every stage (a test keeps them equal)."""
-    return ["bones", "pose", "weights", "init", "register", "model", "validate"]
+    return ["bones", "pose", "weights", "init", "register", "model", "validate", "report"]
 
 
 def _bones_options(p) -> None:
@@ -826,6 +906,58 @@ def cmd_run(args) -> int:
           f"{time.perf_counter() - t0:.1f} s")
     if "validate" in targets:
         print(format_registration_table(study, study.check_scan_ids(args.scan)))
+    return 0
+
+
+def cmd_report(args) -> int:
+    from workbench.errors import InputFileError, OutputExistsError
+    from workbench.io.atomic import write_text_atomic
+
+    out = args.out
+    if out.suffix.lower() not in (".html", ".htm"):
+        raise ValueError(f"--out {out}: the report is an HTML file; give a name ending in .html")
+    if out.exists() and not args.force:
+        raise OutputExistsError(out, f"{out}: already exists; choose another --out or pass --force to replace it.")
+    if not out.parent.exists():
+        raise InputFileError(f"--out {out}: the folder {out.parent} does not exist; create it first", out.parent)
+    src = args.source
+    if (src / "study.json").exists():
+        from workbench.stages.report import ReportSettings
+
+        args.study = src
+        study, _ = _stages(args, ["report"], {"report": ReportSettings(pictures=not args.no_pictures)},
+                           force={"report"} if args.force else ())
+        html = study.output("report", "report.html").read_text(encoding="utf-8")
+    elif src.is_dir() and any(src.glob("*.json")):
+        from workbench.report import tables_report
+
+        html = tables_report(src)
+    else:
+        raise InputFileError(f"{src}: neither a study folder (no study.json) nor a `workbench reproduce` folder "
+                             "(no tables); give one of them", src)
+    write_text_atomic(out, html, overwrite=args.force)
+    print(f"wrote {out} ({len(html.encode()) / 2**20:.1f} MB)")
+    return 0
+
+
+def cmd_reproduce(args) -> int:
+    from workbench.reproduce import format_markdown, reproduce
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    printer = _progress(args)
+    say = (lambda m: None) if args.quiet else (lambda m: print(f"reproduce: {m}", file=sys.stderr, flush=True))
+    t0 = time.perf_counter()
+
+    def emit(table, seconds):
+        print(format_markdown(table))
+        print(f"({table.id}: {seconds:.0f} s; written to {args.out}/{table.id}.csv, .md, .json)\n", flush=True)
+
+    try:
+        reproduce(args.tables, args.out, size=args.size, seed=args.seed, with_peers=args.with_peers,
+                  progress=printer, say=say, emit=emit)
+    finally:
+        printer.close()
+    print(f"reproduce: {', '.join(args.tables)} in {time.perf_counter() - t0:.0f} s")
     return 0
 
 

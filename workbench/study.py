@@ -74,7 +74,7 @@ class StudyError(InputFileError):
 # The command that produces each stage's outputs, for "run X first" messages.
 STAGE_COMMANDS = {"bones": "workbench bones", "pose": "workbench pose", "weights": "workbench weights",
                   "init": "workbench register", "register": "workbench register", "model": "workbench model",
-                  "validate": "workbench validate"}
+                  "validate": "workbench validate", "report": "workbench report"}
 LOCK_NAME = ".study.json.lock"
 
 
@@ -399,6 +399,12 @@ class Study:
     # -- validate stage ----------------------------------------------------------------------------
     def validation(self, scan_id: str) -> dict:
         return read_json(self.output("validate", "measures.json", scan_id))
+
+    def validation_maps(self, scan_id: str) -> tuple[Volume, Volume]:
+        """``(error_mm, body)`` on the scan grid: the registration's correspondence error at every body voxel
+        (mm, 0 elsewhere) and the body voxels the validate stage measured over."""
+        return (read_volume(self.output("validate", "error_mm.nii.gz", scan_id)),
+                read_labels(self.output("validate", "body.nii.gz", scan_id)))
 
 
 def read_study(folder: str | os.PathLike) -> Study:

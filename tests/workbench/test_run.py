@@ -23,13 +23,14 @@ from workbench.study import read_study
 # A small, fast configuration: every stage, a tenth of the default registration budget.
 SETTINGS = ["--set", "weights.method=\"distance\"", "--set", "register.levels=[3,4]",
             "--set", "register.max_steps_per_level=20"]
-STAGE_FOLDERS = ("bones", "poses", "skinning", "init", "registration", "model", "validation")
+STAGE_FOLDERS = ("bones", "poses", "skinning", "init", "registration", "model", "validation", "report")
 
 
 def _strip(src: Path, dst: Path, *, truth: bool = True, keep=()) -> Path:
     """A copy of a study without its stage outputs but those of the stages ``keep`` (and without its ground
     truth, if asked)."""
-    drop = [f for s, f in zip(("bones", "pose", "weights", "init", "register", "model", "validate"), STAGE_FOLDERS)
+    drop = [f for s, f in zip(("bones", "pose", "weights", "init", "register", "model", "validate", "report"),
+                              STAGE_FOLDERS)
             if s not in keep]
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns(*drop, ".locks", *(("truth",) if not truth else ())))
     m = json.loads((dst / "study.json").read_text())
@@ -92,7 +93,7 @@ def test_second_run_skips_every_stage(done, tmp_path):
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert _started(proc.stderr) == []
-    n_units = 3 + 1 + 4 * 3  # bones, pose, weights, model; init, register, validate per scan
+    n_units = 3 + 1 + 1 + 4 * 3  # bones, pose, weights, model, report; init, register, validate per scan
     assert proc.stderr.count("up to date, skipped") == n_units
     assert "0 stage run(s)" in proc.stdout
     assert (root / "study.json").read_bytes() == manifest

@@ -9,14 +9,19 @@ The only stage that reads the truth.  Per scan with truth
 * the estimated pose's errors per bone and joint, when the pose stage ran.
 
 Scans without truth have nothing to validate (recorded as skipped).
-Outputs (``validation/<scan>/measures.json``).
+Outputs (``validation/<scan>/``): ``measures.json`` (the rows, each
+marker's error, the pose errors), ``error_mm.nii.gz`` (the registered
+correspondence's error ``|recovered − true|`` template position at every
+scan voxel, mm; 0 outside the body) and ``body.nii.gz`` (the scan's body
+voxels the measures are taken over) — the report stage draws them, so that
+no other stage reads the truth.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from workbench.stages.mechanism import Json, Stage
+from workbench.stages.mechanism import Image, Json, Labels, Stage
 
 __all__ = ["ValidateSettings", "STAGE"]
 
@@ -39,17 +44,25 @@ def _inputs(study, s, scan):
 
 
 def _run(ctx) -> dict:
+    import numpy as np
+
+    from deformation.geometry import Volume
     from registration.rigid import bone_regions
     from validation.pose_measures import pose_errors
-    from validation.registration_measures import validation_rows
+    from validation.registration_measures import body_on_scan, error_map, marker_errors, validation_rows
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
     template = study.template()
     _, body = study.weights()
-    rows = validation_rows(study.scan(sid), template, truth=study.truth_correspondence(sid), template_body=body,
-                           markers=study.truth_markers(sid), registered=study.registered(sid),
-                           field=study.registration_correspondence(sid), initial=study.init_field(sid))
+    truth = study.truth_correspondence(sid)
+    field = study.registration_correspondence(sid)
+    markers = study.truth_markers(sid)
+    rows = validation_rows(study.scan(sid), template, truth=truth, template_body=body, markers=markers,
+                           registered=study.registered(sid), field=field, initial=study.init_field(sid))
+    body_scan = body_on_scan(truth, body)
     doc = {"format": "avw-validation", "version": 1, "scan": sid, "rows": rows,
+           "markers": [{"name": m.get("name", f"m{i}"), "error_mm": float(e)}
+                       for i, (m, e) in enumerate(zip(markers, marker_errors(field, markers)))],
            "measures": {"med_mm": "mean |recovered − true| template position over the scan's body voxels (mm)",
                         "marker_med_mm": "the same at the skin markers",
                         "ssd": "mean squared intensity difference, scan vs template resampled through the field",
@@ -59,8 +72,11 @@ def _run(ctx) -> dict:
         centroids = {k: r.centroid for k, r in bone_regions(template, study.template_labels(),
                                                             study.skeleton()).items()}
         doc["pose"] = pose_errors(study.pose(sid), study.truth_pose(sid), centroids)
-    return {"measures.json": Json(doc)}
+    g = truth.geometry
+    return {"measures.json": Json(doc), "error_mm.nii.gz": Image(Volume(error_map(field, truth, body_scan), g)),
+            "body.nii.gz": Labels(Volume(body_scan.astype(np.uint8), g))}
 
 
 STAGE = Stage(name="validate", folder="validation", per_scan=True, settings_type=ValidateSettings, run=_run,
-              needs=lambda s: ("register", "weights"), inputs=_inputs, applies=_applies)
+              needs=lambda s: ("register", "weights"), inputs=_inputs, applies=_applies,
+              version=2)  # 2: error map, body mask and per-marker errors written beside the measures

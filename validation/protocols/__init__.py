@@ -1,0 +1,39 @@
+"""The papers' protocols: functions that run the pipeline on phantoms and return tables of numbers.
+
+==============  =====================================================================================
+``table2``      Rhee Table 2: knee bent 10° by VBD, registered without initialisation
+``table3``      Rhee Table 3: knee, 4 poses, template → 3 scans after VBD from estimated poses
+``table4``      Rhee Table 4: hand, 10 poses, template → 9 scans after VBD from estimated poses
+``loo``         leave one scan out: VBD vs EVD from the others' registrations (Rhee Figs. 11–12)
+``eigenposes``  principal components of a 71-pose hand library (Rhee §6.2)
+``kurihara``    Kurihara Eq. 1 joint centres of the CT hand in 5 poses
+==============  =====================================================================================
+
+Each protocol is ``f(runner) -> Table`` (:class:`~validation.protocols.table.Table`).
+The pipeline's stages live in the workbench, above this package (imports go
+``workbench → validation``), so a protocol does not run them itself: it asks
+``runner`` for a study, and the workbench (:mod:`workbench.reproduce`)
+supplies the runner.  A runner has
+
+* ``study(name, phantom, *, settings, targets)`` → a study object
+  (:class:`workbench.study.Study`) on which ``targets`` (stage names) and
+  everything they need have run: ``phantom`` is a dict of
+  :class:`~validation.phantoms.PhantomSpec` fields (the size is the
+  runner's), ``settings`` ``{stage: {setting: value}}``.  The same name,
+  phantom and settings give the same study, whose finished stages are reused;
+* ``with_peers`` (bool): also run the general-purpose registrations;
+* ``say(message)``: a progress line.
+"""
+
+from __future__ import annotations
+
+from .eigenposes import eigenposes
+from .kurihara import kurihara
+from .loo import loo
+from .registration import table2, table3, table4
+from .table import DEFINITIONS, Column, Table
+
+__all__ = ["PROTOCOLS", "Table", "Column", "DEFINITIONS"]
+
+PROTOCOLS = {"table2": table2, "table3": table3, "table4": table4, "loo": loo, "eigenposes": eigenposes,
+             "kurihara": kurihara}

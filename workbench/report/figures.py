@@ -1,0 +1,167 @@
+"""Pictures for the HTML report, as compressed image bytes (PNG for plots and maps, JPEG for grey slices).
+
+Slices are drawn from index planes of a volume through a chosen voxel and
+resampled to square millimetres (the grid's spacing sets each plane's
+aspect), so an anisotropic scan is not squashed.  Overlays use the papers'
+colours: the target scan in magenta, the (registered) template in green
+(Rhee Figs. 8–9: "differences between registrations (cyan points) and target
+volumes (magenta)"), so that where they agree the picture is grey.  Plots
+are matplotlib (Agg).
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+__all__ = ["PLANES", "plane", "grey", "overlay", "colour_map", "encode_png", "encode_jpeg", "line_plot", "bar_plot",
+           "colour_bar", "centre_index"]
+
+# Index planes of the array [k, j, i] = [z, y, x]: "xy" at a fixed k, "xz" at a fixed j, "yz" at a fixed i.  Not
+# called axial / coronal / sagittal: which anatomical plane an index plane is depends on the scan's direction.
+PLANES = ("xy", "xz", "yz")
+PIXELS_PER_MM = 1.0  # slices are resampled to this many pixels per mm (a test-size knee: ~300 px across)
+MAX_SIDE = 420  # … and at most this many pixels on a side
+
+
+def centre_index(mask: np.ndarray) -> tuple[int, int, int]:
+    """The voxel ``(k, j, i)`` at the centre of ``mask``'s bounding box (the grid's centre if it is empty)."""
+    if mask is None or not np.any(mask):
+        return tuple(int(s // 2) for s in np.shape(mask))
+    idx = np.nonzero(mask)
+    return tuple(int((a.min() + a.max()) // 2) for a in idx)
+
+
+def plane(data: np.ndarray, spacing_xyz, which: str, at: tuple[int, int, int]) -> tuple[np.ndarray, tuple[float, float]]:
+    """A 2-D index plane of ``data`` ``[k, j, i, ...]`` through voxel ``at``, rows running up the picture,
+    with its pixel size in mm ``(row, column)``."""
+    sx, sy, sz = (float(v) for v in spacing_xyz)
+    k, j, i = at
+    if which == "xy":
+        sl, px = data[k], (sy, sx)
+    elif which == "xz":
+        sl, px = data[:, j], (sz, sx)
+    elif which == "yz":
+        sl, px = data[:, :, i], (sz, sy)
+    else:
+        raise ValueError(f"plane must be one of {PLANES}, got {which!r}")
+    return np.ascontiguousarray(sl[::-1]), px
+
+
+def _resize(img, px_mm) -> "object":
+    from PIL import Image
+
+    h, w = img.size[1], img.size[0]
+    hh, ww = h * px_mm[0] * PIXELS_PER_MM, w * px_mm[1] * PIXELS_PER_MM
+    f = min(MAX_SIDE / max(hh, ww), 4.0)
+    f = max(f, 1.0) if max(hh, ww) < MAX_SIDE else f
+    return img.resize((max(1, int(round(ww * f))), max(1, int(round(hh * f)))), Image.BILINEAR)
+
+
+def _unit(a: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    return np.clip((np.asarray(a, np.float64) - lo) / (hi - lo if hi > lo else 1.0), 0.0, 1.0)
+
+
+def robust(a: np.ndarray) -> tuple[float, float]:
+    lo, hi = np.percentile(np.asarray(a, np.float64), [0.5, 99.5])
+    return float(lo), float(hi)
+
+
+def grey(sl: np.ndarray, px_mm, window: tuple[float, float]):
+    """A grey picture (PIL image) of a plane, intensities windowed to ``window``."""
+    from PIL import Image
+
+    img = Image.fromarray((255 * _unit(sl, *window)).astype(np.uint8), "L")
+    return _resize(img, px_mm)
+
+
+def overlay(target: np.ndarray, template: np.ndarray, px_mm, windows):
+    """Target in magenta, template in green (module docstring); each windowed to its own range."""
+    from PIL import Image
+
+    t = _unit(target, *windows[0])
+    m = _unit(template, *windows[1])
+    rgb = np.stack([t, m, t], axis=-1)
+    return _resize(Image.fromarray((255 * rgb).astype(np.uint8), "RGB"), px_mm)
+
+
+def colour_map(sl: np.ndarray, px_mm, vmin: float, vmax: float, *, cmap: str = "magma", mask=None,
+               background: np.ndarray | None = None, window=None):
+    """A colour-mapped plane (e.g. an error map in mm), grey ``background`` where ``mask`` is false."""
+    from matplotlib import colormaps
+    from PIL import Image
+
+    rgba = colormaps[cmap](_unit(sl, vmin, vmax))[..., :3]
+    if mask is not None:
+        bg = np.zeros(sl.shape) if background is None else 0.6 * _unit(background, *window)
+        rgba = np.where(np.asarray(mask)[..., None], rgba, bg[..., None])
+    return _resize(Image.fromarray((255 * rgba).astype(np.uint8), "RGB"), px_mm)
+
+
+def encode_png(img) -> bytes:
+    buf = io.BytesIO()
+    img.save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
+def encode_jpeg(img, quality: int = 82) -> bytes:
+    buf = io.BytesIO()
+    img.convert("RGB").save(buf, format="JPEG", quality=quality, optimize=True)
+    return buf.getvalue()
+
+
+def _figure(width=5.2, height=2.8):
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(width, height), dpi=90)
+    return plt, fig, ax
+
+
+def _png(plt, fig) -> bytes:
+    buf = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def line_plot(series: dict, *, xlabel: str, ylabel: str, title: str = "") -> bytes:
+    """``{name: (x, y)}`` as lines on one axes (PNG bytes)."""
+    plt, fig, ax = _figure()
+    for name, (x, y) in series.items():
+        ax.plot(x, y, label=name, lw=1.4)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=10)
+    if len(series) > 1:
+        ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    return _png(plt, fig)
+
+
+def bar_plot(labels, values, *, ylabel: str, title: str = "", reference: float | None = None) -> bytes:
+    plt, fig, ax = _figure()
+    ax.bar(range(len(values)), values, color="#8a4fbf")
+    ax.set_xticks(range(len(values)))
+    ax.set_xticklabels(labels, rotation=60, ha="right", fontsize=7)
+    ax.set_ylabel(ylabel)
+    if reference is not None:
+        ax.axhline(reference, color="k", lw=1, ls="--")
+    if title:
+        ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, axis="y")
+    return _png(plt, fig)
+
+
+def colour_bar(vmin: float, vmax: float, *, label: str, cmap: str = "magma") -> bytes:
+    import matplotlib as mpl
+
+    plt, fig, ax = _figure(4.0, 0.7)
+    mpl.colorbar.ColorbarBase(ax, cmap=mpl.colormaps[cmap], norm=mpl.colors.Normalize(vmin, vmax),
+                              orientation="horizontal", label=label)
+    return _png(plt, fig)

@@ -1,0 +1,143 @@
+"""``workbench reproduce``: the papers' tables, through the pipeline's stages, written as CSV, Markdown and JSON.
+
+:class:`StudyRunner` is the runner the protocols of :mod:`validation.protocols`
+ask for studies: it writes each phantom study once under ``OUT/studies/``
+(``<name>-<size>``), runs the stages a protocol needs with the protocol's
+settings (everything else at its defaults, whatever the study last ran with),
+and hands the study back.  A second ``reproduce`` into the same folder
+reuses every stage that is up to date (the stage mechanism's digests), so
+``reproduce all`` after ``reproduce table3`` does not register the knee again.
+
+:func:`write_table` writes one table as ``<id>.csv`` (one row per table row:
+label, kind, every column), ``<id>.md`` (the table, the definitions of its
+measures, the notes) and ``<id>.json`` (:meth:`Table.to_dict`), each
+atomically; :func:`format_markdown` is the text printed.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import time
+from pathlib import Path
+
+from validation.protocols import PROTOCOLS, Table
+from workbench.errors import WorkbenchError
+
+__all__ = ["StudyRunner", "reproduce", "write_table", "format_markdown", "format_csv", "NAMES"]
+
+NAMES = tuple(PROTOCOLS)
+
+
+class StudyRunner:
+    """Writes and runs the protocols' phantom studies under ``out / "studies"`` (see the module docstring)."""
+
+    def __init__(self, out: Path, *, size: str = "test", seed: int = 0, with_peers: bool = False, progress=None,
+                 say=None):
+        self.out = Path(out)
+        self.size = size
+        self.seed = seed
+        self.with_peers = with_peers
+        self._progress = progress
+        self._say = say or (lambda m: None)
+
+    def say(self, message: str) -> None:
+        self._say(message)
+
+    def study(self, name: str, phantom: dict, *, settings: dict, targets):
+        from validation.phantoms import Phantom, PhantomSpec
+        from workbench.stages import STAGES
+        from workbench.stages.run import run_stages
+        from workbench.study import read_study, write_phantom_study
+
+        spec = PhantomSpec(size=self.size, seed=self.seed, **phantom)
+        folder = self.out / "studies" / f"{name}-{self.size}"
+        if folder.exists():
+            study = read_study(folder)
+            recorded = {k: v for k, v in (study.manifest.get("phantom") or {}).items() if k in spec.to_dict()}
+            if recorded != spec.to_dict():
+                raise WorkbenchError(f"{folder}: a study of another phantom ({recorded}) is in the way of "
+                                     f"{spec.to_dict()}; remove the folder or give another --out")
+        else:
+            self.say(f"{name}: writing the {spec.region} phantom study ({self.size} size) to {folder}")
+            t0 = time.perf_counter()
+            study = write_phantom_study(Phantom(spec), folder, name=f"{name} protocol ({spec.region}, {self.size})")
+            self.say(f"{name}: phantom written in {time.perf_counter() - t0:.0f} s")
+        # every stage at the protocol's settings or its defaults: what a user ran on this folder before is not used
+        given = {s: st.settings_type(**settings.get(s, {})) for s, st in STAGES.items()}
+        t0 = time.perf_counter()
+        run_stages(study, list(targets), settings=given, progress=self._progress)
+        self.say(f"{name}: stages up to {', '.join(targets)} done in {time.perf_counter() - t0:.0f} s")
+        return study.reload()
+
+
+def _cell(v, decimals: int) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return ""
+    if isinstance(v, bool):
+        return str(v)
+    if isinstance(v, int) or decimals == 0:
+        return f"{int(round(v))}"
+    return f"{v:.{decimals}f}"
+
+
+def format_markdown(table: Table) -> str:
+    """The table as Markdown: a heading, the table (units in the headings), definitions and notes."""
+    head = ["", *[f"{c.label} ({c.unit})" if c.unit else c.label for c in table.columns]]
+    lines = [f"## {table.title}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in table.rows:
+        lines.append("| " + " | ".join([r["label"], *[_cell(r.get(c.key), c.decimals) for c in table.columns]])
+                     + " |")
+    if table.definitions:
+        lines += ["", "Definitions:", ""] + [f"- **{k}**: {v}" for k, v in table.definitions.items()]
+    if table.notes:
+        lines += ["", "Notes:", ""] + [f"- {n}" for n in table.notes]
+    return "\n".join(lines) + "\n"
+
+
+def format_csv(table: Table) -> str:
+    """One line per row: label, kind, then every column's value at full precision (empty where none)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["label", "kind", *[c.key for c in table.columns]])
+    for r in table.rows:
+        w.writerow([r["label"], r["kind"], *["" if r.get(c.key) is None else repr(r[c.key]) if isinstance(
+            r[c.key], float) else r[c.key] for c in table.columns]])
+    return buf.getvalue()
+
+
+def write_table(table: Table, out: Path) -> list[Path]:
+    """``<id>.csv``, ``<id>.md`` and ``<id>.json`` in ``out`` (replacing older ones), each written atomically."""
+    from workbench.io.atomic import write_text_atomic
+    from workbench.io.jsonio import to_jsonable, write_json
+
+    out = Path(out)
+    # every text is made before any file is written: a table that cannot be written leaves none of its files
+    doc = to_jsonable(table.to_dict(), where=f"{table.id}")
+    texts = {"csv": format_csv(table), "md": format_markdown(table)}
+    out.mkdir(parents=True, exist_ok=True)
+    return [write_json(doc, out / f"{table.id}.json", overwrite=True),
+            *(write_text_atomic(out / f"{table.id}.{ext}", text, overwrite=True) for ext, text in texts.items())]
+
+
+def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers: bool = False, progress=None,
+              say=None, emit=None) -> dict[str, Table]:
+    """Run the protocols ``names`` (``"all"`` = every one) into ``out``; each table is written as soon as it is
+    done and passed to ``emit(table, seconds)``.  Returns ``{name: Table}``."""
+    names = list(NAMES) if "all" in names else list(dict.fromkeys(names))
+    unknown = [n for n in names if n not in PROTOCOLS]
+    if unknown:
+        raise WorkbenchError(f"unknown protocol {unknown}; choose from {list(NAMES)} or all")
+    runner = StudyRunner(out, size=size, seed=seed, with_peers=with_peers, progress=progress, say=say)
+    tables = {}
+    for n in names:
+        t0 = time.perf_counter()
+        t = PROTOCOLS[n](runner)
+        seconds = time.perf_counter() - t0
+        t.meta = {**t.meta, "size": size, "seed": seed, "seconds": round(seconds, 1)}
+        write_table(t, out)
+        tables[n] = t
+        if emit is not None:
+            emit(t, seconds)
+    return tables
