@@ -573,7 +573,8 @@ class VoxelWeights:
 
 
 def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, mesh: TetMesh | None = None,
-                           edge_length_mm: float | None = None, progress=None, kind: str = "harmonic") -> VoxelWeights:
+                           edge_length_mm: float | None = None, progress=None, kind: str = "harmonic",
+                           snap_missing: bool = False) -> VoxelWeights:
     """Harmonic (or bounded biharmonic, ``kind="bbw"``) skinning weights (Kurihara Eq. 3's w) of every voxel.
 
     The body (``body``, a mask on the same grid) is meshed with tetrahedra by
@@ -585,7 +586,10 @@ def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, m
     :data:`~deformation.skinning.MAX_INFLUENCES` influences;
     :func:`weights_on_grid`).  ``progress(message)`` is told each step.
     ``kind="bbw"`` solves bounded biharmonic weights on the same mesh instead
-    (:func:`bbw_weights`, libigl).
+    (:func:`bbw_weights`, libigl).  ``snap_missing`` (harmonic): a bone
+    smaller than the mesh's tetrahedra, with no vertex inside, fixes the
+    vertex nearest to it instead (:func:`constrained_vertices`; the bones are
+    named in ``info["snapped"]``).
     """
     if kind not in ("harmonic", "bbw"):
         raise ValueError(f"kind must be 'harmonic' or 'bbw', got {kind!r}")
@@ -598,10 +602,17 @@ def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, m
         say("meshing the body surface with pytetwild ...")
         mesh = tetrahedralize(body_surface(body), edge_length_mm=edge_length_mm)
     say(f"{kind} weights on {mesh.n_vertices} vertices ...")
-    dense, hinfo = (harmonic_weights if kind == "harmonic" else bbw_weights)(mesh, labels, bone_labels)
+    if kind == "harmonic":
+        dense, hinfo = harmonic_weights(mesh, labels, bone_labels, snap_missing=snap_missing)
+    else:
+        dense, hinfo = bbw_weights(mesh, labels, bone_labels)
+    if hinfo.get("snapped"):
+        say(f"no mesh vertex inside {', '.join(hinfo['snapped'])} (smaller than the tetrahedra): the nearest "
+            "vertex of each was fixed to it")
     say("weights of every voxel (barycentric; one-hot in bones) ...")
     bones = tuple(bone_labels)
     weights = weights_on_grid(mesh, dense, bones, labels.geometry, labels, bone_labels)
     info = {k: v for k, v in hinfo.items() if isinstance(v, (int, float, str, bool))}
+    info["snapped"] = ", ".join(hinfo.get("snapped") or [])
     info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets), kind=kind)
     return VoxelWeights(weights, mesh, dense, bones, info, new)

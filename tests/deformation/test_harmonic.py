@@ -17,8 +17,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.harmonic import (constrained_vertices, harmonic_weights, stiffness_matrix, weights_at_points,
-                                  weights_on_grid)
+from deformation.harmonic import (constrained_vertices, harmonic_voxel_weights, harmonic_weights, stiffness_matrix,
+                                  weights_at_points, weights_on_grid)
 from deformation.skinning import SkinningWeights, distance_weights
 from deformation.tetmesh import TetMesh, body_surface, locate, rasterize, tetrahedralize
 from registration.segmentation import segment_body
@@ -357,6 +357,15 @@ def test_bone_without_vertices_is_an_error_or_snapped(knee, knee_mesh):
         harmonic_weights(knee_mesh, labels, dict(knee["bone_labels"], ghost=42))
     bov, snapped = constrained_vertices(knee_mesh, labels, knee["bone_labels"])
     np.testing.assert_array_equal(bov, harmonic_weights(knee_mesh, labels, knee["bone_labels"])[1]["bone_of_vertex"])
+    # the voxel weights the weights stage asks for (snap_missing=True: a pytetwild mesh that happens to hold no
+    # vertex in a tiny bone must not fail the stage): the bone's voxel is one-hot for it, the weights sum to one
+    told = []
+    r = harmonic_voxel_weights(tiny, bl, knee["mask"], mesh=knee_mesh, snap_missing=True, progress=told.append)
+    assert r.info["snapped"] == "sesamoid" and any("sesamoid" in m for m in told)
+    row = r.weights.dense()[np.ravel_multi_index((k, j, i), g.array_shape)]
+    assert row[list(bl).index("sesamoid")] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="sesamoid"):
+        harmonic_voxel_weights(tiny, bl, knee["mask"], mesh=knee_mesh)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,4 +1,6 @@
-"""`workbench run`: a whole study through the stages, skips, reruns, interruption, concurrency (issue H).
+"""`workbench run`: a whole study through the stages, skips, reruns, interruption, concurrency (issue H), and
+the HTML report the run ends with (issue J: every table and picture, a study without truth, bad outputs, the
+page in headless Chromium).
 
 One test-size knee study (4 poses) runs once for the module with a small registration budget and distance
 weights (the plumbing is under test here; registration accuracy is tested in tests/registration).
@@ -15,8 +17,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from report_checks import MAX_BYTES, chromium, decode, parse
 from workbench.cli import main
 from workbench.study import read_study
 
@@ -207,3 +211,101 @@ def test_sigterm_in_the_middle_of_a_stage_leaves_nothing_partial(phantom, tmp_pa
     assert not [p for p in root.rglob("*") if ".partial-" in p.name or ".tmp-" in p.name]
     st = read_study(root)
     assert st.stage_entry("bones") is not None and st.stage_entry("pose") is None and not (root / "poses").exists()
+
+
+# -- the report stage's HTML report of the same study (issue J) -------------------------------------------
+@pytest.fixture(scope="module")
+def report(done, tmp_path_factory):
+    out = tmp_path_factory.mktemp("report-out") / "knee.html"
+    assert main(["report", str(done[0]), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_run_ends_with_the_report_stage(done):
+    root = done[0]
+    m = json.loads((root / "study.json").read_text())
+    assert "report" in m["stages"]
+    assert (root / "report" / "report.html").exists()
+
+
+def test_every_table_and_picture_of_a_study_with_truth(done, report):
+    p = parse(report)
+    scans = json.loads((done[0] / "study.json").read_text())["scans"]
+    assert report.stat().st_size < MAX_BYTES
+    assert not p.external  # self-contained: nothing fetched
+    assert p.headings[:2] == ["Bone poses and joints", "Registration"] and p.headings[-1].startswith("Software")
+    # the pose tables: one row per joint; the angle table a column per scan
+    joints = next(t for t in p.tables if t[0][:2] == ["joint", "DOF"])
+    angles = next(t for t in p.tables if t[0][0] == "joint" and len(t[0]) == len(scans) + 1)
+    assert len(joints) == len(angles) > 1
+    # the similarity table: one row per scan, every cell filled
+    sim = next(t for t in p.tables if t[0][:2] == ["scan", "start"])
+    assert len(sim) == len(scans) + 1 and all(c != "" for row in sim[1:] for c in row[2:8])
+    # with truth: source / initialised / registered per scan, MED a number
+    truth_tables = [t for t in p.tables if t[0][:2] == ["volume", "MED (mm)"]]
+    assert len(truth_tables) == len(scans)
+    for t in truth_tables:
+        assert [r[0] for r in t[1:]] == ["source", "initialised", "registered"]
+        assert all(float(r[1]) >= 0 for r in t[1:])
+    # every embedded picture decodes, with real content (not one flat colour)
+    assert len(p.images) >= len(scans) * 10
+    for src in p.images:
+        a = np.asarray(decode(src).convert("L"), float)
+        assert a.size > 100 and a.std() > 1.0
+    assert p.toggles == 3 * len(scans)  # three planes per scan
+    text = report.read_text(encoding="utf-8")
+    assert "Study digest" in text and "SimpleITK" in text
+
+
+def test_a_study_without_truth_reports_similarity_and_no_med(done, tmp_path):
+    bare = tmp_path / "bare"
+    shutil.copytree(done[0], bare, ignore=shutil.ignore_patterns("truth", "validation", "report", ".locks"))
+    m = json.loads((bare / "study.json").read_text())
+    for s in m["scans"]:
+        s.pop("truth", None)
+    m["stages"].pop("validate", None)
+    m["stages"].pop("report", None)
+    (bare / "study.json").write_text(json.dumps(m))
+    out = tmp_path / "bare.html"
+    assert main(["report", str(bare), "--out", str(out), "--quiet"]) == 0
+    p = parse(out)
+    assert not [t for t in p.tables if t[0][:2] == ["volume", "MED (mm)"]]
+    assert len(next(t for t in p.tables if t[0][:2] == ["scan", "start"])) == len(m["scans"]) + 1
+    assert "without ground truth" in out.read_text(encoding="utf-8")
+
+
+def test_report_refuses_bad_outputs_and_sources_before_any_work(done, report, tmp_path, capsys):
+    before = report.read_bytes()
+    assert main(["report", str(done), "--out", str(report)]) == 1
+    assert "already exists" in capsys.readouterr().err and report.read_bytes() == before
+    assert main(["report", str(done), "--out", str(tmp_path / "r.pdf")]) == 1
+    assert "ending in .html" in capsys.readouterr().err
+    assert main(["report", str(done), "--out", str(tmp_path / "missing" / "r.html")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["report", str(tmp_path), "--out", str(tmp_path / "r.html")]) == 1
+    assert "neither a study folder" in capsys.readouterr().err
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_report_opens_in_headless_chromium(report, tmp_path):
+    exe = chromium()
+    if exe is None:
+        pytest.skip("headless Chromium is not installed (make test installs Debian's chromium when run as root; "
+                    "else: sudo apt-get install chromium)")
+    shot = tmp_path / "shot.png"
+    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars", "--window-size=1280,2400",
+           f"--screenshot={shot}", report.resolve().as_uri()]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+    assert shot.exists(), proc.stderr[-2000:]
+    from PIL import Image
+
+    img = np.asarray(Image.open(shot).convert("RGB"), float)
+    assert img.shape[:2] == (2400, 1280)
+    # not blank: the header's dark band is drawn, and the page holds many colours (tables, plots, slices)
+    header = img[5:60, 5:600]
+    assert np.abs(header - np.array([0x2B, 0x25, 0x40])).mean() < 25
+    colours = np.unique((img[::4, ::4] // 8).reshape(-1, 3), axis=0)
+    assert len(colours) > 200
+    assert (np.abs(img - img[-1, -1]).sum(axis=-1) > 30).mean() > 0.2  # a fifth of the page differs from its corner
