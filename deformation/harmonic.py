@@ -210,9 +210,15 @@ def constrained_vertices(mesh: TetMesh, labels: Volume, bone_labels: dict, *, sn
         for k in missing:
             kji = np.argwhere(data == bone_labels[bones[k]])
             centres = labels.geometry.index_to_world(kji[:, ::-1].astype(float))
-            dist, idx = tree.query(centres)
-            best = int(np.lexsort((idx, dist))[0])  # nearest; ties to the lower vertex
-            bone_of_vertex[free[idx[best]]] = k
+            # the nearest vertex no other snapped bone took (two tiny bones near one vertex must not share it)
+            dist, idx = tree.query(centres, k=min(8, len(free)))
+            dist, idx = dist.reshape(len(centres), -1).ravel(), idx.reshape(len(centres), -1).ravel()
+            order = np.lexsort((idx, dist))  # nearest first; ties to the lower vertex
+            pick = next((int(idx[o]) for o in order if bone_of_vertex[free[idx[o]]] < 0), None)
+            if pick is None:
+                raise ValueError(f"bone {bones[k]!r} has no mesh vertex and every free vertex near it is taken by "
+                                 "another snapped bone; tetrahedralize with a smaller edge length")
+            bone_of_vertex[free[pick]] = k
             snapped.append(bones[k])
     return bone_of_vertex, snapped
 

@@ -909,6 +909,15 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _is_table(path: Path) -> bool:
+    import json
+
+    try:
+        return json.loads(path.read_text(encoding="utf-8")).get("format") == "avw-table"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def cmd_report(args) -> int:
     from workbench.errors import InputFileError, OutputExistsError
     from workbench.io.atomic import write_text_atomic
@@ -928,7 +937,7 @@ def cmd_report(args) -> int:
         study, _ = _stages(args, ["report"], {"report": ReportSettings(pictures=not args.no_pictures)},
                            force={"report"} if args.force else ())
         html = study.output("report", "report.html").read_text(encoding="utf-8")
-    elif src.is_dir() and any(src.glob("*.json")):
+    elif src.is_dir() and any(_is_table(p) for p in src.glob("*.json")):
         from workbench.report import tables_report
 
         html = tables_report(src)

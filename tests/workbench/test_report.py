@@ -45,13 +45,3 @@ def test_report_of_a_reproduce_folder_has_every_table(tmp_path):
     assert [r[0] for r in t[1:]] == ["ours", "paper (Rhee §6.2, Poser poses)"]
     for src in p.images:
         decode(src)
-
-
-def _chromium():
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
-
-

@@ -76,6 +76,9 @@ def test_reproduce_table2_through_the_stages(tmp_path, capsys):
     assert reg["cc"] > src["cc"]
     assert (tmp_path / "studies" / "table2-test" / "study.json").exists()
     capsys.readouterr()
-    assert main(["reproduce", "table2", "--out", str(tmp_path), "--quiet"]) == 0  # every stage reused
+    manifest = (tmp_path / "studies" / "table2-test" / "study.json").read_bytes()
+    assert main(["reproduce", "table2", "--out", str(tmp_path), "--quiet"]) == 0
+    # every stage reused: the manifest (finish times, digests) is untouched, the table the same
+    assert (tmp_path / "studies" / "table2-test" / "study.json").read_bytes() == manifest
     again = Table.from_dict(json.loads((tmp_path / "table2.json").read_text()))
     assert again.row("registered (ours)")["med_mm"] == reg["med_mm"]

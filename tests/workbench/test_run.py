@@ -112,9 +112,9 @@ def test_changing_one_registration_setting_reruns_register_model_and_validate_on
     assert main(["run", str(copy), *SETTINGS[:-1], "register.max_steps_per_level=10"]) == 0
     st = read_study(copy)
     assert st.stage_entry("register", "pose01")["settings"]["max_steps_per_level"] == 10
-    ran = {n for n in ("bones", "pose", "weights", "init", "register", "model", "validate")
+    ran = {n for n in ("bones", "pose", "weights", "init", "register", "model", "validate", "report")
            if any(e["finished"] != f for e, f in _finished_pairs(root, copy, n))}
-    assert ran == {"register", "model", "validate"}
+    assert ran == {"register", "model", "validate", "report"}
     assert all((copy / p).read_bytes() == b for p, b in before.items())
 
 
@@ -276,11 +276,11 @@ def test_a_study_without_truth_reports_similarity_and_no_med(done, tmp_path):
 
 def test_report_refuses_bad_outputs_and_sources_before_any_work(done, report, tmp_path, capsys):
     before = report.read_bytes()
-    assert main(["report", str(done), "--out", str(report)]) == 1
+    assert main(["report", str(done[0]), "--out", str(report)]) == 1
     assert "already exists" in capsys.readouterr().err and report.read_bytes() == before
-    assert main(["report", str(done), "--out", str(tmp_path / "r.pdf")]) == 1
+    assert main(["report", str(done[0]), "--out", str(tmp_path / "r.pdf")]) == 1
     assert "ending in .html" in capsys.readouterr().err
-    assert main(["report", str(done), "--out", str(tmp_path / "missing" / "r.html")]) == 1
+    assert main(["report", str(done[0]), "--out", str(tmp_path / "missing" / "r.html")]) == 1
     assert "does not exist" in capsys.readouterr().err
     assert main(["report", str(tmp_path), "--out", str(tmp_path / "r.html")]) == 1
     assert "neither a study folder" in capsys.readouterr().err

@@ -21,6 +21,7 @@ supplies the runner.  A runner has
   :class:`~validation.phantoms.PhantomSpec` fields (the size is the
   runner's), ``settings`` ``{stage: {setting: value}}``.  The same name,
   phantom and settings give the same study, whose finished stages are reused;
+* ``size`` (``"test"`` or ``"paper"``): the phantoms' grid;
 * ``with_peers`` (bool): also run the general-purpose registrations;
 * ``say(message)``: a progress line.
 """

@@ -77,7 +77,7 @@ def kurihara(runner) -> Table:
     phantom = dict(PHANTOM, spacing=TEST_SPACING_MM) if runner.size == "test" else PHANTOM
     study = runner.study("kurihara", phantom, settings={"pose": {"method": "surface"}}, targets=("pose",))
     sk = study.skeleton()
-    joints = json.loads(study.output("pose", "joints.json").read_text())["joints"]
+    joints = json.loads(study.output("pose", "joints.json").read_text(encoding="utf-8"))["joints"]
     m = joint_centre_measures(joints, sk)
     centroids = {k: r.centroid for k, r in bone_regions(study.template(), study.template_labels(), sk).items()}
     rot = []

@@ -97,7 +97,7 @@ def registration_table(runner, protocol: str, *, title: str, init: str, notes=()
                          targets=("validate",))
     scans = study.scan_ids if protocol == "table2" else study.scan_ids[1:]
     measures = [study.validation(s)["rows"] for s in scans]
-    seconds = [study.stage_entry("register", s)["seconds"] for s in scans]
+    seconds = [study.registration_log(s)["summary"]["registration_seconds"] for s in scans]  # as the peers
     scale = ssd_scale(study.template())
     t = Table(protocol, title, list(COLUMNS), definitions={c.key: DEFINITIONS[c.key] for c in COLUMNS},
               notes=list(notes))

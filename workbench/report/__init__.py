@@ -58,9 +58,12 @@ def software_versions() -> dict:
 
 
 def study_digest(study) -> str:
-    """SHA-256 over every stage entry's ``outputs_digest`` (per scan where per scan), canonical JSON."""
+    """SHA-256 over every stage entry's ``outputs_digest`` (per scan where per scan) but the report's own,
+    canonical JSON."""
     doc = {}
     for name, e in sorted((study.manifest.get("stages") or {}).items()):
+        if name == "report":  # the report itself is not part of what it reports on
+            continue
         if "scans" in e:
             doc[name] = {s: v.get("outputs_digest") for s, v in sorted(e["scans"].items())}
         else:
@@ -73,10 +76,12 @@ def _pose_section(page: Page, study) -> None:
     if not study.has_output("pose", "joints.json"):
         return
     parts = page.section("Bone poses and joints")
-    joints = json.loads(study.output("pose", "joints.json").read_text())
+    joints = json.loads(study.output("pose", "joints.json").read_text(encoding="utf-8"))
     rep = study.pose_report()
+    rms = rep.get("eq1_rms_mm")
+    rms_text = "not estimated (no joint moved enough)" if rms is None else f"{rms:.2f} mm"
     parts.append(f"<p>Method: {esc(rep.get('method'))}; Kurihara Eq. 1 RMS residual over all joints and moving "
-                 f"scans: <b>{rep.get('eq1_rms_mm') or float('nan'):.2f} mm</b> (Kurihara's hand: 0.91 mm).</p>")
+                 f"scans: <b>{rms_text}</b> (Kurihara's hand: 0.91 mm).</p>")
     rows = [[n, j["dof"], j.get("rms_mm"), j.get("n_motions"), "yes" if j.get("estimated") else "kept",
              "hinge" if j.get("is_hinge") else ""] for n, j in joints["joints"].items()]
     parts.append(table_html(["joint", "DOF", "Eq. 1 RMS (mm)", "scans", "centre estimated", "kind"], rows,
@@ -96,7 +101,10 @@ def _pose_section(page: Page, study) -> None:
         parts.append(table_html(["joint", *ids], rows, decimals=[0] * (len(ids) + 1)))
     failures = rep.get("failures") or []
     if failures:
-        parts.append(f'<p class="bad">Flagged by the pose stage: {esc(failures)}</p>')
+        parts.append('<p class="bad">Bones the pose stage flagged (not used for joint centres and angles):</p>')
+        parts.append(table_html(["scan", "bone", "status", "why"],
+                                [[f.get("scan"), f.get("bone"), f.get("status"), f.get("stop")] for f in failures],
+                                decimals=[0, 0, 0, 0]))
 
 
 def _convergence(log: dict) -> bytes | None:
@@ -195,7 +203,7 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
     for sid in scans:
         if not study.has_registration(sid):
             continue
-        truth = study.has_truth(sid) and study.has_output("validate", "measures.json", sid)
+        truth = study.has_truth(sid) and study.has_output("validate", "error_mm.nii.gz", sid)
         parts.append(f"<h3>{esc(sid)}</h3>")
         if truth:
             v = study.validation(sid)["rows"]
@@ -236,7 +244,10 @@ def _renders_section(page: Page, study) -> None:
         if len(data) > 3 * 2**20:
             parts.append(f'<p class="note">{esc(p.name)}: {len(data) / 2**20:.1f} MB, not embedded (over 3 MB)</p>')
             continue
-        figs.append(page.image(data, p.name))
+        try:
+            figs.append(page.image(data, p.name))
+        except ValueError:  # named .png but not a picture: said in the report, the rest still built
+            parts.append(f'<p class="bad">{esc(p)}: not a PNG, JPEG or GIF picture; not embedded</p>')
     parts.append('<div class="figs">' + "".join(figs) + "</div>")
 
 
@@ -305,7 +316,7 @@ def tables_report(folder: Path) -> str:
     docs = []
     for p in sorted(folder.glob("*.json")):
         try:
-            d = json.loads(p.read_text())
+            d = json.loads(p.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             continue
         if isinstance(d, dict) and d.get("format") == "avw-table":
@@ -324,6 +335,6 @@ def tables_report(folder: Path) -> str:
             continue
         _registration_section(page, study, done[-MAX_SCANS_COMPACT:], heading=f"Study {root.name}")
         page.sections[-1][2].insert(0, f"<p>{len(done)} registered scans; below, the last ({esc(done[-1])}); the "
-                                       f"whole study's report: <code>workbench report {esc(root)}</code>.</p>")
+                                       f"whole study's report: <code>workbench report {esc(root)} --out {esc(root.name)}.html</code>.</p>")
     _provenance(page, extra={"folder": str(folder)})
     return page.html()

@@ -73,7 +73,7 @@ def table_html(headings, rows, *, decimals=None, classes=None, caption: str = ""
         out.append(f"<caption>{esc(caption)}</caption>")
     out.append("<tr>" + "".join(f"<th>{esc(h)}</th>" for h in headings) + "</tr>")
     for r, row in enumerate(rows):
-        cls = f' class="{classes[r]}"' if classes and classes[r] else ""
+        cls = f' class="{esc(classes[r])}"' if classes and classes[r] else ""
         out.append(f"<tr{cls}>" + "".join(f"<td>{_num(v, d)}</td>" for v, d in zip(row, decimals)) + "</tr>")
     out.append("</table>")
     return "\n".join(out)

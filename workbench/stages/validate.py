@@ -73,7 +73,11 @@ def _run(ctx) -> dict:
                                                             study.skeleton()).items()}
         doc["pose"] = pose_errors(study.pose(sid), study.truth_pose(sid), centroids)
     g = truth.geometry
-    return {"measures.json": Json(doc), "error_mm.nii.gz": Image(Volume(error_map(field, truth, body_scan), g)),
+    from workbench.stages.pose import finite
+
+    # a measure with nothing to measure (no markers) is written as null
+    return {"measures.json": Json(finite(doc)),
+            "error_mm.nii.gz": Image(Volume(error_map(field, truth, body_scan), g)),
             "body.nii.gz": Labels(Volume(body_scan.astype(np.uint8), g))}
 
 
