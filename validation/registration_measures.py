@@ -38,21 +38,20 @@ def body_on_scan(truth: Volume, template_body: Volume) -> np.ndarray:
     return np.asarray(inside, bool)
 
 
-def error_map(field: Volume, truth: Volume, mask: np.ndarray | None = None) -> np.ndarray:
-    """``|recovered − true|`` template position (mm, float32) at every voxel of the fields' common grid; 0
-    outside ``mask`` when one is given."""
+def error_map(field: Volume, truth: Volume, mask: np.ndarray | None = None, *, dtype=np.float32) -> np.ndarray:
+    """``|recovered − true|`` template position (mm; computed in float64, returned as ``dtype``) at every voxel
+    of the fields' common grid; 0 outside ``mask`` when one is given."""
     field.geometry.check_same(truth.geometry, names=("registration field", "truth field"))
-    err = np.linalg.norm(np.asarray(field.data, np.float64) - truth.data, axis=-1).astype(np.float32)
+    err = np.linalg.norm(np.asarray(field.data, np.float64) - truth.data, axis=-1).astype(dtype, copy=False)
     if mask is not None:
         err[~np.asarray(mask, bool)] = 0.0
     return err
 
 
 def med(field: Volume, truth: Volume, mask: np.ndarray) -> float:
-    """Mean |recovered − true| template position (mm) over ``mask`` (fields on one grid)."""
-    field.geometry.check_same(truth.geometry, names=("registration field", "truth field"))
-    err = np.linalg.norm(np.asarray(field.data, np.float64) - truth.data, axis=-1)
-    return float(err[mask].mean()) if mask.any() else float("nan")
+    """Mean |recovered − true| template position (mm) over ``mask`` (fields on one grid; :func:`error_map`)."""
+    mask = np.asarray(mask, bool)
+    return float(error_map(field, truth, dtype=np.float64)[mask].mean()) if mask.any() else float("nan")
 
 
 def marker_errors(field: Volume, markers: list) -> np.ndarray:

@@ -16,7 +16,7 @@ import io
 import numpy as np
 
 __all__ = ["PLANES", "plane", "grey", "overlay", "colour_map", "encode_png", "encode_jpeg", "line_plot", "bar_plot",
-           "colour_bar", "centre_index"]
+           "centre_index"]
 
 # Index planes of the array [k, j, i] = [z, y, x]: "xy" at a fixed k, "xz" at a fixed j, "yz" at a fixed i.  Not
 # called axial / coronal / sagittal: which anatomical plane an index plane is depends on the scan's direction.
@@ -155,13 +155,4 @@ def bar_plot(labels, values, *, ylabel: str, title: str = "", reference: float |
     if title:
         ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3, axis="y")
-    return _png(plt, fig)
-
-
-def colour_bar(vmin: float, vmax: float, *, label: str, cmap: str = "magma") -> bytes:
-    import matplotlib as mpl
-
-    plt, fig, ax = _figure(4.0, 0.7)
-    mpl.colorbar.ColorbarBase(ax, cmap=mpl.colormaps[cmap], norm=mpl.colors.Normalize(vmin, vmax),
-                              orientation="horizontal", label=label)
     return _png(plt, fig)
