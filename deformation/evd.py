@@ -13,6 +13,17 @@
   inverse in Eq. 7 used the same ones, so the training poses are
   reproduced exactly).
 
+The template itself is an example (Kurihara's base pose ``S_0``, §4): at
+its own pose every bone's transform is the identity and Eq. 7 gives
+``d = 0``, so a model that includes it reproduces the template at rest (a
+scan held out at rest is otherwise extrapolated from the flexed ones: the
+test knee's rest scan, EVD 1.30 mm against VBD's 0.20).  It joins the
+examples unless a training scan's pose is within half the training poses'
+mean nearest-neighbour distance of the rest pose (that scan then stands for
+the rest pose: two examples so close make the RBF matrix of Kurihara Eq. 13
+near-singular, and their difference — that scan's registration error — would
+be interpolated as an oscillation); :func:`wants_template_example`.
+
 With ``weighting="wpsd"`` the pose weights are per voxel, from the weighted
 pose distance of Kurihara Eq. 16 (:mod:`.posespace`), computed on the fly (a
 voxel whose kernel matrix is numerically singular takes uniform weights 1/P)
@@ -37,7 +48,8 @@ from .skinning import SkinningWeights, _as_stack, blend_point
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["vbd_forward", "fill_unmatched", "ExampleVolumeDeformation", "EVD_WEIGHTINGS"]
+__all__ = ["vbd_forward", "fill_unmatched", "ExampleVolumeDeformation", "EVD_WEIGHTINGS", "template_pose",
+           "wants_template_example", "TEMPLATE_EXAMPLE_SEPARATION"]
 
 EVD_WEIGHTINGS = ("psd", "wpsd")
 
@@ -112,6 +124,30 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
                 _evd_point(a, i, j, k, v, disp, phi, idx, val, t, out)
 
 
+#: The template joins the examples when every training pose is at least this fraction of the training poses'
+#: mean nearest-neighbour distance (the RBF width of :mod:`.posespace`) from the rest pose.
+TEMPLATE_EXAMPLE_SEPARATION = 0.5
+
+
+def template_pose(skeleton):
+    """The template's own pose: the identity transform for every bone (Rhee Eq. 7 gives ``d = 0`` there)."""
+    from .skeleton import Pose
+
+    return Pose({b: np.eye(4) for b in skeleton.bone_names}, skeleton=getattr(skeleton, "name", None))
+
+
+def wants_template_example(train_vectors, rest_vector) -> bool:
+    """Whether the template's rest pose joins the EVD examples (module docstring): no training pose within
+    :data:`TEMPLATE_EXAMPLE_SEPARATION` × the training poses' mean nearest-neighbour distance of it (with one
+    training pose, any distance)."""
+    train = np.atleast_2d(np.asarray(train_vectors, dtype=float))
+    d_rest = np.sqrt(((train - np.asarray(rest_vector, float)[None]) ** 2).sum(-1))
+    if len(train) < 2:
+        return bool(d_rest.min() > 1e-9)
+    pair = np.sqrt(((train[:, None] - train[None]) ** 2).sum(-1)) + np.diag(np.full(len(train), np.inf))
+    return bool(d_rest.min() >= TEMPLATE_EXAMPLE_SEPARATION * float(pair.min(axis=1).mean()))
+
+
 def _check_grid_weights(geometry: GridGeometry, weights: SkinningWeights) -> None:
     if weights.n_points != geometry.n_voxels:
         raise ValueError(f"voxel weights cover {weights.n_points} points but the grid {geometry.describe()} has "
@@ -161,9 +197,13 @@ class ExampleVolumeDeformation:
         The training poses' pose vectors (same order as ``displacements``).
     displacements : (n_voxels, n_poses, 3) float32
         ``d_k`` of Eq. 7 per voxel (world mm, template frame).
+    template_example : bool
+        The last example is the template's rest pose with ``d = 0`` (module docstring); ``n_scans`` then
+        counts the others.
     """
 
-    def __init__(self, geometry: GridGeometry, weights: SkinningWeights, space: PoseSpace, displacements):
+    def __init__(self, geometry: GridGeometry, weights: SkinningWeights, space: PoseSpace, displacements, *,
+                 template_example: bool = False):
         _check_grid_weights(geometry, weights)
         d = np.ascontiguousarray(displacements, dtype=np.float32)
         if d.shape != (geometry.n_voxels, space.n_poses, 3):
@@ -173,24 +213,51 @@ class ExampleVolumeDeformation:
         self.weights = weights
         self.space = space
         self.displacements = d
+        self.template_example = bool(template_example)
+        if self.template_example and np.any(d[:, -1]):
+            raise ValueError("the template's example (the last) must have zero displacement (Rhee Eq. 7 at rest)")
         self._dof_bone = dof_bones(space.skeleton, weights.bones)
+
+    @property
+    def n_scans(self) -> int:
+        """The training scans' examples (the template's, when included, not counted)."""
+        return self.space.n_poses - int(self.template_example)
+
+    @classmethod
+    def from_examples(cls, geometry: GridGeometry, weights: SkinningWeights, skeleton, vectors, displacements, *,
+                      template_example="auto") -> "ExampleVolumeDeformation":
+        """The model from the training scans' pose vectors ``(P, n_dof)`` and displacements ``(n_voxels, P, 3)``
+        (Rhee Eq. 7), the template's rest pose with ``d = 0`` added as an example when ``template_example``
+        is True, or "auto" and :func:`wants_template_example`."""
+        vectors = [np.asarray(v, float) for v in vectors]
+        rest = PoseSpace(skeleton, [template_pose(skeleton)]).train[0]
+        if template_example == "auto":
+            template_example = wants_template_example(vectors, rest)
+        elif not isinstance(template_example, bool):
+            raise ValueError(f"template_example must be True, False or 'auto', got {template_example!r}")
+        d = np.asarray(displacements, dtype=np.float32)
+        if template_example:
+            vectors.append(rest)
+            d = np.concatenate([d, np.zeros(d.shape[:1] + (1, 3), np.float32)], axis=1)
+        return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=template_example)
 
     @classmethod
     def from_correspondences(cls, geometry: GridGeometry, weights: SkinningWeights, skeleton, poses,
-                             template_to_scan, *, progress=None) -> "ExampleVolumeDeformation":
+                             template_to_scan, *, template_example="auto",
+                             progress=None) -> "ExampleVolumeDeformation":
         """Build the model from each training scan's pose and template → scan positions (Rhee Eq. 7).
 
         ``poses`` are :class:`~deformation.skeleton.Pose` objects (bone
         transforms template → scan) and ``template_to_scan`` the matching
         ``(nz, ny, nx, 3)`` arrays: the world position in scan ``k`` of every
         template voxel (ground truth, or a registration's inverse field).
+        ``template_example``: see :meth:`from_examples`.
         """
         poses = list(poses)
         fields = list(template_to_scan)
         if len(poses) != len(fields):
             raise ValueError(f"{len(poses)} poses but {len(fields)} correspondence fields")
         _check_grid_weights(geometry, weights)
-        space = PoseSpace(skeleton, poses)
         n = geometry.n_voxels
         d = np.empty((n, len(poses), 3), dtype=np.float32)
         grid = geometry.world_coordinates().reshape(-1, 3)
@@ -215,7 +282,8 @@ class ExampleVolumeDeformation:
                                      "transforms or the weights are degenerate") from None
             if progress is not None:
                 progress(k + 1, len(poses))
-        return cls(geometry, weights, space, d)
+        space = PoseSpace(skeleton, poses)  # checks the poses are distinct
+        return cls.from_examples(geometry, weights, skeleton, space.train, d, template_example=template_example)
 
     def pose_weights(self, pose) -> np.ndarray:
         return self.space.weights(pose)

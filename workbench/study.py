@@ -364,7 +364,6 @@ class Study:
     def model(self, weights=None):
         """The study's EVD model (``workbench model``), or ``None`` when there is none."""
         from deformation.evd import ExampleVolumeDeformation
-        from deformation.posespace import PoseSpace
 
         if not self.has_model:
             return None
@@ -393,8 +392,9 @@ class Study:
         n = len(doc["scans"])
         if vol.n_components != 3 * n:
             raise InputFileError(f"{dpath}: {vol.n_components} components, expected 3 × {n} training scans.", dpath)
-        space = PoseSpace(sk, [np.asarray(doc["pose_vectors"][s], dtype=float) for s in doc["scans"]])
-        return ExampleVolumeDeformation(vol.geometry, weights, space, vol.data.reshape(-1, n, 3))
+        return ExampleVolumeDeformation.from_examples(
+            vol.geometry, weights, sk, [np.asarray(doc["pose_vectors"][s], dtype=float) for s in doc["scans"]],
+            vol.data.reshape(-1, n, 3), template_example=bool(doc.get("template_example", False)))
 
     # -- validate stage ----------------------------------------------------------------------------
     def validation(self, scan_id: str) -> dict:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deformation.evd import ExampleVolumeDeformation, vbd_forward
+from deformation.evd import (TEMPLATE_EXAMPLE_SEPARATION, ExampleVolumeDeformation, template_pose, vbd_forward,
+                             wants_template_example)
 from deformation.resample import FOLDED, OK, OUTSIDE, backward_map, backward_points, resample_forward
 from deformation.skinning import SkinningWeights, distance_weights, stack_transforms
 from validation.phantoms import make_phantom
@@ -162,6 +163,47 @@ def test_evd_between_poses_beats_vbd(knee, knee_examples):
     med_vbd = np.linalg.norm(vbd_forward(g, w, held[0].transforms).reshape(-1, 3)[body] - truth, axis=1).mean()
     med_evd = np.linalg.norm(model.forward(held[0]).reshape(-1, 3)[body] - truth, axis=1).mean()
     assert med_evd < med_vbd, (med_evd, med_vbd)
+
+
+def test_template_example_anchors_the_rest_pose(knee, knee_examples):
+    """Trained on the flexed poses only (35°, 70°), EVD extrapolates to rest unless the template is an example
+    (d = 0 at its own pose, Kurihara's base pose): with it, the rest pose is the template exactly."""
+    ph, w = knee
+    g = ph.geometry
+    train = knee_examples[1:]
+    x = g.world_coordinates().reshape(-1, 3)
+    body = ph.anatomy.distances_fast(x)[:, -1] < 0
+    rest = template_pose(ph.skeleton)
+    truth = knee_examples[0][1].reshape(-1, 3)[body]  # the true 0° map
+    med = {}
+    for flag in (True, False):
+        model = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in train],
+                                                              [e[1] for e in train], template_example=flag)
+        assert model.template_example is flag and model.n_scans == 2
+        for pose, fwd, _, _ in train:  # the training poses are still reproduced (float32 round-off)
+            np.testing.assert_allclose(model.forward(pose), fwd, atol=2e-4)
+        if flag:  # at rest every weight but the template's is 0 and its d is 0: v itself (float32 of ~100 mm)
+            np.testing.assert_allclose(model.forward(rest).reshape(-1, 3), x, atol=1e-4)
+        med[flag] = np.linalg.norm(model.forward(knee_examples[0][0]).reshape(-1, 3)[body] - truth, axis=1).mean()
+    assert med[True] < med[False], med
+    # "auto" takes the template here (both training poses are far from rest) ...
+    auto = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in train],
+                                                         [e[1] for e in train])
+    assert auto.template_example
+    # ... and leaves it out when a training scan is at rest (the 0° example: Φ would be singular)
+    with_rest = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in knee_examples],
+                                                              [e[1] for e in knee_examples])
+    assert not with_rest.template_example and with_rest.n_scans == 3
+
+
+def test_template_example_rule():
+    rest = np.zeros(2)
+    far = np.array([[30.0, 0.0], [60.0, 0.0]])  # mean nearest-neighbour distance 30
+    assert wants_template_example(far, rest)
+    edge = TEMPLATE_EXAMPLE_SEPARATION * 30.0
+    assert not wants_template_example(far - [30.0 - edge + 1e-6, 0.0], rest)  # a pose just inside the radius
+    assert wants_template_example(far - [30.0 - edge - 1e-6, 0.0], rest)
+    assert wants_template_example(far[:1], rest) and not wants_template_example(rest[None], rest)
 
 
 def test_reflected_grid_direction_is_not_a_fold():

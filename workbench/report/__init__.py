@@ -16,7 +16,9 @@
   marker MED, SSD, CC, MI, folded fraction), MED maps as slices, each
   marker's error;
 * **renders** — pictures and animations the user put in the study's
-  ``renders/`` folder (``workbench render STUDY --out STUDY/renders/x.png``);
+  ``renders/`` folder (``workbench render STUDY --out STUDY/renders/x.png``,
+  ``workbench animate STUDY --out STUDY/renders/bend.mp4``), videos up to
+  3 MB embedded whole;
 * **provenance** — software versions, every stage's settings, the study
   digest (SHA-256 over the recorded outputs of every stage).
 
@@ -37,7 +39,7 @@ import numpy as np
 from . import figures as F
 from .html import Page, esc, table_html
 
-__all__ = ["study_report", "tables_report", "study_digest", "software_versions"]
+__all__ = ["study_report", "tables_report", "study_digest", "software_versions", "RENDER_SUFFIXES"]
 
 MAX_SCANS_COMPACT = 1  # scans shown with pictures per study in a reproduce folder's report
 
@@ -225,16 +227,48 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
                                               reference=float(np.mean(e)),
                                               title=f"{sid}: marker errors (dashed: their mean)"),
                                    f"{sid}: each skin marker's |recovered − true| template position"))
+        if pictures:
+            cp = _control_points(study, sid)
+            if cp is not None:
+                figs.append(page.image(*cp))
         if figs:
             parts.append('<div class="figs">' + "".join(figs) + "</div>")
         if pictures:
             _scan_pictures(page, study, sid, parts, truth=truth)
 
 
+def _control_points(study, sid: str):
+    """``(png, caption)``: the control points of every accepted step of Rhee's Algorithm 1, coloured by block
+    level and projected on the scan's yz plane through its centre (Rhee Fig. 9), or None (another method)."""
+    from registration.adaptive import control_points_from_log
+
+    log = study.registration_log(sid)
+    inner = log.get("log")
+    if not isinstance(inner, dict) or not inner.get("steps") or "settings" not in inner:
+        return None
+    scan = study.scan(sid)
+    g = scan.geometry
+    cps = control_points_from_log(inner, g)
+    if not cps:
+        return None
+    levels = np.concatenate([np.full(len(p), lv) for lv, p in cps])
+    ijk = g.world_to_index(np.concatenate([p for _, p in cps]))
+    lo_hi = F.robust(scan.data)
+    at = F.centre_index(np.asarray(scan.data) > lo_hi[0] + 0.15 * (lo_hi[1] - lo_hi[0]))
+    sl, px = F.plane(scan.data, g.spacing, "yz", at)
+    png = F.points_plot(sl, px, F.plane_point_coordinates(ijk, g.spacing, "yz"), levels, lo_hi,
+                        title=f"{sid}: control points of the accepted steps")
+    return png, (f"{sid}: the 8 control points of each accepted step of Rhee's Algorithm 1 ({len(cps)} steps), "
+                 f"by block level, projected on the yz plane over the scan's middle slice (Rhee Fig. 9)")
+
+
+#: what the report embeds from a study's renders/ folder (workbench render / workbench animate outputs)
+RENDER_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".mp4")
+
+
 def _renders_section(page: Page, study) -> None:
     folder = study.root / "renders"
-    files = sorted(p for p in folder.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".gif")) \
-        if folder.is_dir() else []
+    files = sorted(p for p in folder.glob("*") if p.suffix.lower() in RENDER_SUFFIXES) if folder.is_dir() else []
     if not files:
         return
     parts = page.section("Renders")
@@ -245,9 +279,10 @@ def _renders_section(page: Page, study) -> None:
             parts.append(f'<p class="note">{esc(p.name)}: {len(data) / 2**20:.1f} MB, not embedded (over 3 MB)</p>')
             continue
         try:
-            figs.append(page.image(data, p.name))
+            figs.append(page.video(data, p.name) if p.suffix.lower() == ".mp4" else page.image(data, p.name))
         except ValueError:  # named .png but not a picture: said in the report, the rest still built
-            parts.append(f'<p class="bad">{esc(p)}: not a PNG, JPEG or GIF picture; not embedded</p>')
+            parts.append(f'<p class="bad">{esc(p)}: not a PNG, JPEG or GIF picture or an MP4 video; '
+                         f'not embedded</p>')
     parts.append('<div class="figs">' + "".join(figs) + "</div>")
 
 
@@ -313,17 +348,23 @@ def tables_report(folder: Path) -> str:
     from workbench.study import read_study
 
     folder = Path(folder)
-    docs = []
+    docs, unreadable = [], []
     for p in sorted(folder.glob("*.json")):
         try:
             d = json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
+        except (OSError, ValueError) as e:  # a table cut short (a run stopped while writing?): named, not fatal
+            unreadable.append(f"{p.name}: {e}")
             continue
         if isinstance(d, dict) and d.get("format") == "avw-table":
             docs.append(d)
     order = ["table2", "table3", "table4", "loo", "eigenposes", "kurihara"]
     docs.sort(key=lambda d: order.index(d["id"]) if d["id"] in order else len(order))
     page = Page(f"Reproduced tables: {folder.name}", f"{len(docs)} tables from {folder}")
+    if unreadable:
+        parts = page.section("Files not read")
+        parts.append('<p class="bad">These JSON files of the folder could not be read and are not in the report '
+                     '(rerun <code>workbench reproduce</code> for their tables):</p><ul>'
+                     + "".join(f"<li>{esc(u)}</li>" for u in unreadable) + "</ul>")
     for d in docs:
         _table_section(page, d)
     studies = sorted(p.parent for p in (folder / "studies").glob("*/study.json")) \

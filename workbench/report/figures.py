@@ -156,3 +156,42 @@ def bar_plot(labels, values, *, ylabel: str, title: str = "", reference: float |
         ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3, axis="y")
     return _png(plt, fig)
+
+
+def plane_point_coordinates(ijk: np.ndarray, spacing_xyz, which: str) -> np.ndarray:
+    """Index points ``(n, 3)`` (x, y, z) as ``(column, row)`` mm in :func:`plane`'s picture (rows up),
+    projected along the plane's normal."""
+    sx, sy, sz = (float(v) for v in spacing_xyz)
+    i, j, k = (np.asarray(ijk, float)[:, a] for a in range(3))
+    if which == "xy":
+        return np.stack([(i + 0.5) * sx, (j + 0.5) * sy], axis=1)
+    if which == "xz":
+        return np.stack([(i + 0.5) * sx, (k + 0.5) * sz], axis=1)
+    if which == "yz":
+        return np.stack([(j + 0.5) * sy, (k + 0.5) * sz], axis=1)
+    raise ValueError(f"plane must be one of {PLANES}, got {which!r}")
+
+
+def points_plot(background: np.ndarray, px_mm, points_xy_mm: np.ndarray, groups, window: tuple[float, float], *,
+                title: str = "", label: str = "level") -> bytes:
+    """Points (column, row mm of :func:`plane_point_coordinates`) over a grey plane, one colour per group
+    (PNG bytes): Rhee Fig. 9's control points per block level."""
+    plt, fig, ax = _figure(5.2, 4.2)
+    h, w = background.shape
+    ax.imshow(_unit(np.asarray(background, float), *window), cmap="gray", vmin=0, vmax=1,
+              extent=(0, w * px_mm[1], 0, h * px_mm[0]), origin="upper", interpolation="bilinear")
+    groups = np.asarray(groups)
+    pts = np.asarray(points_xy_mm, float).reshape(-1, 2)
+    for n, gname in enumerate(sorted(set(groups.tolist()))):
+        sel = groups == gname
+        ax.scatter(pts[sel, 0], pts[sel, 1], s=9, color=f"C{n % 10}", label=f"{label} {gname} ({int(sel.sum())})",
+                   edgecolors="none", alpha=0.85)
+    ax.set_xlim(0, w * px_mm[1])
+    ax.set_ylim(0, h * px_mm[0])
+    ax.set_xlabel("mm")
+    ax.set_ylabel("mm")
+    if title:
+        ax.set_title(title, fontsize=10)
+    if len(pts):
+        ax.legend(fontsize=7, loc="upper right")
+    return _png(plt, fig)

@@ -98,6 +98,13 @@ class Page:
         return (f'<figure><img src="{data_uri(data, _mime(data))}" alt="{esc(alt or caption)}" loading="lazy">'
                 f"<figcaption>{esc(caption)}</figcaption></figure>")
 
+    def video(self, data: bytes, caption: str = "") -> str:
+        """An MP4 (ISO base media: ``ftyp`` box at byte 4) embedded whole, looping without sound."""
+        if data[4:8] != b"ftyp":
+            raise ValueError("an embedded video must be MP4")
+        return (f'<figure><video src="{data_uri(data, "video/mp4")}" controls loop muted playsinline '
+                f'preload="metadata"></video><figcaption>{esc(caption)}</figcaption></figure>')
+
     def toggle(self, a: bytes, b: bytes, caption: str, *, names=("registered template", "target scan")) -> str:
         """Two pictures of one size in one frame: ``a`` shown, ``b`` on the button or flickering."""
         self._ids += 1

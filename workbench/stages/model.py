@@ -12,7 +12,10 @@ lies in scan ``k``.
   and true poses.
 
 Template voxels with no correspondence in a scan (they leave its field of
-view, or the inverse did not converge there) keep VBD: ``d_k = 0``.
+view, or the inverse did not converge there) keep VBD: ``d_k = 0``.  The
+template's rest pose joins the examples with ``d = 0`` unless a training
+scan is near rest (:mod:`deformation.evd`; ``evd.json``'s
+``template_example``).
 
 Outputs (``model/``): ``evd.json`` and ``evd_displacements.mha``
 (3 components per training scan, mm, on the template grid).
@@ -105,13 +108,17 @@ def _run(ctx) -> dict:
         ctx.report(k + 1, len(ids), f"{sid}: template → scan positions from {how}")
     model = ExampleVolumeDeformation.from_correspondences(g, weights, sk, poses, fields)
     del fields
-    disp = model.displacements.reshape(g.array_shape + (3 * len(ids),))
+    disp = model.displacements[:, :len(ids)].reshape(g.array_shape + (3 * len(ids),))
     doc = {"format": "avw-evd", "version": 1, "source": s.source, "scans": list(ids),
            "joint_order": [j.name for j in sk.joints],
            "pose_vectors": {sid: pose_vector(sk, p).tolist() for sid, p in zip(ids, poses)},
            "displacements": "evd_displacements.mha",
            "layout": "per voxel: (d_x, d_y, d_z) of each training scan in turn, mm, template frame (Rhee Eq. 7)",
            "poses": "estimated (pose stage)" if s.source == "registration" else "ground truth",
+           "template_example": model.template_example,
+           "template_example_is": "the template's rest pose as one more example with zero displacement "
+                                  "(Kurihara's base pose S0), included unless a training scan is near rest "
+                                  "(deformation.evd.wants_template_example)",
            "weights_sha256": weights.digest(), "unmatched_voxels": unmatched,
            "unmatched": "template voxels with no correspondence in that scan (outside its field of view, or the "
                         "inverse not found): d_k = 0 there, i.e. VBD",

@@ -28,10 +28,12 @@ def _inputs(study, s, scan):
     for name in ("joints.json", "report.json"):  # the pose stage's, when it ran (a start from the identity needs none)
         if study.has_output("pose", name):
             files[f"pose/{name}"] = study.output("pose", name)
+    from workbench.report import RENDER_SUFFIXES
+
     renders = study.root / "renders"
     if renders.is_dir():
         for p in sorted(renders.glob("*")):
-            if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".gif"):
+            if p.suffix.lower() in RENDER_SUFFIXES:
                 files[f"renders/{p.name}"] = p
     return files
 
