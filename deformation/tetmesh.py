@@ -215,36 +215,6 @@ class TetMesh:
 # Body mask and surface
 # ---------------------------------------------------------------------------------------------
 
-def _vtk_image(array_zyx: np.ndarray):
-    from vtkmodules.util.numpy_support import numpy_to_vtk
-    from vtkmodules.vtkCommonDataModel import vtkImageData
-
-    nz, ny, nx = array_zyx.shape
-    img = vtkImageData()
-    img.SetDimensions(nx, ny, nz)  # VTK's point order is x fastest: the C order of a [z, y, x] array
-    img.GetPointData().SetScalars(numpy_to_vtk(np.ascontiguousarray(array_zyx).ravel(), deep=True))
-    return img
-
-
-def _poly_arrays(poly) -> tuple[np.ndarray, np.ndarray]:
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-
-    if poly.GetNumberOfPolys() == 0 or poly.GetPoints() is None:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    pts = vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
-    polys = poly.GetPolys()
-    offsets = vtk_to_numpy(polys.GetOffsetsArray())
-    if not np.all(np.diff(offsets) == 3):
-        raise RuntimeError("VTK returned non-triangular polygons")
-    tri = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
-    return pts, tri
-
-
-def _signed_surface_volume(v: np.ndarray, t: np.ndarray) -> float:
-    p = v[t]
-    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
-
-
 def body_surface(mask: Volume, *, smooth_sigma_mm: float | None = None, target_triangles: int | None = 20000,
                  level: float = 0.5) -> SurfaceMesh:
     """The closed skin surface of a body mask, in world mm.
@@ -259,8 +229,9 @@ def body_surface(mask: Volume, *, smooth_sigma_mm: float | None = None, target_t
         before the isosurface, to remove the voxel staircase.  Default: half the
         largest voxel spacing.  0 disables smoothing.
     target_triangles : int or None
-        Decimate (VTK quadric decimation, which preserves the shape well) to
-        about this many triangles; ``None`` keeps the full isosurface.  pytetwild's
+        Decimate (quadric error simplification in world mm,
+        :func:`deformation.isosurface.decimate`) to about this many
+        triangles; ``None`` keeps the full isosurface.  pytetwild's
         run time grows with the number of input triangles.
     level : float
         Iso-value on the smoothed mask (0.5: half-way between body and air).
@@ -278,7 +249,8 @@ def body_surface(mask: Volume, *, smooth_sigma_mm: float | None = None, target_t
         Empty mask, or a vector volume.
     """
     from scipy import ndimage
-    from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D, vtkQuadricDecimation
+
+    from .isosurface import decimate, flying_edges, poly_arrays, signed_volume
 
     if mask.is_vector:
         raise ValueError("body_surface needs a scalar mask volume")
@@ -295,31 +267,17 @@ def body_surface(mask: Volume, *, smooth_sigma_mm: float | None = None, target_t
     f = np.pad(m.astype(np.float32), pad)
     if sigma_mm > 0:
         f = ndimage.gaussian_filter(f, sigma_vox, mode="constant", cval=0.0, truncate=4.0)
-    fe = vtkFlyingEdges3D()
-    fe.SetInputData(_vtk_image(f))
-    fe.SetValue(0, float(level))
-    fe.ComputeNormalsOff()
-    fe.ComputeGradientsOff()
-    fe.ComputeScalarsOff()
-    fe.Update()
-    poly = fe.GetOutput()
-    n_tri = poly.GetNumberOfPolys()
-    if n_tri == 0:
+    ijk, tri = poly_arrays(flying_edges(f, level))
+    if not len(tri):
         raise ValueError(f"body_surface: no isosurface at level {level} (mask too thin after smoothing "
                          f"with sigma {sigma_mm} mm?)")
-    if target_triangles is not None and n_tri > target_triangles:
-        dec = vtkQuadricDecimation()
-        dec.SetInputData(poly)
-        dec.SetTargetReduction(1.0 - float(target_triangles) / n_tri)
-        dec.VolumePreservationOn()
-        dec.Update()
-        poly = dec.GetOutput()
-    ijk, tri = _poly_arrays(poly)
     # Flying edges works in index space of the padded array (spacing 1, origin 0, x fastest).
-    v = g.index_to_world(ijk - pad)
-    if _signed_surface_volume(v, tri) < 0:
-        tri = tri[:, [0, 2, 1]]
-    return SurfaceMesh(v, tri)
+    mesh = SurfaceMesh(g.index_to_world(ijk - pad), tri)
+    if target_triangles is not None:
+        mesh = decimate(mesh, int(target_triangles))
+    if signed_volume(mesh.vertices, mesh.triangles) < 0:
+        mesh = SurfaceMesh(mesh.vertices, mesh.triangles[:, [0, 2, 1]])
+    return mesh
 
 
 # ---------------------------------------------------------------------------------------------

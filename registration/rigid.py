@@ -49,10 +49,11 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from deformation.geometry import Volume
+from deformation.isosurface import isosurface
 from deformation.transforms import apply, compose, rotation_angle_deg
 
 __all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish_with_prior", "ssd", "ncc", "PRIOR_MM",
-           "coarse_rotation_search", "refine_intensity", "refine_surface", "isosurface_points", "auto_iso_level"]
+           "coarse_rotation_search", "refine_intensity", "refine_surface", "auto_iso_level"]
 
 
 # Voxels per independent sample of the residual in the polish's data term.  The smoothing (σ 0.6 voxel), the
@@ -708,31 +709,6 @@ def auto_iso_level(region: BoneRegion) -> float:
     return 0.5 * (float(np.median(d[inner])) + float(np.median(d[outer])))
 
 
-def isosurface_points(image: Volume, level: float) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (world mm) and triangles of the ``level`` isosurface of ``image`` (VTK flying edges)."""
-    import vtk
-    from vtk.util import numpy_support
-
-    data = np.ascontiguousarray(image.data, dtype=np.float32)
-    nz, ny, nx = data.shape
-    vimg = vtk.vtkImageData()
-    vimg.SetDimensions(nx, ny, nz)  # index space: world mapping below carries spacing and direction
-    arr = numpy_support.numpy_to_vtk(data.ravel(), deep=True)
-    vimg.GetPointData().SetScalars(arr)
-    fe = vtk.vtkFlyingEdges3D()
-    fe.SetInputData(vimg)
-    fe.SetValue(0, float(level))
-    fe.ComputeNormalsOff()
-    fe.ComputeGradientsOff()
-    fe.Update()
-    poly = fe.GetOutput()
-    if poly.GetNumberOfPoints() == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    ijk = numpy_support.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
-    tri = numpy_support.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
-    return image.geometry.index_to_world(ijk), tri.astype(np.int64)
-
-
 def _crop_around(scan: Volume, points: np.ndarray, margin_mm: float) -> Volume | None:
     """The part of ``scan`` whose box holds ``points`` ± margin (None when it misses the scan)."""
     ijk = scan.geometry.world_to_index(points)
@@ -764,14 +740,14 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
                        stop=f"only {inside0:.0%} of the bone region maps inside the scan at the initialisation",
                        seconds=time.perf_counter() - t0)
     lvl = auto_iso_level(region) if level is None else float(level)
-    src, _ = isosurface_points(region.crop, lvl)
+    src = isosurface(region.crop, lvl).vertices
     if len(src):
         ijk = np.rint(region.crop.geometry.world_to_index(src)).astype(int)
         ijk = np.clip(ijk, 0, np.asarray(region.crop.geometry.size) - 1)
         src = src[region.mask[ijk[:, 2], ijk[:, 1], ijk[:, 0]]]
     spacing = float(max(scan.geometry.spacing))
     sub = _crop_around(scan, apply(init, region.points), 4.0 * spacing)
-    tgt = isosurface_points(sub, lvl)[0] if sub is not None else np.zeros((0, 3))
+    tgt = isosurface(sub, lvl).vertices if sub is not None else np.zeros((0, 3))
     extra = {"iso_level": lvl, "source_points": int(len(src)), "target_points": int(len(tgt))}
     if len(src) < 10 or len(tgt) < 10:
         return BoneFit(region.name, init, "surface", "poor_match", before, math.nan, math.nan, inside0,

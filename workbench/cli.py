@@ -189,6 +189,44 @@ needs first when they have not run (weights; pose and register for the
 registration source).
 """
 
+SURFACE_HELP = """Kurihara's consistent skin meshes (Kurihara & Miyata 2004, §3-4).
+
+The template's skin becomes the base mesh S0 (an isosurface between air and
+tissue, cleaned of debris, decimated to --target-triangles; the paper's
+hand: ~100k).  For each scan: S0 posed by SSD with the scan's estimated bone
+transforms (Eq. 2-3), moved by RBF feature points (Eq. 4-5: --features
+registration takes their targets from `workbench register`'s map of the
+template onto the scan, --features closest from confident closest points on
+the scan's skin; the paper picked 70-150 by hand), then fitted to the scan's
+skin: --fit regularised (default) follows the skin where it is seen and keeps
+the mesh's shape where it is not (fingers touching), --fit nearest is the
+paper's nearest-point fit.  Every fitted mesh has S0's connectivity, so
+`workbench surface-deform` interpolates them to any pose (SSD, PSD, WPSD).
+
+Writes surface/template_skin.vtp (with the vertices' skinning weights),
+surface/template_bones.vtp, and per scan <scan>_skin.ply, _ssd.ply, _rbf.ply
+and _fitted.ply (world mm: they open in ParaView and 3D Slicer), and
+surface/surface.json.  Runs the stages it needs first (weights, pose, and
+register for --features registration).
+
+Example:
+  workbench surface hand-study
+  workbench surface hand-study --fit nearest --force
+"""
+
+SURFACE_DEFORM_HELP = """Pose Kurihara's surface model (workbench surface's meshes) and write the skin.
+
+--method ssd: S0 skinned by the pose's bone transforms (Kurihara Eq. 2);
+psd: the scans' meshes taken back to the base pose (Eq. 6), blended with one
+set of RBF weights of the pose (Eq. 7, 12-14), then skinned (Eq. 8); wpsd:
+the blend weighted per vertex by its bones' joints (Eq. 16), so each finger
+follows its own joints.  POSE.json: joint angles or bone transforms (as for
+`workbench deform`).
+
+Example:
+  workbench surface-deform hand-study --pose fist.json --method wpsd --out fist.ply
+"""
+
 REGISTER_HELP = """\
 Register the template to each scan by intensity alone, starting from an
 articulated start to the scan's estimated pose.
@@ -456,6 +494,35 @@ def build_parser() -> argparse.ArgumentParser:
     _common(mo)
     mo.set_defaults(func=cmd_model)
 
+    su = sub.add_parser("surface", help="Kurihara's consistent skin meshes of the template and every scan",
+                        description=SURFACE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    su.add_argument("study", type=Path, help="study folder (holding study.json)")
+    su.add_argument("--target-triangles", type=int, default=argparse.SUPPRESS, metavar="N",
+                    help="decimate S0 and the scans' skins to about N triangles. Default: 100000")
+    su.add_argument("--features", choices=["registration", "closest"], default=argparse.SUPPRESS,
+                    help="targets of the RBF feature points. Default: registration")
+    su.add_argument("--features-count", dest="n_features", type=int, default=argparse.SUPPRESS, metavar="N",
+                    help="feature points per scan, spread over S0. Default: 150")
+    su.add_argument("--fit", choices=["regularised", "nearest"], default=argparse.SUPPRESS,
+                    help="the fit to the scan's skin. Default: regularised")
+    su.add_argument("--stiffness", type=float, default=argparse.SUPPRESS,
+                    help="the regularised fit's weight on keeping the mesh's shape. Default: 1")
+    su.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
+    su.add_argument("--force", action="store_true", help="rerun even when up to date")
+    _common(su)
+    su.set_defaults(func=cmd_surface)
+
+    sd = sub.add_parser("surface-deform", help="pose the surface model (SSD, PSD or WPSD) and write the skin mesh",
+                        description=SURFACE_DEFORM_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sd.add_argument("study", type=Path, help="study folder (holding study.json, after `workbench surface`)")
+    sd.add_argument("--pose", required=True, type=Path, metavar="POSE.json", help="target pose")
+    sd.add_argument("--method", choices=["ssd", "psd", "wpsd"], default="wpsd",
+                    help="SSD (Eq. 2), PSD (Eq. 6-8) or WPSD (Eq. 16). Default: wpsd")
+    sd.add_argument("--out", required=True, type=Path, metavar="MESH", help="output mesh (.ply, .vtp, .obj, .stl)")
+    sd.add_argument("--force", action="store_true", help="overwrite --out")
+    _common(sd)
+    sd.set_defaults(func=cmd_surface_deform)
+
     de = sub.add_parser("deform", help="deform the template to a pose (EVD or VBD) and write the posed volume",
                         description=DEFORM_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     de.add_argument("study", type=Path, help="study folder (holding study.json)")
@@ -631,6 +698,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--seed", type=int, default=0, help="phantom seed (noise, texture, pose jitter). Default: 0")
     rp.add_argument("--with-peers", action="store_true",
                     help="add elastix's and SimpleITK's B-spline registrations from the same start (tables 2-4)")
+    rp.add_argument("--workers", type=int, default=1, metavar="N",
+                    help="run the protocols' phantom studies side by side in N processes (Dask); the tables are "
+                         "the same. Default: 1")
     _common(rp)
     rp.set_defaults(func=cmd_reproduce)
     return p
@@ -638,7 +708,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _stage_names():
     """workbench.stages.ORDER, written out so that --help does not import every stage (a test keeps them equal)."""
-    return ["bones", "pose", "weights", "init", "register", "model", "validate", "report"]
+    return ["bones", "pose", "weights", "init", "register", "model", "surface", "validate", "report"]
 
 
 def _bones_options(p) -> None:
@@ -843,6 +913,32 @@ def cmd_model(args) -> int:
     return 0
 
 
+def cmd_surface(args) -> int:
+    ss = _given(args, args.study, "surface", {k: (k, _same) for k in ("target_triangles", "features", "n_features",
+                                                                      "fit", "stiffness")})
+    if args.scan:
+        ss = dataclasses.replace(ss, scans=tuple(args.scan))
+    study, out = _stages(args, ["surface"], {"surface": ss}, force={"surface"} if args.force else ())
+    doc = _read_output(study, "surface", "surface.json")
+    t = doc["template"]
+    print(f"S0: {t['triangles']} triangles, {t['vertices']} vertices (weights: {t['weights']})"
+          f"{' (up to date)' if out[-1].status == 'skipped' else ''}")
+    for sid, r in doc["per_scan"].items():
+        f = r["fit_distance_mm"]
+        print(f"  {sid}: {r['features']} feature points ({r['feature_source']}), {r['fit']} fit: distance to the "
+              f"scan's skin mean {f['mean']:.2f} mm, P95 {f['p95']:.2f} mm")
+    print(f"in {study.root / 'surface'}")
+    return 0
+
+
+def cmd_surface_deform(args) -> int:
+    from workbench.deform import surface_deform
+
+    s = surface_deform(args.study, args.pose, args.out, method=args.method, overwrite=args.force)
+    print(f"{args.method.upper()}: {s['vertices']} vertices in {s['seconds']:.3f} s; wrote {s['out']}")
+    return 0
+
+
 def _register_settings(args):
     # a recorded setting that a given option contradicts gives way to it: an earlier --unfold-init repaired a
     # VBD start (not another), --preset paper is Rhee's method, --method dense has no preset
@@ -963,7 +1059,7 @@ def cmd_reproduce(args) -> int:
 
     try:
         reproduce(args.tables, args.out, size=args.size, seed=args.seed, with_peers=args.with_peers,
-                  progress=printer, say=say, emit=emit)
+                  progress=printer, say=say, emit=emit, workers=args.workers)
     finally:
         printer.close()
     print(f"reproduce: {', '.join(args.tables)} in {time.perf_counter() - t0:.0f} s")

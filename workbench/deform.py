@@ -119,3 +119,29 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
                "labels": str(labels_out), "field": str(field_out) if field_out else None,
                "forward_seconds": posed.forward_seconds, "backward_seconds": posed.backward_seconds, **bm.summary()}
     return summary
+
+
+def surface_deform(folder, pose_path, out, *, method: str = "wpsd", overwrite: bool = False) -> dict:
+    """Pose the study's surface model (Kurihara §5: SSD, PSD or WPSD) and write the skin mesh ``out``."""
+    import time
+
+    from deformation.surface_model import SURFACE_METHODS
+    from workbench.io.meshes import MESH_SUFFIXES, write_mesh
+
+    if method not in SURFACE_METHODS:
+        raise ValueError(f"--method must be one of {SURFACE_METHODS}, got {method!r}")
+    out = Path(out)
+    if out.suffix.lower() not in MESH_SUFFIXES:
+        raise ValueError(f"--out {out}: a mesh file ending in one of {', '.join(MESH_SUFFIXES)}")
+    if out.exists() and not overwrite:
+        raise OutputExistsError(out, f"{out} exists; pass --force to replace it.")
+    if not out.parent.is_dir():
+        raise ValueError(f"--out {out}: the folder {out.parent} does not exist")
+    study = read_study(folder)
+    pose = read_target_pose(pose_path, study.skeleton())  # a bad pose file is reported before any loading
+    model = study.surface_model()
+    t0 = time.perf_counter()
+    mesh = model.deform(pose, method)
+    seconds = time.perf_counter() - t0
+    write_mesh(mesh, out, overwrite=overwrite)
+    return {"out": str(out), "vertices": mesh.n_vertices, "seconds": seconds, "method": method}

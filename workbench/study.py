@@ -74,6 +74,7 @@ class StudyError(InputFileError):
 # The command that produces each stage's outputs, for "run X first" messages.
 STAGE_COMMANDS = {"bones": "workbench bones", "pose": "workbench pose", "weights": "workbench weights",
                   "init": "workbench register", "register": "workbench register", "model": "workbench model",
+                  "surface": "workbench surface",
                   "validate": "workbench validate", "report": "workbench report"}
 LOCK_NAME = ".study.json.lock"
 
@@ -395,6 +396,34 @@ class Study:
         return ExampleVolumeDeformation.from_examples(
             vol.geometry, weights, sk, [np.asarray(doc["pose_vectors"][s], dtype=float) for s in doc["scans"]],
             vol.data.reshape(-1, n, 3), template_example=bool(doc.get("template_example", False)))
+
+    # -- surface stage -----------------------------------------------------------------------------
+    @property
+    def has_surface(self) -> bool:
+        return self.has_output("surface", "surface.json")
+
+    def surface_model(self):
+        """Kurihara's surface model (``workbench surface``): S0 with its vertices' weights, the fitted meshes of
+        the scans and their estimated poses, as a :class:`deformation.surface_model.SurfaceModel`."""
+        from deformation.skinning import SkinningWeights
+        from deformation.surface_model import SurfaceModel
+        from workbench.io.meshes import read_mesh, read_mesh_point_data
+        from workbench.io.tetmeshes import weights_from_point_data
+
+        if not self.has_surface:
+            raise StageOutputMissing(f"{self.root}: no surface model yet; run `workbench surface {self.root}`.",
+                                     self.manifest_path)
+        doc = read_json(self.output("surface", "surface.json"))
+        skin = self.output("surface", "template_skin.vtp")
+        base = read_mesh(skin)
+        try:
+            bones, dense = weights_from_point_data(read_mesh_point_data(skin))
+        except ValueError as e:
+            raise InputFileError(f"{skin}: {e}; rebuild it with `workbench surface {self.root} --force`.", skin)
+        weights = SkinningWeights.from_dense(dense, bones)
+        ids = list(doc["scans"])
+        meshes = [read_mesh(self.output("surface", f"{sid}_fitted.ply")) for sid in ids]
+        return SurfaceModel.from_meshes(base, weights, self.skeleton(), [self.pose(sid) for sid in ids], meshes)
 
     # -- validate stage ----------------------------------------------------------------------------
     def validation(self, scan_id: str) -> dict:

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from deformation.geometry import GridGeometry, Volume
 from deformation.skeleton import Bone, Joint, Skeleton
 from deformation.transforms import apply, compose, invert, rotation_about_point, rotation_angle_deg
-from registration.rigid import (Sampler, bone_regions, coarse_rotation_search, isosurface_points, polish_with_prior,
+from registration.rigid import (Sampler, bone_regions, coarse_rotation_search, polish_with_prior,
                                 refine_intensity, refine_surface)
 
 # Anisotropic, rotated grids (world mm), as real scans have.
@@ -250,18 +250,6 @@ def test_coarse_search_reports_the_other_local_winners():
             assert np.linalg.norm(a - b) > 2.0 * step
     for _, a, t in others:
         np.testing.assert_allclose(t, sk.forward_kinematics({"j": list(a)})["c"], atol=1e-9)
-
-
-def test_isosurface_is_in_world_millimetres():
-    x = GRID.world_coordinates().reshape(-1, 3)
-    c = np.array([2.0, -3.0, 1.0])
-    img = Volume((15.0 - np.linalg.norm(x - c, axis=1)).reshape(GRID.array_shape).astype(np.float32), GRID)
-    pts, tri = isosurface_points(img, 5.0)  # the sphere of radius 10 mm about c
-    r = np.linalg.norm(pts - c, axis=1)
-    # Linear interpolation along a grid edge of length h across a sphere of radius R errs by at most about
-    # h² / (8 R) = 2² / 80 = 0.05 mm (largest spacing 2 mm): vertices lie within 0.05 mm of the sphere.
-    assert len(pts) > 500 and tri.shape[1] == 3
-    assert np.abs(r - 10.0).max() < 0.05
 
 
 def test_surface_registration_recovers_a_known_motion(template):

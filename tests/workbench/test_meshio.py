@@ -9,7 +9,7 @@ import pytest
 
 from deformation.mesh import SurfaceMesh, connected_components
 from workbench.errors import MissingFileError, OutputExistsError, UnknownFormatError, UnreadableFileError
-from workbench.io.meshes import read_mesh, write_mesh
+from workbench.io.meshes import read_mesh, read_mesh_point_data, write_mesh
 
 
 def _mesh() -> SurfaceMesh:
@@ -130,7 +130,7 @@ def test_overwrite_refused(tmp_path):
 def test_failing_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     import workbench.io.meshes as meshio
 
-    def half_write_then_fail(mesh, tmp):
+    def half_write_then_fail(mesh, tmp, point_data=None):
         tmp.write_bytes(b"<?xml partial")
         raise OSError("disk full (simulated)")
 
@@ -138,3 +138,23 @@ def test_failing_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         write_mesh(_mesh(), tmp_path / "m.vtp")
     assert os.listdir(tmp_path) == []
+
+
+def test_vtp_point_data_round_trip(tmp_path):
+    """Per-vertex arrays (a surface's skinning weights) travel with a .vtp mesh, exactly (float64)."""
+    m = _mesh()
+    rng = np.random.default_rng(2)
+    data = {"weight_radius": rng.random(m.n_vertices), "normal": rng.normal(size=(m.n_vertices, 3))}
+    p = write_mesh(m, tmp_path / "s.vtp", point_data=data)
+    back = read_mesh_point_data(p)
+    assert set(back) == set(data)
+    for k, v in data.items():
+        np.testing.assert_array_equal(back[k], v)
+    np.testing.assert_array_equal(read_mesh(p).vertices, m.vertices)
+    with pytest.raises(ValueError, match="one value"):
+        write_mesh(m, tmp_path / "bad.vtp", point_data={"w": np.zeros(m.n_vertices + 1)})
+    assert not (tmp_path / "bad.vtp").exists()
+    with pytest.raises(ValueError, match=".vtp meshes only"):
+        write_mesh(m, tmp_path / "s.ply", point_data=data)
+    with pytest.raises(UnknownFormatError):
+        read_mesh_point_data(tmp_path / "s.ply")

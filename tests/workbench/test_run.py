@@ -27,13 +27,13 @@ from workbench.study import read_study
 # A small, fast configuration: every stage, a tenth of the default registration budget.
 SETTINGS = ["--set", "weights.method=\"distance\"", "--set", "register.levels=[3,4]",
             "--set", "register.max_steps_per_level=20"]
-STAGE_FOLDERS = ("bones", "poses", "skinning", "init", "registration", "model", "validation", "report")
+STAGE_FOLDERS = ("bones", "poses", "skinning", "init", "registration", "model", "surface", "validation", "report")
 
 
 def _strip(src: Path, dst: Path, *, truth: bool = True, keep=()) -> Path:
     """A copy of a study without its stage outputs but those of the stages ``keep`` (and without its ground
     truth, if asked)."""
-    drop = [f for s, f in zip(("bones", "pose", "weights", "init", "register", "model", "validate", "report"),
+    drop = [f for s, f in zip(("bones", "pose", "weights", "init", "register", "model", "surface", "validate", "report"),
                               STAGE_FOLDERS)
             if s not in keep]
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns(*drop, ".locks", *(("truth",) if not truth else ())))
@@ -97,7 +97,7 @@ def test_second_run_skips_every_stage(done, tmp_path):
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert _started(proc.stderr) == []
-    n_units = 3 + 1 + 1 + 4 * 3  # bones, pose, weights, model, report; init, register, validate per scan
+    n_units = 3 + 1 + 1 + 1 + 4 * 3  # bones, pose, weights, model, surface, report; init, register, validate per scan
     assert proc.stderr.count("up to date, skipped") == n_units
     assert "0 stage run(s)" in proc.stdout
     assert (root / "study.json").read_bytes() == manifest
@@ -112,9 +112,9 @@ def test_changing_one_registration_setting_reruns_register_model_and_validate_on
     assert main(["run", str(copy), *SETTINGS[:-1], "register.max_steps_per_level=10"]) == 0
     st = read_study(copy)
     assert st.stage_entry("register", "pose01")["settings"]["max_steps_per_level"] == 10
-    ran = {n for n in ("bones", "pose", "weights", "init", "register", "model", "validate", "report")
+    ran = {n for n in ("bones", "pose", "weights", "init", "register", "model", "surface", "validate", "report")
            if any(e["finished"] != f for e, f in _finished_pairs(root, copy, n))}
-    assert ran == {"register", "model", "validate", "report"}
+    assert ran == {"register", "model", "surface", "validate", "report"}  # surface: its features are register's
     assert all((copy / p).read_bytes() == b for p, b in before.items())
 
 
@@ -211,6 +211,39 @@ def test_sigterm_in_the_middle_of_a_stage_leaves_nothing_partial(phantom, tmp_pa
     assert not [p for p in root.rglob("*") if ".partial-" in p.name or ".tmp-" in p.name]
     st = read_study(root)
     assert st.stage_entry("bones") is not None and st.stage_entry("pose") is None and not (root / "poses").exists()
+
+
+# -- the surface stage (issue K) on the same study ------------------------------------------------------------
+def test_surface_stage_fits_every_scan_with_the_base_mesh_connectivity(done, tmp_path, capsys):
+    from workbench.io.meshes import read_mesh, read_mesh_point_data
+
+    root = done[0]
+    st = read_study(root)
+    doc = json.loads((root / "surface" / "surface.json").read_text(encoding="utf-8"))
+    assert doc["scans"] == st.scan_ids
+    base = read_mesh(root / "surface" / "template_skin.vtp")
+    w = read_mesh_point_data(root / "surface" / "template_skin.vtp")
+    dense = np.stack([v for k, v in w.items() if k.startswith("weight_")], axis=1)
+    np.testing.assert_allclose(dense.sum(axis=1), 1.0, atol=1e-6)  # float32 weights summing to one
+    for sid in st.scan_ids:
+        fitted = read_mesh(root / "surface" / f"{sid}_fitted.ply")
+        assert np.array_equal(fitted.triangles, base.triangles)
+        # the regularised fit lands the seen skin on the scan's skin isosurface: P95 well under a voxel (2.5 mm)
+        assert doc["per_scan"][sid]["fit_distance_mm"]["p95"] < 1.0, doc["per_scan"][sid]
+    # PSD at a scan's own (estimated) pose gives its fitted mesh back (Kurihara Eq. 10: s = e_k there)
+    sid = st.scan_ids[2]
+    out = tmp_path / "posed.ply"
+    assert main(["surface-deform", str(root), "--pose", str(root / "poses" / f"{sid}_pose.json"),
+                 "--method", "psd", "--out", str(out), "--quiet"]) == 0
+    np.testing.assert_allclose(read_mesh(out).vertices, read_mesh(root / "surface" / f"{sid}_fitted.ply").vertices,
+                               atol=1e-4)  # inverse blend + Gaussian solve round-off on ~100 mm coordinates
+    capsys.readouterr()
+    assert main(["surface-deform", str(root), "--pose", str(root / "poses" / f"{sid}_pose.json"),
+                 "--out", str(out)]) == 1
+    assert "exists" in capsys.readouterr().err
+    assert main(["surface-deform", str(root), "--pose", str(root / "poses" / f"{sid}_pose.json"),
+                 "--out", str(tmp_path / "posed.nii.gz")]) == 1
+    assert "a mesh file ending in" in capsys.readouterr().err
 
 
 # -- the report stage's HTML report of the same study (issue J) -------------------------------------------

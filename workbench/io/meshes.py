@@ -45,7 +45,7 @@ from deformation.mesh import SurfaceMesh
 from workbench.io.atomic import atomic_path, split_suffix
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
 
-__all__ = ["MESH_SUFFIXES", "read_mesh", "write_mesh"]
+__all__ = ["MESH_SUFFIXES", "read_mesh", "write_mesh", "read_mesh_point_data"]
 
 #: File suffixes understood by :func:`read_mesh` and :func:`write_mesh`.
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".vtp")
@@ -336,7 +336,7 @@ def _read_vtp(path: Path) -> SurfaceMesh:
         raise _unreadable(path, ".vtp", str(e)) from e
 
 
-def _write_vtp(mesh: SurfaceMesh, tmp: Path) -> None:
+def _write_vtp(mesh: SurfaceMesh, tmp: Path, point_data: dict | None = None) -> None:
     from vtkmodules.util.numpy_support import numpy_to_vtk
     from vtkmodules.vtkCommonCore import vtkPoints
     from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
@@ -351,6 +351,14 @@ def _write_vtp(mesh: SurfaceMesh, tmp: Path) -> None:
     poly = vtkPolyData()
     poly.SetPoints(points)
     poly.SetPolys(cells)
+    for name, values in (point_data or {}).items():
+        a = np.ascontiguousarray(values, dtype=np.float64)
+        if a.shape[0] != mesh.n_vertices or a.ndim > 2:
+            raise ValueError(f"point-data array {name!r} has shape {a.shape}; one value (or vector) per vertex "
+                             f"({mesh.n_vertices}) needed")
+        arr = numpy_to_vtk(a, deep=True)
+        arr.SetName(str(name))
+        poly.GetPointData().AddArray(arr)
     writer = vtkXMLPolyDataWriter()
     writer.SetFileName(str(tmp))
     writer.SetInputData(poly)
@@ -399,7 +407,28 @@ def read_mesh(path: str | os.PathLike) -> SurfaceMesh:
     return _read_open3d(p, fmt)
 
 
-def write_mesh(mesh: SurfaceMesh, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+def read_mesh_point_data(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The named point-data arrays of a ``.vtp`` mesh (e.g. ``weight_<bone>`` skinning weights)."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
+    p = Path(path)
+    if _mesh_format(p) != ".vtp":
+        raise UnknownFormatError(f"{p}: point data is read from .vtp meshes only.", p)
+    _require_file(p)
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(p))
+    with _capture_vtk_output() as caught:
+        reader.Update()
+    if caught.errors:
+        raise _unreadable(p, ".vtp", caught.errors[0])
+    pd = reader.GetOutput().GetPointData()
+    return {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)).astype(np.float64)
+            for i in range(pd.GetNumberOfArrays())}
+
+
+def write_mesh(mesh: SurfaceMesh, path: str | os.PathLike, *, overwrite: bool = False,
+               point_data: dict | None = None) -> Path:
     """Write a triangle mesh atomically (PLY, OBJ, STL or VTP).
 
     Parameters
@@ -411,6 +440,8 @@ def write_mesh(mesh: SurfaceMesh, path: str | os.PathLike, *, overwrite: bool = 
         exact; STL stores float32 corners per triangle.
     overwrite : bool, optional
         Replace an existing file; otherwise :class:`OutputExistsError`.
+    point_data : dict, optional
+        Named per-vertex arrays (``.vtp`` only), e.g. skinning weights.
 
     Returns
     -------
@@ -419,6 +450,8 @@ def write_mesh(mesh: SurfaceMesh, path: str | os.PathLike, *, overwrite: bool = 
     """
     p = Path(path)
     fmt = _mesh_format(p)
+    if point_data and fmt != ".vtp":
+        raise ValueError(f"{p}: per-vertex arrays are written to .vtp meshes only")
     if not isinstance(mesh, SurfaceMesh):
         raise TypeError(f"{p}: write_mesh takes a SurfaceMesh, got {type(mesh).__name__}")
     if mesh.n_triangles == 0:
@@ -427,7 +460,7 @@ def write_mesh(mesh: SurfaceMesh, path: str | os.PathLike, *, overwrite: bool = 
         if fmt == ".obj":
             _write_obj(mesh, tmp)
         elif fmt == ".vtp":
-            _write_vtp(mesh, tmp)
+            _write_vtp(mesh, tmp, point_data)
         else:
             _write_open3d(mesh, tmp, fmt)
     return p

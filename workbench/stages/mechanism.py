@@ -57,7 +57,7 @@ from workbench.io.jsonio import to_jsonable, write_json
 from workbench.study import STAGE_COMMANDS, Study, StudyError
 
 __all__ = ["Stage", "Event", "Outcome", "StageNotReady", "execute", "stage_status", "file_digest",
-           "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "CopyFile",
+           "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "MeshFile", "CopyFile",
            "settings_dict"]
 
 log = logging.getLogger("workbench")
@@ -120,6 +120,13 @@ class TetMeshFile:
 
 
 @dataclass(frozen=True)
+class MeshFile:
+    """A triangle mesh in world mm (PLY, VTP — with named per-vertex arrays —, OBJ or STL by the suffix)."""
+    mesh: object
+    point_data: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class CopyFile:
     """A file copied as it is (e.g. a kept mesh, byte for byte)."""
     source: Path
@@ -152,9 +159,13 @@ def _write_output(obj, path: Path) -> list[Path]:
         from workbench.io.tetmeshes import write_tetmesh
 
         write_tetmesh(obj.mesh, path, point_data=obj.point_data)
+    elif isinstance(obj, MeshFile):
+        from workbench.io.meshes import write_mesh
+
+        write_mesh(obj.mesh, path, point_data=obj.point_data or None)
     else:
         raise TypeError(f"{path.name}: a stage output must be Image, Labels, Field, VectorImage, Json, Text, "
-                        f"WeightMap, TetMeshFile or CopyFile, got {type(obj).__name__}")
+                        f"WeightMap, TetMeshFile, MeshFile or CopyFile, got {type(obj).__name__}")
     return [path]
 
 

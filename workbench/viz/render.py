@@ -428,11 +428,17 @@ def label_colour(label: int) -> tuple:
 # -- the renderer ------------------------------------------------------------------------------------
 def _prop_matrix(g: GridGeometry):
     """The vtkMatrix4x4 taking the image's (spacing-scaled, origin 0) coordinates to world mm."""
-    from vtkmodules.vtkCommonMath import vtkMatrix4x4
-
     m = np.eye(4)
     m[:3, :3] = g.direction_matrix
     m[:3, 3] = np.asarray(g.origin, float)
+    return _vtk_matrix(m)
+
+
+def _vtk_matrix(m):
+    """A 4×4 numpy matrix as a vtkMatrix4x4."""
+    from vtkmodules.vtkCommonMath import vtkMatrix4x4
+
+    m = np.asarray(m, float)
     vm = vtkMatrix4x4()
     for i in range(4):
         for j in range(4):
@@ -642,10 +648,9 @@ class VolumeRenderer:
         (VTK's discrete flying edges, windowed-sinc smoothed) are clipped by
         the same plane as the volume.  Returns the number of labels drawn.
         """
-        from vtkmodules.util.numpy_support import numpy_to_vtk
-        from vtkmodules.vtkCommonDataModel import vtkImageData
         from vtkmodules.vtkFiltersCore import vtkWindowedSincPolyDataFilter
-        from vtkmodules.vtkFiltersGeneral import vtkDiscreteFlyingEdges3D
+
+        from deformation.isosurface import flying_edges
 
         lab = np.asarray(labels.data if isinstance(labels, Volume) else labels)
         if isinstance(labels, Volume):
@@ -654,26 +659,16 @@ class VolumeRenderer:
         if lab.shape != self.geometry.array_shape:
             raise ValueError(f"labels of shape {lab.shape} on a grid of shape {self.geometry.array_shape}")
         ids = [int(v) for v in np.unique(lab) if v != 0]
-        img = vtkImageData()
-        img.SetDimensions(*(int(v) for v in self.geometry.size))
-        img.SetSpacing(*(float(v) for v in self.geometry.spacing))
-        flat = np.ascontiguousarray(lab.reshape(-1).astype(np.int32))
-        arr = numpy_to_vtk(flat, deep=True)
-        img.GetPointData().SetScalars(arr)
         for lid in ids:
-            fe = vtkDiscreteFlyingEdges3D()
-            fe.SetInputData(img)
-            fe.SetValue(0, lid)
-            fe.ComputeScalarsOff()
             sm = vtkWindowedSincPolyDataFilter()
-            sm.SetInputConnection(fe.GetOutputPort())
+            sm.SetInputData(flying_edges(lab, lid, discrete=True))  # index space
             sm.SetNumberOfIterations(int(smooth))
             sm.SetPassBand(0.05)
             sm.NormalizeCoordinatesOn()
             sm.Update()
-            # the surface is in the image's (spacing-scaled) coordinates: the volume's matrix places it
+            # the surface is in voxel indices: the grid's index → world matrix places it
             self._add_surface(sm.GetOutput(), label_colour(lid), opacity=opacity,
-                              matrix=_prop_matrix(self.geometry))
+                              matrix=_vtk_matrix(self.geometry.index_to_world_matrix))
         return len(ids)
 
     def add_points(self, points, *, colour=(1.0, 0.85, 0.1), radius_mm: float | None = None) -> int:

@@ -1,0 +1,155 @@
+"""The ``surface`` stage: Kurihara's consistent skin meshes (Kurihara & Miyata 2004, §3–4; DESIGN's surface track).
+
+* **S0**, the base mesh: the template's skin
+  (:func:`registration.segmentation.skin_surface`: air/tissue isosurface,
+  debris dropped, decimated to ``target_triangles``; the paper: ~800 k →
+  ~100 k triangles), with every vertex's skinning weights — the weights
+  stage's harmonic weights at the vertex (its tet mesh), or the nearest
+  voxel's weights when it kept no tet mesh;
+* the template's bones as surfaces (each label's boundary, for pictures);
+* per scan ``i`` (:func:`registration.surface_fit.consistent_mesh`): the
+  scan's skin ``T_i``; ``S^s_i``, S0 by SSD with the pose stage's estimated
+  transforms (Kurihara Eq. 2–3); ``S^r_i``, RBF feature-point deformation
+  (Eq. 4–5) with ``n_features`` vertices spread over S0 whose targets come
+  from the volume registration (``features="registration"``: where the
+  register stage's inverse field puts each vertex — the paper picked 70–150
+  points by hand) or from confident closest points on ``T_i``
+  (``"closest"``); and ``S^f_i``, the fit to ``T_i`` — the smoothness-
+  regularised one (``fit="regularised"``, for touching or missing skin) or
+  the paper's nearest-point fit (``"nearest"``).  Every ``S^f_i`` has S0's
+  connectivity, so :class:`deformation.surface_model.SurfaceModel` can
+  interpolate them (``workbench surface-deform``).
+
+Outputs (``surface/``): ``template_skin.vtp`` (S0 with ``weight_<bone>``
+point arrays), ``template_bones.vtp`` (a ``label`` point array), per scan
+``<scan>_skin.ply``, ``<scan>_ssd.ply``, ``<scan>_rbf.ply``,
+``<scan>_fitted.ply``, and ``surface.json`` (what each step did, fit
+distances).  All in world mm: they open in ParaView and 3D Slicer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workbench import __version__
+from workbench.stages.mechanism import Json, MeshFile, Stage
+
+__all__ = ["SurfaceSettings", "STAGE"]
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    target_triangles: int = 100_000  #: S0 and the scans' skins decimated to about this many (Kurihara: ~100 k)
+    features: str = "registration"  #: the RBF feature points' targets: "registration" or "closest"
+    n_features: int = 150  #: feature points per scan (Kurihara picked 70–150 by hand)
+    fit: str = "regularised"  #: "regularised" (touching or missing skin) or "nearest" (Kurihara §4's fit)
+    stiffness: float = 1.0  #: the regularised fit's λ (registration.surface_fit.fit_regularised)
+    max_distance_mm: float = 5.0  #: a closest point farther than this is not a target
+    smooth_voxels: float = 1.0  #: Gaussian smoothing of the images before the skin isosurface
+    scans: tuple | None = None  #: the scans to fit (None: all)
+
+    def __post_init__(self):
+        from registration.surface_fit import FEATURE_SOURCES, FITS
+
+        if self.features not in FEATURE_SOURCES:
+            raise ValueError(f"--features must be one of {FEATURE_SOURCES}, got {self.features!r}")
+        if self.fit not in FITS:
+            raise ValueError(f"--fit must be one of {FITS}, got {self.fit!r}")
+        if int(self.target_triangles) < 100:
+            raise ValueError(f"--target-triangles must be at least 100, got {self.target_triangles}")
+        if int(self.n_features) < 4:
+            raise ValueError(f"--features-count must be at least 4 (an RBF needs points), got {self.n_features}")
+        for name in ("stiffness", "max_distance_mm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        if self.smooth_voxels < 0:
+            raise ValueError(f"--smooth-voxels must be ≥ 0, got {self.smooth_voxels}")
+        if self.scans is not None:
+            object.__setattr__(self, "scans", tuple(str(v) for v in self.scans))
+
+
+def _needs(s: SurfaceSettings):
+    return ("weights", "pose", "register") if s.features == "registration" else ("weights", "pose")
+
+
+def _inputs(study, s: SurfaceSettings, scan):
+    files = {"template": study.path(study.manifest["template"]), "labels": study.template_labels_path(),
+             "skeleton": study.path(study.manifest["skeleton"])}
+    for sid in study.check_scan_ids(s.scans):
+        files[f"scan/{sid}"] = study.scan_path(sid)
+    return files
+
+
+def vertex_weights(study, points):
+    """Skinning weights at world ``points``: the harmonic ones through the weights stage's tet mesh, or the
+    nearest template voxel's when the stage kept none."""
+    from deformation.harmonic import weights_at_points
+    from workbench.io.tetmeshes import read_tetmesh, weights_from_point_data
+
+    if study.has_output("weights", "tetmesh.vtu"):
+        mesh, pd = read_tetmesh(study.output("weights", "tetmesh.vtu"))
+        bones, dense = weights_from_point_data(pd)
+        return weights_at_points(mesh, dense, bones, points), "harmonic, at the vertex (tet mesh)"
+    w, _ = study.weights()
+    g = study.template().geometry
+    ijk = np.clip(np.rint(g.world_to_index(points)).astype(np.int64), 0, np.asarray(g.size) - 1)
+    rows = (ijk[:, 2] * g.size[1] + ijk[:, 1]) * g.size[0] + ijk[:, 0]
+    return w.take(rows), "the nearest template voxel's"
+
+
+def _run(ctx) -> dict:
+    from deformation.interpolate import sample
+    from deformation.isosurface import label_surfaces
+    from registration.segmentation import skin_surface
+    from registration.surface_fit import consistent_mesh
+    from workbench.io.tetmeshes import weight_arrays
+
+    study, s = ctx.study, ctx.settings
+    ids = study.check_scan_ids(s.scans)
+    template = study.template()
+    ctx.report(0, len(ids) + 1, "template skin (S0)")
+    base = skin_surface(template, target_triangles=s.target_triangles, smooth_voxels=s.smooth_voxels)
+    weights, how_w = vertex_weights(study, base.vertices)
+    bones, vlab = label_surfaces(study.template_labels())
+    out = {"template_skin.vtp": MeshFile(base, weight_arrays(weights.bones, weights.dense())),
+           "template_bones.vtp": MeshFile(bones, {"label": vlab.astype(float)})}
+    doc = {"format": "avw-surface", "version": 1, "scans": list(ids),
+           "template": {"vertices": base.n_vertices, "triangles": base.n_triangles, "weights": how_w,
+                        "bones_vertices": bones.n_vertices},
+           "per_scan": {}, "settings": {k: getattr(s, k) for k in s.__dataclass_fields__},
+           "workbench_version": __version__}
+    ctx.report(1, len(ids) + 1, f"S0: {base.n_triangles} triangles")
+    for k, sid in enumerate(ids):
+        scan = study.scan(sid)
+        target = skin_surface(scan, target_triangles=s.target_triangles, smooth_voxels=s.smooth_voxels)
+        pose = study.pose(sid)
+        feats = None
+        if s.features == "registration":
+            pos, found = study.registration_positions(sid)
+            g = template.geometry
+            from deformation.geometry import Volume
+
+            feats = sample(Volume(pos.astype(np.float64), g), base.vertices, order=1, fill=np.nan)
+            ok = sample(Volume(found.astype(np.float32), g), base.vertices, order=1, fill=0.0) > 0.999
+            feats[~ok] = np.nan
+        res = consistent_mesh(base, weights, pose.transforms, target, feature_targets=feats,
+                              n_features=s.n_features, fit=s.fit, max_distance_mm=s.max_distance_mm,
+                              stiffness=s.stiffness)
+        d = res["fit"].distance_mm
+        doc["per_scan"][sid] = {**res["info"], "skin_triangles": target.n_triangles,
+                                "fit_distance_mm": {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)),
+                                                    "max": float(d.max())},
+                                "feature_vertices": res["features"].tolist()}
+        for name in ("ssd", "rbf", "fitted"):
+            out[f"{sid}_{name}.ply"] = MeshFile(res[name])
+        out[f"{sid}_skin.ply"] = MeshFile(target)
+        ctx.report(k + 2, len(ids) + 1, f"{sid}: fitted, {100 * res['fit'].confident.mean():.0f} % of the vertices "
+                                        f"on a confident target, mean distance {d.mean():.2f} mm")
+    out["surface.json"] = Json(doc)
+    return out
+
+
+STAGE = Stage(name="surface", folder="surface", per_scan=False, settings_type=SurfaceSettings, run=_run,
+              needs=_needs, inputs=_inputs, uses=lambda study, s: s.scans)
