@@ -49,7 +49,7 @@ if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
 __all__ = ["vbd_forward", "fill_unmatched", "ExampleVolumeDeformation", "EVD_WEIGHTINGS", "template_pose",
-           "wants_template_example", "TEMPLATE_EXAMPLE_SEPARATION"]
+           "wants_template_example", "with_template_example", "TEMPLATE_EXAMPLE_SEPARATION"]
 
 EVD_WEIGHTINGS = ("psd", "wpsd")
 
@@ -148,6 +148,18 @@ def wants_template_example(train_vectors, rest_vector) -> bool:
     return bool(d_rest.min() >= TEMPLATE_EXAMPLE_SEPARATION * float(pair.min(axis=1).mean()))
 
 
+def with_template_example(skeleton, vectors, template_example="auto") -> tuple[list, bool]:
+    """The examples' pose vectors, the template's rest pose appended when it joins them (``True``, ``False``, or
+    ``"auto"``: :func:`wants_template_example`), and whether it did."""
+    vectors = [np.asarray(v, float) for v in vectors]
+    rest = PoseSpace(skeleton, [template_pose(skeleton)]).train[0]
+    if template_example == "auto":
+        template_example = wants_template_example(vectors, rest)
+    elif not isinstance(template_example, bool):
+        raise ValueError(f"template_example must be True, False or 'auto', got {template_example!r}")
+    return vectors + [rest] if template_example else vectors, bool(template_example)
+
+
 def _check_grid_weights(geometry: GridGeometry, weights: SkinningWeights) -> None:
     if weights.n_points != geometry.n_voxels:
         raise ValueError(f"voxel weights cover {weights.n_points} points but the grid {geometry.describe()} has "
@@ -229,15 +241,9 @@ class ExampleVolumeDeformation:
         """The model from the training scans' pose vectors ``(P, n_dof)`` and displacements ``(n_voxels, P, 3)``
         (Rhee Eq. 7), the template's rest pose with ``d = 0`` added as an example when ``template_example``
         is True, or "auto" and :func:`wants_template_example`."""
-        vectors = [np.asarray(v, float) for v in vectors]
-        rest = PoseSpace(skeleton, [template_pose(skeleton)]).train[0]
-        if template_example == "auto":
-            template_example = wants_template_example(vectors, rest)
-        elif not isinstance(template_example, bool):
-            raise ValueError(f"template_example must be True, False or 'auto', got {template_example!r}")
+        vectors, template_example = with_template_example(skeleton, vectors, template_example)
         d = np.asarray(displacements, dtype=np.float32)
         if template_example:
-            vectors.append(rest)
             d = np.concatenate([d, np.zeros(d.shape[:1] + (1, 3), np.float32)], axis=1)
         return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=template_example)
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .evd import template_pose, wants_template_example
+from .evd import with_template_example
 from .mesh import SurfaceMesh
 from .posespace import PoseSpace, psd_training, skin, wpsd_deform
 from .skinning import SkinningWeights
@@ -73,15 +73,12 @@ class SurfaceModel:
                 raise ValueError(f"mesh {k} does not have the base mesh's connectivity ({m.n_vertices} vertices "
                                  f"against {base.n_vertices}): fit it from the base mesh")
         samples = psd_training([m.vertices for m in meshes], weights, [p.transforms for p in poses])
-        vectors = list(PoseSpace(skeleton, poses).train)
-        rest = PoseSpace(skeleton, [template_pose(skeleton)]).train[0]
-        if template_example == "auto":
-            template_example = wants_template_example(vectors, rest)
+        vectors, template_example = with_template_example(skeleton, PoseSpace(skeleton, poses).train,
+                                                          template_example)
         samples = np.moveaxis(samples, 0, 1)  # (n, P, 3): per vertex, as the kernels read them
-        if template_example:
-            vectors.append(rest)
+        if template_example:  # S0 at rest: the identity transforms take it to itself (Eq. 6 gives S0)
             samples = np.concatenate([samples, np.asarray(base.vertices, float)[:, None]], axis=1)
-        return cls(base, weights, PoseSpace(skeleton, vectors), samples, template_example=bool(template_example))
+        return cls(base, weights, PoseSpace(skeleton, vectors), samples, template_example=template_example)
 
     def deform(self, pose, method: str = "wpsd") -> SurfaceMesh:
         """The skin at ``pose`` (a :class:`~deformation.skeleton.Pose`: bone transforms and joint angles) by

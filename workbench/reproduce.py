@@ -177,8 +177,13 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
                        if n in ("table4", "kurihara", "table3", "table2") else 9)
         if say is not None:
             say(f"{', '.join(order)} side by side in {min(int(workers), len(order))} processes")
-        tasks = [dask.delayed(_protocol_in_worker)(n, str(out), size, seed, with_peers) for n in order]
-        results = dask.compute(*tasks, scheduler="processes", num_workers=min(int(workers), len(order)))
+        # Dask runs independent tasks in descending key order: the longest gets the largest key
+        tasks = [dask.delayed(_protocol_in_worker)(n, str(out), size, seed, with_peers,
+                                                   dask_key_name=f"reproduce-{len(order) - i:02d}-{n}")
+                 for i, n in enumerate(order)]
+        # chunksize 1: Dask's process scheduler otherwise hands the tasks to one process in batches of six
+        results = dask.compute(*tasks, scheduler="processes", num_workers=min(int(workers), len(order)),
+                               chunksize=1)
         done = {n: (Table.from_dict(d), sec) for n, (d, sec) in zip(order, results)}
     for n in names:
         if n in done:
