@@ -264,6 +264,7 @@ class ExampleVolumeDeformation:
         if len(poses) != len(fields):
             raise ValueError(f"{len(poses)} poses but {len(fields)} correspondence fields")
         _check_grid_weights(geometry, weights)
+        PoseSpace(skeleton, poses)  # distinct poses, checked before the work
         n = geometry.n_voxels
         d = np.empty((n, len(poses), 3), dtype=np.float32)
         grid = geometry.world_coordinates().reshape(-1, 3)
@@ -288,8 +289,8 @@ class ExampleVolumeDeformation:
                                      "transforms or the weights are degenerate") from None
             if progress is not None:
                 progress(k + 1, len(poses))
-        space = PoseSpace(skeleton, poses)  # checks the poses are distinct
-        return cls.from_examples(geometry, weights, skeleton, space.train, d, template_example=template_example)
+        return cls.from_examples(geometry, weights, skeleton, PoseSpace(skeleton, poses).train, d,
+                                 template_example=template_example)
 
     def pose_weights(self, pose) -> np.ndarray:
         return self.space.weights(pose)

@@ -4,8 +4,8 @@ Pipeline step 4 ("Skinning weights") meshes the body once per study:
 
 1. :func:`body_mask` (optional) — the non-air region of a template scan;
 2. :func:`body_surface` — the 0.5 isosurface of the lightly smoothed mask
-   (VTK flying edges), in world mm, decimated (VTK quadric decimation) so
-   that pytetwild stays fast;
+   (VTK flying edges, :mod:`deformation.isosurface`), in world mm, decimated
+   (Open3D's quadric simplification) so that pytetwild stays fast;
 3. :func:`tetrahedralize` — pytetwild (fTetWild) tetrahedra filling it;
    returned as a :class:`TetMesh` whose tetrahedra are positively oriented.
 

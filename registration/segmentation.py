@@ -240,7 +240,7 @@ def _air_tissue_level(img) -> float:
     otsu = f.GetThreshold()
     lo, hi = arr[arr <= otsu], arr[arr > otsu]
     if not lo.size or not hi.size:
-        raise ValueError("the image has a single intensity level: no air/tissue boundary; pass threshold=")
+        raise ValueError("the image has a single intensity level: there is no air/tissue boundary to find")
     return 0.5 * (float(np.median(lo)) + float(np.median(hi)))
 
 
@@ -271,7 +271,7 @@ def skin_surface(image: Volume, *, target_triangles: int | None = 100_000, smoot
     low = float(min(data.min(), lvl - 1.0))
     mesh = largest_components(isosurface(Volume(data, image.geometry), lvl, pad_value=low))
     if mesh.n_triangles == 0:
-        raise ValueError(f"no skin surface at level {lvl:g}: is the image empty? Give the level")
+        raise ValueError(f"no skin surface at the air/tissue level {lvl:g}: is the image empty?")
     return decimate(mesh, int(target_triangles)) if target_triangles else mesh
 
 

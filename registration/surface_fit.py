@@ -24,8 +24,8 @@ PQP).  Here:
 
   with ``p_j`` the closest point of the current ``x_j``, ``c_j`` ∈ {0, 1} its
   confidence and ``x₀`` the start; a sparse symmetric positive definite
-  system (SciPy's conjugate gradients, warm-started from the current
-  vertices) for each coordinate, repeated as the closest points move.  Vertices with no confident target are carried by
+  system (conjugate gradients, warm-started from the current vertices,
+  for the three coordinates at once), repeated as the closest points move.  Vertices with no confident target are carried by
   their neighbours (the Laplacian) rather than pulled onto a wrong surface.
 
 References
@@ -40,7 +40,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import cg
 
 from deformation.mesh import SurfaceMesh
 
@@ -104,6 +103,33 @@ def umbrella_laplacian(n_vertices: int, triangles: np.ndarray) -> sp.csr_matrix:
     deg = np.asarray(a.sum(axis=1)).ravel()
     inv = np.divide(1.0, deg, out=np.zeros_like(deg), where=deg > 0)
     return (sp.diags((deg > 0).astype(float)) - sp.diags(inv) @ a).tocsr()
+
+
+def _cg(a, b, x0, inv_diag, *, rtol: float = 1e-10, maxiter: int = 5000):
+    """Jacobi-preconditioned conjugate gradients for the SPD ``a`` and the columns of ``b`` at once, from ``x0``:
+    ``(x, iterations, converged)``.  Written out (not SciPy's ``cg``) because its dot products go to BLAS,
+    which splits vectors of more than 10 000 values across threads and rounds differently with their
+    number; NumPy's own sums and SciPy's sparse product give the same bits for any thread count."""
+    x = np.array(x0, dtype=np.float64)
+    r = b - a @ x
+    z = inv_diag[:, None] * r
+    p = z.copy()
+    rz = np.sum(r * z, axis=0)
+    stop = rtol * np.sqrt(np.sum(b * b, axis=0))
+    for it in range(1, maxiter + 1):
+        if np.all(np.sqrt(np.sum(r * r, axis=0)) <= stop):
+            return x, it - 1, True
+        ap = a @ p
+        pap = np.sum(p * ap, axis=0)
+        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap > 0)
+        x += alpha * p
+        r -= alpha * ap
+        z = inv_diag[:, None] * r
+        rz_new = np.sum(r * z, axis=0)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0)
+        p = z + beta * p
+        rz = rz_new
+    return x, maxiter, bool(np.all(np.sqrt(np.sum(r * r, axis=0)) <= stop))
 
 
 def _confident_targets(x, normals, target: SurfaceMesh, scene, target_normals, max_distance_mm: float,
@@ -177,7 +203,7 @@ def fit_regularised(start: SurfaceMesh, target: SurfaceMesh, *, stiffness: float
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     x = x0.copy()
     conf = np.zeros(n, bool)
-    it = 0
+    it, cg_iters, cg_ok = 0, 0, True
     moved = np.inf
     for it in range(1, int(iterations) + 1):
         p, conf = _confident_targets(x, vertex_normals(x, start.triangles), target, scene, tn, max_distance_mm,
@@ -190,9 +216,7 @@ def fit_regularised(start: SurfaceMesh, target: SurfaceMesh, *, stiffness: float
         # A is symmetric positive definite: conjugate gradients from the current vertices (which move little
         # from one pass to the next), Jacobi-preconditioned.  A sparse LU of A cost 0.35 s a pass on an
         # 8 k-vertex knee skin (the bi-Laplacian fills in) and grows faster than the mesh; CG takes ~5 ms
-        precond = sp.diags(1.0 / a.diagonal())
-        x_new = np.stack([cg(a, b[:, k], x0=x[:, k], rtol=1e-10, atol=0.0, M=precond, maxiter=5000)[0]
-                          for k in range(3)], axis=1)
+        x_new, cg_iters, cg_ok = _cg(a, b, x, 1.0 / a.diagonal())
         moved = float(np.linalg.norm(x_new - x, axis=1).max())
         x = x_new
         if moved < tolerance_mm:
@@ -201,7 +225,8 @@ def fit_regularised(start: SurfaceMesh, target: SurfaceMesh, *, stiffness: float
     return FitResult(SurfaceMesh(x, start.triangles), d, conf, it,
                      {"method": "regularised", "stiffness": stiffness, "max_distance_mm": max_distance_mm,
                       "max_angle_deg": max_angle_deg, "last_move_mm": moved,
-                      "confident_fraction": float(conf.mean())})
+                      "confident_fraction": float(conf.mean()), "cg_iterations": cg_iters,
+                      "cg_converged": cg_ok})
 
 
 def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh, *, feature_targets=None,
@@ -237,7 +262,8 @@ def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh,
         source = "confident closest points"
     idx = farthest_points(base.vertices, n_features, candidates=has)
     if len(idx) < 4:
-        raise ValueError(f"only {len(idx)} vertices have a feature target ({source}); at least 4 are needed")
+        raise ValueError(f"only {len(idx)} vertices have a feature target ({source}); at least 4 are needed "
+                         "(try the other --features source)")
     rbf = RBFDeformation(ssd.vertices[idx], tgt[idx], D=KURIHARA_D_MM if rbf_length_mm is None else rbf_length_mm)
     rbf_mesh = SurfaceMesh(rbf(ssd.vertices), base.triangles)
     if fit == "nearest":

@@ -342,6 +342,7 @@ Run the whole pipeline on a study, stage by stage, each through one mechanism:
   init      the articulated start to each scan's estimated pose  (per scan)
   register  dense registration (or Rhee Algorithm 1, --method)  (per scan)
   model     EVD (Rhee Eq. 7) from the registrations and the estimated poses
+  surface   Kurihara's consistent skin meshes (S0, and each scan's fitted mesh)
   validate  each scan against its ground truth, when it has one  (per scan)
   report    one self-contained HTML validation report (report/report.html)
 
@@ -361,7 +362,7 @@ examples:
   workbench run knee-study                        # everything; truth only in validate
   workbench run knee-study                        # again: every stage skipped
   workbench run knee-study --until register       # stop after the registrations
-  workbench run knee-study --force register       # rerun register, then model and validate
+  workbench run knee-study --force register       # rerun register, then model, surface, validate, report
   workbench run my-ct-study --seeds seeds.json    # no label map: segment the bones first
   workbench run knee-study --scan pose01 --until register
 """
@@ -918,8 +919,7 @@ def cmd_model(args) -> int:
 def cmd_surface(args) -> int:
     ss = _given(args, args.study, "surface", {k: (k, _same) for k in ("target_triangles", "features", "n_features",
                                                                       "fit", "stiffness")})
-    if args.scan:
-        ss = dataclasses.replace(ss, scans=tuple(args.scan))
+    ss = dataclasses.replace(ss, scans=tuple(args.scan) if args.scan else None)
     study, out = _stages(args, ["surface"], {"surface": ss}, force={"surface"} if args.force else ())
     doc = _read_output(study, "surface", "surface.json")
     t = doc["template"]

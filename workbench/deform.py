@@ -20,7 +20,8 @@ __all__ = ["study_poser", "deform_study", "METHODS"]
 
 METHODS = ("auto", "vbd", "evd")
 # Folders of a study that `deform` never writes into (its inputs and the stages' outputs).
-PROTECTED_FOLDERS = ("scans", "truth", "bones", "poses", "skinning", "init", "registration", "model", "validation")
+PROTECTED_FOLDERS = ("scans", "truth", "bones", "poses", "skinning", "init", "registration", "model", "surface",
+                     "validation", "report")
 
 
 def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", progress=None) -> TemplatePoser:
@@ -45,12 +46,27 @@ def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", p
     if model is not None:
         e = study.stage_entry("model") or {}
         say(f"posing by EVD (Rhee Eq. 6), model from {(e.get('settings') or {}).get('source', '?')} "
-            f"correspondences of {len(model.space.train)} scans")
+            f"correspondences of {model.n_scans} scans"
+            f"{' and the template at rest' if model.template_example else ''}")
     if weighting != "psd" and model is None:
         say("note: --weighting applies to EVD only; this is VBD")
     return TemplatePoser(study.template(), weights, body,
                          labels=study.template_labels() if study.has_template_labels else None, model=model,
                          weighting=weighting, progress=say)
+
+
+def _refuse_study_files(study, paths, what: str) -> None:
+    """A ValueError when an output would replace one of the study's own files (manifest, template, stage
+    outputs)."""
+    root = study.root.resolve()
+    protected = {root / MANIFEST, root / study.manifest["template"]}
+    if study.manifest.get("template_labels"):
+        protected.add(root / study.manifest["template_labels"])
+    for p in paths:
+        inside = root in p.parents
+        if p in protected or (inside and p.relative_to(root).parts[0] in PROTECTED_FOLDERS):
+            raise ValueError(f"{p}: would overwrite one of the study's own files; write {what} elsewhere (or in a "
+                             "new subfolder of the study)")
 
 
 def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str = "psd", labels_out=None,
@@ -83,16 +99,7 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     resolved = [p.resolve() for p in outputs]
     if len(set(resolved)) != len(resolved):
         raise ValueError(f"the output files must differ: {[str(p) for p in outputs]}")
-    root = study.root.resolve()
-    protected = {root / MANIFEST, root / study.manifest["template"]}
-    if study.manifest.get("template_labels"):
-        protected.add(root / study.manifest["template_labels"])
-    for p in resolved:
-        inside = root in p.parents
-        if p in protected or (inside and p.relative_to(root).parts[0] in
-                              PROTECTED_FOLDERS):
-            raise ValueError(f"{p}: would overwrite one of the study's own files; write the posed volume "
-                             "elsewhere (or in a new subfolder of the study)")
+    _refuse_study_files(study, resolved, "the posed volume")
     pose = read_target_pose(pose_path, study.skeleton())  # a bad pose file is reported before any loading
     if not study.has_template_labels:
         raise InputFileError(f"{study.root / MANIFEST}: the study has no template label map; `workbench deform` "
@@ -138,6 +145,7 @@ def surface_deform(folder, pose_path, out, *, method: str = "wpsd", overwrite: b
     if not out.parent.is_dir():
         raise ValueError(f"--out {out}: the folder {out.parent} does not exist")
     study = read_study(folder)
+    _refuse_study_files(study, [out.resolve()], "the posed mesh")
     pose = read_target_pose(pose_path, study.skeleton())  # a bad pose file is reported before any loading
     model = study.surface_model()
     t0 = time.perf_counter()

@@ -126,13 +126,16 @@ def write_table(table: Table, out: Path) -> list[Path]:
 REUSES = {"loo": ("table3", "table4")}
 
 
-def _protocol_in_worker(name: str, out: str, size: str, seed: int, with_peers: bool) -> tuple[dict, float]:
+def _protocol_in_worker(name: str, out: str, size: str, seed: int, with_peers: bool,
+                        quiet: bool = False) -> tuple[dict, float]:
     """One protocol in a worker process (``reproduce(..., workers > 1)``): its table as a dict, its seconds.
-    Progress goes to the worker's stderr, a line per event, prefixed with the protocol's name."""
+    Progress goes to the worker's stderr, a line per event, prefixed with the protocol's name (none when
+    ``quiet``)."""
     import sys
 
     def say(m):
-        print(f"reproduce [{name}]: {m}", file=sys.stderr, flush=True)
+        if not quiet:
+            print(f"reproduce [{name}]: {m}", file=sys.stderr, flush=True)
 
     runner = StudyRunner(Path(out), size=size, seed=seed, with_peers=with_peers, say=say)
     t0 = time.perf_counter()
@@ -147,8 +150,9 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
 
     ``workers`` > 1: the protocols that make their own studies run side by side in that many processes
     (Dask's multiprocessing scheduler), the biggest first, then those that reuse them (:data:`REUSES`); each
-    study is one process's, so the tables are the same as with one worker.  Their tables are emitted as
-    they are written, in ``names``' order.
+    study is one process's, so the tables are the same as with one worker.  Their tables are written and
+    emitted when every one of them is done (``dask.compute`` returns them together: a failure in one loses
+    the others' tables, not their studies, which a rerun reuses), in ``names``' order.
     """
     names = list(NAMES) if "all" in names else list(dict.fromkeys(names))
     unknown = [n for n in names if n not in PROTOCOLS]
@@ -178,7 +182,7 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
         if say is not None:
             say(f"{', '.join(order)} side by side in {min(int(workers), len(order))} processes")
         # Dask runs independent tasks in descending key order: the longest gets the largest key
-        tasks = [dask.delayed(_protocol_in_worker)(n, str(out), size, seed, with_peers,
+        tasks = [dask.delayed(_protocol_in_worker)(n, str(out), size, seed, with_peers, say is None,
                                                    dask_key_name=f"reproduce-{len(order) - i:02d}-{n}")
                  for i, n in enumerate(order)]
         # chunksize 1: Dask's process scheduler otherwise hands the tasks to one process in batches of six

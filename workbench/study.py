@@ -413,17 +413,25 @@ class Study:
         if not self.has_surface:
             raise StageOutputMissing(f"{self.root}: no surface model yet; run `workbench surface {self.root}`.",
                                      self.manifest_path)
-        doc = read_json(self.output("surface", "surface.json"))
+        path = self.output("surface", "surface.json")
+        doc = read_json(path)
+        stale = f"rebuild it with `workbench surface {self.root} --force`"
+        if doc.get("format") != "avw-surface" or not isinstance(doc.get("per_scan"), dict) or \
+                any("pose" not in doc["per_scan"].get(s, {}) for s in doc.get("scans", [])):
+            raise InputFileError(f"{path}: not a surface model of this version (no pose per fitted scan); {stale}.",
+                                 path)
         skin = self.output("surface", "template_skin.vtp")
         base = read_mesh(skin)
         try:
             bones, dense = weights_from_point_data(read_mesh_point_data(skin))
         except ValueError as e:
-            raise InputFileError(f"{skin}: {e}; rebuild it with `workbench surface {self.root} --force`.", skin)
+            raise InputFileError(f"{skin}: {e}; {stale}.", skin)
         weights = SkinningWeights.from_dense(dense, bones)
         ids = list(doc["scans"])
         meshes = [read_mesh(self.output("surface", f"{sid}_fitted.ply")) for sid in ids]
-        return SurfaceModel.from_meshes(base, weights, self.skeleton(), [self.pose(sid) for sid in ids], meshes)
+        # the poses the meshes were fitted with (a later `workbench pose` does not pair new poses with old meshes)
+        poses = [Pose.from_dict(doc["per_scan"][sid]["pose"]) for sid in ids]
+        return SurfaceModel.from_meshes(base, weights, self.skeleton(), poses, meshes)
 
     # -- validate stage ----------------------------------------------------------------------------
     def validation(self, scan_id: str) -> dict:

@@ -132,3 +132,24 @@ def test_consistent_mesh_takes_the_base_through_ssd_rbf_and_fit():
     assert np.linalg.norm(r["fitted"].vertices - truth, axis=1).mean() < 0.2
     with pytest.raises(ValueError, match="at least 4"):
         consistent_mesh(base, w, {"b": t}, target, feature_targets=np.full((base.n_vertices, 3), np.nan))
+
+
+def test_the_fits_solver_gives_the_same_bits_for_any_blas_thread_count():
+    """SciPy's cg takes its dot products from BLAS, which splits vectors of over 10 000 values across threads
+    (a 100 k-triangle skin has ~50 k vertices): the fit's own CG must not.  Each run is a fresh process, as
+    the BLAS thread count is fixed at start."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import hashlib, numpy as np, scipy.sparse as sp; from registration.surface_fit import _cg; n = 30000; "
+            "a = sp.diags([np.full(n - 1, -1.0), np.full(n, 4.0), np.full(n - 1, -1.0)], [-1, 0, 1]).tocsr(); "
+            "b = np.random.default_rng(0).normal(size=(n, 3)); x, it, ok = _cg(a, b, np.zeros((n, 3)), 1 / a.diagonal()); "
+            "assert ok and np.abs(a @ x - b).max() < 1e-8; print(hashlib.sha256(x.tobytes()).hexdigest())")
+    out = []
+    for threads in ("1", "2"):
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads}
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+        out.append(proc.stdout.strip())
+    assert out[0] == out[1]

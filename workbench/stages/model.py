@@ -127,4 +127,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="model", folder="model", per_scan=False, settings_type=ModelSettings, run=_run, needs=_needs,
-              inputs=_inputs, uses=lambda study, s: s.scans)
+              inputs=_inputs, uses=lambda study, s: s.scans, version=2)  # 2: the template's rest pose as an example

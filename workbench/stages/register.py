@@ -210,4 +210,4 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=6)  # 6: dense LNCC window 5 -> 3 mm
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=7)  # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC

@@ -61,11 +61,14 @@ class SurfaceSettings:
             raise ValueError(f"--target-triangles must be at least 100, got {self.target_triangles}")
         if int(self.n_features) < 4:
             raise ValueError(f"--features-count must be at least 4 (an RBF needs points), got {self.n_features}")
-        for name in ("stiffness", "max_distance_mm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(self, name)}")
+        if not self.stiffness > 0:
+            raise ValueError(f"--stiffness must be positive, got {self.stiffness}")
+        if not self.max_distance_mm > 0:
+            raise ValueError(f"surface.max_distance_mm (--set surface.max_distance_mm=MM) must be positive, got "
+                             f"{self.max_distance_mm}")
         if self.smooth_voxels < 0:
-            raise ValueError(f"--smooth-voxels must be ≥ 0, got {self.smooth_voxels}")
+            raise ValueError(f"surface.smooth_voxels (--set surface.smooth_voxels=V) must be ≥ 0, got "
+                             f"{self.smooth_voxels}")
         if self.scans is not None:
             object.__setattr__(self, "scans", tuple(str(v) for v in self.scans))
 
@@ -139,6 +142,7 @@ def _run(ctx) -> dict:
                               stiffness=s.stiffness)
         d = res["fit"].distance_mm
         doc["per_scan"][sid] = {**res["info"], "skin_triangles": target.n_triangles,
+                                "pose": pose.to_dict(),  # the pose the mesh was fitted with (surface_model reads it)
                                 "fit_distance_mm": {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)),
                                                     "max": float(d.max())},
                                 "feature_vertices": res["features"].tolist()}

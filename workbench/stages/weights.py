@@ -83,4 +83,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="weights", folder="skinning", per_scan=False, settings_type=WeightsSettings, run=_run,
-              needs=lambda s: ("bones",), inputs=_inputs)
+              needs=lambda s: ("bones",), inputs=_inputs, version=2)  # 2: a new mesh's surface decimated by Open3D
