@@ -224,7 +224,7 @@ def test_surface_stage_fits_every_scan_with_the_base_mesh_connectivity(done, tmp
     base = read_mesh(root / "surface" / "template_skin.vtp")
     w = read_mesh_point_data(root / "surface" / "template_skin.vtp")
     dense = np.stack([v for k, v in w.items() if k.startswith("weight_")], axis=1)
-    np.testing.assert_allclose(dense.sum(axis=1), 1.0, atol=1e-6)  # float32 weights summing to one
+    np.testing.assert_allclose(dense.sum(axis=1), 1.0, atol=1e-6)  # float32 weights (stored as float64) sum to one
     for sid in st.scan_ids:
         fitted = read_mesh(root / "surface" / f"{sid}_fitted.ply")
         assert np.array_equal(fitted.triangles, base.triangles)
