@@ -42,7 +42,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry
-from .posespace import PoseSpace, _chol_factor, _chol_subst, _weighted_sq, _width, dof_bones
+from .posespace import PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones
 from .skinning import SkinningWeights, _as_stack, blend_point
 
 if nb.config.THREADING_LAYER == "default":
@@ -104,8 +104,8 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
                 pair = pair_flat.reshape(P, P)
                 sig = _width(pair, P)  # Gaussian width: mean nearest-neighbour distance in this metric
                 inv = 1.0 / (sig * sig) if sig > 0.0 else 0.0
+                _query_kernel(phi, P, inv)
                 for q in range(P):
-                    phi[q] = np.exp(-phi[q] * inv)
                     for r in range(q + 1):
                         e = np.exp(-pair[q, r] * inv)
                         pair[q, r] = e

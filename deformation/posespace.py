@@ -114,7 +114,10 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
     phi = np.exp(-pair / sigma ** 2)
     dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
     try:
-        f = np.linalg.solve(phi, np.exp(-dq / sigma ** 2).T).T  # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹
+        # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹; φ scaled by exp(min dq / σ²), which Eq. 14's normalisation cancels:
+        # far from every example, the φ themselves underflow to 0 and s would be 0 / 0
+        dq = dq - dq.min(axis=1, keepdims=True)
+        f = np.linalg.solve(phi, np.exp(-dq / sigma ** 2).T).T
     except np.linalg.LinAlgError:
         raise ValueError("Φ of Kurihara Eq. 13 is singular: two training poses coincide in this pose distance "
                          "(drop one)") from None
@@ -154,6 +157,19 @@ class PoseSpace:
 
 
 # -- per-point (WPSD) pose weights ------------------------------------------------------------
+@nb.njit(cache=True, inline="always")
+def _query_kernel(phi, n, inv):
+    """φ_i = exp(−(d_i − min d) / σ²) in place from squared pose distances d (Kurihara Eq. 12): the common
+    factor exp(min d / σ²) cancels in Eq. 14's normalisation, and without it a pose far from every example
+    underflows every φ to 0 (s = 0 / 0)."""
+    m = np.inf
+    for i in range(n):
+        if phi[i] < m:
+            m = phi[i]
+    for i in range(n):
+        phi[i] = np.exp(-(phi[i] - m) * inv)
+
+
 @nb.njit(cache=True, inline="always")
 def _chol_factor(a, n):
     """In-place lower Cholesky factor of the SPD matrix a (n×n).  False if a is not positive definite."""
@@ -296,8 +312,7 @@ def _wpsd_weights(idx, val, bone_q, coef, inv_sigma2, out):
     for j in nb.prange(n):
         phi = np.empty(P)
         _weighted_sq(idx, val, j, bone_q, glob_q, phi)
-        for i in range(P):
-            phi[i] = np.exp(-phi[i] * inv_sigma2[j])
+        _query_kernel(phi, P, inv_sigma2[j])
         tot = 0.0
         for i in range(P):
             f = 0.0
@@ -391,8 +406,7 @@ def _wpsd_skin_kernel(base, idx, val, t, coef, inv_sigma2, bone_q, glob_q, out):
         phi = np.empty(P)
         _weighted_sq(idx, val, j, bone_q, glob_q, phi)
         inv = inv_sigma2[j]
-        for i in range(P):
-            phi[i] = np.exp(-phi[i] * inv)
+        _query_kernel(phi, P, inv)
         tot = 0.0
         u0 = 0.0
         u1 = 0.0

@@ -218,7 +218,11 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
                         fit = alt
                         how = f"{how}; refined from its candidate {rank} (flexion {ang_k[0]:.1f}°): the first was flagged"
         else:
-            fit = refine_surface(region, sampler, init, min_ncc=min_ncc)
+            # Kurihara §3's ICP, with the intensity method's prior on what the bone's shape leaves open
+            fit = refine_surface(region, sampler, init, min_ncc=min_ncc,
+                                 prior=None if joint is None or prior_deg is None else
+                                 (prior_center if prior_center is not None else init),
+                                 prior_deg=prior_deg, prior_mm=PRIOR_MM)
         fit.init = how
         if joint is not None:
             c = np.asarray(joint.center, float)

@@ -52,7 +52,7 @@ from deformation.geometry import Volume
 from deformation.isosurface import isosurface
 from deformation.transforms import apply, compose, rotation_angle_deg
 
-__all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish_with_prior", "ssd", "ncc", "PRIOR_MM",
+__all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish_with_prior", "surface_prior", "ssd", "ncc", "PRIOR_MM",
            "coarse_rotation_search", "refine_intensity", "refine_surface", "auto_iso_level"]
 
 
@@ -720,17 +720,66 @@ def _crop_around(scan: Volume, points: np.ndarray, margin_mm: float) -> Volume |
     return crop if min(crop.geometry.size) >= 2 else None
 
 
+def surface_prior(points: np.ndarray, normals: np.ndarray, fitted: np.ndarray, prior: np.ndarray,
+                  centroid: np.ndarray, sigma_mm: float, *, prior_deg: float | None = 2.0,
+                  prior_mm: float | None = PRIOR_MM) -> tuple[np.ndarray, dict]:
+    """ICP's result combined with :func:`polish_with_prior`'s Gaussian prior (MAP).
+
+    A bone nearly symmetric about its length (a phalanx) leaves point-to-plane ICP flat along that rotation:
+    each surface point's ``(q − c) × n`` is perpendicular to the axis of a surface of revolution, so ICP keeps
+    whatever roll its start or the noise gave (the CT hand's distal phalanges 10–40° off in roll with their
+    centroids within 0.1 mm).  About the ICP fit, the point-to-plane residuals of the template's bone surface
+    ``points`` (with ``normals``) give the information ``H = JᵀJ / σ²`` about an increment ``x`` (rotation
+    vector in degrees about the fitted centroid ``c``, translation mm, applied after the fit;
+    ``J_i = [(q_i − c) × m_i · π/180, m_i]`` at the fitted points ``q_i`` and normals ``m_i``; ``σ`` the fit's
+    RMS point-to-plane distance).  The prior ``N(prior, diag(τ_θ², τ_t²))`` is the intensity method's (the
+    parent turned by the joint's flexion).  We minimise ``xᵀHx + |Λ^½ log(D(x) ∘ fitted ∘ prior⁻¹)|²`` (the
+    prior's residual exact in the rotation, so that a large roll is removed about the *fitted* axis, along
+    which ``H`` is exactly flat): directions the surface fixes keep ICP's value (their information is orders
+    of magnitude above ``1/τ²``), undetermined ones go to the prior.  Returns the transform and the
+    posterior's largest rotation standard deviation (degrees).
+    """
+    from scipy.optimize import least_squares
+
+    c = apply(fitted, centroid)
+    q = apply(fitted, points)
+    m = normals @ fitted[:3, :3].T
+    j = np.hstack([np.cross(q - c, m) * (np.pi / 180.0), m]) / max(float(sigma_mm), 1e-6)
+    h = j.T @ j
+    ev, vec = np.linalg.eigh(h)
+    root = vec * np.sqrt(np.clip(ev, 0.0, None))  # h = root rootᵀ
+    w = np.array([0.0 if prior_deg is None else 1 / prior_deg] * 3 + [0.0 if prior_mm is None else 1 / prior_mm] * 3)
+    cp = apply(prior, centroid)
+
+    def from_prior(x):
+        d = compose(_increment(x, fitted, c), np.linalg.inv(prior))
+        return np.concatenate([np.degrees(Rotation.from_matrix(d[:3, :3]).as_rotvec()), apply(d, cp) - cp])
+
+    res = least_squares(lambda x: np.concatenate([root.T @ x, w * from_prior(x)]), np.zeros(6), method="lm",
+                        xtol=1e-12, ftol=1e-12)
+    t = _increment(res.x, fitted, c)
+    cov = np.linalg.inv(h + np.diag(w ** 2))
+    return t, {"prior_deg": prior_deg, "prior_mm": prior_mm, "residual_sigma_mm": float(sigma_mm),
+               "rotation_sd_deg": float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))),
+               "change_from_icp_deg": rotation_angle_deg(compose(t, np.linalg.inv(fitted)))}
+
+
 def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, level: float | None = None,
-                   min_ncc: float = 0.5, min_inside: float = 0.5, min_fitness: float = 0.5) -> BoneFit:
+                   min_ncc: float = 0.5, min_inside: float = 0.5, min_fitness: float = 0.5,
+                   prior: np.ndarray | None = None, prior_deg: float | None = 2.0,
+                   prior_mm: float | None = PRIOR_MM) -> BoneFit:
     """Kurihara §3: ICP of the bone's isosurface (template) onto the scan's isosurface near it.
 
     Source: the template's ``level`` isosurface inside the bone's region;
     target: the scan's isosurface at the same level in a box around the
-    initialised bone.  ``level`` defaults to :func:`auto_iso_level`.
+    initialised bone.  ``level`` defaults to :func:`auto_iso_level`.  With a ``prior`` (the transform the
+    hierarchy expects: a child bone's parent turned by its joint's flexion), the ICP fit is combined with
+    it by :func:`surface_prior`, so a rotation the bone's shape cannot fix (a phalanx's roll) is not noise.
     """
     import time
 
     from registration.icp import icp_point_to_plane
+    from registration.surface_fit import vertex_normals
 
     t0 = time.perf_counter()
     scan = sampler.image
@@ -740,11 +789,13 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
                        stop=f"only {inside0:.0%} of the bone region maps inside the scan at the initialisation",
                        seconds=time.perf_counter() - t0)
     lvl = auto_iso_level(region) if level is None else float(level)
-    src = isosurface(region.crop, lvl).vertices
+    mesh = isosurface(region.crop, lvl)
+    src, src_n = mesh.vertices, vertex_normals(mesh.vertices, mesh.triangles)
     if len(src):
         ijk = np.rint(region.crop.geometry.world_to_index(src)).astype(int)
         ijk = np.clip(ijk, 0, np.asarray(region.crop.geometry.size) - 1)
-        src = src[region.mask[ijk[:, 2], ijk[:, 1], ijk[:, 0]]]
+        inside = region.mask[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+        src, src_n = src[inside], src_n[inside]
     spacing = float(max(scan.geometry.spacing))
     sub = _crop_around(scan, apply(init, region.points), 4.0 * spacing)
     tgt = isosurface(sub, lvl).vertices if sub is not None else np.zeros((0, 3))
@@ -757,5 +808,10 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
     res = icp_point_to_plane(src, tgt, init=init, distances_mm=(3 * d, 2 * d, d, 0.5 * d),
                              normals_radius_mm=2.5 * d, min_fitness=min_fitness)
     extra.update({"fitness": res.fitness, "inlier_rmse_mm": res.inlier_rmse_mm})
-    return _finish(region, sampler, res.transform, "surface", before, sum(1 for _ in res.stages), res.message, t0,
+    t = res.transform
+    if prior is not None and res.converged:
+        t, info = surface_prior(src, src_n, t, np.asarray(prior, float), region.centroid,
+                                max(res.inlier_rmse_mm, 0.05 * spacing), prior_deg=prior_deg, prior_mm=prior_mm)
+        extra.update(info)
+    return _finish(region, sampler, t, "surface", before, sum(1 for _ in res.stages), res.message, t0,
                    min_ncc=min_ncc, min_inside=min_inside, not_converged=not res.converged, extra=extra)

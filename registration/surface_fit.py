@@ -44,9 +44,9 @@ import scipy.sparse as sp
 from deformation.mesh import SurfaceMesh
 
 __all__ = ["closest_points", "vertex_normals", "fit_nearest", "fit_regularised", "FitResult", "umbrella_laplacian",
-           "farthest_points", "consistent_mesh", "FEATURE_SOURCES", "FITS"]
+           "farthest_points", "consistent_mesh", "landmark_sites", "on_mesh", "FEATURE_SOURCES", "FITS"]
 
-FEATURE_SOURCES = ("registration", "closest")  #: where the RBF feature points' targets come from
+FEATURE_SOURCES = ("registration", "closest", "landmarks")  #: where the RBF feature points' targets come from
 FITS = ("regularised", "nearest")
 
 
@@ -229,18 +229,56 @@ def fit_regularised(start: SurfaceMesh, target: SurfaceMesh, *, stiffness: float
                       "cg_converged": cg_ok})
 
 
+def landmark_sites(base: SurfaceMesh, template_points, *, max_snap_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where landmarks picked on the template's skin lie on ``base`` (S0): each point's closest point on its
+    triangles as ``(triangle index (k,), barycentric coordinates (k, 3))``, so that any mesh with S0's
+    connectivity carries the landmark (the SSD mesh: the RBF's centres).  A point farther than
+    ``max_snap_mm`` from S0, or two within 0.1 mm of each other (the RBF's system would be singular), is
+    refused."""
+    from scipy.spatial import cKDTree
+
+    tp = np.asarray(template_points, float).reshape(-1, 3)
+    p, d, tri = closest_points(base, tp)
+    far = np.flatnonzero(d > max_snap_mm)
+    if len(far):
+        raise ValueError(f"landmark {int(far[0])} lies {d[far[0]]:.1f} mm from the template's skin mesh (more than "
+                         f"{max_snap_mm:g} mm): pick it on the skin")
+    pairs = cKDTree(p).query_pairs(0.1, output_type="ndarray")
+    if len(pairs):
+        raise ValueError(f"landmarks {int(pairs[0][0])} and {int(pairs[0][1])} are within 0.1 mm of each other on "
+                         "the skin: drop one of them")
+    v = base.vertices[base.triangles[tri]]  # (k, 3 corners, 3)
+    e0, e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], p - v[:, 0]
+    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
+    d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
+    den = np.where(np.abs(d00 * d11 - d01 ** 2) > 0, d00 * d11 - d01 ** 2, 1.0)
+    b1 = (d11 * d20 - d01 * d21) / den
+    b2 = (d00 * d21 - d01 * d20) / den
+    return tri.astype(np.int64), np.stack([1.0 - b1 - b2, b1, b2], axis=1)
+
+
+def on_mesh(mesh_vertices: np.ndarray, triangles: np.ndarray, sites: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The points ``sites`` (triangle, barycentric; :func:`landmark_sites`) on a mesh with these vertices."""
+    tri, bary = sites
+    return np.einsum("kc,kcd->kd", bary, np.asarray(mesh_vertices, float)[triangles[tri]])
+
+
 def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh, *, feature_targets=None,
-                    n_features: int = 150, fit: str = "regularised", rbf_length_mm: float | None = None,
-                    max_distance_mm: float = 5.0, max_angle_deg: float = 60.0, stiffness: float = 1.0) -> dict:
+                    landmarks=None, n_features: int = 150, fit: str = "regularised",
+                    rbf_length_mm: float | None = None, max_distance_mm: float = 5.0, max_angle_deg: float = 60.0,
+                    stiffness: float = 1.0) -> dict:
     """Kurihara §4 for one scan: ``S_0`` (``base``, its vertices' skinning ``weights``) → SSD with the scan's
     bone ``transforms`` (Eq. 2–3) → RBF feature-point deformation (Eq. 4–5) → fit to the scan's surface
     ``target`` (:func:`fit_regularised` or the paper's :func:`fit_nearest`).
 
-    Feature points: ``n_features`` vertices spread over the mesh (:func:`farthest_points`) among those with
-    a target — ``feature_targets`` ``(n_vertices, 3)`` world mm (e.g. where the volume registration puts
-    each base vertex in the scan; NaN rows: none), or, when None, the confident closest points of the SSD
-    mesh on ``target`` (near, facing the same way, along the normal).  Returns the ``ssd``, ``rbf`` and
-    ``fitted`` meshes, the :class:`FitResult`, the feature indices and their targets.
+    Feature points: ``landmarks`` ``(sites, scan points)`` — points picked on the template's skin
+    (:func:`landmark_sites` on S0) and where they are in the scan, every one a feature point (Kurihara's
+    hand-picked points) — or ``n_features`` vertices spread over the mesh (:func:`farthest_points`) among
+    those with a target: ``feature_targets`` ``(n_vertices, 3)`` world mm (e.g. where the volume registration
+    puts each base vertex in the scan; NaN rows: none), or, when None, the confident closest points of the
+    SSD mesh on ``target`` (near, facing the same way, along the normal).  Returns the ``ssd``, ``rbf`` and
+    ``fitted`` meshes, the :class:`FitResult`, the feature indices (for landmarks: the vertex nearest each)
+    and their targets.
     """
     from deformation.skinning import lbs
     from deformation.splines import KURIHARA_D_MM, RBFDeformation
@@ -248,23 +286,33 @@ def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh,
     if fit not in FITS:
         raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
     ssd = SurfaceMesh(lbs(base.vertices, weights, transforms), base.triangles)
-    if feature_targets is not None:
-        tgt = np.asarray(feature_targets, float).reshape(-1, 3)
-        if len(tgt) != base.n_vertices:
-            raise ValueError(f"{len(tgt)} feature targets for a base mesh of {base.n_vertices} vertices")
-        has = np.isfinite(tgt).all(axis=1)
-        source = "given targets"
+    if landmarks is not None:
+        sites, tgt = landmarks[0], np.asarray(landmarks[1], float).reshape(-1, 3)
+        if len(tgt) != len(sites[0]) or len(tgt) < 4:
+            raise ValueError(f"{len(sites[0])} landmark sites and {len(tgt)} scan points: one each, at least 4")
+        centres = on_mesh(ssd.vertices, base.triangles, sites)
+        corner = np.argmax(sites[1], axis=1)
+        idx = base.triangles[sites[0], corner]
+        source = "landmarks"
     else:
-        scene = _scene(target)
-        tgt, has = _confident_targets(ssd.vertices, vertex_normals(ssd.vertices, ssd.triangles), target, scene,
-                                      triangle_normals(target.vertices, target.triangles), max_distance_mm,
-                                      np.cos(np.deg2rad(max_angle_deg)))
-        source = "confident closest points"
-    idx = farthest_points(base.vertices, n_features, candidates=has)
-    if len(idx) < 4:
-        raise ValueError(f"only {len(idx)} vertices have a feature target ({source}); at least 4 are needed "
-                         "(try the other --features source)")
-    rbf = RBFDeformation(ssd.vertices[idx], tgt[idx], D=KURIHARA_D_MM if rbf_length_mm is None else rbf_length_mm)
+        if feature_targets is not None:
+            tgt = np.asarray(feature_targets, float).reshape(-1, 3)
+            if len(tgt) != base.n_vertices:
+                raise ValueError(f"{len(tgt)} feature targets for a base mesh of {base.n_vertices} vertices")
+            has = np.isfinite(tgt).all(axis=1)
+            source = "given targets"
+        else:
+            scene = _scene(target)
+            tgt, has = _confident_targets(ssd.vertices, vertex_normals(ssd.vertices, ssd.triangles), target, scene,
+                                          triangle_normals(target.vertices, target.triangles), max_distance_mm,
+                                          np.cos(np.deg2rad(max_angle_deg)))
+            source = "confident closest points"
+        idx = farthest_points(base.vertices, n_features, candidates=has)
+        if len(idx) < 4:
+            raise ValueError(f"only {len(idx)} vertices have a feature target ({source}); at least 4 are needed "
+                             "(try the other --features source)")
+        centres, tgt = ssd.vertices[idx], tgt[idx]
+    rbf = RBFDeformation(centres, tgt, D=KURIHARA_D_MM if rbf_length_mm is None else rbf_length_mm)
     rbf_mesh = SurfaceMesh(rbf(ssd.vertices), base.triangles)
     if fit == "nearest":
         res = fit_nearest(rbf_mesh, target)
@@ -272,6 +320,6 @@ def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh,
         res = fit_regularised(rbf_mesh, target, stiffness=stiffness, max_distance_mm=max_distance_mm,
                               max_angle_deg=max_angle_deg)
     return {"ssd": ssd, "rbf": rbf_mesh, "fitted": res.mesh, "fit": res, "features": idx,
-            "feature_targets": tgt[idx], "info": {"features": int(len(idx)), "feature_source": source,
+            "feature_targets": tgt, "info": {"features": int(len(idx)), "feature_source": source,
                                                   "fit": fit, "rbf_residual_mm": float(rbf.fit_residual_mm),
                                                   **{k: v for k, v in res.info.items() if k != "method"}}}

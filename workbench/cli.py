@@ -82,6 +82,9 @@ definition of every measure, and prints it:
               registrations, both against the held-out truth (knee and hand)
   eigenposes  principal components of 71 documented grasp/sign/gesture hand poses
   kurihara    Kurihara Eq. 1 joint centres of a CT hand in 5 poses (ICP of bones)
+  kurihara_skin  Kurihara §4-5 on the same study: fitted skin meshes against the true
+              skin, touching fingers (nearest vs regularised fit), leave one pose out
+              and one finger alone by SSD, PSD and WPSD
   all         every one of them
 
 A second run into the same DIR reuses every finished stage (loo reuses the
@@ -198,7 +201,8 @@ hand: ~100k).  For each scan: S0 posed by SSD with the scan's estimated bone
 transforms (Eq. 2-3), moved by RBF feature points (Eq. 4-5: --features
 registration takes their targets from `workbench register`'s map of the
 template onto the scan, --features closest from confident closest points on
-the scan's skin; the paper picked 70-150 by hand), then fitted to the scan's
+the scan's skin, --landmarks FILE from points picked on the template's and
+each scan's skin, as the paper did: 70-150 per pose), then fitted to the scan's
 skin: --fit regularised (default) follows the skin where it is seen and keeps
 the mesh's shape where it is not (fingers touching), --fit nearest is the
 paper's nearest-point fit.  Every fitted mesh has S0's connectivity, so
@@ -213,6 +217,7 @@ register for --features registration).
 Example:
   workbench surface hand-study
   workbench surface hand-study --fit nearest --force
+  workbench surface hand-study --landmarks picked.csv
 """
 
 SURFACE_DEFORM_HELP = """Pose Kurihara's surface model (workbench surface's meshes) and write the skin.
@@ -501,8 +506,13 @@ def build_parser() -> argparse.ArgumentParser:
     su.add_argument("study", type=Path, help="study folder (holding study.json)")
     su.add_argument("--target-triangles", type=int, default=argparse.SUPPRESS, metavar="N",
                     help="decimate S0 and the scans' skins to about N triangles. Default: 100000")
-    su.add_argument("--features", choices=["registration", "closest"], default=argparse.SUPPRESS,
-                    help="targets of the RBF feature points. Default: registration")
+    su.add_argument("--features", choices=["registration", "closest", "landmarks"], default=argparse.SUPPRESS,
+                    help="targets of the RBF feature points. Default: registration (landmarks with --landmarks)")
+    su.add_argument("--landmarks", type=Path, default=argparse.SUPPRESS, metavar="FILE",
+                    help="landmark pairs picked on the template's skin and each scan's (JSON "
+                         '{"format": "avw-landmarks", "scans": {id: [{"template": [x,y,z], "scan": [x,y,z]}]}} or '
+                         "CSV scan,template_x,template_y,template_z,scan_x,scan_y,scan_z; mm): every one is a "
+                         "feature point")
     su.add_argument("--features-count", dest="n_features", type=int, default=argparse.SUPPRESS, metavar="N",
                     help="feature points per scan, spread over S0. Default: 150")
     su.add_argument("--fit", choices=["regularised", "nearest"], default=argparse.SUPPRESS,
@@ -690,8 +700,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("reproduce", help="reproduce the papers' tables on phantoms (CSV, Markdown, JSON per table)",
                         description=REPRODUCE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     rp.add_argument("tables", nargs="+", metavar="TABLE",
-                    choices=["table2", "table3", "table4", "loo", "eigenposes", "kurihara", "all"],
-                    help="table2, table3, table4, loo, eigenposes, kurihara, or all")
+                    choices=["table2", "table3", "table4", "loo", "eigenposes", "kurihara", "kurihara_skin", "all"],
+                    help="table2, table3, table4, loo, eigenposes, kurihara, kurihara_skin, or all")
     rp.add_argument("--out", type=Path, required=True, metavar="DIR",
                     help="folder for the tables (<table>.csv/.md/.json) and the phantom studies they run on "
                          "(DIR/studies/); an existing folder's finished stages are reused")
@@ -917,9 +927,18 @@ def cmd_model(args) -> int:
 
 
 def cmd_surface(args) -> int:
-    ss = _given(args, args.study, "surface", {k: (k, _same) for k in ("target_triangles", "features", "n_features",
-                                                                      "fit", "stiffness")})
+    ss = _given(args, args.study, "surface", {**{k: (k, _same) for k in ("target_triangles", "features", "n_features",
+                                                                         "fit", "stiffness")},
+                                              "landmarks": ("landmarks", lambda p: str(Path(p).resolve()))},
+                implied={"features": "landmarks"} if hasattr(args, "landmarks") else
+                {"landmarks": None} if getattr(args, "features", "landmarks") != "landmarks" else None)
     ss = dataclasses.replace(ss, scans=tuple(args.scan) if args.scan else None)
+    if ss.landmarks is not None:  # a bad landmarks file is reported before the stages it needs run
+        from workbench.io.inputs import read_landmarks
+        from workbench.study import read_study
+
+        st = read_study(args.study)
+        read_landmarks(ss.landmarks, st.check_scan_ids(ss.scans))
     study, out = _stages(args, ["surface"], {"surface": ss}, force={"surface"} if args.force else ())
     doc = _read_output(study, "surface", "surface.json")
     t = doc["template"]

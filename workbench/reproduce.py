@@ -55,10 +55,17 @@ class StudyRunner:
         folder = self.out / "studies" / f"{name}-{self.size}"
         if folder.exists():
             study = read_study(folder)
-            recorded = {k: v for k, v in (study.manifest.get("phantom") or {}).items() if k in spec.to_dict()}
-            if recorded != spec.to_dict():
-                raise WorkbenchError(f"{folder}: a study of another phantom ({recorded}) is in the way of "
-                                     f"{spec.to_dict()}; remove the folder or give another --out")
+            got = study.manifest.get("phantom") or {}
+            want = spec.to_dict()
+            differ = [k for k in want if got.get(k) != want[k]]
+            if spec.poses is not None and not _same_poses(got.get("poses"), spec.poses):
+                differ.append("poses")
+            if differ:
+                raise WorkbenchError(f"{folder}: a study of another phantom is in the way (its "
+                                     f"{', '.join(f'{k}={got.get(k)!r}' if k != 'poses' else 'poses' for k in differ)}"
+                                     f"; wanted {', '.join(f'{k}={want[k]!r}' for k in differ if k != 'poses')}"
+                                     f"{' other poses' if 'poses' in differ else ''}); remove the folder or give "
+                                     f"another --out")
         else:
             self.say(f"{name}: writing the {spec.region} phantom study ({self.size} size) to {folder}")
             t0 = time.perf_counter()
@@ -70,6 +77,24 @@ class StudyRunner:
         run_stages(study, list(targets), settings=given, progress=self._progress)
         self.say(f"{name}: stages up to {', '.join(targets)} done in {time.perf_counter() - t0:.0f} s")
         return study.reload()
+
+
+def _same_poses(recorded, poses) -> bool:
+    """Whether a manifest's recorded phantom poses (``[{"id", "angles_deg"}]``) are the explicit ``poses``."""
+    import numpy as np
+
+    try:
+        rec = {p["id"]: p["angles_deg"] for p in recorded}
+    except (TypeError, KeyError):
+        return False
+    if list(rec) != [str(pid) for pid, _ in poses]:
+        return False
+    for pid, a in poses:
+        r = rec[str(pid)]
+        for k, v in a.items():
+            if k not in r or not np.allclose(np.ravel(r[k])[:len(np.ravel(v))], np.ravel(v), atol=1e-9):
+                return False
+    return True
 
 
 def _cell(v, decimals: int) -> str:
@@ -123,7 +148,7 @@ def write_table(table: Table, out: Path) -> list[Path]:
 
 #: protocols that reuse other protocols' studies (loo: table3's and table4's registrations): with several
 #: workers they run after the others, in the main process
-REUSES = {"loo": ("table3", "table4")}
+REUSES = {"loo": ("table3", "table4"), "kurihara_skin": ("kurihara",)}
 
 
 def _protocol_in_worker(name: str, out: str, size: str, seed: int, with_peers: bool,

@@ -402,6 +402,15 @@ class Study:
     def has_surface(self) -> bool:
         return self.has_output("surface", "surface.json")
 
+    def surface_mesh(self, scan_id: str, kind: str = "fitted"):
+        """A mesh of the surface stage for a scan: ``kind`` "fitted" (S^f, S0's connectivity), "rbf", "ssd" or
+        "skin" (the scan's own skin)."""
+        from workbench.io.meshes import read_mesh
+
+        if kind not in ("fitted", "rbf", "ssd", "skin"):
+            raise ValueError(f"kind must be fitted, rbf, ssd or skin, got {kind!r}")
+        return read_mesh(self.output("surface", f"{scan_id}_{kind}.ply"))
+
     def surface_model(self):
         """Kurihara's surface model (``workbench surface``): S0 with its vertices' weights, the fitted meshes of
         the scans and their estimated poses, as a :class:`deformation.surface_model.SurfaceModel`."""

@@ -10,7 +10,7 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.skeleton import Bone, Joint, Skeleton
 from deformation.transforms import apply, compose, invert, rotation_about_point, rotation_angle_deg
 from registration.rigid import (Sampler, bone_regions, coarse_rotation_search, polish_with_prior,
-                                refine_intensity, refine_surface)
+                                refine_intensity, refine_surface, surface_prior)
 
 # Anisotropic, rotated grids (world mm), as real scans have.
 DIRECTION = Rotation.from_euler("xyz", [8, -5, 12], degrees=True).as_matrix()
@@ -265,6 +265,54 @@ def test_surface_registration_recovers_a_known_motion(template):
     # issue asks of ICP.
     assert fit.method == "surface" and fit.ok, fit.stop
     assert rot < 0.5 and tr < 0.3, (rot, tr)
+
+
+def capsule(radius=3.0, half_length=8.0, n=40):
+    """Points and outward normals on a capsule along x (a phalanx-like surface of revolution), centred at 0."""
+    phi = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    xs = np.linspace(-half_length, half_length, n)
+    ring = np.stack([np.zeros_like(phi), np.cos(phi), np.sin(phi)], axis=1)
+    side = np.concatenate([ring * radius + [x, 0, 0] for x in xs])
+    side_n = np.concatenate([ring] * n)
+    caps, caps_n = [], []
+    for sign in (-1.0, 1.0):
+        for th in np.linspace(0.1, np.pi / 2, 8):
+            nrm = np.cos(th) * ring + [sign * np.sin(th), 0.0, 0.0]
+            caps.append(nrm * radius + [sign * half_length, 0, 0])
+            caps_n.append(nrm)
+    return np.concatenate([side, *caps]), np.concatenate([side_n, *caps_n])
+
+
+def test_surface_prior_keeps_what_icp_fixes_and_takes_the_prior_where_it_cannot():
+    """ICP's result on a surface of revolution: its roll about the axis is unobservable (each point's
+    (q − c) × n is perpendicular to the axis), so the MAP turns it about the fitted axis to where it is
+    closest to the prior; the axis and the centroid, which the surface fixes, stay where ICP put them."""
+    pts, nrm = capsule()
+    c0 = np.array([5.0, -3.0, 2.0])
+    pts = pts + c0
+    prior = motion([10.0, -5.0, 20.0], [3.0, 1.0, -2.0])
+    a0 = np.array([1.0, 0.0, 0.0])
+    axis = prior[:3, :3] @ a0
+    tilt = prior[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    fitted = compose(motion(25.0 * axis + 4.0 * tilt, [0.5, -0.2, 0.3], center=apply(prior, c0)), prior)
+    t, info = surface_prior(pts, nrm, fitted, prior, c0, 0.1, prior_deg=2.0, prior_mm=2.0)
+    # what the surface fixes (information ≥ 1e4 per deg² with σ = 0.1 mm against the prior's 1/4, which
+    # pulls it by ~ offset × 1/(4·1e4), offsets ≤ 25°): the fitted axis within 0.01°, the centroid 0.01 mm
+    ax_t, ax_f = t[:3, :3] @ a0, fitted[:3, :3] @ a0
+    assert np.degrees(np.arccos(min(1.0, ax_t @ ax_f))) < 0.01
+    assert np.allclose(apply(t, c0), apply(fitted, c0), atol=0.01)
+    # the roll about that axis is the one closest to the prior: turning either way moves away from it
+    def from_prior(m):
+        return rotation_angle_deg(compose(m, invert(prior)))
+
+    c = apply(t, c0)
+    best = from_prior(t)
+    for turn in (-0.5, 0.5):
+        assert from_prior(compose(motion(turn * ax_t, [0, 0, 0], center=c), t)) > best + 1e-4
+    # which leaves only the tilt: 4° from the prior (ICP's 25° roll is gone), the posterior's sd the prior's 2°
+    assert abs(best - 4.0) < 0.05, best
+    assert abs(info["change_from_icp_deg"] - 25.0) < 0.5
+    assert abs(info["rotation_sd_deg"] - 2.0) < 1e-6
 
 
 def test_robust_polish_discounts_tissue_that_does_not_follow_the_bone(template):

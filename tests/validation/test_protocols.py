@@ -35,7 +35,7 @@ def test_table_round_trip_keeps_numbers_and_turns_nan_into_none():
 
 
 def test_every_protocol_is_registered():
-    assert set(PROTOCOLS) == {"table2", "table3", "table4", "loo", "eigenposes", "kurihara"}
+    assert set(PROTOCOLS) == {"table2", "table3", "table4", "loo", "eigenposes", "kurihara", "kurihara_skin"}
 
 
 # -- the pose library --------------------------------------------------------------------------------------

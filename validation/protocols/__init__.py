@@ -7,6 +7,7 @@
 ``loo``         leave one scan out: VBD vs EVD from the others' registrations (Rhee Figs. 11–12)
 ``eigenposes``  principal components of a 71-pose hand library (Rhee §6.2)
 ``kurihara``    Kurihara Eq. 1 joint centres of the CT hand in 5 poses
+``kurihara_skin`` Kurihara §4–5: consistent skin meshes, SSD / PSD / WPSD, on the same study
 ==============  =====================================================================================
 
 Each protocol is ``f(runner) -> Table`` (:class:`~validation.protocols.table.Table`).
@@ -22,6 +23,7 @@ supplies the runner.  A runner has
   runner's), ``settings`` ``{stage: {setting: value}}``.  The same name,
   phantom and settings give the same study, whose finished stages are reused;
 * ``size`` (``"test"`` or ``"paper"``): the phantoms' grid;
+* ``seed``: the phantoms' seed (a protocol that measures against the phantom itself rebuilds it);
 * ``with_peers`` (bool): also run the general-purpose registrations;
 * ``say(message)``: a progress line.
 """
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 from .eigenposes import eigenposes
 from .kurihara import kurihara
+from .kurihara_skin import kurihara_skin
 from .loo import loo
 from .registration import table2, table3, table4
 from .table import DEFINITIONS, Column, Table
@@ -37,4 +40,4 @@ from .table import DEFINITIONS, Column, Table
 __all__ = ["PROTOCOLS", "Table", "Column", "DEFINITIONS"]
 
 PROTOCOLS = {"table2": table2, "table3": table3, "table4": table4, "loo": loo, "eigenposes": eigenposes,
-             "kurihara": kurihara}
+             "kurihara": kurihara, "kurihara_skin": kurihara_skin}

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FINGER_SHAPES", "THUMB_SHAPES", "SPREADS", "LIBRARY", "RANGE_OF_MOTION", "library_angles",
+__all__ = ["FINGER_SHAPES", "THUMB_SHAPES", "SPREADS", "LIBRARY", "RANGE_OF_MOTION", "library_angles", "hand_angles",
            "check_range", "FINGERS"]
 
 FINGERS = ("index", "middle", "ring", "little")
@@ -170,25 +170,30 @@ def _range_key(joint: str) -> str:
     return joint.rsplit("_", 1)[1]
 
 
+def hand_angles(skeleton, thumb: str, shapes, spread) -> dict:
+    """Joint angles for the hand ``skeleton`` from a :data:`THUMB_SHAPES` name, four :data:`FINGER_SHAPES`
+    names (index, middle, ring, little) and a :data:`SPREADS` name or four MCP abductions (degrees)."""
+    a = {j.name: np.zeros(j.dof) for j in skeleton.joints}
+    abds = SPREADS[spread] if isinstance(spread, str) else tuple(float(v) for v in spread)
+    for finger, shape, abd in zip(FINGERS, shapes, abds):
+        mcp, pip, dip = FINGER_SHAPES[shape]
+        a[f"{finger}_mcp"][:3] = (mcp, abd, 0.0)
+        a[f"{finger}_pip"][0] = pip
+        a[f"{finger}_dip"][0] = dip
+        # the ring and little metacarpals cup the palm in a grasp (their CMC joints), ~ their MCP flexion / 6
+        if finger in ("ring", "little"):
+            a[f"{finger}_cmc"][0] = (0.1 if finger == "ring" else 0.2) * mcp
+    cmc, mcp, ip = THUMB_SHAPES[thumb]
+    a["thumb_cmc"][:3] = cmc
+    a["thumb_mcp"][0] = mcp
+    a["thumb_ip"][0] = ip
+    return a
+
+
 def library_angles(skeleton) -> list[tuple[str, str, dict]]:
     """Every library pose as ``(name, source, {joint: angles})`` for the hand ``skeleton`` (its joint DOFs)."""
-    out = []
-    for name, source, thumb, shapes, spread in LIBRARY:
-        a = {j.name: np.zeros(j.dof) for j in skeleton.joints}
-        for finger, shape, abd in zip(FINGERS, shapes, SPREADS[spread]):
-            mcp, pip, dip = FINGER_SHAPES[shape]
-            a[f"{finger}_mcp"][:3] = (mcp, abd, 0.0)
-            a[f"{finger}_pip"][0] = pip
-            a[f"{finger}_dip"][0] = dip
-            # the ring and little metacarpals cup the palm in a grasp (their CMC joints), ~ their MCP flexion / 6
-            if finger in ("ring", "little"):
-                a[f"{finger}_cmc"][0] = (0.1 if finger == "ring" else 0.2) * mcp
-        cmc, mcp, ip = THUMB_SHAPES[thumb]
-        a["thumb_cmc"][:3] = cmc
-        a["thumb_mcp"][0] = mcp
-        a["thumb_ip"][0] = ip
-        out.append((name, source, a))
-    return out
+    return [(name, source, hand_angles(skeleton, thumb, shapes, spread))
+            for name, source, thumb, shapes, spread in LIBRARY]
 
 
 def check_range(angles: dict) -> list[str]:

@@ -17,7 +17,11 @@ from registration.segmentation import SEEDS_FORMAT
 from workbench.errors import InputFileError
 from workbench.io.jsonio import read_json
 
-__all__ = ["read_target_pose", "read_seeds", "read_initial_poses", "read_poses_file", "SEEDS_FORMAT"]
+__all__ = ["read_target_pose", "read_seeds", "read_initial_poses", "read_poses_file", "read_landmarks",
+           "SEEDS_FORMAT", "LANDMARKS_FORMAT"]
+
+LANDMARKS_FORMAT = "avw-landmarks"
+LANDMARKS_CSV_HEADER = ("scan", "template_x", "template_y", "template_z", "scan_x", "scan_y", "scan_z")
 
 
 def read_target_pose(path, skeleton) -> Pose:
@@ -121,3 +125,68 @@ def read_poses_file(path) -> tuple:
             angles[joint] = values
         out.append((pid, angles))
     return tuple(out)
+
+
+def read_landmarks(path, scan_ids=None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Skin landmarks picked on the template and on each scan (Kurihara §4's feature points), world mm:
+    ``{scan: (template points (k, 3), scan points (k, 3))}``.
+
+    JSON: ``{"format": "avw-landmarks", "scans": {"<scan id>": [{"template": [x, y, z], "scan": [x, y, z]},
+    ...]}}``; or CSV with the header ``scan,template_x,template_y,template_z,scan_x,scan_y,scan_z``.  Every scan
+    of ``scan_ids`` needs at least 4 landmarks (an RBF needs points); unknown scan ids are refused.
+    """
+    import csv
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: no such landmarks file; give --landmarks an existing .json or .csv file.",
+                             path)
+    pairs: dict[str, list] = {}
+    if path.suffix.lower() == ".csv":
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+        if not rows or tuple(c.strip() for c in rows[0]) != LANDMARKS_CSV_HEADER:
+            raise InputFileError(f"{path}: the first line must be the header {','.join(LANDMARKS_CSV_HEADER)}.", path)
+        for n, r in enumerate(rows[1:], start=2):
+            if not r or not "".join(r).strip():
+                continue
+            try:
+                v = [float(x) for x in r[1:7]]
+                if len(r) != 7:
+                    raise ValueError
+            except ValueError:
+                raise InputFileError(f"{path}: line {n} must be a scan id and 6 numbers (mm), got {r!r}.",
+                                     path) from None
+            pairs.setdefault(r[0].strip(), []).append(v)
+    else:
+        d = read_json(path)
+        if not isinstance(d, dict) or d.get("format") != LANDMARKS_FORMAT or not isinstance(d.get("scans"), dict):
+            raise InputFileError(f"{path}: expected {{\"format\": \"{LANDMARKS_FORMAT}\", \"scans\": {{scan id: "
+                                 "[{\"template\": [x, y, z], \"scan\": [x, y, z]}, ...]}} (mm), or a .csv with the "
+                                 f"header {','.join(LANDMARKS_CSV_HEADER)}.", path)
+        for sid, items in d["scans"].items():
+            for k, it in enumerate(items if isinstance(items, list) else [None]):
+                try:
+                    v = [float(x) for x in it["template"]] + [float(x) for x in it["scan"]]
+                    if len(v) != 6:
+                        raise ValueError
+                except (TypeError, KeyError, ValueError):
+                    raise InputFileError(f"{path}: landmark {k} of scan {sid!r} must be {{\"template\": [x, y, z], "
+                                         f"\"scan\": [x, y, z]}} in mm, got {it!r}.", path) from None
+                pairs.setdefault(str(sid), []).append(v)
+    out = {}
+    for sid, v in pairs.items():
+        a = np.asarray(v, float)
+        if not np.all(np.isfinite(a)):
+            raise InputFileError(f"{path}: scan {sid!r} has a landmark that is not a finite number.", path)
+        out[sid] = (a[:, :3], a[:, 3:])
+    if scan_ids is not None:
+        ids = [str(s) for s in scan_ids]
+        unknown = sorted(set(out) - set(ids))
+        if unknown:
+            raise InputFileError(f"{path}: unknown scans {unknown}; the study has {ids}.", path)
+        few = [s for s in ids if len(out.get(s, ((),))[0]) < 4]
+        if few:
+            raise InputFileError(f"{path}: scans {few} have fewer than 4 landmarks; give at least 4 per scan "
+                                 "(Kurihara picked 70-150), or drop those scans with --scan.", path)
+    return out

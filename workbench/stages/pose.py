@@ -137,4 +137,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="pose", folder="poses", per_scan=False, settings_type=PoseSettings, run=_run,
-              needs=lambda s: ("bones",), inputs=_inputs)
+              needs=lambda s: ("bones",), inputs=_inputs, version=2)  # 2: ICP (--method surface) with the prior

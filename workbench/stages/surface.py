@@ -12,9 +12,10 @@
   transforms (Kurihara Eq. 2–3); ``S^r_i``, RBF feature-point deformation
   (Eq. 4–5) with ``n_features`` vertices spread over S0 whose targets come
   from the volume registration (``features="registration"``: where the
-  register stage's inverse field puts each vertex — the paper picked 70–150
-  points by hand) or from confident closest points on ``T_i``
-  (``"closest"``); and ``S^f_i``, the fit to ``T_i`` — the smoothness-
+  register stage's inverse field puts each vertex) or from confident
+  closest points on ``T_i`` (``"closest"``), or with landmarks picked on the
+  template's and the scan's skin (``"landmarks"``, a JSON/CSV file: the
+  paper picked 70–150 points by hand per pose); and ``S^f_i``, the fit to ``T_i`` — the smoothness-
   regularised one (``fit="regularised"``, for touching or missing skin) or
   the paper's nearest-point fit (``"nearest"``).  Every ``S^f_i`` has S0's
   connectivity, so :class:`deformation.surface_model.SurfaceModel` can
@@ -42,8 +43,9 @@ __all__ = ["SurfaceSettings", "STAGE"]
 @dataclass(frozen=True)
 class SurfaceSettings:
     target_triangles: int = 100_000  #: S0 and the scans' skins decimated to about this many (Kurihara: ~100 k)
-    features: str = "registration"  #: the RBF feature points' targets: "registration" or "closest"
-    n_features: int = 150  #: feature points per scan (Kurihara picked 70–150 by hand)
+    features: str = "registration"  #: the RBF feature points' targets: "registration", "closest" or "landmarks"
+    n_features: int = 150  #: feature points per scan (Kurihara picked 70–150 by hand); landmarks: all of them
+    landmarks: str | None = None  #: with features="landmarks": a JSON/CSV file of landmark pairs (io.read_landmarks)
     fit: str = "regularised"  #: "regularised" (touching or missing skin) or "nearest" (Kurihara §4's fit)
     stiffness: float = 1.0  #: the regularised fit's λ (registration.surface_fit.fit_regularised)
     max_distance_mm: float = 5.0  #: a closest point farther than this is not a target
@@ -57,6 +59,11 @@ class SurfaceSettings:
             raise ValueError(f"--features must be one of {FEATURE_SOURCES}, got {self.features!r}")
         if self.fit not in FITS:
             raise ValueError(f"--fit must be one of {FITS}, got {self.fit!r}")
+        if (self.features == "landmarks") != (self.landmarks is not None):
+            raise ValueError("--landmarks FILE goes with --features landmarks (the default when --landmarks is "
+                             f"given); got --features {self.features} and --landmarks {self.landmarks}")
+        if self.landmarks is not None:
+            object.__setattr__(self, "landmarks", str(self.landmarks))
         if int(self.target_triangles) < 100:
             raise ValueError(f"--target-triangles must be at least 100, got {self.target_triangles}")
         if int(self.n_features) < 4:
@@ -82,6 +89,8 @@ def _inputs(study, s: SurfaceSettings, scan):
              "skeleton": study.path(study.manifest["skeleton"])}
     for sid in study.check_scan_ids(s.scans):
         files[f"scan/{sid}"] = study.scan_path(sid)
+    if s.landmarks is not None:
+        files["landmarks"] = s.landmarks
     return files
 
 
@@ -106,11 +115,16 @@ def _run(ctx) -> dict:
     from deformation.interpolate import sample
     from deformation.isosurface import label_surfaces
     from registration.segmentation import skin_surface
-    from registration.surface_fit import consistent_mesh
+    from registration.surface_fit import consistent_mesh, landmark_sites
     from workbench.io.tetmeshes import weight_arrays
 
     study, s = ctx.study, ctx.settings
     ids = study.check_scan_ids(s.scans)
+    marks = None
+    if s.features == "landmarks":  # checked before any work
+        from workbench.io.inputs import read_landmarks
+
+        marks = read_landmarks(s.landmarks, ids)
     template = study.template()
     ctx.report(0, len(ids) + 1, "template skin (S0)")
     base = skin_surface(template, target_triangles=s.target_triangles, smooth_voxels=s.smooth_voxels)
@@ -123,6 +137,15 @@ def _run(ctx) -> dict:
                         "bones_vertices": bones.n_vertices},
            "per_scan": {}, "settings": {k: getattr(s, k) for k in s.__dataclass_fields__},
            "workbench_version": __version__}
+    sites = {}
+    if marks is not None:  # every landmark the user picked, where it lies on S0
+        from workbench.errors import InputFileError
+
+        for sid in ids:
+            try:
+                sites[sid] = landmark_sites(base, marks[sid][0], max_snap_mm=s.max_distance_mm)
+            except ValueError as e:
+                raise InputFileError(f"{s.landmarks}: scan {sid!r}: {e}", s.landmarks) from None
     ctx.report(1, len(ids) + 1, f"S0: {base.n_triangles} triangles")
     for k, sid in enumerate(ids):
         scan = study.scan(sid)
@@ -138,6 +161,7 @@ def _run(ctx) -> dict:
             ok = sample(Volume(found.astype(np.float32), g), base.vertices, order=1, fill=0.0) > 0.999
             feats[~ok] = np.nan
         res = consistent_mesh(base, weights, pose.transforms, target, feature_targets=feats,
+                              landmarks=None if marks is None else (sites[sid], marks[sid][1]),
                               n_features=s.n_features, fit=s.fit, max_distance_mm=s.max_distance_mm,
                               stiffness=s.stiffness)
         d = res["fit"].distance_mm
@@ -156,4 +180,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="surface", folder="surface", per_scan=False, settings_type=SurfaceSettings, run=_run,
-              needs=_needs, inputs=_inputs, uses=lambda study, s: s.scans)
+              needs=_needs, inputs=_inputs, uses=lambda study, s: s.scans, version=2)  # 2: landmarks on S0's triangles
