@@ -49,6 +49,20 @@ def test_pose_weights_are_continuous():
     assert np.abs(pose_weights(train, a + step) - pose_weights(train, a)).max() < 1e-4
 
 
+def test_weights_far_from_every_example_are_the_nearest_examples(hand_setup):
+    """Kurihara Eq. 14 normalises the φ of Eq. 12: far from every example each φ underflows to 0, and the
+    weights must still be those of the limit (the nearest example's), not 0 / 0."""
+    sk, poses, bones, p, w, rng = hand_setup
+    space = PoseSpace(sk, poses)
+    far = space.train[2] + 400.0 * (space.train[2] - space.train.mean(axis=0))  # ~100 widths away, past pose 2
+    s = pose_weights(space.train, far)
+    assert np.all(np.isfinite(s)) and np.isclose(s.sum(), 1.0)
+    assert np.argmax(s) == int(np.argmin(((space.train - far) ** 2).sum(axis=1)))
+    # the per-point weights of WPSD (Eq. 16) at that pose vector: finite, summing to one at every point
+    pw = space.point_space(w).weights(far)
+    assert np.all(np.isfinite(pw)) and np.allclose(pw.sum(axis=1), 1.0)
+
+
 def test_psd_and_wpsd_reproduce_every_training_example(hand_setup):
     sk, poses, bones, p, w, rng = hand_setup
     space = PoseSpace(sk, poses)

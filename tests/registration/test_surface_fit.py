@@ -12,7 +12,8 @@ import pytest
 from deformation.geometry import GridGeometry, Volume
 from deformation.isosurface import decimate, isosurface
 from deformation.mesh import SurfaceMesh
-from registration.surface_fit import closest_points, consistent_mesh, fit_nearest, fit_regularised, umbrella_laplacian
+from registration.surface_fit import (closest_points, consistent_mesh, fit_nearest, fit_regularised, landmark_sites,
+                                      on_mesh, umbrella_laplacian)
 
 G = GridGeometry((48, 40, 36), (1.0, 1.1, 1.2), (-24.0, -22.0, -21.0))
 
@@ -132,6 +133,42 @@ def test_consistent_mesh_takes_the_base_through_ssd_rbf_and_fit():
     assert np.linalg.norm(r["fitted"].vertices - truth, axis=1).mean() < 0.2
     with pytest.raises(ValueError, match="at least 4"):
         consistent_mesh(base, w, {"b": t}, target, feature_targets=np.full((base.n_vertices, 3), np.nan))
+
+
+def test_landmarks_lie_on_s0s_triangles_and_the_rbf_takes_them_to_their_targets():
+    """Landmarks picked on the template's skin (not at S0's vertices): their closest points on S0 as triangle
+    and barycentric coordinates rebuild the point on S0 itself; any mesh with S0's connectivity carries them;
+    the RBF's centres are where SSD takes them, and Eq. 5 lands each exactly on its target."""
+    from deformation.skinning import SkinningWeights
+    from deformation.transforms import apply
+
+    base = _sphere_mesh((0.0, 0.0, 0.0), 9.0)
+    rng = np.random.default_rng(3)
+    u = rng.normal(size=(30, 3))
+    picked = 9.0 * u / np.linalg.norm(u, axis=1, keepdims=True)  # on the true sphere, between S0's vertices
+    sites = landmark_sites(base, picked, max_snap_mm=1.0)
+    on_s0, d, _ = closest_points(base, picked)
+    # Open3D's closest points are float32: ~1e-6 mm on 10 mm coordinates
+    np.testing.assert_allclose(on_mesh(base.vertices, base.triangles, sites), on_s0, atol=1e-5)
+    assert np.all(sites[1] >= -1e-5) and np.allclose(sites[1].sum(axis=1), 1.0)  # inside their triangles
+    t = np.eye(4)
+    t[:3, 3] = [2.0, -1.0, 0.5]
+    moved = SurfaceMesh(apply(t, base.vertices), base.triangles)
+    np.testing.assert_allclose(on_mesh(moved.vertices, moved.triangles, sites), apply(t, on_s0), atol=1e-5)
+    w = SkinningWeights.one_hot(np.zeros(base.n_vertices, np.int64), ("b",))
+    targets = apply(t, picked * (11.0 / 9.0))
+    target = SurfaceMesh(apply(t, _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).vertices),
+                         _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).triangles)
+    r = consistent_mesh(base, w, {"b": t}, target, landmarks=(sites, targets))
+    assert r["info"]["feature_source"] == "landmarks" and r["info"]["features"] == 30
+    # Eq. 5 puts each landmark exactly on its target (the RBF's own residual check is 1e-6 mm); on the mesh it
+    # is the blend of its triangle's corners, which the exponential kernel's cusp at the centre moves less
+    # than the centre itself: within 0.1 mm of a 2 mm displacement (0.03 mm measured)
+    np.testing.assert_allclose(on_mesh(r["rbf"].vertices, base.triangles, sites), targets, atol=0.1)
+    with pytest.raises(ValueError, match="from the template's skin"):
+        landmark_sites(base, [[0.0, 0.0, 20.0]] * 4, max_snap_mm=1.0)
+    with pytest.raises(ValueError, match="within 0.1 mm"):
+        landmark_sites(base, np.vstack([picked[:4], picked[:1] + 0.01]), max_snap_mm=1.0)
 
 
 def test_the_fits_solver_gives_the_same_bits_for_any_blas_thread_count():

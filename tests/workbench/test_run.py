@@ -246,6 +246,56 @@ def test_surface_stage_fits_every_scan_with_the_base_mesh_connectivity(done, tmp
     assert "a mesh file ending in" in capsys.readouterr().err
 
 
+def test_surface_with_landmarks_from_a_file_and_a_bad_landmarks_file(done, tmp_path, capsys):
+    """`workbench surface --landmarks FILE` (Kurihara's hand-picked feature points) on a copy of the study:
+    every landmark is a feature point placed on S0's triangles, the RBF mesh carries it to its scan point;
+    a file naming a scan the study lacks is refused before any work, naming the file, nothing changed."""
+    from deformation.interpolate import sample
+    from deformation.splines import KURIHARA_D_MM, RBFDeformation
+    from registration.surface_fit import farthest_points, landmark_sites, on_mesh
+    from workbench.io.meshes import read_mesh
+
+    root = tmp_path / "study"
+    shutil.copytree(done[0], root)
+    st = read_study(root)
+    base = read_mesh(root / "surface" / "template_skin.vtp")
+    tri = farthest_points(base.vertices[base.triangles].mean(axis=1), 20)
+    picked = base.vertices[base.triangles[tri]].mean(axis=1)  # triangle centres: between S0's vertices
+    g = st.template().geometry
+    scans = {}
+    for sid in st.scan_ids:
+        disp = st.truth_template_to_scan(sid)  # a user's clicks stand-in: the phantom's map of each point
+        scans[sid] = [{"template": p.tolist(), "scan": q.tolist()}
+                      for p, q in zip(picked, picked + sample(disp, picked, order=1))]
+    marks = tmp_path / "picked.json"
+    marks.write_text(json.dumps({"format": "avw-landmarks", "scans": scans}))
+    capsys.readouterr()
+    assert main(["surface", str(root), "--landmarks", str(marks), "--quiet"]) == 0
+    doc = json.loads((root / "surface" / "surface.json").read_text(encoding="utf-8"))
+    assert doc["settings"]["features"] == "landmarks" and doc["settings"]["landmarks"] == str(marks.resolve())
+    sites = landmark_sites(base, picked, max_snap_mm=1.0)
+    for sid in st.scan_ids:
+        r = doc["per_scan"][sid]
+        assert r["feature_source"] == "landmarks" and r["features"] == 20
+        # the stage's RBF is Eq. 4-5 with these landmarks as its feature points: centred where they lie on the
+        # SSD mesh (their triangles' blend), each moved onto its scan point.  PLY keeps float32: 1e-5 relative
+        # on ~100 mm coordinates, 1e-3 mm
+        ssd = read_mesh(root / "surface" / f"{sid}_ssd.ply")
+        rbf = RBFDeformation(on_mesh(ssd.vertices, base.triangles, sites), [q["scan"] for q in scans[sid]],
+                             D=KURIHARA_D_MM)
+        np.testing.assert_allclose(read_mesh(root / "surface" / f"{sid}_rbf.ply").vertices, rbf(ssd.vertices),
+                                   atol=2e-3)
+    # a file for another study: one line naming the file and the scans, nothing rewritten
+    before = (root / "study.json").read_bytes(), (root / "surface" / "surface.json").read_bytes()
+    scans["pose77"] = scans[st.scan_ids[0]]
+    marks.write_text(json.dumps({"format": "avw-landmarks", "scans": scans}))
+    capsys.readouterr()
+    assert main(["surface", str(root), "--landmarks", str(marks), "--force"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(marks) in err[0] and "unknown scans ['pose77']" in err[0], err
+    assert before == ((root / "study.json").read_bytes(), (root / "surface" / "surface.json").read_bytes())
+
+
 # -- the report stage's HTML report of the same study (issue J) -------------------------------------------
 @pytest.fixture(scope="module")
 def report(done, tmp_path_factory):
