@@ -37,7 +37,7 @@ import numpy as np
 from .geometry import Volume
 from .mesh import SurfaceMesh, connected_components, submesh
 
-__all__ = ["vtk_image", "poly_arrays", "flying_edges", "isosurface", "label_surfaces", "largest_components",
+__all__ = ["vtk_image", "poly_arrays", "vtk_polydata", "flying_edges", "isosurface", "label_surfaces", "largest_components",
            "decimate", "signed_volume"]
 
 
@@ -69,6 +69,34 @@ def poly_arrays(poly) -> tuple[np.ndarray, np.ndarray]:
         raise RuntimeError("VTK returned non-triangular polygons")
     tri = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
     return pts, tri
+
+
+def vtk_polydata(vertices: np.ndarray, triangles: np.ndarray, point_data: dict | None = None):
+    """A triangle ``vtkPolyData`` of ``vertices (n, 3)`` and ``triangles (m, 3)`` (deep copies), with optional
+    per-vertex ``point_data`` arrays ``{name: (n,) or (n, k)}`` (float64)."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+
+    v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+    t = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(v, deep=True))
+    cells = vtkCellArray()
+    cells.SetData(numpy_to_vtk(np.arange(0, 3 * len(t) + 1, 3, dtype=np.int64), deep=True),
+                  numpy_to_vtk(t.ravel(), deep=True))
+    poly = vtkPolyData()
+    poly.SetPoints(points)
+    poly.SetPolys(cells)
+    for name, values in (point_data or {}).items():
+        a = np.ascontiguousarray(values, dtype=np.float64)
+        if a.shape[0] != len(v) or a.ndim > 2:
+            raise ValueError(f"point-data array {name!r} has shape {a.shape}; one value (or vector) per vertex "
+                             f"({len(v)}) needed")
+        arr = numpy_to_vtk(a, deep=True)
+        arr.SetName(str(name))
+        poly.GetPointData().AddArray(arr)
+    return poly
 
 
 def flying_edges(array_zyx: np.ndarray, level: float, *, discrete: bool = False):

@@ -122,7 +122,9 @@ surfaces; --overlay draws a second volume in magenta against the first in cyan
 (Rhee Figs. 1, 8, 9, 11); --difference shows the signed difference (red: first
 brighter, blue: darker).  --markers draws the ground truth's skin markers (white),
 --control-points the control points a registration allocated, coloured by block
-level (Rhee Fig. 9).
+level (Rhee Fig. 9).  --mesh draws a mesh (world mm: `workbench surface`'s skins,
+`surface-deform`'s posed skin) over the volume, half transparent; a mesh file as
+the source is rendered alone (the camera fitted to it).
 
 examples:
   workbench render knee-study --out template.png
@@ -131,6 +133,8 @@ examples:
   workbench render knee-study --registered pose02 --overlay pose02 --out overlay.png
   workbench render knee-study --registered pose02 --overlay pose02 --control-points --markers --out fig9.png
   workbench render bent.nii.gz --out bent.png --size 1280x960 --background white
+  workbench render hand-study/surface/pose02_fitted.ply --out skin.png        # a mesh alone
+  workbench render hand-study --scan pose02 --mesh hand-study/surface/pose02_fitted.ply --out fit.png
 """
 
 ANIMATE_HELP = """Animate the study's template through keyframe poses and write a video.
@@ -156,6 +160,7 @@ examples:
   workbench animate knee-study --out knee.mp4
   workbench animate hand-study --out hand.gif --fps 12 --size 480x360
   workbench animate knee-study --keyframes my.json --out frames/knee.png --clip z:0.5 --orbit 90
+  workbench animate hand-study --skin wpsd --out skin.mp4     # Kurihara's skin mesh, same keyframes
 """
 
 WEIGHTS_HELP = """Skinning weights for every template voxel (Kurihara Eq. 3; DESIGN step 4).
@@ -560,7 +565,13 @@ def build_parser() -> argparse.ArgumentParser:
                                         "overlays)", description=RENDER_HELP,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     re_.add_argument("source", type=Path, metavar="VOLUME_OR_STUDY",
-                     help="an image file (.nii.gz, .mha, .nrrd, a DICOM folder) or a study folder (its template)")
+                     help="an image file (.nii.gz, .mha, .nrrd, a DICOM folder), a study folder (its template), or "
+                          "a mesh (.ply, .vtp, .stl, .obj: the mesh alone)")
+    re_.add_argument("--mesh", action="append", type=Path, metavar="MESH",
+                     help="a mesh in world mm (.ply, .vtp, .stl, .obj; e.g. `workbench surface` or "
+                          "`surface-deform` output) drawn over the volume; repeatable")
+    re_.add_argument("--mesh-opacity", type=float, default=None, metavar="A",
+                     help="the meshes' opacity, 0..1. Default: 0.5 over a volume, 1 alone")
     re_.add_argument("--out", required=True, type=Path, metavar="IMAGE.png", help="the PNG to write")
     re_.add_argument("--scan", metavar="ID", help="with a study: render this scan instead of the template")
     re_.add_argument("--registered", metavar="ID",
@@ -596,6 +607,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="number of frames (default: duration × fps + 1)")
     an.add_argument("--orbit", type=float, metavar="DEG", help="turn the camera by DEG of azimuth over the animation")
     an.add_argument("--bones", action="store_true", help="draw the posed bone labels as surfaces")
+    an.add_argument("--skin", choices=["ssd", "psd", "wpsd"], metavar="ssd|psd|wpsd",
+                    help="animate Kurihara's skin mesh (`workbench surface`) posed by this method instead of the "
+                         "volume, through the same keyframes")
     _render_options(an, camera_default=None)
     an.add_argument("--force", action="store_true", help="replace existing output")
     _common(an)
@@ -1120,8 +1134,8 @@ def format_registration_table(study, scans) -> str:
 
 
 def cmd_render(args) -> int:
-    from workbench.viz.render import (ClipPlane, opengl_backend, parse_size, render_difference, render_overlay,
-                                  render_volume, write_png, transfer_function)
+    from workbench.viz.render import (SKIN_COLOUR, ClipPlane, label_colour, opengl_backend, parse_size,
+                                      render_difference, render_overlay, render_volume, write_png, transfer_function)
 
     say = _say(args) or (lambda line: None)
     size = parse_size(args.size)
@@ -1135,6 +1149,28 @@ def cmd_render(args) -> int:
         from workbench.errors import OutputExistsError
 
         raise OutputExistsError(args.out, f"{args.out} exists; pass --force to replace it.")
+    from workbench.io.meshes import MESH_SUFFIXES, read_mesh
+
+    alone = args.source.name.lower().endswith(MESH_SUFFIXES)
+    mesh_files = ([args.source] if alone else []) + list(args.mesh or [])
+    opacity = args.mesh_opacity if args.mesh_opacity is not None else 1.0 if alone else 0.5
+    if not 0.0 < opacity <= 1.0:
+        raise ValueError(f"--mesh-opacity must be in (0, 1], got {opacity}")
+    if mesh_files and (args.overlay or args.difference):
+        raise ValueError("--mesh draws on a single-volume render; leave out --overlay/--difference")
+    if alone and any(getattr(args, k) for k in ("scan", "registered", "labels", "bones", "markers", "control_points")):
+        raise ValueError(f"{args.source} is a mesh: --scan, --registered, --labels, --bones, --markers and "
+                         "--control-points need a volume or a study")
+    meshes = [(read_mesh(m), SKIN_COLOUR if k == 0 else label_colour(k + 1), opacity)
+              for k, m in enumerate(mesh_files)]  # every mesh read (and checked) before any rendering
+    if alone:
+        kw = dict(size=size, camera=cam, clip=clip, background=bg)
+        t0 = time.perf_counter()
+        img = render_volume(None, meshes=meshes, **kw)
+        dt = time.perf_counter() - t0
+        write_png(img, args.out, overwrite=args.force)
+        print(f"rendered {size[0]}x{size[1]} in {dt:.2f} s; wrote {args.out}")
+        return 0
     from workbench.viz.scene import render_inputs
 
     vol, labels, other, points = render_inputs(args.source, scan=args.scan, registered=args.registered,
@@ -1152,7 +1188,7 @@ def cmd_render(args) -> int:
             raise ValueError("--markers/--control-points are drawn on renders and overlays, not difference views")
         img = render_difference(vol, other, transfer=tf, **kw)
     else:
-        img = render_volume(vol, labels=labels, points=points, transfer=tf, **kw)
+        img = render_volume(vol, labels=labels, points=points, meshes=meshes, transfer=tf, **kw)
     dt = time.perf_counter() - t0
     write_png(img, args.out, overwrite=args.force)
     print(f"rendered {size[0]}x{size[1]} in {dt:.2f} s; wrote {args.out}")
@@ -1175,7 +1211,7 @@ def cmd_animate(args) -> int:
     s = animate_study(args.study, args.out, keyframes=kf, method=args.method, weighting=args.weighting,
                       fps=args.fps, size=size, n_frames=args.frames, transfer=args.preset, camera=cam,
                       orbit=args.orbit, clip=clip, bones=args.bones, background=bg, mapper=args.mapper,
-                      overwrite=args.force, progress=_say(args))
+                      skin=args.skin, overwrite=args.force, progress=_say(args))
     n = s["frames"]
     print(f"{n} frames {s['size'][0]}x{s['size'][1]} at {s['fps']:g} fps ({s['method'].upper()}, {s['mapper']} "
           f"mapper): deformation {s['deform_seconds']:.1f} s ({s['deform_seconds_per_frame']:.3f} s/frame), "

@@ -242,3 +242,39 @@ def test_points_are_drawn_where_they_are_in_the_world():
     assert abs(rows.mean() - (SIZE[1] - 1) / 2) < 2 and abs(cols.mean() - (SIZE[0] - 1) / 2) < 2
     with pytest.raises(ValueError, match="finite"):
         VolumeRenderer(vol.geometry, size=SIZE).add_points([[np.nan, 0, 0]])
+
+
+def _sphere(centre, radius):
+    """A closed sphere mesh (Open3D's, world mm)."""
+    import open3d as o3d
+
+    from deformation.mesh import SurfaceMesh
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=30)
+    return SurfaceMesh(np.asarray(m.vertices) + np.asarray(centre, float), np.asarray(m.triangles))
+
+
+@needs_gl
+def test_a_mesh_alone_is_framed_where_it_is_and_a_mesh_over_a_volume_in_its_colour():
+    from workbench.viz.render import SKIN_COLOUR
+
+    # alone: the camera is fitted to the mesh wherever it is in the world: a round disc in the middle
+    img = render_volume(None, meshes=[_sphere((40.0, -25.0, 60.0), 10.0)], size=SIZE, camera=Camera("+z"))
+    fg = _foreground(img)
+    rows, cols = np.nonzero(fg)
+    assert abs(rows.mean() - (SIZE[1] - 1) / 2) < 2 and abs(cols.mean() - (SIZE[0] - 1) / 2) < 2
+    h, w = rows.max() - rows.min() + 1, cols.max() - cols.min() + 1
+    assert abs(h - w) <= 2 and h > 0.5 * SIZE[1]  # a sphere seen along +z: a disc filling most of the height
+    px = img[SIZE[1] // 2, SIZE[0] // 2].astype(float) / 255.0
+    assert np.argmax(px) == np.argmax(SKIN_COLOUR) and px.min() > 0.2  # lit skin tone, red highest
+    # over a volume: an opaque green sphere in front of the tissue covers the image centre
+    vol = _blob()
+    box = VolumeRenderer.grid_bounds(vol.geometry)
+    centre = np.asarray(box, float).reshape(3, 2).mean(axis=1)
+    img = render_volume(vol, meshes=[(_sphere(centre + [0.0, 0.0, 20.0], 3.0), (0.0, 1.0, 0.0), 1.0)], size=SIZE,
+                        camera=Camera("+z"), bounds=box)
+    px = img[SIZE[1] // 2 - 1:SIZE[1] // 2 + 2, SIZE[0] // 2 - 1:SIZE[0] // 2 + 2].reshape(-1, 3).mean(axis=0)
+    assert px[1] > 150 and px[0] < 60 and px[2] < 60
+    with pytest.raises(ValueError, match="nothing to render"):
+        with VolumeRenderer(None, size=SIZE) as r:
+            r.render()

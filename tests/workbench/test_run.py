@@ -296,6 +296,31 @@ def test_surface_with_landmarks_from_a_file_and_a_bad_landmarks_file(done, tmp_p
     assert before == ((root / "study.json").read_bytes(), (root / "surface" / "surface.json").read_bytes())
 
 
+def test_skin_mesh_render_and_animation(done, phantom, tmp_path, capsys):
+    """The surface model as pictures: a fitted mesh rendered alone and over its scan, and the skin posed by
+    WPSD through the ready keyframes (frames that change); a study without a surface model is told what to
+    run, and no file is left."""
+    import imageio.v3 as iio
+
+    root = done[0]
+    sid = read_study(root).scan_ids[0]
+    mesh = root / "surface" / f"{sid}_fitted.ply"
+    assert main(["render", str(mesh), "--out", str(tmp_path / "alone.png"), "--size", "160x120", "--quiet"]) == 0
+    img = iio.imread(tmp_path / "alone.png")
+    assert 0.05 < (img.max(axis=2) > 12).mean() < 0.9  # the skin, framed, on black
+    assert main(["render", str(root), "--scan", sid, "--mesh", str(mesh), "--out", str(tmp_path / "over.png"),
+                 "--size", "160x120", "--quiet"]) == 0
+    gif = tmp_path / "skin.gif"
+    assert main(["animate", str(root), "--skin", "wpsd", "--frames", "6", "--size", "160x120", "--out", str(gif),
+                 "--quiet"]) == 0
+    assert "SURFACE WPSD" in capsys.readouterr().out
+    frames = iio.imread(gif)
+    assert len(frames) >= 3 and np.abs(frames[0].astype(int) - frames[len(frames) // 2]).mean() > 1.0  # it moves
+    capsys.readouterr()
+    assert main(["animate", str(phantom), "--skin", "wpsd", "--out", str(tmp_path / "none.gif")]) == 1
+    assert "workbench surface" in capsys.readouterr().err and not (tmp_path / "none.gif").exists()
+
+
 # -- the report stage's HTML report of the same study (issue J) -------------------------------------------
 @pytest.fixture(scope="module")
 def report(done, tmp_path_factory):

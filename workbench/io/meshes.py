@@ -337,28 +337,11 @@ def _read_vtp(path: Path) -> SurfaceMesh:
 
 
 def _write_vtp(mesh: SurfaceMesh, tmp: Path, point_data: dict | None = None) -> None:
-    from vtkmodules.util.numpy_support import numpy_to_vtk
-    from vtkmodules.vtkCommonCore import vtkPoints
-    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
     from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
 
-    points = vtkPoints()
-    points.SetData(numpy_to_vtk(np.ascontiguousarray(mesh.vertices, dtype=np.float64), deep=True))
-    cells = vtkCellArray()
-    offsets = np.arange(0, 3 * mesh.n_triangles + 1, 3, dtype=np.int64)
-    cells.SetData(numpy_to_vtk(offsets, deep=True),
-                  numpy_to_vtk(np.ascontiguousarray(mesh.triangles.ravel()), deep=True))
-    poly = vtkPolyData()
-    poly.SetPoints(points)
-    poly.SetPolys(cells)
-    for name, values in (point_data or {}).items():
-        a = np.ascontiguousarray(values, dtype=np.float64)
-        if a.shape[0] != mesh.n_vertices or a.ndim > 2:
-            raise ValueError(f"point-data array {name!r} has shape {a.shape}; one value (or vector) per vertex "
-                             f"({mesh.n_vertices}) needed")
-        arr = numpy_to_vtk(a, deep=True)
-        arr.SetName(str(name))
-        poly.GetPointData().AddArray(arr)
+    from deformation.isosurface import vtk_polydata
+
+    poly = vtk_polydata(mesh.vertices, mesh.triangles, point_data)
     writer = vtkXMLPolyDataWriter()
     writer.SetFileName(str(tmp))
     writer.SetInputData(poly)

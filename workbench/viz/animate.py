@@ -280,18 +280,20 @@ class _Writer:
 
 
 # -- the animation -----------------------------------------------------------------------------------------
-def _camera_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, margin_mm: float, per_segment: int = 4) -> tuple:
-    """World box of the visible template tissue over the motion (forward maps only, no resampling).
+def _sweep_times(keyframes: Keyframes, per_segment: int = 4) -> np.ndarray:
+    """Every keyframe's time and ``per_segment − 1`` times between each two: a curling finger sweeps beyond
+    both its open and its closed position."""
+    ts = keyframes.times
+    return np.unique(np.concatenate([np.linspace(a, b, per_segment + 1) for a, b in zip(ts, ts[1:])]))
 
-    Sampled at every keyframe and ``per_segment − 1`` times between each two:
-    a curling finger sweeps beyond both its open and its closed position.
-    """
+
+def _camera_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, margin_mm: float) -> tuple:
+    """World box of the visible template tissue over the motion (forward maps only, no resampling), sampled
+    at :func:`_sweep_times`."""
     from workbench.viz.render import points_bounds, union_bounds
 
-    ts = keyframes.times
-    times = np.unique(np.concatenate([np.linspace(a, b, per_segment + 1) for a, b in zip(ts, ts[1:])]))
     return union_bounds([points_bounds(poser.forward(skeleton.pose(keyframes.at(t)))[mask], margin_mm)
-                         for t in times])
+                         for t in _sweep_times(keyframes)])
 
 
 def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
@@ -318,8 +320,11 @@ def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
 def animate_study(folder, out, *, keyframes=None, method: str = "auto", weighting: str = "psd", fps=None,
                   size=(640, 480), n_frames: int | None = None, transfer="mri", camera=None, orbit=None,
                   clip=None, bones: bool = False, background=(0.0, 0.0, 0.0), mapper: str = "auto",
-                  overwrite: bool = False, progress=None) -> dict:
+                  skin: str | None = None, overwrite: bool = False, progress=None) -> dict:
     """Render the study's template moving through ``keyframes`` and write ``out`` (.mp4, .gif or .png frames).
+
+    ``skin`` ("ssd", "psd" or "wpsd"): instead of the volume, Kurihara's surface model (``workbench
+    surface``) posed by that method at every frame and rendered as a mesh, through the same keyframes.
 
     ``keyframes``: a file, a :class:`Keyframes`, or ``None`` for the ready
     ones of the study's skeleton.  ``fps`` (default: the file's, else 24) and
@@ -336,7 +341,17 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     t_start = time.perf_counter()
     study = read_study(folder)
     out = Path(out)
-    poser = study_poser(study, method=method, weighting=weighting, progress=say)
+    if skin is not None:
+        from deformation.surface_model import SURFACE_METHODS
+
+        if skin not in SURFACE_METHODS:
+            raise ValueError(f"--skin must be one of {', '.join(SURFACE_METHODS)}, got {skin!r}")
+        if bones:
+            raise ValueError("--bones draws posed bone labels on a volume animation; leave it out with --skin")
+        model = study.surface_model()  # a clear "run `workbench surface` first" before any work
+        poser = None
+    else:
+        poser = study_poser(study, method=method, weighting=weighting, progress=say)
     sk = study.skeleton()
     if keyframes is None:
         kf = builtin_keyframes(sk)
@@ -356,32 +371,54 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     orbit = float(cam_doc.get("orbit", 0.0) if orbit is None else orbit)
     writer = _Writer(out, fps, overwrite)  # checks the target before any work
     try:
-        template = poser.template
-        g = template.geometry
-        tf = transfer_function(transfer)
-        lo, hi = robust_range(template.data)
-        thr = first_visible(tf.resolved(lo, hi))
-        mask = content_mask(template.data, thr)
-        bounds = _camera_bounds(poser, sk, kf, mask, 2.0 * max(g.spacing))
-        g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
-        renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
-                                  background=background, bounds=bounds, mapper=mapper)
+        if skin is not None:  # the surface model's mesh, posed frame by frame
+            from workbench.viz.render import points_bounds, union_bounds
+
+            def deform(pose):
+                return model.deform(pose, skin)
+
+            bounds = union_bounds([points_bounds(deform(sk.pose(kf.at(t))).vertices, 2.0)
+                                   for t in _sweep_times(kf)])
+            g = None
+            renderer = VolumeRenderer(None, size=size, camera=camera, clip=clip, background=background,
+                                      bounds=bounds, mapper=mapper)
+            what = f"Kurihara's surface model ({model.base.n_triangles} triangles) by {skin.upper()}"
+        else:
+            template = poser.template
+            g = template.geometry
+            tf = transfer_function(transfer)
+            lo, hi = robust_range(template.data)
+            thr = first_visible(tf.resolved(lo, hi))
+            mask = content_mask(template.data, thr)
+            bounds = _camera_bounds(poser, sk, kf, mask, 2.0 * max(g.spacing))
+            g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
+            renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
+                                      background=background, bounds=bounds, mapper=mapper)
+            what = f"{poser.method.upper()} deformation"
         say(f"{n} frames at {fps:g} fps ({kf.duration:g} s, {len(kf.times)} keyframes, {kf.interpolation}); "
-            f"{poser.method.upper()} deformation; {renderer.backend.describe()}, {renderer.mapper_name} mapper")
+            f"{what}; {renderer.backend.describe()}, {renderer.mapper_name} mapper")
         t_deform = t_render = t_encode = 0.0
         base_az = camera.azimuth
         last_say = time.perf_counter()
         with renderer:
             for i, t in enumerate(kf.frame_times(n)):
                 t0 = time.perf_counter()
-                posed = poser.pose(sk.pose(kf.at(t)), labels=bones, target=g)
+                if skin is not None:
+                    mesh = deform(sk.pose(kf.at(t)))
+                else:
+                    posed = poser.pose(sk.pose(kf.at(t)), labels=bones, target=g)
                 t1 = time.perf_counter()
                 if orbit:
                     renderer.set_camera(replace(camera, azimuth=base_az + orbit * i / (n - 1)))
-                if bones and posed.labels is not None:
+                if skin is not None:
                     renderer.clear_surfaces()
-                    renderer.add_labels(posed.labels)
-                img = renderer.render(posed.volume)
+                    renderer.add_mesh(mesh)
+                    img = renderer.render()
+                else:
+                    if bones and posed.labels is not None:
+                        renderer.clear_surfaces()
+                        renderer.add_labels(posed.labels)
+                    img = renderer.render(posed.volume)
                 t2 = time.perf_counter()
                 writer.add(img)
                 t3 = time.perf_counter()
@@ -400,8 +437,8 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         writer.abort()
         raise
     return {"out": str(out), "files": len(files), "frames": n, "fps": fps, "size": list(size),
-            "method": poser.method, "keyframes": kf.source, "backend": renderer.backend.describe(),
+            "method": poser.method if skin is None else f"surface {skin}", "keyframes": kf.source, "backend": renderer.backend.describe(),
             "mapper": renderer.mapper_name, "deform_seconds": t_deform, "render_seconds": t_render,
             "encode_seconds": t_encode, "total_seconds": time.perf_counter() - t_start,
             "render_seconds_per_frame": t_render / n, "deform_seconds_per_frame": t_deform / n,
-            "bounds_mm": [round(v, 2) for v in bounds], "grid": list(g.size)}
+            "bounds_mm": [round(v, 2) for v in bounds], "grid": None if g is None else list(g.size)}

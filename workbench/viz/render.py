@@ -59,6 +59,7 @@ CONTRAST_COLOURS = ((0.0, 0.9, 1.0), (1.0, 0.1, 0.9))
 #: colours of registration control points by block level (Rhee Fig. 9 draws level 3), then cycling
 LEVEL_COLOURS = ((0.3, 1.0, 0.3), (1.0, 0.9, 0.2), (1.0, 0.5, 0.1), (1.0, 0.2, 0.2), (0.7, 0.4, 1.0))
 MARKER_COLOUR = (1.0, 1.0, 1.0)
+SKIN_COLOUR = (0.93, 0.76, 0.65)  # a mesh's default colour: a light skin tone
 _SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software rasterizer", "lavapipe")
 
 
@@ -512,16 +513,17 @@ class VolumeRenderer:
     ``mapper``: ``auto`` (:attr:`Backend.mapper`), ``fixed`` or ``gpu``.  The
     camera and clipping plane are placed on ``bounds`` (world mm), by default
     the box of the visible tissue of every volume of the first render
-    (:func:`content_bounds`).
+    (:func:`content_bounds`), and of the meshes added (:meth:`add_mesh`).
+    ``geometry`` None: no volume at all, meshes only (``render()`` with no
+    argument).
     """
 
-    def __init__(self, geometry: GridGeometry, *, size=(640, 480), transfer="mri", transfers=None,
+    def __init__(self, geometry: GridGeometry | None, *, size=(640, 480), transfer="mri", transfers=None,
                  reference=None, camera: Camera | None = None, clip: ClipPlane | None = None,
                  background=(0.0, 0.0, 0.0), mapper: str = "auto", sample_mm: float | None = None,
                  bounds=None):
-        from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPiecewiseFunction, vtkPlane
-        from vtkmodules.vtkRenderingCore import (vtkColorTransferFunction, vtkRenderer, vtkVolume,
-                                                 vtkVolumeProperty, vtkWindowToImageFilter)
+        from vtkmodules.vtkCommonDataModel import vtkPlane
+        from vtkmodules.vtkRenderingCore import vtkRenderer, vtkWindowToImageFilter
         import vtkmodules.vtkRenderingOpenGL2 as gl
         import vtkmodules.vtkRenderingVolumeOpenGL2  # noqa: F401 - registers the OpenGL volume mappers
 
@@ -536,11 +538,35 @@ class VolumeRenderer:
         self.geometry = geometry
         self.camera = camera or Camera()
         self.clip = clip
-        tfs = [transfer_function(t) for t in (transfers if transfers is not None else [transfer])]
+        tfs = [] if geometry is None else [transfer_function(t) for t in (transfers if transfers is not None
+                                                                          else [transfer])]
         self.n_components = len(tfs)
         self._tfs, self._resolved = tfs, None
         self._reference = reference
         self.bounds = None if bounds is None else tuple(float(v) for v in bounds)
+        self._mesh_bounds = []
+        self._ren = vtkRenderer()
+        self._ren.SetBackground(*(float(c) for c in background))
+        self._plane = vtkPlane() if clip is not None else None
+        if geometry is not None:
+            self._volume_actor(geometry, tfs, sample_mm)
+        self._win = getattr(gl, self.backend.window_class)()
+        self._win.SetOffScreenRendering(1)
+        self._win.SetSize(w, h)
+        self._win.SetMultiSamples(0)
+        self._win.AddRenderer(self._ren)
+        self._grab = vtkWindowToImageFilter()
+        self._grab.SetInput(self._win)
+        self._grab.SetInputBufferTypeToRGB()
+        self._grab.ReadFrontBufferOff()
+        self._surfaces = []
+        self._placed = False
+        self._distance = None
+
+    def _volume_actor(self, geometry: GridGeometry, tfs, sample_mm) -> None:
+        """The ray-cast volume of ``geometry``'s grid with one transfer function per component."""
+        from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPiecewiseFunction
+        from vtkmodules.vtkRenderingCore import vtkColorTransferFunction, vtkVolume, vtkVolumeProperty
 
         self._img = vtkImageData()
         self._img.SetDimensions(*(int(v) for v in geometry.size))
@@ -577,26 +603,9 @@ class VolumeRenderer:
         self._volume.SetMapper(self._mapper)
         self._volume.SetProperty(self._prop)
         self._volume.SetUserMatrix(_prop_matrix(geometry))
-
-        self._ren = vtkRenderer()
-        self._ren.SetBackground(*(float(c) for c in background))
         self._ren.AddVolume(self._volume)
-        self._win = getattr(gl, self.backend.window_class)()
-        self._win.SetOffScreenRendering(1)
-        self._win.SetSize(w, h)
-        self._win.SetMultiSamples(0)
-        self._win.AddRenderer(self._ren)
-        self._grab = vtkWindowToImageFilter()
-        self._grab.SetInput(self._win)
-        self._grab.SetInputBufferTypeToRGB()
-        self._grab.ReadFrontBufferOff()
-        self._surfaces = []
-        self._plane = None
-        if clip is not None:
-            self._plane = vtkPlane()
+        if self._plane is not None:
             self._mapper.AddClippingPlane(self._plane)
-        self._placed = False
-        self._distance = None
 
     @staticmethod
     def grid_bounds(geometry: GridGeometry) -> tuple:
@@ -690,7 +699,7 @@ class VolumeRenderer:
         poly = vtkPolyData()
         poly.SetPoints(pts)
         sphere = vtkSphereSource()
-        sphere.SetRadius(float(radius_mm or max(self.geometry.spacing)))
+        sphere.SetRadius(float(radius_mm or (max(self.geometry.spacing) if self.geometry is not None else 1.0)))
         sphere.SetThetaResolution(12)
         sphere.SetPhiResolution(8)
         glyph = vtkGlyph3D()
@@ -700,6 +709,23 @@ class VolumeRenderer:
         glyph.Update()
         self._add_surface(glyph.GetOutput(), colour)  # already in world mm
         return int(p.shape[0])
+
+    def add_mesh(self, mesh, *, colour=SKIN_COLOUR, opacity: float = 1.0) -> int:
+        """Draw a triangle mesh in world mm (``SurfaceMesh``: a skin of ``workbench surface``, a posed model),
+        smooth-shaded, clipped by the renderer's plane; with no volume it alone sets the camera's box.  Returns
+        its triangle count."""
+        from vtkmodules.vtkFiltersCore import vtkPolyDataNormals
+
+        from deformation.isosurface import vtk_polydata
+
+        nrm = vtkPolyDataNormals()
+        nrm.SetInputData(vtk_polydata(mesh.vertices, mesh.triangles))
+        nrm.SplittingOff()  # smooth shading across the whole skin
+        nrm.ConsistencyOn()
+        nrm.Update()
+        self._add_surface(nrm.GetOutput(), colour, opacity=opacity)
+        self._mesh_bounds.append(points_bounds(mesh.vertices, 0.0))
+        return int(mesh.n_triangles)
 
     def _add_surface(self, polydata, colour, *, opacity: float = 1.0, matrix=None) -> None:
         """An opaque (or ``opacity``) surface actor, clipped by the renderer's plane."""
@@ -721,16 +747,19 @@ class VolumeRenderer:
         self._surfaces.append(act)
 
     def clear_surfaces(self) -> None:
-        """Remove every label surface and point set added so far (an animation's bones, frame by frame)."""
+        """Remove every label surface, mesh and point set added so far (an animation's bones or skin, frame by
+        frame; the camera's box stays)."""
         for act in self._surfaces:
             self._ren.RemoveActor(act)
         self._surfaces = []
+        self._mesh_bounds = []
 
     def _place(self, volumes) -> None:
         """Camera and clipping plane on the anatomy's world box (``bounds``, or the union of every volume's tissue)."""
-        if self.bounds is None:  # the union of every component's visible tissue
+        if self.bounds is None:  # the union of every component's visible tissue and of the meshes
             self.bounds = union_bounds([content_bounds(v.data if isinstance(v, Volume) else v, self.geometry,
-                                                       first_visible(t)) for v, t in zip(volumes, self._resolved)])
+                                                       first_visible(t)) for v, t in zip(volumes, self._resolved or ())]
+                                       + self._mesh_bounds)
         cam = self._ren.GetActiveCamera()
         first = self._distance is None
         self._distance = self.camera.place(cam, self.bounds, self.size[0] / self.size[1], self._distance)
@@ -759,8 +788,11 @@ class VolumeRenderer:
             if isinstance(v, Volume):
                 self.geometry.check_same(v.geometry, names=("renderer grid", "volume"),
                                          remedy="resample the volume onto one grid first")
-        self._resolve(volumes)
-        self._set_scalars(volumes)
+        if volumes:
+            self._resolve(volumes)
+            self._set_scalars(volumes)
+        elif self.bounds is None and not self._mesh_bounds:
+            raise ValueError("render: nothing to render (no volume and no mesh added)")
         if not self._placed:
             self._place(volumes)
         self._win.Render()
@@ -782,18 +814,23 @@ class VolumeRenderer:
 
 
 # -- one-call forms ------------------------------------------------------------------------------------
-def render_volume(volume: Volume, *, labels: Volume | None = None, points=(), transfer="mri", **kw) -> np.ndarray:
-    """A still of ``volume``, optionally with ``labels`` as bone surfaces and ``points``.
+def render_volume(volume: Volume | None, *, labels: Volume | None = None, points=(), meshes=(), transfer="mri",
+                  **kw) -> np.ndarray:
+    """A still of ``volume``, optionally with ``labels`` as bone surfaces, ``points`` and ``meshes``.
 
     ``points``: ``[(world points (n, 3) mm, (r, g, b)[, radius mm]), ...]``
-    drawn as small spheres (skin markers, registration control points).  See
-    :class:`VolumeRenderer`.
+    drawn as small spheres (skin markers, registration control points);
+    ``meshes``: ``[SurfaceMesh or (SurfaceMesh, (r, g, b)[, opacity]), ...]``
+    in world mm.  ``volume`` None: the meshes alone.  See :class:`VolumeRenderer`.
     """
-    with VolumeRenderer(volume.geometry, transfer=transfer, **kw) as r:
+    with VolumeRenderer(None if volume is None else volume.geometry, transfer=transfer, **kw) as r:
         if labels is not None:
             r.add_labels(labels)
         _add_point_sets(r, points)
-        return r.render(volume)
+        for m in meshes:
+            m, colour, opacity = (m, SKIN_COLOUR, 1.0) if not isinstance(m, tuple) else (*m, 1.0)[:3]
+            r.add_mesh(m, colour=colour, opacity=opacity)
+        return r.render() if volume is None else r.render(volume)
 
 
 def _add_point_sets(r: "VolumeRenderer", points) -> None:
