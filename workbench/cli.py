@@ -155,12 +155,16 @@ when it is omitted; see workbench/viz/keyframes/):
    "keyframes": [{"time": 0.0, "angles": {"knee": [0, 0, 0]}},
                  {"time": 1.25, "angles": {"knee": [60, 0, 0]}}]}
 Joints left out of a keyframe stay at 0; angles in degrees (then mm for 6-DOF joints).
+--keyframes scans goes from the rest pose through every scan's estimated pose and
+back (Kurihara Fig. 9).  --skin ssd|psd|wpsd animates Kurihara's skin mesh
+(`workbench surface`) instead of the volume: milliseconds a frame.
 
 examples:
   workbench animate knee-study --out knee.mp4
   workbench animate hand-study --out hand.gif --fps 12 --size 480x360
   workbench animate knee-study --keyframes my.json --out frames/knee.png --clip z:0.5 --orbit 90
   workbench animate hand-study --skin wpsd --out skin.mp4     # Kurihara's skin mesh, same keyframes
+  workbench animate hand-study --skin psd --keyframes scans --out fig9.mp4   # through the example poses
 """
 
 WEIGHTS_HELP = """Skinning weights for every template voxel (Kurihara Eq. 3; DESIGN step 4).
@@ -598,7 +602,9 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("study", type=Path, help="study folder (with skinning weights: `workbench weights`)")
     an.add_argument("--out", required=True, type=Path, metavar="ANIM",
                     help="anim.mp4, anim.gif, or frames/anim.png (numbered frames)")
-    an.add_argument("--keyframes", type=Path, metavar="KEYS.json", help="keyframe poses (default: the ready ones)")
+    an.add_argument("--keyframes", type=Path, metavar="KEYS.json",
+                    help="keyframe poses (default: the ready ones); 'scans': rest, each scan's estimated pose, "
+                         "rest (Kurihara Fig. 9's interpolation between the example poses)")
     an.add_argument("--method", choices=["auto", "vbd", "evd"], default="auto",
                     help="'auto': EVD when the study has a model, else VBD. Default: auto")
     an.add_argument("--weighting", choices=["psd", "wpsd"], default="psd", help="EVD pose weights. Default: psd")
@@ -1205,8 +1211,14 @@ def cmd_animate(args) -> int:
     from workbench.viz.animate import builtin_keyframes, camera_from, read_keyframes
     from workbench.study import read_study
 
-    sk = read_study(args.study).skeleton()
-    kf = read_keyframes(args.keyframes, sk) if args.keyframes else builtin_keyframes(sk)
+    study = read_study(args.study)
+    sk = study.skeleton()
+    if args.keyframes is not None and str(args.keyframes) == "scans":
+        from workbench.viz.animate import scan_keyframes
+
+        kf = scan_keyframes(study)
+    else:
+        kf = read_keyframes(args.keyframes, sk) if args.keyframes else builtin_keyframes(sk)
     cam = camera_from(kf.camera, view=args.camera, azimuth=args.azimuth, elevation=args.elevation, zoom=args.zoom)
     s = animate_study(args.study, args.out, keyframes=kf, method=args.method, weighting=args.weighting,
                       fps=args.fps, size=size, n_frames=args.frames, transfer=args.preset, camera=cam,

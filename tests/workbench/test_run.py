@@ -316,6 +316,13 @@ def test_skin_mesh_render_and_animation(done, phantom, tmp_path, capsys):
     assert "SURFACE WPSD" in capsys.readouterr().out
     frames = iio.imread(gif)
     assert len(frames) >= 3 and np.abs(frames[0].astype(int) - frames[len(frames) // 2]).mean() > 1.0  # it moves
+    # Kurihara Fig. 9: through the example poses (rest, each scan, rest): PSD at a scan's pose is its mesh
+    assert main(["animate", str(root), "--skin", "psd", "--keyframes", "scans", "--frames", "6", "--size", "160x120",
+                 "--out", str(tmp_path / "fig9.gif"), "--quiet"]) == 0
+    from workbench.viz.animate import scan_keyframes
+
+    kf = scan_keyframes(read_study(root))
+    assert kf.names[1:-1] == read_study(root).scan_ids and kf.names[0] == kf.names[-1] == "template (rest)"
     capsys.readouterr()
     assert main(["animate", str(phantom), "--skin", "wpsd", "--out", str(tmp_path / "none.gif")]) == 1
     assert "workbench surface" in capsys.readouterr().err and not (tmp_path / "none.gif").exists()

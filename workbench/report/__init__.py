@@ -357,7 +357,9 @@ def tables_report(folder: Path) -> str:
             continue
         if isinstance(d, dict) and d.get("format") == "avw-table":
             docs.append(d)
-    order = ["table2", "table3", "table4", "loo", "eigenposes", "kurihara"]
+    from workbench.reproduce import NAMES
+
+    order = list(NAMES)
     docs.sort(key=lambda d: order.index(d["id"]) if d["id"] in order else len(order))
     page = Page(f"Reproduced tables: {folder.name}", f"{len(docs)} tables from {folder}")
     if unreadable:

@@ -180,6 +180,27 @@ def builtin_keyframes(skeleton) -> Keyframes:
     return _keyframes_from_dict(json.loads(res.read_text()), skeleton, f"<builtin {skeleton.name}.json>")
 
 
+def scan_keyframes(study, *, seconds_per_pose: float = 1.0) -> Keyframes:
+    """Keyframes through the study's example poses (Kurihara Fig. 9: "Pose 1 ... transformed into Pose 5
+    and then into Pose 3"): the template's rest pose, each scan's estimated joint angles in the study's
+    order, and rest again, ``seconds_per_pose`` apart (``--keyframes scans``)."""
+    sk = study.skeleton()
+    zero = sk.zero_angles()
+    frames = [{"time": 0.0, "name": "template (rest)", "angles": {k: np.asarray(v, float).tolist()
+                                                                  for k, v in zero.items()}}]
+    for sid in study.scan_ids:
+        a = study.pose(sid).joint_angles
+        if not a:
+            raise InputFileError(f"{study.root}: scan {sid!r} has no joint angles; run `workbench pose "
+                                 f"{study.root} --force` first (--keyframes scans follows the scans' poses)",
+                                 study.manifest_path)
+        frames.append({"time": len(frames) * seconds_per_pose, "name": sid,
+                       "angles": {k: np.asarray(v, float).tolist() for k, v in a.items() if k in zero}})
+    frames.append({"time": len(frames) * seconds_per_pose, "name": "template (rest)", "angles": frames[0]["angles"]})
+    return _keyframes_from_dict({"format": KEYFRAMES_FORMAT, "skeleton": sk.name, "keyframes": frames}, sk,
+                                f"<the scans of {study.root.name}>")
+
+
 # -- output ----------------------------------------------------------------------------------------------
 class _Writer:
     """Frames to MP4 / GIF / numbered PNGs, written to a temporary name and moved into place at the end."""
