@@ -35,22 +35,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from timing import best_of  # noqa: E402  (benchmarks/timing.py)
+
 from deformation.geometry import Volume  # noqa: E402
 from deformation.evd import ExampleVolumeDeformation, vbd_forward  # noqa: E402
 from deformation.posespace import PoseSpace, psd_training, skin, wpsd_deform  # noqa: E402
 from deformation.resample import backward_map, resample_forward  # noqa: E402
 from deformation.skinning import distance_weights, lbs, stack_transforms  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
-
-
-def best_of(fn, repeats: int = 3):
-    """Minimum wall time of ``repeats`` calls (the least disturbed by other work on the machine)."""
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def peak_rss_gb() -> float:

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 import numba
@@ -39,18 +38,11 @@ import SimpleITK as sitk
 # The project root first: this folder holds a ``deformation.py`` benchmark that would shadow the package.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from timing import best_of  # noqa: E402  (benchmarks/timing.py)
+
 from deformation import fields as F  # noqa: E402
 from deformation.geometry import GridGeometry, Volume  # noqa: E402
 from deformation.interpolate import sample, sample_displaced_array  # noqa: E402
-
-
-def best_of(fn, repeat):
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def smooth_field(g: GridGeometry) -> np.ndarray:

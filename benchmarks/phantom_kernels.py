@@ -10,20 +10,16 @@ compilation is excluded (one warm-up call).  Never asserts times.
 from __future__ import annotations
 
 import argparse
-import time
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from validation.phantoms import make_phantom
+# The project root first: this folder holds a ``deformation.py`` benchmark that would shadow the package.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
-def best_of(fn, repeat=3):
-    best = np.inf
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
+from timing import best_of  # noqa: E402  (benchmarks/timing.py)
+from validation.phantoms import make_phantom  # noqa: E402
 
 
 def main(argv=None):
@@ -50,7 +46,7 @@ def main(argv=None):
     print(f"{'kernel':<18}{'compiled s':>12}{'numpy s':>10}{'ratio':>8}")
     for name, (fast, ref) in cases.items():
         fast()  # compile / warm up
-        tf, tr = best_of(fast), best_of(ref, repeat=1)
+        tf, tr = best_of(fast)[0], best_of(ref, repeat=1)[0]
         print(f"{name:<18}{tf:>12.3f}{tr:>10.3f}{tr / tf:>7.1f}x")
 
 
