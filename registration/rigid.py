@@ -810,8 +810,22 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
     extra.update({"fitness": res.fitness, "inlier_rmse_mm": res.inlier_rmse_mm})
     t = res.transform
     if prior is not None and res.converged:
-        t, info = surface_prior(src, src_n, t, np.asarray(prior, float), region.centroid,
-                                max(res.inlier_rmse_mm, 0.05 * spacing), prior_deg=prior_deg, prior_mm=prior_mm)
-        extra.update(info)
+        # the information is the matched points': those with a scan point within ICP's last distance, σ their
+        # point-to-plane RMS (a point with no partner — cropped, outside the field of view — fixes nothing)
+        from scipy.spatial import cKDTree
+
+        from registration.surface_fit import vertex_normals as _vn
+
+        tmesh = isosurface(sub, lvl)
+        tn = _vn(tmesh.vertices, tmesh.triangles)
+        q = apply(t, src)
+        dist, j = cKDTree(tmesh.vertices).query(q, distance_upper_bound=0.5 * d)
+        hit = np.isfinite(dist)
+        if hit.sum() >= 6:
+            r = np.einsum("ij,ij->i", q[hit] - tmesh.vertices[j[hit]], tn[j[hit]])
+            sigma = max(float(np.sqrt(np.mean(r ** 2))), 0.05 * spacing)
+            t, info = surface_prior(src[hit], src_n[hit], t, np.asarray(prior, float), region.centroid, sigma,
+                                    prior_deg=prior_deg, prior_mm=prior_mm)
+            extra.update(info, matched_points=int(hit.sum()))
     return _finish(region, sampler, t, "surface", before, sum(1 for _ in res.stages), res.message, t0,
                    min_ncc=min_ncc, min_inside=min_inside, not_converged=not res.converged, extra=extra)

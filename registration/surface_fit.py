@@ -277,14 +277,16 @@ def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh,
     those with a target: ``feature_targets`` ``(n_vertices, 3)`` world mm (e.g. where the volume registration
     puts each base vertex in the scan; NaN rows: none), or, when None, the confident closest points of the
     SSD mesh on ``target`` (near, facing the same way, along the normal).  Returns the ``ssd``, ``rbf`` and
-    ``fitted`` meshes, the :class:`FitResult`, the feature indices (for landmarks: the vertex nearest each)
-    and their targets.
+    ``fitted`` meshes, the :class:`FitResult`, the feature indices (for landmarks: the corner of its triangle
+    with the largest barycentric weight) and their targets.
     """
     from deformation.skinning import lbs
     from deformation.splines import KURIHARA_D_MM, RBFDeformation
 
     if fit not in FITS:
         raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+    if landmarks is not None and feature_targets is not None:
+        raise ValueError("give landmarks or feature_targets, not both")
     ssd = SurfaceMesh(lbs(base.vertices, weights, transforms), base.triangles)
     if landmarks is not None:
         sites, tgt = landmarks[0], np.asarray(landmarks[1], float).reshape(-1, 3)

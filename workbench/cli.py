@@ -123,8 +123,9 @@ surfaces; --overlay draws a second volume in magenta against the first in cyan
 brighter, blue: darker).  --markers draws the ground truth's skin markers (white),
 --control-points the control points a registration allocated, coloured by block
 level (Rhee Fig. 9).  --mesh draws a mesh (world mm: `workbench surface`'s skins,
-`surface-deform`'s posed skin) over the volume, half transparent; a mesh file as
-the source is rendered alone (the camera fitted to it).
+`surface-deform`'s posed skin) with the volume (opaque: it hides the tissue behind
+it; --clip cuts both); a mesh file as the source is rendered alone (the camera
+fitted to it).
 
 examples:
   workbench render knee-study --out template.png
@@ -463,8 +464,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "for a rotated bone on coarse grids. Default: bspline")
     po.add_argument("--prior-deg", type=float, default=argparse.SUPPRESS, metavar="DEG",
                     help="width (degrees) of the weak prior tying each bone's rotation to its hierarchical "
-                         "initialisation (the translation prior is 2 mm); 0 turns the polish off (plain Eq. 1 "
-                         "through SimpleITK). Default: 2")
+                         "initialisation (the translation prior is 2 mm; with --method surface, combined with "
+                         "the ICP fit); 0 turns it off (plain Eq. 1 through SimpleITK, plain ICP). Default: 2")
     po.add_argument("--margin-mm", default=argparse.SUPPRESS, type=float, metavar="MM",
                     help="dilation of each bone's region for the intensity cost (Rhee: 'slightly dilated'); "
                          "default one voxel, at least 2 mm.  Smaller keeps non-rigid soft tissue out on fine grids")
@@ -574,8 +575,10 @@ def build_parser() -> argparse.ArgumentParser:
     re_.add_argument("--mesh", action="append", type=Path, metavar="MESH",
                      help="a mesh in world mm (.ply, .vtp, .stl, .obj; e.g. `workbench surface` or "
                           "`surface-deform` output) drawn over the volume; repeatable")
-    re_.add_argument("--mesh-opacity", type=float, default=None, metavar="A",
-                     help="the meshes' opacity, 0..1. Default: 0.5 over a volume, 1 alone")
+    re_.add_argument("--mesh-opacity", type=float, default=1.0, metavar="A",
+                     help="the meshes' opacity, 0..1. VTK's CPU ray caster (software OpenGL) draws a translucent "
+                          "mesh behind the volume's tissue: clip the volume (--clip) to see a mesh inside it. "
+                          "Default: 1")
     re_.add_argument("--out", required=True, type=Path, metavar="IMAGE.png", help="the PNG to write")
     re_.add_argument("--scan", metavar="ID", help="with a study: render this scan instead of the template")
     re_.add_argument("--registered", metavar="ID",
@@ -615,7 +618,8 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--bones", action="store_true", help="draw the posed bone labels as surfaces")
     an.add_argument("--skin", choices=["ssd", "psd", "wpsd"], metavar="ssd|psd|wpsd",
                     help="animate Kurihara's skin mesh (`workbench surface`) posed by this method instead of the "
-                         "volume, through the same keyframes")
+                         "volume, through the same keyframes (--method, --weighting and --preset are the "
+                         "volume's and do not apply)")
     _render_options(an, camera_default=None)
     an.add_argument("--force", action="store_true", help="replace existing output")
     _common(an)
@@ -949,7 +953,7 @@ def cmd_model(args) -> int:
 def cmd_surface(args) -> int:
     ss = _given(args, args.study, "surface", {**{k: (k, _same) for k in ("target_triangles", "features", "n_features",
                                                                          "fit", "stiffness")},
-                                              "landmarks": ("landmarks", lambda p: str(Path(p).resolve()))},
+                                              "landmarks": ("landmarks", str)},
                 implied={"features": "landmarks"} if hasattr(args, "landmarks") else
                 {"landmarks": None} if getattr(args, "features", "landmarks") != "landmarks" else None)
     ss = dataclasses.replace(ss, scans=tuple(args.scan) if args.scan else None)
@@ -958,7 +962,7 @@ def cmd_surface(args) -> int:
         from workbench.study import read_study
 
         st = read_study(args.study)
-        read_landmarks(ss.landmarks, st.check_scan_ids(ss.scans))
+        read_landmarks(ss.landmarks, st.scan_ids, st.check_scan_ids(ss.scans))
     study, out = _stages(args, ["surface"], {"surface": ss}, force={"surface"} if args.force else ())
     doc = _read_output(study, "surface", "surface.json")
     t = doc["template"]
@@ -1159,11 +1163,12 @@ def cmd_render(args) -> int:
 
     alone = args.source.name.lower().endswith(MESH_SUFFIXES)
     mesh_files = ([args.source] if alone else []) + list(args.mesh or [])
-    opacity = args.mesh_opacity if args.mesh_opacity is not None else 1.0 if alone else 0.5
+    opacity = args.mesh_opacity
     if not 0.0 < opacity <= 1.0:
         raise ValueError(f"--mesh-opacity must be in (0, 1], got {opacity}")
     if mesh_files and (args.overlay or args.difference):
-        raise ValueError("--mesh draws on a single-volume render; leave out --overlay/--difference")
+        raise ValueError(f"{args.source} is a mesh: --overlay/--difference compare two volumes" if alone else
+                         "--mesh draws on a single-volume render; leave out --overlay/--difference")
     if alone and any(getattr(args, k) for k in ("scan", "registered", "labels", "bones", "markers", "control_points")):
         raise ValueError(f"{args.source} is a mesh: --scan, --registered, --labels, --bones, --markers and "
                          "--control-points need a volume or a study")

@@ -309,8 +309,11 @@ def test_surface_prior_keeps_what_icp_fixes_and_takes_the_prior_where_it_cannot(
     best = from_prior(t)
     for turn in (-0.5, 0.5):
         assert from_prior(compose(motion(turn * ax_t, [0, 0, 0], center=c), t)) > best + 1e-4
-    # which leaves only the tilt: 4° from the prior (ICP's 25° roll is gone), the posterior's sd the prior's 2°
-    assert abs(best - 4.0) < 0.05, best
+    # which leaves only the swing of the axis: the angle between the prior's axis and the fitted one (ICP's 25°
+    # roll is gone; the 4° tilt about the prior's z moves the axis by 3.97° after the roll), within the
+    # prior's pull on the axis bounded above (0.01°; 0.001° measured)
+    swing = np.degrees(np.arccos(np.clip(axis @ ax_f, -1.0, 1.0)))
+    assert abs(best - swing) < 0.01, (best, swing)
     assert abs(info["change_from_icp_deg"] - 25.0) < 0.5
     assert abs(info["rotation_sd_deg"] - 2.0) < 1e-6
 

@@ -47,14 +47,26 @@ def test_bad_landmark_sets_are_refused_naming_the_file(tmp_path, scans, ids, mat
     assert str(p) in str(e.value)
 
 
+def test_a_subset_of_scans_needs_landmarks_for_those_only(tmp_path):
+    """`workbench surface --scan pose01 --landmarks FILE`: the file may cover the whole study, the other scans
+    need no landmarks, and a scan the study lacks is still refused."""
+    p = _json(tmp_path / "m.json", PAIRS)
+    assert list(read_landmarks(p, ["pose01", "pose02"], ["pose01"])) == ["pose01"]
+    with pytest.raises(InputFileError, match="fewer than 4"):
+        read_landmarks(p, ["pose01", "pose02"], ["pose02"])
+    with pytest.raises(InputFileError, match=r"unknown scans \['pose01'\]; the study has \['pose02'\]"):
+        read_landmarks(p, ["pose02"], [])
+
+
 def test_malformed_files_say_what_is_expected(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"scans": {}}))
     with pytest.raises(InputFileError, match="avw-landmarks"):
         read_landmarks(bad)
-    bad.write_text(json.dumps({"format": "avw-landmarks", "scans": {"p": [{"template": [1, 2], "scan": [1, 2, 3]}]}}))
-    with pytest.raises(InputFileError, match=r"landmark 0 of scan 'p'"):
-        read_landmarks(bad)
+    for t, sc in (([1, 2], [1, 2, 3]), ([1, 2, 3, 4], [5, 6])):  # 3 numbers each, not 6 in all
+        bad.write_text(json.dumps({"format": "avw-landmarks", "scans": {"p": [{"template": t, "scan": sc}]}}))
+        with pytest.raises(InputFileError, match=r"landmark 0 of scan 'p'"):
+            read_landmarks(bad)
     csv = tmp_path / "bad.csv"
     csv.write_text("scan,x,y,z\n")
     with pytest.raises(InputFileError, match="header"):

@@ -20,8 +20,8 @@ gives:
   estimated axis;
 * the bones' pose errors against the true poses (rotation, degrees).
 
-The SSD / PSD / WPSD skin comparison of Kurihara §5 needs the surface model
-of issue K and is not part of this table yet.
+The skin meshes of Kurihara §4 and their SSD / PSD / WPSD of §5 are measured
+on the same study by :mod:`.kurihara_skin`.
 """
 
 from __future__ import annotations
@@ -128,7 +128,8 @@ def kurihara(runner) -> Table:
                   "bone_rotation_median_deg": "angle of T_true⁻¹ T_est per bone and scan, median"},
               notes=["CT-like hand phantom, 5 poses (Kurihara §2 scanned 5 poses of one hand); at --size test the "
                      "test grid's field of view at 1.6 mm voxels (at 3.1 mm ICP loses the distal phalanges)",
-                     "the SSD / PSD / WPSD skin comparison (Kurihara §5) waits for the surface model (issue K)"])
+                     "the skin meshes and SSD / PSD / WPSD (Kurihara §4–5) of the same study: the kurihara_skin "
+                     "table"])
     t.add("ours (ICP, Kurihara §3)", "ours", m)
     t.add("paper (Kurihara & Miyata 2004, §3)", "paper", {"eq1_rms_mm": PAPER_RMS_MM},
           source="Kurihara & Miyata 2004, §3")

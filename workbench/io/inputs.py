@@ -127,13 +127,14 @@ def read_poses_file(path) -> tuple:
     return tuple(out)
 
 
-def read_landmarks(path, scan_ids=None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def read_landmarks(path, scan_ids=None, selected=None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Skin landmarks picked on the template and on each scan (Kurihara §4's feature points), world mm:
     ``{scan: (template points (k, 3), scan points (k, 3))}``.
 
     JSON: ``{"format": "avw-landmarks", "scans": {"<scan id>": [{"template": [x, y, z], "scan": [x, y, z]},
-    ...]}}``; or CSV with the header ``scan,template_x,template_y,template_z,scan_x,scan_y,scan_z``.  Every scan
-    of ``scan_ids`` needs at least 4 landmarks (an RBF needs points); unknown scan ids are refused.
+    ...]}}``; or CSV with the header ``scan,template_x,template_y,template_z,scan_x,scan_y,scan_z``.  Scan ids
+    not among the study's ``scan_ids`` are refused; every scan of ``selected`` (default: all of them) needs
+    at least 4 landmarks (an RBF needs points).
     """
     import csv
 
@@ -167,9 +168,10 @@ def read_landmarks(path, scan_ids=None) -> dict[str, tuple[np.ndarray, np.ndarra
         for sid, items in d["scans"].items():
             for k, it in enumerate(items if isinstance(items, list) else [None]):
                 try:
-                    v = [float(x) for x in it["template"]] + [float(x) for x in it["scan"]]
-                    if len(v) != 6:
+                    a, b = [float(x) for x in it["template"]], [float(x) for x in it["scan"]]
+                    if len(a) != 3 or len(b) != 3:
                         raise ValueError
+                    v = a + b
                 except (TypeError, KeyError, ValueError):
                     raise InputFileError(f"{path}: landmark {k} of scan {sid!r} must be {{\"template\": [x, y, z], "
                                          f"\"scan\": [x, y, z]}} in mm, got {it!r}.", path) from None
@@ -185,8 +187,9 @@ def read_landmarks(path, scan_ids=None) -> dict[str, tuple[np.ndarray, np.ndarra
         unknown = sorted(set(out) - set(ids))
         if unknown:
             raise InputFileError(f"{path}: unknown scans {unknown}; the study has {ids}.", path)
-        few = [s for s in ids if len(out.get(s, ((),))[0]) < 4]
+        want = ids if selected is None else [str(s) for s in selected]
+        few = [s for s in want if len(out.get(s, ((),))[0]) < 4]
         if few:
             raise InputFileError(f"{path}: scans {few} have fewer than 4 landmarks; give at least 4 per scan "
-                                 "(Kurihara picked 70-150), or drop those scans with --scan.", path)
+                                 "(Kurihara picked 70-150), or fit only the others with --scan ID.", path)
     return out

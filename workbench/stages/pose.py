@@ -57,6 +57,8 @@ class PoseSettings:
             raise ValueError(f"interpolation must be 1 (linear) or 3 (B-spline), got {self.interpolation!r}")
         if self.prior_deg is not None and self.prior_deg < 0:
             raise ValueError(f"--prior-deg must be ≥ 0, got {self.prior_deg}")
+        if self.prior_deg == 0:  # 0 turns the prior off, as on the command line (--prior-deg 0)
+            object.__setattr__(self, "prior_deg", None)
         if self.max_joint_gap_mm is not None and self.max_joint_gap_mm < 0:
             raise ValueError(f"--max-joint-gap-mm must be ≥ 0 (0 switches the check off), got {self.max_joint_gap_mm}")
         if self.outlier_factor is not None and (self.outlier_factor < 0 or 0 < self.outlier_factor <= 1):
@@ -137,4 +139,4 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="pose", folder="poses", per_scan=False, settings_type=PoseSettings, run=_run,
-              needs=lambda s: ("bones",), inputs=_inputs, version=2)  # 2: ICP (--method surface) with the prior
+              needs=lambda s: ("bones",), inputs=_inputs, version=3)  # 2: ICP (--method surface) with the prior; 3: its matched points only

@@ -60,10 +60,13 @@ class SurfaceSettings:
         if self.fit not in FITS:
             raise ValueError(f"--fit must be one of {FITS}, got {self.fit!r}")
         if (self.features == "landmarks") != (self.landmarks is not None):
-            raise ValueError("--landmarks FILE goes with --features landmarks (the default when --landmarks is "
-                             f"given); got --features {self.features} and --landmarks {self.landmarks}")
-        if self.landmarks is not None:
-            object.__setattr__(self, "landmarks", str(self.landmarks))
+            raise ValueError("a landmarks file goes with the landmarks feature source (--landmarks FILE, or "
+                             "--set surface.features=\"landmarks\" --set surface.landmarks=\"FILE\"); got features "
+                             f"{self.features!r} and landmarks {self.landmarks!r}")
+        if self.landmarks is not None:  # absolute: the recorded setting works from any folder
+            from pathlib import Path
+
+            object.__setattr__(self, "landmarks", str(Path(self.landmarks).expanduser().resolve()))
         if int(self.target_triangles) < 100:
             raise ValueError(f"--target-triangles must be at least 100, got {self.target_triangles}")
         if int(self.n_features) < 4:
@@ -124,7 +127,7 @@ def _run(ctx) -> dict:
     if s.features == "landmarks":  # checked before any work
         from workbench.io.inputs import read_landmarks
 
-        marks = read_landmarks(s.landmarks, ids)
+        marks = read_landmarks(s.landmarks, study.scan_ids, ids)
     template = study.template()
     ctx.report(0, len(ids) + 1, "template skin (S0)")
     base = skin_surface(template, target_triangles=s.target_triangles, smooth_voxels=s.smooth_voxels)
@@ -145,7 +148,8 @@ def _run(ctx) -> dict:
             try:
                 sites[sid] = landmark_sites(base, marks[sid][0], max_snap_mm=s.max_distance_mm)
             except ValueError as e:
-                raise InputFileError(f"{s.landmarks}: scan {sid!r}: {e}", s.landmarks) from None
+                raise InputFileError(f"{s.landmarks}: scan {sid!r}: {e} (the limit is surface.max_distance_mm, "
+                                     f"--set surface.max_distance_mm=MM)", s.landmarks) from None
     ctx.report(1, len(ids) + 1, f"S0: {base.n_triangles} triangles")
     for k, sid in enumerate(ids):
         scan = study.scan(sid)

@@ -183,7 +183,8 @@ def builtin_keyframes(skeleton) -> Keyframes:
 def scan_keyframes(study, *, seconds_per_pose: float = 1.0) -> Keyframes:
     """Keyframes through the study's example poses (Kurihara Fig. 9: "Pose 1 ... transformed into Pose 5
     and then into Pose 3"): the template's rest pose, each scan's estimated joint angles in the study's
-    order, and rest again, ``seconds_per_pose`` apart (``--keyframes scans``)."""
+    order, and rest again, ``seconds_per_pose`` apart (``--keyframes scans``).  A joint the pose stage gave
+    no angle (a flagged bone's) stays at rest."""
     sk = study.skeleton()
     zero = sk.zero_angles()
     frames = [{"time": 0.0, "name": "template (rest)", "angles": {k: np.asarray(v, float).tolist()
