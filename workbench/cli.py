@@ -1155,6 +1155,9 @@ def cmd_render(args) -> int:
     tf = transfer_function(args.preset)
     if args.out.suffix.lower() != ".png":
         raise ValueError(f"--out {args.out}: stills are PNG; name it *.png")
+    from workbench.io.atomic import check_output_folder
+
+    check_output_folder(args.out, "--out")
     if args.out.exists() and not args.force:
         from workbench.errors import OutputExistsError
 

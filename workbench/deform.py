@@ -78,7 +78,7 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     (a bent limb leaves a slab scanned straight).  Returns a
     summary: the method, the backward map's status counts, timings.
     """
-    from workbench.io.atomic import split_suffix
+    from workbench.io.atomic import check_output_folder, split_suffix
     from workbench.io.volumes import image_format
 
     if method not in METHODS:
@@ -89,10 +89,12 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     study = read_study(folder)
     out = Path(out)
     stem, suffix = split_suffix(out.name)
+    labels_given = bool(labels_out)
     labels_out = Path(labels_out) if labels_out else out.with_name(f"{stem}_labels{suffix}")
     outputs = [out, labels_out] + ([Path(field_out)] if field_out else [])
     # every check before any work, so that no output set is left half-written
-    for p in outputs:
+    for p, option in zip(outputs, ("--out", "--labels-out", "--field-out")):
+        check_output_folder(p, option if option != "--labels-out" or labels_given else "--out (its labels beside it)")
         image_format(p, for_writing=True)
         if p.exists() and not overwrite:
             raise OutputExistsError(p, f"{p} exists; pass --force to replace it.")
@@ -142,8 +144,9 @@ def surface_deform(folder, pose_path, out, *, method: str = "wpsd", overwrite: b
         raise ValueError(f"--out {out}: a mesh file ending in one of {', '.join(MESH_SUFFIXES)}")
     if out.exists() and not overwrite:
         raise OutputExistsError(out, f"{out} exists; pass --force to replace it.")
-    if not out.parent.is_dir():
-        raise ValueError(f"--out {out}: the folder {out.parent} does not exist")
+    from workbench.io.atomic import check_output_folder
+
+    check_output_folder(out, "--out")
     study = read_study(folder)
     _refuse_study_files(study, [out.resolve()], "the posed mesh")
     pose = read_target_pose(pose_path, study.skeleton())  # a bad pose file is reported before any loading

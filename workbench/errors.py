@@ -128,3 +128,7 @@ class OutputExistsError(WorkbenchError, FileExistsError):
 
     def __str__(self) -> str:
         return self.args[0]
+
+
+class OutputFolderError(WorkbenchError, OSError):
+    """An output's folder is missing or not writable: said before any work (no output is half-written)."""

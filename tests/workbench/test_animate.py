@@ -222,6 +222,28 @@ def test_cli_render_and_animate(tmp_path, study, capsys):
     assert _read_mp4(mp4).shape == (4, 72, 96, 3)
 
 
+def test_animate_into_a_folder_it_cannot_write_says_so_before_any_frame(tmp_path, study, capsys, monkeypatch):
+    """An MP4 or GIF into a read-only or missing folder: one line naming --out, no "Broken pipe" from ffmpeg
+    after the frames were made, no traceback, nothing left."""
+    import errno
+    import tempfile
+
+    def refuse(*a, **k):  # a read-only file system (as root os.access cannot see it): the probe write fails
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    for name in ("a.mp4", "a.gif"):
+        monkeypatch.setattr(tempfile, "mkstemp", refuse)
+        capsys.readouterr()
+        assert main(["animate", str(study), "--out", str(tmp_path / name), "--frames", "4", "--size", "96x72"]) == 1
+        monkeypatch.undo()
+        err = capsys.readouterr().err.strip().splitlines()
+        assert "frame" not in " ".join(err) and any("--out" in e and "Read-only file system" in e for e in err), err
+        assert not any("Traceback" in e or "Broken pipe" in e for e in err)
+    assert main(["animate", str(study), "--out", str(tmp_path / "missing" / "a.gif"), "--frames", "4"]) == 1
+    assert "mkdir -p" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_keyframes_dataclass_needs_two_frames():
     kf = Keyframes(np.array([0.0, 1.0]), [{"knee": np.zeros(3)}, {"knee": np.ones(3)}])
     with pytest.raises(ValueError, match="at least 2 frames"):

@@ -141,6 +141,15 @@ def test_deform_reports_bad_input(study, tmp_path, capsys):
     assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "a.nii.gz"), "--field-out",
                  str(tmp_path / "f.xyz"), "--quiet"]) == 1
     assert not (tmp_path / "a.nii.gz").exists()
+    # an output into a missing folder: one line naming the option and the fix, before any work, nothing
+    # written (the posed volume used to be written first and a rerun then hit "exists")
+    for opt in ("--field-out", "--labels-out"):
+        capsys.readouterr()
+        assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "b.nii.gz"), opt,
+                     str(tmp_path / "missing" / "f.nii.gz")]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and opt in err[0] and "does not exist" in err[0] and "mkdir -p" in err[0], err
+        assert not (tmp_path / "b.nii.gz").exists() and not (tmp_path / "b_labels.nii.gz").exists()
     s = read_study(study)
     with pytest.raises(InputFileError, match="workbench weights"):
         type(s)(s.root, {**s.manifest, "stages": {}}).weights()  # a study whose weights stage has not run

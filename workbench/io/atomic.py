@@ -28,7 +28,8 @@ from pathlib import Path
 
 from workbench.errors import OutputExistsError
 
-__all__ = ["atomic_path", "atomic_file_group", "write_text_atomic", "split_suffix", "replace_dir", "commit_file"]
+__all__ = ["atomic_path", "atomic_file_group", "write_text_atomic", "split_suffix", "replace_dir", "commit_file",
+           "check_output_folder"]
 
 # Suffixes that only make sense together with the one before them.
 _COMPRESSION_SUFFIXES = {".gz", ".bz2", ".xz", ".zst"}
@@ -52,6 +53,28 @@ def split_suffix(name: str) -> tuple[str, str]:
     if not stem:  # a name that is all suffix, e.g. ".gz"
         return name, ""
     return stem, suffix
+
+
+def check_output_folder(path: str | os.PathLike, option: str) -> Path:
+    """Before any work: the folder an output file ``path`` goes into exists and this process may write in it.
+    ``option`` names the command-line option that gave the path (the message's fix).  Returns the path."""
+    from workbench.errors import OutputFolderError
+
+    p = Path(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise OutputFolderError(f"{option} {p}: the folder {folder} does not exist; create it (mkdir -p {folder}) "
+                                f"or give {option} a path in an existing folder.")
+    import tempfile
+
+    try:  # a real write, not os.access: a read-only file system refuses root too
+        fd, probe = tempfile.mkstemp(prefix=".avw-write-test-", dir=folder)
+    except OSError as e:
+        raise OutputFolderError(f"{option} {p}: cannot write in the folder {folder} ({e.strerror or e}); give "
+                                f"{option} a path in a folder you can write to.") from None
+    os.close(fd)
+    os.unlink(probe)
+    return p
 
 
 def _check_target(final: Path, overwrite: bool) -> None:

@@ -213,8 +213,9 @@ class _Writer:
         if self.kind not in FORMATS:
             raise ValueError(f"{out}: the animation format is chosen by the extension: .mp4 (H.264), .gif, or "
                              ".png (numbered frames <name>_0000.png, ...)")
-        if not out.parent.is_dir():
-            raise FileNotFoundError(f"{out.parent}: the output folder does not exist; create it first")
+        from workbench.io.atomic import check_output_folder
+
+        check_output_folder(out, "--out")  # missing or read-only: said now, not after the frames are made
         self.token = secrets.token_hex(4)
         self.n = 0
         self._gif = []
@@ -363,6 +364,9 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     t_start = time.perf_counter()
     study = read_study(folder)
     out = Path(out)
+    from workbench.io.atomic import check_output_folder
+
+    check_output_folder(out, "--out")  # before the deformation model is built (the writer checks the rest)
     if skin is not None:
         from deformation.surface_model import SURFACE_METHODS
 
