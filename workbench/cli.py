@@ -439,7 +439,21 @@ def build_parser() -> argparse.ArgumentParser:
     info = sub.add_parser("info", help="summarise a study folder",
                           description="Print what a study folder holds: grids, skeleton, scans and ground truth.")
     info.add_argument("study", type=Path, help="study folder (holding study.json)")
+    info.add_argument("--check", action="store_true",
+                      help="also read every image of the study (template, labels, scans, ground truth) and list "
+                           "each that cannot be used (unreadable, NaN voxels, another grid's labels); exit 1 if any")
     info.set_defaults(func=cmd_info)
+
+    ci = sub.add_parser("clean-image", help="replace an image's NaN and infinite voxels (a copy; the input is kept)",
+                        description="Write a copy of an image whose NaN and infinite voxels are replaced by a value "
+                                    "(default: the lowest finite value of the image, i.e. background), with the "
+                                    "same geometry. The workbench refuses images with such voxels.")
+    ci.add_argument("image", type=Path, help="the image (.nii.gz, .mha, .nrrd, a DICOM folder)")
+    ci.add_argument("--out", required=True, type=Path, help="the cleaned copy")
+    ci.add_argument("--value", type=float, default=None, help="the value for the bad voxels (default: the lowest "
+                                                               "finite value)")
+    ci.add_argument("--force", action="store_true", help="replace an existing --out")
+    ci.set_defaults(func=cmd_clean_image)
 
     po = sub.add_parser("pose", help="recover bone poses, joint centres and joint angles of a study's scans",
                         description=POSE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -1340,7 +1354,73 @@ def summarize(study) -> str:
 def cmd_info(args) -> int:
     from workbench.study import read_study
 
-    print(summarize(read_study(args.study)))
+    study = read_study(args.study)
+    print(summarize(study))
+    if not args.check:
+        return 0
+    problems = check_study_images(study)
+    if problems:
+        print(f"\n{len(problems)} problem(s):", file=sys.stderr)
+        for p in problems:
+            print(f"  {p}", file=sys.stderr)
+        return 1
+    print("\nevery image read: no problem found")
+    return 0
+
+
+def check_study_images(study) -> list[str]:
+    """Read every image a study names; one line per image that cannot be used (its reader's message)."""
+    from workbench.errors import WorkbenchError
+    from workbench.io.volumes import read_displacement, read_labels, read_volume
+
+    m = study.manifest
+    todo = [(read_volume, m["template"])]
+    if m.get("template_labels"):
+        todo.append((read_labels, m["template_labels"]))
+    for s in m["scans"]:
+        todo.append((read_volume, s["image"]))
+        for key in ("correspondence", "template_to_scan"):
+            if (s.get("truth") or {}).get(key):
+                todo.append((read_displacement, s["truth"][key]))
+    problems = []
+    grid = None
+    for reader, rel in todo:
+        try:
+            v = reader(study.path(rel))
+        except (WorkbenchError, ValueError, OSError) as e:
+            problems.append(str(e))
+            continue
+        if rel == m.get("template_labels") and grid is not None and not v.geometry.is_close(grid):
+            problems.append(f"{study.path(rel)}: the label map is not on the template's grid "
+                            f"({v.geometry.describe()} against {grid.describe()}); resample it (nearest neighbour)")
+        if rel == m["template"]:
+            grid = v.geometry
+    return problems
+
+
+def cmd_clean_image(args) -> int:
+    import numpy as np
+
+    from workbench.errors import OutputExistsError
+    from workbench.io.atomic import check_output_folder
+    from workbench.io.volumes import read_volume, write_volume
+
+    check_output_folder(args.out, "--out")
+    if args.out.exists() and not args.force:
+        raise OutputExistsError(args.out, f"{args.out} exists; pass --force to replace it.")
+    if args.out.resolve() == args.image.resolve():
+        raise ValueError(f"--out {args.out} is the input: write the cleaned copy elsewhere (the input is kept)")
+    v = read_volume(args.image, allow_nonfinite=True)
+    data = np.asarray(v.data)
+    bad = ~np.isfinite(data)
+    if args.value is not None and not np.isfinite(args.value):
+        raise ValueError(f"--value must be a finite number, got {args.value}")
+    if bad.all() and args.value is None:
+        raise ValueError(f"{args.image}: no finite voxel at all; give --value")
+    fill = float(args.value) if args.value is not None else float(data[~bad].min())
+    clean = np.where(bad, fill, data).astype(data.dtype)
+    write_volume(type(v)(clean, v.geometry), args.out, overwrite=args.force)
+    print(f"{int(bad.sum())} of {bad.size} voxels replaced by {fill:g}; wrote {args.out}")
     return 0
 
 

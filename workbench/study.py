@@ -463,9 +463,16 @@ def read_study(folder: str | os.PathLike) -> Study:
     if not manifest_path.is_file():
         raise MissingFileError(f"{root}: not a study folder ({MANIFEST} is missing).", manifest_path)
     m = read_json(manifest_path)
-    if m.get("format") != STUDY_FORMAT:
-        raise StudyError(f"{manifest_path}: 'format' is {m.get('format')!r}, expected {STUDY_FORMAT!r}.",
+    if not isinstance(m, dict):
+        raise StudyError(f"{manifest_path}: a study manifest is a JSON object {{\"format\": \"{STUDY_FORMAT}\", "
+                         "\"template\": ..., \"skeleton\": ..., \"scans\": [...]}} (README, 'Study folders').",
                          manifest_path)
+    if "format" not in m:
+        raise StudyError(f"{manifest_path}: no 'format' key; add \"format\": \"{STUDY_FORMAT}\", \"version\": 1 "
+                         "at the top of the manifest (README, 'Study folders', has a minimal one).", manifest_path)
+    if m.get("format") != STUDY_FORMAT:
+        raise StudyError(f"{manifest_path}: 'format' is {m.get('format')!r}, not a study manifest; a study's is "
+                         f"{STUDY_FORMAT!r}.", manifest_path)
     for key in ("template", "skeleton", "scans"):
         if key not in m:
             raise StudyError(f"{manifest_path}: the manifest lacks the key {key!r}.", manifest_path)

@@ -165,3 +165,50 @@ def test_info_on_manifest_with_bad_truth(knee_study, tmp_path, capsys):
     (copy / "study.json").write_text(json.dumps(m))
     assert main(["info", str(copy)]) == 1
     assert "['truth'] must name" in capsys.readouterr().err
+
+
+def test_a_hand_written_manifest_without_format_is_told_what_to_add(tmp_path, capsys):
+    d = tmp_path / "mine"
+    d.mkdir()
+    (d / "study.json").write_text(json.dumps({"template": "t.nii.gz", "skeleton": "s.json", "scans": []}))
+    assert main(["info", str(d)]) == 1
+    err = capsys.readouterr().err
+    assert '"format": "avw-study"' in err and "study.json" in err
+
+
+def test_info_check_reads_every_image_and_clean_image_repairs_a_nan_scan(knee_study, tmp_path, capsys):
+    """A scan with NaN voxels: `info` alone reads no image and says nothing; `info --check` names the file and
+    the command that repairs it; `clean-image` writes a copy (input kept) that passes."""
+    import shutil
+
+    import numpy as np
+
+    from workbench.io.volumes import read_volume, write_volume
+
+    copy = tmp_path / "copy"
+    shutil.copytree(knee_study, copy)
+    m = json.loads((copy / "study.json").read_text())
+    scan = copy / m["scans"][1]["image"]
+    v = read_volume(scan)
+    data = np.array(v.data)
+    data[3, 4, 5] = np.nan
+    data[0, 0, 0] = np.inf
+    write_volume(type(v)(data, v.geometry), scan, overwrite=True, allow_nonfinite=True)
+    assert main(["info", str(copy)]) == 0
+    capsys.readouterr()
+    assert main(["info", str(copy), "--check"]) == 1
+    err = capsys.readouterr().err
+    assert "1 problem" in err and str(scan) in err and "2 of" in err and "workbench clean-image" in err
+    assert "allow_nonfinite" not in err  # no Python argument offered on the command line
+    fixed = tmp_path / "fixed.nii.gz"
+    assert main(["clean-image", str(scan), "--out", str(fixed)]) == 0
+    assert "2 of" in capsys.readouterr().out
+    c = read_volume(fixed)
+    finite = data[np.isfinite(data)]
+    assert c.data[3, 4, 5] == finite.min() and c.data[0, 0, 0] == finite.min()
+    assert c.geometry.is_close(v.geometry)
+    np.testing.assert_array_equal(c.data[np.isfinite(data)], finite)
+    assert not np.isfinite(read_volume(scan, allow_nonfinite=True).data).all()  # the input is kept as it was
+    shutil.copyfile(fixed, scan)
+    assert main(["info", str(copy), "--check"]) == 0
+    assert "no problem found" in capsys.readouterr().out

@@ -602,7 +602,8 @@ def _check_finite(data: np.ndarray, path: Path, what: str, fix: str) -> None:
     )
 
 
-_FIX_READ = "Replace or mask these voxels and save the file again"
+_FIX_READ = ("Replace these voxels and save the file again: `workbench clean-image FILE --out CLEAN.nii.gz` "
+             "fills them (with --value V, default the image's lowest finite value)")
 _FIX_WRITE = ("Nothing was written. Replace or mask these voxels first (e.g. numpy.nan_to_num)")
 
 
@@ -657,7 +658,7 @@ def read_volume(
             f"{p}: complex voxels ({image.GetPixelIDTypeAsString()}); save the magnitude "
             "image instead.", p)
     if not allow_nonfinite and data.dtype.kind == "f":
-        _check_finite(data, p, "volume", _FIX_READ + ", or pass allow_nonfinite=True to read them as they are.")
+        _check_finite(data, p, "volume", _FIX_READ + ".")
     return Volume(data, GridGeometry.from_sitk(image))
 
 
