@@ -36,7 +36,8 @@ JSON schema (``skeleton.json``)::
      "bones":  [{"name": "femur", "label": 1, "parent": null}, ...],
      "joints": [{"name": "knee", "parent": "femur", "child": "tibia", "dof": 3,
                  "center": [x, y, z],
-                 "axes": {"x": [..], "y": [..], "z": [..]}}, ...]}
+                 "axes": {"x": [..], "y": [..], "z": [..]},
+                 "limits": [[low, high], ...]}, ...]}     # optional: range of motion per DOF
 
 A pose (``pose.json``) stores one template → scan world transform per bone
 and, optionally, each joint's angles and its centre in the scan::
@@ -95,6 +96,9 @@ class Joint:
     dof: int
     center: tuple[float, float, float]
     axes: np.ndarray = field(default_factory=lambda: np.eye(3))
+    #: optional range of motion, one ``(low, high)`` per DOF (degrees, then mm for a 6-DOF joint's
+    #: translations); what a user's pose is checked against (:meth:`Skeleton.limit_problems`)
+    limits: tuple | None = None
 
     def __post_init__(self):
         if self.dof not in VALID_DOF:
@@ -111,6 +115,24 @@ class Joint:
         a = a.copy()
         a.setflags(write=False)
         object.__setattr__(self, "axes", a)
+        if self.limits is not None:
+            lim = np.asarray(self.limits, dtype=float)
+            if lim.shape != (self.dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] > lim[:, 1]):
+                raise SkeletonError(f"joint {self.name!r}: limits must be {self.dof} [low, high] pairs (degrees, "
+                                    f"then mm), low ≤ high, got {self.limits!r}")
+            object.__setattr__(self, "limits", tuple((float(lo), float(hi)) for lo, hi in lim))
+
+    def outside_limits(self, angles) -> list[str]:
+        """The values of ``angles`` outside the joint's limits, as ``"knee[0] = 1000° outside [-10, 150]"``."""
+        if self.limits is None:
+            return []
+        a = np.asarray(angles, dtype=float).reshape(-1)
+        out = []
+        for k, (v, (lo, hi)) in enumerate(zip(a, self.limits)):
+            if not lo <= v <= hi:
+                unit = "°" if k < 3 else " mm"
+                out.append(f"{self.name}[{k}] = {v:g}{unit} outside [{lo:g}, {hi:g}]")
+        return out
 
     def __eq__(self, other):
         if not isinstance(other, Joint):
@@ -181,6 +203,7 @@ class Joint:
             "dof": int(self.dof),
             "center": list(self.center),
             "axes": {"x": a[:, 0].tolist(), "y": a[:, 1].tolist(), "z": a[:, 2].tolist()},
+            **({"limits": [list(p) for p in self.limits]} if self.limits is not None else {}),
         }
 
     @classmethod
@@ -189,7 +212,7 @@ class Joint:
             ax = d.get("axes")
             axes = np.eye(3) if ax is None else np.column_stack([ax["x"], ax["y"], ax["z"]])
             return cls(name=d["name"], parent=d["parent"], child=d["child"], dof=int(d["dof"]),
-                       center=d["center"], axes=axes)
+                       center=d["center"], axes=axes, limits=d.get("limits"))
         except KeyError as e:
             raise SkeletonError(f"joint entry {d!r} lacks the key {e}") from e
 
@@ -296,6 +319,11 @@ class Skeleton:
     # -- kinematics ------------------------------------------------------------
     def zero_angles(self) -> dict[str, np.ndarray]:
         return {j.name: np.zeros(j.dof) for j in self.joints}
+
+    def limit_problems(self, angles: dict) -> list[str]:
+        """Every joint value of ``angles`` outside its joint's limits (none for joints without limits)."""
+        return [p for name, v in angles.items() if name in self._joint
+                for p in self._joint[name].outside_limits(v)]
 
     def forward_kinematics(self, angles: dict | None = None, *, root_transform=None) -> dict[str, np.ndarray]:
         """World transform (template → scan) of every bone for the given joint angles.

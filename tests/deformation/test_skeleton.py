@@ -496,3 +496,23 @@ def test_relative_motion_of_a_recorded_pose_matches_inverse_composition(knee_ske
     pose = knee_skeleton.pose(_random_angles(knee_skeleton, rng), root_transform=_random_root(rng))
     m = knee_skeleton.relative_motion(pose.transforms, "knee")
     np.testing.assert_allclose(m, compose(invert(pose["femur"]), pose["tibia"]), rtol=0, atol=0)
+
+
+def test_joint_limits_round_trip_and_name_what_is_outside():
+    from deformation.skeleton import Bone, Joint, Skeleton, SkeletonError
+
+    j = Joint("knee", "femur", "tibia", 3, (0.0, 0.0, 0.0), limits=((-10, 150), (-15, 15), (-30, 30)))
+    sk = Skeleton([Bone("femur", 1, None), Bone("tibia", 2, "femur")], [j], name="k")
+    again = Skeleton.from_dict(sk.to_dict())
+    assert again.joint("knee").limits == ((-10.0, 150.0), (-15.0, 15.0), (-30.0, 30.0))
+    assert sk.limit_problems({"knee": [20, 0, 0]}) == []
+    assert sk.limit_problems({"knee": [200, -20, 0]}) == ["knee[0] = 200° outside [-10, 150]",
+                                                          "knee[1] = -20° outside [-15, 15]"]
+    six = Joint("w", "femur", "tibia", 6, (0.0, 0.0, 0.0), limits=((-5, 5),) * 3 + ((-10, 10),) * 3)
+    assert six.outside_limits([0, 0, 0, 0, 12, 0]) == ["w[4] = 12 mm outside [-10, 10]"]
+    for bad in (((-10, 150), (-15, 15)), ((10, -10), (0, 1), (0, 1)), ((0, np.inf), (0, 1), (0, 1))):
+        with pytest.raises(SkeletonError, match="limits must be 3"):
+            Joint("knee", "femur", "tibia", 3, (0.0, 0.0, 0.0), limits=bad)
+    no_limits = Skeleton.from_dict({**sk.to_dict(), "joints": [{k: v for k, v in j.to_dict().items()
+                                                               if k != "limits"}]})
+    assert no_limits.limit_problems({"knee": [1000, 0, 0]}) == []  # an older skeleton.json: nothing to check

@@ -126,6 +126,10 @@ def test_bad_keyframe_files_name_the_problem(tmp_path, skeleton):
     bad["fps"] = True
     with pytest.raises(InputFileError, match="fps must be a positive number"):
         read_keyframes(_keys(tmp_path, bad), skeleton)
+    bad = _bend()
+    bad["keyframes"][1]["angles"]["knee"] = [1000, 0, 0]  # a 1000° knee: outside the skeleton's range of motion
+    with pytest.raises(InputFileError, match=r"keyframe 1: knee\[0\] = 1000° outside \[-10, 150\]"):
+        read_keyframes(_keys(tmp_path, bad), skeleton)
 
 
 def test_ready_keyframes_fit_the_phantom_skeletons():

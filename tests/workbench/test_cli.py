@@ -212,3 +212,14 @@ def test_info_check_reads_every_image_and_clean_image_repairs_a_nan_scan(knee_st
     shutil.copyfile(fixed, scan)
     assert main(["info", str(copy), "--check"]) == 0
     assert "no problem found" in capsys.readouterr().out
+
+
+def test_poses_file_outside_the_range_of_motion_or_with_strings(tmp_path, capsys):
+    for angles, expect in (({"knee": [1000, 0, 0]}, "knee[0] = 1000° outside [-10, 150]"),
+                           ({"knee": ["30", 0, 0]}, "list of numbers")):
+        pf = tmp_path / "poses.json"
+        pf.write_text(json.dumps({"poses": [{"id": "x", "angles": angles}]}))
+        capsys.readouterr()
+        assert main(["phantom", "knee", "--out", str(tmp_path / "s"), "--poses-file", str(pf), "--quiet"]) == 1
+        err = capsys.readouterr().err
+        assert expect in err and "poses.json" in err and not (tmp_path / "s").exists(), err

@@ -194,3 +194,21 @@ def test_harmonic_weights_are_deterministic_given_the_kept_mesh(tmp_path):
     from workbench.stages.mechanism import stage_status
 
     assert stage_status(read_study(root), STAGES["model"], registry=STAGES) == "stale"
+
+
+def test_angles_outside_the_range_of_motion_or_as_strings_are_refused(study, tmp_path, capsys):
+    """A 1000° knee used to be posed into a mangled volume; an angle given as a string was read silently.
+    Both are one line naming the file, the joint and the fix, and nothing is written."""
+    for angles, expect in (({"knee": [1000, 0, 0]}, "knee[0] = 1000° outside [-10, 150]"),
+                           ({"knee": [20, 40, 0]}, "knee[1] = 40° outside [-15, 15]"),
+                           ({"knee": ["30", 0, 0]}, "needs a list of numbers")):
+        pose = tmp_path / "p.json"
+        pose.write_text(json.dumps({"angles": angles}))
+        capsys.readouterr()
+        assert main(["deform", str(study), "--pose", str(pose), "--out", str(tmp_path / "o.nii.gz")]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "p.json" in err[0] and expect in err[0], err
+        assert not (tmp_path / "o.nii.gz").exists()
+    # the study's skeleton.json carries the limits (an older one without them checks nothing)
+    sk = json.loads((study / "skeleton.json").read_text())
+    assert {j["name"]: j["limits"][0] for j in sk["joints"]}["knee"] == [-10.0, 150.0]

@@ -164,6 +164,10 @@ class Phantom:
                     self.skeleton.forward_kinematics(full)
                 except ValueError as e:
                     raise ValueError(f"pose {pid!r}: {e}") from e
+                outside = self.skeleton.limit_problems(full)
+                if outside:
+                    raise ValueError(f"pose {pid!r}: {outside[0]}, the {self.spec.region} skeleton's range of "
+                                     "motion; give angles within it")
                 out.append((str(pid), full))
             return out
         n = self.spec.n_poses or self.region.DEFAULT_POSES

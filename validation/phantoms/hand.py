@@ -114,12 +114,40 @@ def _layout():
     return segs, joints, radius
 
 
+# Normal active ranges of motion (American Academy of Orthopaedic Surgeons, Joint Motion: Method of Measuring
+# and Recording, 1965), degrees in the joint frames (flexion, abduction towards the radial side, axial twist);
+# the thumb's carpometacarpal joint within ±60° about each axis; the 6-DOF joints' translations within 10 mm
+RANGE_OF_MOTION = {
+    "cmc": ((0, 20), (-5, 5), (-10, 10)),  # fingers' carpometacarpal cupping (ring and little move)
+    "mcp": ((-45, 90), (-25, 25), (-10, 10)),
+    "pip": ((0, 100), (-5, 5), (-5, 5)),
+    "dip": ((-10, 90), (-5, 5), (-5, 5)),
+    "thumb_cmc": ((-60, 60), (-60, 60), (-60, 60)),
+    "thumb_mcp": ((-10, 50), (-15, 15), (-15, 15)),
+    "thumb_ip": ((-20, 80), (-5, 5), (-5, 5)),
+    "wrist": ((-70, 80), (-20, 30), (-10, 10)),
+}
+TRANSLATION_LIMIT_MM = 10.0
+
+
+def range_key(joint: str) -> str:
+    """The :data:`RANGE_OF_MOTION` entry of a hand joint ("index_mcp" → "mcp")."""
+    if joint.startswith("thumb_") or joint == "wrist":
+        return joint
+    return joint.rsplit("_", 1)[1]
+
+
+def _limits(name: str, dof: int) -> tuple:
+    rot = RANGE_OF_MOTION[range_key(name)]
+    return tuple(rot) + ((-TRANSLATION_LIMIT_MM, TRANSLATION_LIMIT_MM),) * (dof - 3)
+
+
 def skeleton() -> Skeleton:
     segs, joints, _ = _layout()
     bone_order = ["radius", "capitate"] + [n for n in segs if n != "radius"]
     parent_of = {j[2]: j[1] for j in joints}
     bones = [Bone(n, i + 1, parent_of.get(n)) for i, n in enumerate(bone_order)]
-    return Skeleton(bones, [Joint(*j) for j in joints], name=NAME)
+    return Skeleton(bones, [Joint(*j, limits=_limits(j[0], j[3])) for j in joints], name=NAME)
 
 
 def digit_bone(a, b, ra, rb, axes) -> SmoothUnion:

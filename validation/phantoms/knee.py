@@ -41,13 +41,20 @@ PATELLA_RATIO = 0.7
 _KNEE_AXES = np.column_stack([(0.0, 0.0, -1.0), (1.0, 0.0, 0.0), (0.0, -1.0, 0.0)])
 
 
+# Range of motion per joint (flexion, varus/valgus, axial rotation; degrees): the knee's normal active range
+# (AAOS, Joint Motion, 1965: flexion 0-135°, hyperextension to -10°) widened a little for passive motion;
+# the fibula follows the tibia; the patella turns by ~70 % of the flexion
+RANGE_OF_MOTION = {"knee": ((-10, 150), (-15, 15), (-30, 30)),
+                   "patellofemoral": ((-10, 110), (-15, 15), (-20, 20))}
+
+
 def skeleton() -> Skeleton:
     bones = [Bone("femur", 1, None), Bone("tibia", 2, "femur"), Bone("fibula", 3, "femur"),
              Bone("patella", 4, "femur")]
     joints = [
-        Joint("knee", "femur", "tibia", 3, KNEE_CENTER, _KNEE_AXES),
-        Joint("tibiofibular", "femur", "fibula", 3, KNEE_CENTER, _KNEE_AXES),
-        Joint("patellofemoral", "femur", "patella", 3, TROCHLEA_CENTER, _KNEE_AXES),
+        Joint("knee", "femur", "tibia", 3, KNEE_CENTER, _KNEE_AXES, RANGE_OF_MOTION["knee"]),
+        Joint("tibiofibular", "femur", "fibula", 3, KNEE_CENTER, _KNEE_AXES, RANGE_OF_MOTION["knee"]),
+        Joint("patellofemoral", "femur", "patella", 3, TROCHLEA_CENTER, _KNEE_AXES, RANGE_OF_MOTION["patellofemoral"]),
     ]
     return Skeleton(bones, joints, name=NAME)
 

@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from validation.phantoms.hand import RANGE_OF_MOTION, range_key
+
 __all__ = ["FINGER_SHAPES", "THUMB_SHAPES", "SPREADS", "LIBRARY", "RANGE_OF_MOTION", "library_angles", "hand_angles",
            "check_range", "FINGERS"]
 
@@ -152,24 +154,6 @@ LIBRARY = (
 )
 
 # Normal active ranges (degrees), AAOS 1965; (low, high) per rotation (flexion, abduction, twist).
-RANGE_OF_MOTION = {
-    "cmc": ((0, 20), (-5, 5), (-10, 10)),  # fingers' carpometacarpal cupping (ring and little move)
-    "mcp": ((-45, 90), (-25, 25), (-10, 10)),
-    "pip": ((0, 100), (-5, 5), (-5, 5)),
-    "dip": ((-10, 90), (-5, 5), (-5, 5)),
-    "thumb_cmc": ((-60, 60), (-60, 60), (-60, 60)),
-    "thumb_mcp": ((-10, 50), (-15, 15), (-15, 15)),
-    "thumb_ip": ((-20, 80), (-5, 5), (-5, 5)),
-    "wrist": ((-70, 80), (-20, 30), (-10, 10)),
-}
-
-
-def _range_key(joint: str) -> str:
-    if joint.startswith("thumb_") or joint == "wrist":
-        return joint
-    return joint.rsplit("_", 1)[1]
-
-
 def hand_angles(skeleton, thumb: str, shapes, spread) -> dict:
     """Joint angles for the hand ``skeleton`` from a :data:`THUMB_SHAPES` name, four :data:`FINGER_SHAPES`
     names (index, middle, ring, little) and a :data:`SPREADS` name or four MCP abductions (degrees)."""
@@ -200,7 +184,7 @@ def check_range(angles: dict) -> list[str]:
     """The joint rotations of ``angles`` outside :data:`RANGE_OF_MOTION` (empty when all are within)."""
     bad = []
     for joint, v in angles.items():
-        lims = RANGE_OF_MOTION[_range_key(joint)]
+        lims = RANGE_OF_MOTION[range_key(joint)]
         for axis, (value, (lo, hi)) in enumerate(zip(np.asarray(v, float)[:3], lims)):
             if not lo <= value <= hi:
                 bad.append(f"{joint}[{axis}] = {value:g}° outside [{lo}, {hi}]")

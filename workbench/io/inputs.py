@@ -17,7 +17,7 @@ from registration.segmentation import SEEDS_FORMAT
 from workbench.errors import InputFileError
 from workbench.io.jsonio import read_json
 
-__all__ = ["read_target_pose", "read_seeds", "read_initial_poses", "read_poses_file", "read_landmarks",
+__all__ = ["read_target_pose", "read_seeds", "read_initial_poses", "read_poses_file", "read_landmarks", "check_limits",
            "SEEDS_FORMAT", "LANDMARKS_FORMAT"]
 
 LANDMARKS_FORMAT = "avw-landmarks"
@@ -42,12 +42,33 @@ def read_target_pose(path, skeleton) -> Pose:
             raise InputFileError(f"{path}: the pose lacks transforms for bones {sorted(missing)}.", path)
         return pose
     if isinstance(d, dict) and isinstance(d.get("angles"), dict):
+        for joint, v in d["angles"].items():
+            if not isinstance(v, list) or not all(_is_number(x) for x in v):
+                raise InputFileError(f"{path}: joint {joint!r} needs a list of numbers (degrees, then mm for a "
+                                     f"6-DOF joint), got {v!r}.", path)
         try:
-            return skeleton.pose({k: np.asarray(v, dtype=float) for k, v in d["angles"].items()})
+            pose = skeleton.pose({k: np.asarray(v, dtype=float) for k, v in d["angles"].items()})
         except (SkeletonError, ValueError) as e:
             raise InputFileError(f"{path}: {e}", path) from e
+        check_limits(skeleton, d["angles"], path)
+        return pose
     raise InputFileError(f"{path}: expected an avw-pose file (bone transforms) or {{\"angles\": {{joint: "
                          "[degrees, ...]}}}}.", path)
+
+
+def _is_number(v) -> bool:
+    """A JSON number (not a string, not a boolean), finite."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def check_limits(skeleton, angles: dict, where, what: str = "") -> None:
+    """One line naming ``where`` (a file) when a joint value of ``angles`` lies outside the skeleton's range of
+    motion (``limits`` of skeleton.json); nothing for joints without limits."""
+    bad = skeleton.limit_problems({k: np.asarray(v, dtype=float) for k, v in angles.items()})
+    if bad:
+        more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+        raise InputFileError(f"{where}: {what}{bad[0]}{more}, the range of motion of the study's skeleton "
+                             "(skeleton.json, 'limits'); give angles within it.", where)
 
 
 def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
@@ -119,7 +140,7 @@ def read_poses_file(path) -> tuple:
         seen.add(pid)
         angles = {}
         for joint, values in entry["angles"].items():
-            if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
+            if not isinstance(values, list) or not all(_is_number(v) for v in values):
                 raise InputFileError(f"{path}: poses[{i}] joint {joint!r}: angles must be a list of numbers "
                                      f"(degrees, then mm for 6-DOF joints), got {values!r}.", path)
             angles[joint] = values

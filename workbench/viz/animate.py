@@ -121,6 +121,10 @@ def _keyframes_from_dict(d, skeleton, where: str) -> Keyframes:
             skeleton.pose(full)
         except (SkeletonError, ValueError) as e:
             raise bad(f"keyframe {n}: {e}") from e
+        outside = skeleton.limit_problems(full)
+        if outside:
+            raise bad(f"keyframe {n}: {outside[0]}" + (f" (and {len(outside) - 1} more)" if len(outside) > 1 else "")
+                      + ", the range of motion of the study's skeleton (skeleton.json, 'limits')")
         times.append(float(kf["time"]))
         angles.append(full)
         names.append(str(kf.get("name", f"keyframe {n}")))
