@@ -133,11 +133,14 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     skipped), so the truth cannot have reached init, register or model."""
     root, _, _ = done
     bare = _strip(root, tmp_path / "bare", truth=False, keep=("bones", "pose", "weights"))
+    # SIGINT at its default in the child: a background job of a non-interactive shell (`make test &`, a CI
+    # runner's) ignores SIGINT, a child inherits that, and Python then installs no KeyboardInterrupt handler:
+    # the run went on to the end through the signal
     proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     # the signal goes when the run says it starts the second registration (the first is then committed and
-    # recorded), read from its progress as it comes: polling study.json let the whole run finish unsignalled
-    # once in a loaded test run, and an unread pipe can fill and stall the child
+    # recorded), read from its progress as it comes (an unread pipe can fill and stall the child)
     lines = []
     for line in proc.stderr:
         lines.append(line)
