@@ -116,7 +116,10 @@ class Joint:
         a.setflags(write=False)
         object.__setattr__(self, "axes", a)
         if self.limits is not None:
-            lim = np.asarray(self.limits, dtype=float)
+            try:
+                lim = np.asarray(self.limits, dtype=float)
+            except (TypeError, ValueError):
+                lim = np.zeros((0,))
             if lim.shape != (self.dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] > lim[:, 1]):
                 raise SkeletonError(f"joint {self.name!r}: limits must be {self.dof} [low, high] pairs (degrees, "
                                     f"then mm), low ≤ high, got {self.limits!r}")

@@ -357,7 +357,7 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                                   message=f"moves less than {MOVING_DEG:.0f}° in every scan: the skeleton's centre "
                                           "is kept (Eq. 1 cannot place it)")
         joints[j.name] = r
-        new_joints.append(Joint(j.name, j.parent, j.child, j.dof, tuple(r.center), j.axes))
+        new_joints.append(Joint(j.name, j.parent, j.child, j.dof, tuple(r.center), j.axes, j.limits))
     est = Skeleton(skeleton.bones, new_joints, name=skeleton.name)
     for s in results:
         angles, centres = {}, {}

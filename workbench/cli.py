@@ -1405,16 +1405,19 @@ def cmd_clean_image(args) -> int:
     from workbench.io.atomic import check_output_folder
     from workbench.io.volumes import read_volume, write_volume
 
-    check_output_folder(args.out, "--out")
-    if args.out.exists() and not args.force:
-        raise OutputExistsError(args.out, f"{args.out} exists; pass --force to replace it.")
+    from workbench.io.volumes import image_format
+
     if args.out.resolve() == args.image.resolve():
         raise ValueError(f"--out {args.out} is the input: write the cleaned copy elsewhere (the input is kept)")
+    if args.value is not None and not np.isfinite(args.value):
+        raise ValueError(f"--value must be a finite number, got {args.value}")
+    check_output_folder(args.out, "--out")
+    image_format(args.out, for_writing=True)
+    if args.out.exists() and not args.force:
+        raise OutputExistsError(args.out, f"{args.out} exists; pass --force to replace it.")
     v = read_volume(args.image, allow_nonfinite=True)
     data = np.asarray(v.data)
     bad = ~np.isfinite(data)
-    if args.value is not None and not np.isfinite(args.value):
-        raise ValueError(f"--value must be a finite number, got {args.value}")
     if bad.all() and args.value is None:
         raise ValueError(f"{args.image}: no finite voxel at all; give --value")
     fill = float(args.value) if args.value is not None else float(data[~bad].min())

@@ -89,12 +89,11 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     study = read_study(folder)
     out = Path(out)
     stem, suffix = split_suffix(out.name)
-    labels_given = bool(labels_out)
     labels_out = Path(labels_out) if labels_out else out.with_name(f"{stem}_labels{suffix}")
     outputs = [out, labels_out] + ([Path(field_out)] if field_out else [])
     # every check before any work, so that no output set is left half-written
     for p, option in zip(outputs, ("--out", "--labels-out", "--field-out")):
-        check_output_folder(p, option if option != "--labels-out" or labels_given else "--out (its labels beside it)")
+        check_output_folder(p, option)
         image_format(p, for_writing=True)
         if p.exists() and not overwrite:
             raise OutputExistsError(p, f"{p} exists; pass --force to replace it.")

@@ -510,9 +510,22 @@ def test_joint_limits_round_trip_and_name_what_is_outside():
                                                           "knee[1] = -20° outside [-15, 15]"]
     six = Joint("w", "femur", "tibia", 6, (0.0, 0.0, 0.0), limits=((-5, 5),) * 3 + ((-10, 10),) * 3)
     assert six.outside_limits([0, 0, 0, 0, 12, 0]) == ["w[4] = 12 mm outside [-10, 10]"]
-    for bad in (((-10, 150), (-15, 15)), ((10, -10), (0, 1), (0, 1)), ((0, np.inf), (0, 1), (0, 1))):
+    for bad in (((-10, 150), (-15, 15)), ((10, -10), (0, 1), (0, 1)), ((0, np.inf), (0, 1), (0, 1)),
+                ((0, "x"), (0, 1), (0, 1)), ((0, 1), (0,), (0, 1))):
         with pytest.raises(SkeletonError, match="limits must be 3"):
             Joint("knee", "femur", "tibia", 3, (0.0, 0.0, 0.0), limits=bad)
     no_limits = Skeleton.from_dict({**sk.to_dict(), "joints": [{k: v for k, v in j.to_dict().items()
                                                                if k != "limits"}]})
     assert no_limits.limit_problems({"knee": [1000, 0, 0]}) == []  # an older skeleton.json: nothing to check
+
+
+@pytest.mark.parametrize("region", ["knee", "hand"])
+def test_the_phantoms_own_poses_lie_within_their_skeletons_range_of_motion(region):
+    """The phantoms' seeded default poses (their jitter around a straight joint included) are poses a user
+    could give back (a truth pose file, keyframes): none outside the limits their skeleton.json carries."""
+    mod = {"knee": knee, "hand": hand}[region]
+    sk = mod.skeleton()
+    for seed in range(30):
+        for n in (4, 5, 10):
+            for a in mod.default_poses(n, np.random.default_rng(seed)):
+                assert sk.limit_problems(mod.complete_angles(a)) == [], (seed, n)

@@ -54,10 +54,10 @@ def test_library_has_at_least_60_documented_poses_within_normal_ranges():
 def test_range_check_names_the_joint_outside_its_range():
     sk = hand.skeleton()
     angles = dict(library_angles(sk)[0][2])
-    angles["index_pip"] = np.array([130.0, 0.0, 0.0])  # beyond the PIP's 100° of flexion
+    angles["index_pip"] = np.array([130.0, 0.0, 0.0])  # beyond the PIP's 110° (AAOS 100°, widened) of flexion
     bad = check_range(angles)
     assert len(bad) == 1 and bad[0].startswith("index_pip[0] = 130")
-    assert RANGE_OF_MOTION["pip"][0] == (0, 100)
+    assert RANGE_OF_MOTION["pip"][0] == (-10, 110)
 
 
 def test_explained_variance_of_two_known_directions():

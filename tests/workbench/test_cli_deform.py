@@ -212,3 +212,17 @@ def test_angles_outside_the_range_of_motion_or_as_strings_are_refused(study, tmp
     # the study's skeleton.json carries the limits (an older one without them checks nothing)
     sk = json.loads((study / "skeleton.json").read_text())
     assert {j["name"]: j["limits"][0] for j in sk["joints"]}["knee"] == [-10.0, 150.0]
+
+
+def test_a_one_dof_joint_takes_a_number_alone(tmp_path):
+    from deformation.skeleton import Bone, Joint, Skeleton
+    from workbench.io.inputs import read_target_pose
+
+    sk = Skeleton([Bone("upper", 1, None), Bone("fore", 2, "upper")],
+                  [Joint("elbow", "upper", "fore", 1, (0.0, 0.0, 0.0), limits=((0, 150),))], name="arm")
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps({"angles": {"elbow": 30}}))
+    assert read_target_pose(p, sk).joint_angles["elbow"].tolist() == [30.0]
+    p.write_text(json.dumps({"angles": {"elbow": 170}}))
+    with pytest.raises(InputFileError, match=r"elbow\[0\] = 170° outside \[0, 150\]"):
+        read_target_pose(p, sk)

@@ -14,6 +14,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -142,10 +143,15 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     # the signal goes when the run says it starts the second registration (the first is then committed and
     # recorded), read from its progress as it comes (an unread pipe can fill and stall the child)
     lines = []
-    for line in proc.stderr:
-        lines.append(line)
-        if "register pose01: running" in line:
-            break
+    watchdog = threading.Timer(600, proc.kill)  # a child that hangs fails the test instead of hanging it
+    watchdog.start()
+    try:
+        for line in proc.stderr:
+            lines.append(line)
+            if "register pose01: running" in line:
+                break
+    finally:
+        watchdog.cancel()
     assert _registered(bare, "pose00"), "".join(lines)
     proc.send_signal(signal.SIGINT)
     with proc.stderr:

@@ -166,8 +166,9 @@ class Phantom:
                     raise ValueError(f"pose {pid!r}: {e}") from e
                 outside = self.skeleton.limit_problems(full)
                 if outside:
-                    raise ValueError(f"pose {pid!r}: {outside[0]}, the {self.spec.region} skeleton's range of "
-                                     "motion; give angles within it")
+                    more = f" (and {len(outside) - 1} more)" if len(outside) > 1 else ""
+                    raise ValueError(f"pose {pid!r}: {outside[0]}{more}, the {self.spec.region} skeleton's range "
+                                     "of motion; give angles within it")
                 out.append((str(pid), full))
             return out
         n = self.spec.n_poses or self.region.DEFAULT_POSES

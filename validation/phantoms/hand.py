@@ -114,17 +114,19 @@ def _layout():
     return segs, joints, radius
 
 
-# Normal active ranges of motion (American Academy of Orthopaedic Surgeons, Joint Motion: Method of Measuring
-# and Recording, 1965), degrees in the joint frames (flexion, abduction towards the radial side, axial twist);
+# Ranges of motion, degrees in the joint frames (flexion, abduction towards the radial side, axial twist): the
+# normal active ranges (American Academy of Orthopaedic Surgeons, Joint Motion: Method of Measuring and
+# Recording, 1965) widened by a few degrees for passive motion and for the jitter of measured (or the
+# phantom's seeded) angles around a straight joint — a range starting at 0° refused a PIP estimated at −1°;
 # the thumb's carpometacarpal joint within ±60° about each axis; the 6-DOF joints' translations within 10 mm
 RANGE_OF_MOTION = {
-    "cmc": ((0, 20), (-5, 5), (-10, 10)),  # fingers' carpometacarpal cupping (ring and little move)
+    "cmc": ((-5, 25), (-7, 7), (-12, 12)),  # fingers' carpometacarpal cupping (ring and little move)
     "mcp": ((-45, 90), (-25, 25), (-10, 10)),
-    "pip": ((0, 100), (-5, 5), (-5, 5)),
-    "dip": ((-10, 90), (-5, 5), (-5, 5)),
+    "pip": ((-10, 110), (-7, 7), (-7, 7)),
+    "dip": ((-15, 90), (-7, 7), (-7, 7)),
     "thumb_cmc": ((-60, 60), (-60, 60), (-60, 60)),
-    "thumb_mcp": ((-10, 50), (-15, 15), (-15, 15)),
-    "thumb_ip": ((-20, 80), (-5, 5), (-5, 5)),
+    "thumb_mcp": ((-10, 55), (-15, 15), (-15, 15)),
+    "thumb_ip": ((-25, 85), (-7, 7), (-7, 7)),
     "wrist": ((-70, 80), (-20, 30), (-10, 10)),
 }
 TRANSLATION_LIMIT_MM = 10.0

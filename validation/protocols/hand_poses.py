@@ -19,10 +19,12 @@ library is built from three published, illustrated sets:
 The joint angles are our reading of those illustrations, composed from a
 small vocabulary of finger shapes (:data:`FINGER_SHAPES`: MCP, PIP and DIP
 flexion) and thumb shapes (:data:`THUMB_SHAPES`), with a finger spread
-(:data:`SPREADS`, MCP abduction).  Every pose is checked against normal
-active ranges of motion (:data:`RANGE_OF_MOTION`: American Academy of
-Orthopaedic Surgeons, *Joint Motion: Method of Measuring and Recording*,
-1965; thumb carpometacarpal motion kept within ±60° about each joint axis).
+(:data:`SPREADS`, MCP abduction).  Every pose is checked against the hand
+skeleton's ranges of motion (:data:`RANGE_OF_MOTION`, in
+:mod:`validation.phantoms.hand`: the normal active ranges of the American
+Academy of Orthopaedic Surgeons, *Joint Motion: Method of Measuring and
+Recording*, 1965, widened a few degrees; thumb carpometacarpal motion
+within ±60° about each joint axis).
 
 Angles are in degrees in the hand phantom's joint frames
 (:mod:`validation.phantoms.hand`: intrinsic XYZ = flexion, abduction towards
@@ -153,7 +155,7 @@ LIBRARY = (
     ("claw hand", X, "pad", ("claw",) * 4, "spread"),
 )
 
-# Normal active ranges (degrees), AAOS 1965; (low, high) per rotation (flexion, abduction, twist).
+
 def hand_angles(skeleton, thumb: str, shapes, spread) -> dict:
     """Joint angles for the hand ``skeleton`` from a :data:`THUMB_SHAPES` name, four :data:`FINGER_SHAPES`
     names (index, middle, ring, little) and a :data:`SPREADS` name or four MCP abductions (degrees)."""

@@ -62,6 +62,9 @@ def check_output_folder(path: str | os.PathLike, option: str) -> Path:
 
     p = Path(path)
     folder = p.parent if str(p.parent) else Path(".")
+    if folder.exists() and not folder.is_dir():
+        raise OutputFolderError(f"{option} {p}: {folder} is a file, not a folder; give {option} a path in a "
+                                "folder.")
     if not folder.is_dir():
         raise OutputFolderError(f"{option} {p}: the folder {folder} does not exist; create it (mkdir -p {folder}) "
                                 f"or give {option} a path in an existing folder.")

@@ -43,11 +43,11 @@ def read_target_pose(path, skeleton) -> Pose:
         return pose
     if isinstance(d, dict) and isinstance(d.get("angles"), dict):
         for joint, v in d["angles"].items():
-            if not isinstance(v, list) or not all(_is_number(x) for x in v):
+            if not (_is_number(v) or isinstance(v, list) and all(_is_number(x) for x in v)):
                 raise InputFileError(f"{path}: joint {joint!r} needs a list of numbers (degrees, then mm for a "
-                                     f"6-DOF joint), got {v!r}.", path)
+                                     f"6-DOF joint; a number alone for a 1-DOF joint), got {v!r}.", path)
         try:
-            pose = skeleton.pose({k: np.asarray(v, dtype=float) for k, v in d["angles"].items()})
+            pose = skeleton.pose({k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in d["angles"].items()})
         except (SkeletonError, ValueError) as e:
             raise InputFileError(f"{path}: {e}", path) from e
         check_limits(skeleton, d["angles"], path)
@@ -64,7 +64,7 @@ def _is_number(v) -> bool:
 def check_limits(skeleton, angles: dict, where, what: str = "") -> None:
     """One line naming ``where`` (a file) when a joint value of ``angles`` lies outside the skeleton's range of
     motion (``limits`` of skeleton.json); nothing for joints without limits."""
-    bad = skeleton.limit_problems({k: np.asarray(v, dtype=float) for k, v in angles.items()})
+    bad = skeleton.limit_problems({k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in angles.items()})
     if bad:
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
         raise InputFileError(f"{where}: {what}{bad[0]}{more}, the range of motion of the study's skeleton "

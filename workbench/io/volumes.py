@@ -604,6 +604,8 @@ def _check_finite(data: np.ndarray, path: Path, what: str, fix: str) -> None:
 
 _FIX_READ = ("Replace these voxels and save the file again: `workbench clean-image FILE --out CLEAN.nii.gz` "
              "fills them (with --value V, default the image's lowest finite value)")
+_FIX_READ_FIELD = ("Replace these vectors (by zero displacement where nothing is known) and save the file again, "
+                   "or make the field anew")
 _FIX_WRITE = ("Nothing was written. Replace or mask these voxels first (e.g. numpy.nan_to_num)")
 
 
@@ -794,7 +796,7 @@ def read_displacement(path: str | os.PathLike, *, allow_nonfinite: bool = False)
         raise PixelTypeError(f"{p}: displacement components must be real numbers, got {data.dtype}.", p)
     data = data.astype(np.float64, copy=False)
     if not allow_nonfinite:
-        _check_finite(data, p, "displacement field", _FIX_READ + ".")
+        _check_finite(data, p, "displacement field", _FIX_READ_FIELD + ".")
     return Volume(data, GridGeometry.from_sitk(image))
 
 
@@ -1042,5 +1044,5 @@ def read_vector_image(path: str | os.PathLike, *, components: int | None = None)
     if data.ndim == 3:
         data = data[..., None]
     if data.dtype.kind == "f":
-        _check_finite(data, p, "vector image", _FIX_READ + ".")
+        _check_finite(data, p, "vector image", _FIX_READ_FIELD + ".")
     return Volume(data, GridGeometry.from_sitk(image))

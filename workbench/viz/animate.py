@@ -82,9 +82,10 @@ class Keyframes:
         return np.linspace(float(self.times[0]), float(self.times[-1]), int(n_frames))
 
 
-def _keyframes_from_dict(d, skeleton, where: str) -> Keyframes:
+def _keyframes_from_dict(d, skeleton, where: str, *, check_limits: bool = True, path=None) -> Keyframes:
     def bad(msg):
-        return InputFileError(f"{where}: {msg}", Path(where) if where and not where.startswith("<") else None)
+        p = path if path is not None else Path(where) if where and not where.startswith("<") else None
+        return InputFileError(f"{where}: {msg}", p) if p is not None else ValueError(f"{where}: {msg}")
 
     if not isinstance(d, dict) or d.get("format") != KEYFRAMES_FORMAT:
         raise bad(f"not a keyframe file ('format' must be {KEYFRAMES_FORMAT!r}); see `workbench animate --help`")
@@ -121,7 +122,7 @@ def _keyframes_from_dict(d, skeleton, where: str) -> Keyframes:
             skeleton.pose(full)
         except (SkeletonError, ValueError) as e:
             raise bad(f"keyframe {n}: {e}") from e
-        outside = skeleton.limit_problems(full)
+        outside = skeleton.limit_problems(full) if check_limits else []
         if outside:
             raise bad(f"keyframe {n}: {outside[0]}" + (f" (and {len(outside) - 1} more)" if len(outside) > 1 else "")
                       + ", the range of motion of the study's skeleton (skeleton.json, 'limits')")
@@ -202,8 +203,9 @@ def scan_keyframes(study, *, seconds_per_pose: float = 1.0) -> Keyframes:
         frames.append({"time": len(frames) * seconds_per_pose, "name": sid,
                        "angles": {k: np.asarray(v, float).tolist() for k, v in a.items() if k in zero}})
     frames.append({"time": len(frames) * seconds_per_pose, "name": "template (rest)", "angles": frames[0]["angles"]})
+    # measured angles: a straight joint estimated at −1° is no user error (no range-of-motion check)
     return _keyframes_from_dict({"format": KEYFRAMES_FORMAT, "skeleton": sk.name, "keyframes": frames}, sk,
-                                f"<the scans of {study.root.name}>")
+                                f"<the scans of {study.root.name}>", check_limits=False, path=study.manifest_path)
 
 
 # -- output ----------------------------------------------------------------------------------------------
