@@ -51,12 +51,11 @@ def main(argv=None):
 
     from deformation.isosurface import decimate
     from deformation.mesh import SurfaceMesh
-    from deformation.skinning import distance_weights
+    from deformation.skinning import distance_weights, lbs
+    from deformation.splines import KURIHARA_D_MM, RBFDeformation
     from deformation.surface_model import SurfaceModel
     from registration.surface_fit import (_confident_targets, _scene, farthest_points, fit_nearest,
                                           fit_regularised, triangle_normals, vertex_normals)
-    from deformation.skinning import lbs
-    from deformation.splines import KURIHARA_D_MM, RBFDeformation
     from validation.phantoms import Phantom, PhantomSpec
     from validation.protocols.kurihara import PHANTOM
     from validation.surface_measures import posed_truth, true_skin

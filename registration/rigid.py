@@ -732,8 +732,8 @@ def surface_prior(points: np.ndarray, normals: np.ndarray, fitted: np.ndarray, p
     ``points`` (with ``normals``) give the information ``H = JᵀJ / σ²`` about an increment ``x`` (rotation
     vector in degrees about the fitted centroid ``c``, translation mm, applied after the fit;
     ``J_i = [(q_i − c) × m_i · π/180, m_i]`` at the fitted points ``q_i`` and normals ``m_i``; ``sigma_mm`` the
-    residual scale per point, :func:`refine_surface` gives ICP's RMS distance).  The prior ``N(prior, diag(τ_θ², τ_t²))`` is the intensity method's (the
-    parent turned by the joint's flexion).  We minimise ``xᵀHx + |Λ^½ log(D(x) ∘ fitted ∘ prior⁻¹)|²`` (the
+    residual scale per point, :func:`refine_surface` gives ICP's RMS distance).  The prior
+    ``N(prior, diag(τ_θ², τ_t²))`` is the intensity method's (the parent turned by the joint's flexion).  We minimise ``xᵀHx + |Λ^½ log(D(x) ∘ fitted ∘ prior⁻¹)|²`` (the
     prior's residual exact in the rotation, so that a large roll is removed about the *fitted* axis, along
     which ``H`` is exactly flat): directions the surface fixes keep ICP's value (their information is orders
     of magnitude above ``1/τ²``), undetermined ones go to the prior.  Returns the transform and the
@@ -798,7 +798,7 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
         src, src_n = src[inside], src_n[inside]
     spacing = float(max(scan.geometry.spacing))
     sub = _crop_around(scan, apply(init, region.points), 4.0 * spacing)
-    tgt = isosurface(sub, lvl).vertices if sub is not None else np.zeros((0, 3))
+    tgt = isosurface(sub, lvl).vertices if sub is not None else np.zeros((0, 3))  # also the prior's matches
     extra = {"iso_level": lvl, "source_points": int(len(src)), "target_points": int(len(tgt))}
     if len(src) < 10 or len(tgt) < 10:
         return BoneFit(region.name, init, "surface", "poor_match", before, math.nan, math.nan, inside0,
@@ -819,8 +819,7 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
         # study against 0.4-1.5° with the point-to-point RMS)
         from scipy.spatial import cKDTree
 
-        q = apply(t, src)
-        dist, _ = cKDTree(isosurface(sub, lvl).vertices).query(q, distance_upper_bound=0.5 * d)
+        dist, _ = cKDTree(tgt).query(apply(t, src), distance_upper_bound=0.5 * d)
         hit = np.isfinite(dist)
         if hit.sum() >= 6:
             t, info = surface_prior(src[hit], src_n[hit], t, np.asarray(prior, float), region.centroid,

@@ -30,20 +30,18 @@ def test_a_folder_that_refuses_writes_is_said_before_the_work(tmp_path, monkeypa
 
 
 def test_render_refuses_a_read_only_folder_before_rendering(tmp_path, monkeypatch, capsys):
+    import numpy as np
+
+    from deformation.mesh import SurfaceMesh
     from workbench.cli import main
+    from workbench.io.meshes import write_mesh
+
+    mesh = tmp_path / "m.ply"
+    write_mesh(SurfaceMesh(np.eye(3), np.array([[0, 1, 2]])), mesh)
 
     def refuse(*a, **k):
         raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(tempfile, "mkstemp", refuse)
-    mesh = tmp_path / "m.ply"
-    import numpy as np
-
-    from deformation.mesh import SurfaceMesh
-    from workbench.io.meshes import write_mesh
-
-    monkeypatch.undo()
-    write_mesh(SurfaceMesh(np.eye(3), np.array([[0, 1, 2]])), mesh)
     monkeypatch.setattr(tempfile, "mkstemp", refuse)
     assert main(["render", str(mesh), "--out", str(tmp_path / "r.png")]) == 1
     err = capsys.readouterr().err.strip().splitlines()

@@ -56,10 +56,11 @@ COLUMNS = [Column("skin_mean_mm", "distance to the true skin, mean", "mm"),
 def _hidden(phantom, angles, points, posed) -> np.ndarray:
     """Template skin ``points`` whose posed place ``posed`` belongs to another part in the scan (the posing
     model's inverse there lands elsewhere): skin the scan cannot show, e.g. between touching fingers."""
-    back = phantom.posing_model(angles).inverse(posed)
+    model = phantom.posing_model(angles)
+    back = model.inverse(posed)
     back = back[0] if isinstance(back, tuple) else back
     # the inverse lands on another part (its forward map gives the posed point back) rather than failing
-    landed = np.linalg.norm(phantom.posing_model(angles).forward(back) - posed, axis=1) < 0.01
+    landed = np.linalg.norm(model.forward(back) - posed, axis=1) < 0.01
     return (np.linalg.norm(back - points, axis=1) > HIDDEN_MM) & landed
 
 
@@ -100,6 +101,7 @@ def phantom_landmarks(phantom, skin, scan_ids, n: int = N_LANDMARKS) -> dict:
 def kurihara_skin(runner) -> Table:
     """Kurihara §4–5 on the CT hand (module docstring)."""
     import json
+    import os
 
     from deformation.mesh import SurfaceMesh
     from deformation.surface_model import SurfaceModel
@@ -118,7 +120,9 @@ def kurihara_skin(runner) -> Table:
     marks = first.root.parent / f"{first.root.name}-landmarks.json"
     doc = phantom_landmarks(ph, skin0, ids)
     if not marks.exists() or json.loads(marks.read_text(encoding="utf-8")) != json.loads(json.dumps(doc)):
-        marks.write_text(json.dumps(doc), encoding="utf-8")
+        tmp = marks.with_name(f".{marks.name}.tmp-{os.getpid()}")  # whole or not at all (the stage digests it)
+        tmp.write_text(json.dumps(doc), encoding="utf-8")
+        os.replace(tmp, marks)
     study = runner.study("kurihara", phantom, settings={**SETTINGS, "surface": {**SURFACE, "landmarks": str(marks)}},
                          targets=("surface",))
     sk = study.skeleton()
