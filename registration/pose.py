@@ -42,7 +42,7 @@ from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
 from .rigid import (PRIOR_MM, BoneFit, BoneRegion, Sampler, bone_regions, coarse_rotation_search, refine_intensity,
                     refine_surface, smooth)
 
-__all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "contact_point",
+__all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "pose_scans", "contact_point",
            "compare_poses", "moments_init", "flag_joint_outliers"]
 
 METHODS = ("intensity", "surface")
@@ -63,6 +63,7 @@ class ScanPose:
     pose: Pose
     fits: dict[str, BoneFit]
     seconds: float
+    voxel_mm: float = math.nan  #: the scan's largest spacing (Eq. 1's outlier test counts misses in voxels)
 
     @property
     def failures(self) -> list[BoneFit]:
@@ -276,8 +277,8 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                    interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
                    hinge_ratio: float = 0.05, hinge_sd_mm: float | None = HINGE_SD_MM, bias_correction: bool | None = None, margin_mm: float | None = None,
                    max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, outlier_factor: float | None = OUTLIER_FACTOR,
-                   progress=None) -> PoseResult:
-    """Register every bone in every scan, then estimate joint centres and angles.
+                   progress=None, scan_poses: list[ScanPose] | None = None) -> PoseResult:
+    """Register every bone in every scan (:func:`pose_scans`), then estimate joint centres and angles.
 
     Parameters
     ----------
@@ -296,7 +297,24 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
         left.  This catches a bone that turned with its neighbour or slid off
         its joint by less than ``max_joint_gap_mm``.
     progress : callable(scan_id, scan_index, n_scans, bone, done, total, fit), optional
+    scan_poses : the scans' bone fits already made by :func:`pose_scans` with the same arguments (e.g. one scan
+        per Dask task, :mod:`workbench.scale`); then only the pooling (Eq. 1, outliers, angles) runs here
     """
+    results = scan_poses if scan_poses is not None else pose_scans(
+        template, labels, scans, skeleton, method=method, root_init=root_init, coarse=coarse, min_ncc=min_ncc,
+        interpolation=interpolation, prior_deg=prior_deg, smooth_voxels=smooth_voxels, metric=metric,
+        bias_correction=bias_correction, margin_mm=margin_mm, max_joint_gap_mm=max_joint_gap_mm, progress=progress)
+    voxel_mm = {s.scan_id: s.voxel_mm for s in results}
+    return _pool(results, voxel_mm, labels, skeleton, method, hinge_ratio, hinge_sd_mm, outlier_factor)
+
+
+def pose_scans(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *, method: str = "intensity",
+               root_init=None, coarse: bool = True, min_ncc: float = 0.5, interpolation: int = 3,
+               prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
+               bias_correction: bool | None = None, margin_mm: float | None = None,
+               max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, progress=None) -> list[ScanPose]:
+    """Every bone of every scan in ``scans`` (the first half of :func:`estimate_poses`, whose arguments these
+    are): one :class:`ScanPose` per scan, each independent of the others."""
     from .segmentation import guess_modality
 
     if bias_correction is None:
@@ -328,7 +346,14 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
                              coarse_regions=coarse_regions, metric=metric, max_joint_gap_mm=max_joint_gap_mm,
                              progress=cb)
         transforms = {b: fits[b].transform for b in skeleton.order}
-        results.append(ScanPose(sid, Pose(transforms, skeleton=skeleton.name), fits, time.perf_counter() - t0))
+        results.append(ScanPose(sid, Pose(transforms, skeleton=skeleton.name), fits, time.perf_counter() - t0,
+                                voxel_mm[sid]))
+    return results
+
+
+def _pool(results: list[ScanPose], voxel_mm: dict, labels: Volume, skeleton: Skeleton, method: str,
+          hinge_ratio: float, hinge_sd_mm, outlier_factor) -> PoseResult:
+    """Kurihara Eq. 1 over the scans' fits: outliers flagged, joint centres, each scan's angles."""
     def usable(s, j):  # flagged fits are reported, not used
         return s.fits[j.parent].ok and s.fits[j.child].ok
 

@@ -389,6 +389,18 @@ def _common(p) -> None:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log lines (-vv: debug)")
 
 
+def _scale_options(p) -> None:
+    """--workers / --scheduler on the commands with per-scan work (workbench.scale)."""
+    g = p.add_argument_group("many scans (Dask)")
+    g.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+                   help="run the per-scan work (pose, init, register, surface, validate) as Dask tasks on a local "
+                        "cluster of N processes; the results are the same bits as with one. Default: 1 (no Dask)")
+    g.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="run the per-scan work on an existing Dask cluster (e.g. tcp://head-node:8786, started with "
+                        "`dask scheduler` and `dask worker ADDRESS`, or by dask-jobqueue on Slurm/PBS); every "
+                        "worker must see the study folder at the same path")
+
+
 def _positive_int(text: str) -> int:
     try:
         v = int(text)
@@ -499,6 +511,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "more than half a voxel, is reported as 'joint_outlier'; 0 switches the check off. "
                          "Default: 4")
     po.add_argument("--force", action="store_true", help="rerun even when up to date")
+    _scale_options(po)
     _common(po)
     po.set_defaults(func=cmd_pose)
 
@@ -545,6 +558,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the regularised fit's weight on keeping the mesh's shape. Default: 1")
     su.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
     su.add_argument("--force", action="store_true", help="rerun even when up to date")
+    _scale_options(su)
     _common(su)
     su.set_defaults(func=cmd_surface)
 
@@ -682,6 +696,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="let the bones move with the soft tissue (dense: no force is zeroed on them; adaptive: no "
                          "zero-displacement control points on bone voxels)")
     rg.add_argument("--force", action="store_true", help="register these scans again even when up to date")
+    _scale_options(rg)
     _common(rg)
     rg.set_defaults(func=cmd_register)
 
@@ -705,6 +720,7 @@ def build_parser() -> argparse.ArgumentParser:
     va.add_argument("study", type=Path, help="study folder (holding study.json)")
     va.add_argument("--scan", action="append", metavar="ID", help="only this scan (repeatable; default: all)")
     va.add_argument("--force", action="store_true", help="rerun even when up to date")
+    _scale_options(va)
     _common(va)
     va.set_defaults(func=cmd_validate)
 
@@ -720,6 +736,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="change one stage setting (repeatable; see above)")
     ru.add_argument("--seeds", type=Path, metavar="FILE",
                     help="segment the template's bones from this seeds file (a study without a label map)")
+    _scale_options(ru)
     _common(ru)
     ru.set_defaults(func=cmd_run)
 
@@ -752,6 +769,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run the protocols' phantom studies side by side in N processes (Dask); the tables are "
                          "the same. Default: 2 at --size test on a machine with 2 or more cores (all tables: "
                          "11 min against 15.5 in one process here), 1 at --size paper (memory)")
+    rp.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                    help="run the protocols' studies as tasks on an existing Dask cluster instead (e.g. "
+                         "tcp://head-node:8786; README, 'Many scans, big machines'); workers must see --out at the "
+                         "same path")
     _common(rp)
     rp.set_defaults(func=cmd_reproduce)
     return p
@@ -862,11 +883,14 @@ def _stages(args, targets, settings=None, *, force=(), scans=None, options=None)
     from workbench.stages.run import run_stages
     from workbench.study import read_study
 
+    from workbench.scale import open_runner
+
     study = read_study(args.study)
     printer = _progress(args)
     try:
-        outcomes = run_stages(study, targets, settings=settings or {}, force=force, scans=scans, progress=printer,
-                              options=options)
+        with open_runner(getattr(args, "workers", None), getattr(args, "scheduler", None)) as runner:
+            outcomes = run_stages(study, targets, settings=settings or {}, force=force, scans=scans,
+                                  progress=printer, options=options, runner=runner)
     finally:
         printer.close()
     return study.reload(), outcomes
@@ -1120,7 +1144,7 @@ def cmd_reproduce(args) -> int:
         workers = args.workers if args.workers is not None else \
             (min(2, os.cpu_count() or 1) if args.size == "test" else 1)
         reproduce(args.tables, args.out, size=args.size, seed=args.seed, with_peers=args.with_peers,
-                  progress=printer, say=say, emit=emit, workers=workers)
+                  progress=printer, say=say, emit=emit, workers=workers, scheduler=args.scheduler)
     finally:
         printer.close()
     print(f"reproduce: {', '.join(args.tables)} in {time.perf_counter() - t0:.0f} s")

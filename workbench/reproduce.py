@@ -24,6 +24,7 @@ from pathlib import Path
 
 from validation.protocols import PROTOCOLS, Table
 from workbench.errors import WorkbenchError
+from workbench.scale import same_bits
 
 __all__ = ["StudyRunner", "reproduce", "write_table", "format_markdown", "format_csv", "NAMES"]
 
@@ -156,6 +157,10 @@ def write_table(table: Table, out: Path) -> list[Path]:
 REUSES = {"loo": ("table3", "table4"), "kurihara_skin": ("kurihara",)}
 
 
+def _protocol_task(job: tuple) -> tuple[dict, float]:
+    return _protocol_in_worker(*job)
+
+
 def _protocol_in_worker(name: str, out: str, size: str, seed: int, with_peers: bool,
                         quiet: bool = False) -> tuple[dict, float]:
     """One protocol in a worker process (``reproduce(..., workers > 1)``): its table as a dict, its seconds.
@@ -174,15 +179,15 @@ def _protocol_in_worker(name: str, out: str, size: str, seed: int, with_peers: b
 
 
 def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers: bool = False, progress=None,
-              say=None, emit=None, workers: int = 1) -> dict[str, Table]:
+              say=None, emit=None, workers: int = 1, scheduler: str | None = None) -> dict[str, Table]:
     """Run the protocols ``names`` (``"all"`` = every one) into ``out``; each table is written as soon as it is
     done and passed to ``emit(table, seconds)``.  Returns ``{name: Table}``.
 
-    ``workers`` > 1: the protocols that make their own studies run side by side in that many processes
-    (Dask's multiprocessing scheduler), the biggest first, then those that reuse them (:data:`REUSES`); each
-    study is one process's, so the tables are the same as with one worker.  Their tables are written and
-    emitted when every one of them is done (``dask.compute`` returns them together: a failure in one loses
-    the others' tables, not their studies, which a rerun reuses), in ``names``' order.
+    ``workers`` > 1 (or ``scheduler``, an existing Dask cluster's address): the protocols that make their own
+    studies run side by side as Dask tasks (:mod:`workbench.scale`, a ``LocalCluster`` of that many
+    processes), the biggest first, then those that reuse them (:data:`REUSES`) here; each study is one
+    task's, so the tables are the same as with one worker.  Each table is written and emitted as its task
+    finishes (a failure in one cancels the others; the studies done so far are reused by a rerun).
     """
     names = list(NAMES) if "all" in names else list(dict.fromkeys(names))
     unknown = [n for n in names if n not in PROTOCOLS]
@@ -202,28 +207,29 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
 
     side = [n for n in names if n not in REUSES]
     done = {}
-    if int(workers) > 1 and len(side) > 1:
-        import dask
+    if (int(workers) > 1 or scheduler) and len(side) > 1:
+        from workbench.scale import open_runner
 
-        # the longest first (at test size: table4 ~6 min, kurihara ~5, table3 ~2, table2 ~1): the pool's
-        # processes take the tasks in order
+        # the longest first (at test size: table4 ~6 min, kurihara ~5, table3 ~2, table2 ~1): the workers take
+        # the tasks in the order they were given
         order = sorted(side, key=lambda n: ("table4", "kurihara", "table3", "table2").index(n)
                        if n in ("table4", "kurihara", "table3", "table2") else 9)
-        if say is not None:
-            say(f"{', '.join(order)} side by side in {min(int(workers), len(order))} processes")
-        # Dask runs independent tasks in descending key order: the longest gets the largest key
-        tasks = [dask.delayed(_protocol_in_worker)(n, str(out), size, seed, with_peers, say is None,
-                                                   dask_key_name=f"reproduce-{len(order) - i:02d}-{n}")
-                 for i, n in enumerate(order)]
-        # chunksize 1: Dask's process scheduler otherwise hands the tasks to one process in batches of six
-        results = dask.compute(*tasks, scheduler="processes", num_workers=min(int(workers), len(order)),
-                               chunksize=1)
-        done = {n: (Table.from_dict(d), sec) for n, (d, sec) in zip(order, results)}
+
+        def arrived(k, result):  # written and shown as each arrives
+            d, sec = result
+            done[order[k]] = True
+            finish(order[k], Table.from_dict(d), sec)
+
+        with open_runner(min(int(workers), len(order)) if not scheduler else None, scheduler) as pool:
+            if say is not None:
+                say(f"{', '.join(order)} side by side on {pool.description}")
+            pool.map(_protocol_task, [(n, str(Path(out).resolve()), size, seed, with_peers, say is None)
+                                      for n in order], name="reproduce", on_result=arrived)
     for n in names:
         if n in done:
-            finish(n, *done[n])
             continue
         t0 = time.perf_counter()
-        t = PROTOCOLS[n](runner)
+        with same_bits():  # as in a worker's task
+            t = PROTOCOLS[n](runner)
         finish(n, t, time.perf_counter() - t0)
-    return tables
+    return {n: tables[n] for n in names}

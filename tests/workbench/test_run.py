@@ -438,3 +438,107 @@ def test_report_opens_in_headless_chromium(report, tmp_path):
     colours = np.unique((img[::4, ::4] // 8).reshape(-1, 3), axis=0)
     assert len(colours) > 200
     assert (np.abs(img - img[-1, -1]).sum(axis=-1) > 30).mean() > 0.2  # a fifth of the page differs from its corner
+
+
+# -- Dask (issue L item 1): the same study on a LocalCluster and on an existing scheduler ----------------------
+# Outputs that hold how long the work took, and nothing else that may differ: JSON keys with "seconds" (and the
+# pose stage's summary text, which prints them in a table); report.txt is that text; the HTML report shows them.
+_TIMED_TEXT = {"poses/report.txt", "report/report.html"}
+
+
+def _untimed(obj):
+    if isinstance(obj, dict):
+        return {k: _untimed(v) for k, v in obj.items() if "seconds" not in k and k != "text"}
+    if isinstance(obj, list):
+        return [_untimed(v) for v in obj]
+    return obj
+
+
+def _assert_same_outputs(a: Path, b: Path):
+    """Every output file of study ``b`` is study ``a``'s: byte for byte (volumes, fields, meshes, weights), JSON
+    equal once the times are dropped (every float compared exactly), the manifest naming the same files."""
+    files = sorted(str(p.relative_to(a)) for p in a.rglob("*") if p.is_file() and ".locks" not in p.parts)
+    assert files == sorted(str(p.relative_to(b)) for p in b.rglob("*") if p.is_file() and ".locks" not in p.parts)
+    compared = 0
+    for f in files:
+        if f in _TIMED_TEXT or f == "study.json":
+            continue
+        if f.endswith(".json"):
+            assert _untimed(json.loads((a / f).read_text())) == _untimed(json.loads((b / f).read_text())), f
+        else:
+            assert (a / f).read_bytes() == (b / f).read_bytes(), f
+        compared += 1
+    ma, mb = (json.loads((p / "study.json").read_text())["stages"] for p in (a, b))
+    assert set(ma) == set(mb)
+    for name, e in ma.items():
+        units = {k: v["outputs"] for k, v in e["scans"].items()} if "scans" in e else e["outputs"]
+        assert units == ({k: v["outputs"] for k, v in mb[name]["scans"].items()} if "scans" in mb[name]
+                         else mb[name]["outputs"]), name
+    return compared
+
+
+def test_run_on_a_local_dask_cluster_of_two_workers_gives_the_same_files(done, tmp_path):
+    """`workbench run --workers 2`: pose's scans, init, register, surface's scans and validate as Dask tasks on
+    a LocalCluster of 2 processes; every output file is the synchronous run's (the module's fixture)."""
+    root, _, _ = done
+    two = _strip(root, tmp_path / "two")
+    proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(two), *SETTINGS, "--workers", "2"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    assert "register: 4 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
+    assert _assert_same_outputs(root, two) > 50
+
+
+def test_run_against_a_dask_scheduler_and_two_workers_gives_the_same_files(done, tmp_path):
+    """`--scheduler ADDRESS` against `dask scheduler` and two `dask worker` processes on localhost (what a
+    cluster runs; README 'Many scans, big machines'): from the pose stage's outputs on, the same files."""
+    root, _, _ = done
+    study = _strip(root, tmp_path / "sched", keep=("bones", "pose", "weights"))
+    dask_cli = Path(sys.executable).with_name("dask")
+    info = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(info)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while not info.exists() or not info.read_text().strip():
+            assert procs[0].poll() is None and time.monotonic() < deadline, "dask scheduler did not start"
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        procs += [subprocess.Popen([str(dask_cli), "worker", address, "--nthreads", "1", "--no-dashboard",
+                                    "--local-directory", str(tmp_path / f"worker{i}")],
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for i in range(2)]
+        from distributed import Client
+
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=120)
+        proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(study), *SETTINGS, "--scheduler",
+                               address], capture_output=True, text=True, timeout=900)
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+    assert proc.returncode == 0, proc.stderr
+    assert f"register: 4 scan(s) as Dask tasks on the Dask cluster at {address} (2 workers now)" in proc.stderr
+    assert "pose: up to date, skipped" in proc.stderr
+    assert _assert_same_outputs(root, study) > 50
+
+
+def test_an_unreachable_scheduler_is_one_line_before_any_work(done, tmp_path, capsys, monkeypatch):
+    import workbench.scale
+
+    root, _, _ = done
+    study = _strip(root, tmp_path / "s", keep=("bones", "pose", "weights"))
+    before = (study / "study.json").read_bytes()
+    monkeypatch.setattr(workbench.scale, "CONNECT_TIMEOUT", "1s")
+    capsys.readouterr()
+    assert main(["register", str(study), "--scheduler", "tcp://127.0.0.1:9"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--scheduler tcp://127.0.0.1:9: no Dask scheduler answers" in err
+    assert "dask scheduler" in err
+    assert main(["register", str(study), "--scheduler", "tcp://127.0.0.1:9", "--workers", "2"]) == 1
+    assert "give one of them" in capsys.readouterr().err
+    assert (study / "study.json").read_bytes() == before and not (study / "registration").exists()

@@ -211,6 +211,15 @@ class StageContext:
     options: dict = field(default_factory=dict)  #: run-time options that do not change the result's meaning
     stage_name: str = ""
     emit: Callable = lambda event: None
+    runner: object = None  #: a :class:`workbench.scale.Runner` for per-scan work inside a whole-study stage, or None
+
+    def map_scans(self, fn, items, *, shared=None, on_result=None) -> list:
+        """``fn`` over ``items`` here, or as Dask tasks when the run has a cluster (:mod:`workbench.scale`)."""
+        if self.runner is None:
+            from workbench.scale import Runner
+
+            return Runner().map(fn, items, shared=shared, on_result=on_result)
+        return self.runner.map(fn, items, shared=shared, name=self.stage_name, on_result=on_result)
 
     def say(self, message: str) -> None:
         """A message worth every line (always shown, unlike ``report``'s rate-limited progress)."""
@@ -398,12 +407,14 @@ def _dir_digest(files: list[Path], base: Path) -> str:
 
 
 def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None, force: bool = False,
-            progress: Callable | None = None, options: dict | None = None) -> list[Outcome]:
+            progress: Callable | None = None, options: dict | None = None, runner=None) -> list[Outcome]:
     """Run ``stage`` on ``study`` with ``settings`` (every scan, or ``scans``); see the module docstring.
 
     ``registry`` maps stage names to :class:`Stage` objects (for ``needs``);
     ``options`` reach the stage's ``run`` as ``ctx.options`` and stay out of
     the digest (e.g. the weights stage's ``remesh``: a new random mesh).
+    ``runner`` (:class:`workbench.scale.Runner`): a distributed one runs a per-scan stage's scans as Dask
+    tasks, and reaches a whole-study stage's ``run`` as ``ctx.runner`` (its per-scan work).
     Returns one :class:`Outcome` per unit (the study, or each scan).
     """
     if not isinstance(settings, stage.settings_type):
@@ -418,6 +429,9 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
     root = study.root
     folder = root / stage.folder
     _clean_dead_staging(folder if stage.per_scan else root)
+    if stage.per_scan and runner is not None and runner.distributed:
+        return _execute_distributed(study, stage, settings, settings_json, units, need_digests, force, emit, options,
+                                    runner)
     outcomes = []
     n = len(units)
     for i, unit in enumerate(units):
@@ -425,7 +439,7 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
         with _unit_lock(root, stage.name, unit):
             study.reload()
             outcomes.append(_execute_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit],
-                                          force, emit, options))
+                                          force, emit, options, runner))
     return outcomes
 
 
@@ -443,10 +457,10 @@ def _unit_lock(root: Path, stage: str, unit):
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
-def _execute_unit(study: Study, stage: Stage, settings, settings_json, unit, i: int, n: int, need_digests: dict,
-                  force: bool, emit, options) -> Outcome:
-    t0 = time.perf_counter()
-    root = study.root
+def _prepare_unit(study: Study, stage: Stage, settings, settings_json, unit, i: int, n: int, need_digests: dict,
+                  force: bool, emit):
+    """An :class:`Outcome` when the unit has nothing to do or is up to date (recorded, reported), else
+    ``(digest, inputs)`` for the work."""
     label = f"{stage.name}" + (f" {unit}" if unit else "")
     old = study.stage_entry(stage.name, unit)
     reason = stage.applies(study, settings, unit)
@@ -462,7 +476,16 @@ def _execute_unit(study: Study, stage: Stage, settings, settings_json, unit, i: 
     if not force and old is not None and old.get("digest") == digest and _outputs_exist(study, old):
         emit(Event(stage.name, unit, i + 1, n, f"{label}: up to date, skipped", "skip"))
         return Outcome(stage.name, unit, "skipped", 0.0, old)
-    emit(Event(stage.name, unit, i, n, f"{label}: running", "start"))
+    return digest, inputs
+
+
+def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=None, forget=None) -> dict:
+    """Run the stage on one unit and swap its outputs into place: ``{"names", "outputs_digest", "seconds"}``.
+
+    ``forget()`` is called once the outputs are written and before they replace the old ones (the sync path
+    forgets the old manifest entry there; a Dask task leaves the manifest to its coordinator)."""
+    t0 = time.perf_counter()
+    root = study.root
     final = root / stage.folder / unit if unit else root / stage.folder
     final.parent.mkdir(parents=True, exist_ok=True)
     previous = {p.name: p for p in final.iterdir()} if final.is_dir() else {}
@@ -470,35 +493,105 @@ def _execute_unit(study: Study, stage: Stage, settings, settings_json, unit, i: 
     def report(done, total, message=""):
         emit(Event(stage.name, unit, done, total, message))
 
-    ctx = StageContext(study, settings, unit, previous, report, dict(options or {}), stage.name, emit)
+    ctx = StageContext(study, settings, unit, previous, report, dict(options or {}), stage.name, emit, runner)
     staging = final.parent / f".{final.name}.partial-{_HOST}-{os.getpid()}-{secrets.token_hex(4)}"
     staging.mkdir()
     try:
-        outputs = stage.run(ctx)
+        from workbench.scale import same_bits
+
+        with same_bits():  # the same bits on any machine, for any number of workers
+            outputs = stage.run(ctx)
         files = []
         for name, obj in outputs.items():
             files += _write_output(obj, staging / name)
         out_digest = _dir_digest(files, staging)
-        if old is not None:
-            # Forget the old entry before its files go: interrupted between the swap and the record below,
-            # the unit is then missing (and reruns), never recorded with another run's files.
-            study.forget(stage.name, unit)
+        if forget is not None:
+            forget()
         replace_dir(staging, final)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    seconds = time.perf_counter() - t0
-    rel = final.relative_to(root)
+    return {"names": list(outputs), "outputs_digest": out_digest, "seconds": time.perf_counter() - t0}
+
+
+def _record_unit(study: Study, stage: Stage, settings_json, unit, i: int, n: int, digest: str, inputs: dict,
+                 need_digests: dict, done: dict, emit) -> Outcome:
+    final = study.root / stage.folder / unit if unit else study.root / stage.folder
+    rel = final.relative_to(study.root)
+    seconds = done["seconds"]
     entry = {"digest": digest, "settings": settings_json, "inputs": inputs, "needs": need_digests,
-             "outputs": {name: str(rel / name) for name in outputs}, "outputs_digest": out_digest,
+             "outputs": {name: str(rel / name) for name in done["names"]}, "outputs_digest": done["outputs_digest"],
              "seconds": round(seconds, 3), "finished": _now(), "workbench_version": __version__,
              "stage_version": stage.version}
     if "seed" in settings_json:
         entry["seed"] = settings_json["seed"]
     study.record(stage.name, entry, unit, stage_info={"folder": stage.folder})
+    label = f"{stage.name}" + (f" {unit}" if unit else "")
     emit(Event(stage.name, unit, i + 1, n, f"{label}: done in {seconds:.1f} s", "done"))
     log.info("%s: done in %.1f s", label, seconds)
     return Outcome(stage.name, unit, "ran", seconds, entry)
+
+
+def _execute_unit(study: Study, stage: Stage, settings, settings_json, unit, i: int, n: int, need_digests: dict,
+                  force: bool, emit, options, runner=None) -> Outcome:
+    prep = _prepare_unit(study, stage, settings, settings_json, unit, i, n, need_digests, force, emit)
+    if isinstance(prep, Outcome):
+        return prep
+    digest, inputs = prep
+    label = f"{stage.name}" + (f" {unit}" if unit else "")
+    emit(Event(stage.name, unit, i, n, f"{label}: running", "start"))
+    # Forget the old entry before its files go: interrupted between the swap and the record, the unit is then
+    # missing (and reruns), never recorded with another run's files.
+    forget = (lambda: study.forget(stage.name, unit)) if study.stage_entry(stage.name, unit) is not None else None
+    done = _run_unit(study, stage, settings, unit, emit, options, runner, forget)
+    return _record_unit(study, stage, settings_json, unit, i, n, digest, inputs, need_digests, done, emit)
+
+
+def _unit_task(job: tuple) -> dict:
+    """One scan of a per-scan stage, on a Dask worker: paths and JSON in, file names and digest out."""
+    from workbench.stages import STAGES
+    from workbench.study import read_study
+
+    root, name, settings_json, unit, options = job
+    stage = STAGES[name]
+    study = read_study(root)
+    settings = stage.settings_type(**_settings_from_json(stage.settings_type, settings_json))
+    with _unit_lock(study.root, name, unit):
+        return _run_unit(study, stage, settings, unit, lambda e: None, options)
+
+
+def _execute_distributed(study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit,
+                         options, runner) -> list[Outcome]:
+    """The scans of a per-scan stage as Dask tasks (:mod:`workbench.scale`); the manifest is written here only."""
+    n = len(units)
+    outcomes: dict = {}
+    jobs = []
+    for i, unit in enumerate(units):
+        with _unit_lock(study.root, stage.name, unit):
+            study.reload()
+            prep = _prepare_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit], force, emit)
+            if isinstance(prep, Outcome):
+                outcomes[i] = prep
+                continue
+            if study.stage_entry(stage.name, unit) is not None:
+                # forgotten before the task swaps its folder: a run interrupted in between reruns the scan
+                study.forget(stage.name, unit)
+        jobs.append((i, unit, prep))
+    if jobs:
+        emit(Event(stage.name, None, 0, 0, f"{stage.name}: {len(jobs)} scan(s) as Dask tasks on "
+                                           f"{runner.description}", "message"))
+        for i, unit, _ in jobs:
+            emit(Event(stage.name, unit, i, n, f"{stage.name} {unit}: running", "start"))
+
+        def recorded(k, done):
+            i, unit, (digest, inputs) = jobs[k]
+            with _unit_lock(study.root, stage.name, unit):
+                outcomes[i] = _record_unit(study, stage, settings_json, unit, i, n, digest, inputs,
+                                           need_digests[unit], done, emit)
+
+        runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}))
+                                for _, unit, _ in jobs], name=f"{stage.name}", on_result=recorded)
+    return [outcomes[i] for i in range(n)]
 
 
 def _now() -> str:

@@ -86,6 +86,24 @@ def _inputs(study, s: PoseSettings, scan):
     return files
 
 
+def _fit_arguments(s: PoseSettings, root_init) -> dict:
+    """The arguments of :func:`registration.pose.pose_scans` / ``estimate_poses`` the settings give."""
+    return dict(method=s.method, root_init=root_init, metric=s.metric, interpolation=s.interpolation,
+                prior_deg=s.prior_deg, min_ncc=s.min_ncc, bias_correction=s.bias_correction, margin_mm=s.margin_mm,
+                max_joint_gap_mm=s.max_joint_gap_mm)
+
+
+def _scan_task(shared, sid: str):
+    """One scan's bones, on a Dask worker (:mod:`workbench.scale`): the study's folder in, the fits out."""
+    from registration.pose import pose_scans
+    from workbench.study import read_study
+
+    root, kwargs = shared
+    study = read_study(root)
+    return pose_scans(study.template(), study.template_labels(), {sid: study.scan(sid)}, study.skeleton(),
+                      **kwargs)[0]
+
+
 def _run(ctx) -> dict:
     from registration.pose import estimate_poses
     from registration.report import format_fits
@@ -106,10 +124,18 @@ def _run(ctx) -> dict:
                    f"{sid} bone {done}/{total} {bone:<18} {fit.status:<14} ncc {fit.ncc:.3f}  {fit.seconds:.1f} s")
 
     t0 = time.perf_counter()
-    result = estimate_poses(template, labels, scans, skeleton, method=s.method, root_init=root_init, metric=s.metric,
-                            interpolation=s.interpolation, prior_deg=s.prior_deg, min_ncc=s.min_ncc,
-                            bias_correction=s.bias_correction, margin_mm=s.margin_mm,
-                            max_joint_gap_mm=s.max_joint_gap_mm, outlier_factor=s.outlier_factor, progress=cb)
+    kwargs = _fit_arguments(s, root_init)
+    per_scan = None
+    if ctx.runner is not None and ctx.runner.distributed:  # each scan's bones as a Dask task; Eq. 1 pools them here
+        finished = []
+
+        def done(k, r):
+            finished.append(r.scan_id)
+            ctx.report(len(finished), len(ids), f"{r.scan_id}: bones fitted in {r.seconds:.1f} s")
+
+        per_scan = ctx.map_scans(_scan_task, ids, shared=(str(study.root.resolve()), kwargs), on_result=done)
+    result = estimate_poses(template, labels, scans, skeleton, outlier_factor=s.outlier_factor, progress=cb,
+                            scan_poses=per_scan, **kwargs)
     total = time.perf_counter() - t0
     text = f"workbench pose — {study.manifest.get('name', study.root.name)} — method {s.method}\n\n{format_fits(result)}"
     report = finite({"method": s.method, "metric": s.metric, "seconds_total": round(total, 2),

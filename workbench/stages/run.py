@@ -65,7 +65,7 @@ def dependents(names) -> set[str]:
 
 
 def run_stages(study: Study, targets, *, settings: dict | None = None, force=(), scans=None,
-               progress: Callable | None = None, options: dict | None = None) -> list[Outcome]:
+               progress: Callable | None = None, options: dict | None = None, runner=None) -> list[Outcome]:
     """Run ``targets`` (stage names) and what they need; see the module docstring.
 
     ``settings``: ``{stage: settings}`` for this call (a stage given settings
@@ -73,7 +73,8 @@ def run_stages(study: Study, targets, *, settings: dict | None = None, force=(),
     when it is not a target); ``force``: stage names
     to rerun even when up to date; ``scans``: per-scan stages only for these
     (whole-study stages still cover every scan they are set to);
-    ``options``: ``{stage: {option: value}}`` (:func:`~workbench.stages.mechanism.execute`).
+    ``options``: ``{stage: {option: value}}`` (:func:`~workbench.stages.mechanism.execute`);
+    ``runner``: a :class:`workbench.scale.Runner` with a Dask cluster runs the per-scan work as tasks.
     """
     unknown = [t for t in list(targets) + list(force) if t not in STAGES]
     if unknown:
@@ -91,7 +92,7 @@ def run_stages(study: Study, targets, *, settings: dict | None = None, force=(),
                 emit(Event(name, None, len(units), len(units), f"{name}: up to date, skipped", "skip"))
                 continue
         outcomes += execute(study, stage, resolved[name], registry=STAGES, scans=scan_ids,
-                            force=name in force, progress=emit, options=(options or {}).get(name))
+                            force=name in force, progress=emit, options=(options or {}).get(name), runner=runner)
     return outcomes
 
 

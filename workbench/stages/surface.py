@@ -115,10 +115,9 @@ def vertex_weights(study, points):
 
 
 def _run(ctx) -> dict:
-    from deformation.interpolate import sample
     from deformation.isosurface import label_surfaces
     from registration.segmentation import skin_surface
-    from registration.surface_fit import consistent_mesh, landmark_sites
+    from registration.surface_fit import landmark_sites
     from workbench.io.tetmeshes import weight_arrays
 
     study, s = ctx.study, ctx.settings
@@ -151,36 +150,56 @@ def _run(ctx) -> dict:
                 raise InputFileError(f"{s.landmarks}: scan {sid!r}: {e} (the limit is surface.max_distance_mm, "
                                      f"--set surface.max_distance_mm=MM)", s.landmarks) from None
     ctx.report(1, len(ids) + 1, f"S0: {base.n_triangles} triangles")
-    for k, sid in enumerate(ids):
-        scan = study.scan(sid)
-        target = skin_surface(scan, target_triangles=s.target_triangles, smooth_voxels=s.smooth_voxels)
-        pose = study.pose(sid)
-        feats = None
-        if s.features == "registration":
-            pos, found = study.registration_positions(sid)
-            g = template.geometry
-            from deformation.geometry import Volume
+    shared = (str(study.root.resolve()), s, base, weights, template.geometry, sites, marks)
 
-            feats = sample(Volume(pos.astype(np.float64), g), base.vertices, order=1, fill=np.nan)
-            ok = sample(Volume(found.astype(np.float32), g), base.vertices, order=1, fill=0.0) > 0.999
-            feats[~ok] = np.nan
-        res = consistent_mesh(base, weights, pose.transforms, target, feature_targets=feats,
-                              landmarks=None if marks is None else (sites[sid], marks[sid][1]),
-                              n_features=s.n_features, fit=s.fit, max_distance_mm=s.max_distance_mm,
-                              stiffness=s.stiffness)
-        d = res["fit"].distance_mm
-        doc["per_scan"][sid] = {**res["info"], "skin_triangles": target.n_triangles,
-                                "pose": pose.to_dict(),  # the pose the mesh was fitted with (surface_model reads it)
-                                "fit_distance_mm": {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)),
-                                                    "max": float(d.max())},
-                                "feature_vertices": res["features"].tolist()}
+    def done(k, r):
+        sid, entry, meshes, confident = r
+        d = entry["fit_distance_mm"]
+        ctx.report(k + 2, len(ids) + 1, f"{sid}: fitted, {100 * confident:.0f} % of the vertices on a confident "
+                                        f"target, mean distance {d['mean']:.2f} mm")
+
+    # each scan's meshes: here, one after the other, or one Dask task per scan (workbench.scale)
+    for sid, entry, meshes, _ in ctx.map_scans(_fit_scan, ids, shared=shared, on_result=done):
+        doc["per_scan"][sid] = entry
         for name in ("ssd", "rbf", "fitted"):
-            out[f"{sid}_{name}.ply"] = MeshFile(res[name])
-        out[f"{sid}_skin.ply"] = MeshFile(target)
-        ctx.report(k + 2, len(ids) + 1, f"{sid}: fitted, {100 * res['fit'].confident.mean():.0f} % of the vertices "
-                                        f"on a confident target, mean distance {d.mean():.2f} mm")
+            out[f"{sid}_{name}.ply"] = MeshFile(meshes[name])
+        out[f"{sid}_skin.ply"] = MeshFile(meshes["skin"])
     out["surface.json"] = Json(doc)
     return out
+
+
+def _fit_scan(shared, sid: str):
+    """One scan's consistent mesh (Kurihara §4): ``(scan, its surface.json entry, its meshes, confident
+    fraction)``; reads the scan, its pose and registration from the study folder (a Dask task's input)."""
+    from deformation.geometry import Volume
+    from deformation.interpolate import sample
+    from registration.segmentation import skin_surface
+    from registration.surface_fit import consistent_mesh
+    from workbench.study import read_study
+
+    root, s, base, weights, g, sites, marks = shared
+    study = read_study(root)
+    scan = study.scan(sid)
+    target = skin_surface(scan, target_triangles=s.target_triangles, smooth_voxels=s.smooth_voxels)
+    pose = study.pose(sid)
+    feats = None
+    if s.features == "registration":
+        pos, found = study.registration_positions(sid)
+        feats = sample(Volume(pos.astype(np.float64), g), base.vertices, order=1, fill=np.nan)
+        ok = sample(Volume(found.astype(np.float32), g), base.vertices, order=1, fill=0.0) > 0.999
+        feats[~ok] = np.nan
+    res = consistent_mesh(base, weights, pose.transforms, target, feature_targets=feats,
+                          landmarks=None if marks is None else (sites[sid], marks[sid][1]),
+                          n_features=s.n_features, fit=s.fit, max_distance_mm=s.max_distance_mm,
+                          stiffness=s.stiffness)
+    d = res["fit"].distance_mm
+    entry = {**res["info"], "skin_triangles": target.n_triangles,
+             "pose": pose.to_dict(),  # the pose the mesh was fitted with (surface_model reads it)
+             "fit_distance_mm": {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)), "max": float(d.max())},
+             "feature_vertices": res["features"].tolist()}
+    meshes = {name: res[name] for name in ("ssd", "rbf", "fitted")}
+    meshes["skin"] = target
+    return sid, entry, meshes, float(res["fit"].confident.mean())
 
 
 STAGE = Stage(name="surface", folder="surface", per_scan=False, settings_type=SurfaceSettings, run=_run,

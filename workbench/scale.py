@@ -1,0 +1,164 @@
+"""Per-scan work as Dask tasks: a ``LocalCluster`` (``--workers N``) or an existing cluster (``--scheduler ADDRESS``).
+
+DESIGN's "Scale-out" and issue L item 1.  A :class:`Runner` maps a function
+over items, in this process (the synchronous path, no Dask at all) or as
+Dask tasks, and hands each result back to the coordinator as it arrives.
+
+What runs where:
+
+* **per-scan stages** (``init``, ``register``, ``validate``): one task per
+  scan (:func:`workbench.stages.mechanism.execute`).  A task gets the study
+  folder, the stage's name, its settings as JSON and the scan id — paths and
+  plain data, never ITK objects — runs the stage, writes the scan's folder
+  and swaps it in itself, and returns the file names and their digest.  Only
+  the coordinator writes ``study.json``, each scan as its task finishes, so an
+  interrupted run resumes from the scans left over.
+* **whole-study stages with per-scan work inside** (``pose``: every bone of a
+  scan, before Kurihara Eq. 1 pools the scans; ``surface``: each scan's
+  consistent mesh): one task per scan, given the study folder, the scan id
+  and the settings, returning plain arrays to the coordinator, which pools
+  them and writes the stage's folder as usual.
+* **validation sweeps** (``workbench reproduce``): one task per protocol
+  (:mod:`workbench.reproduce`).
+
+Every task is the same code on the same inputs as the synchronous path, so
+the results are bit-identical for any number of workers (tested on a
+``LocalCluster`` of 2 workers and against a ``dask scheduler`` with two
+``dask worker`` processes).  Workers must see the study folder at the same
+path (one machine, or a shared file system on a cluster).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import uuid
+from collections.abc import Callable
+
+from workbench.errors import WorkbenchError
+
+__all__ = ["Runner", "open_runner", "SchedulerError", "same_bits"]
+
+log = logging.getLogger("workbench")
+
+#: how long to wait for a --scheduler to answer
+CONNECT_TIMEOUT = "15s"
+
+
+class SchedulerError(WorkbenchError):
+    """The Dask scheduler asked for cannot be reached, or the options contradict each other."""
+
+
+def same_bits():
+    """A context in which BLAS runs on one thread.  A BLAS dot product or matrix product sums in an order set by
+    its thread count, so its last bits differ between a 2-core coordinator and a 1-thread worker (seen: the
+    surface fit's conjugate gradients and the validation's CC, 1e-12 apart).  Every stage runs inside one
+    (:func:`workbench.stages.mechanism.execute`), and so does every task.  The heavy kernels are numba's, whose
+    results do not depend on their threads; BLAS here only sees small matrices."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
+def _task(fn, *args):
+    with same_bits():
+        return fn(*args)
+
+
+class Runner:
+    """Maps a function over items, here (``client`` None) or as Dask tasks on ``client``'s cluster."""
+
+    def __init__(self, client=None, description: str = "in this process"):
+        self.client = client
+        self.description = description
+
+    @property
+    def distributed(self) -> bool:
+        return self.client is not None
+
+    def map(self, fn: Callable, items, *, shared=None, name: str = "task",
+            on_result: Callable | None = None) -> list:
+        """``[fn(item)]`` (``fn(shared, item)`` when ``shared`` is given), in the items' order.
+
+        ``fn`` must be a module-level function (it is pickled to the
+        workers); ``shared`` is sent to each worker once.
+        ``on_result(index, result)`` runs in this process as each result
+        arrives (in completion order on a cluster).  The first task to fail
+        cancels the others and its exception is raised here; so does Ctrl-C.
+        """
+        items = list(items)
+        call = (lambda it: _task(fn, it)) if shared is None else (lambda it: _task(fn, shared, it))
+        if self.client is None:
+            out = []
+            for i, it in enumerate(items):
+                out.append(call(it))
+                if on_result is not None:
+                    on_result(i, out[-1])
+            return out
+        from distributed import as_completed
+
+        client = self.client
+        args = () if shared is None else (client.scatter(shared, broadcast=True),)
+        token = uuid.uuid4().hex[:8]
+        futures = [client.submit(_task, fn, *args, it, key=f"{name}-{i}-{token}", pure=False)
+                   for i, it in enumerate(items)]
+        index = {f.key: i for i, f in enumerate(futures)}
+        results: dict = {}
+        try:
+            for fut in as_completed(futures):
+                r = fut.result()  # a task's exception is raised here, with its own traceback
+                results[index[fut.key]] = r
+                if on_result is not None:
+                    on_result(index[fut.key], r)
+        except BaseException:
+            client.cancel(futures)
+            raise
+        return [results[i] for i in range(len(items))]
+
+
+def _threads_per_worker(workers: int) -> int:
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
+@contextlib.contextmanager
+def open_runner(workers: int | None = None, scheduler: str | None = None):
+    """A :class:`Runner`: synchronous (``workers`` None or 1), a ``LocalCluster`` of ``workers`` processes, or
+    the cluster of the Dask scheduler at ``scheduler`` (e.g. ``tcp://10.0.0.5:8786``).  Closed on exit."""
+    if scheduler and workers not in (None, 1):
+        raise SchedulerError("--workers starts a cluster on this machine and --scheduler uses an existing one: give "
+                             "one of them (the existing cluster's size is set where its workers start)")
+    if not scheduler and (workers is None or workers <= 1):
+        yield Runner()
+        return
+    import dask
+    from distributed import Client, LocalCluster
+
+    cluster = None
+    with dask.config.set({"distributed.worker.daemon": False,  # a task may start processes (pytetwild, ffmpeg)
+                          "logging.distributed": "error"}):
+        if scheduler:
+            try:
+                client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+            except (OSError, TimeoutError, ValueError) as e:
+                raise SchedulerError(f"--scheduler {scheduler}: no Dask scheduler answers there ({e}); start one "
+                                     "with `dask scheduler` and workers with `dask worker ADDRESS` (README, "
+                                     "'Many scans, big machines'), or leave --scheduler out") from None
+            n = len(client.scheduler_info().get("workers", {}))
+            desc = f"the Dask cluster at {scheduler} ({n} worker{'s' if n != 1 else ''} now)"
+        else:
+            threads = _threads_per_worker(workers)
+            # one thread per task and the cores shared out between the workers' numba / BLAS threads
+            env = {k: str(threads) for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                             "MKL_NUM_THREADS")}
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR, env=env)
+            client = Client(cluster)
+            desc = f"a local Dask cluster of {workers} worker processes ({threads} thread(s) each)"
+        try:
+            log.info("per-scan work runs on %s", desc)
+            yield Runner(client, desc)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
