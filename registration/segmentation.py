@@ -18,13 +18,19 @@ graph cut from user strokes, Kurihara thresholded CT)::
   that touch at the scan's resolution share a component; it is split by a
   marker-controlled watershed (SimpleITK) of the negated distance to the
   mask's edge, whose ridges run through the necks where bones touch.
-* **MRI-like** (:func:`segment_mri`): seeded region growing (SimpleITK
-  ``ConfidenceConnected``) from each bone's seeds through the marrow, which
-  is bright and enclosed by the dark cortex, then one voxel of dilation to
-  take the cortex in; voxels claimed by two bones go to the nearer seed
-  region.  A growth that leaks out of the bone — it touches the air, or
-  exceeds ``max_volume_ml`` or a quarter of the body's volume — is retried
-  with a tighter intensity band, and dropped and reported if it still leaks.
+* **MRI-like** (:func:`segment_mri`): the marrow is bright and enclosed by
+  the dark cortex, but no brighter than the fat around the bone (fat septa,
+  subcutaneous fat), so no intensity band separates them.  Each bone's
+  marrow is flooded from its seeds (SimpleITK ``ConnectedThreshold``) over
+  the voxels above a threshold, the lowest at which the flood stays inside
+  the cortex — it touches no air and stays under ``max_volume_ml`` and a
+  quarter of the body — found by bisection; then the dark voxels within
+  ``cortex_mm`` of the marrow are the cortex.  Voxels claimed by two bones
+  go to the nearer seed.  A bone whose flood leaks even at its brightest
+  seed's intensity is dropped and reported.  (The earlier region growing,
+  ``ConfidenceConnected``, grew by intensity statistics alone: it leaked
+  into fat for the fibula and patella and under-segmented the femur
+  silently, Dice 0.29, on the knee phantom with structured soft tissue.)
 
 Both return a label map on the image's grid with the skeleton's label ids.
 """
@@ -148,51 +154,75 @@ def segment_ct(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, thresho
     return Volume(out, image.geometry), rep
 
 
-def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, multiplier: float = 3.0,
-                max_volume_ml: float = 1500.0, cortex_voxels: int = 1) -> tuple[Volume, SegmentationReport]:
-    """Seeded region growing through the marrow, then the cortex by dilation (see module doc)."""
+def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_volume_ml: float = 1500.0,
+                cortex_mm: float = 2.5, tolerance: float = 0.01) -> tuple[Volume, SegmentationReport]:
+    """Each bone's bright marrow inside its dark cortex, flooded from its seeds, then the cortex (module doc).
+
+    For a threshold ``t`` the flood (SimpleITK ``ConnectedThreshold``) takes every voxel at least ``t``
+    connected to the bone's seeds.  Low ``t``: the flood crosses the cortex into the soft tissue; high ``t``:
+    it stops short of the marrow's darker parts.  The flood shrinks as ``t`` rises, so a bisection finds the
+    lowest ``t`` (within ``tolerance`` of the range) at which it stays in the bone: under the volume limit
+    (``max_volume_ml``, and a quarter of the body) and touching no air.  The cortex is then the voxels below
+    ``t`` within ``cortex_mm`` (at least one voxel) of the marrow.
+    """
     import SimpleITK as sitk
 
-    rep = SegmentationReport("mri seeded region growing (ConfidenceConnected)",
-                             parameters={"multiplier": multiplier, "max_volume_ml": max_volume_ml,
-                                         "cortex_voxels": cortex_voxels})
+    rep = SegmentationReport("mri marrow flood inside the cortex (ConnectedThreshold, bisected threshold)",
+                             parameters={"max_volume_ml": max_volume_ml, "cortex_mm": cortex_mm,
+                                         "tolerance": tolerance})
     idx = _seed_indices(image, seeds)
     img = sitk.Cast(image.to_sitk(), sitk.sitkFloat32)
     img = sitk.CurvatureFlow(img, timeStep=0.0625, numberOfIterations=5)  # edge-preserving denoising
+    data = sitk.GetArrayFromImage(img)
     voxel_ml = float(np.prod(image.geometry.spacing)) / 1000.0
-    # Air: below Otsu's threshold between air and tissue.  A bone never touches air, so a grown region that
-    # does has leaked (into the bright subcutaneous fat, typically).
-    raw = sitk.Cast(image.to_sitk(), sitk.sitkFloat32)
-    air = sitk.GetArrayFromImage(sitk.OtsuThreshold(raw, 1, 0)).astype(bool)
-    near_air = air
+    spacing = np.asarray(image.geometry.spacing)[::-1]
+    # Air: outside the body (segment_body: its cavities filled, so the cortex, as dark as air in MRI, is
+    # inside).  A bone never touches air, so a flood that does has leaked (into the subcutaneous fat, typically).
+    air = segment_body(image).data == 0
+    air_level = float(np.percentile(data[air], 99)) if air.any() else float(data.min())
+    near_air = ndimage.binary_dilation(air)
     limit_ml = min(max_volume_ml, 0.25 * float((~air).sum()) * voxel_ml)  # no bone is a quarter of the body
     rep.parameters["volume_limit_ml"] = round(limit_ml, 1)
+    rep.parameters["thresholds"] = {}
+
+    def flood(seed_list, t):
+        return sitk.GetArrayFromImage(sitk.ConnectedThreshold(img, seedList=seed_list, lower=float(t),
+                                                              upper=float(np.inf), replaceValue=1)).astype(bool)
+
+    def contained(r):
+        return r.any() and r.sum() * voxel_ml <= limit_ml and not (r & near_air).any()
+
     grown = {}
     for b in skeleton.bones:
-        seeds_b = [tuple(int(v) for v in p) for p in idx[b.name]]
-        m = multiplier
-        for _ in range(4):
-            r = sitk.GetArrayFromImage(sitk.ConfidenceConnected(img, seedList=seeds_b, numberOfIterations=2,
-                                                                multiplier=m, initialNeighborhoodRadius=1,
-                                                                replaceValue=1)).astype(bool)
-            if r.sum() * voxel_ml <= limit_ml and not (r & near_air).any():
-                break
-            m *= 0.7
-        else:
-            rep.warnings.append(f"bone {b.name!r}: region growing leaked out of the bone (reached the air or "
-                                f"{r.sum() * voxel_ml:.0f} ml) even with a tight intensity band; its voxels are "
-                                "dropped — add seeds, or give a label map")
-            r = np.zeros_like(r)
+        ijk = idx[b.name]
+        values = data[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+        hi = float(values.max())  # above the brightest seed nothing is flooded
+        seed_list = [tuple(int(v) for v in p) for p in ijk]
+        r = flood(seed_list, hi)
+        if not contained(r):
+            rep.warnings.append(f"bone {b.name!r}: even its brightest seed's intensity ({hi:.0f}) floods out of "
+                                "the bone (into the air, or past the volume limit); its voxels are dropped — move "
+                                "the seeds into the marrow, or give a label map")
+            grown[b.name] = np.zeros(data.shape, bool)
+            continue
+        lo = air_level
+        while hi - lo > tolerance * (float(values.max()) - air_level):
+            t = 0.5 * (lo + hi)
+            rt = flood([p for p, v in zip(seed_list, values) if v >= t], t)
+            if contained(rt):
+                hi, r = t, rt
+            else:
+                lo = t
+        rep.parameters["thresholds"][b.name] = round(hi, 1)
         if r.sum() < 8:
-            rep.warnings.append(f"bone {b.name!r}: only {int(r.sum())} voxels grown from its seeds; the marrow may "
-                                "not be resolved at this spacing")
-        r = ndimage.binary_fill_holes(r)
-        if cortex_voxels:
-            r = ndimage.binary_dilation(r, iterations=cortex_voxels)
-        grown[b.name] = r
+            rep.warnings.append(f"bone {b.name!r}: only {int(r.sum())} marrow voxels flooded from its seeds; the "
+                                "marrow may not be resolved at this spacing")
+        # the cortex: voxels darker than the flood's threshold within cortex_mm of the marrow (a voxel at least)
+        reach = max(float(cortex_mm), float(spacing.max()))
+        cortex = (ndimage.distance_transform_edt(~r, sampling=spacing) <= reach) & (data < hi) & ~air
+        grown[b.name] = ndimage.binary_fill_holes(r | cortex)
     out = np.zeros(image.geometry.array_shape, np.uint16)
     dist = np.full(out.shape, np.inf)
-    spacing = np.asarray(image.geometry.spacing)[::-1]
     for b in skeleton.bones:
         seed_mask = np.zeros(out.shape, bool)
         ijk = idx[b.name]

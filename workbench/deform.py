@@ -16,7 +16,7 @@ from workbench.io.inputs import read_target_pose
 from workbench.io.volumes import write_labels, write_volume
 from workbench.study import MANIFEST, Study, read_study
 
-__all__ = ["study_poser", "deform_study", "METHODS"]
+__all__ = ["study_poser", "deform_study", "say_if_compiling", "METHODS"]
 
 METHODS = ("auto", "vbd", "evd")
 # Folders of a study that `deform` never writes into (its inputs and the stages' outputs).
@@ -69,6 +69,17 @@ def _refuse_study_files(study, paths, what: str) -> None:
                              "new subfolder of the study)")
 
 
+def say_if_compiling(say) -> None:
+    """Tell the user when the deformation kernels are compiled on this first use (issue L: 29 s in silence)."""
+    from deformation.evd import _forward_kernel
+    from deformation.resample import _backward_kernel
+    from workbench.progress import compile_note
+
+    note = compile_note(_forward_kernel, _backward_kernel)
+    if note:
+        say(note)
+
+
 def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str = "psd", labels_out=None,
                  field_out=None, grow: bool = False, overwrite: bool = False, progress=None) -> dict:
     """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Eq. 6) and write the posed volume and labels.
@@ -105,6 +116,7 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     if not study.has_template_labels:
         raise InputFileError(f"{study.root / MANIFEST}: the study has no template label map; `workbench deform` "
                              "writes the posed labels beside the posed volume and needs one.", study.root / MANIFEST)
+    say_if_compiling(say)
     poser = study_poser(study, method=method, weighting=weighting, progress=say)
     used = poser.method
     target = None

@@ -16,7 +16,30 @@ import logging
 import sys
 import time
 
-__all__ = ["ProgressPrinter", "setup_logging"]
+__all__ = ["ProgressPrinter", "setup_logging", "compile_note"]
+
+
+def compile_note(*kernels) -> str | None:
+    """A line to show before the first use of numba ``kernels`` that have no on-disk cache yet (the first run
+    after installing, or after an upgrade: ~30 s of compiling with nothing else to show), else None.  The
+    kernels are compiled with ``cache=True``: numba keeps them in the package's ``__pycache__`` (or, where that
+    is not writable, in ``NUMBA_CACHE_DIR`` / the user's cache folder), so later runs load them in well under
+    a second."""
+    import os
+
+    missing = []
+    for k in kernels:
+        cache = getattr(k, "_cache", None)
+        try:
+            index = cache._cache_file._index_path
+        except AttributeError:  # not a cached dispatcher (or numba's internals moved): nothing to say
+            continue
+        if not os.path.exists(index):
+            missing.append(getattr(k, "__name__", "kernel"))
+    if not missing:
+        return None
+    return (f"compiling {len(missing)} numba kernel(s) on first use (about 30 s, once; they are cached for "
+            "later runs)")
 
 
 def setup_logging(verbosity: int = 0) -> logging.Logger:

@@ -40,25 +40,58 @@ def test_ct_threshold_components_and_watershed(knee_templates):
     assert seg.geometry == img.geometry and seg.data.dtype == np.uint16
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known, issue L: with the phantom's structured soft tissue (issue I: fat septa of marrow-like intensity, "
-    "vessels), intensity-only MRI region growing at 5 mm leaks for the patella and fibula (reported, voxels "
-    "dropped) and under-segments the femur silently (Dice 0.29, 281 voxels, no warning)"))
-def test_mri_region_growing_reports_what_it_cannot_segment(knee_templates):
+def _brightest(img, lab, sk, bone, n=5):
+    """``n`` seeds in the bone's brightest voxels (world mm), as a user clicking on bright marrow would."""
+    m = lab.data == sk.label_of(bone)
+    flat = np.flatnonzero(m.ravel())
+    top = flat[np.argsort(img.data.ravel()[flat])[-n:]]
+    kji = np.stack(np.unravel_index(top, m.shape), axis=1)
+    return img.geometry.index_to_world(kji[:, ::-1].astype(float))
+
+
+def test_mri_marrow_flood_at_5mm(knee_templates):
+    """Issue L: on the knee with structured soft tissue (fat septa as bright as marrow), the earlier region
+    growing under-segmented the femur silently (Dice 0.29) and dropped the fibula and patella."""
     img, lab, sk = knee_templates["mri"]
     assert guess_modality(img) == "mri"
     seg, rep = segment_bones(img, sk, seeds_from_labels(lab, sk))
     d = {b.name: dice(lab.data == b.label, seg.data == b.label) for b in sk.bones}
-    # Marrow enclosed by dark cortex grows for the big bones (measured Dice 0.77-0.92 over two seeds; the
-    # rim of partial-volume voxels is where they differ, and a leak retried with a tighter band
-    # under-segments).  Weaker than CT, as expected of intensity-only MRI segmentation at 5 mm.  The
-    # fibula's marrow is about one voxel wide at 5 mm: its growth leaks into muscle, and that must be
-    # reported (and its voxels dropped), not passed on.
-    for b in ("femur", "tibia", "patella"):
-        assert d[b] >= 0.75, d
-    if d["fibula"] < 0.75:  # a poor fibula must come with a warning and no voxels, never silently
-        assert any("fibula" in w for w in rep.warnings), rep.warnings
-        assert rep.voxels["fibula"] == 0
+    # Measured over seeds 0-4 at this 5 mm grid: femur 0.93-0.94, tibia 0.90-0.92, patella 0.73-0.87, fibula
+    # 0.50-0.77 (about 3 voxels across: its marrow is one partial-volume voxel, the rest cortex and rim).
+    assert d["femur"] >= 0.85 and d["tibia"] >= 0.85, d
+    assert d["patella"] >= 0.65 and d["fibula"] >= 0.4, d
+    assert rep.warnings == [] and set(rep.parameters["thresholds"]) == set(sk.bone_names)
+
+
+def test_mri_fibula_from_five_bright_seeds_at_2_5mm():
+    """The issue's case: five seeds in the fibula's brightest voxels, at a grid that resolves its marrow."""
+    from validation.phantoms import make_phantom
+
+    ph = make_phantom("knee", size="test", modality="mri", n_poses=1, seed=4, spacing=(2.5, 2.5, 2.5))
+    img, lab = ph.template()
+    sk = ph.skeleton
+    seeds = {**seeds_from_labels(lab, sk), "fibula": _brightest(img, lab, sk, "fibula")}
+    seg, rep = segment_bones(img, sk, seeds)
+    d = {b.name: dice(lab.data == b.label, seg.data == b.label) for b in sk.bones}
+    # Measured over seeds 0, 1, 4: femur and tibia 0.95-0.97, patella 0.91-0.94, fibula 0.86 (6 voxels across:
+    # a third of its voxels are the partial-volume rim where the label map and any threshold differ); 1.25 mm
+    # (Rhee's knee grid, too slow here): 0.98 / 0.98 / 0.98 / 0.89-0.95.
+    assert min(d.values()) >= 0.8, d
+    assert rep.warnings == []
+
+
+def test_mri_seed_outside_a_bone_is_reported_and_dropped(knee_templates):
+    """A 'fibula' seed in the subcutaneous fat floods to the skin at any threshold: reported, no voxels."""
+    from scipy import ndimage
+
+    img, lab, sk = knee_templates["mri"]
+    body = ndimage.binary_erosion(img.data > 0.3 * img.data.max(), iterations=1)
+    rim = body & ~ndimage.binary_erosion(body) & (lab.data == 0)
+    kji = np.argwhere(rim)[0]
+    seeds = {**seeds_from_labels(lab, sk), "fibula": img.geometry.index_to_world(kji[::-1][None].astype(float))}
+    seg, rep = segment_bones(img, sk, seeds)
+    assert rep.voxels["fibula"] == 0 and not (seg.data == sk.label_of("fibula")).any()
+    assert any("'fibula'" in w and "floods out of the bone" in w for w in rep.warnings), rep.warnings
 
 
 def test_seeds_file_errors(tmp_path, knee_templates):

@@ -383,6 +383,9 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         model = study.surface_model()  # a clear "run `workbench surface` first" before any work
         poser = None
     else:
+        from workbench.deform import say_if_compiling
+
+        say_if_compiling(say)
         poser = study_poser(study, method=method, weighting=weighting, progress=say)
     sk = study.skeleton()
     if keyframes is None:
