@@ -702,8 +702,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     bo = sub.add_parser("bones", help="the template's bone label map: given, or segmented from seeds",
                         description="The bones stage (Rhee §3.1): the study's own label map, or one segmented "
-                                    "from a seeds file (CT: threshold and connected components; MRI: seeded "
-                                    "region growing), and each bone's oriented box.  Writes bones/; every later "
+                                    "from a seeds file (CT: threshold and connected components; MRI: each "
+                                    "bone's marrow flooded from its seeds inside the dark cortex), and each bone's oriented box.  Writes bones/; every later "
                                     "stage uses these labels.  The seeds schema is in `workbench pose --help`.")
     bo.add_argument("study", type=Path, help="study folder (holding study.json)")
     _bones_options(bo)

@@ -2,8 +2,8 @@
 
 * ``source="labels"``: the study's own ``template_labels`` (given);
 * ``source="seeds"``: segmented from a seeds file (one world point in mm
-  inside each bone) — thresholding and connected components for CT, seeded
-  region growing for MRI (:func:`registration.segmentation.segment_bones`);
+  inside each bone) — thresholding and connected components for CT, a
+  marrow flood inside the cortex for MRI (:func:`registration.segmentation.segment_bones`);
 * ``source="auto"``: segmented when a seeds file is given, else the study's
   own labels.
 
