@@ -26,7 +26,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 from pathlib import Path
@@ -45,34 +44,72 @@ from deformation.skinning import distance_weights, lbs, stack_transforms  # noqa
 from validation.phantoms import make_phantom  # noqa: E402
 
 
-def peak_rss_gb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
+class Memory:
+    """Resident memory per phase: the current RSS and the peak since the previous phase (Linux: VmHWM, reset
+    through /proc/self/clear_refs), so that a peak is attributed to the step that made it."""
+
+    def __init__(self):
+        self.rows = []
+        self._reset()
+
+    @staticmethod
+    def _status(key: str) -> float:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) / 2**20  # kB → GiB
+        return float("nan")
+
+    def _reset(self):
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")
+        except OSError:
+            pass
+
+    def phase(self, name: str):
+        self.rows.append((name, self._status("VmHWM"), self._status("VmRSS")))
+        self._reset()
+
+    def report(self):
+        print("resident memory per phase (GiB): peak during the phase / held at its end")
+        for name, peak, now in self.rows:
+            print(f"  {name:<58} {peak:6.2f} / {now:5.2f}")
 
 
 def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     from scipy import ndimage
 
     t0 = time.perf_counter()
+    mem = Memory()
     ph = make_phantom("hand", size=size, modality="mri", n_poses=n_poses + 1, seed=5)
     g = ph.geometry
     x = g.world_coordinates().reshape(-1, 3)
     print(f"grid {g.size[0]}×{g.size[1]}×{g.size[2]} = {g.n_voxels:,} voxels at "
           f"{'×'.join(f'{s:.2f}' for s in g.spacing)} mm; {n_poses} example poses + 1 query pose")
     template = ph.template()[0].data.astype(np.float32)
-    d = ph.anatomy.distances_fast(x)
-    body = (d[:, -1] < 0).reshape(g.array_shape)
-    if weights_kind == "distance":
-        w = distance_weights(d[:, :-1], ph.skeleton.bone_names)
-    else:
+    mem.phase("phantom and its template image")
+    if weights_kind != "distance":
         raise SystemExit("only --weights distance is wired here")
+    # the phantom's distances to every bone and to the skin, in chunks of points into one float32 array (at
+    # once, the analytic distances' float64 temporaries took 5 GB on this grid)
+    n_bones = len(ph.skeleton.bone_names)
+    d = np.empty((len(x), n_bones + 1), dtype=np.float32)
+    for lo in range(0, len(x), 1 << 18):
+        d[lo:lo + (1 << 18)] = ph.anatomy.distances_fast(x[lo:lo + (1 << 18)])
+    body = (d[:, -1] < 0).reshape(g.array_shape)
+    w = distance_weights(d[:, :-1], ph.skeleton.bone_names)
     del d
+    mem.phase("distances to every bone, distance weights")
     poses, fields = [], []
     for pid, ang in ph.poses[:n_poses]:
         poses.append(ph.pose_of(ang))
         fields.append(ph.posing_model(ang).forward(x).reshape(g.array_shape + (3,)).astype(np.float32))
     query = ph.pose_of(ph.poses[n_poses][1])
+    mem.phase(f"ground-truth forward maps of {n_poses} poses")
     model = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, poses, fields)
     del fields
+    mem.phase("EVD model (Rhee Eq. 7)")
     print(f"set-up (phantom, weights, ground truth of {n_poses} poses, Eq. 7): {time.perf_counter() - t0:.1f} s")
     t = stack_transforms(query.transforms, w.bones)
 
@@ -97,11 +134,13 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
 
     # warm-up (numba compilation is cached on disk, but the first call still loads it)
     evd()
+    mem.phase("before timing (warm-up: one EVD + backward map + resample)")
     t_vbd, (vol_vbd, bm_vbd) = best_of(vbd, repeats)
     t_evd, (vol_evd, bm_evd) = best_of(evd, repeats)
     t_fwd, _ = best_of(lambda: model.forward(query), repeats)
     t_wpsd, _ = best_of(lambda: evd("wpsd"), 1)
     coords = np.moveaxis(bm_evd.template_index[..., ::-1], -1, 0).astype(np.float32)  # (k, j, i) for scipy
+    mem.phase("VBD, EVD and WPSD-EVD, each with backward map and resample")
     t_scipy, _ = best_of(lambda: ndimage.map_coordinates(template, coords, order=1, mode="constant"), repeats)
     summ = bm_evd.summary()
     print(f"memory floor (one NumPy sum over {nbytes / 2**20:,.0f} MiB: template, weights, "
@@ -118,7 +157,7 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     print(f"backward map of the EVD pose: {summ['n_ok']:,} ok, {summ['n_folded']:,} folded, "
           f"{summ['n_not_converged']:,} not converged, {summ['n_outside']:,} outside the template; "
           f"max residual {summ['max_residual_mm']:.2e} mm")
-    print(f"peak resident memory of the process: {peak_rss_gb():.2f} GiB")
+    mem.report()
     del vol_vbd, vol_evd, bm_vbd
 
 
@@ -148,16 +187,34 @@ def mesh_benchmark(n_vertices: int, n_poses: int, repeats: int):
     skin(v, w, t)
     skin(base, w, t, space.weights(query))
     wpsd_deform(base, w, pts_space, query, t)
-    t_lbs, _ = best_of(lambda: skin(v, w, t), repeats * 3)
-    t_np, _ = best_of(lambda: lbs(v, w, t), repeats)
-    t_psd, _ = best_of(lambda: skin(base, w, t, space.weights(query)), repeats * 3)
-    t_wpsd, _ = best_of(lambda: wpsd_deform(base, w, pts_space, query, t), repeats * 3)
+    import os
+
+    import numba
+
+    # Stable figures (issue L: one run gave WPSD/LBS 4.95, another 1.16 with the compiled LBS slower than
+    # NumPy's): every kernel timed as the best of many calls, on one thread pinned to one core (the per-core
+    # ratio, which the machine's other work disturbs least), then on all of numba's threads.
+    n_threads = numba.get_num_threads()
+    cores = sorted(os.sched_getaffinity(0))
     print(f"mesh: {n_vertices:,} vertices near the hand phantom's skin, {n_poses} example poses "
-          f"({sk.n_dof} DOF)")
-    print(f"LBS (compiled):  {t_lbs * 1e3:7.2f} ms   (NumPy LBS {t_np * 1e3:.2f} ms)")
-    print(f"PSD:             {t_psd * 1e3:7.2f} ms   ratio PSD / LBS  {t_psd / t_lbs:5.2f}   (Kurihara: 62 ms)")
-    print(f"WPSD:            {t_wpsd * 1e3:7.2f} ms   ratio WPSD / LBS {t_wpsd / t_lbs:5.2f}   (Kurihara: 157 ms;"
-          f" per-vertex coefficients precomputed once in {t_pre * 1e3:.0f} ms)")
+          f"({sk.n_dof} DOF); best of {repeats * 20} calls each")
+    try:
+        for threads in dict.fromkeys((1, n_threads)):
+            numba.set_num_threads(threads)
+            os.sched_setaffinity(0, cores[:threads] if threads < len(cores) else cores)
+            t_lbs, _ = best_of(lambda: skin(v, w, t), repeats * 20)
+            t_np, _ = best_of(lambda: lbs(v, w, t), repeats * 5)
+            t_psd, _ = best_of(lambda: skin(base, w, t, space.weights(query)), repeats * 20)
+            t_wpsd, _ = best_of(lambda: wpsd_deform(base, w, pts_space, query, t), repeats * 20)
+            print(f"  {threads} thread(s){' pinned to core ' + str(cores[0]) if threads == 1 else ''}:")
+            print(f"    LBS (compiled):  {t_lbs * 1e3:7.2f} ms   (NumPy LBS {t_np * 1e3:.2f} ms)")
+            print(f"    PSD:             {t_psd * 1e3:7.2f} ms   ratio PSD / LBS  {t_psd / t_lbs:5.2f}   "
+                  "(Kurihara: 62 ms)")
+            print(f"    WPSD:            {t_wpsd * 1e3:7.2f} ms   ratio WPSD / LBS {t_wpsd / t_lbs:5.2f}   "
+                  f"(Kurihara: 157 ms; per-vertex coefficients precomputed once in {t_pre * 1e3:.0f} ms)")
+    finally:
+        numba.set_num_threads(n_threads)
+        os.sched_setaffinity(0, cores)
 
 
 def main(argv=None):

@@ -264,12 +264,14 @@ class ExampleVolumeDeformation:
         if len(poses) != len(fields):
             raise ValueError(f"{len(poses)} poses but {len(fields)} correspondence fields")
         _check_grid_weights(geometry, weights)
-        PoseSpace(skeleton, poses)  # distinct poses, checked before the work
+        space = PoseSpace(skeleton, poses)  # distinct poses, checked before the work
+        vectors, with_template = with_template_example(skeleton, space.train, template_example)
         n = geometry.n_voxels
-        d = np.empty((n, len(poses), 3), dtype=np.float32)
+        # room for the template's example (d = 0, the last) from the start: adding it later copied the model
+        d = np.zeros((n, len(poses) + int(with_template), 3), dtype=np.float32)
         grid = geometry.world_coordinates().reshape(-1, 3)
         for k, (pose, pos) in enumerate(zip(poses, fields)):
-            pos = np.asarray(pos, dtype=np.float64).reshape(-1, 3)
+            pos = np.asarray(pos).reshape(-1, 3)  # read blockwise below (a float64 copy of it was 140 MB)
             if pos.shape[0] != n:
                 raise ValueError(f"correspondence {k} has {pos.shape[0]} points, the template grid {n} voxels")
             t = _as_stack(pose.transforms, weights)
@@ -279,7 +281,7 @@ class ExampleVolumeDeformation:
                 m = np.zeros((hi - lo, 3, 4))
                 for s in range(weights.max_influences):
                     m += weights.value[lo:hi, s, None, None] * t[weights.index[lo:hi, s].astype(np.int64), :3, :]
-                rhs = pos[lo:hi] - m[:, :, 3]
+                rhs = np.asarray(pos[lo:hi], dtype=np.float64) - m[:, :, 3]
                 try:
                     d[lo:hi, k] = np.linalg.solve(m[:, :, :3], rhs[:, :, None])[:, :, 0] - grid[lo:hi]
                 except np.linalg.LinAlgError:
@@ -289,8 +291,7 @@ class ExampleVolumeDeformation:
                                      "transforms or the weights are degenerate") from None
             if progress is not None:
                 progress(k + 1, len(poses))
-        return cls.from_examples(geometry, weights, skeleton, PoseSpace(skeleton, poses).train, d,
-                                 template_example=template_example)
+        return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=with_template)
 
     def pose_weights(self, pose) -> np.ndarray:
         return self.space.weights(pose)
