@@ -200,6 +200,10 @@ def test_info_check_reads_every_image_and_clean_image_repairs_a_nan_scan(knee_st
     err = capsys.readouterr().err
     assert "1 problem" in err and str(scan) in err and "2 of" in err and "workbench clean-image" in err
     assert "allow_nonfinite" not in err  # no Python argument offered on the command line
+    # the pose stage reads every scan before fitting any bone: the NaN scan (the second) is said first
+    assert main(["pose", str(copy)]) == 1
+    err = capsys.readouterr().err
+    assert str(scan) in err and "workbench clean-image" in err and "bone 1/" not in err, err
     fixed = tmp_path / "fixed.nii.gz"
     assert main(["clean-image", str(scan), "--out", str(fixed)]) == 0
     assert "2 of" in capsys.readouterr().out
