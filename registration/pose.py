@@ -305,6 +305,10 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
         interpolation=interpolation, prior_deg=prior_deg, smooth_voxels=smooth_voxels, metric=metric,
         bias_correction=bias_correction, margin_mm=margin_mm, max_joint_gap_mm=max_joint_gap_mm, progress=progress)
     voxel_mm = {s.scan_id: s.voxel_mm for s in results}
+    bad = [sid for sid, v in voxel_mm.items() if not (np.isfinite(v) and v > 0)]
+    if bad:  # a NaN spacing would switch Eq. 1's outlier test off without a word
+        raise ValueError(f"scan_poses of scans {bad} carry no voxel size (ScanPose.voxel_mm): make them with "
+                         "pose_scans")
     return _pool(results, voxel_mm, labels, skeleton, method, hinge_ratio, hinge_sd_mm, outlier_factor)
 
 

@@ -25,9 +25,10 @@ graph cut from user strokes, Kurihara thresholded CT)::
   the voxels above a threshold, the lowest at which the flood stays inside
   the cortex — it touches no air and stays under ``max_volume_ml`` and a
   quarter of the body — found by bisection; then the dark voxels within
-  ``cortex_mm`` of the marrow are the cortex.  Voxels claimed by two bones
-  go to the nearer seed.  A bone whose flood leaks even at its brightest
-  seed's intensity is dropped and reported.  (The earlier region growing,
+  ``cortex_mm`` of the marrow are the cortex.  A seed that leaks at its own
+  intensity, or whose flood lies apart from the marrow its bone's other
+  seeds reach, is reported and left out.  Voxels claimed by two bones go
+  to the nearer seed.  (The earlier region growing,
   ``ConfidenceConnected``, grew by intensity statistics alone: it leaked
   into fat for the fibula and patella and under-segmented the femur
   silently, Dice 0.29, on the knee phantom with structured soft tissue.)
@@ -158,12 +159,14 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
                 cortex_mm: float = 2.5, tolerance: float = 0.01) -> tuple[Volume, SegmentationReport]:
     """Each bone's bright marrow inside its dark cortex, flooded from its seeds, then the cortex (module doc).
 
-    For a threshold ``t`` the flood (SimpleITK ``ConnectedThreshold``) takes every voxel at least ``t``
-    connected to the bone's seeds.  Low ``t``: the flood crosses the cortex into the soft tissue; high ``t``:
-    it stops short of the marrow's darker parts.  The flood shrinks as ``t`` rises, so a bisection finds the
-    lowest ``t`` (within ``tolerance`` of the range) at which it stays in the bone: under the volume limit
-    (``max_volume_ml``, and a quarter of the body) and touching no air.  The cortex is then the voxels below
-    ``t`` within ``cortex_mm`` (at least one voxel) of the marrow.
+    For a threshold ``t`` the flood (SimpleITK ``ConnectedThreshold``) from a seed takes every voxel at
+    least ``t`` connected to it.  Low ``t``: the flood crosses the cortex into the soft tissue; high ``t``: it
+    stops short of the marrow's darker parts.  The flood shrinks as ``t`` rises, so a bisection finds, per
+    seed, the lowest ``t`` (within ``tolerance`` of the range) at which it stays in the bone: under the volume
+    limit (``max_volume_ml``, and a quarter of the body) and touching no air.  Seeds whose floods meet are one
+    marrow; the bone is the marrow with the most seeds (ties: the deepest), the others reported and left out,
+    as is a seed that floods out at its own intensity.  The cortex is then the voxels below the lowest such
+    ``t`` within ``cortex_mm`` of the marrow, and its face neighbours.
     """
     import SimpleITK as sitk
 
@@ -190,42 +193,72 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
                                                               upper=float(np.inf), replaceValue=1)).astype(bool)
 
     def contained(r):
-        return r.any() and r.sum() * voxel_ml <= limit_ml and not (r & near_air).any()
+        return bool(r.any()) and r.sum() * voxel_ml <= limit_ml and not (r & near_air).any()
 
+    g = image.geometry
     grown = {}
+    used = dict(idx)  # the seeds each bone grew from (those left out are not its seeds below)
     for b in skeleton.bones:
         ijk = idx[b.name]
         values = data[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
-        hi = float(values.max())  # above the brightest seed nothing is flooded
         seed_list = [tuple(int(v) for v in p) for p in ijk]
-        r = flood(seed_list, hi)
-        if not contained(r):
-            rep.warnings.append(f"bone {b.name!r}: even its brightest seed's intensity ({hi:.0f}) floods out of "
-                                "the bone (into the air, or past the volume limit); its voxels are dropped — move "
-                                "the seeds into the marrow, or give a label map")
+        # each seed's own flood, at the lowest threshold that keeps it in the bone (bisection: the flood only
+        # shrinks as the threshold rises); a seed whose flood leaks even at its own intensity is not in marrow
+        regions = []
+        for p, v in zip(seed_list, values):
+            xyz = np.round(g.index_to_world(np.asarray(p, float)), 1).tolist()
+            r = flood([p], v)
+            if not contained(r):
+                rep.warnings.append(f"bone {b.name!r}: the seed at {xyz} mm floods out of the bone even at its "
+                                    f"own intensity ({v:.0f}): it is not in the marrow, and was left out")
+                continue
+            hi, lo = float(v), air_level
+            while hi - lo > tolerance * (float(v) - air_level):
+                t = 0.5 * (lo + hi)
+                rt = flood([p], t)
+                if contained(rt):
+                    hi, r = t, rt
+                else:
+                    lo = t
+            regions.append((p, xyz, hi, r))
+        if not regions:
+            rep.warnings.append(f"bone {b.name!r}: every seed floods out of the bone (into the air, or past the "
+                                "volume limit); its voxels are dropped — move the seeds into the marrow, or give "
+                                "a label map")
             grown[b.name] = np.zeros(data.shape, bool)
             continue
-        lo = air_level
-        while hi - lo > tolerance * (float(values.max()) - air_level):
-            t = 0.5 * (lo + hi)
-            rt = flood([p for p, v in zip(seed_list, values) if v >= t], t)
-            if contained(rt):
-                hi, r = t, rt
-            else:
-                lo = t
+        # one bone, one marrow: seeds whose regions meet form a group; the bone is the group with the most
+        # seeds, ties going to the deepest seeds (bones lie deep, fat under the skin).  A seed of another group
+        # (a bright fat lobule clicked beside the bone) is reported and left out.
+        groups = []
+        for x in regions:
+            joined = [grp for grp in groups if any((x[3] & y[3]).any() for y in grp)]
+            merged = [x] + [y for grp in joined for y in grp]
+            groups = [grp for grp in groups if not any(grp is j for j in joined)] + [merged]
+        depth = ndimage.distance_transform_edt(~air, sampling=spacing)
+        kept = max(groups, key=lambda grp: (len(grp), max(depth[x[0][2], x[0][1], x[0][0]] for x in grp)))
+        for x in regions:
+            if not any(x is k for k in kept):
+                rep.warnings.append(f"bone {b.name!r}: the seed at {x[1]} mm lies in a region apart from the "
+                                    "marrow its other seeds reach (fat beside the bone?): it was left out")
+        main = min(kept, key=lambda x: x[2])
+        used[b.name] = np.asarray([x[0] for x in kept])
+        hi = main[2]
+        r = np.logical_or.reduce([x[3] for x in kept])
         rep.parameters["thresholds"][b.name] = round(hi, 1)
         if r.sum() < 8:
             rep.warnings.append(f"bone {b.name!r}: only {int(r.sum())} marrow voxels flooded from its seeds; the "
                                 "marrow may not be resolved at this spacing")
-        # the cortex: voxels darker than the flood's threshold within cortex_mm of the marrow (a voxel at least)
-        reach = max(float(cortex_mm), float(spacing.max()))
-        cortex = (ndimage.distance_transform_edt(~r, sampling=spacing) <= reach) & (data < hi) & ~air
+        # the cortex: voxels darker than the flood's threshold within cortex_mm of the marrow, and its face
+        # neighbours (at least one voxel, however coarse or anisotropic the grid)
+        near = (ndimage.distance_transform_edt(~r, sampling=spacing) <= cortex_mm) | ndimage.binary_dilation(r)
+        cortex = near & (data < hi) & ~air
         grown[b.name] = ndimage.binary_fill_holes(r | cortex)
     out = np.zeros(image.geometry.array_shape, np.uint16)
     dist = np.full(out.shape, np.inf)
     for b in skeleton.bones:
         seed_mask = np.zeros(out.shape, bool)
-        ijk = idx[b.name]
+        ijk = used[b.name]
         seed_mask[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = True
         d = ndimage.distance_transform_edt(~seed_mask, sampling=spacing)  # overlaps go to the nearer seed
         take = grown[b.name] & (d < dist)

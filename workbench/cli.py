@@ -1142,7 +1142,7 @@ def cmd_reproduce(args) -> int:
 
     try:
         workers = args.workers if args.workers is not None else \
-            (min(2, os.cpu_count() or 1) if args.size == "test" else 1)
+            (1 if args.scheduler else min(2, os.cpu_count() or 1) if args.size == "test" else 1)
         reproduce(args.tables, args.out, size=args.size, seed=args.seed, with_peers=args.with_peers,
                   progress=printer, say=say, emit=emit, workers=workers, scheduler=args.scheduler)
     finally:

@@ -195,6 +195,11 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
         raise WorkbenchError(f"unknown protocol {unknown}; choose from {list(NAMES)} or all")
     if int(workers) < 1:
         raise WorkbenchError(f"--workers must be at least 1, got {workers}")
+    if scheduler and int(workers) > 1:
+        from workbench.scale import SchedulerError
+
+        raise SchedulerError("--workers starts a cluster on this machine and --scheduler uses an existing one: "
+                             "give one of them (the existing cluster's size is set where its workers start)")
     runner = StudyRunner(out, size=size, seed=seed, with_peers=with_peers, progress=progress, say=say)
     tables = {}
 
@@ -220,7 +225,7 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
             done[order[k]] = True
             finish(order[k], Table.from_dict(d), sec)
 
-        with open_runner(min(int(workers), len(order)) if not scheduler else None, scheduler) as pool:
+        with open_runner(None if scheduler else min(int(workers), len(order)), scheduler) as pool:
             if say is not None:
                 say(f"{', '.join(order)} side by side on {pool.description}")
             pool.map(_protocol_task, [(n, str(Path(out).resolve()), size, seed, with_peers, say is None)

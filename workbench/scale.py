@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import threading
 import uuid
 from collections.abc import Callable
 
@@ -50,15 +51,48 @@ class SchedulerError(WorkbenchError):
     """The Dask scheduler asked for cannot be reached, or the options contradict each other."""
 
 
-def same_bits():
-    """A context in which BLAS runs on one thread.  A BLAS dot product or matrix product sums in an order set by
-    its thread count, so its last bits differ between a 2-core coordinator and a 1-thread worker (seen: the
-    surface fit's conjugate gradients and the validation's CC, 1e-12 apart).  Every stage runs inside one
-    (:func:`workbench.stages.mechanism.execute`), and so does every task.  The heavy kernels are numba's, whose
-    results do not depend on their threads; BLAS here only sees small matrices."""
-    from threadpoolctl import threadpool_limits
+#: ITK's threads in every stage and task.  ITK sums a metric per work unit, and its work units follow its
+#: threads, so its last bits change with the thread count (the pose stage's rigid fits: a metric value moved in
+#: the 13th digit between 1, 2 and 4 threads); a fixed count makes them the same on any machine.
+ITK_THREADS = 2
 
-    return threadpool_limits(limits=1, user_api="blas")
+_LOCK = threading.Lock()
+_ACTIVE = {"depth": 0, "restore": None}
+
+
+@contextlib.contextmanager
+def same_bits():
+    """A context in which BLAS runs on one thread and ITK on :data:`ITK_THREADS`, on any machine.
+
+    A BLAS dot or matrix product sums in an order set by its thread count, so its last bits differ between a
+    2-core coordinator and a 1-thread worker (seen: the surface fit's conjugate gradients and the validation's
+    CC, 1e-12 apart); so does ITK's.  Every stage runs inside one (:func:`workbench.stages.mechanism.execute`),
+    and so does every task.  The heavy kernels are numba's, whose results do not depend on their threads; BLAS
+    here only sees small matrices.  Both settings are process-wide: nested or concurrent contexts (a worker
+    running two tasks in two threads) share one, restored when the last leaves.
+    """
+    with _LOCK:
+        if _ACTIVE["depth"] == 0:
+            import SimpleITK as sitk
+            from threadpoolctl import threadpool_limits
+
+            itk_before = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+            sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(ITK_THREADS)
+            blas = threadpool_limits(limits=1, user_api="blas")
+            _ACTIVE["restore"] = (blas, itk_before)
+        _ACTIVE["depth"] += 1
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _ACTIVE["depth"] -= 1
+            if _ACTIVE["depth"] == 0:
+                import SimpleITK as sitk
+
+                blas, itk_before = _ACTIVE["restore"]
+                blas.restore_original_limits()
+                sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(itk_before)
+                _ACTIVE["restore"] = None
 
 
 def _task(fn, *args):

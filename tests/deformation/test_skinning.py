@@ -87,3 +87,23 @@ def test_distance_weights_are_one_hot_inside_a_bone_and_follow_the_nearest_bone(
     np.testing.assert_allclose(dense.sum(1), 1.0, atol=1e-6)
     # the nearest bone has the largest weight (w ∝ d^-p e^(-d/λ) decreases with d)
     assert np.all(np.argmax(dense[20:], 1) == np.argmin(d[20:], 1))
+
+
+def test_dense_to_sparse_in_chunks_gives_the_same_bits(monkeypatch):
+    """distance_weights and from_dense work in row chunks (memory): any chunk size, the same arrays."""
+    import deformation.skinning as sk
+
+    rng = np.random.default_rng(3)
+    d = rng.normal(20, 15, (1000, 9))
+    d[:7] = -1.0  # inside a bone
+    bones = [f"b{i}" for i in range(9)]
+    whole = sk.distance_weights(d, bones)
+    dense = np.abs(rng.normal(size=(1000, 9)))
+    whole_dense = sk.SkinningWeights.from_dense(dense, bones)
+    monkeypatch.setattr(sk, "DENSE_CHUNK", 37)  # 28 chunks, the last one short
+    parts = sk.distance_weights(d, bones)
+    parts_dense = sk.SkinningWeights.from_dense(dense, bones)
+    for a, b in ((whole, parts), (whole_dense, parts_dense)):
+        assert np.array_equal(a.index, b.index) and np.array_equal(a.value, b.value)
+        assert a.index.dtype == b.index.dtype and a.value.dtype == b.value.dtype
+    assert sk.distance_weights(np.zeros((0, 9)), bones).n_points == 0

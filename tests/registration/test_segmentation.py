@@ -116,3 +116,23 @@ def test_seeds_file_errors(tmp_path, knee_templates):
     far = {**{b: np.asarray(p) for b, p in good.items()}, "femur": np.array([[1e4, 0.0, 0.0]])}
     with pytest.raises(ValueError, match="outside the image"):
         segment_bones(img, sk, far)
+
+
+def test_mri_a_bright_seed_in_the_fat_is_left_out_not_the_bone(knee_templates):
+    """A femur seed clicked in the subcutaneous fat (brighter than the marrow) beside its good seed: the seed is
+    reported and left out, the femur is grown from the other as without it."""
+    from scipy import ndimage
+
+    img, lab, sk = knee_templates["mri"]
+    good = seeds_from_labels(lab, sk)
+    body = ndimage.binary_erosion(img.data > 0.3 * img.data.max(), iterations=1)
+    rim = body & ~ndimage.binary_erosion(body) & (lab.data == 0)
+    kji = np.argwhere(rim)
+    fat = kji[np.argmax(img.data[rim])]  # the rim's brightest voxel: fat, brighter than the femur's seed
+    assert img.data[tuple(fat)] > img.data[tuple(np.rint(img.geometry.world_to_index(good["femur"])[0, ::-1])
+                                                 .astype(int))]
+    bad = {**good, "femur": np.vstack([good["femur"], img.geometry.index_to_world(fat[::-1][None].astype(float))])}
+    seg_good, _ = segment_bones(img, sk, good)
+    seg_bad, rep = segment_bones(img, sk, bad)
+    assert np.array_equal(seg_bad.data, seg_good.data)
+    assert any("'femur'" in w and "left out" in w for w in rep.warnings), rep.warnings

@@ -562,7 +562,12 @@ def _unit_task(job: tuple) -> dict:
 
 def _execute_distributed(study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit,
                          options, runner) -> list[Outcome]:
-    """The scans of a per-scan stage as Dask tasks (:mod:`workbench.scale`); the manifest is written here only."""
+    """The scans of a per-scan stage as Dask tasks (:mod:`workbench.scale`); the manifest is written here only.
+
+    Each scan's old entry is forgotten before its task is sent (a task swaps its folder itself), so a run
+    that fails or is interrupted reruns every scan it had sent, finished ones excepted: they are recorded as
+    they arrive.  A scan another process ran meanwhile keeps that process's record.
+    """
     n = len(units)
     outcomes: dict = {}
     jobs = []
@@ -586,6 +591,17 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
         def recorded(k, done):
             i, unit, (digest, inputs) = jobs[k]
             with _unit_lock(study.root, stage.name, unit):
+                study.reload()
+                final = study.root / stage.folder / unit
+                files = [final / name for name in done["names"]]
+                if not all(p.is_file() for p in files) or _dir_digest(files, final) != done["outputs_digest"]:
+                    # another process ran this scan between our task's swap and now (the lock is not held
+                    # across the task): the folder is its run's, and so is the manifest entry it recorded
+                    entry = study.stage_entry(stage.name, unit) or {}
+                    emit(Event(stage.name, unit, i + 1, n, f"{stage.name} {unit}: done by another process "
+                                                           "meanwhile; its result kept", "done"))
+                    outcomes[i] = Outcome(stage.name, unit, "skipped", 0.0, entry)
+                    return
                 outcomes[i] = _record_unit(study, stage, settings_json, unit, i, n, digest, inputs,
                                            need_digests[unit], done, emit)
 
