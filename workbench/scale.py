@@ -39,7 +39,7 @@ from collections.abc import Callable
 
 from workbench.errors import WorkbenchError
 
-__all__ = ["Runner", "open_runner", "SchedulerError", "same_bits"]
+__all__ = ["Runner", "open_runner", "SchedulerError", "same_bits", "task_reporter"]
 
 log = logging.getLogger("workbench")
 
@@ -111,6 +111,28 @@ class Runner:
     def distributed(self) -> bool:
         return self.client is not None
 
+    @contextlib.contextmanager
+    def forwarding(self, emit: Callable):
+        """A topic name for tasks' progress (:func:`task_reporter`); each message they send reaches ``emit``
+        here (on the client's thread, as it arrives).  None without a cluster."""
+        if self.client is None:
+            yield None
+            return
+        topic = f"workbench-progress-{uuid.uuid4().hex[:8]}"
+
+        def handler(event):
+            _, message = event
+            try:
+                emit(message)
+            except Exception:  # a progress line must never break the run
+                log.debug("progress message not shown: %r", message, exc_info=True)
+
+        self.client.subscribe_topic(topic, handler)
+        try:
+            yield topic
+        finally:
+            self.client.unsubscribe_topic(topic)
+
     def map(self, fn: Callable, items, *, shared=None, name: str = "task",
             on_result: Callable | None = None) -> list:
         """``[fn(item)]`` (``fn(shared, item)`` when ``shared`` is given), in the items' order.
@@ -149,6 +171,33 @@ class Runner:
             client.cancel(futures)
             raise
         return [results[i] for i in range(len(items))]
+
+
+def task_reporter(topic: str | None, *, every_s: float = 2.0) -> Callable:
+    """Inside a task: ``send(message)`` to the coordinator's :meth:`Runner.forwarding` topic (progress
+    messages at most one every ``every_s`` seconds; ``message`` a dict with ``"kind"``).  A no-op outside a
+    Dask worker or without a topic."""
+    if topic is None:
+        return lambda message: None
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        return lambda message: None
+    import time
+
+    last = [-float("inf")]
+
+    def send(message: dict) -> None:
+        now = time.monotonic()
+        if message.get("kind") == "progress":
+            if now - last[0] < every_s:
+                return
+            last[0] = now
+        worker.log_event(topic, message)
+
+    return send
 
 
 def _threads_per_worker(workers: int) -> int:

@@ -552,12 +552,20 @@ def _unit_task(job: tuple) -> dict:
     from workbench.stages import STAGES
     from workbench.study import read_study
 
-    root, name, settings_json, unit, options = job
+    from workbench.scale import task_reporter
+
+    root, name, settings_json, unit, options, topic = job
     stage = STAGES[name]
     study = read_study(root)
     settings = stage.settings_type(**_settings_from_json(stage.settings_type, settings_json))
+    send = task_reporter(topic)  # the stage's progress, back to the coordinator's progress bars
+
+    def emit(event: Event) -> None:
+        if event.kind in ("progress", "message"):
+            send(dataclasses.asdict(event))
+
     with _unit_lock(study.root, name, unit):
-        return _run_unit(study, stage, settings, unit, lambda e: None, options)
+        return _run_unit(study, stage, settings, unit, emit, options)
 
 
 def _execute_distributed(study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit,
@@ -605,8 +613,14 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
                 outcomes[i] = _record_unit(study, stage, settings_json, unit, i, n, digest, inputs,
                                            need_digests[unit], done, emit)
 
-        runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}))
-                                for _, unit, _ in jobs], name=f"{stage.name}", on_result=recorded)
+        fields = {f.name for f in dataclasses.fields(Event)}  # Dask adds the sender ('worker') to each message
+
+        def forwarded(message: dict) -> None:
+            emit(Event(**{k: v for k, v in message.items() if k in fields}))
+
+        with runner.forwarding(forwarded) as topic:
+            runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}),
+                                     topic) for _, unit, _ in jobs], name=f"{stage.name}", on_result=recorded)
     return [outcomes[i] for i in range(n)]
 
 
