@@ -26,6 +26,11 @@ it reads, and a ``run`` that wires library functions and *returns* its outputs
    timings, versions), recorded through :meth:`workbench.study.Study.record`
    (locked, re-read, renamed).  Per-scan stages commit each scan as it
    finishes, so an interrupted run resumes from the first unfinished scan.
+5. **scale-out** — with a Dask cluster (:mod:`workbench.scale`), a per-scan
+   stage's scans run as tasks that do steps 3 for their scan (their own
+   folder, swapped in by the worker), and this process alone does step 4 as
+   each arrives; stages run inside :func:`workbench.scale.same_bits`, so the
+   files are the same bits on any machine and for any number of workers.
 
 Progress: stages report :class:`Event` records ``(stage, scan, done, total,
 message)`` to one callback; the CLI turns them into progress bars or plain
