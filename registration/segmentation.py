@@ -198,6 +198,7 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
     g = image.geometry
     grown = {}
     used = dict(idx)  # the seeds each bone grew from (those left out are not its seeds below)
+    depth = None
     for b in skeleton.bones:
         ijk = idx[b.name]
         values = data[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
@@ -235,8 +236,10 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
             joined = [grp for grp in groups if any((x[3] & y[3]).any() for y in grp)]
             merged = [x] + [y for grp in joined for y in grp]
             groups = [grp for grp in groups if not any(grp is j for j in joined)] + [merged]
-        depth = ndimage.distance_transform_edt(~air, sampling=spacing)
-        kept = max(groups, key=lambda grp: (len(grp), max(depth[x[0][2], x[0][1], x[0][0]] for x in grp)))
+        if len(groups) > 1 and depth is None:  # distance from the air, for the tie-break (once)
+            depth = ndimage.distance_transform_edt(~air, sampling=spacing)
+        kept = groups[0] if len(groups) == 1 else \
+            max(groups, key=lambda grp: (len(grp), max(depth[x[0][2], x[0][1], x[0][0]] for x in grp)))
         for x in regions:
             if not any(x is k for k in kept):
                 rep.warnings.append(f"bone {b.name!r}: the seed at {x[1]} mm lies in a region apart from the "
