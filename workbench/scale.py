@@ -234,8 +234,10 @@ def open_runner(workers: int | None = None, scheduler: str | None = None):
             # one thread per task and the cores shared out between the workers' numba / BLAS threads
             env = {k: str(threads) for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS",
                                              "MKL_NUM_THREADS")}
+            # memory_limit 0: no per-worker cap (Dask's default, the machine's memory / N, would pause or kill
+            # a worker whose paper-size study outgrows its share while the others need little)
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.ERROR, env=env)
+                                   silence_logs=logging.ERROR, env=env, memory_limit=0)
             client = Client(cluster)
             desc = f"a local Dask cluster of {workers} worker processes ({threads} thread(s) each)"
         try:
