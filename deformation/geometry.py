@@ -173,6 +173,15 @@ class GridGeometry:
             f"Remedy: {remedy}."
         )
 
+    def every(self, factor: int) -> "GridGeometry":
+        """The grid of every ``factor``-th voxel along each axis: voxel ``I`` of it is voxel ``factor·I`` of
+        this one (same origin and direction, spacing × factor)."""
+        f = int(factor)
+        if f < 1:
+            raise ValueError(f"factor must be a positive integer, got {factor!r}")
+        return GridGeometry(tuple((n - 1) // f + 1 for n in self.size), tuple(s * f for s in self.spacing),
+                            self.origin, self.direction)
+
     def describe(self) -> str:
         d = np.round(self.direction_matrix, 6).tolist()
         return (

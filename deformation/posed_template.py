@@ -64,22 +64,59 @@ class TemplatePoser:
         self.fill = float(np.median(air)) if air.size else float(np.min(template.data))  # the template's air
         self._say = progress or (lambda line: None)
 
-    def forward(self, pose) -> np.ndarray:
-        """Template voxels' posed world positions ``(nz, ny, nx, 3)`` (EVD or VBD)."""
-        if self.method == "evd":
-            return self.model.forward(pose, weighting=self.weighting)
-        return vbd_forward(self.template.geometry, self.weights, stack_transforms(pose.transforms, self.weights.bones))
-
-    def pose(self, pose, *, labels: bool = True, target=None) -> PosedTemplate:
-        """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry)."""
+    def forward(self, pose, factor: int = 1) -> np.ndarray:
+        """Posed world positions ``(nz, ny, nx, 3)`` (EVD or VBD) of the template voxels — of every
+        ``factor``-th one along each axis (:meth:`GridGeometry.every`) when ``factor`` > 1."""
         g = self.template.geometry
+        weights, model = self.weights, self.model
+        if factor > 1:
+            from .skinning import SkinningWeights
+
+            flat = self._every_flat(factor)
+            weights = SkinningWeights(weights.bones, weights.index[flat], weights.value[flat])
+            g = g.every(factor)
+            if model is not None:
+                model = type(model)(g, weights, model.space, model.displacements[flat],
+                                    template_example=model.template_example)
+        if self.method == "evd":
+            return model.forward(pose, weighting=self.weighting)
+        return vbd_forward(g, weights, stack_transforms(pose.transforms, weights.bones))
+
+    def _every_flat(self, factor: int) -> np.ndarray:
+        nz, ny, nx = self.template.geometry.array_shape
+        k, j, i = np.meshgrid(np.arange(0, nz, factor), np.arange(0, ny, factor), np.arange(0, nx, factor),
+                              indexing="ij")
+        return ((k * ny + j) * nx + i).ravel()
+
+    def pose(self, pose, *, labels: bool = True, target=None, map_factor: int = 1) -> PosedTemplate:
+        """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry).
+
+        ``map_factor`` f > 1: the forward and backward maps are solved on every f-th voxel of the grids
+        (f³ fewer voxels) and the backward map blended up to the full grid
+        (:func:`deformation.resample.upsample_backward_map`); the template is still pulled at full
+        resolution.
+        """
+        f = int(map_factor)
+        if f < 1:
+            raise ValueError(f"map_factor must be a positive integer, got {map_factor!r}")
+        g = self.template.geometry
+        tgt = g if target is None else target
         t = stack_transforms(pose.transforms, self.weights.bones)
         t0 = time.perf_counter()
-        self._say(f"forward map ({self.method.upper()}) of {g.n_voxels:,} template voxels ...")
-        fwd = self.forward(pose)
+        self._say(f"forward map ({self.method.upper()}) of {g.n_voxels // f**3 if f > 1 else g.n_voxels:,} "
+                  f"template voxels{f' (every {f}th along each axis)' if f > 1 else ''} ...")
+        fwd = self.forward(pose, f)
         t1 = time.perf_counter()
         self._say("backward map and resampling ...")
-        bm = backward_map(fwd, g, target, transforms=t, prefer=self.body.data.astype(bool))
+        prefer = self.body.data.astype(bool)
+        if f > 1:
+            from .resample import upsample_backward_map
+
+            coarse = backward_map(fwd, g.every(f), tgt.every(f), transforms=t, prefer=prefer[::f, ::f, ::f])
+            del fwd
+            bm = upsample_backward_map(coarse, f, g, tgt)
+        else:
+            bm = backward_map(fwd, g, target, transforms=t, prefer=prefer)
         vol = resample_forward(bm, self.template, fill=self.fill)
         lab = (resample_forward(bm, self.template_labels, labels=True)
                if labels and self.template_labels is not None else None)

@@ -587,6 +587,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "hold the whole posed body, instead of the template's grid itself")
     de.add_argument("--method", choices=["auto", "vbd", "evd"], default="auto",
                     help="'auto': EVD when the study has a model, else VBD. Default: auto")
+    de.add_argument("--map-factor", type=_positive_int, default=1, metavar="F",
+                    help="solve the forward and backward maps on every F-th voxel along each axis (F³ fewer "
+                         "voxels) and blend the map up; the template is still resampled at full resolution. On "
+                         "the paper-size hand, F=2 is about 3x faster, with a mean residual |F(x)-y| of 0.07 mm "
+                         "(up to a few mm where the map jumps between touching fingers). Default: 1 (exact)")
     de.add_argument("--weighting", choices=["psd", "wpsd"], default="psd",
                     help="EVD pose weights: 'psd' one set for all voxels (Rhee); 'wpsd' per voxel from the "
                          "skinning weights (Kurihara Eq. 16). Default: psd")
@@ -860,7 +865,7 @@ def cmd_deform(args) -> int:
 
     s = deform_study(args.study, args.pose, args.out, method=args.method, weighting=args.weighting,
                      labels_out=args.labels_out, field_out=args.field_out, grow=args.grow, overwrite=args.force,
-                     progress=_say(args))
+                     map_factor=args.map_factor, progress=_say(args))
     n = s["n_voxels"]
     print(f"{s['method'].upper()}: forward {s['forward_seconds']:.2f} s, backward map + resampling "
           f"{s['backward_seconds']:.2f} s for {n:,} voxels")

@@ -81,7 +81,8 @@ def say_if_compiling(say) -> None:
 
 
 def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str = "psd", labels_out=None,
-                 field_out=None, grow: bool = False, overwrite: bool = False, progress=None) -> dict:
+                 field_out=None, grow: bool = False, overwrite: bool = False, map_factor: int = 1,
+                 progress=None) -> dict:
     """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Eq. 6) and write the posed volume and labels.
 
     The posed volume lies on the template's grid (same geometry), or with
@@ -127,7 +128,7 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
         g = poser.template.geometry
         target = covering_grid(g, points_bounds(poser.forward(pose)[poser.body.data > 0], 2.0 * max(g.spacing)))
         say(f"posed volume on the grid grown to hold the posed body: {target.describe()}")
-    posed = poser.pose(pose, target=target)
+    posed = poser.pose(pose, target=target, map_factor=map_factor)
     bm = posed.backward
     write_volume(posed.volume, out, overwrite=overwrite)
     write_labels(posed.labels, labels_out, overwrite=overwrite)

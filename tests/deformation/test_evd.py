@@ -234,3 +234,76 @@ def test_solver_arguments_are_checked(knee):
     fwd = ph.geometry.world_coordinates().astype(np.float32)
     with pytest.raises(ValueError, match="n_restarts"):
         backward_map(fwd, ph.geometry, n_restarts=0)
+
+
+def test_every_factor_grid_holds_every_fth_voxel(knee):
+    g = knee[0].geometry
+    c = g.every(3)
+    assert c.size == tuple((n - 1) // 3 + 1 for n in g.size)
+    ijk = np.array([[2, 1, 3], [0, 0, 0], [c.size[0] - 1, c.size[1] - 1, c.size[2] - 1]], float)
+    np.testing.assert_allclose(c.index_to_world(ijk), g.index_to_world(3 * ijk), atol=1e-9)
+    with pytest.raises(ValueError, match="positive integer"):
+        g.every(0)
+
+
+def test_a_coarse_backward_map_blended_up_is_exact_for_an_affine_map(knee):
+    """An affine forward map (a rotation, a shear, a shift) has an affine inverse, which the trilinear blend of
+    the coarse solves reproduces: the upsampled map equals the full solve to their tolerances."""
+    from deformation.resample import upsample_backward_map
+
+    g = knee[0].geometry
+    rot = Rotation.from_euler("xyz", [6.0, -4.0, 9.0], degrees=True).as_matrix()
+    a = rot @ np.array([[1.05, 0.04, 0.0], [0.0, 0.97, 0.03], [0.02, 0.0, 1.0]])
+    c = np.mean(g.index_to_world(np.array([[0, 0, 0], np.asarray(g.size) - 1.0])), axis=0)
+    x = g.world_coordinates()
+    fwd = ((x - c) @ a.T + c + np.array([1.5, -2.0, 0.7])).astype(np.float32)
+    full = backward_map(fwd, g)
+    for f in (2, 3):
+        coarse = backward_map(fwd[::f, ::f, ::f], g.every(f), g.every(f))
+        up = upsample_backward_map(coarse, f, g)
+        both = (full.status <= FOLDED) & (up.status <= FOLDED)
+        assert both.mean() > 0.75  # the shift and turn push a rim of the grid outside the template
+        # where all 8 coarse neighbours were solved, each solve to 1e-2 of its own smallest voxel side (f fine
+        # voxels at the coarse level) in mm: ≤ (1 + f)·1e-2 fine voxels, times the inverse's stretch (≤ 1.05)
+        # and float32 rounding: a 1.25 margin
+        ok_c = coarse.status <= FOLDED
+        lo = [np.minimum(np.arange(n) // f, max(m - 2, 0)) for n, m in zip(g.array_shape, ok_c.shape)]
+        inner = both.copy()  # the voxels whose 8 coarse neighbours were all solved
+        for dk in (0, 1):
+            for dj in (0, 1):
+                for di in (0, 1):
+                    inner &= ok_c[np.ix_(lo[0] + dk, lo[1] + dj, lo[2] + di)]
+        assert inner.sum() > 0.5 * both.sum()
+        d = np.abs(up.template_index - full.template_index)
+        assert d[inner].max() < 1.25 * (1 + f) * 1e-2, (f, d[inner].max())
+        # on the rim a voxel takes its nearest coarse voxel's preimage: half a coarse voxel away, through a map
+        # stretching ≤ 1.1 and turned (a component gets up to √3 of it): < f fine voxels
+        assert d[both].max() < f, (f, d[both].max())
+    with pytest.raises(ValueError, match="every 2th voxel"):
+        upsample_backward_map(backward_map(fwd[::3, ::3, ::3], g.every(3), g.every(3)), 2, g)
+
+
+def test_posing_with_a_coarse_map_matches_the_full_one_for_a_rigid_pose(knee):
+    """TemplatePoser(map_factor=2): the maps solved on every other voxel, the template pulled at full
+    resolution; every bone moved by one rigid transform, the posed volume is the full map's."""
+    from deformation.geometry import Volume
+    from deformation.posed_template import TemplatePoser
+
+    ph, w = knee
+    tmpl, lab = ph.template()
+    body = Volume((lab.data > 0).astype(np.uint8) | 1, tmpl.geometry)
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_euler("z", 7.0, degrees=True).as_matrix()
+    t[:3, 3] = [2.0, -1.0, 0.5]
+    pose = type(ph.pose_of(ph.poses[0][1]))({b: t for b in ph.skeleton.bone_names})
+    poser = TemplatePoser(tmpl, w, body, labels=lab)
+    one, two = poser.pose(pose), poser.pose(pose, map_factor=2)
+    both = (one.backward.status <= FOLDED) & (two.backward.status <= FOLDED)
+    assert both.mean() > 0.8
+    # positions within 0.03 voxel of each other (the two solves' tolerances): intensities within 0.03 voxel
+    # times the steepest step of this noise-free CT, well under 3 % of its range
+    d = np.abs(two.volume.data - one.volume.data)[both]
+    assert np.percentile(d, 99) < 0.03 * np.ptp(tmpl.data), np.percentile(d, 99)
+    assert (two.labels.data == one.labels.data)[both].mean() > 0.999
+    with pytest.raises(ValueError, match="positive integer"):
+        poser.pose(pose, map_factor=0)

@@ -122,6 +122,17 @@ def test_deform_with_joint_angles_and_vbd(study, tmp_path):
     assert v.data.min() >= t.data.min() - 1e-3 and v.data.max() <= t.data.max() + 1e-3
     # refuses to overwrite without --force
     assert main(["deform", str(study), "--pose", str(pose), "--out", str(out), "--quiet"]) == 1
+    # --map-factor 2: the maps on every other voxel, the template pulled at full resolution, on the same grid;
+    # the test knee's 5 mm grid gives a 10 mm map, so only the grid and the bulk agreement are checked here (the
+    # accuracy is measured in tests/deformation/test_evd.py and benchmarks/deformation.py)
+    coarse = tmp_path / "bend2.mha"
+    assert main(["deform", str(study), "--pose", str(pose), "--out", str(coarse), "--method", "vbd",
+                 "--map-factor", "2", "--quiet"]) == 0
+    c = read_volume(coarse)
+    assert c.geometry.is_close(v.geometry)
+    assert np.median(np.abs(c.data - v.data)) < 0.05 * np.ptp(t.data)
+    with pytest.raises(SystemExit):
+        main(["deform", str(study), "--pose", str(pose), "--out", str(tmp_path / "z.mha"), "--map-factor", "0"])
 
 
 def test_deform_reports_bad_input(study, tmp_path, capsys):
