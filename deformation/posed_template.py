@@ -70,23 +70,30 @@ class TemplatePoser:
         g = self.template.geometry
         weights, model = self.weights, self.model
         if factor > 1:
-            from .skinning import SkinningWeights
-
-            flat = self._every_flat(factor)
-            weights = SkinningWeights(weights.bones, weights.index[flat], weights.value[flat])
-            g = g.every(factor)
-            if model is not None:
-                model = type(model)(g, weights, model.space, model.displacements[flat],
-                                    template_example=model.template_example)
+            g, weights, model = self._coarse(factor)
         if self.method == "evd":
             return model.forward(pose, weighting=self.weighting)
         return vbd_forward(g, weights, stack_transforms(pose.transforms, weights.bones))
 
-    def _every_flat(self, factor: int) -> np.ndarray:
-        nz, ny, nx = self.template.geometry.array_shape
-        k, j, i = np.meshgrid(np.arange(0, nz, factor), np.arange(0, ny, factor), np.arange(0, nx, factor),
-                              indexing="ij")
-        return ((k * ny + j) * nx + i).ravel()
+    def _coarse(self, factor: int):
+        """(grid, weights, model) on every ``factor``-th template voxel, made once per factor (an animation
+        poses many frames; the model's subset is 1/factor³ of its displacements)."""
+        cache = self.__dict__.setdefault("_coarse_cache", {})
+        if factor not in cache:
+            from .skinning import SkinningWeights
+
+            nz, ny, nx = self.template.geometry.array_shape
+            k, j, i = np.meshgrid(np.arange(0, nz, factor), np.arange(0, ny, factor), np.arange(0, nx, factor),
+                                  indexing="ij")
+            flat = ((k * ny + j) * nx + i).ravel()
+            g = self.template.geometry.every(factor)
+            w = SkinningWeights(self.weights.bones, self.weights.index[flat], self.weights.value[flat])
+            model = None
+            if self.model is not None:
+                model = type(self.model)(g, w, self.model.space, self.model.displacements[flat],
+                                         template_example=self.model.template_example)
+            cache[factor] = (g, w, model)
+        return cache[factor]
 
     def pose(self, pose, *, labels: bool = True, target=None, map_factor: int = 1) -> PosedTemplate:
         """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry).

@@ -708,50 +708,68 @@ MAX_SPREAD = 2.5
 
 
 @nb.njit(cache=True, parallel=True)
-def _upsample_kernel(cx, cres, cst, f, out_x, out_res, out_st):
-    """Fine target voxel (i, j, k) ↔ coarse (i/f, j/f, k/f): template index = f × the trilinear blend of the
-    coarse template indices where the 8 coarse neighbours all converged and lie together (:data:`MAX_SPREAD`),
-    else the nearest coarse voxel's.  Fine voxels past the last coarse one (a size not 1 + a multiple of f)
-    extrapolate linearly from the last two."""
+def _blendable_cells(cx, cst, ok):
+    """``ok[c]`` for each coarse cell (lower corner ``c``): its 8 corners all converged (ok or folded) and their
+    preimages lie within :data:`MAX_SPREAD` coarse voxels of each other along every axis — else the inverse
+    jumps inside it (curled fingers meeting, a fold's two sheets) and a blend would land between the sheets."""
     tz, ty, tx = cst.shape
-    nz, ny, nx = out_st.shape
-    for k in nb.prange(nz):
-        zc = k / f
-        k0 = min(int(zc), max(tz - 2, 0))
-        wz = max(zc - k0, 0.0) if tz > 1 else 0.0
-        k1 = min(k0 + 1, tz - 1)
-        kn = min(int(zc + 0.5), tz - 1)
-        for j in range(ny):
-            yc = j / f
-            j0 = min(int(yc), max(ty - 2, 0))
-            wy = max(yc - j0, 0.0) if ty > 1 else 0.0
-            j1 = min(j0 + 1, ty - 1)
-            jn = min(int(yc + 0.5), ty - 1)
-            for i in range(nx):
-                xc = i / f
-                i0 = min(int(xc), max(tx - 2, 0))
-                wx = max(xc - i0, 0.0) if tx > 1 else 0.0
-                i1 = min(i0 + 1, tx - 1)
-                inn = min(int(xc + 0.5), tx - 1)
-                good = (cst[k0, j0, i0] <= 1 and cst[k0, j0, i1] <= 1 and cst[k0, j1, i0] <= 1
-                        and cst[k0, j1, i1] <= 1 and cst[k1, j0, i0] <= 1 and cst[k1, j0, i1] <= 1
-                        and cst[k1, j1, i0] <= 1 and cst[k1, j1, i1] <= 1)
+    cz, cy, cx_ = ok.shape
+    for kp in nb.prange(cz):
+        kc = np.int64(kp)  # one integer type in the corner tuples below
+        k1 = min(kc + 1, tz - 1)
+        for jc in range(cy):
+            j1 = min(jc + 1, ty - 1)
+            for ic in range(cx_):
+                i1 = min(ic + 1, tx - 1)
+                good = True
+                for kk in (kc, k1):
+                    for jj in (jc, j1):
+                        for ii in (ic, i1):
+                            if cst[kk, jj, ii] > 1:
+                                good = False
                 if good:
-                    # a jump between the neighbours' preimages (curled fingers meeting, a fold's two sheets):
-                    # the inverse is not continuous there and a blend lands between them; the nearest instead
                     for c in range(3):
-                        lo = cx[k0, j0, i0, c]
+                        lo = cx[kc, jc, ic, c]
                         hi = lo
-                        for kk in (k0, k1):
-                            for jj in (j0, j1):
-                                for ii in (i0, i1):
+                        for kk in (kc, k1):
+                            for jj in (jc, j1):
+                                for ii in (ic, i1):
                                     v = cx[kk, jj, ii, c]
                                     lo = min(lo, v)
                                     hi = max(hi, v)
                         if hi - lo > MAX_SPREAD:
                             good = False
-                if good:
-                    r = 0.0
+                ok[kc, jc, ic] = good
+
+
+@nb.njit(cache=True, parallel=True)
+def _upsample_kernel(cx, cres, cst, ok, f, out_x, out_res, out_st):
+    """Fine target voxel (i, j, k) ↔ coarse (i/f, j/f, k/f): template index = f × the trilinear blend of the
+    coarse template indices in a blendable cell (:func:`_blendable_cells`), else the nearest coarse voxel's.
+    Fine voxels past the last coarse one (a size not 1 + a multiple of f) extrapolate linearly from the last
+    cell."""
+    tz, ty, tx = cst.shape
+    cz, cy, cx_ = ok.shape
+    nz, ny, nx = out_st.shape
+    for k in nb.prange(nz):
+        zc = k / f
+        k0 = min(int(zc), cz - 1)
+        wz = zc - k0 if tz > 1 else 0.0
+        k1 = min(k0 + 1, tz - 1)
+        kn = min(int(zc + 0.5), tz - 1)
+        for j in range(ny):
+            yc = j / f
+            j0 = min(int(yc), cy - 1)
+            wy = yc - j0 if ty > 1 else 0.0
+            j1 = min(j0 + 1, ty - 1)
+            jn = min(int(yc + 0.5), ty - 1)
+            for i in range(nx):
+                xc = i / f
+                i0 = min(int(xc), cx_ - 1)
+                wx = xc - i0 if tx > 1 else 0.0
+                i1 = min(i0 + 1, tx - 1)
+                inn = min(int(xc + 0.5), tx - 1)
+                if ok[k0, j0, i0]:
                     for c in range(3):
                         a00 = cx[k0, j0, i0, c] + (cx[k0, j0, i1, c] - cx[k0, j0, i0, c]) * wx
                         a10 = cx[k0, j1, i0, c] + (cx[k0, j1, i1, c] - cx[k0, j1, i0, c]) * wx
@@ -760,17 +778,17 @@ def _upsample_kernel(cx, cres, cst, f, out_x, out_res, out_st):
                         b0 = a00 + (a10 - a00) * wy
                         b1 = a01 + (a11 - a01) * wy
                         out_x[k, j, i, c] = f * (b0 + (b1 - b0) * wz)
+                    r = 0.0
                     for kk in (k0, k1):
                         for jj in (j0, j1):
                             for ii in (i0, i1):
                                 r = max(r, cres[kk, jj, ii])
                     out_res[k, j, i] = r
-                    out_st[k, j, i] = cst[kn, jn, inn]
                 else:
                     for c in range(3):
                         out_x[k, j, i, c] = f * cx[kn, jn, inn, c]
                     out_res[k, j, i] = cres[kn, jn, inn]
-                    out_st[k, j, i] = cst[kn, jn, inn]
+                out_st[k, j, i] = cst[kn, jn, inn]
 
 
 def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: GridGeometry,
@@ -796,9 +814,11 @@ def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: G
     out_x = np.empty(shape + (3,), dtype=np.float32)
     out_res = np.empty(shape, dtype=np.float32)
     out_st = np.empty(shape, dtype=np.uint8)
-    _upsample_kernel(np.ascontiguousarray(coarse.template_index, dtype=np.float32),
-                     np.ascontiguousarray(coarse.residual_mm, dtype=np.float32), coarse.status, f, out_x, out_res,
-                     out_st)
+    cx = np.ascontiguousarray(coarse.template_index, dtype=np.float32)
+    ok = np.empty(tuple(max(n - 1, 1) for n in coarse.status.shape), dtype=np.bool_)
+    _blendable_cells(cx, coarse.status, ok)
+    _upsample_kernel(cx, np.ascontiguousarray(coarse.residual_mm, dtype=np.float32), coarse.status, ok, f, out_x,
+                     out_res, out_st)
     return BackwardMap(template_geometry, target, out_x, out_res, out_st)
 
 
