@@ -644,6 +644,9 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--method", choices=["auto", "vbd", "evd"], default="auto",
                     help="'auto': EVD when the study has a model, else VBD. Default: auto")
     an.add_argument("--weighting", choices=["psd", "wpsd"], default="psd", help="EVD pose weights. Default: psd")
+    an.add_argument("--map-factor", type=_positive_int, default=1, metavar="F",
+                    help="each frame's maps solved on every F-th voxel and blended up (as `workbench deform "
+                         "--map-factor`): F=2 is about 3x faster per frame. Default: 1 (exact)")
     an.add_argument("--fps", type=float, metavar="FPS", help="frames per second (default: the file's, else 24)")
     an.add_argument("--frames", type=_positive_int, metavar="N",
                     help="number of frames (default: duration × fps + 1)")
@@ -1274,7 +1277,7 @@ def cmd_animate(args) -> int:
     s = animate_study(args.study, args.out, keyframes=kf, method=args.method, weighting=args.weighting,
                       fps=args.fps, size=size, n_frames=args.frames, transfer=args.preset, camera=cam,
                       orbit=args.orbit, clip=clip, bones=args.bones, background=bg, mapper=args.mapper,
-                      skin=args.skin, overwrite=args.force, progress=_say(args))
+                      skin=args.skin, overwrite=args.force, map_factor=args.map_factor, progress=_say(args))
     n = s["frames"]
     print(f"{n} frames {s['size'][0]}x{s['size'][1]} at {s['fps']:g} fps ({s['method'].upper()}, {s['mapper']} "
           f"mapper): deformation {s['deform_seconds']:.1f} s ({s['deform_seconds_per_frame']:.3f} s/frame), "

@@ -349,7 +349,7 @@ def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
 def animate_study(folder, out, *, keyframes=None, method: str = "auto", weighting: str = "psd", fps=None,
                   size=(640, 480), n_frames: int | None = None, transfer="mri", camera=None, orbit=None,
                   clip=None, bones: bool = False, background=(0.0, 0.0, 0.0), mapper: str = "auto",
-                  skin: str | None = None, overwrite: bool = False, progress=None) -> dict:
+                  skin: str | None = None, overwrite: bool = False, map_factor: int = 1, progress=None) -> dict:
     """Render the study's template moving through ``keyframes`` and write ``out`` (.mp4, .gif or .png frames).
 
     ``skin`` ("ssd", "psd" or "wpsd"): instead of the volume, Kurihara's surface model (``workbench
@@ -441,7 +441,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
                 if skin is not None:
                     mesh = deform(sk.pose(kf.at(t)))
                 else:
-                    posed = poser.pose(sk.pose(kf.at(t)), labels=bones, target=g)
+                    posed = poser.pose(sk.pose(kf.at(t)), labels=bones, target=g, map_factor=map_factor)
                 t1 = time.perf_counter()
                 if orbit:
                     renderer.set_camera(replace(camera, azimuth=base_az + orbit * i / (n - 1)))
