@@ -79,7 +79,8 @@ class TemplatePoser:
         """(grid, weights, model) on every ``factor``-th template voxel, made once per factor (an animation
         poses many frames; the model's subset is 1/factor³ of its displacements)."""
         cache = self.__dict__.setdefault("_coarse_cache", {})
-        if factor not in cache:
+        key = (factor, id(self.weights), id(self.model))  # new weights or model: a new subset
+        if key not in cache:
             from .skinning import SkinningWeights
 
             nz, ny, nx = self.template.geometry.array_shape
@@ -92,8 +93,8 @@ class TemplatePoser:
             if self.model is not None:
                 model = type(self.model)(g, w, self.model.space, self.model.displacements[flat],
                                          template_example=self.model.template_example)
-            cache[factor] = (g, w, model)
-        return cache[factor]
+            cache[key] = (g, w, model)
+        return cache[key]
 
     def pose(self, pose, *, labels: bool = True, target=None, map_factor: int = 1) -> PosedTemplate:
         """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry).
@@ -108,9 +109,12 @@ class TemplatePoser:
             raise ValueError(f"map_factor must be a positive integer, got {map_factor!r}")
         g = self.template.geometry
         tgt = g if target is None else target
+        if f > 1 and min(min(g.every(f).size), min(tgt.every(f).size)) < 2:
+            raise ValueError(f"map_factor {f} (--map-factor) leaves fewer than 2 voxels along an axis of the "
+                             f"template {g.size} or target {tgt.size} grid: use a smaller factor")
         t = stack_transforms(pose.transforms, self.weights.bones)
         t0 = time.perf_counter()
-        self._say(f"forward map ({self.method.upper()}) of {g.n_voxels // f**3 if f > 1 else g.n_voxels:,} "
+        self._say(f"forward map ({self.method.upper()}) of {g.every(f).n_voxels:,} "
                   f"template voxels{f' (every {f}th along each axis)' if f > 1 else ''} ...")
         fwd = self.forward(pose, f)
         t1 = time.perf_counter()

@@ -702,16 +702,18 @@ def backward_points(forward_positions, template_geometry: GridGeometry, points, 
     return template_geometry.index_to_world(x), res, status
 
 
-#: the largest spread (coarse voxels, per axis) of the 8 coarse neighbours' preimages that is blended: a smooth
-#: map's neighbours lie about one coarse voxel apart (√3 when turned); farther, the inverse jumps there
+#: the largest spread of the 8 coarse neighbours' preimages (per template axis, in the coarse target's largest
+#: voxel sides) that is blended: a smooth map's neighbours lie about one voxel apart (√3 when turned); farther,
+#: the inverse jumps there
 MAX_SPREAD = 2.5
 
 
 @nb.njit(cache=True, parallel=True)
-def _blendable_cells(cx, cst, ok):
+def _blendable_cells(cx, cst, sp, limit_mm, ok):
     """``ok[c]`` for each coarse cell (lower corner ``c``): its 8 corners all converged (ok or folded) and their
-    preimages lie within :data:`MAX_SPREAD` coarse voxels of each other along every axis — else the inverse
-    jumps inside it (curled fingers meeting, a fold's two sheets) and a blend would land between the sheets."""
+    preimages lie within ``limit_mm`` of each other along every template axis (``sp``: the coarse template's
+    spacing, so uneven spacings compare in mm) — else the inverse jumps inside it (curled fingers meeting, a
+    fold's two sheets) and a blend would land between the sheets."""
     tz, ty, tx = cst.shape
     cz, cy, cx_ = ok.shape
     for kp in nb.prange(cz):
@@ -737,7 +739,7 @@ def _blendable_cells(cx, cst, ok):
                                     v = cx[kk, jj, ii, c]
                                     lo = min(lo, v)
                                     hi = max(hi, v)
-                        if hi - lo > MAX_SPREAD:
+                        if (hi - lo) * sp[c] > limit_mm:
                             good = False
                 ok[kc, jc, ic] = good
 
@@ -798,10 +800,12 @@ def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: G
     ``coarse`` maps ``target.every(factor)`` to ``template.every(factor)``
     (:meth:`GridGeometry.every`); each fine target voxel gets the trilinear
     blend of its 8 coarse neighbours' template positions where all of them
-    converged (ok or folded) and lie within :data:`MAX_SPREAD` coarse voxels
-    of each other, else its nearest coarse voxel's position and status.  ``residual_mm`` is the coarse solves' (the largest of the 8): the
-    blend's own error is not measured — exact where the map is affine (a
-    bone's rigid motion), second order in the coarse spacing elsewhere.
+    converged (ok or folded) and lie within :data:`MAX_SPREAD` coarse voxel
+    sides of each other, else its nearest coarse voxel's position and status.
+    ``residual_mm`` is the coarse solves' (the largest of the 8), and so is
+    ``summary()["max_residual_mm"]``: the blend's own error is not measured —
+    exact where the map is affine (a bone's rigid motion), second order in the
+    coarse spacing elsewhere.
     Solving 1/factor³ of the voxels makes the inverse that much cheaper in
     time and memory (``workbench deform --map-factor``).
     """
@@ -816,7 +820,10 @@ def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: G
     out_st = np.empty(shape, dtype=np.uint8)
     cx = np.ascontiguousarray(coarse.template_index, dtype=np.float32)
     ok = np.empty(tuple(max(n - 1, 1) for n in coarse.status.shape), dtype=np.bool_)
-    _blendable_cells(cx, coarse.status, ok)
+    # the spread limit in mm: MAX_SPREAD of the coarse target's largest voxel side
+    limit_mm = MAX_SPREAD * float(max(coarse.target_geometry.spacing))
+    _blendable_cells(cx, coarse.status, np.asarray(coarse.template_geometry.spacing, dtype=np.float64), limit_mm,
+                     ok)
     _upsample_kernel(cx, np.ascontiguousarray(coarse.residual_mm, dtype=np.float32), coarse.status, ok, f, out_x,
                      out_res, out_st)
     return BackwardMap(template_geometry, target, out_x, out_res, out_st)

@@ -246,6 +246,18 @@ def test_every_factor_grid_holds_every_fth_voxel(knee):
         g.every(0)
 
 
+def _all_neighbours_solved(coarse, shape, f):
+    """Fine voxels whose 8 coarse neighbours (the cell the blend uses) were all solved (ok or folded)."""
+    ok_c = coarse.status <= FOLDED
+    lo = [np.minimum(np.arange(n) // f, max(m - 2, 0)) for n, m in zip(shape, ok_c.shape)]
+    out = np.ones(shape, bool)
+    for dk in (0, 1):
+        for dj in (0, 1):
+            for di in (0, 1):
+                out &= ok_c[np.ix_(lo[0] + dk, lo[1] + dj, lo[2] + di)]
+    return out
+
+
 def test_a_coarse_backward_map_blended_up_is_exact_for_an_affine_map(knee):
     """An affine forward map (a rotation, a shear, a shift) has an affine inverse, which the trilinear blend of
     the coarse solves reproduces: the upsampled map equals the full solve to their tolerances."""
@@ -266,13 +278,7 @@ def test_a_coarse_backward_map_blended_up_is_exact_for_an_affine_map(knee):
         # where all 8 coarse neighbours were solved, each solve to 1e-2 of its own smallest voxel side (f fine
         # voxels at the coarse level) in mm: ≤ (1 + f)·1e-2 fine voxels, times the inverse's stretch (≤ 1.05)
         # and float32 rounding: a 1.25 margin
-        ok_c = coarse.status <= FOLDED
-        lo = [np.minimum(np.arange(n) // f, max(m - 2, 0)) for n, m in zip(g.array_shape, ok_c.shape)]
-        inner = both.copy()  # the voxels whose 8 coarse neighbours were all solved
-        for dk in (0, 1):
-            for dj in (0, 1):
-                for di in (0, 1):
-                    inner &= ok_c[np.ix_(lo[0] + dk, lo[1] + dj, lo[2] + di)]
+        inner = both & _all_neighbours_solved(coarse, g.array_shape, f)
         assert inner.sum() > 0.5 * both.sum()
         d = np.abs(up.template_index - full.template_index)
         assert d[inner].max() < 1.25 * (1 + f) * 1e-2, (f, d[inner].max())
@@ -307,3 +313,23 @@ def test_posing_with_a_coarse_map_matches_the_full_one_for_a_rigid_pose(knee):
     assert (two.labels.data == one.labels.data)[both].mean() > 0.999
     with pytest.raises(ValueError, match="positive integer"):
         poser.pose(pose, map_factor=0)
+
+
+def test_the_coarse_blend_compares_preimages_in_mm_on_uneven_grids():
+    """A quarter turn on a grid of 1 × 1 × 3 mm voxels: the neighbours' preimages spread by one coarse voxel
+    side in mm along every axis, so every interior cell blends (the spread in index units along z, a third of
+    x's, once made the blend fall back to the nearest coarse voxel: 3 voxels off)."""
+    from deformation.geometry import GridGeometry
+    from deformation.resample import upsample_backward_map
+
+    g = GridGeometry((13, 13, 13), (1.0, 1.0, 3.0))
+    c = np.mean(g.index_to_world(np.array([[0.0, 0.0, 0.0], [12.0, 12.0, 12.0]])), axis=0)
+    a = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    fwd = ((g.world_coordinates() - c) @ a.T + c).astype(np.float32)
+    full = backward_map(fwd, g)
+    coarse = backward_map(fwd[::2, ::2, ::2], g.every(2), g.every(2))
+    up = upsample_backward_map(coarse, 2, g)
+    both = (full.status <= FOLDED) & (up.status <= FOLDED) & _all_neighbours_solved(coarse, g.array_shape, 2)
+    assert both.sum() > 200
+    # an affine map, each solve to 1e-2 voxel: the blend within 3·1e-2 (1.25 margin as above)
+    assert np.abs(up.template_index - full.template_index)[both].max() < 1.25 * 3e-2
