@@ -340,6 +340,8 @@ def test_skin_mesh_render_and_animation(done, phantom, tmp_path, capsys):
     capsys.readouterr()
     assert main(["animate", str(phantom), "--skin", "wpsd", "--out", str(tmp_path / "none.gif")]) == 1
     assert "workbench surface" in capsys.readouterr().err and not (tmp_path / "none.gif").exists()
+    assert main(["animate", str(root), "--skin", "wpsd", "--map-factor", "2", "--out", str(tmp_path / "mf.gif")]) == 1
+    assert "--map-factor" in capsys.readouterr().err and not (tmp_path / "mf.gif").exists()
 
 
 # -- the report stage's HTML report of the same study (issue J) -------------------------------------------

@@ -380,6 +380,9 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
             raise ValueError(f"--skin must be one of {', '.join(SURFACE_METHODS)}, got {skin!r}")
         if bones:
             raise ValueError("--bones draws posed bone labels on a volume animation; leave it out with --skin")
+        if int(map_factor) != 1:
+            raise ValueError("--map-factor sets how a volume animation's maps are solved; a --skin animation poses "
+                             "a mesh: leave it out")
         model = study.surface_model()  # a clear "run `workbench surface` first" before any work
         poser = None
     else:
