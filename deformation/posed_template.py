@@ -83,10 +83,8 @@ class TemplatePoser:
         if key not in cache:
             from .skinning import SkinningWeights
 
-            nz, ny, nx = self.template.geometry.array_shape
-            k, j, i = np.meshgrid(np.arange(0, nz, factor), np.arange(0, ny, factor), np.arange(0, nx, factor),
-                                  indexing="ij")
-            flat = ((k * ny + j) * nx + i).ravel()
+            shape = self.template.geometry.array_shape  # weights and displacements are rows in array order
+            flat = np.arange(int(np.prod(shape))).reshape(shape)[::factor, ::factor, ::factor].ravel()
             g = self.template.geometry.every(factor)
             w = SkinningWeights(self.weights.bones, self.weights.index[flat], self.weights.value[flat])
             model = None

@@ -744,6 +744,17 @@ def _blendable_cells(cx, cst, sp, limit_mm, ok):
                 ok[kc, jc, ic] = good
 
 
+@nb.njit(cache=True, inline="always")
+def _coarse_axis(i, f, n, cells):
+    """Fine index ``i`` along an axis of ``n`` coarse voxels (``cells`` blending cells): the cell's lower
+    corner, the blend weight (past 1 beyond the last coarse voxel: linear extrapolation), the upper corner,
+    and the nearest coarse voxel."""
+    x = i / f
+    lo = min(int(x), cells - 1)
+    w = x - lo if n > 1 else 0.0
+    return lo, w, min(lo + 1, n - 1), min(int(x + 0.5), n - 1)
+
+
 @nb.njit(cache=True, parallel=True)
 def _upsample_kernel(cx, cres, cst, ok, f, out_x, out_res, out_st):
     """Fine target voxel (i, j, k) ↔ coarse (i/f, j/f, k/f): template index = f × the trilinear blend of the
@@ -754,23 +765,11 @@ def _upsample_kernel(cx, cres, cst, ok, f, out_x, out_res, out_st):
     cz, cy, cx_ = ok.shape
     nz, ny, nx = out_st.shape
     for k in nb.prange(nz):
-        zc = k / f
-        k0 = min(int(zc), cz - 1)
-        wz = zc - k0 if tz > 1 else 0.0
-        k1 = min(k0 + 1, tz - 1)
-        kn = min(int(zc + 0.5), tz - 1)
+        k0, wz, k1, kn = _coarse_axis(np.int64(k), f, tz, cz)
         for j in range(ny):
-            yc = j / f
-            j0 = min(int(yc), cy - 1)
-            wy = yc - j0 if ty > 1 else 0.0
-            j1 = min(j0 + 1, ty - 1)
-            jn = min(int(yc + 0.5), ty - 1)
+            j0, wy, j1, jn = _coarse_axis(j, f, ty, cy)
             for i in range(nx):
-                xc = i / f
-                i0 = min(int(xc), cx_ - 1)
-                wx = xc - i0 if tx > 1 else 0.0
-                i1 = min(i0 + 1, tx - 1)
-                inn = min(int(xc + 0.5), tx - 1)
+                i0, wx, i1, inn = _coarse_axis(i, f, tx, cx_)
                 if ok[k0, j0, i0]:
                     for c in range(3):
                         a00 = cx[k0, j0, i0, c] + (cx[k0, j0, i1, c] - cx[k0, j0, i0, c]) * wx

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from validation.protocols import PROTOCOLS, Table
 from workbench.errors import WorkbenchError
-from workbench.scale import same_bits
+from workbench.scale import check_cluster_options, same_bits
 
 __all__ = ["StudyRunner", "reproduce", "write_table", "format_markdown", "format_csv", "NAMES"]
 
@@ -195,11 +195,7 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
         raise WorkbenchError(f"unknown protocol {unknown}; choose from {list(NAMES)} or all")
     if int(workers) < 1:
         raise WorkbenchError(f"--workers must be at least 1, got {workers}")
-    if scheduler and int(workers) > 1:
-        from workbench.scale import SchedulerError
-
-        raise SchedulerError("--workers starts a cluster on this machine and --scheduler uses an existing one: "
-                             "give one of them (the existing cluster's size is set where its workers start)")
+    check_cluster_options(int(workers), scheduler)  # before any study is made
     runner = StudyRunner(out, size=size, seed=seed, with_peers=with_peers, progress=progress, say=say)
     tables = {}
 

@@ -39,7 +39,7 @@ from collections.abc import Callable
 
 from workbench.errors import WorkbenchError
 
-__all__ = ["Runner", "open_runner", "SchedulerError", "same_bits", "task_reporter"]
+__all__ = ["Runner", "open_runner", "check_cluster_options", "SchedulerError", "same_bits", "task_reporter"]
 
 log = logging.getLogger("workbench")
 
@@ -204,13 +204,18 @@ def _threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // workers)
 
 
+def check_cluster_options(workers: int | None, scheduler: str | None) -> None:
+    """One clear error for ``--workers N`` (N > 1) together with ``--scheduler``."""
+    if scheduler and workers not in (None, 1):
+        raise SchedulerError("--workers starts a cluster on this machine and --scheduler uses an existing one: give "
+                             "one of them (the existing cluster's size is set where its workers start)")
+
+
 @contextlib.contextmanager
 def open_runner(workers: int | None = None, scheduler: str | None = None):
     """A :class:`Runner`: synchronous (``workers`` None or 1), a ``LocalCluster`` of ``workers`` processes, or
     the cluster of the Dask scheduler at ``scheduler`` (e.g. ``tcp://10.0.0.5:8786``).  Closed on exit."""
-    if scheduler and workers not in (None, 1):
-        raise SchedulerError("--workers starts a cluster on this machine and --scheduler uses an existing one: give "
-                             "one of them (the existing cluster's size is set where its workers start)")
+    check_cluster_options(workers, scheduler)
     if not scheduler and (workers is None or workers <= 1):
         yield Runner()
         return

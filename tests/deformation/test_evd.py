@@ -304,6 +304,7 @@ def test_posing_with_a_coarse_map_matches_the_full_one_for_a_rigid_pose(knee):
     pose = type(ph.pose_of(ph.poses[0][1]))({b: t for b in ph.skeleton.bone_names})
     poser = TemplatePoser(tmpl, w, body, labels=lab)
     one, two = poser.pose(pose), poser.pose(pose, map_factor=2)
+    assert not np.array_equal(two.backward.template_index, one.backward.template_index)  # blended, not re-solved
     both = (one.backward.status <= FOLDED) & (two.backward.status <= FOLDED)
     assert both.mean() > 0.8
     # positions within 0.03 voxel of each other (the two solves' tolerances): intensities within 0.03 voxel

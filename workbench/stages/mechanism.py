@@ -220,11 +220,9 @@ class StageContext:
 
     def map_scans(self, fn, items, *, shared=None, on_result=None) -> list:
         """``fn`` over ``items`` here, or as Dask tasks when the run has a cluster (:mod:`workbench.scale`)."""
-        if self.runner is None:
-            from workbench.scale import Runner
+        from workbench.scale import Runner
 
-            return Runner().map(fn, items, shared=shared, on_result=on_result)
-        return self.runner.map(fn, items, shared=shared, name=self.stage_name, on_result=on_result)
+        return (self.runner or Runner()).map(fn, items, shared=shared, name=self.stage_name, on_result=on_result)
 
     def say(self, message: str) -> None:
         """A message worth every line (always shown, unlike ``report``'s rate-limited progress)."""
@@ -484,14 +482,18 @@ def _prepare_unit(study: Study, stage: Stage, settings, settings_json, unit, i: 
     return digest, inputs
 
 
+def _unit_folder(study: Study, stage: Stage, unit) -> Path:
+    """Where a unit's outputs live: the stage's folder, or its scan's subfolder."""
+    return study.root / stage.folder / unit if unit else study.root / stage.folder
+
+
 def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=None, forget=None) -> dict:
     """Run the stage on one unit and swap its outputs into place: ``{"names", "outputs_digest", "seconds"}``.
 
     ``forget()`` is called once the outputs are written and before they replace the old ones (the sync path
     forgets the old manifest entry there; a Dask task leaves the manifest to its coordinator)."""
     t0 = time.perf_counter()
-    root = study.root
-    final = root / stage.folder / unit if unit else root / stage.folder
+    final = _unit_folder(study, stage, unit)
     final.parent.mkdir(parents=True, exist_ok=True)
     previous = {p.name: p for p in final.iterdir()} if final.is_dir() else {}
 
@@ -521,8 +523,7 @@ def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=
 
 def _record_unit(study: Study, stage: Stage, settings_json, unit, i: int, n: int, digest: str, inputs: dict,
                  need_digests: dict, done: dict, emit) -> Outcome:
-    final = study.root / stage.folder / unit if unit else study.root / stage.folder
-    rel = final.relative_to(study.root)
+    rel = _unit_folder(study, stage, unit).relative_to(study.root)
     seconds = done["seconds"]
     entry = {"digest": digest, "settings": settings_json, "inputs": inputs, "needs": need_digests,
              "outputs": {name: str(rel / name) for name in done["names"]}, "outputs_digest": done["outputs_digest"],
@@ -554,10 +555,9 @@ def _execute_unit(study: Study, stage: Stage, settings, settings_json, unit, i: 
 
 def _unit_task(job: tuple) -> dict:
     """One scan of a per-scan stage, on a Dask worker: paths and JSON in, file names and digest out."""
+    from workbench.scale import task_reporter
     from workbench.stages import STAGES
     from workbench.study import read_study
-
-    from workbench.scale import task_reporter
 
     root, name, settings_json, unit, options, topic = job
     stage = STAGES[name]
@@ -570,7 +570,17 @@ def _unit_task(job: tuple) -> dict:
             send(dataclasses.asdict(event))
 
     with _unit_lock(study.root, name, unit):
-        return _run_unit(study, stage, settings, unit, emit, options)
+        done = _run_unit(study, stage, settings, unit, emit, options)
+        done["stats"] = _file_stats(_unit_folder(study, stage, unit), done["names"])
+        return done
+
+
+def _file_stats(folder: Path, names) -> dict | None:
+    """``{name: (size, mtime_ns)}`` of a unit's files (None when one is missing): which run's files they are."""
+    try:
+        return {n: ((st := (folder / n).stat()).st_size, st.st_mtime_ns) for n in names}
+    except OSError:
+        return None
 
 
 def _execute_distributed(study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit,
@@ -605,9 +615,7 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
             i, unit, (digest, inputs) = jobs[k]
             with _unit_lock(study.root, stage.name, unit):
                 study.reload()
-                final = study.root / stage.folder / unit
-                files = [final / name for name in done["names"]]
-                if not all(p.is_file() for p in files) or _dir_digest(files, final) != done["outputs_digest"]:
+                if _file_stats(_unit_folder(study, stage, unit), done["names"]) != done["stats"]:
                     # another process ran this scan between our task's swap and now (the lock is not held
                     # across the task): the folder is its run's, and so is the manifest entry it recorded
                     entry = study.stage_entry(stage.name, unit) or {}

@@ -152,10 +152,13 @@ def _run(ctx) -> dict:
     ctx.report(1, len(ids) + 1, f"S0: {base.n_triangles} triangles")
     shared = (str(study.root.resolve()), s, base, weights, template.geometry, sites, marks)
 
-    def done(k, r):
+    finished = []
+
+    def done(k, r):  # k: the scan's place in ids; on a cluster scans finish in any order
         sid, entry, meshes, confident = r
+        finished.append(sid)
         d = entry["fit_distance_mm"]
-        ctx.report(k + 2, len(ids) + 1, f"{sid}: fitted, {100 * confident:.0f} % of the vertices on a confident "
+        ctx.report(len(finished) + 1, len(ids) + 1, f"{sid}: fitted, {100 * confident:.0f} % of the vertices on a confident "
                                         f"target, mean distance {d['mean']:.2f} mm")
 
     # each scan's meshes: here, one after the other, or one Dask task per scan (workbench.scale)

@@ -216,12 +216,7 @@ class _Writer:
         import secrets
 
         self.out, self.fps, self.kind = out, fps, out.suffix.lower()
-        if self.kind not in FORMATS:
-            raise ValueError(f"{out}: the animation format is chosen by the extension: .mp4 (H.264), .gif, or "
-                             ".png (numbered frames <name>_0000.png, ...)")
-        from workbench.io.atomic import check_output_folder
-
-        check_output_folder(out, "--out")  # missing or read-only: said now, not after the frames are made
+        self.check(out, overwrite)
         self.token = secrets.token_hex(4)
         self.n = 0
         self._gif = []
@@ -229,10 +224,6 @@ class _Writer:
             self.staging = out.parent / f".{out.stem}.frames-{self.token}"
         else:
             self.staging = out.parent / f".{out.stem}.tmp-{self.token}{self.kind}"
-        if not overwrite:
-            clash = self._existing()
-            if clash:
-                raise OutputExistsError(clash[0], f"{clash[0]} exists; pass --force to replace it.")
         self.overwrite = overwrite
         self._w = None
         if self.kind == ".png":
@@ -246,10 +237,28 @@ class _Writer:
                                       pixelformat="yuv420p", quality=8, macro_block_size=1,
                                       ffmpeg_log_level="error", output_params=["-threads", "1"])
 
+    @staticmethod
+    def check(out: Path, overwrite: bool) -> None:
+        """The target's format, folder (missing or read-only) and clash, before any work."""
+        from workbench.io.atomic import check_output_folder
+
+        if out.suffix.lower() not in FORMATS:
+            raise ValueError(f"{out}: the animation format is chosen by the extension: .mp4 (H.264), .gif, or "
+                             ".png (numbered frames <name>_0000.png, ...)")
+        check_output_folder(out, "--out")
+        if not overwrite:
+            clash = _Writer._existing_files(out)
+            if clash:
+                raise OutputExistsError(clash[0], f"{clash[0]} exists; pass --force to replace it.")
+
+    @staticmethod
+    def _existing_files(out: Path) -> list:
+        if out.suffix.lower() == ".png":
+            return sorted(out.parent.glob(f"{out.stem}_[0-9][0-9][0-9][0-9].png"))
+        return [out] if out.exists() else []
+
     def _existing(self):
-        if self.kind == ".png":
-            return sorted(self.out.parent.glob(f"{self.out.stem}_[0-9][0-9][0-9][0-9].png"))
-        return [self.out] if self.out.exists() else []
+        return self._existing_files(self.out)
 
     def frame_name(self, i: int) -> str:
         return f"{self.out.stem}_{i:04d}.png"
@@ -370,9 +379,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     t_start = time.perf_counter()
     study = read_study(folder)
     out = Path(out)
-    from workbench.io.atomic import check_output_folder
-
-    check_output_folder(out, "--out")  # before the deformation model is built (the writer checks the rest)
+    _Writer.check(out, overwrite)  # format, folder, clash: before the deformation model is built
     if skin is not None:
         from deformation.surface_model import SURFACE_METHODS
 
@@ -407,7 +414,7 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     if camera is None:
         camera = camera_from(cam_doc)
     orbit = float(cam_doc.get("orbit", 0.0) if orbit is None else orbit)
-    writer = _Writer(out, fps, overwrite)  # checks the target before any work
+    writer = _Writer(out, fps, overwrite)
     try:
         if skin is not None:  # the surface model's mesh, posed frame by frame
             from workbench.viz.render import points_bounds, union_bounds
