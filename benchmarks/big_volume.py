@@ -131,6 +131,28 @@ def build_study(out: Path, size) -> tuple[Path, Path]:
     return study, out / "target_pose.json"
 
 
+def pose_accuracy(out: Path) -> str:
+    """The pose stage's bones against the phantom's truth (world mm: resampling onto the big grid keeps them),
+    per scan: mean and worst rotation (°) and centroid translation (mm) over the bones the stage kept."""
+    from validation.pose_measures import pose_errors
+    from workbench.study import read_study
+
+    small, big = read_study(out / "phantom"), read_study(out / "study")
+    labels, sk = small.template_labels(), small.skeleton()
+    centroids = {b: small.template().geometry.index_to_world(
+        np.argwhere(labels.data == sk.label_of(b))[:, ::-1].mean(0)) for b in sk.bone_names}
+    flagged = json.loads((out / "study" / "poses" / "fits.json").read_text())["scans"]
+    lines = []
+    for sid in big.scan_ids:
+        est = big.pose(sid)
+        kept = {b: t for b, t in est.transforms.items() if flagged[sid]["bones"][b]["status"] == "ok"}
+        e = pose_errors(type(est)(kept, skeleton=est.skeleton), small.truth_pose(sid), centroids)
+        lines.append(f"{sid}: {len(kept)} bones, rotation mean {e['mean_rotation_deg']:.2f}° max "
+                     f"{e['max_rotation_deg']:.2f}°, translation mean {e['mean_translation_mm']:.2f} mm max "
+                     f"{e['max_translation_mm']:.2f} mm")
+    return "; ".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("/tmp/avw-big"))
@@ -157,6 +179,8 @@ def main(argv=None) -> int:
         rc, peak, sec, tail = run_measured(commands[name], a.kill_gib)
         verdict = "within" if rc == 0 and peak <= BUDGET_GIB else "OVER" if rc == 0 or "stopped" in tail else "failed"
         print(f"| {name} | {rc} | {peak:.2f} ({verdict}) | {peak * 2**30 / n:.0f} | {sec:.0f} |", flush=True)
+        if rc == 0 and name == "pose":
+            print(f"   pose against the phantom's truth: {pose_accuracy(a.out)}", flush=True)
         if rc != 0:
             print("   " + tail.replace("\n", "\n   "), flush=True)
             if name != a.stages[-1]:

@@ -182,6 +182,23 @@ class GridGeometry:
         return GridGeometry(tuple((n - 1) // f + 1 for n in self.size), tuple(s * f for s in self.spacing),
                             self.origin, self.direction)
 
+    def factor_within(self, max_voxels: int) -> int:
+        """The smallest ``f`` whose :meth:`every` ``(f)`` grid has at most ``max_voxels`` voxels."""
+        f = 1
+        while self.every(f).n_voxels > max_voxels and min(self.every(f).size) > 1:
+            f += 1
+        return f
+
+    def crop(self, lo, hi) -> "GridGeometry":
+        """The sub-grid of voxel indices ``lo ≤ (i, j, k) < hi`` (in range, non-empty): voxel ``lo`` is its
+        origin, spacing and direction are kept, so every voxel stays where it was in world mm."""
+        lo, hi = np.asarray(lo, dtype=int), np.asarray(hi, dtype=int)
+        if np.any(lo < 0) or np.any(hi > np.asarray(self.size)) or np.any(hi <= lo):
+            raise ValueError(f"crop index range {lo.tolist()}..{hi.tolist()} is empty or outside a grid of size "
+                             f"{list(self.size)}")
+        return GridGeometry(tuple(int(v) for v in hi - lo), self.spacing, tuple(self.index_to_world(lo.astype(float))),
+                            self.direction)
+
     def describe(self) -> str:
         d = np.round(self.direction_matrix, 6).tolist()
         return (
@@ -260,11 +277,32 @@ class Volume:
         hi = np.clip(np.asarray(hi, dtype=int), 0, size)
         if np.any(hi <= lo):
             raise ValueError(f"empty crop: index range {lo.tolist()}..{hi.tolist()} of a grid of size {size.tolist()}")
-        g = self.geometry
-        geo = GridGeometry(tuple(int(v) for v in hi - lo), g.spacing, tuple(g.index_to_world(lo.astype(float))),
-                           g.direction)
+        geo = self.geometry.crop(lo, hi)
         data = self.data[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]  # array order [z, y, x]
         return Volume(np.array(data, copy=True, order="C"), geo)
+
+    def every(self, factor: int, *, smooth: bool = False) -> "Volume":
+        """The volume on :meth:`GridGeometry.every` ``(factor)``: every ``factor``-th voxel along each axis.
+
+        The voxels are taken as they are (labels, masks: nearest neighbour); with
+        ``smooth`` (intensities) they are first smoothed by a Gaussian of σ =
+        factor / 2 voxels along each axis (SimpleITK, in float32), so that the
+        coarse samples do not alias the detail between them.  ``factor`` 1
+        returns the volume itself.
+        """
+        f = int(factor)
+        if f == 1:
+            return self
+        g = self.geometry.every(f)
+        if not smooth:
+            return Volume(np.ascontiguousarray(self.data[::f, ::f, ::f]), g)
+        import SimpleITK as sitk
+
+        img = sitk.GetImageFromArray(self.data.astype(np.float32, copy=False))
+        img.SetSpacing(self.geometry.spacing)  # σ in mm along each axis; origin and direction do not matter here
+        smooth = sitk.SmoothingRecursiveGaussian(img, [0.5 * f * s for s in self.geometry.spacing])
+        del img
+        return Volume(np.ascontiguousarray(sitk.GetArrayViewFromImage(smooth)[::f, ::f, ::f]), g)
 
     def to_sitk(self):
         """A SimpleITK image with the same voxels and geometry (vector images stay vector)."""

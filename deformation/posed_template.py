@@ -33,7 +33,7 @@ class PosedTemplate:
 
     volume: Volume
     labels: Volume | None
-    backward: object  #: the :class:`deformation.resample.BackwardMap`
+    backward: object  #: the :class:`~deformation.resample.BackwardMap` (a ``CoarseBackwardMap`` at map factor > 1)
     forward_seconds: float
     backward_seconds: float
 
@@ -44,9 +44,11 @@ class TemplatePoser:
     Parameters
     ----------
     template : Volume
-    weights : SkinningWeights on the template grid
+    weights : SkinningWeights on the body mask's grid: the template's, or every f-th voxel of it
+        (:meth:`GridGeometry.every`; ``workbench weights --grid-factor``, for a template too big for
+        full-grid weights) — then the maps are always solved on that coarse grid (``map_factor`` f)
     body : Volume, the template's body mask (preferred where the map is many-to-one; its outside gives the
-        air value that fills voxels no tissue reaches)
+        air value that fills voxels no tissue reaches), on the weights' grid
     labels : Volume, optional, the template's bone labels (posed too)
     model : ExampleVolumeDeformation, optional — with it the method is EVD, without it VBD
     weighting : "psd" (one set of pose weights, Rhee) or "wpsd" (per voxel, Kurihara Eq. 16); EVD only
@@ -58,19 +60,28 @@ class TemplatePoser:
             raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
         self.template, self.weights, self.body, self.template_labels = template, weights, body, labels
         self.model = model
+        self.weights_factor = _grid_factor(template.geometry, body.geometry)
+        if self.weights_factor > 1 and model is not None:
+            raise ValueError("an EVD model needs skinning weights on the template's grid (these are on every "
+                             f"{self.weights_factor}th voxel)")
         self.method = "evd" if model is not None else "vbd"
         self.weighting = weighting
-        air = np.asarray(template.data)[body.data == 0]
+        f = self.weights_factor
+        air = np.asarray(template.data)[::f, ::f, ::f][body.data == 0]
         self.fill = float(np.median(air)) if air.size else float(np.min(template.data))  # the template's air
         self._say = progress or (lambda line: None)
 
-    def forward(self, pose, factor: int = 1) -> np.ndarray:
+    def forward(self, pose, factor: int | None = None) -> np.ndarray:
         """Posed world positions ``(nz, ny, nx, 3)`` (EVD or VBD) of the template voxels — of every
-        ``factor``-th one along each axis (:meth:`GridGeometry.every`) when ``factor`` > 1."""
+        ``factor``-th one along each axis (:meth:`GridGeometry.every`) when ``factor`` > 1 (default: the
+        weights' grid, as :attr:`body`)."""
+        factor = self.weights_factor if factor is None else int(factor)
         g = self.template.geometry
         weights, model = self.weights, self.model
-        if factor > 1:
+        if factor != self.weights_factor:
             g, weights, model = self._coarse(factor)
+        elif factor > 1:
+            g = g.every(factor)
         if self.method == "evd":
             return model.forward(pose, weighting=self.weighting)
         return vbd_forward(g, weights, stack_transforms(pose.transforms, weights.bones))
@@ -82,6 +93,10 @@ class TemplatePoser:
         key = (factor, id(self.weights), id(self.model))  # new weights or model: a new subset
         if key not in cache:
             from .skinning import SkinningWeights
+
+            if self.weights_factor != 1:
+                raise ValueError(f"the skinning weights are on every {self.weights_factor}th template voxel: the "
+                                 f"maps are solved there (map factor {self.weights_factor}, not {factor})")
 
             shape = self.template.geometry.array_shape  # weights and displacements are rows in array order
             flat = np.arange(int(np.prod(shape))).reshape(shape)[::factor, ::factor, ::factor].ravel()
@@ -98,13 +113,18 @@ class TemplatePoser:
         """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry).
 
         ``map_factor`` f > 1: the forward and backward maps are solved on every f-th voxel of the grids
-        (f³ fewer voxels) and the backward map blended up to the full grid
-        (:func:`deformation.resample.upsample_backward_map`); the template is still pulled at full
-        resolution.
+        (f³ fewer voxels), and the template is pulled at full resolution through the blend of that map
+        (:class:`deformation.resample.CoarseBackwardMap`, which never makes the fine map).  With weights on a coarse grid, ``map_factor`` 1 means theirs.
         """
         f = int(map_factor)
         if f < 1:
             raise ValueError(f"map_factor must be a positive integer, got {map_factor!r}")
+        if self.weights_factor > 1:
+            if f not in (1, self.weights_factor):
+                raise ValueError(f"map_factor {f} (--map-factor): the study's skinning weights are on every "
+                                 f"{self.weights_factor}th template voxel (workbench weights --grid-factor), so the "
+                                 f"maps are solved there; leave --map-factor out or give {self.weights_factor}")
+            f = self.weights_factor
         g = self.template.geometry
         tgt = g if target is None else target
         if f > 1 and min(min(g.every(f).size), min(tgt.every(f).size)) < 2:
@@ -119,15 +139,29 @@ class TemplatePoser:
         self._say("backward map and resampling ...")
         prefer = self.body.data.astype(bool)
         if f > 1:
-            from .resample import upsample_backward_map
+            from .resample import CoarseBackwardMap
 
-            coarse = backward_map(fwd, g.every(f), tgt.every(f), transforms=t, prefer=prefer[::f, ::f, ::f])
+            if self.weights_factor == 1:
+                prefer = prefer[::f, ::f, ::f]
+            coarse = backward_map(fwd, g.every(f), tgt.every(f), transforms=t, prefer=prefer)
             del fwd
-            bm = upsample_backward_map(coarse, f, g, tgt)
+            bm = CoarseBackwardMap(coarse, f, g, tgt)
+            vol = bm.pull(self.template, fill=self.fill)
+            lab = (bm.pull(self.template_labels, labels=True)
+                   if labels and self.template_labels is not None else None)
         else:
             bm = backward_map(fwd, g, target, transforms=t, prefer=prefer)
-        vol = resample_forward(bm, self.template, fill=self.fill)
-        lab = (resample_forward(bm, self.template_labels, labels=True)
-               if labels and self.template_labels is not None else None)
+            vol = resample_forward(bm, self.template, fill=self.fill)
+            lab = (resample_forward(bm, self.template_labels, labels=True)
+                   if labels and self.template_labels is not None else None)
         t2 = time.perf_counter()
         return PosedTemplate(vol, lab, bm, t1 - t0, t2 - t1)
+
+
+def _grid_factor(template, grid) -> int:
+    """``f`` when ``grid`` is ``template.every(f)`` (1: the template's own grid), else a ValueError."""
+    f = max(1, int(round(grid.spacing[0] / template.spacing[0])))
+    if not grid.is_close(template.every(f)):
+        template.check_same(grid, names=("template", "skinning weights / body mask"),
+                            remedy="recompute the weights: workbench weights --force")
+    return f

@@ -50,13 +50,13 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry, Volume
-from .interpolate import sample_array
+from .interpolate import _fill_value, _flat_data, _interp_scalar, _output_dtype, sample_array
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["BackwardMap", "backward_map", "backward_points", "upsample_backward_map", "resample_forward", "invert_scan_to_template", "OK", "FOLDED", "NOT_CONVERGED",
-           "OUTSIDE", "STATUS_NAMES"]
+__all__ = ["BackwardMap", "backward_map", "backward_points", "upsample_backward_map", "CoarseBackwardMap",
+           "resample_forward", "invert_scan_to_template", "OK", "FOLDED", "NOT_CONVERGED", "OUTSIDE", "STATUS_NAMES"]
 
 OK, FOLDED, NOT_CONVERGED, OUTSIDE = 0, 1, 2, 3
 STATUS_NAMES = {OK: "ok", FOLDED: "folded", NOT_CONVERGED: "not_converged", OUTSIDE: "outside"}
@@ -755,30 +755,40 @@ def _coarse_axis(i, f, n, cells):
     return lo, w, min(lo + 1, n - 1), min(int(x + 0.5), n - 1)
 
 
+@nb.njit(cache=True, inline="always")
+def _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, c):
+    """Component ``c`` of a fine voxel's template index (float32, as stored): f × the trilinear blend of the
+    coarse template indices of its cell where the cell is blendable (:func:`_blendable_cells`), else f × its
+    nearest coarse voxel's."""
+    if ok[k0, j0, i0]:
+        a00 = cx[k0, j0, i0, c] + (cx[k0, j0, i1, c] - cx[k0, j0, i0, c]) * wx
+        a10 = cx[k0, j1, i0, c] + (cx[k0, j1, i1, c] - cx[k0, j1, i0, c]) * wx
+        a01 = cx[k1, j0, i0, c] + (cx[k1, j0, i1, c] - cx[k1, j0, i0, c]) * wx
+        a11 = cx[k1, j1, i0, c] + (cx[k1, j1, i1, c] - cx[k1, j1, i0, c]) * wx
+        b0 = a00 + (a10 - a00) * wy
+        b1 = a01 + (a11 - a01) * wy
+        return np.float32(f * (b0 + (b1 - b0) * wz))
+    return np.float32(f * cx[kn, jn, inn, c])
+
+
 @nb.njit(cache=True, parallel=True)
-def _upsample_kernel(cx, cres, cst, ok, f, out_x, out_res, out_st):
-    """Fine target voxel (i, j, k) ↔ coarse (i/f, j/f, k/f): template index = f × the trilinear blend of the
-    coarse template indices in a blendable cell (:func:`_blendable_cells`), else the nearest coarse voxel's.
+def _upsample_kernel(cx, cres, cst, ok, f, k_start, out_x, out_res, out_st):
+    """Fine target voxel (i, j, k) ↔ coarse (i/f, j/f, k/f): the template index of :func:`_blend`, the largest
+    residual of the cell's corners (the nearest one's where it is not blendable), the nearest one's status.
     Fine voxels past the last coarse one (a size not 1 + a multiple of f) extrapolate linearly from the last
-    cell."""
+    cell.  The outputs hold the fine slices ``k_start ≤ k < k_start + len(out)`` (a slab, or all)."""
     tz, ty, tx = cst.shape
     cz, cy, cx_ = ok.shape
     nz, ny, nx = out_st.shape
     for k in nb.prange(nz):
-        k0, wz, k1, kn = _coarse_axis(np.int64(k), f, tz, cz)
+        k0, wz, k1, kn = _coarse_axis(np.int64(k_start + k), f, tz, cz)
         for j in range(ny):
             j0, wy, j1, jn = _coarse_axis(j, f, ty, cy)
             for i in range(nx):
                 i0, wx, i1, inn = _coarse_axis(i, f, tx, cx_)
+                for c in range(3):
+                    out_x[k, j, i, c] = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, c)
                 if ok[k0, j0, i0]:
-                    for c in range(3):
-                        a00 = cx[k0, j0, i0, c] + (cx[k0, j0, i1, c] - cx[k0, j0, i0, c]) * wx
-                        a10 = cx[k0, j1, i0, c] + (cx[k0, j1, i1, c] - cx[k0, j1, i0, c]) * wx
-                        a01 = cx[k1, j0, i0, c] + (cx[k1, j0, i1, c] - cx[k1, j0, i0, c]) * wx
-                        a11 = cx[k1, j1, i0, c] + (cx[k1, j1, i1, c] - cx[k1, j1, i0, c]) * wx
-                        b0 = a00 + (a10 - a00) * wy
-                        b1 = a01 + (a11 - a01) * wy
-                        out_x[k, j, i, c] = f * (b0 + (b1 - b0) * wz)
                     r = 0.0
                     for kk in (k0, k1):
                         for jj in (j0, j1):
@@ -786,15 +796,36 @@ def _upsample_kernel(cx, cres, cst, ok, f, out_x, out_res, out_st):
                                 r = max(r, cres[kk, jj, ii])
                     out_res[k, j, i] = r
                 else:
-                    for c in range(3):
-                        out_x[k, j, i, c] = f * cx[kn, jn, inn, c]
                     out_res[k, j, i] = cres[kn, jn, inn]
                 out_st[k, j, i] = cst[kn, jn, inn]
 
 
-def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: GridGeometry,
-                          target_geometry: GridGeometry | None = None) -> BackwardMap:
-    """A backward map on the fine grids from one solved on every ``factor``-th voxel of them.
+@nb.njit(cache=True, parallel=True)
+def _pull_kernel(cx, cst, ok, f, src, nx, ny, nz, order, fill, out):
+    """``out`` (the fine target grid) = the template ``src`` (flat, ``nx × ny × nz``) sampled at each fine voxel's
+    :func:`_blend` index, ``fill`` where the nearest coarse voxel is OUTSIDE: what sampling the fine map of
+    :func:`_upsample_kernel` gives (the same arithmetic), without writing that map."""
+    tz, ty, tx = cst.shape
+    cz, cy, cx_ = ok.shape
+    oz, oy, ox = out.shape
+    for k in nb.prange(oz):
+        k0, wz, k1, kn = _coarse_axis(np.int64(k), f, tz, cz)
+        for j in range(oy):
+            j0, wy, j1, jn = _coarse_axis(j, f, ty, cy)
+            for i in range(ox):
+                i0, wx, i1, inn = _coarse_axis(i, f, tx, cx_)
+                if cst[kn, jn, inn] == OUTSIDE:
+                    out[k, j, i] = fill
+                else:
+                    a = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 0)
+                    b = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 1)
+                    c = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 2)
+                    out[k, j, i] = _interp_scalar(src, nx, ny, nz, np.float64(a), np.float64(b), np.float64(c),
+                                                  order, fill)
+
+
+class CoarseBackwardMap:
+    """A backward map solved on every ``factor``-th voxel of the grids, blended up to the fine grids on demand.
 
     ``coarse`` maps ``target.every(factor)`` to ``template.every(factor)``
     (:meth:`GridGeometry.every`); each fine target voxel gets the trilinear
@@ -806,41 +837,93 @@ def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: G
     exact where the map is affine (a bone's rigid motion), second order in the
     coarse spacing elsewhere.
     Solving 1/factor³ of the voxels makes the inverse that much cheaper in
-    time and memory (``workbench deform --map-factor``).
+    time and memory (``workbench deform --map-factor``); :meth:`pull` never
+    makes the fine map (17 bytes a voxel), so a Kurihara-size CT (197 M
+    voxels) is posed without its 3.3 GiB.
     """
-    f = int(factor)
-    target = template_geometry if target_geometry is None else target_geometry
-    if not (coarse.template_geometry.is_close(template_geometry.every(f))
-            and coarse.target_geometry.is_close(target.every(f))):
-        raise ValueError(f"the coarse map's grids are not every {f}th voxel of the template and target grids")
-    shape = target.array_shape
-    out_x = np.empty(shape + (3,), dtype=np.float32)
-    out_res = np.empty(shape, dtype=np.float32)
-    out_st = np.empty(shape, dtype=np.uint8)
-    cx = np.ascontiguousarray(coarse.template_index, dtype=np.float32)
-    ok = np.empty(tuple(max(n - 1, 1) for n in coarse.status.shape), dtype=np.bool_)
-    # the spread limit in mm: MAX_SPREAD of the coarse target's largest voxel side
-    limit_mm = MAX_SPREAD * float(max(coarse.target_geometry.spacing))
-    _blendable_cells(cx, coarse.status, np.asarray(coarse.template_geometry.spacing, dtype=np.float64), limit_mm,
-                     ok)
-    _upsample_kernel(cx, np.ascontiguousarray(coarse.residual_mm, dtype=np.float32), coarse.status, ok, f, out_x,
-                     out_res, out_st)
-    return BackwardMap(template_geometry, target, out_x, out_res, out_st)
+
+    def __init__(self, coarse: BackwardMap, factor: int, template_geometry: GridGeometry,
+                 target_geometry: GridGeometry | None = None):
+        f = int(factor)
+        target = template_geometry if target_geometry is None else target_geometry
+        if not (coarse.template_geometry.is_close(template_geometry.every(f))
+                and coarse.target_geometry.is_close(target.every(f))):
+            raise ValueError(f"the coarse map's grids are not every {f}th voxel of the template and target grids")
+        self.coarse, self.factor = coarse, f
+        self.template_geometry, self.target_geometry = template_geometry, target
+        self._cx = np.ascontiguousarray(coarse.template_index, dtype=np.float32)
+        self._cres = np.ascontiguousarray(coarse.residual_mm, dtype=np.float32)
+        self._ok = np.empty(tuple(max(n - 1, 1) for n in coarse.status.shape), dtype=np.bool_)
+        # the spread limit in mm: MAX_SPREAD of the coarse target's largest voxel side
+        limit_mm = MAX_SPREAD * float(max(coarse.target_geometry.spacing))
+        _blendable_cells(self._cx, coarse.status, np.asarray(coarse.template_geometry.spacing, dtype=np.float64),
+                         limit_mm, self._ok)
+
+    def rows(self, k0: int, k1: int) -> BackwardMap:
+        """The fine backward map of the target's slices ``k0 ≤ k < k1`` (a slab of the target grid)."""
+        g = self.target_geometry
+        nx, ny, nz = g.size
+        if not 0 <= k0 < k1 <= nz:
+            raise ValueError(f"slices {k0}..{k1} outside the target's {nz}")
+        shape = (k1 - k0, ny, nx)
+        out_x = np.empty(shape + (3,), dtype=np.float32)
+        out_res = np.empty(shape, dtype=np.float32)
+        out_st = np.empty(shape, dtype=np.uint8)
+        _upsample_kernel(self._cx, self._cres, self.coarse.status, self._ok, self.factor, k0, out_x, out_res, out_st)
+        sub = g if (k0, k1) == (0, nz) else g.crop((0, 0, k0), (nx, ny, k1))
+        return BackwardMap(self.template_geometry, sub, out_x, out_res, out_st)
+
+    def full(self) -> BackwardMap:
+        """The fine backward map of the whole target grid (17 bytes a voxel)."""
+        return self.rows(0, self.target_geometry.size[2])
+
+    def scan_to_template(self) -> Volume:
+        return self.full().scan_to_template()
+
+    def summary(self) -> dict:
+        """:meth:`BackwardMap.summary` of the coarse solves (counts of coarse voxels), with the factor."""
+        return {**self.coarse.summary(), "map_factor": self.factor}
+
+    def pull(self, volume: Volume, *, labels: bool = False, fill=0.0) -> Volume:
+        """:func:`resample_forward` through the fine map without making it (one kernel blends each fine voxel's
+        index and samples there: the same voxels as ``resample_forward(self.full(), volume)``, bit for bit,
+        holding only the output)."""
+        src = _source(self, volume, labels)
+        order = 0 if labels else 1
+        odt = _output_dtype(src.dtype, order)
+        flat, (nx, ny, nz), _ = _flat_data(src)
+        out = np.empty(self.target_geometry.array_shape, dtype=np.uint8 if odt == np.bool_ else odt)
+        _pull_kernel(self._cx, self.coarse.status, self._ok, self.factor, flat, nx, ny, nz, order,
+                     _fill_value(fill, odt), out)
+        return Volume(out.view(np.bool_) if odt == np.bool_ else out, self.target_geometry)
 
 
-def resample_forward(bmap: BackwardMap, volume: Volume, *, labels: bool = False, fill=0.0) -> Volume:
-    """The template ``volume`` pulled onto the target grid through ``bmap`` (trilinear; nearest for labels)."""
+def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: GridGeometry,
+                          target_geometry: GridGeometry | None = None) -> BackwardMap:
+    """The fine backward map of a coarse one, all at once (:class:`CoarseBackwardMap` says how)."""
+    return CoarseBackwardMap(coarse, factor, template_geometry, target_geometry).full()
+
+
+def _source(bmap, volume: Volume, labels: bool) -> np.ndarray:
+    """The template's voxels to pull through ``bmap`` (checked against its template grid; float32 intensities)."""
     if not volume.geometry.is_close(bmap.template_geometry):
         bmap.template_geometry.check_same(volume.geometry, names=("backward map's template", "volume"))
     if volume.is_vector:
         raise ValueError("resample_forward takes scalar volumes (resample each component separately)")
     src = np.asarray(volume.data)
-    if not labels:
-        src = src.astype(np.float32, copy=False)
+    return src if labels else src.astype(np.float32, copy=False)
+
+
+def _pull(src: np.ndarray, bmap: BackwardMap, labels: bool, fill) -> np.ndarray:
     # template_index is a continuous index inside the grid: sample with an identity "world → index" map
     out = sample_array(src, np.eye(4), bmap.template_index, order=0 if labels else 1, fill=fill)
     out[bmap.status == OUTSIDE] = fill
-    return Volume(out, bmap.target_geometry)
+    return out
+
+
+def resample_forward(bmap: BackwardMap, volume: Volume, *, labels: bool = False, fill=0.0) -> Volume:
+    """The template ``volume`` pulled onto the target grid through ``bmap`` (trilinear; nearest for labels)."""
+    return Volume(_pull(_source(bmap, volume, labels), bmap, labels, fill), bmap.target_geometry)
 
 
 def invert_scan_to_template(field: Volume, template_geometry: GridGeometry, *, transforms=None, prefer=None,

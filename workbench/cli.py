@@ -183,6 +183,11 @@ ParaView); --force recomputes from it, --remesh makes a new mesh.
 
 Writes skinning/weights.json with weights_index.mha and weights_value.mha
 (4-component images on the template grid) and skinning/body_mask.nii.gz.
+A template of more than 32 M voxels (a CT the size of Kurihara's, 512×512×750)
+gets its weights and body mask on every 2nd (3rd, ...) voxel along each axis
+instead, which keeps the stage and `workbench deform` within 8 GiB: deform
+then solves its maps on that grid and pulls the full-resolution template
+through them (VBD only: init, register and model need --grid-factor 1).
 Options left out keep the setting the stage last ran with in this study
 (else the default shown); an up-to-date stage is skipped.
 """
@@ -510,6 +515,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "centre (estimated from all scans) by more than K times the joint's median miss, and by "
                          "more than half a voxel, is reported as 'joint_outlier'; 0 switches the check off. "
                          "Default: 4")
+    po.add_argument("--grid-factor", type=_positive_int, default=argparse.SUPPRESS, metavar="F",
+                    help="register the bones on every F-th voxel along each axis of the template and scans "
+                         "(smoothed first; F³ fewer voxels and bytes, about F times coarser). Default: 1, or the "
+                         "smallest F that leaves at most 32 M voxels (2 for a 512×512×750 CT)")
     po.add_argument("--force", action="store_true", help="rerun even when up to date")
     _scale_options(po)
     _common(po)
@@ -523,6 +532,9 @@ def build_parser() -> argparse.ArgumentParser:
     we.add_argument("--edge-length-mm", default=argparse.SUPPRESS, type=float, metavar="MM",
                     help="target tet edge length for a new mesh (default: 5%% of the body's bounding-box diagonal)")
     we.add_argument("--remesh", action="store_true", help="make a new tet mesh instead of reusing the study's")
+    we.add_argument("--grid-factor", type=_positive_int, default=argparse.SUPPRESS, metavar="F",
+                    help="weights on every F-th template voxel along each axis (F³ fewer voxels and bytes). "
+                         "Default: 1, or the smallest F that leaves at most 32 M voxels")
     we.add_argument("--force", action="store_true", help="rerun even when up to date (from the kept tet mesh)")
     _common(we)
     we.set_defaults(func=cmd_weights)
@@ -869,10 +881,11 @@ def cmd_deform(args) -> int:
     s = deform_study(args.study, args.pose, args.out, method=args.method, weighting=args.weighting,
                      labels_out=args.labels_out, field_out=args.field_out, grow=args.grow, overwrite=args.force,
                      map_factor=args.map_factor, progress=_say(args))
-    n = s["n_voxels"]
+    n, f = s["n_voxels"], s.get("map_factor", 1)
     print(f"{s['method'].upper()}: forward {s['forward_seconds']:.2f} s, backward map + resampling "
-          f"{s['backward_seconds']:.2f} s for {n:,} voxels")
-    print(f"backward map: {s['n_ok']:,} ok, {s['n_folded']:,} where the forward map folds "
+          f"{s['backward_seconds']:.2f} s for {n:,} voxels" + (f" (the maps on every {f}th voxel along each axis, "
+                                                                f"blended up to the volume's grid)" if f > 1 else ""))
+    print(f"backward map{' (coarse voxels)' if f > 1 else ''}: {s['n_ok']:,} ok, {s['n_folded']:,} where the forward map folds "
           f"({100 * s['fraction_folded']:.3f} %), {s['n_not_converged']:,} not converged, {s['n_outside']:,} "
           f"outside the template (fill value)")
     print(f"wrote {s['out']} and {s['labels']}" + (f" and {s['field']}" if s["field"] else ""))
@@ -957,7 +970,7 @@ def cmd_pose(args) -> int:
         "prior_deg": ("prior_deg", lambda v: v or None), "min_ncc": ("min_ncc", _same),
         "bias_correction": ("bias_correction", {"auto": None, "on": True, "off": False}.get),
         "margin_mm": ("margin_mm", _same), "max_joint_gap_mm": ("max_joint_gap_mm", lambda v: v or None),
-        "outlier_factor": ("outlier_factor", lambda v: v or None)})
+        "outlier_factor": ("outlier_factor", lambda v: v or None), "grid_factor": ("grid_factor", _same)})
     ps = dataclasses.replace(ps, scans=tuple(args.scan) if args.scan else None)  # --scan: this run's scans only
     settings = {"pose": ps}
     bs = _bones_settings(args)
@@ -972,7 +985,8 @@ def cmd_pose(args) -> int:
 
 
 def cmd_weights(args) -> int:
-    ws = _given(args, args.study, "weights", {"method": ("method", _same), "edge_length_mm": ("edge_length_mm", _same)})
+    ws = _given(args, args.study, "weights", {"method": ("method", _same), "edge_length_mm": ("edge_length_mm", _same),
+                                              "grid_factor": ("grid_factor", _same)})
     if args.remesh and ws.method != "harmonic":
         raise ValueError("--remesh makes a new tet mesh for --method harmonic")
     study, out = _stages(args, ["weights"], {"weights": ws}, force={"weights"} if (args.force or args.remesh) else (),

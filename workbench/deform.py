@@ -33,9 +33,19 @@ def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", p
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     say = progress or (lambda line: None)
-    weights, body = study.weights()
+    weights, body = study.weights(coarse=True)
     model = None
-    if method in ("auto", "evd"):
+    template = study.template()
+    grid = f"every {round(body.geometry.spacing[0] / template.geometry.spacing[0])}th template voxel"
+    on_template = body.geometry.is_close(template.geometry)
+    if method == "evd" and not on_template:
+        raise InputFileError(f"{study.output('weights', 'weights.json')}: the skinning weights are on {grid} "
+                             "(workbench weights --grid-factor); EVD needs them on the template's grid: use "
+                             "--method vbd, or recompute them with --grid-factor 1.", study.manifest_path)
+    if not on_template:
+        say(f"skinning weights on {grid}: posing by VBD (Rhee Eq. 2), the maps solved there and the template "
+            "pulled at full resolution")
+    if method in ("auto", "evd") and on_template:
         model = study.model(weights)
         if model is None and method == "evd":
             raise InputFileError(f"{study.manifest_path}: the study has no EVD model; build one with `workbench "
@@ -50,7 +60,7 @@ def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", p
             f"{' and the template at rest' if model.template_example else ''}")
     if weighting != "psd" and model is None:
         say("note: --weighting applies to EVD only; this is VBD")
-    return TemplatePoser(study.template(), weights, body,
+    return TemplatePoser(template, weights, body,
                          labels=study.template_labels() if study.has_template_labels else None, model=model,
                          weighting=weighting, progress=say)
 

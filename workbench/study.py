@@ -301,14 +301,27 @@ class Study:
         return read_json(self.output("pose", "report.json"))
 
     # -- weights stage -----------------------------------------------------------------------------
-    def weights(self):
-        """``(SkinningWeights, body mask Volume)`` of the template (``workbench weights``), checked against its grid."""
+    def weights(self, *, coarse: bool = False):
+        """``(SkinningWeights, body mask Volume)`` of the template (``workbench weights``), checked against its grid.
+
+        Weights made on every f-th template voxel (``workbench weights --grid-factor f``, a big template) are
+        returned only to a caller that takes them (``coarse=True``: deform, animate); any other is told to
+        recompute them on the template's grid.
+        """
         from workbench.io.weights import read_voxel_weights
 
         path = self.output("weights", "weights.json")
         weights, geometry, _ = read_voxel_weights(path)
-        read_image_geometry(self.path(self.manifest["template"])).check_same(
-            geometry, names=("template", str(path)), remedy="recompute the weights: workbench weights --force")
+        tg = read_image_geometry(self.path(self.manifest["template"]))
+        f = max(1, int(round(geometry.spacing[0] / tg.spacing[0])))
+        if f > 1 and geometry.is_close(tg.every(f)):
+            if not coarse:
+                raise InputFileError(f"{path}: the skinning weights are on every {f}th template voxel (workbench "
+                                     f"weights --grid-factor {f}); only deform and animate use them there. "
+                                     f"Recompute them on the template's grid: `workbench weights {self.root} "
+                                     "--grid-factor 1 --force`.", path)
+        else:
+            tg.check_same(geometry, names=("template", str(path)), remedy="recompute the weights: workbench weights --force")
         return weights, read_labels(self.output("weights", "body_mask.nii.gz"))
 
     # -- init and register stages ------------------------------------------------------------------

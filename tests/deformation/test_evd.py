@@ -304,8 +304,8 @@ def test_posing_with_a_coarse_map_matches_the_full_one_for_a_rigid_pose(knee):
     pose = type(ph.pose_of(ph.poses[0][1]))({b: t for b in ph.skeleton.bone_names})
     poser = TemplatePoser(tmpl, w, body, labels=lab)
     one, two = poser.pose(pose), poser.pose(pose, map_factor=2)
-    assert not np.array_equal(two.backward.template_index, one.backward.template_index)  # blended, not re-solved
-    both = (one.backward.status <= FOLDED) & (two.backward.status <= FOLDED)
+    assert not np.array_equal(two.backward.full().template_index, one.backward.template_index)  # blended, not re-solved
+    both = (one.backward.status <= FOLDED) & (two.backward.full().status <= FOLDED)
     assert both.mean() > 0.8
     # positions within 0.03 voxel of each other (the two solves' tolerances): intensities within 0.03 voxel
     # times the steepest step of this noise-free CT, well under 3 % of its range
@@ -334,3 +334,62 @@ def test_the_coarse_blend_compares_preimages_in_mm_on_uneven_grids():
     assert both.sum() > 200
     # an affine map, each solve to 1e-2 voxel: the blend within 3·1e-2 (1.25 margin as above)
     assert np.abs(up.template_index - full.template_index)[both].max() < 1.25 * 3e-2
+
+
+def test_pulling_through_a_coarse_map_gives_the_full_maps_voxels(knee):
+    """CoarseBackwardMap.pull blends each fine voxel's template index and samples there in one kernel (a
+    197 M-voxel CT never holds its 3.3 GiB fine map): the same voxels, bit for bit, as the whole fine map made
+    and pulled, intensities and labels, on the fixture's anisotropic, turned grid (33 slices: the last coarse
+    cell extrapolates); a slab of the fine map is the full map's slices, on the grid of those slices."""
+    import deformation.resample as rs
+
+    ph, w = knee
+    tmpl, lab = ph.template()
+    g = tmpl.geometry
+    fwd = vbd_forward(g.every(2), w.take(np.arange(g.n_voxels).reshape(g.array_shape)[::2, ::2, ::2].ravel()),
+                      stack_transforms(ph.pose_of(ph.poses[2][1]).transforms, w.bones))
+    cmap = rs.CoarseBackwardMap(backward_map(fwd, g.every(2), g.every(2)), 2, g)
+    full = cmap.full()
+    assert (full.status == OUTSIDE).any() and (full.status == OK).any()  # both branches of the kernel
+    for vol, labels, fill in ((tmpl, False, -5.0), (lab, True, 0)):
+        whole = resample_forward(full, vol, labels=labels, fill=fill)
+        fused = cmap.pull(vol, labels=labels, fill=fill)
+        assert fused.geometry.is_close(g)
+        assert fused.data.dtype == whole.data.dtype
+        np.testing.assert_array_equal(fused.data, whole.data)
+    one = cmap.rows(3, 5)
+    np.testing.assert_array_equal(one.template_index, full.template_index[3:5])
+    np.testing.assert_array_equal(one.status, full.status[3:5])
+    np.testing.assert_allclose(one.target_geometry.index_to_world([[1.0, 2.0, 0.0]]),
+                               g.index_to_world([[1.0, 2.0, 3.0]]), atol=1e-9)
+
+
+def test_a_poser_with_weights_on_every_other_voxel_solves_its_maps_there(knee):
+    """Weights and body mask on every 2nd template voxel (``workbench weights --grid-factor 2``): the poser
+    solves the maps on that grid and pulls the full-resolution template — the very voxels of a poser with
+    full-grid weights at map factor 2 (whose coarse subset is the same weights).  Another map factor is one
+    clear error; so is an EVD model on such weights."""
+    from deformation.geometry import Volume
+    from deformation.posed_template import TemplatePoser
+
+    ph, w = knee
+    tmpl, lab = ph.template()
+    g = tmpl.geometry
+    body = Volume(np.ones(g.array_shape, np.uint8), g)
+    sub = np.arange(g.n_voxels).reshape(g.array_shape)[::2, ::2, ::2].ravel()
+    coarse = TemplatePoser(tmpl, w.take(sub), Volume(body.data[::2, ::2, ::2], g.every(2)), labels=lab)
+    fine = TemplatePoser(tmpl, w, body, labels=lab)
+    pose = ph.pose_of(ph.poses[1][1])
+    a, b = coarse.pose(pose), fine.pose(pose, map_factor=2)
+    assert coarse.weights_factor == 2 and a.volume.geometry.is_close(g)
+    np.testing.assert_array_equal(a.volume.data, b.volume.data)
+    np.testing.assert_array_equal(a.labels.data, b.labels.data)
+    assert a.backward.summary()["map_factor"] == 2
+    assert coarse.forward(pose).shape == g.every(2).array_shape + (3,)
+    with pytest.raises(ValueError, match="--map-factor"):
+        coarse.pose(pose, map_factor=3)
+    with pytest.raises(ValueError, match="EVD model needs"):
+        TemplatePoser(tmpl, w.take(sub), Volume(body.data[::2, ::2, ::2], g.every(2)), model=object())
+    other = g.every(2).crop((0, 0, 0), (3, 3, 3))
+    with pytest.raises(Exception, match="recompute the weights"):  # a mask on some other grid
+        TemplatePoser(tmpl, w.take(sub), Volume(np.ones(other.array_shape, np.uint8), other))

@@ -230,3 +230,29 @@ def test_volume_crop_keeps_voxels_in_place(geom):
     assert vol.crop((-5, 0, 0), (2, 99, 99)).geometry.size == (2,) + tuple(geom.size[1:])  # clipped
     with pytest.raises(ValueError, match="empty crop"):
         vol.crop((2, 0, 0), (2, 1, 1))
+
+
+def test_every_fth_voxel_of_a_volume_and_the_factor_within_a_budget():
+    """Volume.every: labels as they are at voxels 0, f, 2f, … (same world positions); intensities smoothed first
+    (σ = f/2 voxels): a constant stays constant and a one-voxel checkerboard, which plain sampling would alias
+    to a constant 1, is averaged towards its mean 0.5.  factor_within: the smallest factor under a budget."""
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_euler("xyz", [10.0, -20.0, 35.0], degrees=True).as_matrix()
+    g = GridGeometry((9, 8, 7), (1.5, 0.7, 2.2), (10.0, -3.0, 4.0), tuple(rot.ravel()))
+    lab = Volume(np.arange(g.n_voxels, dtype=np.int32).reshape(g.array_shape), g)
+    c = lab.every(2)
+    assert c.geometry.is_close(g.every(2)) and c.data.shape == (4, 4, 5)
+    np.testing.assert_array_equal(c.data, lab.data[::2, ::2, ::2])
+    np.testing.assert_allclose(c.geometry.index_to_world([[1.0, 2.0, 3.0]]), g.index_to_world([[2.0, 4.0, 6.0]]))
+    assert lab.every(1) is lab
+    flat = Volume(np.full(g.array_shape, 7.0), g).every(2, smooth=True)
+    np.testing.assert_allclose(flat.data, 7.0, rtol=1e-5)
+    k, j, i = np.indices((40, 40, 40))
+    checker = Volume(((i + j + k) % 2).astype(np.float32), GridGeometry((40, 40, 40), (1.0, 1.0, 1.0)))
+    assert np.all(checker.data[::2, ::2, ::2] == 0)  # plain sampling: every kept voxel is even
+    s = checker.every(2, smooth=True).data[3:-3, 3:-3, 3:-3]  # away from the border
+    assert np.abs(s - 0.5).max() < 0.1, np.abs(s - 0.5).max()
+    big = GridGeometry((512, 512, 750), (0.468, 0.468, 0.3))
+    assert big.factor_within(32_000_000) == 2 and big.factor_within(big.n_voxels) == 1
+    assert big.every(2).n_voxels <= 32_000_000 < big.every(1).n_voxels

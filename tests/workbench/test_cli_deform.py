@@ -238,3 +238,49 @@ def test_a_one_dof_joint_takes_a_number_alone(tmp_path):
     p.write_text(json.dumps({"angles": {"elbow": 170}}))
     with pytest.raises(InputFileError, match=r"elbow\[0\] = 170° outside \[0, 150\]"):
         read_target_pose(p, sk)
+
+
+def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path, capsys):
+    """`workbench weights --grid-factor 2` (what a Kurihara-size CT gets by default): the weights and body
+    mask on every 2nd template voxel; `deform` solves its maps there and writes the posed volume on the
+    template's full grid, close to the exact full-grid deformation; the stages that need full-grid weights
+    (init, model) and EVD say so in one line, and so does another --map-factor."""
+    from validation.phantoms import make_phantom
+    from workbench.study import write_phantom_study
+
+    root = write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=2, seed=4, noise=False),
+                               tmp_path / "study").root
+    pose = tmp_path / "bend.json"
+    pose.write_text(json.dumps({"angles": {"knee": [40, 0, 0]}}))
+    t = read_study(root).template()
+    assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
+    exact = tmp_path / "exact.nii.gz"
+    assert main(["deform", str(root), "--pose", str(pose), "--out", str(exact), "--method", "vbd", "--quiet"]) == 0
+    assert main(["weights", str(root), "--method", "distance", "--grid-factor", "2", "--quiet"]) == 0
+    w, g, meta = read_voxel_weights(root / "skinning" / "weights.json")
+    assert g.is_close(t.geometry.every(2)) and meta["grid_factor"] == 2 and w.n_points == g.n_voxels
+    assert read_labels(root / "skinning" / "body_mask.nii.gz").geometry.is_close(g)
+    before = _hashes(root)
+    out = tmp_path / "coarse.nii.gz"
+    assert main(["deform", str(root), "--pose", str(pose), "--out", str(out)]) == 0
+    said = capsys.readouterr()
+    assert "every 2th template voxel: posing by VBD" in said.err + said.out
+    assert _hashes(root) == before
+    v, e = read_volume(out), read_volume(exact)
+    assert v.geometry.is_close(t.geometry)  # the full grid, not the weights'
+    # the same posed knee: the coarse distance weights and the blended map move a few voxels by a fraction of
+    # a voxel (this 5 mm test grid makes a 10 mm map), so the bulk agrees and the labels almost everywhere
+    assert np.median(np.abs(v.data - e.data)) < 0.02 * np.ptp(t.data)
+    lv, le = read_labels(tmp_path / "coarse_labels.nii.gz"), read_labels(tmp_path / "exact_labels.nii.gz")
+    bone = (lv.data > 0) | (le.data > 0)
+    assert (lv.data == le.data)[bone].mean() > 0.85
+    for argv, match in ((["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "m.nii.gz"),
+                          "--map-factor", "3"], "--map-factor"),
+                        (["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "e.nii.gz"),
+                          "--method", "evd"], "--method vbd"),
+                        (["register", str(root), "--init", "vbd", "--force"], "--grid-factor 1"), (["model", str(root), "--source", "truth"],
+                                                                    "--grid-factor 1")):
+        assert main(argv + ["--quiet"]) == 1, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and match in err[0], (argv, err)
+    assert not (root / "model").exists() and not list(root.glob("init/**/field.mha"))  # nothing half-made

@@ -218,3 +218,23 @@ def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, sma
     assert main(["render", str(root), "--bones", "--out", str(tmp_path / "b.png"), "--size", "64x48",
                  "--quiet"]) in (0, 1)  # 1 only where no OpenGL context exists; it must not ask for --seeds
     assert "--seeds" not in capsys.readouterr().err
+
+
+def test_pose_on_every_other_voxel_of_a_finer_scan(tmp_path, capsys):
+    """`workbench pose --grid-factor 2` (what a template over 32 M voxels gets by default): template and scans
+    smoothed and taken on every 2nd voxel, the bones registered there.  On a knee at half the test size's
+    spacing (2.5 mm, so the working grid is the test size's 5 mm) the tibia comes out within the bound of the
+    test-size pose test above, and the stage records the factor."""
+    from validation.phantoms import make_phantom
+    from workbench.study import write_phantom_study
+
+    ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=7, spacing=(2.49, 2.49, 1.845))
+    root = write_phantom_study(ph, tmp_path / "study").root
+    assert main(["pose", str(root), "--grid-factor", "2"]) == 0
+    assert "bones registered on every 2th voxel" in capsys.readouterr().err
+    st = read_study(root)
+    assert st.pose_report()["grid_factor"] == 2 and st.pose_report()["failures"] == []
+    assert st.stage_entry("pose")["settings"]["grid_factor"] == 2
+    est, truth = st.pose("pose01"), st.truth_pose("pose01")
+    err = rotation_angle_deg(compose(invert(truth.transforms["tibia"]), est.transforms["tibia"]))
+    assert err < 3.5, err

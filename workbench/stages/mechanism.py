@@ -63,9 +63,20 @@ from workbench.study import STAGE_COMMANDS, Study, StudyError
 
 __all__ = ["Stage", "Event", "Outcome", "StageNotReady", "execute", "stage_status", "file_digest",
            "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "MeshFile", "CopyFile",
-           "settings_dict"]
+           "settings_dict", "WORKING_VOXELS", "working_factor"]
 
 log = logging.getLogger("workbench")
+
+#: the most template voxels the pose and weights stages work on: both hold ~100–115 bytes a voxel
+#: (benchmarks/big_volume.py), so ~3.5 GiB here.  A bigger template (Kurihara's CT: 197 M voxels) is worked on
+#: every f-th voxel (``--grid-factor``; f = 2 there), which keeps a study of that size within 8 GiB.
+WORKING_VOXELS = 32_000_000
+
+
+def working_factor(setting, geometry) -> int:
+    """The ``--grid-factor`` of a stage: the setting, or (None) the smallest that leaves at most
+    :data:`WORKING_VOXELS` of the template's grid."""
+    return geometry.factor_within(WORKING_VOXELS) if setting is None else int(setting)
 
 
 class StageNotReady(StudyError):

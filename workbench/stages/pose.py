@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from workbench.io.inputs import read_initial_poses
-from workbench.stages.mechanism import Json, Stage, Text
+from workbench.io.volumes import read_image_geometry
+from workbench.stages.mechanism import Json, Stage, Text, working_factor
 
 __all__ = ["PoseSettings", "STAGE", "finite"]
 
@@ -45,12 +46,15 @@ class PoseSettings:
     max_joint_gap_mm: float | None = 10.0
     outlier_factor: float | None = 4.0
     scans: tuple | None = None  #: only these scans (None: all; Kurihara Eq. 1 pools the scans estimated)
+    grid_factor: int | None = None  #: bones registered on every f-th voxel (None: 1 up to WORKING_VOXELS, else more)
 
     def __post_init__(self):
         if self.scans is not None:
             object.__setattr__(self, "scans", tuple(str(v) for v in self.scans))
         if self.method not in ("intensity", "surface"):
             raise ValueError(f"--method must be 'intensity' or 'surface', got {self.method!r}")
+        if self.grid_factor is not None and not (isinstance(self.grid_factor, int) and self.grid_factor >= 1):
+            raise ValueError(f"--grid-factor must be a whole number ≥ 1, got {self.grid_factor!r}")
         if self.metric not in ("ncc", "ssd"):
             raise ValueError(f"--metric must be 'ncc' or 'ssd', got {self.metric!r}")
         if self.interpolation not in (1, 3):
@@ -93,15 +97,21 @@ def _fit_arguments(s: PoseSettings, root_init) -> dict:
                 max_joint_gap_mm=s.max_joint_gap_mm)
 
 
+def _working(study, f: int):
+    """The template, its labels and a scan reader on the grid the bones are registered on: every ``f``-th voxel
+    (intensities smoothed first, :meth:`Volume.every`); the transforms found there are in world mm, as any."""
+    return (study.template().every(f, smooth=True), study.template_labels().every(f),
+            lambda sid: study.scan(sid).every(f, smooth=True))
+
+
 def _scan_task(shared, sid: str):
     """One scan's bones, on a Dask worker (:mod:`workbench.scale`): the study's folder in, the fits out."""
     from registration.pose import pose_scans
     from workbench.study import read_study
 
-    root, kwargs = shared
-    study = read_study(root)
-    return pose_scans(study.template(), study.template_labels(), {sid: study.scan(sid)}, study.skeleton(),
-                      **kwargs)[0]
+    root, f, kwargs = shared
+    template, labels, scan = _working(read_study(root), f)
+    return pose_scans(template, labels, {sid: scan(sid)}, read_study(root).skeleton(), **kwargs)[0]
 
 
 def _run(ctx) -> dict:
@@ -110,7 +120,12 @@ def _run(ctx) -> dict:
 
     study, s = ctx.study, ctx.settings
     skeleton = study.skeleton()
-    template, labels = study.template(), study.template_labels()
+    grid = read_image_geometry(study.path(study.manifest["template"]))
+    f = working_factor(s.grid_factor, grid)
+    template, labels, read_scan = _working(study, f)
+    if f > 1:
+        ctx.say(f"template of {grid.n_voxels:,} voxels: bones registered on every {f}th voxel "
+                f"along each axis ({template.geometry.n_voxels:,} voxels; --grid-factor)")
     ids = study.check_scan_ids(s.scans)
     if s.init in ("identity", "moments"):
         root_init = None if s.init == "identity" else "moments"
@@ -118,7 +133,7 @@ def _run(ctx) -> dict:
         root_init = read_initial_poses(s.init, ids, skeleton)
     for sid in ids:  # every scan read once before any work: a corrupt one (NaN voxels) is said at once, not
         study.scan(sid)  # after the scans before it (about 0.3 s a paper-size hand scan; the stage takes minutes)
-    scans = {sid: (lambda sid=sid: study.scan(sid)) for sid in ids}
+    scans = {sid: (lambda sid=sid: read_scan(sid)) for sid in ids}
     n_bones = len(skeleton.bones)
 
     def cb(sid, si, n_scans, bone, done, total, fit):
@@ -135,12 +150,12 @@ def _run(ctx) -> dict:
             finished.append(r.scan_id)
             ctx.report(len(finished), len(ids), f"{r.scan_id}: bones fitted in {r.seconds:.1f} s")
 
-        per_scan = ctx.map_scans(_scan_task, ids, shared=(str(study.root.resolve()), kwargs), on_result=done)
+        per_scan = ctx.map_scans(_scan_task, ids, shared=(str(study.root.resolve()), f, kwargs), on_result=done)
     result = estimate_poses(template, labels, scans, skeleton, outlier_factor=s.outlier_factor, progress=cb,
                             scan_poses=per_scan, **kwargs)
     total = time.perf_counter() - t0
     text = f"workbench pose — {study.manifest.get('name', study.root.name)} — method {s.method}\n\n{format_fits(result)}"
-    report = finite({"method": s.method, "metric": s.metric, "seconds_total": round(total, 2),
+    report = finite({"method": s.method, "metric": s.metric, "grid_factor": f, "seconds_total": round(total, 2),
                      "seconds_per_scan": {r.scan_id: round(r.seconds, 2) for r in result.scans},
                      "failures": result.failures(), "eq1_rms_mm": result.overall_rms_mm(),
                      "eq1_base_pose_counted": False, "text": text})

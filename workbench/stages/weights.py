@@ -6,6 +6,14 @@ each bone's weight solved as a harmonic function
 (:func:`deformation.harmonic.harmonic_voxel_weights`); ``"distance"``:
 inverse-distance weights (:func:`deformation.skinning.distance_voxel_weights`).
 
+A template of more than :data:`~workbench.stages.mechanism.WORKING_VOXELS`
+voxels (a CT the size of Kurihara's) gets its weights and body mask on every
+f-th voxel along each axis (``grid_factor``; the weights are smooth, and the
+bones' labels sampled there still hold vertices of the tet mesh): deform and
+animate solve their maps on that grid and pull the full template through
+them (:class:`deformation.resample.CoarseBackwardMap`); init (VBD), register,
+model and validate, which need full-grid weights, say so.
+
 Outputs (``skinning/``): ``body_mask.nii.gz``, ``weights.json`` with
 ``weights_index.mha`` and ``weights_value.mha`` (:mod:`workbench.io.weights`),
 and ``tetmesh.vtu`` (with one point array per bone, ``weight_<bone>``: open
@@ -20,7 +28,7 @@ from dataclasses import dataclass
 
 from workbench import __version__
 from workbench.errors import InputFileError
-from workbench.stages.mechanism import CopyFile, Labels, Stage, TetMeshFile, WeightMap
+from workbench.stages.mechanism import CopyFile, Labels, Stage, TetMeshFile, WeightMap, working_factor
 
 __all__ = ["WeightsSettings", "STAGE", "WEIGHT_METHODS"]
 
@@ -31,12 +39,15 @@ WEIGHT_METHODS = ("harmonic", "distance")
 class WeightsSettings:
     method: str = "harmonic"
     edge_length_mm: float | None = None  #: target tet edge length of a new mesh (None: 5 % of the body's diagonal)
+    grid_factor: int | None = None  #: weights on every f-th template voxel (None: 1 up to WORKING_VOXELS, else more)
 
     def __post_init__(self):
         if self.method not in WEIGHT_METHODS:
             raise ValueError(f"weights method must be one of {WEIGHT_METHODS}, got {self.method!r}")
         if self.edge_length_mm is not None and not self.edge_length_mm > 0:
             raise ValueError(f"--edge-length-mm must be positive, got {self.edge_length_mm}")
+        if self.grid_factor is not None and not (isinstance(self.grid_factor, int) and self.grid_factor >= 1):
+            raise ValueError(f"--grid-factor must be a whole number ≥ 1, got {self.grid_factor!r}")
 
 
 def _inputs(study, s, scan):
@@ -54,10 +65,15 @@ def _run(ctx) -> dict:
     sk = study.skeleton()
     bone_labels = {b: sk.label_of(b) for b in sk.bone_names}
     template, labels = study.template(), study.template_labels()
+    f = working_factor(s.grid_factor, template.geometry)
+    if f > 1:  # a big template: the weights (and body mask) on every f-th voxel; deform solves its maps there
+        ctx.say(f"template of {template.geometry.n_voxels:,} voxels: weights on every {f}th voxel along each axis "
+                f"({template.geometry.every(f).n_voxels:,} voxels; --grid-factor)")
+        template, labels = template.every(f), labels.every(f)
     body = segment_body(template, labels=labels)
     out = {"body_mask.nii.gz": Labels(body)}
     kept = ctx.previous.get("tetmesh.vtu")
-    info = {"method": s.method}
+    info = {"method": s.method, "grid_factor": f}
     if s.method == "harmonic":
         mesh = None
         if kept is not None and not ctx.options.get("remesh"):

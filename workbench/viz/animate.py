@@ -435,7 +435,8 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
             lo, hi = robust_range(template.data)
             thr = first_visible(tf.resolved(lo, hi))
             mask = content_mask(template.data, thr)
-            bounds = _camera_bounds(poser, sk, kf, mask, 2.0 * max(g.spacing))
+            wf = poser.weights_factor  # the forward map lies on the weights' grid
+            bounds = _camera_bounds(poser, sk, kf, mask[::wf, ::wf, ::wf], 2.0 * max(g.spacing))
             g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
             renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
                                       background=background, bounds=bounds, mapper=mapper)
