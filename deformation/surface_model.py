@@ -91,7 +91,8 @@ class SurfaceModel:
         elif method == "psd":
             v = skin(self.base_samples, self.weights, t, self.space.weights(pose))
         else:
-            if self._point_space is None:  # Φ⁻¹ per vertex, once (Kurihara: precomputed)
+            if self._point_space is None:  # Φ⁻¹ per vertex folded with the samples, once (Kurihara: precomputed)
                 self._point_space = self.space.point_space(self.weights)
-            v = wpsd_deform(self.base_samples, self.weights, self._point_space, pose, t)
+                self._folded = self._point_space.fold(self.base_samples)
+            v = wpsd_deform(self.base_samples, self.weights, self._point_space, pose, t, folded=self._folded)
         return SurfaceMesh(v, self.base.triangles)
