@@ -66,7 +66,7 @@ def polyrigid_initial_field(template_labels: Volume, bone_labels: dict, parents:
 
 
 def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeometry, weights, transforms,
-                      *, body=None, unfold: bool = False) -> tuple[Volume, dict]:
+                      *, body=None, unfold: bool = False, factor: int = 1) -> tuple[Volume, dict]:
     """``scan_to_template`` field of VBD (Rhee Eq. 2) on the scan grid, and the backward map's summary.
 
     ``transforms`` ``(n_bones, 4, 4)`` template → scan, in ``weights.bones``
@@ -82,11 +82,22 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
     two sheets: measured on the soft knee, MED +0.1 to +1.2 mm per scan; on
     the hand, where the creases lie between thin fingers, far more (README,
     "Registration").
+
+    ``factor`` f > 1: ``weights`` and ``body`` are on every f-th template voxel
+    (``workbench weights --grid-factor``, a big template); the maps are solved
+    on every f-th voxel of both grids and the field blended up to the scan's
+    full grid a slab at a time (:class:`deformation.resample.CoarseBackwardMap`).
     """
+    f = int(factor)
     t = np.asarray(transforms, float)
-    fwd = vbd_forward(template_geometry, weights, t)
-    bm = backward_map(fwd, template_geometry, scan_geometry, transforms=t,
+    fwd = vbd_forward(template_geometry.every(f), weights, t)
+    bm = backward_map(fwd, template_geometry.every(f), scan_geometry.every(f), transforms=t,
                       prefer=None if body is None else np.asarray(body, bool))
+    del fwd
+    if f > 1:
+        from deformation.resample import CoarseBackwardMap
+
+        bm = CoarseBackwardMap(bm, f, template_geometry, scan_geometry)
     field, summary = bm.scan_to_template(), bm.summary()
     if unfold:
         field, summary["unfold"] = unfold_field(field)

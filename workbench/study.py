@@ -305,8 +305,8 @@ class Study:
         """``(SkinningWeights, body mask Volume)`` of the template (``workbench weights``), checked against its grid.
 
         Weights made on every f-th template voxel (``workbench weights --grid-factor f``, a big template) are
-        returned only to a caller that takes them (``coarse=True``: deform, animate); any other is told to
-        recompute them on the template's grid.
+        returned only to a caller that takes them (``coarse=True``: deform, animate, the init stage's VBD); any
+        other is told to recompute them on the template's grid.
         """
         from workbench.io.weights import read_voxel_weights
 
@@ -317,7 +317,7 @@ class Study:
         if f > 1 and geometry.is_close(tg.every(f)):
             if not coarse:
                 raise InputFileError(f"{path}: the skinning weights are on every {f}th template voxel (workbench "
-                                     f"weights --grid-factor {f}); only deform and animate use them there. "
+                                     f"weights --grid-factor {f}); only deform, animate and the VBD start use them there. "
                                      f"Recompute them on the template's grid: `workbench weights {self.root} "
                                      "--grid-factor 1 --force`.", path)
         else:

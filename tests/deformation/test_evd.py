@@ -393,3 +393,34 @@ def test_a_poser_with_weights_on_every_other_voxel_solves_its_maps_there(knee):
     other = g.every(2).crop((0, 0, 0), (3, 3, 3))
     with pytest.raises(Exception, match="recompute the weights"):  # a mask on some other grid
         TemplatePoser(tmpl, w.take(sub), Volume(np.ones(other.array_shape, np.uint8), other))
+
+
+def test_a_vbd_start_from_weights_on_every_other_voxel(knee, monkeypatch):
+    """registration.initialise.vbd_initial_field with weights on every 2nd template voxel (the init stage on a
+    big template): the maps solved there, the scan_to_template field on the scan's full grid, made a slab at a
+    time — the slabs give the fine map's field, and for one rigid motion of every bone the field is the one of
+    full-grid weights (an affine inverse blends exactly, up to the two solves' tolerance)."""
+    import deformation.resample as rs
+    from registration.initialise import vbd_initial_field
+
+    ph, w = knee
+    g = ph.geometry
+    sub = np.arange(g.n_voxels).reshape(g.array_shape)[::2, ::2, ::2].ravel()
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_euler("y", 6.0, degrees=True).as_matrix()
+    t[:3, 3] = [1.5, 0.5, -2.0]
+    ts = np.repeat(t[None], len(w.bones), axis=0)
+    monkeypatch.setattr(rs, "SLAB_VOXELS", 3 * g.size[0] * g.size[1])  # 3 slices a slab: 11 slabs of 33
+    full, s_full = vbd_initial_field(g, g, w, ts)
+    coarse, s_coarse = vbd_initial_field(g, g, w.take(sub), ts, factor=2)
+    assert coarse.geometry.is_close(g) and s_coarse["map_factor"] == 2 and "map_factor" not in s_full
+    cmap = rs.CoarseBackwardMap(backward_map(vbd_forward(g.every(2), w.take(sub), ts), g.every(2), g.every(2),
+                                             transforms=ts), 2, g)
+    np.testing.assert_allclose(cmap.scan_to_template().data, cmap.full().scan_to_template().data, atol=1e-4)
+    # where the blend's 8 coarse neighbours were all solved (on the rim a voxel takes its nearest coarse
+    # voxel's preimage instead, up to f voxels off: tested above), and the exact map solved the voxel
+    both = (_all_neighbours_solved(cmap.coarse, g.array_shape, 2)
+            & (backward_map(vbd_forward(g, w, ts), g, transforms=ts).status <= FOLDED))
+    assert both.mean() > 0.3
+    # 0.03 voxel (both solves' tolerance) of this 6 mm grid, with float32 storage
+    assert np.abs(coarse.data - full.data)[both].max() < 0.03 * 6.0 + 1e-3

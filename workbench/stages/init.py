@@ -86,10 +86,12 @@ def _run(ctx) -> dict:
     g_s = read_image_geometry(study.scan_path(sid))
     if s.method == "polyrigid":
         return _polyrigid(ctx, pose, g_s)
-    weights, body = study.weights()
-    ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()} ...")
+    weights, body = study.weights(coarse=True)
+    f = round(body.geometry.spacing[0] / g_t.spacing[0])  # 1, or the weights' --grid-factor (a big template)
+    ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()}"
+            f"{f' (the maps on every {f}th voxel, as the weights)' if f > 1 else ''} ...")
     transforms = stack_transforms(pose.transforms, weights.bones)
-    field, summary = vbd_initial_field(g_t, g_s, weights, transforms, body=body.data, unfold=s.unfold)
+    field, summary = vbd_initial_field(g_t, g_s, weights, transforms, body=body.data, unfold=s.unfold, factor=f)
     return {"field.mha": Field(field),
             "init.json": Json({"format": "avw-init", "version": 1, "method": "vbd", "pose": s.pose,
                                "direction": "scan_to_template: template position − scan voxel, mm",
