@@ -36,6 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
+# this folder holds registration.py, which would shadow the project's `registration` package
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 BUDGET_GIB = 8.0
 KURIHARA_SIZE = (512, 512, 750)
 KURIHARA_SPACING = (0.468, 0.468, 0.3)  # mm: a 240 × 240 × 225 mm field of view

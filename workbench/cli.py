@@ -187,7 +187,7 @@ A template of more than 32 M voxels (a CT the size of Kurihara's, 512×512×750)
 gets its weights and body mask on every 2nd (3rd, ...) voxel along each axis
 instead, which keeps the stage and `workbench deform` within 8 GiB: deform
 then solves its maps on that grid and pulls the full-resolution template
-through them (VBD only: init, register and model need --grid-factor 1).
+through them (VBD only: register, model and validate need --grid-factor 1).
 Options left out keep the setting the stage last ran with in this study
 (else the default shown); an up-to-date stage is skipped.
 """

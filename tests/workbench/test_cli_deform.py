@@ -278,7 +278,9 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path
                           "--map-factor", "3"], "--map-factor"),
                         (["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "e.nii.gz"),
                           "--method", "evd"], "--method vbd"),
-                        (["register", str(root), "--init", "vbd", "--force"], "--grid-factor 1"), (["model", str(root), "--source", "truth"],
+                        (["register", str(root), "--init", "vbd", "--force"], "--grid-factor 1"),
+                        # every 6th voxel of this 5 mm knee (30 mm) holds none of the fibula's
+                        (["weights", str(root), "--method", "distance", "--grid-factor", "6"], "fibula"), (["model", str(root), "--source", "truth"],
                                                                     "--grid-factor 1")):
         assert main(argv + ["--quiet"]) == 1, argv
         err = capsys.readouterr().err.strip().splitlines()
