@@ -189,6 +189,11 @@ class GridGeometry:
             f += 1
         return f
 
+    def factor_of(self, grid: "GridGeometry") -> int | None:
+        """``f`` when ``grid`` is :meth:`every` ``(f)`` of this grid (1: the grid itself), else None."""
+        f = max(1, int(round(grid.spacing[0] / self.spacing[0])))
+        return f if grid.is_close(self.every(f)) else None
+
     def crop(self, lo, hi) -> "GridGeometry":
         """The sub-grid of voxel indices ``lo ≤ (i, j, k) < hi`` (in range, non-empty): voxel ``lo`` is its
         origin, spacing and direction are kept, so every voxel stays where it was in world mm."""

@@ -160,8 +160,8 @@ class TemplatePoser:
 
 def _grid_factor(template, grid) -> int:
     """``f`` when ``grid`` is ``template.every(f)`` (1: the template's own grid), else a ValueError."""
-    f = max(1, int(round(grid.spacing[0] / template.spacing[0])))
-    if not grid.is_close(template.every(f)):
+    f = template.factor_of(grid)
+    if f is None:
         template.check_same(grid, names=("template", "skinning weights / body mask"),
                             remedy="recompute the weights: workbench weights --force")
     return f

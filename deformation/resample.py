@@ -824,7 +824,7 @@ def _pull_kernel(cx, cst, ok, f, src, nx, ny, nz, order, fill, out):
                                                   order, fill)
 
 
-#: fine voxels a :class:`CoarseBackwardMap` turns into a field at a time (~120 MB of temporaries)
+#: fine voxels a :class:`CoarseBackwardMap` turns into a field at a time (~0.4 GB of float64 temporaries)
 SLAB_VOXELS = 1 << 22
 
 
@@ -890,7 +890,8 @@ class CoarseBackwardMap:
         step = max(1, SLAB_VOXELS // (nx * ny))
         for k0 in range(0, nz, step):
             k1 = min(k0 + step, nz)
-            out[k0:k1] = self.rows(k0, k1).scan_to_template().data
+            pos = self.template_geometry.index_to_world(self.rows(k0, k1).template_index)
+            out[k0:k1] = pos - g.world_coordinates(z_slice=slice(k0, k1))  # the full grid's coordinates: same bits
         return Volume(out, g)
 
     def summary(self) -> dict:

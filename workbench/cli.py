@@ -183,11 +183,11 @@ ParaView); --force recomputes from it, --remesh makes a new mesh.
 
 Writes skinning/weights.json with weights_index.mha and weights_value.mha
 (4-component images on the template grid) and skinning/body_mask.nii.gz.
-A template of more than 32 M voxels (a CT the size of Kurihara's, 512×512×750)
+A template of more than 60 M voxels (a CT the size of Kurihara's, 512×512×750)
 gets its weights and body mask on every 2nd (3rd, ...) voxel along each axis
 instead, which keeps the stage and `workbench deform` within 8 GiB: deform
 then solves its maps on that grid and pulls the full-resolution template
-through them (VBD only: register, model and validate need --grid-factor 1).
+through them (VBD only: register after a VBD start, model and validate need --grid-factor 1).
 Options left out keep the setting the stage last ran with in this study
 (else the default shown); an up-to-date stage is skipped.
 """
@@ -518,7 +518,7 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("--grid-factor", type=_positive_int, default=argparse.SUPPRESS, metavar="F",
                     help="register the bones on every F-th voxel along each axis of the template and scans "
                          "(smoothed first; F³ fewer voxels and bytes, about F times coarser). Default: 1, or the "
-                         "smallest F that leaves at most 32 M voxels (2 for a 512×512×750 CT)")
+                         "smallest F that leaves at most 60 M voxels (2 for a 512×512×750 CT)")
     po.add_argument("--force", action="store_true", help="rerun even when up to date")
     _scale_options(po)
     _common(po)
@@ -534,7 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
     we.add_argument("--remesh", action="store_true", help="make a new tet mesh instead of reusing the study's")
     we.add_argument("--grid-factor", type=_positive_int, default=argparse.SUPPRESS, metavar="F",
                     help="weights on every F-th template voxel along each axis (F³ fewer voxels and bytes). "
-                         "Default: 1, or the smallest F that leaves at most 32 M voxels")
+                         "Default: 1, or the smallest F that leaves at most 60 M voxels")
     we.add_argument("--force", action="store_true", help="rerun even when up to date (from the kept tet mesh)")
     _common(we)
     we.set_defaults(func=cmd_weights)

@@ -36,7 +36,7 @@ def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", p
     weights, body = study.weights(coarse=True)
     model = None
     template = study.template()
-    grid = f"every {round(body.geometry.spacing[0] / template.geometry.spacing[0])}th template voxel"
+    grid = f"every {template.geometry.factor_of(body.geometry)}th template voxel"
     on_template = body.geometry.is_close(template.geometry)
     if method == "evd" and not on_template:
         raise InputFileError(f"{study.output('weights', 'weights.json')}: the skinning weights are on {grid} "

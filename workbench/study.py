@@ -313,8 +313,8 @@ class Study:
         path = self.output("weights", "weights.json")
         weights, geometry, _ = read_voxel_weights(path)
         tg = read_image_geometry(self.path(self.manifest["template"]))
-        f = max(1, int(round(geometry.spacing[0] / tg.spacing[0])))
-        if f > 1 and geometry.is_close(tg.every(f)):
+        f = tg.factor_of(geometry)
+        if f is not None and f > 1:
             if not coarse:
                 raise InputFileError(f"{path}: the skinning weights are on every {f}th template voxel (workbench "
                                      f"weights --grid-factor {f}); only deform, animate and the VBD start use them there. "

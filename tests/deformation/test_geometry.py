@@ -235,7 +235,7 @@ def test_volume_crop_keeps_voxels_in_place(geom):
 def test_every_fth_voxel_of_a_volume_and_the_factor_within_a_budget():
     """Volume.every: labels as they are at voxels 0, f, 2f, … (same world positions); intensities smoothed first
     (σ = f/2 voxels): a constant stays constant and a one-voxel checkerboard, which plain sampling would alias
-    to a constant 1, is averaged towards its mean 0.5.  factor_within: the smallest factor under a budget."""
+    to a constant 0, is averaged towards its mean 0.5.  factor_within: the smallest factor under a budget."""
     from scipy.spatial.transform import Rotation
 
     rot = Rotation.from_euler("xyz", [10.0, -20.0, 35.0], degrees=True).as_matrix()
@@ -253,6 +253,8 @@ def test_every_fth_voxel_of_a_volume_and_the_factor_within_a_budget():
     assert np.all(checker.data[::2, ::2, ::2] == 0)  # plain sampling: every kept voxel is even
     s = checker.every(2, smooth=True).data[3:-3, 3:-3, 3:-3]  # away from the border
     assert np.abs(s - 0.5).max() < 0.1, np.abs(s - 0.5).max()
+    assert g.factor_of(g.every(3)) == 3 and g.factor_of(g) == 1
+    assert g.factor_of(g.every(2).crop((0, 0, 0), (2, 2, 2))) is None  # coarse, but not every 2nd voxel of g
     big = GridGeometry((512, 512, 750), (0.468, 0.468, 0.3))
     assert big.factor_within(32_000_000) == 2 and big.factor_within(big.n_voxels) == 1
     assert big.every(2).n_voxels <= 32_000_000 < big.every(1).n_voxels

@@ -221,7 +221,7 @@ def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, sma
 
 
 def test_pose_on_every_other_voxel_of_a_finer_scan(tmp_path, capsys):
-    """`workbench pose --grid-factor 2` (what a template over 32 M voxels gets by default): template and scans
+    """`workbench pose --grid-factor 2` (what a template over 60 M voxels gets by default): template and scans
     smoothed and taken on every 2nd voxel, the bones registered there.  On a knee at half the test size's
     spacing (2.5 mm, so the working grid is the test size's 5 mm) the tibia comes out within the bound of the
     test-size pose test above, and the stage records the factor."""
@@ -235,6 +235,10 @@ def test_pose_on_every_other_voxel_of_a_finer_scan(tmp_path, capsys):
     st = read_study(root)
     assert st.pose_report()["grid_factor"] == 2 and st.pose_report()["failures"] == []
     assert st.stage_entry("pose")["settings"]["grid_factor"] == 2
+    # a factor that leaves a bone without a voxel is one line naming the option, not a label-id puzzle
+    assert main(["pose", str(root), "--grid-factor", "12", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--grid-factor" in err[0] and "no voxel" in err[0], err
     est, truth = st.pose("pose01"), st.truth_pose("pose01")
     err = rotation_angle_deg(compose(invert(truth.transforms["tibia"]), est.transforms["tibia"]))
     assert err < 3.5, err

@@ -87,7 +87,7 @@ def _run(ctx) -> dict:
     if s.method == "polyrigid":
         return _polyrigid(ctx, pose, g_s)
     weights, body = study.weights(coarse=True)
-    f = round(body.geometry.spacing[0] / g_t.spacing[0])  # 1, or the weights' --grid-factor (a big template)
+    f = g_t.factor_of(body.geometry)  # 1, or the weights' --grid-factor (a big template; checked by weights())
     ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()}"
             f"{f' (the maps on every {f}th voxel, as the weights)' if f > 1 else ''} ...")
     transforms = stack_transforms(pose.transforms, weights.bones)

@@ -63,20 +63,37 @@ from workbench.study import STAGE_COMMANDS, Study, StudyError
 
 __all__ = ["Stage", "Event", "Outcome", "StageNotReady", "execute", "stage_status", "file_digest",
            "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "MeshFile", "CopyFile",
-           "settings_dict", "WORKING_VOXELS", "working_factor"]
+           "settings_dict", "WORKING_VOXELS", "working_factor", "working_labels"]
 
 log = logging.getLogger("workbench")
 
-#: the most template voxels the pose and weights stages work on: both hold ~100–115 bytes a voxel
-#: (benchmarks/big_volume.py), so ~3.5 GiB here.  A bigger template (Kurihara's CT: 197 M voxels) is worked on
-#: every f-th voxel (``--grid-factor``; f = 2 there), which keeps a study of that size within 8 GiB.
-WORKING_VOXELS = 32_000_000
+#: the most template voxels the pose and weights stages work on: they and a full-grid deform hold ~100–117 bytes
+#: a voxel (benchmarks/big_volume.py), so ≤ 6.6 GiB here, within the 8 GiB budget; a template up to this size
+#: keeps full-grid weights (which register, model and validate need).  A bigger one (Kurihara's CT: 197 M voxels)
+#: is worked on every f-th voxel (``--grid-factor``; f = 2 there).
+WORKING_VOXELS = 60_000_000
 
 
 def working_factor(setting, geometry) -> int:
     """The ``--grid-factor`` of a stage: the setting, or (None) the smallest that leaves at most
     :data:`WORKING_VOXELS` of the template's grid."""
     return geometry.factor_within(WORKING_VOXELS) if setting is None else int(setting)
+
+
+def working_labels(study, labels, f: int):
+    """The template's bone labels on every ``f``-th voxel; a bone left with no voxel there is one clear error
+    naming ``--grid-factor``."""
+    if f == 1:
+        return labels
+    sk = study.skeleton()
+    coarse = labels.every(f)
+    gone = [b for b in sk.bone_names
+            if (labels.data == sk.label_of(b)).any() and not (coarse.data == sk.label_of(b)).any()]
+    if gone:
+        path = study.template_labels_path()
+        raise StudyError(f"{path}: bone(s) {', '.join(gone)} have no voxel on every {f}th voxel of the template; "
+                         "give a smaller --grid-factor (1 keeps the full grid)", path)
+    return coarse
 
 
 class StageNotReady(StudyError):

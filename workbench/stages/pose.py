@@ -28,7 +28,7 @@ import numpy as np
 
 from workbench.io.inputs import read_initial_poses
 from workbench.io.volumes import read_image_geometry
-from workbench.stages.mechanism import Json, Stage, Text, working_factor
+from workbench.stages.mechanism import Json, Stage, Text, working_factor, working_labels
 
 __all__ = ["PoseSettings", "STAGE", "finite"]
 
@@ -100,7 +100,7 @@ def _fit_arguments(s: PoseSettings, root_init) -> dict:
 def _working(study, f: int):
     """The template, its labels and a scan reader on the grid the bones are registered on: every ``f``-th voxel
     (intensities smoothed first, :meth:`Volume.every`); the transforms found there are in world mm, as any."""
-    return (study.template().every(f, smooth=True), study.template_labels().every(f),
+    return (study.template().every(f, smooth=True), working_labels(study, study.template_labels(), f),
             lambda sid: study.scan(sid).every(f, smooth=True))
 
 

@@ -12,8 +12,8 @@ f-th voxel along each axis (``grid_factor``; the weights are smooth; a bone with
 grid is one clear error naming ``--grid-factor``): deform,
 animate and the init stage's VBD solve their maps on that grid and pull the
 full template (or blend the field) up to full resolution
-(:class:`deformation.resample.CoarseBackwardMap`); register, model and
-validate, which need full-grid weights, say so.
+(:class:`deformation.resample.CoarseBackwardMap`); register after a VBD
+start, model and validate, which need full-grid weights, say so.
 
 Outputs (``skinning/``): ``body_mask.nii.gz``, ``weights.json`` with
 ``weights_index.mha`` and ``weights_value.mha`` (:mod:`workbench.io.weights`),
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 from workbench import __version__
 from workbench.errors import InputFileError
-from workbench.stages.mechanism import CopyFile, Labels, Stage, TetMeshFile, WeightMap, working_factor
+from workbench.stages.mechanism import CopyFile, Labels, Stage, TetMeshFile, WeightMap, working_factor, working_labels
 
 __all__ = ["WeightsSettings", "STAGE", "WEIGHT_METHODS"]
 
@@ -70,13 +70,7 @@ def _run(ctx) -> dict:
     if f > 1:  # a big template: the weights (and body mask) on every f-th voxel; deform solves its maps there
         ctx.say(f"template of {template.geometry.n_voxels:,} voxels: weights on every {f}th voxel along each axis "
                 f"({template.geometry.every(f).n_voxels:,} voxels; --grid-factor)")
-        full_labels, template, labels = labels, template.every(f), labels.every(f)
-        gone = [b for b, v in bone_labels.items() if (full_labels.data == v).any() and not (labels.data == v).any()]
-        if gone:
-            raise InputFileError(f"{study.template_labels_path()}: bone(s) {', '.join(gone)} have no voxel on every "
-                                 f"{f}th voxel of the template; give a smaller --grid-factor (1 keeps the full grid)",
-                                 study.template_labels_path())
-        del full_labels
+        template, labels = template.every(f), working_labels(study, labels, f)
     body = segment_body(template, labels=labels)
     out = {"body_mask.nii.gz": Labels(body)}
     kept = ctx.previous.get("tetmesh.vtu")
