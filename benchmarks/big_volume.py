@@ -8,7 +8,8 @@ the hand (SimpleITK: linear for images, nearest for labels; the ground truth
 is left out: validate is not measured here) — then runs ``workbench pose``,
 ``workbench weights``, the init stage's VBD of each scan (Rhee Eq. 2, DESIGN
 step 5: ``workbench run --until init --set init.method=vbd``) and
-``workbench deform --method vbd`` on it, each in its own process, and prints each one's peak resident memory (the process and its
+``workbench deform --method vbd`` on it (``unfold``: the VBD start with ``--unfold-init``; ``field``: deform with ``--field-out``, the posed-to-template
+displacement; ``animate``: a two-keyframe ``workbench animate`` of 6 frames at 320×240), each in its own process, and prints each one's peak resident memory (the process and its
 children, sampled every 50 ms) and time against the 8 GiB budget.  A stage
 whose memory passes ``--kill-gib`` (default 20, the machine has 24) is
 stopped and reported as over.
@@ -16,7 +17,7 @@ stopped and reported as over.
 Usage::
 
     .venv/bin/python benchmarks/big_volume.py [--out /tmp/avw-big] [--size 512 512 750]
-        [--stages pose weights init deform] [--kill-gib 20]
+        [--stages pose weights init unfold deform field animate] [--kill-gib 20]
 
 ``--size`` makes a smaller grid over the same field of view (e.g. ``256 256
 375``, an eighth of the voxels at twice the spacing) to see how the peaks
@@ -94,6 +95,15 @@ def run_measured(cmd: list[str], kill_gib: float) -> tuple[int, float, float, st
     return proc.returncode, peak, time.perf_counter() - t0, tail
 
 
+def keyframes(out: Path) -> Path:
+    """Two keyframes for ``animate``: the rest pose and the fingers flexed 40° at the MCP joints."""
+    bend = {f"{f}_mcp": [40, 0, 0] for f in ("index", "middle", "ring", "little")}
+    path = out / "keyframes.json"
+    path.write_text(json.dumps({"format": "avw-keyframes", "version": 1, "skeleton": "hand", "fps": 24,
+                                "keyframes": [{"time": 0.0, "angles": {}}, {"time": 1.0, "angles": bend}]}))
+    return path
+
+
 def build_study(out: Path, size) -> tuple[Path, Path]:
     """The CT hand phantom resampled onto a Kurihara-size grid; returns (study folder, a target pose file)."""
     import SimpleITK as sitk
@@ -162,7 +172,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("/tmp/avw-big"))
     p.add_argument("--size", type=int, nargs=3, default=[512, 512, 750], metavar=("NX", "NY", "NZ"))
     p.add_argument("--stages", nargs="+", default=["pose", "weights", "init", "deform"],
-                   choices=["pose", "weights", "init", "deform"])
+                   choices=["pose", "weights", "init", "unfold", "deform", "field", "animate"])
     p.add_argument("--kill-gib", type=float, default=20.0)
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -177,8 +187,15 @@ def main(argv=None) -> int:
                 "weights": wb + ["weights", str(study), "--force", "--quiet"],
                 "init": wb + ["run", str(study), "--until", "init", "--set", "init.method=vbd", "--force", "init",
                               "--quiet"],
+                "unfold": wb + ["run", str(study), "--until", "init", "--set", "init.method=vbd", "--set",
+                                "init.unfold=true", "--force", "init", "--quiet"],
                 "deform": wb + ["deform", str(study), "--pose", str(target), "--method", "vbd", "--force",
-                                "--out", str(a.out / "posed.nii"), "--quiet"]}
+                                "--out", str(a.out / "posed.nii"), "--quiet"],
+                "field": wb + ["deform", str(study), "--pose", str(target), "--method", "vbd", "--force",
+                               "--out", str(a.out / "posed.nii"), "--field-out", str(a.out / "posed_field.mha"),
+                               "--quiet"],
+                "animate": wb + ["animate", str(study), "--keyframes", str(keyframes(a.out)), "--method", "vbd",
+                                 "--size", "320x240", "--frames", "6", "--force", "--out", str(a.out / "anim.gif"), "--quiet"]}
     print(f"| stage | exit | peak GiB (budget {BUDGET_GIB:g}) | bytes per voxel | seconds |")
     print("|---|---|---|---|---|")
     for name in a.stages:

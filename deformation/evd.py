@@ -42,7 +42,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry
-from .posespace import PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones
+from .posespace import PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones, per_bone_sq
 from .skinning import SkinningWeights, _as_stack, blend_point
 
 if nb.config.THREADING_LAYER == "default":
@@ -321,12 +321,8 @@ class ExampleVolumeDeformation:
         else:
             vec = self.space.vector(pose)
             train = self.space.train
-            nb_ = self.weights.n_bones
-            bone_pair = np.zeros((nb_, len(train), len(train)))
-            bone_q = np.zeros((nb_, len(train)))
-            for k, b in enumerate(self._dof_bone):
-                bone_pair[b] += (train[:, None, k] - train[None, :, k]) ** 2
-                bone_q[b] += (vec[k] - train[:, k]) ** 2
+            bone_pair = per_bone_sq(train[:, None, :] - train[None, :, :], self._dof_bone, self.weights.n_bones)
+            bone_q = per_bone_sq(vec[None, :] - train, self._dof_bone, self.weights.n_bones)
             _forward_kernel_wpsd(a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements,
                                  bone_pair, bone_q, out)
         return out

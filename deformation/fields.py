@@ -503,6 +503,7 @@ def folding_statistics(field: Volume, mask=None) -> dict:
 
 
 RESTORE_FRACTIONS = (1.0, 0.75, 0.5, 0.25)  #: how far back towards the input a repaired voxel may go, tried in turn
+UNFOLD_PAD = 8  #: voxels beyond the smoothing's reach that unfold's crop adds around the folds at first
 RESTORE_PASSES = 10  #: at most this many restoring passes (each pass moves fewer voxels; they stop when none moves)
 
 
@@ -521,7 +522,11 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     guarantee of success: ``n_folded_after`` says what is left.  This is the usual repair of a non-invertible
     initial field (e.g. the backward map of linear-blend VBD, Rhee Eq. 2, in
     the crease of a flexed joint, where the forward blend is not one-to-one):
-    it changes the field only in and next to the folded voxels.
+    it changes the field only in and next to the folded voxels.  Folds
+    farther apart than the smoothing's reach (2·4σ + ``margin`` + :data:`UNFOLD_PAD`
+    voxels) are repaired one cluster after the other, each on a crop of the
+    grid around it (the whole grid's repair of that cluster, bit for bit), so
+    a 200 M-voxel field costs its folds' neighbourhood plus one copy.
 
     ``mask`` (optional bool array or Volume on the grid) restricts the voxels
     whose determinant is checked (e.g. the body); all voxels by default.
@@ -548,21 +553,117 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     ``n_restored``: of the smoothed ones, those that went back all the way);
     folded counts are of ``det ≤ 0`` over the mask.
     """
-    from scipy import ndimage as ndi
-
     if not min_det > 0:
         raise ValueError(f"unfold: min_det must be > 0, got {min_det}")
     if not sigma > 0:
         raise ValueError(f"unfold: sigma must be > 0 (voxels), got {sigma}")
     u0 = _check_field(field)
-    u = np.array(u0, dtype=np.float64)
     g = field.geometry
     m = None if mask is None else np.asarray(_grid_array(mask, g, "mask", trailing=()), dtype=bool)
     fz = None if frozen is None else np.asarray(_grid_array(frozen, g, "frozen", trailing=()), dtype=bool)
     m_inv = np.ascontiguousarray(np.linalg.inv(g.index_to_world_matrix[:3, :3]))
-    det = np.empty(g.array_shape, dtype=np.float64)
+    shape = g.array_shape
+    # The repair works fold by fold, each on a crop of the grid around it: a grid may hold 200 M voxels with
+    # folds in a few creases, and the repair of the whole grid held ~90 B a voxel (a float64 copy, its
+    # determinants, the input again to restore from: 16.6 GiB for the VBD start of Kurihara's 197 M-voxel CT).
+    # Folds closer than ``pad`` voxels are one cluster; each cluster's repair is that of the whole grid with only
+    # its folds (its crop is widened until the repair keeps off the crop's faces, where a determinant would be
+    # one-sided and a Gaussian box clipped), and the clusters are repaired one after the other.
+    low, n_before = _low_dets(u0, m_inv, float(min_det), m)
+    out = u0.copy()
+    pad0 = max(1, 2 * int(math.ceil(4.0 * sigma)) + int(margin) + UNFOLD_PAD)
+    iterations = n_smoothed = 0
+    for box in _clusters(low, pad0):
+        pad = pad0
+        while True:
+            crop = tuple(slice(max(b.start - pad, 0), min(b.stop + pad, n)) for b, n in zip(box, shape))
+            inner = np.zeros(tuple(c.stop - c.start for c in crop), dtype=bool)  # the crop less its own faces
+            inner[tuple(slice(0 if c.start == 0 else 1, None if c.stop == n else -1)
+                        for c, n in zip(crop, shape))] = True
+            u, info, touched = _unfold_crop(out[crop], m_inv, inner if m is None else inner & m[crop],
+                                            None if fz is None else fz[crop], min_det, sigma, margin,
+                                            max_iterations, restore)
+            if all((c.start == 0 or t.start >= 1) and (c.stop == n or t.stop <= c.stop - c.start - 1)
+                   for c, t, n in zip(crop, touched, shape)):
+                break
+            pad *= 2
+        out[crop] = u.astype(out.dtype, copy=False)
+        iterations = max(iterations, info["iterations"])
+        n_smoothed += info["n_changed"] + info["n_restored"]
+    n_after, n_changed, max_change = _unfold_summary(out, u0, m_inv, m)
+    return Volume(out, g), dict(iterations=iterations, n_folded_before=n_before, n_folded_after=n_after,
+                                n_changed=n_changed, n_restored=n_smoothed - n_changed, max_change_mm=max_change)
+
+
+def _slab_dets(u, m_inv):
+    """``(k0, k1, det)``: :func:`_jacobian_det` of the whole field in float64, made a slab of planes ``k0:k1``
+    at a time (each from the slab and a plane of its neighbours on both sides: the same bits)."""
+    nz = u.shape[0]
+    step = max(1, (1 << 22) // max(1, u.shape[1] * u.shape[2]))
+    for k0 in range(0, nz, step):
+        k1 = min(k0 + step, nz)
+        a0, a1 = max(k0 - 1, 0), min(k1 + 1, nz)
+        det = np.empty((a1 - a0,) + u.shape[1:3])
+        _jacobian_det(np.asarray(u[a0:a1], dtype=np.float64), m_inv, det)
+        yield k0, k1, det[k0 - a0:k1 - a0]
+
+
+def _low_dets(u, m_inv, min_det, mask):
+    """Where ``det ∂U/∂x < min_det`` within ``mask`` (bool, 1 B a voxel), and how many voxels fold there
+    (``det ≤ 0``)."""
+    low = np.zeros(u.shape[:3], dtype=bool)
+    n_folded = 0
+    for k0, k1, det in _slab_dets(u, m_inv):
+        m = None if mask is None else mask[k0:k1]
+        low[k0:k1] = det < min_det if m is None else (det < min_det) & m
+        n_folded += int(np.count_nonzero(det <= 0 if m is None else (det <= 0) & m))
+    return low, n_folded
+
+
+def _clusters(low, gap):
+    """Bounding boxes (slices) of the groups of ``low`` voxels: voxels in blocks of ``gap``³ that touch (26
+    neighbours) are one group, so voxels of different groups are at least ``gap`` apart; in the order of
+    their first block (z, y, x)."""
+    from scipy import ndimage as ndi
+
+    pooled = low
+    for ax in range(3):
+        pooled = np.logical_or.reduceat(pooled, np.arange(0, low.shape[ax], gap), axis=ax)
+    lab, _ = ndi.label(pooled, structure=np.ones((3, 3, 3), dtype=bool))
+    boxes = []
+    for k, blocks in enumerate(ndi.find_objects(lab), start=1):
+        fine = tuple(slice(b.start * gap, min(b.stop * gap, n)) for b, n in zip(blocks, low.shape))
+        mine = np.repeat(np.repeat(np.repeat(lab[blocks] == k, gap, 0), gap, 1), gap, 2)
+        sub = low[fine] & mine[tuple(slice(0, f.stop - f.start) for f in fine)]
+        hit = [np.flatnonzero(np.any(sub, axis=tuple(a for a in range(3) if a != ax))) for ax in range(3)]
+        boxes.append(tuple(slice(f.start + int(h[0]), f.start + int(h[-1]) + 1) for f, h in zip(fine, hit)))
+    return boxes
+
+
+def _unfold_summary(out, u0, m_inv, mask):
+    """After the repair: folded voxels (``det ≤ 0`` within ``mask``), voxels changed, largest change (mm)."""
+    n_after = 0
+    for k0, k1, det in _slab_dets(out, m_inv):
+        n_after += int(np.count_nonzero(det <= 0 if mask is None else (det <= 0) & mask[k0:k1]))
+    n_changed, max_change = 0, 0.0
+    step = max(1, (1 << 22) // max(1, out.shape[1] * out.shape[2]))
+    for k0 in range(0, out.shape[0], step):
+        d = np.linalg.norm(np.asarray(out[k0:k0 + step], np.float64) - np.asarray(u0[k0:k0 + step], np.float64),
+                           axis=-1)
+        n_changed += int(np.count_nonzero(d > 0))
+        max_change = max(max_change, float(d.max()))
+    return n_after, n_changed, max_change
+
+
+def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, restore):
+    """:func:`unfold` on a crop of the grid (``u0``, its mask ``m`` and ``frozen`` ``fz``, arrays of the crop):
+    the repaired crop (float64), the summary, and the box (slices) that holds every voxel it read or wrote."""
+    from scipy import ndimage as ndi
+
+    u = np.array(u0, dtype=np.float64)
+    det = np.empty(u.shape[:3], dtype=np.float64)
     _jacobian_det(u, m_inv, det)
-    shape = np.asarray(g.array_shape)
+    shape = np.asarray(u.shape[:3])
 
     def grown_box(where, by, within=None):
         """Bounding box of ``where`` (looked for inside the box ``within``, the whole grid by default) grown
@@ -592,12 +693,13 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
 
     bad = low()
     n_before = int(np.count_nonzero((det <= 0) if m is None else (det <= 0) & m))
-    changed = np.zeros(g.array_shape, dtype=bool)
+    changed = np.zeros(u.shape[:3], dtype=bool)
     grow, best, stall, it = int(margin), int(np.count_nonzero(bad)), 0, 0
     # every array operation of the loop works on boxes around the folds: ``hull`` holds every voxel that is
     # or has been low (the determinant changes only next to what was smoothed), so the loop costs the folds'
     # neighbourhood, not the grid
     hull = grown_box(bad, 0) if best else None
+    touched = hull if best else (slice(0, 0),) * 3
     n_bad = best
     while n_bad and it < max_iterations:
         it += 1
@@ -623,7 +725,8 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
         full[rel(rb, box)] = region[rel(rb, rbox)]
         sub[full] = sm[full]
         changed[box] |= full
-        _update_jacobian_det(u, m_inv, det, rb)
+        _update_jacobian_det(u, m_inv, det, rb)  # reads u two voxels around rb
+        touched = union(union(touched, rbox), union(box, grow_box(rb, 2)))
         ub = grow_box(rb, 1)
         bad[ub] = low(ub)
         hull = union(hull, ub)
@@ -637,7 +740,8 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     n_smoothed = int(np.count_nonzero(changed))
     if restore and n_smoothed:
         u_in = np.asarray(u0, dtype=np.float64)
-        check = np.ones(g.array_shape, dtype=bool) if m is None else m
+        check = np.ones(u.shape[:3], dtype=bool) if m is None else m  # the changed voxels lie in the smoothed
+        # regions, so what this reads (their neighbours' determinants) lies within two voxels of them: in touched
         fractions = np.asarray(RESTORE_FRACTIONS, dtype=np.float64)
         for _ in range(RESTORE_PASSES):
             change = np.linalg.norm(u - u_in, axis=-1)
@@ -654,7 +758,7 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     n_changed = int(np.count_nonzero(diff > 0))
     info = dict(iterations=it, n_folded_before=n_before, n_folded_after=n_after, n_changed=n_changed,
                 n_restored=n_smoothed - n_changed, max_change_mm=float(diff.max()) if diff.size else 0.0)
-    return Volume(u.astype(u0.dtype, copy=False), g), info
+    return u, info, touched
 
 
 # -- SimpleITK transforms -----------------------------------------------------------------------

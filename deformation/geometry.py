@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["GridGeometry", "Volume", "GeometryMismatchError"]
+__all__ = ["GridGeometry", "Volume", "GeometryMismatchError", "every_nth"]
 
 
 class GeometryMismatchError(ValueError):
@@ -40,6 +40,13 @@ def _as_vec3(value, name: str, *, positive: bool = False) -> tuple[float, float,
     if positive and np.any(arr <= 0):
         raise ValueError(f"{name} must be positive, got {value!r}")
     return tuple(float(v) for v in arr)
+
+
+def every_nth(f: int) -> str:
+    """'every 2nd', 'every 3rd', 'every 4th' ... (the factor of :meth:`GridGeometry.every` in messages)."""
+    f = int(f)
+    suffix = "th" if 10 <= f % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(f % 10, "th")
+    return f"every {f}{suffix}"
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .evd import vbd_forward
-from .geometry import Volume
+from .geometry import Volume, every_nth
 from .resample import backward_map, resample_forward
 from .skinning import stack_transforms
 
@@ -95,7 +95,7 @@ class TemplatePoser:
             from .skinning import SkinningWeights
 
             if self.weights_factor != 1:
-                raise ValueError(f"the skinning weights are on every {self.weights_factor}th template voxel: the "
+                raise ValueError(f"the skinning weights are on {every_nth(self.weights_factor)} template voxel: the "
                                  f"maps are solved there (map factor {self.weights_factor}, not {factor})")
 
             shape = self.template.geometry.array_shape  # weights and displacements are rows in array order
@@ -133,7 +133,7 @@ class TemplatePoser:
         t = stack_transforms(pose.transforms, self.weights.bones)
         t0 = time.perf_counter()
         self._say(f"forward map ({self.method.upper()}) of {g.every(f).n_voxels:,} "
-                  f"template voxels{f' (every {f}th along each axis)' if f > 1 else ''} ...")
+                  f"template voxels{f' ({every_nth(f)} along each axis)' if f > 1 else ''} ...")
         fwd = self.forward(pose, f)
         t1 = time.perf_counter()
         self._say("backward map and resampling ...")

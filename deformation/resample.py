@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .geometry import GridGeometry, Volume
+from .geometry import GridGeometry, Volume, every_nth
 from .interpolate import _fill_value, _flat_data, _interp_scalar, _output_dtype, sample_array
 
 if nb.config.THREADING_LAYER == "default":
@@ -852,7 +852,7 @@ class CoarseBackwardMap:
         target = template_geometry if target_geometry is None else target_geometry
         if not (coarse.template_geometry.is_close(template_geometry.every(f))
                 and coarse.target_geometry.is_close(target.every(f))):
-            raise ValueError(f"the coarse map's grids are not every {f}th voxel of the template and target grids")
+            raise ValueError(f"the coarse map's grids are not {every_nth(f)} voxel of the template and target grids")
         self.coarse, self.factor = coarse, f
         self.template_geometry, self.target_geometry = template_geometry, target
         self._cx = np.ascontiguousarray(coarse.template_index, dtype=np.float32)

@@ -77,7 +77,9 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
     inverse must jump between the two sheets of tissue, and the field folds
     (≈0.2 % of the body voxels of the test-size knee and hand phantoms).
     ``unfold=True`` repairs those voxels with :func:`deformation.fields.unfold`
-    (the summary gains an ``unfold`` entry); this makes the field one-to-one
+    (the summary gains an ``unfold`` entry) wherever the map sends a voxel
+    into the template (elsewhere it keeps a clamped position, det ~0 without
+    a fold: those are left as they are); this makes the field one-to-one there
     at a cost in accuracy, since the repaired band maps to tissue between the
     two sheets: measured on the soft knee, MED +0.1 to +1.2 mm per scan; on
     the hand, where the creases lie between thin fingers, far more (README,
@@ -94,11 +96,30 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
     bm = backward_map(fwd, template_geometry.every(f), scan_geometry.every(f), transforms=t,
                       prefer=None if body is None else np.asarray(body, bool))
     del fwd
+    coarse = bm
     if f > 1:
         from deformation.resample import CoarseBackwardMap
 
         bm = CoarseBackwardMap(bm, f, template_geometry, scan_geometry)
     field, summary = bm.scan_to_template(), bm.summary()
     if unfold:
-        field, summary["unfold"] = unfold_field(field)
+        # the folds repaired are those of the map: where it has no preimage in the template (status OUTSIDE,
+        # a clamped best position, constant along the clamped axis) and next to such voxels the determinant
+        # is ~0 without a fold; on the test-size knee 19 % of the scan's voxels, and 5,838 of its 6,079
+        # "folded" ones, there; at Kurihara's size 3 % of the grid, spread over all of it, had det < 0.05
+        field, summary["unfold"] = unfold_field(field, mask=_mapped(coarse, f, scan_geometry))
     return field, summary
+
+
+def _mapped(coarse_map, f: int, scan_geometry: GridGeometry) -> np.ndarray:
+    """Scan voxels the backward map sends into the template, less one voxel around those it does not
+    (solved on every f-th voxel: each coarse voxel's answer given to the f³ fine voxels from it onwards)."""
+    from scipy import ndimage as ndi
+
+    from deformation.resample import OUTSIDE
+
+    inside = ~ndi.binary_dilation(coarse_map.status == OUTSIDE, structure=np.ones((3, 3, 3), dtype=bool))
+    if f == 1:
+        return inside
+    nz, ny, nx = scan_geometry.array_shape
+    return np.repeat(np.repeat(np.repeat(inside, f, 0)[:nz], f, 1)[:, :ny], f, 2)[:, :, :nx]

@@ -603,7 +603,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="solve the forward and backward maps on every F-th voxel along each axis (F³ fewer "
                          "voxels) and blend the map up; the template is still resampled at full resolution. On "
                          "the paper-size hand, F=2 is about 3x faster, with a mean residual |F(x)-y| of 0.07 mm "
-                         "(up to a few mm where the map jumps between touching fingers). Default: 1 (exact)")
+                         "(up to a few mm where the map jumps between touching fingers). Default: 1 (exact), or the "
+                         "weights' --grid-factor when they lie on a coarse grid (a big template)")
     de.add_argument("--weighting", choices=["psd", "wpsd"], default="psd",
                     help="EVD pose weights: 'psd' one set for all voxels (Rhee); 'wpsd' per voxel from the "
                          "skinning weights (Kurihara Eq. 16). Default: psd")
@@ -658,7 +659,8 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--weighting", choices=["psd", "wpsd"], default="psd", help="EVD pose weights. Default: psd")
     an.add_argument("--map-factor", type=_positive_int, default=1, metavar="F",
                     help="each frame's maps solved on every F-th voxel and blended up (as `workbench deform "
-                         "--map-factor`): F=2 is about 3x faster per frame. Default: 1 (exact)")
+                         "--map-factor`): F=2 is about 3x faster per frame. Default: 1 (exact), or the weights' "
+                         "--grid-factor when they lie on a coarse grid")
     an.add_argument("--fps", type=float, metavar="FPS", help="frames per second (default: the file's, else 24)")
     an.add_argument("--frames", type=_positive_int, metavar="N",
                     help="number of frames (default: duration × fps + 1)")
@@ -686,8 +688,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "from the identity. Default: polyrigid")
     rg.add_argument("--unfold-init", default=argparse.SUPPRESS, action="store_true",
                     help="repair the folds of the VBD initialisation in the crease of a flexed joint before "
-                         "registering (a one-to-one field; ~0.1-1 mm less accurate on the knee phantom, "
-                         "more on the hand)")
+                         "registering (one-to-one wherever the map reaches into the template; ~0.1-1 mm less "
+                         "accurate on the knee phantom, more on the hand)")
     rg.add_argument("--pose", choices=["estimated", "truth"], default=argparse.SUPPRESS, dest="pose_source",
                     help="pose of the start: the pose stage's estimate, or a phantom's true pose (protocols). "
                          "Default: estimated")
@@ -876,6 +878,7 @@ def _say(args):
 
 
 def cmd_deform(args) -> int:
+    from deformation.geometry import every_nth
     from workbench.deform import deform_study
 
     s = deform_study(args.study, args.pose, args.out, method=args.method, weighting=args.weighting,
@@ -883,7 +886,7 @@ def cmd_deform(args) -> int:
                      map_factor=args.map_factor, progress=_say(args))
     n, f = s["n_voxels"], s.get("map_factor", 1)
     print(f"{s['method'].upper()}: forward {s['forward_seconds']:.2f} s, backward map + resampling "
-          f"{s['backward_seconds']:.2f} s for {n:,} voxels" + (f" (the maps on every {f}th voxel along each axis, "
+          f"{s['backward_seconds']:.2f} s for {n:,} voxels" + (f" (the maps on {every_nth(f)} voxel along each axis, "
                                                                 f"blended up to the volume's grid)" if f > 1 else ""))
     print(f"backward map{' (coarse voxels)' if f > 1 else ''}: {s['n_ok']:,} ok, {s['n_folded']:,} where the forward map folds "
           f"({100 * s['fraction_folded']:.3f} %), {s['n_not_converged']:,} not converged, {s['n_outside']:,} "

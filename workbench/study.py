@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deformation.geometry import Volume
+from deformation.geometry import Volume, every_nth
 from deformation.skeleton import Pose, Skeleton
 from workbench import __version__
 from workbench.errors import InputFileError, MissingFileError, OutputExistsError
@@ -316,7 +316,7 @@ class Study:
         f = tg.factor_of(geometry)
         if f is not None and f > 1:
             if not coarse:
-                raise InputFileError(f"{path}: the skinning weights are on every {f}th template voxel (workbench "
+                raise InputFileError(f"{path}: the skinning weights are on {every_nth(f)} template voxel (workbench "
                                      f"weights --grid-factor {f}); only deform, animate and the VBD start use them there. "
                                      f"Recompute them on the template's grid: `workbench weights {self.root} "
                                      "--grid-factor 1 --force`.", path)

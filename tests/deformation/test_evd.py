@@ -285,7 +285,7 @@ def test_a_coarse_backward_map_blended_up_is_exact_for_an_affine_map(knee):
         # on the rim a voxel takes its nearest coarse voxel's preimage: half a coarse voxel away, through a map
         # stretching ≤ 1.1 and turned (a component gets up to √3 of it): < f fine voxels
         assert d[both].max() < f, (f, d[both].max())
-    with pytest.raises(ValueError, match="every 2th voxel"):
+    with pytest.raises(ValueError, match="every 2nd voxel"):
         upsample_backward_map(backward_map(fwd[::3, ::3, ::3], g.every(3), g.every(3)), 2, g)
 
 

@@ -644,6 +644,44 @@ def test_unfold_near_the_grid_edge_tracks_the_determinant_of_the_whole_grid():
     assert info["n_folded_after"] > 0  # one iteration is not enough: the partial case is really partial
 
 
+def test_unfold_fold_by_fold_on_crops_equals_the_repair_of_the_whole_grid(monkeypatch):
+    # unfold repairs each cluster of folds on a crop around it (a big grid's copies would not fit in memory): a
+    # cluster's repair must be the bits of the same repair run on the whole grid (a mask, frozen voxels, two
+    # folds close enough to be one cluster, a partial repair), and two clusters far apart the whole-grid repair
+    # of one, then of the other; also when the first crop is too tight (one voxel around the folds: the repair
+    # reaches its faces and the crop is widened)
+    def whole(field, mask=None, frozen=None, max_iterations=200, restore=True):
+        m_inv = np.ascontiguousarray(np.linalg.inv(field.geometry.index_to_world_matrix[:3, :3]))
+        u, info, _ = F._unfold_crop(field.data, m_inv, mask, frozen, 0.05, 1.0, 1, max_iterations, restore)
+        return u.astype(np.float32), info
+
+    g = _geom(size=(60, 44, 30))
+    one, r = _bump_fold(g, 2.5)
+    close = Volume(one.data + np.roll(one.data, (9, 14, 20), axis=(0, 1, 2)), g)  # one cluster of two folds
+    g2 = _geom(size=(90, 44, 30))
+    far_one, _ = _bump_fold(g2, 2.5)
+    far = Volume(far_one.data + np.roll(far_one.data, 40, axis=2), g2)  # folds at x ≈ 46 and 86: two clusters
+    left = np.broadcast_to(np.arange(90) < 65, g2.array_shape)
+    for pad in (F.UNFOLD_PAD, -8):  # -8: a first pad of 2·4σ + margin - 8 = 1 voxel
+        monkeypatch.setattr(F, "UNFOLD_PAD", pad)
+        for field, kw in ((one, {}), (one, {"frozen": (r > 3.0) & (r < 3.6)}), (close, {}),
+                          (close, {"mask": r < 25.0}), (close, {"restore": False, "max_iterations": 3})):
+            out, info = F.unfold(field, **kw)
+            u, ref = whole(field, **kw)
+            assert info["n_folded_before"] > 0
+            # the change is measured on the field as written (float32), the whole-grid repair's before rounding
+            assert info.pop("max_change_mm") == pytest.approx(ref.pop("max_change_mm"), rel=1e-6)
+            assert info == ref
+            assert np.array_equal(out.data, u)
+        out, info = F.unfold(far)
+        u1, i1 = whole(far, mask=left)
+        u2, i2 = whole(Volume(u1, g2), mask=~left)
+        assert i1["n_folded_before"] > 0 and i2["n_folded_before"] > 0
+        assert np.array_equal(out.data, u2)
+        assert info["n_folded_before"] == i1["n_folded_before"] + i2["n_folded_before"]
+        assert info["n_folded_after"] == F.folding_statistics(out)["n_folded"] == 0
+
+
 def test_sample_shifted_is_scipy_map_coordinates_with_edge_extension():
     # the index-space sampler of the dense registration: trilinear and nearest, scalar and stacked, shifts
     # reaching beyond the grid (edge values continue, scipy's mode="nearest"); both compute in float64 from

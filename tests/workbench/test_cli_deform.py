@@ -264,7 +264,7 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path
     out = tmp_path / "coarse.nii.gz"
     assert main(["deform", str(root), "--pose", str(pose), "--out", str(out)]) == 0
     said = capsys.readouterr()
-    assert "every 2th template voxel: posing by VBD" in said.err + said.out
+    assert "every 2nd template voxel: posing by VBD" in said.err + said.out
     assert _hashes(root) == before
     v, e = read_volume(out), read_volume(exact)
     assert v.geometry.is_close(t.geometry)  # the full grid, not the weights'

@@ -231,7 +231,7 @@ def test_pose_on_every_other_voxel_of_a_finer_scan(tmp_path, capsys):
     ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=7, spacing=(2.49, 2.49, 1.845))
     root = write_phantom_study(ph, tmp_path / "study").root
     assert main(["pose", str(root), "--grid-factor", "2"]) == 0
-    assert "bones registered on every 2th voxel" in capsys.readouterr().err
+    assert "bones registered on every 2nd voxel" in capsys.readouterr().err
     st = read_study(root)
     assert st.pose_report()["grid_factor"] == 2 and st.pose_report()["failures"] == []
     assert st.stage_entry("pose")["settings"]["grid_factor"] == 2

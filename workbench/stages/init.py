@@ -27,6 +27,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from deformation.geometry import every_nth
+
 from workbench.stages.mechanism import Field, Json, Stage
 
 __all__ = ["InitSettings", "STAGE", "METHODS"]
@@ -89,7 +91,7 @@ def _run(ctx) -> dict:
     weights, body = study.weights(coarse=True)
     f = g_t.factor_of(body.geometry)  # 1, or the weights' --grid-factor (a big template; checked by weights())
     ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()}"
-            f"{f' (the maps on every {f}th voxel, as the weights)' if f > 1 else ''} ...")
+            f"{f' (the maps on {every_nth(f)} voxel, as the weights)' if f > 1 else ''} ...")
     transforms = stack_transforms(pose.transforms, weights.bones)
     field, summary = vbd_initial_field(g_t, g_s, weights, transforms, body=body.data, unfold=s.unfold, factor=f)
     return {"field.mha": Field(field),

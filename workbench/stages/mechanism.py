@@ -55,6 +55,8 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
+from deformation.geometry import every_nth
+
 from workbench import __version__
 from workbench.errors import WorkbenchError
 from workbench.io.atomic import replace_dir
@@ -91,7 +93,7 @@ def working_labels(study, labels, f: int):
             if (labels.data == sk.label_of(b)).any() and not (coarse.data == sk.label_of(b)).any()]
     if gone:
         path = study.template_labels_path()
-        raise StudyError(f"{path}: bone(s) {', '.join(gone)} have no voxel on every {f}th voxel of the template; "
+        raise StudyError(f"{path}: bone(s) {', '.join(gone)} have no voxel on {every_nth(f)} voxel of the template; "
                          "give a smaller --grid-factor (1 keeps the full grid)", path)
     return coarse
 

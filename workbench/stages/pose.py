@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from deformation.geometry import every_nth
+
 from workbench.io.inputs import read_initial_poses
 from workbench.io.volumes import read_image_geometry
 from workbench.stages.mechanism import Json, Stage, Text, working_factor, working_labels
@@ -124,7 +126,7 @@ def _run(ctx) -> dict:
     f = working_factor(s.grid_factor, grid)
     template, labels, read_scan = _working(study, f)
     if f > 1:
-        ctx.say(f"template of {grid.n_voxels:,} voxels: bones registered on every {f}th voxel "
+        ctx.say(f"template of {grid.n_voxels:,} voxels: bones registered on {every_nth(f)} voxel "
                 f"along each axis ({template.geometry.n_voxels:,} voxels; --grid-factor)")
     ids = study.check_scan_ids(s.scans)
     if s.init in ("identity", "moments"):

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from deformation.geometry import every_nth
+
 from workbench import __version__
 from workbench.errors import InputFileError
 from workbench.stages.mechanism import CopyFile, Labels, Stage, TetMeshFile, WeightMap, working_factor, working_labels
@@ -68,7 +70,7 @@ def _run(ctx) -> dict:
     template, labels = study.template(), study.template_labels()
     f = working_factor(s.grid_factor, template.geometry)
     if f > 1:  # a big template: the weights (and body mask) on every f-th voxel; deform solves its maps there
-        ctx.say(f"template of {template.geometry.n_voxels:,} voxels: weights on every {f}th voxel along each axis "
+        ctx.say(f"template of {template.geometry.n_voxels:,} voxels: weights on {every_nth(f)} voxel along each axis "
                 f"({template.geometry.every(f).n_voxels:,} voxels; --grid-factor)")
         template, labels = template.every(f), working_labels(study, labels, f)
     body = segment_body(template, labels=labels)
