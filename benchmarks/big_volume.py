@@ -194,8 +194,10 @@ def main(argv=None) -> int:
                 "field": wb + ["deform", str(study), "--pose", str(target), "--method", "vbd", "--force",
                                "--out", str(a.out / "posed.nii"), "--field-out", str(a.out / "posed_field.mha"),
                                "--quiet"],
-                "animate": wb + ["animate", str(study), "--keyframes", str(keyframes(a.out)), "--method", "vbd",
+                "animate": wb + ["animate", str(study), "--keyframes", str(a.out / "keyframes.json"), "--method", "vbd",
                                  "--size", "320x240", "--frames", "6", "--force", "--out", str(a.out / "anim.gif"), "--quiet"]}
+    if "animate" in a.stages:
+        keyframes(a.out)
     print(f"| stage | exit | peak GiB (budget {BUDGET_GIB:g}) | bytes per voxel | seconds |")
     print("|---|---|---|---|---|")
     for name in a.stages:

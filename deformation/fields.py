@@ -525,8 +525,10 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     it changes the field only in and next to the folded voxels.  Folds
     farther apart than the smoothing's reach (2·4σ + ``margin`` + :data:`UNFOLD_PAD`
     voxels) are repaired one cluster after the other, each on a crop of the
-    grid around it (the whole grid's repair of that cluster, bit for bit), so
-    a 200 M-voxel field costs its folds' neighbourhood plus one copy.
+    grid around it (bit for bit the whole grid's repair of the folds in that
+    crop: another cluster's folds inside it are repaired with it), so a
+    200 M-voxel field costs its folds' neighbourhood plus one copy;
+    ``iterations`` is the most any crop took.
 
     ``mask`` (optional bool array or Volume on the grid) restricts the voxels
     whose determinant is checked (e.g. the body); all voxels by default.
@@ -566,13 +568,14 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     # The repair works fold by fold, each on a crop of the grid around it: a grid may hold 200 M voxels with
     # folds in a few creases, and the repair of the whole grid held ~90 B a voxel (a float64 copy, its
     # determinants, the input again to restore from: 16.6 GiB for the VBD start of Kurihara's 197 M-voxel CT).
-    # Folds closer than ``pad`` voxels are one cluster; each cluster's repair is that of the whole grid with only
-    # its folds (its crop is widened until the repair keeps off the crop's faces, where a determinant would be
-    # one-sided and a Gaussian box clipped), and the clusters are repaired one after the other.
+    # Folds closer than ``pad`` voxels are one cluster; each cluster's crop is repaired as the whole grid would be
+    # with only the folds in the crop (it is widened until the repair keeps off the crop's faces, where a
+    # determinant would be one-sided and a Gaussian box clipped), and the clusters one after the other.
     low, n_before = _low_dets(u0, m_inv, float(min_det), m)
     out = u0.copy()
+    smoothed = np.zeros(shape, dtype=bool)
     pad0 = max(1, 2 * int(math.ceil(4.0 * sigma)) + int(margin) + UNFOLD_PAD)
-    iterations = n_smoothed = 0
+    iterations = 0
     for box in _clusters(low, pad0):
         pad = pad0
         while True:
@@ -580,19 +583,23 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
             inner = np.zeros(tuple(c.stop - c.start for c in crop), dtype=bool)  # the crop less its own faces
             inner[tuple(slice(0 if c.start == 0 else 1, None if c.stop == n else -1)
                         for c, n in zip(crop, shape))] = True
-            u, info, touched = _unfold_crop(out[crop], m_inv, inner if m is None else inner & m[crop],
-                                            None if fz is None else fz[crop], min_det, sigma, margin,
-                                            max_iterations, restore)
-            if all((c.start == 0 or t.start >= 1) and (c.stop == n or t.stop <= c.stop - c.start - 1)
-                   for c, t, n in zip(crop, touched, shape)):
+            u, info, touched, changed = _unfold_crop(out[crop], m_inv, inner if m is None else inner & m[crop],
+                                                     None if fz is None else fz[crop], min_det, sigma, margin,
+                                                     max_iterations, restore)
+            # nothing low left (an earlier cluster's crop held this one and repaired it), or the repair kept off
+            # the crop's faces that are not the grid's: done; else a wider crop
+            if info.pop("n_low") == 0 or all((c.start == 0 or t.start >= 1)
+                                             and (c.stop == n or t.stop <= c.stop - c.start - 1)
+                                             for c, t, n in zip(crop, touched, shape)):
                 break
             pad *= 2
         out[crop] = u.astype(out.dtype, copy=False)
+        smoothed[crop] |= changed
         iterations = max(iterations, info["iterations"])
-        n_smoothed += info["n_changed"] + info["n_restored"]
     n_after, n_changed, max_change = _unfold_summary(out, u0, m_inv, m)
     return Volume(out, g), dict(iterations=iterations, n_folded_before=n_before, n_folded_after=n_after,
-                                n_changed=n_changed, n_restored=n_smoothed - n_changed, max_change_mm=max_change)
+                                n_changed=n_changed, n_restored=int(np.count_nonzero(smoothed)) - n_changed,
+                                max_change_mm=max_change)
 
 
 def _slab_dets(u, m_inv):
@@ -657,7 +664,8 @@ def _unfold_summary(out, u0, m_inv, mask):
 
 def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, restore):
     """:func:`unfold` on a crop of the grid (``u0``, its mask ``m`` and ``frozen`` ``fz``, arrays of the crop):
-    the repaired crop (float64), the summary, and the box (slices) that holds every voxel it read or wrote."""
+    the repaired crop (float64), the summary (with ``n_low``, the voxels below ``min_det`` at the start), the
+    box (slices) that holds every voxel it read or wrote, and the voxels it smoothed (bool)."""
     from scipy import ndimage as ndi
 
     u = np.array(u0, dtype=np.float64)
@@ -695,6 +703,7 @@ def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, resto
     n_before = int(np.count_nonzero((det <= 0) if m is None else (det <= 0) & m))
     changed = np.zeros(u.shape[:3], dtype=bool)
     grow, best, stall, it = int(margin), int(np.count_nonzero(bad)), 0, 0
+    n_low = best
     # every array operation of the loop works on boxes around the folds: ``hull`` holds every voxel that is
     # or has been low (the determinant changes only next to what was smoothed), so the loop costs the folds'
     # neighbourhood, not the grid
@@ -704,6 +713,7 @@ def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, resto
     while n_bad and it < max_iterations:
         it += 1
         rbox = grow_box(grown_box(bad, 0, hull), grow + 1)  # the region (the folds dilated) lies inside it
+        touched = union(touched, rbox)  # read, even when the frozen voxels leave nothing to smooth
         region = ndi.binary_dilation(bad[rbox], iterations=grow) if grow > 0 else bad[rbox].copy()
         if fz is not None:
             region &= ~fz[rbox]
@@ -726,7 +736,7 @@ def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, resto
         sub[full] = sm[full]
         changed[box] |= full
         _update_jacobian_det(u, m_inv, det, rb)  # reads u two voxels around rb
-        touched = union(union(touched, rbox), union(box, grow_box(rb, 2)))
+        touched = union(touched, union(box, grow_box(rb, 2)))
         ub = grow_box(rb, 1)
         bad[ub] = low(ub)
         hull = union(hull, ub)
@@ -757,8 +767,9 @@ def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, resto
     diff = np.linalg.norm(u - u0, axis=-1)
     n_changed = int(np.count_nonzero(diff > 0))
     info = dict(iterations=it, n_folded_before=n_before, n_folded_after=n_after, n_changed=n_changed,
-                n_restored=n_smoothed - n_changed, max_change_mm=float(diff.max()) if diff.size else 0.0)
-    return u, info, touched
+                n_restored=n_smoothed - n_changed, max_change_mm=float(diff.max()) if diff.size else 0.0,
+                n_low=n_low)
+    return u, info, touched, changed
 
 
 # -- SimpleITK transforms -----------------------------------------------------------------------

@@ -62,8 +62,8 @@ class TemplatePoser:
         self.model = model
         self.weights_factor = _grid_factor(template.geometry, body.geometry)
         if self.weights_factor > 1 and model is not None:
-            raise ValueError("an EVD model needs skinning weights on the template's grid (these are on every "
-                             f"{self.weights_factor}th voxel)")
+            raise ValueError("an EVD model needs skinning weights on the template's grid (these are on "
+                             f"{every_nth(self.weights_factor)} voxel)")
         self.method = "evd" if model is not None else "vbd"
         self.weighting = weighting
         f = self.weights_factor
@@ -121,8 +121,8 @@ class TemplatePoser:
             raise ValueError(f"map_factor must be a positive integer, got {map_factor!r}")
         if self.weights_factor > 1:
             if f not in (1, self.weights_factor):
-                raise ValueError(f"map_factor {f} (--map-factor): the study's skinning weights are on every "
-                                 f"{self.weights_factor}th template voxel (workbench weights --grid-factor), so the "
+                raise ValueError(f"map_factor {f} (--map-factor): the study's skinning weights are on "
+                                 f"{every_nth(self.weights_factor)} template voxel (workbench weights --grid-factor), so the "
                                  f"maps are solved there; leave --map-factor out or give {self.weights_factor}")
             f = self.weights_factor
         g = self.template.geometry

@@ -87,10 +87,12 @@ def per_bone_sq(diff: np.ndarray, dof_bone: np.ndarray, n_bones: int) -> np.ndar
     by one ``np.add.reduceat`` (13 µs for the hand's 66 DOFs; a Python loop over the DOFs took 70 µs, a
     sixth of WPSD's time on a 50k-vertex mesh)."""
     diff = np.asarray(diff, dtype=np.float64)
+    out = np.zeros((n_bones,) + diff.shape[:-1])
+    if not len(dof_bone):
+        return out
     starts = np.flatnonzero(np.r_[True, dof_bone[1:] != dof_bone[:-1]])
     runs = np.moveaxis(np.add.reduceat(diff * diff, starts, axis=-1), -1, 0)
-    out = np.zeros((n_bones,) + diff.shape[:-1])
-    np.add.at(out, dof_bone[starts], runs)  # a bone is one run (its parent joint's DOFs), so each row once
+    np.add.at(out, dof_bone[starts], runs)  # a bone's runs added up (one run each: its parent joint's DOFs)
     return out
 
 

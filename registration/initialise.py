@@ -107,7 +107,9 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
         # a clamped best position, constant along the clamped axis) and next to such voxels the determinant
         # is ~0 without a fold; on the test-size knee 19 % of the scan's voxels, and 5,838 of its 6,079
         # "folded" ones, there; at Kurihara's size 3 % of the grid, spread over all of it, had det < 0.05
-        field, summary["unfold"] = unfold_field(field, mask=_mapped(coarse, f, scan_geometry))
+        mapped = _mapped(coarse, f, scan_geometry)
+        del bm, coarse  # the map (17 B a voxel at f = 1) is not needed by the repair
+        field, summary["unfold"] = unfold_field(field, mask=mapped)
     return field, summary
 
 

@@ -19,7 +19,6 @@ import time
 __all__ = ["ProgressPrinter", "setup_logging", "compile_note"]
 
 
-
 def compile_note(*kernels) -> str | None:
     """A line to show before the first use of numba ``kernels`` that have no on-disk cache yet (the first run
     after installing, or after an upgrade: ~30 s of compiling with nothing else to show), else None.  The

@@ -652,7 +652,8 @@ def test_unfold_fold_by_fold_on_crops_equals_the_repair_of_the_whole_grid(monkey
     # reaches its faces and the crop is widened)
     def whole(field, mask=None, frozen=None, max_iterations=200, restore=True):
         m_inv = np.ascontiguousarray(np.linalg.inv(field.geometry.index_to_world_matrix[:3, :3]))
-        u, info, _ = F._unfold_crop(field.data, m_inv, mask, frozen, 0.05, 1.0, 1, max_iterations, restore)
+        u, info, _, _ = F._unfold_crop(field.data, m_inv, mask, frozen, 0.05, 1.0, 1, max_iterations, restore)
+        info.pop("n_low")
         return u.astype(np.float32), info
 
     g = _geom(size=(60, 44, 30))
@@ -680,6 +681,39 @@ def test_unfold_fold_by_fold_on_crops_equals_the_repair_of_the_whole_grid(monkey
         assert np.array_equal(out.data, u2)
         assert info["n_folded_before"] == i1["n_folded_before"] + i2["n_folded_before"]
         assert info["n_folded_after"] == F.folding_statistics(out)["n_folded"] == 0
+
+
+def test_unfold_crops_stay_local_around_nested_clusters_and_frozen_blocks(monkeypatch):
+    # a U of folds with a second cluster inside it: the U's crop repairs both, and the inner cluster's crop then
+    # finds nothing low and is taken as it is (it was widened to the whole grid before).  Folds inside a frozen
+    # block wider than the first crop: the repair reads the block's voxels and must be widened until it finds
+    # free ones, as on the whole grid (it stopped at the crop before)
+    e = np.array([0.6, -0.3, 0.74]) / np.linalg.norm([0.6, -0.3, 0.74])
+    g = GridGeometry((100, 100, 24), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3).reshape(-1))
+    p = g.world_coordinates()
+    centres = ([(10, y, 12) for y in range(10, 90, 8)] + [(x, 10, 12) for x in range(18, 80, 8)]
+               + [(76, y, 12) for y in range(18, 90, 8)] + [(42, 50, 12)])
+    u = sum(np.exp(-np.sum((p - np.asarray(c, float)) ** 2, axis=-1) / 8.0)[..., None] for c in centres) * 5.0 * e
+    nested = Volume(u.astype(np.float32), g)
+    low, _ = F._low_dets(nested.data, np.eye(3), 0.05, None)
+    assert len(F._clusters(low, 17)) == 2
+    shapes = []
+    crop = F._unfold_crop
+    monkeypatch.setattr(F, "_unfold_crop", lambda u0, *a: shapes.append(u0.shape[:3]) or crop(u0, *a))
+    out, info = F.unfold(nested)
+    assert info["n_folded_before"] > 0 == info["n_folded_after"] == F.folding_statistics(out)["n_folded"]
+    # the U's crop spans the grid; the inner cluster's is its first, unwidened (it grew to the whole grid before)
+    assert len(shapes) == 2 and np.prod(shapes[1]) < 0.2 * np.prod(g.array_shape), shapes
+    monkeypatch.setattr(F, "_unfold_crop", crop)
+
+    g = GridGeometry((70, 70, 70), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3).reshape(-1))
+    r2 = np.sum((g.world_coordinates() - 35.0) ** 2, axis=-1)
+    field = Volume((5.0 * e * np.exp(-r2 / 8.0)[..., None]).astype(np.float32), g)
+    frozen = np.max(np.abs(np.indices(g.array_shape) - 35), axis=0) <= 20  # half-width 20 > the first pad, 17
+    out, info = F.unfold(field, frozen=frozen, max_iterations=60, restore=False)
+    u, ref, _, _ = F._unfold_crop(field.data, np.eye(3), None, frozen, 0.05, 1.0, 1, 60, False)
+    assert info["n_changed"] == ref["n_changed"] > 0
+    assert np.array_equal(out.data, u.astype(np.float32))
 
 
 def test_sample_shifted_is_scipy_map_coordinates_with_edge_extension():

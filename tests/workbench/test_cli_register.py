@@ -145,6 +145,8 @@ def test_register_unfold_init_repairs_the_folds_of_the_map(tmp_path, study, caps
     bm = backward_map(vbd_forward(body_t.geometry, weights, t), body_t.geometry, g_s, transforms=t,
                       prefer=body_t.data.astype(bool))
     mapped = _mapped(bm, 1, g_s)
+    raw = jacobian_determinant(bm.scan_to_template()) <= 0  # the VBD start before the repair
+    assert repair["n_folded_before"] == np.count_nonzero(raw & mapped) < np.count_nonzero(raw)
     body = body_on_scan(read_displacement(d / "truth" / "pose01_correspondence.mha"), body_t)
     det = jacobian_determinant(corr)
     assert np.count_nonzero((det <= 0) & body & mapped) == 0 < np.count_nonzero(body & mapped)
