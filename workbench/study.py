@@ -297,6 +297,12 @@ class Study:
         """The estimated pose of a scan (``workbench pose``); same schema as :meth:`truth_pose`."""
         return Pose.from_dict(read_json(self.output("pose", f"{scan_id}_pose.json")))
 
+    def pose_flagged(self, scan_id: str) -> list[str]:
+        """The bones the pose stage could not place in a scan (``fits.json`` status other than ``ok``): their
+        pose follows the nearest placed ancestor (:func:`registration.pose.placed_transforms`)."""
+        bones = read_json(self.output("pose", "fits.json"))["scans"][scan_id]["bones"]
+        return sorted(b for b, f in bones.items() if f["status"] != "ok")
+
     def pose_report(self) -> dict:
         return read_json(self.output("pose", "report.json"))
 

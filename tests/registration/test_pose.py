@@ -156,6 +156,31 @@ def test_flagged_bones_do_not_feed_joint_centres_or_angles(knee_ct_study):
     # The knee's centre comes from the two other scans only (the estimated straight leg is not exactly the
     # identity, so it counts).
     assert res.joints["knee"].n_motions == 2
+    # The pose of a flagged bone is its nearest placed ancestor's (the fit itself stays in fits); the placed
+    # bones keep their fits
+    for b in sk.order:
+        f, parent = cut.fits[b], sk.bone(b).parent
+        if f.ok or parent is None:
+            assert np.array_equal(cut.pose.transforms[b], f.transform), b
+        else:
+            a = parent
+            while not cut.fits[a].ok and sk.bone(a).parent is not None:
+                a = sk.bone(a).parent
+            assert np.array_equal(cut.pose.transforms[b], cut.fits[a].transform), (b, a)
+    assert not np.array_equal(cut.pose.transforms["tibia"], cut.fits["tibia"].transform)
+
+
+def test_released_labels_drop_only_the_flagged_bones(knee_ct_study):
+    from registration.pose import released_labels
+
+    st = knee_ct_study
+    sk, lab = st.skeleton(), st.template_labels()
+    assert released_labels(lab, sk, []) is lab
+    out = released_labels(lab, sk, ["tibia", "fibula"])
+    gone = np.isin(lab.data, [sk.label_of("tibia"), sk.label_of("fibula")])
+    assert gone.any() and not np.isin(out.data, [sk.label_of("tibia"), sk.label_of("fibula")]).any()
+    assert np.array_equal(out.data[~gone], lab.data[~gone]) and np.all(out.data[gone] == 0)
+    assert out.geometry == lab.geometry and out.data.dtype == lab.data.dtype
 
 
 def test_a_joint_that_barely_moves_keeps_the_skeleton_centre_and_is_not_scored(knee_ct_study):

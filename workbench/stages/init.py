@@ -84,10 +84,13 @@ def _run(ctx) -> dict:
     if s.method == "identity":
         return {"init.json": Json({"format": "avw-init", "version": 1, "method": "identity"})}
     pose = study.truth_pose(sid) if s.pose == "truth" else study.pose(sid)
+    # bones the pose stage could not place: their pose follows their ancestor's, and the registration does not
+    # hold them rigid (registration.pose.placed_transforms / released_labels)
+    flagged = [] if s.pose == "truth" else study.pose_flagged(sid)
     g_t = read_image_geometry(study.path(study.manifest["template"]))
     g_s = read_image_geometry(study.scan_path(sid))
     if s.method == "polyrigid":
-        return _polyrigid(ctx, pose, g_s)
+        return _polyrigid(ctx, pose, g_s, flagged)
     weights, body = study.weights(coarse=True)
     f = g_t.factor_of(body.geometry)  # 1, or the weights' --grid-factor (a big template; checked by weights())
     ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()}"
@@ -96,13 +99,14 @@ def _run(ctx) -> dict:
     field, summary = vbd_initial_field(g_t, g_s, weights, transforms, body=body.data, unfold=s.unfold, factor=f)
     return {"field.mha": Field(field),
             "init.json": Json({"format": "avw-init", "version": 1, "method": "vbd", "pose": s.pose,
+                               "flagged_bones": flagged,
                                "direction": "scan_to_template: template position − scan voxel, mm",
                                "bones": list(weights.bones), "transforms": transforms,
                                "transforms_are": "each bone's template → scan 4x4 that VBD blended",
                                "backward_map": summary})}
 
 
-def _polyrigid(ctx, pose, g_s) -> dict:
+def _polyrigid(ctx, pose, g_s, flagged) -> dict:
     from deformation.skinning import stack_transforms
     from registration.initialise import polyrigid_initial_field
 
@@ -118,6 +122,7 @@ def _polyrigid(ctx, pose, g_s) -> dict:
     bones = list(sk.bone_names)
     return {"field.mha": Field(field), "forward.mha": Field(forward),
             "init.json": Json({"format": "avw-init", "version": 1, "method": "polyrigid", "pose": s.pose,
+                               "flagged_bones": flagged,
                                "direction": "field: scan_to_template (template position − scan voxel, mm) on the "
                                             "scan grid; forward: template_to_scan on the template grid",
                                "bones": bones, "transforms": stack_transforms(pose.transforms, bones),
@@ -128,4 +133,4 @@ def _polyrigid(ctx, pose, g_s) -> dict:
 
 
 STAGE = Stage(name="init", folder="init", per_scan=True, settings_type=InitSettings, run=_run, needs=_needs,
-              inputs=_inputs, version=3)
+              inputs=_inputs, version=4)  # 4: the pose's flagged bones recorded (register does not hold them)

@@ -128,6 +128,14 @@ def _forward(study, sid, start, template_geometry):
     return None
 
 
+def _held_bones(study, start):
+    """The bones a registration holds rigid: the template's labels less those the pose stage could not place
+    (the init stage lists them; their start follows an ancestor, which the image may correct)."""
+    from registration.pose import released_labels
+
+    return released_labels(study.template_labels(), study.skeleton(), start.get("flagged_bones", []))
+
+
 def _run(ctx) -> dict:
     from deformation.resample import invert_scan_to_template
 
@@ -142,7 +150,7 @@ def _run(ctx) -> dict:
     from registration.adaptive import register_adaptive
 
     settings = s.adaptive(method)
-    rigid = study.template_labels() if (articulated and settings.fix_bones) else None
+    rigid = _held_bones(study, start) if (articulated and settings.fix_bones) else None
     forward = _forward(study, sid, start, template.geometry)
 
     def step(info):
@@ -189,7 +197,7 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
     settings = s.dense(articulated)
-    labels = study.template_labels() if settings.bones == "fixed" else None
+    labels = _held_bones(study, start) if settings.bones == "fixed" else None
     forward = _forward(study, sid, start, template.geometry)
 
     def level(rec):
@@ -210,4 +218,5 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=7)  # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=8)  # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC;
+# 8: bones the pose stage flagged are not held
