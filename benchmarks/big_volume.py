@@ -8,9 +8,12 @@ the hand (SimpleITK: linear for images, nearest for labels; the ground truth
 is left out: validate is not measured here) — then runs ``workbench pose``,
 ``workbench weights``, the init stage's VBD of each scan (Rhee Eq. 2, DESIGN
 step 5: ``workbench run --until init --set init.method=vbd``) and
-``workbench deform --method vbd`` on it (``unfold``: the VBD start with ``--unfold-init``; ``field``: deform with ``--field-out``, the posed-to-template
-displacement; ``animate``: a two-keyframe ``workbench animate`` of 6 frames at 320×240), each in its own process, and prints each one's peak resident memory (the process and its
-children, sampled every 50 ms) and time against the 8 GiB budget.  A stage
+``workbench deform --method vbd`` on it (``unfold``: the VBD start with
+``--unfold-init``; ``field``: deform with ``--field-out``, the posed-to-template
+displacement; ``animate``: a two-keyframe ``workbench animate`` of 6 frames at
+320×240), each in its own process, and prints each one's peak resident memory
+(the process and its children, sampled every 50 ms) and time against the 8 GiB
+budget.  A stage
 whose memory passes ``--kill-gib`` (default 20, the machine has 24) is
 stopped and reported as over.
 
@@ -194,8 +197,9 @@ def main(argv=None) -> int:
                 "field": wb + ["deform", str(study), "--pose", str(target), "--method", "vbd", "--force",
                                "--out", str(a.out / "posed.nii"), "--field-out", str(a.out / "posed_field.mha"),
                                "--quiet"],
-                "animate": wb + ["animate", str(study), "--keyframes", str(a.out / "keyframes.json"), "--method", "vbd",
-                                 "--size", "320x240", "--frames", "6", "--force", "--out", str(a.out / "anim.gif"), "--quiet"]}
+                "animate": wb + ["animate", str(study), "--keyframes", str(a.out / "keyframes.json"), "--method",
+                                 "vbd", "--size", "320x240", "--frames", "6", "--force", "--out",
+                                 str(a.out / "anim.gif"), "--quiet"]}
     if "animate" in a.stages:
         keyframes(a.out)
     print(f"| stage | exit | peak GiB (budget {BUDGET_GIB:g}) | bytes per voxel | seconds |")

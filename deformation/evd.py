@@ -42,7 +42,8 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry
-from .posespace import PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones, per_bone_sq
+from .posespace import (PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones,
+                        per_bone_sq)
 from .skinning import SkinningWeights, _as_stack, blend_point
 
 if nb.config.THREADING_LAYER == "default":

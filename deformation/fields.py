@@ -32,7 +32,7 @@ import numba as nb
 import numpy as np
 import SimpleITK as sitk
 
-from .geometry import GeometryMismatchError, GridGeometry, Volume
+from .geometry import GeometryMismatchError, GridGeometry, Volume, from_every, slabs
 from .interpolate import _SERIAL_BELOW, _interp_vector, _native, _to_index, sample_displaced_array
 
 __all__ = [
@@ -606,9 +606,7 @@ def _slab_dets(u, m_inv):
     """``(k0, k1, det)``: :func:`_jacobian_det` of the whole field in float64, made a slab of planes ``k0:k1``
     at a time (each from the slab and a plane of its neighbours on both sides: the same bits)."""
     nz = u.shape[0]
-    step = max(1, (1 << 22) // max(1, u.shape[1] * u.shape[2]))
-    for k0 in range(0, nz, step):
-        k1 = min(k0 + step, nz)
+    for k0, k1 in slabs(nz, u.shape[1] * u.shape[2]):
         a0, a1 = max(k0 - 1, 0), min(k1 + 1, nz)
         det = np.empty((a1 - a0,) + u.shape[1:3])
         _jacobian_det(np.asarray(u[a0:a1], dtype=np.float64), m_inv, det)
@@ -640,8 +638,7 @@ def _clusters(low, gap):
     boxes = []
     for k, blocks in enumerate(ndi.find_objects(lab), start=1):
         fine = tuple(slice(b.start * gap, min(b.stop * gap, n)) for b, n in zip(blocks, low.shape))
-        mine = np.repeat(np.repeat(np.repeat(lab[blocks] == k, gap, 0), gap, 1), gap, 2)
-        sub = low[fine] & mine[tuple(slice(0, f.stop - f.start) for f in fine)]
+        sub = low[fine] & from_every(lab[blocks] == k, gap, low[fine].shape)
         hit = [np.flatnonzero(np.any(sub, axis=tuple(a for a in range(3) if a != ax))) for ax in range(3)]
         boxes.append(tuple(slice(f.start + int(h[0]), f.start + int(h[-1]) + 1) for f, h in zip(fine, hit)))
     return boxes
@@ -653,10 +650,8 @@ def _unfold_summary(out, u0, m_inv, mask):
     for k0, k1, det in _slab_dets(out, m_inv):
         n_after += int(np.count_nonzero(det <= 0 if mask is None else (det <= 0) & mask[k0:k1]))
     n_changed, max_change = 0, 0.0
-    step = max(1, (1 << 22) // max(1, out.shape[1] * out.shape[2]))
-    for k0 in range(0, out.shape[0], step):
-        d = np.linalg.norm(np.asarray(out[k0:k0 + step], np.float64) - np.asarray(u0[k0:k0 + step], np.float64),
-                           axis=-1)
+    for k0, k1 in slabs(out.shape[0], out.shape[1] * out.shape[2]):
+        d = np.linalg.norm(np.asarray(out[k0:k1], np.float64) - np.asarray(u0[k0:k1], np.float64), axis=-1)
         n_changed += int(np.count_nonzero(d > 0))
         max_change = max(max_change, float(d.max()))
     return n_after, n_changed, max_change

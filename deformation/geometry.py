@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["GridGeometry", "Volume", "GeometryMismatchError", "every_nth"]
+__all__ = ["GridGeometry", "Volume", "GeometryMismatchError", "every_nth", "slabs", "SLAB_VOXELS", "from_every"]
 
 
 class GeometryMismatchError(ValueError):
@@ -47,6 +47,25 @@ def every_nth(f: int) -> str:
     f = int(f)
     suffix = "th" if 10 <= f % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(f % 10, "th")
     return f"every {f}{suffix}"
+
+
+SLAB_VOXELS = 1 << 22  #: voxels of a slab of planes that big-grid passes work on at a time (32 MiB of float64)
+
+
+def slabs(n_planes: int, plane_voxels: int, voxels: int = SLAB_VOXELS):
+    """``(k0, k1)``: the planes ``0 .. n_planes`` (an array's first axis, z) in slabs of about ``voxels``
+    voxels (at least one plane each), for passes over a grid too big to hold its temporaries whole."""
+    step = max(1, int(voxels) // max(1, int(plane_voxels)))
+    for k0 in range(0, n_planes, step):
+        yield k0, min(k0 + step, n_planes)
+
+
+def from_every(values: np.ndarray, f: int, shape) -> np.ndarray:
+    """Values on :meth:`GridGeometry.every` ``(f)`` given back to the full grid of array ``shape`` (z, y, x):
+    each of its voxels takes the coarse voxel at or before it along every axis (coarse voxel ``I`` is fine
+    voxel ``f·I``)."""
+    nz, ny, nx = shape
+    return np.repeat(np.repeat(np.repeat(values, f, 0)[:nz], f, 1)[:, :ny], f, 2)[:, :, :nx]
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .geometry import GridGeometry, Volume, every_nth
+from .geometry import SLAB_VOXELS, GridGeometry, Volume, every_nth, slabs
 from .interpolate import _fill_value, _flat_data, _interp_scalar, _output_dtype, sample_array
 
 if nb.config.THREADING_LAYER == "default":
@@ -824,10 +824,6 @@ def _pull_kernel(cx, cst, ok, f, src, nx, ny, nz, order, fill, out):
                                                   order, fill)
 
 
-#: fine voxels a :class:`CoarseBackwardMap` turns into a field at a time (~0.4 GB of float64 temporaries)
-SLAB_VOXELS = 1 << 22
-
-
 class CoarseBackwardMap:
     """A backward map solved on every ``factor``-th voxel of the grids, blended up to the fine grids on demand.
 
@@ -887,9 +883,7 @@ class CoarseBackwardMap:
         g = self.target_geometry
         nx, ny, nz = g.size
         out = np.empty(g.array_shape + (3,), dtype=np.float32)
-        step = max(1, SLAB_VOXELS // (nx * ny))
-        for k0 in range(0, nz, step):
-            k1 = min(k0 + step, nz)
+        for k0, k1 in slabs(nz, nx * ny, SLAB_VOXELS):  # the module's name: tests make it small
             pos = self.template_geometry.index_to_world(self.rows(k0, k1).template_index)
             out[k0:k1] = pos - g.world_coordinates(z_slice=slice(k0, k1))  # the full grid's coordinates: same bits
         return Volume(out, g)

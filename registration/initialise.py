@@ -21,7 +21,7 @@ import numpy as np
 
 from deformation.evd import vbd_forward
 from deformation.fields import unfold as unfold_field
-from deformation.geometry import GridGeometry, Volume
+from deformation.geometry import GridGeometry, Volume, from_every
 from deformation.resample import backward_map
 
 if TYPE_CHECKING:
@@ -121,7 +121,4 @@ def _mapped(coarse_map, f: int, scan_geometry: GridGeometry) -> np.ndarray:
     from deformation.resample import OUTSIDE
 
     inside = ~ndi.binary_dilation(coarse_map.status == OUTSIDE, structure=np.ones((3, 3, 3), dtype=bool))
-    if f == 1:
-        return inside
-    nz, ny, nx = scan_geometry.array_shape
-    return np.repeat(np.repeat(np.repeat(inside, f, 0)[:nz], f, 1)[:, :ny], f, 2)[:, :, :nx]
+    return inside if f == 1 else from_every(inside, f, scan_geometry.array_shape)

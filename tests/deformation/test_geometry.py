@@ -258,3 +258,18 @@ def test_every_fth_voxel_of_a_volume_and_the_factor_within_a_budget():
     big = GridGeometry((512, 512, 750), (0.468, 0.468, 0.3))
     assert big.factor_within(32_000_000) == 2 and big.factor_within(big.n_voxels) == 1
     assert big.every(2).n_voxels <= 32_000_000 < big.every(1).n_voxels
+
+
+def test_from_every_gives_each_voxel_the_coarse_voxel_at_or_before_it_and_slabs_cover_the_planes():
+    from deformation.geometry import from_every, slabs
+
+    g = GridGeometry((7, 5, 4), (1.0, 2.0, 3.0), (0.0, 0.0, 0.0), np.eye(3).reshape(-1))  # odd sizes
+    for f in (1, 2, 3):
+        coarse = np.arange(g.every(f).n_voxels).reshape(g.every(f).array_shape)
+        up = from_every(coarse, f, g.array_shape)
+        k, j, i = np.indices(g.array_shape)
+        assert up.shape == g.array_shape and np.array_equal(up, coarse[k // f, j // f, i // f])
+    for n, plane, voxels in ((10, 7, 20), (3, 100, 1), (5, 1, 1000)):
+        got = list(slabs(n, plane, voxels))
+        assert got[0][0] == 0 and got[-1][1] == n and all(a[1] == b[0] for a, b in zip(got, got[1:]))
+        assert all(k1 - k0 == max(1, voxels // plane) for k0, k1 in got[:-1])

@@ -71,7 +71,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from deformation.geometry import GridGeometry, Volume
+from deformation.geometry import GridGeometry, Volume, slabs
 from workbench.io.atomic import atomic_file_group, atomic_path, split_suffix
 from workbench.errors import (
     AmbiguousSeriesError,
@@ -857,8 +857,7 @@ def _output_path(volume, path: str | os.PathLike) -> Path:
 def _all_finite(data: np.ndarray) -> bool:
     """Whether every value is finite, a block of slices at a time (a 197 M-voxel field's whole-array mask
     would be another 0.6 GiB)."""
-    step = max(1, (1 << 24) // max(1, data[:1].size))
-    return all(np.isfinite(data[k:k + step]).all() for k in range(0, len(data), step))
+    return all(np.isfinite(data[k0:k1]).all() for k0, k1 in slabs(len(data), data[:1].size, 1 << 24))
 
 
 def _writable_array(data: np.ndarray, path: Path, what: str) -> np.ndarray:

@@ -184,5 +184,6 @@ def _run(ctx) -> dict:
 
 
 STAGE = Stage(name="pose", folder="poses", per_scan=False, settings_type=PoseSettings, run=_run,
-              needs=lambda s: ("bones",), inputs=_inputs, version=4)  # 2: ICP (--method surface) with the prior; 3: its matched points only; 4: a
-# flagged bone's pose follows its nearest placed ancestor
+              # 2: ICP (--method surface) with the prior; 3: its matched points only; 4: a flagged bone's pose
+              # follows its nearest placed ancestor
+              needs=lambda s: ("bones",), inputs=_inputs, version=4)

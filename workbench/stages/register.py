@@ -218,5 +218,6 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=8)  # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC;
-# 8: bones the pose stage flagged are not held
+              # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC; 8: bones the pose
+              # stage flagged are not held
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=8)
