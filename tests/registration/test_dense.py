@@ -31,7 +31,9 @@ def case():
     return make_case()
 
 
-def make_case():
+def make_case(air: bool = False):
+    """The textured case; ``air``: the body is an ellipsoid in air (intensity 0), so that the windows and the
+    smoothing over the scan's tissue (settings.tissue_only) take part."""
     c, s = np.cos(np.deg2rad(15)), np.sin(np.deg2rad(15))
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     size, spacing = (36, 32, 24), (1.5, 1.8, 2.2)
@@ -44,6 +46,8 @@ def make_case():
     r = x - centre
     bone = (np.abs(r[..., 0]) < 6) & (np.abs(r[..., 1]) < 9) & (np.abs(r[..., 2]) < 6)
     tex[bone] = 900.0
+    if air:
+        tex[np.sum((r / np.array([22.0, 24.0, 22.0])) ** 2, axis=-1) > 1] = 0.0
     template = Volume(tex.astype(np.float32), g)
     labels = Volume(bone.astype(np.uint8), g)
     # the truth: smooth, zero on (and fading near) the bone
@@ -84,6 +88,8 @@ def test_settings_are_checked():
         DenseSettings(bones="loose")
     with pytest.raises(ValueError, match="fluid_voxels"):
         DenseSettings(fluid_voxels=-1.0)
+    with pytest.raises(ValueError, match="air_weight"):
+        DenseSettings(air_weight=0.0)
 
 
 def test_rigid_bones_move_as_rigid_bodies(case):
@@ -108,9 +114,10 @@ import sys, hashlib
 sys.path.insert(0, sys.argv[1])
 from test_dense import make_case
 from registration.dense import DenseSettings, register_dense
-template, labels, scan, truth, bone = make_case()
-r = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(shrink=(2, 1), iterations=(20, 10)))
-print(hashlib.sha256(r.correspondence.data.tobytes()).hexdigest())
+for air in (False, True):
+    template, labels, scan, truth, bone = make_case(air)
+    r = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(shrink=(2, 1), iterations=(20, 10)))
+    print(hashlib.sha256(r.correspondence.data.tobytes()).hexdigest())
 """
 
 
@@ -130,8 +137,8 @@ def test_same_bits_with_one_and_two_threads():
                    PYTHONPATH=root)
         out = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT, here], env=env, capture_output=True, text=True,
                              check=True, timeout=600)
-        digests.append(out.stdout.strip().splitlines()[-1])
-    assert digests[0] == digests[1] and len(digests[0]) == 64
+        digests.append(out.stdout.strip().splitlines()[-2:])  # the case without air, then with it
+    assert digests[0] == digests[1] and all(len(d) == 64 for d in digests[0]) and digests[0][0] != digests[0][1]
 
 
 def test_smoothing_split_into_slabs_gives_the_whole_arrays_bits():
@@ -182,3 +189,86 @@ def test_rhee_table2_protocol_without_initialisation():
     from deformation.fields import folding_statistics
 
     assert folding_statistics(res.correspondence, body)["n_folded"] == 0
+
+
+def _kernel_3d(sigma):
+    """scipy's Gaussian kernel (truncate 3: radius int(3σ + 0.5), normalised per axis) as a 3-D array."""
+    ks = []
+    for sg in sigma:
+        r = int(3.0 * sg + 0.5)
+        x = np.arange(-r, r + 1, dtype=float)
+        k = np.exp(-0.5 * (x / sg) ** 2)
+        ks.append(k / k.sum())
+    return ks[0][:, None, None] * ks[1][None, :, None] * ks[2][None, None, :]
+
+
+def test_lncc_over_the_tissue_only_ignores_the_air():
+    """tissue_only's LNCC (settings.tissue_only): each window's statistics are over the mask's voxels, so the
+    similarity and its gradient in the tissue do not depend on what the air holds (bit for bit: the air's
+    values enter multiplied by 0), the air feels no force, and a voxel's local correlation is the weighted
+    correlation over its window's tissue voxels, computed here by brute force with scipy's kernel (float32
+    smoothing against a float64 sum: 1e-4 relative)."""
+    from registration import dense
+
+    rng = np.random.default_rng(2)
+    shape, sig = (26, 24, 22), np.array([1.5, 2.0, 1.2])
+    f = rng.normal(size=shape).astype(np.float32)
+    w = (0.6 * f + 0.8 * rng.normal(size=shape)).astype(np.float32)
+    zz, yy, xx = np.indices(shape)
+    tissue = ((zz - 13) ** 2 / 64 + (yy - 12) ** 2 / 49 + (xx - 11) ** 2 / 36 < 1).astype(np.float32)
+    stats = dense._local_stats(f, sig, tissue)
+    cc, dcc = dense._lncc_force(f, w, sig, stats)
+    air = tissue == 0
+    f2, w2 = f.copy(), w.copy()
+    f2[air] = rng.normal(size=int(air.sum())) * 5
+    w2[air] = rng.normal(size=int(air.sum())) * 5
+    cc2, dcc2 = dense._lncc_force(f2, w2, sig, dense._local_stats(f2, sig, tissue))
+    assert np.array_equal(dcc, dcc2) and cc == cc2
+    assert np.all(dcc[air] == 0)
+    # brute force at voxels on the ellipsoid's edge (their windows half air), away from the grid's edge
+    k = _kernel_3d(sig)
+    r = [(n - 1) // 2 for n in k.shape]
+    edge = np.argwhere((tissue > 0) & (ndimage.binary_dilation(air) > 0))
+    edge = [p for p in edge if all(r[a] <= p[a] < shape[a] - r[a] for a in range(3))][:5]
+    assert len(edge) == 5
+    mf, sff, _ = stats
+    for p in edge:
+        box = tuple(slice(p[a] - r[a], p[a] + r[a] + 1) for a in range(3))
+        g = k * tissue[box]
+        g = g / g.sum()
+        a, b = f[box].astype(float), w[box].astype(float)
+        ma, mb = (g * a).sum(), (g * b).sum()
+        cov = (g * (a - ma) * (b - mb)).sum()
+        va, vb = (g * (a - ma) ** 2).sum(), (g * (b - mb) ** 2).sum()
+        np.testing.assert_allclose([mf[tuple(p)], sff[tuple(p)]], [ma, va], rtol=1e-4, atol=1e-5)
+        # the gradient's factor at the voxel (Avants 2008, Eq. 5, with the window's tissue statistics)
+        want = 2.0 * cov / (va * vb) * ((a[tuple(r)] - ma) - cov / vb * (b[tuple(r)] - mb))
+        np.testing.assert_allclose(dcc[tuple(p)], want, rtol=1e-3, atol=1e-5)
+
+
+def test_smoothing_of_u_over_the_tissue():
+    """The smoothing of U with tissue_only (normalised convolution, weight 1 in the tissue, ε in the air): a
+    field equal to c in the tissue stays within ε(1 − m)/(m + ε(1 − m))·max|air − c| of c at a tissue voxel
+    whose kernel holds a share m of tissue (the weighted-mean bound), while the plain Gaussian moves the skin
+    by about half the air's offset; with weight 1 everywhere it is the plain Gaussian."""
+    from registration import dense
+
+    rng = np.random.default_rng(4)
+    shape, sig, eps = (20, 22, 18), np.array([1.0, 1.3, 0.8]), np.float32(0.05)
+    tissue = np.zeros(shape, np.float32)
+    tissue[:, :11] = 1.0  # a flat skin between rows 10 and 11
+    air = tissue == 0
+    u = [np.where(air, 3.0 + rng.random(shape), 1.0).astype(np.float32) for _ in range(3)]  # c = 1
+    wt = tissue + eps * (1.0 - tissue)
+    out = dense._weighted_smooth(u, wt, 1.0 / dense._smooth(wt, sig), sig)
+    m = dense._smooth(tissue, sig)
+    bound = eps * (1 - m) / (m + eps * (1 - m)) * 4.0  # max |air − c| ≤ 3 + 1
+    for a in range(3):
+        assert np.all(np.abs(out[a] - 1.0)[~air] <= bound[~air] * (1 + 1e-4) + 1e-6)
+    skin = np.zeros(shape, bool)
+    skin[:, 10] = True
+    assert np.abs(out[0][skin] - 1.0).max() < 0.25  # the bound at the skin (m ≈ 0.7): ≈ 0.09
+    assert np.abs(dense._smooth(u[0], sig)[skin] - 1.0).min() > 0.5  # the plain Gaussian: the air drags it
+    one = np.ones(shape, np.float32)
+    np.testing.assert_allclose(dense._weighted_smooth(u, one, 1.0 / dense._smooth(one, sig), sig)[1],
+                               dense._smooth(u[1], sig), rtol=1e-6, atol=1e-6)

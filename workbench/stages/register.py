@@ -219,5 +219,5 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
 STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
               # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC; 8: bones the pose
-              # stage flagged are not held
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=8)
+              # stage flagged are not held; 9: dense windows and smoothing over the scan's tissue only
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=9)
