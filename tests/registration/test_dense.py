@@ -168,8 +168,9 @@ def test_rhee_table2_protocol_without_initialisation():
     """Rhee's Table 2 protocol (§6.1): the knee bent 10° by VBD, registered from the identity (no start).
 
     The shank's rotation moves the foot end by ~35 mm; the coarse level (4× subsampled) must carry it.
-    Measured at test size: source MED 7.08 mm → 1.30 (seed 0) / 1.44 (seed 100) mm, elastix's B-spline 2.37
-    / 1.99 in the same harness (/tmp run, README).  Bound: under 30 % of the source's MED (1.30 is 18 %), no
+    Measured at test size: source MED 7.08 mm → 1.36 (seed 0) / 1.19 (seed 100) mm, elastix's B-spline 2.37
+    / 1.95 in the same harness (benchmarks/registration.py --cases table2, README).  Bound: under 30 % of the
+    source's MED (1.36 is 19 %), no
     fold anywhere in the body.
     """
     from validation.phantoms import make_phantom

@@ -132,7 +132,7 @@ def test_a_bone_the_pose_stage_flags_reaches_register_released(done, tmp_path, m
     shutil.copytree(root, copy)
     assert read_study(copy).init_info("pose01").get("flagged_bones") == []  # nothing flagged on this knee
     monkeypatch.setattr(Study, "pose_flagged", lambda self, sid: ["patella"] if sid == "pose01" else [])
-    assert main(["init", str(copy), "--scan", "pose01", "--force", "--quiet"]) == 0
+    assert main(["run", str(copy), "--until", "init", "--force", "init", "--scan", "pose01", "--quiet"]) == 0
     st = read_study(copy)
     info = st.init_info("pose01")
     assert info["flagged_bones"] == ["patella"] and st.init_info("pose02")["flagged_bones"] == []
