@@ -35,14 +35,15 @@ at every iteration, and keeps what an articulated body needs:
   compute on the box around that region grown by the LNCC statistics' reach
   (the test knee's box is 70 % of its grid, the hand's 49 %: a third less
   time on the knee at 70°), and U takes its edge values beyond the box.
-* **Tissue only** (``tissue_only``): the LNCC windows, the smoothing of the
-  force and that of ``U`` are normalised convolutions (Knutsson & Westin
-  1993) over the scan's body, so the skin's motion is not averaged with the
-  air's, which no image drives, and the correlation at the skin follows the
+* **Tissue only** (``tissue_only``, when air surrounds the scan's body):
+  the LNCC windows are over the scan's body only, the smoothed force is
+  divided by the tissue's share of the kernel (at least 1/2), and ``U`` is
+  smoothed by a normalised convolution (Knutsson & Westin 1993) weighing the
+  air by ``air_weight``, so the skin's motion is not averaged with the air's,
+  which no image drives, and the correlation at the skin follows the
   tissue's texture rather than the body/air step; as sliding-motion
   registration smooths each region on its own (Risser et al. 2013,
-  piecewise-diffeomorphic registration), the air keeping a small weight so
-  that it follows the skin.
+  piecewise-diffeomorphic registration).
 * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
   grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
   start compresses a crease below the voxel size or curled fingers touch;
@@ -149,9 +150,10 @@ class DenseSettings:
     #: (floored at 1/2: at the skin the force is the tissue's mean, into the air at most twice the plain one)
     #: and U's smoothing weighs the air by air_weight.  Tuning knees (seeds 0 / 1), 200-marker MED at 70°
     #: 2.78 / 2.84 → 2.22 / 2.31 mm (elastix 2.63 / 2.37), at 45° 1.77 / 1.70 → 1.29 / 1.43, MED at 70° 0.857 /
-    #: 0.928 → 0.758 / 0.854; the tuning hand's MED 0.371 → 0.357 (markers 0.59 → 0.60).  Air weight 0.2 was
+    #: 0.928 → 0.758 / 0.854; the tuning hands' MED 0.371 / 0.395 → 0.35 / 0.36.  Air weight 0.2 was
     #: worse at 70° (2.43), 0.01 alike (2.31 / 2.30); the force normalised by the same weights as U was worse
     #: (2.54 / 2.38: the air's steps grow), the windows over the body grown by a voxel alike (2.36 / 2.30).
+    #: (Applied only when air surrounds the scan's body, AIR_AROUND; each level's record says whether it was.)
     tissue_only: bool = True
     air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
@@ -260,7 +262,8 @@ def _local_stats(f, sig, mask=None):
 def _lncc_force(f, w, sig, f_stats, region=None):
     """LNCC of ``f`` and ``w`` (mean over the voxels where ``region`` > 0, or all) and its gradient with
     respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`_local_stats` of ``f``.  With a window mask
-    the local statistics are over the mask's voxels only, and voxels outside it feel no force."""
+    the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed
+    force still reaches into the air from the tissue)."""
     mf, sff, masked = f_stats
     if masked is None:
         mw, sww, sfw = _smooth_all([w, w * w, f * w], sig)
@@ -293,7 +296,8 @@ def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
     """The scan's body (:func:`registration.segmentation.segment_body`) and the voxels inside either image's
     body or within ``grow_mm`` of it (float32 0/1), where the force acts.
 
-    ``(None, None)`` when an image has no air/tissue boundary (then every voxel takes part).
+    ``(None, None)`` when the segmentation finds no tissue (then every voxel takes part).  On an image without
+    air (a field of view inside the limb) the "body" is the brighter tissue: see :func:`_air_around`.
     """
     from .segmentation import segment_body
 
@@ -304,6 +308,18 @@ def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
         return None, None
     d = ndimage.distance_transform_edt(~body, sampling=np.asarray(fixed.geometry.spacing, float)[::-1])
     return body_f, (d <= grow_mm).astype(np.float32)
+
+
+#: settings.tissue_only applies when at least this share of the grid's faces lies outside the scan's body: the
+#: body is surrounded by air (test knee 0.95, test hand 0.99).  Without air the segmentation's "body" is the
+#: brighter tissue (a textured block with no air: 0.46), and keeping to it would drop the rest of the tissue.
+AIR_AROUND = 0.75
+
+
+def _air_around(body: np.ndarray) -> float:
+    """The share of the grid's face voxels outside ``body``."""
+    faces = [body[0], body[-1], body[:, 0], body[:, -1], body[:, :, 0], body[:, :, -1]]
+    return float(sum(int((~f).sum()) for f in faces) / sum(f.size for f in faces))
 
 
 def _crop_box(region: np.ndarray | None, shape, margin_vox, align: int) -> tuple:
@@ -445,7 +461,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                      np.ceil((3.0 * st.window_mm + max(st.shrink) * sp_full.max()) / sp_full),
                      int(np.lcm.reduce([int(v) for v in st.shrink])))
     f0, m0 = f0[crop], m0[crop]
-    tissue0 = scan_body[crop].astype(np.float32) if st.tissue_only and scan_body is not None else None
+    tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
+    if st.tissue_only and scan_body is not None and _air_around(scan_body) >= AIR_AROUND:
+        tissue0 = scan_body[crop].astype(np.float32)
     lab_full = lab0  # the fold repair below works on the whole grid
     if lab0 is not None:
         lab0 = lab0[crop]
@@ -545,6 +563,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
                "lncc_before": before, "lncc_after": before if kept else history[-1], "input_kept": kept,
                "halvings": halvings, "lncc": [round(float(h), 6) for h in history],  # per iteration (reports)
+               "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
         log.info("dense level %d (shrink %d): %d iterations, LNCC %.4f -> %.4f", lv, s, rec["iterations"],

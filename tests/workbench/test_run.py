@@ -119,7 +119,7 @@ def test_changing_one_registration_setting_reruns_register_model_and_validate_on
     assert all((copy / p).read_bytes() == b for p, b in before.items())
 
 
-def test_a_bone_the_pose_stage_flags_reaches_register_released(done, tmp_path, monkeypatch):
+def test_a_bone_the_pose_stage_flags_is_listed_by_init_and_not_held_by_register(done, tmp_path, monkeypatch):
     """A bone the pose stage could not place (fits.json status not ``ok``; the hand's distal thumb in the
     benchmark) is listed by the init stage in init.json and is not among the bones register holds rigid
     (workbench.stages.register._held_bones, what both registrations are given); the other bones are held as
