@@ -140,8 +140,8 @@ class DenseSettings:
     #: into the air kept levels going or stopped them by chance; over the region, tuning knees at 70°, seeds
     #: 0 / 1: MED 0.857 / 0.928 mm, 200-marker MED 2.78 / 2.84 against 0.874 / 0.928 and 2.86 / 2.84)
     tolerance: float = 1e-4
-    #: the LNCC windows and both smoothings stay in the scan's tissue (normalised convolution, Knutsson & Westin
-    #: 1993).  A Gaussian across the skin averages the skin's motion with the air's, which no image force
+    #: the LNCC windows and both smoothings keep to the scan's tissue (U's by normalised convolution, Knutsson
+    #: & Westin 1993).  A Gaussian across the skin averages the skin's motion with the air's, which no image force
     #: drives, and an LNCC window across it is ruled by the body/air step, blind to sliding along the skin: the
     #: skin's tangential slide was under-recovered (tuning knee at 70°, seed 0, the skin within 0.75 of a joint
     #: radius proximal of the joint centre: error along the limb 3.2 mm RMS against elastix's 2.5, 15–25 mm deeper 0.7
