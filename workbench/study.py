@@ -314,10 +314,10 @@ class Study:
         returned only to a caller that takes them (``coarse=True``: deform, animate, the init stage's VBD); any
         other is told to recompute them on the template's grid.
         """
-        from workbench.io.weights import read_voxel_weights
+        from workbench.io.weights import read_voxel_weights, read_voxel_weights_geometry
 
         path = self.output("weights", "weights.json")
-        weights, geometry, _ = read_voxel_weights(path)
+        geometry = read_voxel_weights_geometry(path)  # checked from the headers, before the map is read
         tg = read_image_geometry(self.path(self.manifest["template"]))
         f = tg.factor_of(geometry)
         if f is not None and f > 1:
@@ -328,6 +328,7 @@ class Study:
                                      "--grid-factor 1 --force`.", path)
         else:
             tg.check_same(geometry, names=("template", str(path)), remedy="recompute the weights: workbench weights --force")
+        weights, _, _ = read_voxel_weights(path)
         return weights, read_labels(self.output("weights", "body_mask.nii.gz"))
 
     # -- init and register stages ------------------------------------------------------------------

@@ -240,7 +240,7 @@ def test_a_one_dof_joint_takes_a_number_alone(tmp_path):
         read_target_pose(p, sk)
 
 
-def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path, capsys):
+def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path, capsys, monkeypatch):
     """`workbench weights --grid-factor 2` (what a Kurihara-size CT gets by default): the weights and body
     mask on every 2nd template voxel; `deform` solves its maps there and writes the posed volume on the
     template's full grid, close to the exact full-grid deformation; the stages that need full-grid weights
@@ -289,6 +289,13 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path
     # the VBD start itself takes the coarse weights (register needs full-grid ones, above): its field lies on
     # the scan's full grid, blended up from the maps solved on every 2nd voxel
     st = read_study(root)
+    # the refusal comes from the images' headers, before the map's voxels are read
+    import workbench.io.weights as weights_io
+
+    with monkeypatch.context() as m:
+        m.setattr(weights_io, "read_voxel_weights", lambda *a, **k: pytest.fail("the weight map was read"))
+        with pytest.raises(InputFileError, match="--grid-factor 1"):
+            st.weights()
     for sid in st.scan_ids:
         f = st.init_field(sid)
         assert f.geometry.is_close(st.scan(sid).geometry) and st.init_info(sid)["backward_map"]["map_factor"] == 2

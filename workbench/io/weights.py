@@ -27,9 +27,9 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.skinning import SkinningWeights
 from workbench.errors import InputFileError
 from workbench.io.jsonio import read_json, write_json
-from workbench.io.volumes import read_vector_image, write_vector_image
+from workbench.io.volumes import read_image_geometry, read_vector_image, write_vector_image
 
-__all__ = ["WEIGHTS_FORMAT", "write_voxel_weights", "read_voxel_weights"]
+__all__ = ["WEIGHTS_FORMAT", "write_voxel_weights", "read_voxel_weights", "read_voxel_weights_geometry"]
 
 WEIGHTS_FORMAT = "avw-weights"
 
@@ -59,9 +59,7 @@ def write_voxel_weights(weights: SkinningWeights, geometry: GridGeometry, path: 
     return write_json(doc, path, overwrite=overwrite)
 
 
-def read_voxel_weights(path: str | os.PathLike) -> tuple[SkinningWeights, GridGeometry, dict]:
-    """Read a weight map written by :func:`write_voxel_weights`: ``(weights, geometry, manifest)``."""
-    path = Path(path)
+def _manifest(path: Path) -> dict:
     doc = read_json(path)
     if doc.get("format") != WEIGHTS_FORMAT:
         raise InputFileError(f"{path}: not a weight map ('format' is {doc.get('format')!r}, expected "
@@ -69,6 +67,20 @@ def read_voxel_weights(path: str | os.PathLike) -> tuple[SkinningWeights, GridGe
     for key in ("bones", "index", "value"):
         if key not in doc:
             raise InputFileError(f"{path}: the weight map lacks the key {key!r}.", path)
+    return doc
+
+
+def read_voxel_weights_geometry(path: str | os.PathLike) -> GridGeometry:
+    """The grid of a weight map written by :func:`write_voxel_weights`, from its index image's header only (no
+    voxel is read): to refuse a map on the wrong grid before reading it."""
+    path = Path(path)
+    return read_image_geometry(path.parent / _manifest(path)["index"])
+
+
+def read_voxel_weights(path: str | os.PathLike) -> tuple[SkinningWeights, GridGeometry, dict]:
+    """Read a weight map written by :func:`write_voxel_weights`: ``(weights, geometry, manifest)``."""
+    path = Path(path)
+    doc = _manifest(path)
     idx = read_vector_image(path.parent / doc["index"])
     val = read_vector_image(path.parent / doc["value"], components=idx.n_components)
     idx.geometry.check_same(val.geometry, names=(doc["index"], doc["value"]),
