@@ -136,14 +136,19 @@ class PolyrigidFlow:
             vel[i] = v[:, :3, :]
         return minv, vel
 
-    def _integrate(self, points: np.ndarray, backward: bool) -> np.ndarray:
+    def _integrator(self, backward: bool):
+        """``points (n, 3) → their images``, the bones' paths and the maps prepared once for many calls."""
         n = self.steps
         times = np.linspace(0.0, 1.0, 2 * n + 1)  # RK4 stage times: t_i, t_i + h/2, t_i + h
         minv, vel = self._paths(times)
         maps = np.ascontiguousarray(self.distance_maps, dtype=np.float32)
         w2i = np.ascontiguousarray(self.geometry.world_to_index_matrix, dtype=np.float64)
-        return _flow(np.ascontiguousarray(points, dtype=np.float64), minv, vel, maps, w2i, n, backward,
-                     float(self.power), float(self.falloff_mm))
+        power, falloff = float(self.power), float(self.falloff_mm)
+        return lambda points: _flow(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), minv, vel, maps,
+                                    w2i, n, backward, power, falloff)
+
+    def _integrate(self, points: np.ndarray, backward: bool) -> np.ndarray:
+        return self._integrator(backward)(points)
 
     def forward(self, points) -> np.ndarray:
         """Template points ``(n, 3)`` → scan (integrate ``t = 0 → 1``)."""
@@ -153,17 +158,71 @@ class PolyrigidFlow:
         """Scan points ``(n, 3)`` → template (integrate ``t = 1 → 0``): the exact inverse of :meth:`forward`."""
         return self._integrate(points, True)
 
-    def scan_to_template(self, scan_geometry: GridGeometry) -> Volume:
-        """The backward map as a ``scan_to_template`` displacement field on ``scan_geometry`` (float32, mm)."""
-        x = scan_geometry.world_coordinates().reshape(-1, 3)
-        u = (self.backward(x) - x).astype(np.float32)
-        return Volume(u.reshape(scan_geometry.array_shape + (3,)), scan_geometry)
+    def scan_to_template(self, scan_geometry: GridGeometry, *, factor: int = 1, progress=None) -> Volume:
+        """The backward map as a ``scan_to_template`` displacement field on ``scan_geometry`` (float32, mm).
 
-    def template_to_scan(self) -> Volume:
-        """The forward map as a displacement field on the template grid (float32, mm)."""
-        p = self.geometry.world_coordinates().reshape(-1, 3)
-        u = (self.forward(p) - p).astype(np.float32)
-        return Volume(u.reshape(self.geometry.array_shape + (3,)), self.geometry)
+        ``factor`` f > 1 (a big scan): see :meth:`_field`.  ``progress(done, total)`` is called as voxels are
+        finished."""
+        return self._field(scan_geometry, True, factor, progress)
+
+    def template_to_scan(self, *, factor: int = 1, progress=None) -> Volume:
+        """The forward map as a displacement field on the template grid (float32, mm); ``factor`` and
+        ``progress`` as :meth:`scan_to_template`."""
+        return self._field(self.geometry, False, factor, progress)
+
+    def _field(self, grid: GridGeometry, backward: bool, factor: int, progress) -> Volume:
+        """The map on ``grid``, a slab of planes at a time (each voxel is integrated on its own: the same bits
+        as integrating the whole grid at once).
+
+        With ``factor`` f > 1 the flow is integrated on every f-th voxel of ``grid`` and blended up
+        (:class:`deformation.resample.CoarseBackwardMap`: trilinear in a cell whose 8 corners' images lie
+        within a few coarse voxels of each other, exact where the map is affine, as inside a bone); the voxels
+        of the other cells (where curled fingers touch and the map jumps) are integrated exactly.  The map has
+        kinks (the distance weights change where a voxel's nearest bone does), so the blend is an
+        approximation: the test hand at 1.6 mm, f = 2, every 2nd voxel plus 10 % of the grid integrated
+        (0.23 of the work), deviates from the exact map by 0.067 mm on average over the body (p99 0.9 mm),
+        MED to the truth 0.547 → 0.577 mm; blending everywhere instead, 0.30 mm (MED 0.663).  At 0.8 mm
+        (6.9 M voxels) f = 2 took 0.25 of the exact map's time, 0.017 mm off on average, MED 0.493 → 0.498.  The blend is not one-to-one by construction:
+        where a blended cell meets an integrated one their values differ by the blend's error (the test hand:
+        115 folded body voxels against the exact map's 127 on that grid, not all the same ones).
+        """
+        from . import geometry as geometry_module
+        from .resample import OK, BackwardMap, CoarseBackwardMap
+
+        f = int(factor)
+        if f < 1:
+            raise ValueError(f"the map factor must be a whole number ≥ 1, got {factor!r}")
+        run = self._integrator(backward)
+        nx, ny, nz = grid.size
+        out = np.empty(grid.array_shape + (3,), dtype=np.float32)
+        total = grid.n_voxels if f == 1 else grid.every(f).n_voxels + grid.n_voxels
+        done = 0
+        if f == 1:
+            for k0, k1 in geometry_module.slabs(nz, nx * ny, geometry_module.SLAB_VOXELS):  # tests make it small
+                x = grid.world_coordinates(z_slice=slice(k0, k1))
+                out[k0:k1] = (run(x).reshape(x.shape) - x).astype(np.float32)
+                done += x.shape[0] * nx * ny
+                if progress is not None:
+                    progress(done, total)
+            return Volume(out, grid)
+        coarse, frame = grid.every(f), self.geometry.every(f)  # images as indices of the template's grid
+        x = coarse.world_coordinates()
+        idx = frame.world_to_index(run(x)).reshape(x.shape).astype(np.float32)
+        bm = CoarseBackwardMap(BackwardMap(frame, coarse, idx, np.zeros(coarse.array_shape, np.float32),
+                                           np.full(coarse.array_shape, OK, np.uint8)), f, self.geometry, grid)
+        done = coarse.n_voxels
+        del x, idx
+        for k0, k1 in geometry_module.slabs(nz, nx * ny, geometry_module.SLAB_VOXELS):
+            x = grid.world_coordinates(z_slice=slice(k0, k1))
+            pos = self.geometry.index_to_world(bm.rows(k0, k1).template_index)
+            jump = bm.unblended(k0, k1)
+            if jump.any():
+                pos[jump] = run(x[jump])
+            out[k0:k1] = (pos - x).astype(np.float32)
+            done += x.shape[0] * nx * ny
+            if progress is not None:
+                progress(done, total)
+        return Volume(out, grid)
 
 
 @nb.njit(cache=True, inline="always")

@@ -873,6 +873,17 @@ class CoarseBackwardMap:
         sub = g if (k0, k1) == (0, nz) else g.crop((0, 0, k0), (nx, ny, k1))
         return BackwardMap(self.template_geometry, sub, out_x, out_res, out_st)
 
+    def unblended(self, k0: int, k1: int) -> np.ndarray:
+        """Fine target voxels of the slices ``k0 ≤ k < k1`` whose cell is not blendable (its corners'
+        preimages spread or one did not converge: :func:`_blendable_cells`), which :meth:`rows` gives their
+        nearest coarse voxel's position: bool ``(k1 − k0, ny, nx)``."""
+        nx, ny, _ = self.target_geometry.size
+        cz, cy, cx = self._ok.shape
+        f = self.factor
+        # the cell of a fine voxel, as _coarse_axis finds it
+        kz, ky, kx = (np.minimum(np.arange(a, b) // f, n - 1) for a, b, n in ((k0, k1, cz), (0, ny, cy), (0, nx, cx)))
+        return ~self._ok[np.ix_(kz, ky, kx)]
+
     def full(self) -> BackwardMap:
         """The fine backward map of the whole target grid (17 bytes a voxel)."""
         return self.rows(0, self.target_geometry.size[2])

@@ -31,14 +31,15 @@ __all__ = ["vbd_initial_field", "polyrigid_initial_field"]
 
 
 def polyrigid_initial_field(template_labels: Volume, bone_labels: dict, parents: dict, transforms: dict,
-                            scan_geometry: GridGeometry, *, power: float = 4.0,
-                            falloff_mm: float = 20.0) -> tuple[Volume, "PolyrigidFlow"]:
+                            scan_geometry: GridGeometry, *, power: float = 4.0, falloff_mm: float = 20.0,
+                            factor: int = 1, progress=None) -> tuple[Volume, "PolyrigidFlow"]:
     """``scan_to_template`` field of the polyrigid flow on the scan grid, and the flow (for its forward map).
 
     ``bone_labels`` ``{bone: label id}`` and ``parents`` ``{bone: parent bone or None}`` describe the
     skeleton; ``transforms`` ``{bone: 4x4 template → scan}`` the scan's (estimated) pose.  The weights are
     the distance weights of :func:`deformation.skinning.distance_weights` (``power``, ``falloff_mm``), taken
-    to the bones where they are at each moment of the motion.
+    to the bones where they are at each moment of the motion.  ``factor`` and ``progress``: see
+    :meth:`deformation.polyrigid.PolyrigidFlow.scan_to_template` (a big scan grid).
     """
     from deformation.polyrigid import PolyrigidFlow, bone_distance_maps
 
@@ -62,7 +63,7 @@ def polyrigid_initial_field(template_labels: Volume, bone_labels: dict, parents:
     par = tuple(-1 if parents.get(b) is None else ranked.index(parents[b]) for b in ranked)
     flow = PolyrigidFlow(np.stack([np.asarray(transforms[b], float) for b in ranked]), par, maps,
                          template_labels.geometry, power=power, falloff_mm=falloff_mm)
-    return flow.scan_to_template(scan_geometry), flow
+    return flow.scan_to_template(scan_geometry, factor=factor, progress=progress), flow
 
 
 def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeometry, weights, transforms,

@@ -690,6 +690,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="repair the folds of the VBD initialisation in the crease of a flexed joint before "
                          "registering (one-to-one wherever the map reaches into the template; ~0.1-1 mm less "
                          "accurate on the knee phantom, more on the hand)")
+    rg.add_argument("--map-factor", type=int, default=argparse.SUPPRESS, metavar="F",
+                    help="integrate the polyrigid start on every F-th voxel and blend it up (exactly where the map "
+                         "jumps, where fingers touch): ~4x less work at F=2, 0.07 mm off on average on the test "
+                         "hand at 1.6 mm, 0.02 mm at 0.8 mm. Default: 1 up to 16 M voxels a grid, else the smallest F within")
     rg.add_argument("--pose", choices=["estimated", "truth"], default=argparse.SUPPRESS, dest="pose_source",
                     help="pose of the start: the pose stage's estimate, or a phantom's true pose (protocols). "
                          "Default: estimated")
@@ -1051,13 +1055,16 @@ def _register_settings(args):
     # a recorded setting that a given option contradicts gives way to it: an earlier --unfold-init repaired a
     # VBD start (not another), --preset paper is Rhee's method, --method dense has no preset
     init_implied = {"unfold": False} if getattr(args, "init", "vbd") != "vbd" else {}
+    if getattr(args, "init", "polyrigid") != "polyrigid":
+        init_implied["map_factor"] = None  # the polyrigid start's
     reg_implied = {}
     if getattr(args, "preset", None) == "paper":
         reg_implied["method"] = "auto"
     if getattr(args, "method", None) == "dense":  # nor Algorithm 1's options recorded by an earlier run
         reg_implied.update(preset="auto", levels=None, optimizer=None, metric=None, max_steps_per_level=None)
     init = _given(args, args.study, "init", {"method": ("init", lambda v: "identity" if v == "none" else v),
-                                            "pose": ("pose_source", _same), "unfold": ("unfold_init", _same)},
+                                            "pose": ("pose_source", _same), "unfold": ("unfold_init", _same),
+                                            "map_factor": ("map_factor", _same)},
                   init_implied)
     reg = _given(args, args.study, "register", {
         "method": ("method", _same), "preset": ("preset", lambda v: "paper" if v == "paper" else "auto"),

@@ -34,7 +34,8 @@ def test_register_writes_fields_in_the_truth_convention(study, capsys):
     st = read_study(study)
     entry = st.stage_entry("register", "pose01")
     assert entry["settings"]["max_steps_per_level"] == 4 and entry["settings"]["levels"] == [3, 3]
-    assert st.stage_entry("init", "pose01")["settings"] == {"method": "vbd", "pose": "truth", "unfold": False}
+    assert st.stage_entry("init", "pose01")["settings"] == {"method": "vbd", "pose": "truth", "unfold": False,
+                                                             "map_factor": None}
     entry = {k: f"registration/pose01/{n}" for k, n in (("correspondence", "correspondence.mha"),
                                                         ("template_to_scan", "template_to_scan.mha"),
                                                         ("registered", "registered.nii.gz"), ("log", "log.json"))}
@@ -208,6 +209,43 @@ def test_default_registration_is_the_polyrigid_start_and_dense_steps(tmp_path, s
     body = body_on_scan(st.truth_correspondence("pose01"), read_labels(d / "skinning" / "body_mask.nii.gz"))
     assert med(corr, st.truth_correspondence("pose01"), body) == pytest.approx(rows["registered"]["med_mm"],
                                                                                 abs=1e-4)
+
+
+def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
+    """--map-factor 2 (what a grid of more than 16 M voxels gets by itself): the start integrated on every 2nd
+    voxel and blended up, recorded in init.json, on the scan's and template's full grids; it stays close to
+    the exact start (the blend's accuracy is tested in tests/deformation/test_polyrigid.py: this checks the
+    plumbing, where a wrong factor or frame would be tens of mm off).  A map factor with VBD, or below 1, is
+    one line naming the option, and nothing is written."""
+    from registration.initialise import polyrigid_initial_field
+
+    d = tmp_path / "mf"
+    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
+    m = json.loads((d / "study.json").read_text())
+    for stage in ("init", "register", "validate"):
+        m.get("stages", {}).pop(stage, None)
+    (d / "study.json").write_text(json.dumps(m))
+    for argv, match in ((["--init", "vbd", "--map-factor", "2"], "--init polyrigid"),
+                        (["--map-factor", "0"], "--map-factor must be a whole number")):
+        assert main(["register", str(d), "--scan", "pose01", *FAST, *argv, "--quiet"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and match in err[0], err
+        assert not (d / "init").exists() and not (d / "registration").exists()
+    assert main(["register", str(d), "--scan", "pose01", *FAST, "--map-factor", "2", "--quiet"]) == 0
+    st = read_study(d)
+    info = st.init_info("pose01")
+    assert info["method"] == "polyrigid" and info["map_factor"] == {"scan": 2, "template": 2}
+    assert st.stage_entry("init", "pose01")["settings"]["map_factor"] == 2
+    field, scan = st.init_field("pose01"), st.scan("pose01")
+    field.geometry.check_same(scan.geometry)
+    st.init_forward("pose01").geometry.check_same(st.template().geometry)
+    sk, labels = st.skeleton(), st.template_labels()
+    exact, _ = polyrigid_initial_field(labels, {b: sk.label_of(b) for b in sk.bone_names},
+                                       {b: sk.bone(b).parent for b in sk.bone_names},
+                                       st.truth_pose("pose01").transforms, scan.geometry)
+    body = scan.data > 0.1 * float(scan.data.max())
+    dev = np.linalg.norm(field.data - exact.data, axis=-1)[body]
+    assert dev.mean() < 0.25 * min(scan.geometry.spacing)  # a quarter voxel: the blend's second-order error
 
 
 def ndimage_erode(mask):
