@@ -172,19 +172,21 @@ class PolyrigidFlow:
 
     def _field(self, grid: GridGeometry, backward: bool, factor: int, progress) -> Volume:
         """The map on ``grid``, a slab of planes at a time (each voxel is integrated on its own: the same bits
-        as integrating the whole grid at once).
+        as integrating the whole grid at once).  ``progress(done, total)``: voxels made (with a factor, the
+        coarse ones integrated, then every fine one).
 
         With ``factor`` f > 1 the flow is integrated on every f-th voxel of ``grid`` and blended up
         (:class:`deformation.resample.CoarseBackwardMap`: trilinear in a cell whose 8 corners' images lie
         within a few coarse voxels of each other, exact where the map is affine, as inside a bone); the voxels
-        of the other cells (where curled fingers touch and the map jumps) are integrated exactly.  The map has
-        kinks (the distance weights change where a voxel's nearest bone does), so the blend is an
-        approximation: the test hand at 1.6 mm, f = 2, every 2nd voxel plus 10 % of the grid integrated
-        (0.23 of the work), deviates from the exact map by 0.067 mm on average over the body (p99 0.9 mm),
-        MED to the truth 0.547 → 0.577 mm; blending everywhere instead, 0.30 mm (MED 0.663).  At 0.8 mm
-        (6.9 M voxels) f = 2 took 0.25 of the exact map's time, 0.017 mm off on average, MED 0.493 → 0.498.  The blend is not one-to-one by construction:
-        where a blended cell meets an integrated one their values differ by the blend's error (the test hand:
-        115 folded body voxels against the exact map's 127 on that grid, not all the same ones).
+        of the other cells (where curled fingers touch and the map jumps) and those past the last coarse voxel
+        (which a blend would extrapolate) are integrated exactly.  The map has kinks (the distance weights
+        change where a voxel's nearest bone does), so the blend is an approximation: the test hand at 1.6 mm,
+        f = 2, every 2nd voxel plus 10 % of the grid integrated (0.30 of the time), deviates from the exact
+        map by 0.067 mm on average over the body (p99 0.9 mm), MED to the truth 0.547 → 0.577 mm; blending
+        everywhere instead, 0.30 mm (MED 0.663).  At 0.8 mm (6.9 M voxels) f = 2 took 0.25 of the exact
+        map's time, 0.017 mm off on average, MED 0.493 → 0.498.  The blend is not one-to-one by
+        construction: where a blended cell meets an integrated one their values differ by the blend's error
+        (the test hand at 1.6 mm: 115 folded body voxels, against 127 in the exact map on that grid).
         """
         from . import geometry as geometry_module
         from .resample import OK, BackwardMap, CoarseBackwardMap
@@ -192,37 +194,60 @@ class PolyrigidFlow:
         f = int(factor)
         if f < 1:
             raise ValueError(f"the map factor must be a whole number ≥ 1, got {factor!r}")
+        if f > 1 and min(grid.every(f).size) < 2:
+            raise ValueError(f"a map factor of {f} leaves {grid.every(f).size} voxels of this "
+                             f"{grid.size}-voxel grid: at most {max_map_factor(grid)} here")
         run = self._integrator(backward)
-        nx, ny, nz = grid.size
         out = np.empty(grid.array_shape + (3,), dtype=np.float32)
-        total = grid.n_voxels if f == 1 else grid.every(f).n_voxels + grid.n_voxels
-        done = 0
-        if f == 1:
+
+        def integrate(g: GridGeometry, into: np.ndarray, done: int, total: int) -> int:
+            nx, ny, nz = g.size
             for k0, k1 in geometry_module.slabs(nz, nx * ny, geometry_module.SLAB_VOXELS):  # tests make it small
-                x = grid.world_coordinates(z_slice=slice(k0, k1))
-                out[k0:k1] = (run(x).reshape(x.shape) - x).astype(np.float32)
+                x = g.world_coordinates(z_slice=slice(k0, k1))
+                into[k0:k1] = run(x).reshape(x.shape) - x
                 done += x.shape[0] * nx * ny
                 if progress is not None:
                     progress(done, total)
+            return done
+
+        if f == 1:
+            integrate(grid, out, 0, grid.n_voxels)
             return Volume(out, grid)
         coarse, frame = grid.every(f), self.geometry.every(f)  # images as indices of the template's grid
-        x = coarse.world_coordinates()
-        idx = frame.world_to_index(run(x)).reshape(x.shape).astype(np.float32)
+        nx, ny, nz = grid.size
+        last = [f * (n - 1) for n in coarse.size]  # the last coarse voxel along x, y, z: fine index
+        u = np.empty(coarse.array_shape + (3,))
+        total = coarse.n_voxels + grid.n_voxels  # the coarse voxels integrated, then every fine one made
+        done = integrate(coarse, u, 0, total)
+        idx = frame.world_to_index(u + coarse.world_coordinates()).astype(np.float32)
+        del u
         bm = CoarseBackwardMap(BackwardMap(frame, coarse, idx, np.zeros(coarse.array_shape, np.float32),
                                            np.full(coarse.array_shape, OK, np.uint8)), f, self.geometry, grid)
-        done = coarse.n_voxels
-        del x, idx
+        del idx
+
+        def exact_here(k0, k1):
+            jump = bm.unblended(k0, k1)
+            jump[np.arange(k0, k1) > last[2]] = True  # past the last coarse voxel: no extrapolation
+            jump[:, np.arange(ny) > last[1]] = True
+            jump[:, :, np.arange(nx) > last[0]] = True
+            return jump
+
         for k0, k1 in geometry_module.slabs(nz, nx * ny, geometry_module.SLAB_VOXELS):
             x = grid.world_coordinates(z_slice=slice(k0, k1))
             pos = self.geometry.index_to_world(bm.rows(k0, k1).template_index)
-            jump = bm.unblended(k0, k1)
+            jump = exact_here(k0, k1)
             if jump.any():
                 pos[jump] = run(x[jump])
-            out[k0:k1] = (pos - x).astype(np.float32)
-            done += x.shape[0] * nx * ny
+            out[k0:k1] = pos - x
+            done += (k1 - k0) * nx * ny
             if progress is not None:
                 progress(done, total)
         return Volume(out, grid)
+
+
+def max_map_factor(grid: GridGeometry) -> int:
+    """The largest map factor whose coarse grid keeps at least 2 voxels along every axis (a cell to blend)."""
+    return max(1, (min(grid.size) - 1))
 
 
 @nb.njit(cache=True, inline="always")

@@ -336,6 +336,50 @@ def test_the_coarse_blend_compares_preimages_in_mm_on_uneven_grids():
     assert np.abs(up.template_index - full.template_index)[both].max() < 1.25 * 3e-2
 
 
+def test_unblended_names_the_voxels_the_coarse_map_gives_their_nearest_coarse_voxel():
+    """CoarseBackwardMap.unblended: the fine voxels of the cells around a jump (an affine map but one coarse
+    voxel 9 voxels off: its preimage spreads its 8 cells beyond 2.5 coarse voxels, every other cell by 1.1),
+    which rows() gives f × their nearest coarse voxel's index; every other voxel gets the trilinear blend of
+    its cell's corners (extrapolated from the last cell past the last coarse voxel: z's 10 voxels with f = 2,
+    x's 11 with f = 3).  Float32 storage: the blend agrees to 1e-4 of a voxel."""
+    from deformation.geometry import GridGeometry
+    from deformation.resample import OK, BackwardMap, CoarseBackwardMap
+
+    for f in (2, 3):
+        g = GridGeometry((11, 13, 10), (1.0, 1.5, 2.0))
+        c = g.every(f)
+        cz, cy, cx = c.array_shape
+        ijk = np.stack(np.meshgrid(np.arange(cx), np.arange(cy), np.arange(cz), indexing="ij"), -1)
+        idx = np.ascontiguousarray(ijk.transpose(2, 1, 0, 3), dtype=np.float32) * 1.1 + 0.3  # an affine map
+        idx[1, 2, 1] += 9.0  # a jump: the cells around this coarse voxel cannot blend
+        cb = CoarseBackwardMap(BackwardMap(c, c, idx, np.zeros(c.array_shape, np.float32),
+                                           np.full(c.array_shape, OK, np.uint8)), f, g)
+        nz, ny, nx = g.array_shape
+        got = cb.rows(0, nz).template_index
+        flag = cb.unblended(0, nz)
+        # the cells with the coarse voxel (z 1, y 2, x 1) as a corner, each fine voxel in its cell as the kernel
+        # finds it (the lower corner at or before it, the last cell beyond)
+        cell = [np.minimum(np.arange(n) // f, m - 2) for n, m in zip((nz, ny, nx), (cz, cy, cx))]
+        expected = np.zeros(flag.shape, bool)
+        expected[np.ix_(np.isin(cell[0], (0, 1)), np.isin(cell[1], (1, 2)), np.isin(cell[2], (0, 1)))] = True
+        assert np.array_equal(flag, expected)
+        want = np.empty_like(got)
+        for k in range(nz):
+            for j in range(ny):
+                for i in range(nx):
+                    (k0, wz), (j0, wy), (i0, wx) = ((min(a // f, n - 2), a / f - min(a // f, n - 2))
+                                                    for a, n in ((k, cz), (j, cy), (i, cx)))
+                    if flag[k, j, i]:
+                        want[k, j, i] = f * idx[min(int(k / f + 0.5), cz - 1), min(int(j / f + 0.5), cy - 1),
+                                                min(int(i / f + 0.5), cx - 1)]
+                        continue
+                    v = idx[k0:k0 + 2, j0:j0 + 2, i0:i0 + 2].astype(np.float64)
+                    v = v[0] * (1 - wz) + v[1] * wz
+                    v = v[0] * (1 - wy) + v[1] * wy
+                    want[k, j, i] = f * (v[0] * (1 - wx) + v[1] * wx)
+        assert np.abs(got - want).max() < 1e-4
+
+
 def test_pulling_through_a_coarse_map_gives_the_full_maps_voxels(knee):
     """CoarseBackwardMap.pull blends each fine voxel's template index and samples there in one kernel (a
     197 M-voxel CT never holds its 3.3 GiB fine map): the same voxels, bit for bit, as the whole fine map made

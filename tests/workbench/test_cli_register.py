@@ -215,8 +215,9 @@ def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
     """--map-factor 2 (what a grid of more than 16 M voxels gets by itself): the start integrated on every 2nd
     voxel and blended up, recorded in init.json, on the scan's and template's full grids; it stays close to
     the exact start (the blend's accuracy is tested in tests/deformation/test_polyrigid.py: this checks the
-    plumbing, where a wrong factor or frame would be tens of mm off).  A map factor with VBD, or below 1, is
-    one line naming the option, and nothing is written."""
+    plumbing, where a wrong factor or frame would be tens of mm off).  A map factor with VBD, below 1 or
+    leaving a grid less than 2 voxels along an axis is one line naming the option, and nothing is written;
+    --init vbd afterwards drops the recorded factor."""
     from registration.initialise import polyrigid_initial_field
 
     d = tmp_path / "mf"
@@ -226,7 +227,8 @@ def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
         m.get("stages", {}).pop(stage, None)
     (d / "study.json").write_text(json.dumps(m))
     for argv, match in ((["--init", "vbd", "--map-factor", "2"], "--init polyrigid"),
-                        (["--map-factor", "0"], "--map-factor must be a whole number")):
+                        (["--map-factor", "0"], "--map-factor must be a whole number"),
+                        (["--map-factor", "99"], "--map-factor 99 leaves the scan's")):
         assert main(["register", str(d), "--scan", "pose01", *FAST, *argv, "--quiet"]) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], err
@@ -246,6 +248,9 @@ def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
     body = scan.data > 0.1 * float(scan.data.max())
     dev = np.linalg.norm(field.data - exact.data, axis=-1)[body]
     assert dev.mean() < 0.25 * min(scan.geometry.spacing)  # a quarter voxel: the blend's second-order error
+    # a recorded map factor gives way to --init vbd (it is the polyrigid start's)
+    assert main(["register", str(d), "--scan", "pose01", *FAST, *VBD, "--quiet"]) == 0
+    assert read_study(d).stage_entry("init", "pose01")["settings"]["map_factor"] is None
 
 
 def ndimage_erode(mask):

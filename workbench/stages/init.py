@@ -65,7 +65,7 @@ class InitSettings:
                 raise ValueError(f"--map-factor must be a whole number ≥ 1, got {self.map_factor!r}")
             if self.method != "polyrigid":
                 raise ValueError("--map-factor sets the polyrigid start's sampling: it needs --init polyrigid (VBD's "
-                                 "maps follow the weights' --grid-factor)")
+                                 "maps follow the weights' --grid-factor; workbench run: --set init.map_factor=null)")
 
 
 def _needs(s: InitSettings):
@@ -81,6 +81,15 @@ def _inputs(study, s: InitSettings, scan):
     if s.method == "polyrigid":
         files["labels"] = study.template_labels_path()
         files["skeleton"] = study.path(study.manifest["skeleton"])
+        if s.map_factor is not None:  # before any work: the grids' headers
+            from deformation.polyrigid import max_map_factor
+            from workbench.io.volumes import read_image_geometry
+
+            for name, path in (("scan", files["scan"]), ("template", files["template"])):
+                g = read_image_geometry(path)
+                if s.map_factor > max_map_factor(g):
+                    raise ValueError(f"--map-factor {s.map_factor} leaves the {name}'s {g.size}-voxel grid less "
+                                     f"than 2 voxels along an axis: at most {max_map_factor(g)} here")
     if s.method != "identity" and s.pose == "truth":
         if not study.has_truth(scan):
             from workbench.study import StudyError
@@ -123,6 +132,7 @@ def _run(ctx) -> dict:
 
 
 def _polyrigid(ctx, pose, g_s, flagged) -> dict:
+    from deformation.polyrigid import max_map_factor
     from deformation.skinning import stack_transforms
     from registration.initialise import polyrigid_initial_field
 
@@ -132,8 +142,10 @@ def _polyrigid(ctx, pose, g_s, flagged) -> dict:
     bone_labels = {b: sk.label_of(b) for b in sk.bone_names}
     parents = {b: sk.bone(b).parent for b in sk.bone_names}
     g_t = labels.geometry
-    f_s, f_t = ((s.map_factor, s.map_factor) if s.map_factor is not None
-                else (g_s.factor_within(POLYRIGID_VOXELS), g_t.factor_within(POLYRIGID_VOXELS)))
+    if s.map_factor is not None:  # checked against both grids before the work (_inputs)
+        f_s = f_t = s.map_factor
+    else:  # a cell to blend along every axis, however thin the grid
+        f_s, f_t = (min(g.factor_within(POLYRIGID_VOXELS), max_map_factor(g)) for g in (g_s, g_t))
 
     def on(f):
         return f" (integrated on {every_nth(f)} voxel, exactly where the map jumps; --map-factor)" if f > 1 else ""
