@@ -48,7 +48,7 @@ from .geometry import GridGeometry, Volume
 if nb.config.THREADING_LAYER == "default":  # Open3D bundles an old TBB (see validation/phantoms/kernels.py)
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["PolyrigidFlow", "bone_distance_maps"]
+__all__ = ["PolyrigidFlow", "bone_distance_maps", "max_map_factor"]
 
 
 def bone_distance_maps(labels: Volume, bone_labels: dict) -> np.ndarray:
