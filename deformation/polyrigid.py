@@ -200,27 +200,27 @@ class PolyrigidFlow:
         run = self._integrator(backward)
         out = np.empty(grid.array_shape + (3,), dtype=np.float32)
 
-        def integrate(g: GridGeometry, into: np.ndarray, done: int, total: int) -> int:
+        def integrate(g: GridGeometry, into: np.ndarray, done: int, total: int, displacement: bool) -> int:
             nx, ny, nz = g.size
             for k0, k1 in geometry_module.slabs(nz, nx * ny, geometry_module.SLAB_VOXELS):  # tests make it small
                 x = g.world_coordinates(z_slice=slice(k0, k1))
-                into[k0:k1] = run(x).reshape(x.shape) - x
+                into[k0:k1] = run(x).reshape(x.shape) - x if displacement else run(x).reshape(x.shape)
                 done += x.shape[0] * nx * ny
                 if progress is not None:
                     progress(done, total)
             return done
 
         if f == 1:
-            integrate(grid, out, 0, grid.n_voxels)
+            integrate(grid, out, 0, grid.n_voxels, True)
             return Volume(out, grid)
         coarse, frame = grid.every(f), self.geometry.every(f)  # images as indices of the template's grid
         nx, ny, nz = grid.size
         last = [f * (n - 1) for n in coarse.size]  # the last coarse voxel along x, y, z: fine index
-        u = np.empty(coarse.array_shape + (3,))
+        img = np.empty(coarse.array_shape + (3,))  # the coarse voxels' images (world mm)
         total = coarse.n_voxels + grid.n_voxels  # the coarse voxels integrated, then every fine one made
-        done = integrate(coarse, u, 0, total)
-        idx = frame.world_to_index(u + coarse.world_coordinates()).astype(np.float32)
-        del u
+        done = integrate(coarse, img, 0, total, False)
+        idx = frame.world_to_index(img).astype(np.float32)
+        del img
         bm = CoarseBackwardMap(BackwardMap(frame, coarse, idx, np.zeros(coarse.array_shape, np.float32),
                                            np.full(coarse.array_shape, OK, np.uint8)), f, self.geometry, grid)
         del idx

@@ -252,14 +252,15 @@ def _smooth_all(arrays, sigma_vox) -> list:
 
 def _local_stats(f, sig, mask=None):
     """The fixed image's local mean and variance in the LNCC window (the same at every step of a level), and
-    the window's mask and its local weight (``None`` without a mask)."""
+    the window's mask, its local weight and mask·f (``None`` without a mask)."""
     if mask is None:
         mf, sff = _smooth_all([f, f * f], sig)
         return mf, sff - mf * mf, None
-    sm, smf, smff = _smooth_all([mask, mask * f, mask * f * f], sig)
+    masked_f = mask * f  # kept: every step's f·w term uses it
+    sm, smf, smff = _smooth_all([mask, masked_f, masked_f * f], sig)
     sm = np.maximum(sm, 1e-3)
     mf = smf / sm
-    return mf, smff / sm - mf * mf, (mask, sm)
+    return mf, smff / sm - mf * mf, (mask, sm, masked_f)
 
 
 def _lncc_force(f, w, sig, f_stats, region=None):
@@ -271,8 +272,9 @@ def _lncc_force(f, w, sig, f_stats, region=None):
     if masked is None:
         mw, sww, sfw = _smooth_all([w, w * w, f * w], sig)
     else:
-        mask, sm = masked
-        mw, sww, sfw = (a / sm for a in _smooth_all([mask * w, mask * w * w, mask * f * w], sig))
+        mask, sm, masked_f = masked
+        mask_w = mask * w
+        mw, sww, sfw = (a / sm for a in _smooth_all([mask_w, mask_w * w, masked_f * w], sig))
     sww = sww - mw * mw
     sfw = sfw - mf * mw
     # A floor on the local variances (intensities are normalised to ~[0, 1]): flat air or marrow has no
