@@ -3,8 +3,9 @@
 Kurihara & Miyata set their skinning weights by hand and name automatic
 weights as future work; Rhee et al. do not say how theirs were made.  Here
 (DESIGN.md, pipeline step 4) the weight of bone ``k`` is the harmonic
-function on the body's tet mesh that is 1 on bone ``k`` and 0 on every other
-bone:
+function on the body's tet mesh (the Kuhn lattice of
+:func:`~deformation.tetmesh.lattice_tetmesh`) that is 1 on bone ``k`` and 0
+on every other bone:
 
     Δ w_k = 0 in the soft tissue,   w_k = δ_kl on bone l.
 
@@ -21,32 +22,36 @@ P1 finite elements on the tets: the stiffness matrix ``L`` (the cotangent
 Laplacian of a tet mesh), ``L_ij = Σ_t |t| ∇φ_i·∇φ_j``.  Dirichlet vertices
 (``b``) are those inside a bone; the free ones (``i``) solve
 ``L_ii W_i = −L_ib W_b`` with one sparse LU factorisation
-(:func:`scipy.sparse.linalg.splu`, symmetric mode) for all bones as
-right-hand sides.
+(:func:`scipy.sparse.linalg.splu`, symmetric mode, diagonal pivots in a
+nested-dissection order) for all bones as right-hand sides.
 
-A tet with an obtuse dihedral angle gives a positive off-diagonal entry, so
-the discrete maximum principle can fail slightly: weights may dip a little
-below 0 or above 1.  They are clipped to [0, 1] and renormalised, and the
-amount is reported (``info["clipped_max"]``, ``info["raw_min"]``,
-``info["raw_max"]``).  On pytetwild's optimised meshes of the phantoms
-(≈ 15 % positive off-diagonals) no weight has left [0, 1] so far.
+On a Kuhn lattice ``L`` is the 7-point finite-difference stencil (times the
+cube volume) for any spacing: no off-diagonal entry is positive, ``L_ii`` is
+an M-matrix and the discrete maximum principle holds, so the weights stay
+in [0, 1] up to the solve's round-off (Ciarlet & Raviart 1973; the
+derivation is in :func:`~deformation.tetmesh.lattice_tetmesh`).  On a
+general mesh a tet with an obtuse dihedral angle gives a positive
+off-diagonal entry and the principle can fail slightly.  Either way the
+weights are clipped to [0, 1] and renormalised, and the amount is reported
+(``info["clipped_max"]``, ``info["raw_min"]``, ``info["raw_max"]``).
 
 Which vertices are on a bone
 ----------------------------
 A mesh vertex is constrained to bone ``k`` when the label map's voxel
 nearest to it (ITK rounding, ``floor(index + 0.5)``) carries bone ``k``'s
 label.  Every bone must constrain at least one vertex; a small bone between
-vertices raises an error that suggests a smaller edge length, or, with
-``snap_missing=True``, constrains the free vertex nearest to the bone's
-voxels instead (reported in ``info["snapped"]``).
+vertices (thinner than a lattice step of more than one voxel) raises an
+error that suggests a smaller step, or, with ``snap_missing=True``,
+constrains the free vertex nearest to the bone's voxels instead (reported in
+``info["snapped"]``).
 
 Voxels and points
 -----------------
 :func:`weights_on_grid` gives every voxel of a grid its weights: voxels of a
 bone are exactly one-hot on it; voxels in the mesh interpolate the vertex
-weights barycentrically; voxels outside the mesh (air, and body voxels the
-smoothed skin surface leaves out) take the weights of the nearest boundary
-vertex of the mesh.  :func:`weights_at_points` interpolates at arbitrary
+weights barycentrically; voxels outside the mesh (air, and the body voxels
+at the skin that no mostly-body cube holds) take the weights of the nearest
+boundary vertex of the mesh.  :func:`weights_at_points` interpolates at arbitrary
 points (skin-mesh vertices) with :func:`~deformation.tetmesh.locate`; a point
 outside the mesh takes the weights at its closest point on the mesh
 boundary.  Both keep at most ``max_influences`` bones per point,
@@ -66,7 +71,7 @@ from scipy.sparse.linalg import splu
 
 from .geometry import GridGeometry, Volume
 from .skinning import MAX_INFLUENCES, SkinningWeights
-from .tetmesh import TetMesh, locate, rasterize
+from .tetmesh import MAX_LATTICE_VERTICES, TIE_DIRECTION, TetMesh, locate, rasterize
 
 __all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "bbw_weights", "weights_on_grid",
            "weights_at_points", "harmonic_voxel_weights", "VoxelWeights"]
@@ -79,14 +84,20 @@ if nb.config.THREADING_LAYER == "default":
 # The P1 stiffness matrix
 # ---------------------------------------------------------------------------------------------
 
-def stiffness_matrix(mesh: TetMesh) -> sp.csr_matrix:
+def stiffness_matrix(mesh: TetMesh, *, drop_tol: float = 1e-12) -> sp.csr_matrix:
     """P1 finite-element stiffness matrix ``L (n, n)`` of a tet mesh (the cotangent Laplacian).
 
     ``L_ij = Σ_t |t| ∇φ_i·∇φ_j`` over the tets ``t`` holding both vertices,
     with ``φ`` the piecewise-linear hat functions.  Symmetric positive
     semi-definite, rows sum to zero; off-diagonals are ``−(1/6) Σ l_e cot θ_e``
     over the edges opposite ``ij`` and turn positive at obtuse dihedral
-    angles.  Units: mm (volume / length²).
+    angles (never on a Kuhn lattice, :func:`~deformation.tetmesh.lattice_tetmesh`,
+    where they are the 7-point stencil's and exactly 0 on the face and body
+    diagonals).  Units: mm (volume / length²).
+
+    Off-diagonal entries with ``|L_ij| ≤ drop_tol · max(L_ii, L_jj)`` — round-off
+    of an exact zero, such as a lattice's diagonals — are removed from the
+    matrix, so that its sparse LU does not fill them in (0 keeps every entry).
 
     Raises
     ------
@@ -107,7 +118,53 @@ def stiffness_matrix(mesh: TetMesh) -> sp.csr_matrix:
     rows = np.repeat(mesh.tets, 4, axis=1).ravel()
     cols = np.tile(mesh.tets, (1, 4)).ravel()
     n = mesh.n_vertices
-    return sp.coo_matrix((ke.ravel(), (rows, cols)), shape=(n, n)).tocsr()
+    L = sp.coo_matrix((ke.ravel(), (rows, cols)), shape=(n, n)).tocsr()
+    if drop_tol > 0:
+        diag = L.diagonal()
+        r = np.repeat(np.arange(n), np.diff(L.indptr))
+        tiny = (r != L.indices) & (np.abs(L.data) <= drop_tol * np.maximum(diag[r], diag[L.indices]))
+        if np.any(tiny):
+            L.data[tiny] = 0.0
+            L.eliminate_zeros()
+    return L
+
+
+def _dissection_order(points: np.ndarray, graph: sp.csr_matrix, leaf: int = 64) -> np.ndarray:
+    """A nested-dissection elimination order of a mesh's vertices, by coordinate bisection (George 1973).
+
+    The vertices are split at the median of their longest extent; those on the lower side with a
+    neighbour (in ``graph``, symmetric) on the upper side are the separator, numbered after both sides,
+    each of which is dissected the same way down to ``leaf`` vertices (both sides are never empty: the
+    median lies between the extremes).  On an axis-aligned lattice the separators are lattice planes; the
+    sparse LU of the Laplacian in this order runs faster than in SuperLU's own minimum-degree orderings.
+    Deterministic: a function of the points and the graph.
+
+    George A. Nested dissection of a regular finite element mesh. SIAM J Numer Anal 10(2) (1973) 345–363.
+    https://doi.org/10.1137/0710032
+    """
+    pattern = graph.tocsr(copy=True)
+    pattern.data = np.ones(pattern.nnz)
+    out = []
+
+    def dissect(idx):
+        p = points[idx]
+        extent = p.max(axis=0) - p.min(axis=0) if idx.size else np.zeros(3)
+        axis = int(np.argmax(extent))
+        if idx.size <= leaf or extent[axis] == 0:
+            out.append(idx)
+            return
+        v = p[:, axis]
+        low = v <= np.median(v)
+        if low.all():
+            low = v < np.median(v)
+        sub = pattern[idx][:, idx]
+        sep = low & (sub @ (~low).astype(np.float64) > 0)
+        dissect(idx[low & ~sep])
+        dissect(idx[~low])
+        out.append(idx[sep])
+
+    dissect(np.arange(points.shape[0]))
+    return np.concatenate(out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -200,7 +257,7 @@ def constrained_vertices(mesh: TetMesh, labels: Volume, bone_labels: dict, *, sn
                 for k in missing)
             raise ValueError(
                 f"no tet-mesh vertex lies inside bone(s) {details}; the mesh's median edge is {med:.2f} mm. "
-                "Tetrahedralize with a smaller edge length (tetrahedralize(..., edge_length_mm=...)), "
+                "Mesh with a smaller lattice step (lattice_tetmesh(..., step=...)), "
                 "or pass snap_missing=True to fix the vertex nearest to each such bone.")
         from scipy.spatial import cKDTree
 
@@ -217,7 +274,7 @@ def constrained_vertices(mesh: TetMesh, labels: Volume, bone_labels: dict, *, sn
             pick = next((int(idx[o]) for o in order if bone_of_vertex[free[idx[o]]] < 0), None)
             if pick is None:
                 raise ValueError(f"bone {bones[k]!r} has no mesh vertex and every free vertex near it is taken by "
-                                 "another snapped bone; tetrahedralize with a smaller edge length")
+                                 "another snapped bone; mesh with a smaller lattice step")
             bone_of_vertex[free[pick]] = k
             snapped.append(bones[k])
     return bone_of_vertex, snapped
@@ -241,7 +298,7 @@ def _check_domain(mesh: TetMesh, bone_of_vertex: np.ndarray) -> None:
         bad = np.flatnonzero(~has_bone)
         raise ValueError(f"{bad.size} connected component(s) of the mesh ({int(np.isin(comp, bad).sum())} vertices) "
                          "contain no bone vertex, so their weights are undetermined; keep only the body's main "
-                         "component (tetrahedralize(..., keep_largest_component=True))")
+                         "component (lattice_tetmesh(..., keep_largest_component=True))")
 
 
 def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
@@ -251,7 +308,7 @@ def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
     Parameters
     ----------
     mesh : TetMesh
-        Body mesh in world mm (e.g. :func:`~deformation.tetmesh.tetrahedralize`).
+        Body mesh in world mm (e.g. :func:`~deformation.tetmesh.lattice_tetmesh`).
     labels : Volume
         Bone label map (integer ids); any grid.
     bone_labels : dict
@@ -300,13 +357,16 @@ def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
     t2 = t3 = t1
     if free.size:
         lf = L[free]
-        lii = lf[:, free].tocsc()
+        lii = lf[:, free].tocsr()
         rhs = -(lf[:, fixed] @ wb)
-        # L_ii is symmetric positive definite: a symmetric ordering with diagonal pivots halves the
-        # fill of SciPy's default (COLAMD) and is ~3x faster on 40k free vertices.
-        lu = splu(lii, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        # L_ii is symmetric positive definite: diagonal pivots in a symmetric nested-dissection order
+        # (SuperLU keeps it: "NATURAL" on the permuted matrix).
+        order = _dissection_order(mesh.vertices[free], lii)
+        lu = splu(lii[order][:, order].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
         t2 = time.perf_counter()
-        wi = lu.solve(np.asfortranarray(rhs))
+        wi = np.empty_like(rhs)
+        wi[order] = lu.solve(np.asfortranarray(rhs[order]))
         t3 = time.perf_counter()
         raw[free] = wi
         scale = max(float(np.abs(rhs).max()), 1e-300)
@@ -490,7 +550,10 @@ def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, 
         Voxels outside the tet mesh (not in a bone) take the weights of the
         nearest boundary vertex of the mesh (``"nearest"``: exact Euclidean
         nearest in world mm, SciPy cKDTree — the dominant cost on a large grid
-        that is mostly air), or raise ``ValueError``.
+        that is mostly air; a voxel centre equidistant from several vertices,
+        common on a lattice mesh, takes the one nearest to it moved by
+        ``1e-6`` of the smallest spacing along
+        :data:`~deformation.tetmesh.TIE_DIRECTION`), or raise ``ValueError``.
 
     Returns
     -------
@@ -531,6 +594,7 @@ def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, 
         # An unbalanced tree queries these grid points ~2x faster here (same exact answer).
         tree = cKDTree(mesh.vertices[bverts], balanced_tree=False, compact_nodes=False)
         a = geometry.index_to_world_matrix
+        tie = 1e-6 * min(geometry.spacing) * TIE_DIRECTION  # ties decided by the point, not by the tree
         nx, ny, _ = geometry.size
         step = 1 << 20
         for s in range(0, need.size, step):
@@ -539,7 +603,7 @@ def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, 
             j = (flat // nx) % ny
             k = flat // (nx * ny)
             ijk = np.stack([i, j, k], axis=1).astype(np.float64)
-            _, q = tree.query(ijk @ a[:3, :3].T + a[:3, 3], workers=-1)
+            _, q = tree.query(ijk @ a[:3, :3].T + (a[:3, 3] + tie), workers=-1)
             nearest[flat] = bverts[q]
     dtype = np.int16 if len(bones) > 255 else np.uint8
     out_idx = np.empty((geometry.n_voxels, k_max), dtype=dtype)
@@ -571,21 +635,22 @@ class VoxelWeights:
     """Skinning weights of every voxel of a grid, with the mesh they were solved on."""
 
     weights: SkinningWeights  #: per voxel, array order
-    mesh: TetMesh  #: the body's tetrahedral mesh (kept: pytetwild takes no seed)
+    mesh: TetMesh  #: the body's tetrahedral mesh
     vertex_weights: np.ndarray  #: (n_vertices, n_bones) harmonic weights, columns in ``bones`` order
     bones: tuple
-    info: dict  #: solver statistics (plain numbers and strings)
-    new_mesh: bool  #: whether the mesh was made by this call
+    info: dict  #: solver statistics and the lattice step (JSON values)
 
 
 def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, mesh: TetMesh | None = None,
-                           edge_length_mm: float | None = None, progress=None, kind: str = "harmonic",
-                           snap_missing: bool = False) -> VoxelWeights:
+                           edge_length_mm: float | None = None, max_vertices: int | None = MAX_LATTICE_VERTICES,
+                           progress=None, kind: str = "harmonic", snap_missing: bool = False) -> VoxelWeights:
     """Harmonic (or bounded biharmonic, ``kind="bbw"``) skinning weights (Kurihara Eq. 3's w) of every voxel.
 
-    The body (``body``, a mask on the same grid) is meshed with tetrahedra by
-    pytetwild unless ``mesh`` is given (a study keeps its mesh, since
-    pytetwild's meshes differ from run to run); each bone's weight is the
+    The body (``body``, a mask on the same grid) is meshed with the Kuhn
+    tetrahedra of a lattice of its voxel centres
+    (:func:`~deformation.tetmesh.lattice_tetmesh`, with the step of
+    :func:`~deformation.tetmesh.lattice_step` for ``edge_length_mm`` and
+    ``max_vertices``) unless ``mesh`` is given; each bone's weight is the
     harmonic function that is 1 on that bone's vertices and 0 on the other
     bones' (:func:`harmonic_weights`), and every voxel takes the barycentric
     interpolation of its tetrahedron's vertex weights (bones one-hot, at most
@@ -593,32 +658,35 @@ def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, m
     :func:`weights_on_grid`).  ``progress(message)`` is told each step.
     ``kind="bbw"`` solves bounded biharmonic weights on the same mesh instead
     (:func:`bbw_weights`, libigl).  ``snap_missing`` (harmonic): a bone
-    smaller than the mesh's tetrahedra, with no vertex inside, fixes the
+    with no lattice vertex inside (smaller than the lattice step) fixes the
     vertex nearest to it instead (:func:`constrained_vertices`; the bones are
-    named in ``info["snapped"]``).
+    named in ``info["snapped"]``).  ``info["lattice_step"]`` is the step
+    ``[sx, sy, sz]`` in voxels of a mesh made here (``None`` for a given mesh).
     """
     if kind not in ("harmonic", "bbw"):
         raise ValueError(f"kind must be 'harmonic' or 'bbw', got {kind!r}")
-    from .tetmesh import body_surface, tetrahedralize
+    from .tetmesh import lattice_step, lattice_tetmesh
 
     say = progress or (lambda message: None)
     labels.geometry.check_same(body.geometry, names=("labels", "body mask"))
-    new = mesh is None
-    if new:
-        say("meshing the body surface with pytetwild ...")
-        mesh = tetrahedralize(body_surface(body), edge_length_mm=edge_length_mm)
+    step = None
+    if mesh is None:
+        step = lattice_step(body, edge_length_mm=edge_length_mm, max_vertices=max_vertices)
+        say(f"meshing the body: Kuhn tetrahedra on a lattice of {'×'.join(map(str, step))}-voxel steps ...")
+        mesh = lattice_tetmesh(body, step=step)
     say(f"{kind} weights on {mesh.n_vertices} vertices ...")
     if kind == "harmonic":
         dense, hinfo = harmonic_weights(mesh, labels, bone_labels, snap_missing=snap_missing)
     else:
         dense, hinfo = bbw_weights(mesh, labels, bone_labels)
     if hinfo.get("snapped"):
-        say(f"no mesh vertex inside {', '.join(hinfo['snapped'])} (smaller than the tetrahedra): the nearest "
+        say(f"no mesh vertex inside {', '.join(hinfo['snapped'])} (smaller than the lattice step): the nearest "
             "vertex of each was fixed to it")
     say("weights of every voxel (barycentric; one-hot in bones) ...")
     bones = tuple(bone_labels)
     weights = weights_on_grid(mesh, dense, bones, labels.geometry, labels, bone_labels)
     info = {k: v for k, v in hinfo.items() if isinstance(v, (int, float, str, bool))}
     info["snapped"] = ", ".join(hinfo.get("snapped") or [])
-    info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets), kind=kind)
-    return VoxelWeights(weights, mesh, dense, bones, info, new)
+    info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets), kind=kind,
+                lattice_step=list(step) if step is not None else None)
+    return VoxelWeights(weights, mesh, dense, bones, info)

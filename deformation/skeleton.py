@@ -59,6 +59,8 @@ from .transforms import apply, check_rigid, compose, invert
 __all__ = ["Bone", "Joint", "Skeleton", "Pose", "SkeletonError", "VALID_DOF"]
 
 VALID_DOF = (1, 2, 3, 6)
+#: the rotations a joint without limits takes (degrees, either way)
+HALF_TURN_DEG = 180.0
 SKELETON_FORMAT = "avw-skeleton"
 POSE_FORMAT = "avw-pose"
 
@@ -126,10 +128,16 @@ class Joint:
             object.__setattr__(self, "limits", tuple((float(lo), float(hi)) for lo, hi in lim))
 
     def outside_limits(self, angles) -> list[str]:
-        """The values of ``angles`` outside the joint's limits, as ``"knee[0] = 1000° outside [-10, 150]"``."""
-        if self.limits is None:
-            return []
+        """The values of ``angles`` outside the joint's limits, as ``"knee[0] = 1000° outside [-10, 150]"``.
+
+        A joint without limits still takes its rotations within ±180° (:data:`HALF_TURN_DEG`): a larger
+        angle is the same rotation as one within it, and in a pose file it is a slip (1000 for 100, or
+        radians × 100); its translations are not checked."""
         a = np.asarray(angles, dtype=float).reshape(-1)
+        if self.limits is None:
+            return [f"{self.name}[{k}] = {v:g}° is more than half a turn (the joint has no 'limits' in the skeleton; "
+                    f"its rotations are taken within ±{HALF_TURN_DEG:g}°)"
+                    for k, v in enumerate(a[:3]) if not -HALF_TURN_DEG <= v <= HALF_TURN_DEG]
         out = []
         for k, (v, (lo, hi)) in enumerate(zip(a, self.limits)):
             if not lo <= v <= hi:
@@ -324,7 +332,8 @@ class Skeleton:
         return {j.name: np.zeros(j.dof) for j in self.joints}
 
     def limit_problems(self, angles: dict) -> list[str]:
-        """Every joint value of ``angles`` outside its joint's limits (none for joints without limits)."""
+        """Every joint value of ``angles`` outside its joint's limits (for a joint without limits: a rotation beyond
+        ±180°, :meth:`Joint.outside_limits`)."""
         return [p for name, v in angles.items() if name in self._joint
                 for p in self._joint[name].outside_limits(v)]
 

@@ -1,18 +1,20 @@
-"""Tetrahedral meshes of the body: surface extraction, tetrahedralisation, rasterisation, point location.
+"""Tetrahedral meshes of the body: lattice tetrahedralisation of a mask, rasterisation, point location.
 
-Pipeline step 4 ("Skinning weights") meshes the body once per study:
+Pipeline step 4 ("Skinning weights") meshes the body mask (segmented from
+the template) on its own voxel grid:
 
-1. :func:`body_mask` (optional) — the non-air region of a template scan;
-2. :func:`body_surface` — the 0.5 isosurface of the lightly smoothed mask
-   (VTK flying edges, :mod:`deformation.isosurface`), in world mm, decimated
-   (Open3D's quadric simplification) so that pytetwild stays fast;
-3. :func:`tetrahedralize` — pytetwild (fTetWild) tetrahedra filling it;
-   returned as a :class:`TetMesh` whose tetrahedra are positively oriented.
+1. :func:`lattice_step` — the lattice step in voxels along each axis: from an
+   edge length in mm, or the mask's own resolution unless that makes more
+   than :data:`MAX_LATTICE_VERTICES` vertices;
+2. :func:`lattice_tetmesh` — the cubes of the lattice of voxel centres that
+   are mostly body (:func:`lattice_cubes`), each split into the 6 Kuhn
+   (Freudenthal) tetrahedra about its main diagonal: a conforming,
+   positively oriented :class:`TetMesh` whose P1 stiffness matrix is the
+   7-point finite-difference Laplacian, an M-matrix (harmonic weights obey
+   the discrete maximum principle, :mod:`deformation.harmonic`).
 
-pytetwild has no seed and its meshes differ from run to run (even with one
-thread), so a study meshes once and keeps the mesh as a VTU file
-(:mod:`workbench.io.tetmeshes`); everything downstream of that file is
-deterministic.
+The mesh is a function of the mask and the step alone: the same bits in
+every process, for any number of threads.
 
 Then, for any tet mesh — the template's, or later a *deformed* one:
 
@@ -61,7 +63,8 @@ from scipy.sparse.csgraph import connected_components as _graph_components
 from .geometry import GridGeometry, Volume
 from .mesh import SurfaceMesh, checked_cells
 
-__all__ = ["TetMesh", "TIE_DIRECTION", "body_surface", "tetrahedralize", "rasterize", "locate"]
+__all__ = ["TetMesh", "TIE_DIRECTION", "MAX_LATTICE_VERTICES", "lattice_nodes", "lattice_cubes", "lattice_step",
+           "lattice_tetmesh", "rasterize", "locate"]
 
 # Open3D ships an older TBB; once it is loaded, numba's default threading layer
 # tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
@@ -87,7 +90,7 @@ class TetMesh:
         Vertex positions ``(x, y, z)`` in world mm; stored as float64.
     tets : (m, 4) array_like
         Vertex indices of each tetrahedron; stored as int64.  A mesh made by
-        :func:`tetrahedralize` is positively oriented (``det[b−a, c−a, d−a] > 0``);
+        :func:`lattice_tetmesh` is positively oriented (``det[b−a, c−a, d−a] > 0``);
         the class itself accepts any orientation, because a *deformed* mesh may
         hold inverted tetrahedra (see :meth:`signed_volumes`, :meth:`oriented`).
 
@@ -163,7 +166,9 @@ class TetMesh:
             t = self.tets
             pairs = np.concatenate([t[:, [a, b]] for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
             pairs.sort(axis=1)
-            return np.unique(pairs, axis=0)
+            n = np.int64(max(self.n_vertices, 1))
+            key = np.unique(pairs[:, 0] * n + pairs[:, 1])  # one int64 per edge: sorted as (lower, higher)
+            return np.stack([key // n, key % n], axis=1)
 
         return self._cached("edges", compute)
 
@@ -212,153 +217,200 @@ class TetMesh:
 
 
 # ---------------------------------------------------------------------------------------------
-# Body mask and surface
+# Tetrahedralisation of a mask: the Kuhn (Freudenthal) triangulation of a lattice of voxel centres
 # ---------------------------------------------------------------------------------------------
 
-def body_surface(mask: Volume, *, smooth_sigma_mm: float | None = None, target_triangles: int | None = 20000,
-                 level: float = 0.5) -> SurfaceMesh:
-    """The closed skin surface of a body mask, in world mm.
+#: Default vertex budget of :func:`lattice_step` (above it the lattice is coarsened): the harmonic weights'
+#: sparse LU grows about as the square of the vertex count; at this size it takes some tens of seconds on 2 cores.
+MAX_LATTICE_VERTICES = 150_000
+
+# The 6 tetrahedra of a cube whose corners are numbered by bits (x + 2y + 4z): the paths 0 → a → a+b → 7
+# along the cube's edges, for the 6 orders of the unit steps a, b, c ∈ {1 (x), 2 (y), 4 (z)}.  All six share
+# the main diagonal 0–7.
+_KUHN_TETS = np.array([[0, a, a + b, 7] for a, b in ((1, 2), (1, 4), (2, 1), (2, 4), (4, 1), (4, 2))],
+                      dtype=np.int64)
+
+
+def _checked_step(step) -> tuple[int, int, int]:
+    """``(sx, sy, sz)`` from one whole number of voxels or three."""
+    s = np.asarray(step)
+    if s.ndim == 0:
+        s = np.repeat(s, 3)
+    if s.shape != (3,) or s.dtype.kind not in "iuf" or not np.all(s == np.round(s)) or np.any(s < 1):
+        raise ValueError(f"the lattice step must be whole numbers of voxels ≥ 1 (one, or x, y, z), got {step!r}")
+    return tuple(int(v) for v in s)
+
+
+def lattice_nodes(n: int, step: int) -> np.ndarray:
+    """Voxel indices of the lattice nodes along an axis of ``n`` voxels: ``0, s, 2s, …`` and ``n − 1``.
+
+    The last voxel is a node even when ``n − 1`` is not a multiple of ``step`` (the last cube is then
+    shorter), so that the lattice spans the whole grid.
+    """
+    nodes = np.arange(0, int(n), int(step), dtype=np.int64)
+    return nodes if nodes[-1] == n - 1 else np.append(nodes, n - 1)
+
+
+def _window_sums(a: np.ndarray, nodes: np.ndarray, axis: int, dtype) -> np.ndarray:
+    """Sums of ``a`` along ``axis`` over the inclusive windows ``[nodes[c], nodes[c + 1]]`` (which overlap by
+    one plane)."""
+    half = np.add.reduceat(a, nodes[:-1], axis=axis, dtype=dtype)  # [nodes[c], nodes[c+1]); the last to the end
+    ends = np.take(a, nodes[1:-1], axis=axis).astype(dtype)  # the closing plane of every window but the last
+    index = [slice(None)] * a.ndim
+    index[axis] = slice(0, len(nodes) - 2)
+    half[tuple(index)] += ends
+    return half
+
+
+def lattice_cubes(mask: Volume, step=1) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Which cubes of the lattice of voxel centres with ``step`` voxels per axis are body.
+
+    A cube is body when strictly more than half of the mask's voxels in its block — the voxel centres it
+    spans, its corners included, ``(s + 1)³`` of them (its 8 corners for ``step=1``) — are non-zero.
+
+    Returns
+    -------
+    cubes : (Nz − 1, Ny − 1, Nx − 1) bool
+        Indexed ``[z, y, x]`` like the mask; cube ``(c, b, a)`` spans the nodes ``a, a + 1`` along x etc.
+    nodes : (x, y, z) tuple of int64 arrays
+        The lattice nodes' voxel indices along each axis (:func:`lattice_nodes`).
+    """
+    if mask.is_vector:
+        raise ValueError("a lattice tetrahedralisation needs a scalar mask volume")
+    sx, sy, sz = _checked_step(step)
+    g = mask.geometry
+    nodes = tuple(lattice_nodes(n, s) for n, s in zip(g.size, (sx, sy, sz)))
+    m = np.asarray(mask.data) != 0
+    if min(len(n) for n in nodes) < 2:
+        raise ValueError(f"the mask's grid {g.describe()} is one voxel thin along an axis: no lattice cube fits in it")
+    # counts are at most (s+1)³: the smallest unsigned type that holds them keeps the passes light on big grids
+    dtype = np.min_scalar_type((sx + 1) * (sy + 1) * (sz + 1))
+    count = m
+    for axis, nd in ((2, nodes[0]), (1, nodes[1]), (0, nodes[2])):
+        count = _window_sums(count, nd, axis, dtype)
+    wx, wy, wz = (np.diff(n).astype(dtype) + 1 for n in nodes)
+    voxels = np.multiply.outer(np.multiply.outer(wz, wy), wx)  # voxel centres in each block
+    return count > voxels // 2, nodes  # strictly more than half (integer counts)
+
+
+def _used_nodes(cubes: np.ndarray) -> np.ndarray:
+    """Nodes ``(Nz, Ny, Nx)`` that are a corner of at least one cube."""
+    nz, ny, nx = cubes.shape
+    used = np.zeros((nz + 1, ny + 1, nx + 1), dtype=bool)
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                used[dz:dz + nz, dy:dy + ny, dx:dx + nx] |= cubes
+    return used
+
+
+def lattice_step(mask: Volume, *, edge_length_mm: float | None = None,
+                 max_vertices: int | None = MAX_LATTICE_VERTICES) -> tuple[int, int, int]:
+    """The lattice step ``(sx, sy, sz)`` in voxels for :func:`lattice_tetmesh`.
 
     Parameters
     ----------
     mask : Volume
-        Body mask (non-zero = body) on any grid; anisotropic spacing and any
-        orthonormal direction are honoured.
-    smooth_sigma_mm : float, optional
-        Standard deviation (mm) of the Gaussian that smooths the binary mask
-        before the isosurface, to remove the voxel staircase.  Default: half the
-        largest voxel spacing.  0 disables smoothing.
-    target_triangles : int or None
-        Decimate (quadric error simplification in world mm,
-        :func:`deformation.isosurface.decimate`) to about this many
-        triangles; ``None`` keeps the full isosurface.  pytetwild's
-        run time grows with the number of input triangles.
-    level : float
-        Iso-value on the smoothed mask (0.5: half-way between body and air).
-
-    Returns
-    -------
-    SurfaceMesh
-        Closed, outward-oriented triangle mesh.  The mask is padded with air
-        before extraction, so a body cut by the edge of the field of view gets
-        a cap about half a voxel beyond its outermost voxel centres.
-
-    Raises
-    ------
-    ValueError
-        Empty mask, or a vector volume.
+        The body mask.
+    edge_length_mm : float, optional
+        The lattice spacing in mm: ``round(edge_length_mm / spacing)`` voxels along each axis, at least 1.
+    max_vertices : int or None
+        Without ``edge_length_mm``: step 1 (the mask's own resolution) unless the mesh would have more
+        vertices than this (counted as the nodes of the body cubes, before other components are dropped);
+        then the smallest step ``s`` (the same along every axis) whose mesh has at most that many.
+        ``None``: always 1.
     """
-    from scipy import ndimage
-
-    from .isosurface import decimate, flying_edges, poly_arrays, signed_volume
-
-    if mask.is_vector:
-        raise ValueError("body_surface needs a scalar mask volume")
-    m = (np.asarray(mask.data) != 0)
-    if not m.any():
-        raise ValueError(f"body_surface: the mask is empty (no non-zero voxel) on grid {mask.geometry.describe()}")
     g = mask.geometry
-    spacing_zyx = np.asarray(g.spacing)[::-1]
-    sigma_mm = 0.5 * max(g.spacing) if smooth_sigma_mm is None else float(smooth_sigma_mm)
-    if sigma_mm < 0:
-        raise ValueError(f"smooth_sigma_mm must be ≥ 0, got {smooth_sigma_mm}")
-    sigma_vox = sigma_mm / spacing_zyx
-    pad = int(np.ceil(4.0 * sigma_vox.max())) + 2
-    f = np.pad(m.astype(np.float32), pad)
-    if sigma_mm > 0:
-        f = ndimage.gaussian_filter(f, sigma_vox, mode="constant", cval=0.0, truncate=4.0)
-    ijk, tri = poly_arrays(flying_edges(f, level))
-    if not len(tri):
-        raise ValueError(f"body_surface: no isosurface at level {level} (mask too thin after smoothing "
-                         f"with sigma {sigma_mm} mm?)")
-    # Flying edges works in index space of the padded array (spacing 1, origin 0, x fastest).
-    mesh = SurfaceMesh(g.index_to_world(ijk - pad), tri)
-    if target_triangles is not None:
-        mesh = decimate(mesh, int(target_triangles))
-    if signed_volume(mesh.vertices, mesh.triangles) < 0:
-        mesh = SurfaceMesh(mesh.vertices, mesh.triangles[:, [0, 2, 1]])
-    return mesh
+    if edge_length_mm is not None:
+        if not edge_length_mm > 0:
+            raise ValueError(f"edge_length_mm must be positive, got {edge_length_mm}")
+        return tuple(max(1, int(round(float(edge_length_mm) / h))) for h in g.spacing)
+    if max_vertices is None:
+        return (1, 1, 1)
+    if not max_vertices >= 8:
+        raise ValueError(f"max_vertices must be at least 8 (one cube), got {max_vertices}")
+    s = 1
+    while True:
+        cubes, _ = lattice_cubes(mask, s)
+        if int(_used_nodes(cubes).sum()) <= max_vertices or s >= max(g.size):
+            return (s, s, s)
+        s += 1
 
 
-# ---------------------------------------------------------------------------------------------
-# Tetrahedralisation (pytetwild)
-# ---------------------------------------------------------------------------------------------
+def lattice_tetmesh(mask: Volume, *, step=1, keep_largest_component: bool = True) -> TetMesh:
+    """Fill a body mask with tetrahedra: the Kuhn (Freudenthal) triangulation of a lattice of voxel centres.
 
-def tetrahedralize(surface: SurfaceMesh, *, edge_length_mm: float | None = None, edge_length_fac: float = 0.05,
-                   epsilon: float = 1e-3, stop_energy: float = 10.0, num_opt_iter: int = 80,
-                   num_threads: int = 0, keep_largest_component: bool = True) -> TetMesh:
-    """Fill a closed surface with tetrahedra (pytetwild / fTetWild).
+    The lattice's nodes are the voxel centres at index multiples of ``step`` along each axis, and the last
+    voxel of each axis (:func:`lattice_nodes`); its cubes that are mostly body (:func:`lattice_cubes`:
+    strictly more than half of the voxel centres they span are in the mask — so two fingers one voxel of air
+    apart, at ``step=1``, stay apart) are each split into the 6 tetrahedra of the Kuhn triangulation, all
+    about the cube's diagonal from its lowest-index to its highest-index corner.  Neighbouring cubes then cut
+    their shared face along the same diagonal, so the mesh is conforming (Freudenthal 1942; Kuhn 1960).
+
+    With this triangulation the P1 stiffness matrix (:func:`deformation.harmonic.stiffness_matrix`) is the
+    7-point finite-difference Laplacian times the cube volume, for any box ``h_x × h_y × h_z``: in the
+    tetrahedron ``0 → h_a e_a → … + h_b e_b → … + h_c e_c`` the barycentric coordinates are
+    ``1 − x_a/h_a, x_a/h_a − x_b/h_b, x_b/h_b − x_c/h_c, x_c/h_c``, so ``∇λ_i·∇λ_j`` is ``−1/h_a²`` (and so
+    on) for the three edges along an axis and exactly 0 for the others; the 6 tetrahedra around an edge
+    along ``a`` sum to ``−h_x h_y h_z / h_a²``, the face and body diagonals to 0.  Rotations and reflections
+    (the grid's direction matrix) keep dot products.  No off-diagonal entry is positive, the matrix is an
+    M-matrix, and harmonic weights obey the discrete maximum principle (Ciarlet & Raviart 1973).
 
     Parameters
     ----------
-    surface : SurfaceMesh
-        Closed surface in world mm (e.g. from :func:`body_surface`).  fTetWild
-        is robust to small defects (self-intersections, small holes).
-    edge_length_mm : float, optional
-        Target edge length in mm; overrides ``edge_length_fac``.
-    edge_length_fac : float
-        Target edge length as a fraction of the surface's bounding-box
-        diagonal (fTetWild's default 0.05).
-    epsilon : float
-        Envelope: how far (relative to the bounding-box diagonal) the mesh
-        boundary may lie from ``surface``.
-    stop_energy, num_opt_iter :
-        fTetWild's mesh optimisation stops at this AMIPS energy or after this
-        many iterations.  The optimisation cannot be skipped: without it the
-        mesh holds near-zero-volume slivers.
-    num_threads : int
-        0 uses all cores.  One thread does not make fTetWild deterministic.
+    mask : Volume
+        Body mask (non-zero = body) on any grid: anisotropic spacing and any orthonormal direction.
+    step : int or (sx, sy, sz)
+        Lattice step in voxels (:func:`lattice_step`).  A gap in the mask narrower than about a step may be
+        bridged, and a structure thinner than that may be left out.
     keep_largest_component : bool
-        Drop tetrahedra not connected to the largest component (floating
-        fragments would have no bone and so no harmonic weights).
+        Keep only the tetrahedra of the largest vertex-connected component (a floating fragment has no bone
+        and so no harmonic weights).
 
     Returns
     -------
     TetMesh
-        Positively oriented tetrahedra (fTetWild's own orientation is negative
-        in pytetwild 0.4: every tet is flipped), unused vertices removed.
+        Positively oriented tetrahedra; the vertices are the used lattice nodes in ``[z, y, x]`` array order,
+        at their voxel centres' world positions (``mask.geometry.index_to_world``); the tetrahedra follow
+        their cubes in the same order.  A function of the mask and the step alone: the same bits in any
+        process.
 
-    Notes
-    -----
-    The result differs from run to run (fTetWild has no seed): mesh once per
-    study and keep the mesh file.  The cost grows with the volume of the
-    surface's bounding box over ``edge_length_mm³`` — fTetWild meshes the whole
-    box, then discards the outside.
+    Raises
+    ------
+    ValueError
+        No cube of the lattice is body (an empty or too thin mask, or too large a step).
+
+    References
+    ----------
+    Freudenthal H. Simplizialzerlegungen von beschränkter Flachheit. Ann Math 43(3) (1942) 580–582.
+    https://doi.org/10.2307/1968813
+
+    Kuhn HW. Some combinatorial lemmas in topology. IBM J Res Dev 4(5) (1960) 518–524.
+    https://doi.org/10.1147/rd.45.0518
+
+    Ciarlet PG, Raviart PA. Maximum principle and uniform convergence for the finite element method.
+    Comput Methods Appl Mech Eng 2(1) (1973) 17–31. https://doi.org/10.1016/0045-7825(73)90019-4
     """
-    import pytetwild  # imports pyvista
-
-    if not isinstance(surface, SurfaceMesh):
-        raise TypeError(f"tetrahedralize takes a SurfaceMesh, got {type(surface).__name__}")
-    if surface.n_triangles < 4:
-        raise ValueError(f"tetrahedralize needs a closed surface; got {surface.n_triangles} triangles")
-    kw = dict(edge_length_fac=float(edge_length_fac), epsilon=float(epsilon), stop_energy=float(stop_energy),
-              num_opt_iter=int(num_opt_iter), num_threads=int(num_threads), optimize=True, quiet=True)
-    if edge_length_mm is not None:
-        if not edge_length_mm > 0:
-            raise ValueError(f"edge_length_mm must be positive, got {edge_length_mm}")
-        kw["edge_length_abs"] = float(edge_length_mm)
-    # fTetWild writes scratch files (__tracked_surface.stl, __cutting.stl) into the working folder:
-    # run it in a private temporary one so that nothing lands in the user's folder.
-    import contextlib
-    import tempfile
-
-    with tempfile.TemporaryDirectory(prefix="avw-tetwild-") as scratch, contextlib.chdir(scratch):
-        v, t = pytetwild.tetrahedralize(np.array(surface.vertices, dtype=np.float64),
-                                        np.ascontiguousarray(surface.triangles, dtype=np.int32), **kw)
-    v = np.asarray(v, dtype=np.float64)
-    t = np.asarray(t, dtype=np.int64).reshape(-1, 4)
-    if t.shape[0] == 0:
-        raise RuntimeError("pytetwild returned no tetrahedra: is the surface closed and of non-zero volume?")
+    cubes, (ndx, ndy, ndz) = lattice_cubes(mask, step)
+    g = mask.geometry
+    if not cubes.any():
+        raise ValueError(f"no lattice cube (step {_checked_step(step)} voxels) is mostly body in the mask on "
+                         f"{g.describe()}: is the mask empty or thinner than two steps? Use a smaller step")
+    nx, ny = len(ndx), len(ndy)
+    cz, cy, cx = np.nonzero(cubes)  # C order: the cubes in [z, y, x] array order
+    base = (cz * ny + cy) * nx + cx  # node id of each cube's corner 0
+    corner = np.array([((b >> 2) & 1) * ny * nx + ((b >> 1) & 1) * nx + (b & 1) for b in range(8)], dtype=np.int64)
+    tets = (base[:, None, None] + corner[_KUHN_TETS][None]).reshape(-1, 4)
+    n_nodes = nx * ny * len(ndz)
     if keep_largest_component:
-        t = _largest_component(t, len(v))
-    used = np.unique(t)
-    remap = np.full(len(v), -1, dtype=np.int64)
+        tets = _largest_component(tets, n_nodes)
+    used = np.unique(tets)
+    remap = np.full(n_nodes, -1, dtype=np.int64)
     remap[used] = np.arange(used.size)
-    mesh = TetMesh(v[used], remap[t]).oriented()
-    vol = mesh.signed_volumes()
-    if np.any(vol <= 0):
-        raise RuntimeError(f"pytetwild returned {int(np.sum(vol <= 0))} degenerate (zero-volume) tetrahedra")
-    return mesh
+    kz, rest = np.divmod(used, ny * nx)
+    ky, kx = np.divmod(rest, nx)
+    ijk = np.stack([ndx[kx], ndy[ky], ndz[kz]], axis=1).astype(np.float64)
+    return TetMesh(g.index_to_world(ijk), remap[tets]).oriented()
 
 
 def _largest_component(tets: np.ndarray, n_vertices: int) -> np.ndarray:

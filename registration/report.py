@@ -132,13 +132,15 @@ def format_accuracy(acc: dict) -> str:
     return "\n".join(lines)
 
 
-def format_fits(result: PoseResult) -> str:
-    """Per scan: time, bones not ``ok`` (with reason and metric), joint-centre residuals."""
-    lines = [f"{'scan':<10}{'seconds':>9}{'bones ok':>10}  problems"]
+def format_fits(result: PoseResult, *, seconds: bool = False) -> str:
+    """Per scan: bones not ``ok`` (with reason and metric), joint-centre residuals; the time of each scan's fits
+    too with ``seconds`` (not in the pose stage's report.txt: the same inputs give the same bytes there)."""
+    lines = [f"{'scan':<10}{'  seconds' if seconds else ''}{'bones ok':>10}  problems"]
     for s in result.scans:
         n_ok = sum(f.ok for f in s.fits.values())
         probs = "; ".join(f"{f.bone}: {f.status} (ncc {f.ncc:.2f})" for f in s.failures) or "—"
-        lines.append(f"{s.scan_id:<10}{s.seconds:>9.1f}{n_ok:>6}/{len(s.fits):<3}  {probs}")
+        time = f"{s.seconds:>9.1f}" if seconds else ""
+        lines.append(f"{s.scan_id:<10}{time}{n_ok:>6}/{len(s.fits):<3}  {probs}")
     lines.append(f"Eq. 1 residual over all joints and scans (RMS): {result.overall_rms_mm():.2f} mm "
                  "(Kurihara reports 0.91 mm; the template is the base pose and is not a scan, so it is not counted)")
     return "\n".join(lines)

@@ -170,14 +170,14 @@ examples:
 
 WEIGHTS_HELP = """Skinning weights for every template voxel (Kurihara Eq. 3; DESIGN step 4).
 
-'harmonic' (default): the body is segmented from the template, its skin
-surface (VTK flying edges) filled with tetrahedra by pytetwild, and each
-bone's weight solved as the harmonic function that is 1 on that bone and 0
-on the others (P1 finite elements, one sparse LU); voxels take the
-barycentric interpolation of the vertex weights, bones are one-hot, at most
-4 influences per voxel.  pytetwild has no seed, so the mesh is made once and
-kept (skinning/tetmesh.vtu, with each bone's weight as a point array for
-ParaView); --force recomputes from it, --remesh makes a new mesh.
+'harmonic' (default): the body is segmented from the template and filled
+with tetrahedra on a lattice of its voxel centres (each cube that is mostly
+body cut into 6 Kuhn tetrahedra; every voxel, or every few voxels above 150 k
+vertices, or --edge-length-mm), and each bone's weight solved as the harmonic
+function that is 1 on that bone and 0 on the others (P1 finite elements, one
+sparse LU); voxels take the barycentric interpolation of the vertex weights,
+bones are one-hot, at most 4 influences per voxel.  The mesh is written to
+skinning/tetmesh.vtu, with each bone's weight as a point array for ParaView.
 'distance': inverse-distance weights on each voxel's distance to the bones
 (fast; a fallback and a comparison).
 
@@ -327,7 +327,7 @@ flex (a hinge) get an axis, and the centre is put on it nearest the bones'
 contact.  Angles are intrinsic XYZ in the skeleton's joint frame (degrees).
 
 Writes poses/<scan>_pose.json (the same schema as the phantoms' truth),
-joints.json, fits.json (per bone: status, metric, iterations, time) and
+joints.json, fits.json (per bone: status, metric, iterations) and
 report.txt into the study, and records them in study.json.  Bones that leave
 the field of view, do not converge or match poorly are listed, with the scan
 and the metric.  The pose stage never reads a phantom's ground truth:
@@ -376,7 +376,14 @@ file is left and the next `run` resumes with the first unfinished scan.
 Settings: each stage keeps the settings it last ran with (e.g. those given to
 `workbench register`); --set STAGE.SETTING=VALUE changes one for this run and
 after (JSON values: --set register.method=adaptive,
---set register.levels=[3,4], --set weights.method=distance).
+--set register.levels=[3,4], --set weights.method=distance).  Each value is
+checked against the setting's type before anything runs or is recorded.
+
+Before any work the study folder and study.json must be writable; a scan
+whose field of view holds none of the template's bones, or of which no bone
+could be placed, stops the pose stage with one line naming it.  A write that
+does not complete (a full disk) is an error naming the file; nothing is left
+half-written, and the previous outputs stay.
 
 examples:
   workbench run knee-study                        # everything; truth only in validate
@@ -390,7 +397,7 @@ examples:
 
 def _common(p) -> None:
     """--quiet / -v on every subcommand."""
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet", action="store_true", help="no progress lines (warnings still show)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log lines (-vv: debug)")
 
 
@@ -530,12 +537,12 @@ def build_parser() -> argparse.ArgumentParser:
     we.add_argument("--method", choices=["harmonic", "distance"], default=argparse.SUPPRESS,
                     help="'harmonic' (tet mesh + Laplace solve) or 'distance' (inverse distance). Default: harmonic")
     we.add_argument("--edge-length-mm", default=argparse.SUPPRESS, type=float, metavar="MM",
-                    help="target tet edge length for a new mesh (default: 5%% of the body's bounding-box diagonal)")
-    we.add_argument("--remesh", action="store_true", help="make a new tet mesh instead of reusing the study's")
+                    help="spacing of the tet lattice in mm, rounded to whole voxels along each axis (default: every "
+                         "voxel, or every 2nd, 3rd, ... when that would make more than 150 k vertices)")
     we.add_argument("--grid-factor", type=_positive_int, default=argparse.SUPPRESS, metavar="F",
                     help="weights on every F-th template voxel along each axis (F³ fewer voxels and bytes). "
                          "Default: 1, or the smallest F that leaves at most 60 M voxels")
-    we.add_argument("--force", action="store_true", help="rerun even when up to date (from the kept tet mesh)")
+    we.add_argument("--force", action="store_true", help="rerun even when up to date")
     _common(we)
     we.set_defaults(func=cmd_weights)
 
@@ -994,10 +1001,7 @@ def cmd_pose(args) -> int:
 def cmd_weights(args) -> int:
     ws = _given(args, args.study, "weights", {"method": ("method", _same), "edge_length_mm": ("edge_length_mm", _same),
                                               "grid_factor": ("grid_factor", _same)})
-    if args.remesh and ws.method != "harmonic":
-        raise ValueError("--remesh makes a new tet mesh for --method harmonic")
-    study, out = _stages(args, ["weights"], {"weights": ws}, force={"weights"} if (args.force or args.remesh) else (),
-                         options={"weights": {"remesh": args.remesh}})
+    study, out = _stages(args, ["weights"], {"weights": ws}, force={"weights"} if args.force else ())
     e = study.stage_entry("weights")
     when = "up to date" if out[-1].status == "skipped" else f"{e['seconds']:.1f} s"
     print(f"{e['settings']['method']} weights ({when}); in {study.root / 'skinning'}")
@@ -1404,6 +1408,13 @@ def summarize(study) -> str:
         lines.append("  (max |u|: largest correspondence displacement inside the body; folded: body voxels whose "
                      "correspondence has Jacobian determinant ≤ 0; inv. resid.: 99th percentile of |F(φ(x)) − x| "
                      "in the body)")
+    from workbench.stages import ORDER
+    from workbench.stages.mechanism import recorded_times
+
+    times = recorded_times(study, ORDER)  # study.json's: the stages' files hold no time
+    if times:
+        lines.append("stages run (wall-clock seconds, from study.json):")
+        lines += times
     return "\n".join(lines)
 
 
@@ -1414,44 +1425,21 @@ def cmd_info(args) -> int:
     print(summarize(study))
     if not args.check:
         return 0
+    from workbench.checks import check_study_images, study_warnings
+
     problems = check_study_images(study)
+    warnings = [] if problems else study_warnings(study)
+    if warnings:
+        print(f"\n{len(warnings)} warning(s):", file=sys.stderr)
+        for w in warnings:
+            print(f"  {w}", file=sys.stderr)
     if problems:
         print(f"\n{len(problems)} problem(s):", file=sys.stderr)
         for p in problems:
             print(f"  {p}", file=sys.stderr)
         return 1
-    print("\nevery image read: no problem found")
+    print("\nevery image read: no problem found" + (f" ({len(warnings)} warning(s) above)" if warnings else ""))
     return 0
-
-
-def check_study_images(study) -> list[str]:
-    """Read every image a study names; one line per image that cannot be used (its reader's message)."""
-    from workbench.errors import WorkbenchError
-    from workbench.io.volumes import read_displacement, read_labels, read_volume
-
-    m = study.manifest
-    todo = [(read_volume, m["template"])]
-    if m.get("template_labels"):
-        todo.append((read_labels, m["template_labels"]))
-    for s in m["scans"]:
-        todo.append((read_volume, s["image"]))
-        for key in ("correspondence", "template_to_scan"):
-            if (s.get("truth") or {}).get(key):
-                todo.append((read_displacement, s["truth"][key]))
-    problems = []
-    grid = None
-    for reader, rel in todo:
-        try:
-            v = reader(study.path(rel))
-        except (WorkbenchError, ValueError, OSError) as e:
-            problems.append(str(e))
-            continue
-        if rel == m.get("template_labels") and grid is not None and not v.geometry.is_close(grid):
-            problems.append(f"{study.path(rel)}: the label map is not on the template's grid "
-                            f"({v.geometry.describe()} against {grid.describe()}); resample it (nearest neighbour)")
-        if rel == m["template"]:
-            grid = v.geometry
-    return problems
 
 
 def cmd_clean_image(args) -> int:

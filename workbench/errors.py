@@ -16,9 +16,12 @@ Hierarchy::
     │   ├── DimensionError           wrong number of dimensions or components
     │   ├── PixelTypeError           e.g. non-integer values in a label map
     │   ├── NonFiniteError           NaN / inf voxels
+    │   ├── ImplausibleGeometryError a voxel spacing or field of view no scan of a body has
     │   ├── AmbiguousSeriesError     DICOM folder with several series
     │   └── SeriesNotFoundError      ``series_uid=`` not in the folder
-    └── OutputExistsError(WorkbenchError, FileExistsError)  .path
+    ├── OutputExistsError(WorkbenchError, FileExistsError)  .path
+    ├── OutputFolderError(WorkbenchError, OSError)           an output's folder is missing or read-only
+    └── OutputWriteError(WorkbenchError, OSError)            .path: a write that did not complete
 
 ``GeometryMismatchError`` (two grids that must agree do not) is defined in
 :mod:`deformation.geometry` and re-exported here.
@@ -40,9 +43,12 @@ __all__ = [
     "DimensionError",
     "PixelTypeError",
     "NonFiniteError",
+    "ImplausibleGeometryError",
     "AmbiguousSeriesError",
     "SeriesNotFoundError",
     "OutputExistsError",
+    "OutputFolderError",
+    "OutputWriteError",
     "GeometryMismatchError",
 ]
 
@@ -99,6 +105,10 @@ class NonFiniteError(InputFileError):
     """The data hold NaN or infinite values."""
 
 
+class ImplausibleGeometryError(InputFileError):
+    """The header's voxel spacing or field of view is one no scan of a body has (a unit slip)."""
+
+
 class AmbiguousSeriesError(InputFileError):
     """A DICOM folder holds several series and none was chosen with ``series_uid=``."""
 
@@ -132,3 +142,44 @@ class OutputExistsError(WorkbenchError, FileExistsError):
 
 class OutputFolderError(WorkbenchError, OSError):
     """An output's folder is missing or not writable: said before any work (no output is half-written)."""
+
+
+class OutputWriteError(WorkbenchError, OSError):
+    """An output file could not be written completely (a full disk, a file-size limit, an I/O error).
+
+    The message names the file (its final name, not a temporary one) and the
+    reason; nothing is left under that name (:mod:`workbench.io.atomic`).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The output file as the user knows it.
+    reason : str
+        What failed, e.g. ``"[Errno 28] No space left on device"``.
+    """
+
+    def __init__(self, path: str | os.PathLike, reason: str):
+        self.path = Path(path)
+        self.reason = reason
+        WorkbenchError.__init__(self, f"{self.path}: the file could not be written completely ({reason}); nothing "
+                                      "was left under that name. Free disk space (or raise the file-size limit) and "
+                                      "run the command again.")
+        self.filename = str(self.path)
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+    @classmethod
+    def of(cls, path: str | os.PathLike, error: BaseException) -> "OutputWriteError":
+        """The error ``error`` (raised while writing) as a write error naming ``path``."""
+        if isinstance(error, OutputWriteError):
+            return cls(path, error.reason)
+        if isinstance(error, OSError) and error.strerror:
+            reason = f"[Errno {error.errno}] {error.strerror}"
+        else:
+            reason = str(error).split("\n", 1)[0]
+            # drop a leading "<temporary path>: " the writer put before its reason
+            head, sep, tail = reason.partition(": ")
+            if sep and ("/" in head or head.startswith(".")):
+                reason = tail
+        return cls(path, reason)

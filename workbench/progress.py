@@ -77,6 +77,8 @@ class ProgressPrinter:
 
     def __call__(self, event) -> None:
         if self.quiet:
+            if event.kind == "message" and event.message.startswith("warning:"):  # --quiet keeps warnings
+                print(f"  {event.message}", file=self.stream, flush=True)
             return
         if event.kind == "message":
             self.line(f"  {event.message}")

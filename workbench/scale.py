@@ -223,7 +223,7 @@ def open_runner(workers: int | None = None, scheduler: str | None = None):
     from distributed import Client, LocalCluster
 
     cluster = None
-    with dask.config.set({"distributed.worker.daemon": False,  # a task may start processes (pytetwild, ffmpeg)
+    with dask.config.set({"distributed.worker.daemon": False,  # a task may start processes (ffmpeg)
                           "logging.distributed": "error"}):
         if scheduler:
             try:

@@ -43,6 +43,7 @@ study.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import secrets
 import shutil
@@ -56,7 +57,7 @@ from deformation.geometry import Volume, every_nth
 from deformation.skeleton import Pose, Skeleton
 from workbench import __version__
 from workbench.errors import InputFileError, MissingFileError, OutputExistsError
-from workbench.io.atomic import replace_dir
+from workbench.io.atomic import naming_staged, replace_dir
 from workbench.io.jsonio import read_json, write_json
 from workbench.io.volumes import read_displacement, read_image_geometry, read_labels, read_vector_image, \
     read_volume, write_displacement, write_labels, write_volume
@@ -65,6 +66,8 @@ __all__ = ["Study", "StudyError", "StageOutputMissing", "STAGE_COMMANDS", "read_
 
 STUDY_FORMAT = "avw-study"
 MANIFEST = "study.json"
+#: The manifest version this workbench reads and writes.
+MANIFEST_VERSION = 1
 
 
 class StudyError(InputFileError):
@@ -98,7 +101,8 @@ class Study:
 
     Stage entries live under ``stages[<name>]``; a whole-study stage's entry
     holds ``digest``, ``settings``, ``inputs``, ``needs``, ``outputs`` (file
-    name → path relative to the study), ``outputs_digest``, ``seconds``,
+    name → path relative to the study), ``outputs_digest``, ``seconds``, the
+    stage's own ``timings`` (if any: no stage writes a time into its files),
     ``finished``, versions; a per-scan stage's entry holds one such entry per
     scan under ``scans``.
     """
@@ -158,6 +162,24 @@ class Study:
             write_json(m, self.manifest_path, overwrite=True)
         self.manifest = m
         return m
+
+    def check_writable(self) -> None:
+        """Before any work: the study folder takes new files and ``study.json`` can be replaced — else one
+        clear :class:`StudyError` naming the folder (a read-only mount, missing permissions, an immutable
+        manifest), instead of a failure after minutes of work."""
+        import tempfile
+
+        try:  # a real write: os.access does not see a read-only mount for root, nor an immutable file
+            fd, probe = tempfile.mkstemp(prefix=".avw-write-test-", dir=self.root)
+            os.close(fd)
+            os.unlink(probe)
+            with open(self.manifest_path, "a"):  # opens for writing without changing a byte
+                pass
+        except OSError as e:
+            what = self.manifest_path if e.filename == str(self.manifest_path) else self.root
+            raise StudyError(f"{what}: cannot write there ({e.strerror or e}); the stages write their outputs and "
+                             f"{MANIFEST} into the study folder {self.root}. Make it writable (chmod -R u+w "
+                             f"{self.root}) or run on a copy (cp -r {self.root} COPY).", what) from None
 
     def reload(self) -> "Study":
         self.manifest = read_json(self.manifest_path)
@@ -493,6 +515,11 @@ def read_study(folder: str | os.PathLike) -> Study:
     if m.get("format") != STUDY_FORMAT:
         raise StudyError(f"{manifest_path}: 'format' is {m.get('format')!r}, not a study manifest; a study's is "
                          f"{STUDY_FORMAT!r}.", manifest_path)
+    version = m.get("version", MANIFEST_VERSION)  # a hand-written manifest may leave it out
+    if type(version) is not int or version != MANIFEST_VERSION:
+        raise StudyError(f"{manifest_path}: unsupported manifest version {json.dumps(version)} (this workbench reads "
+                         f"{MANIFEST_VERSION}); a newer workbench wrote it, or set \"version\": {MANIFEST_VERSION}.",
+                         manifest_path)
     for key in ("template", "skeleton", "scans"):
         if key not in m:
             raise StudyError(f"{manifest_path}: the manifest lacks the key {key!r}.", manifest_path)
@@ -520,8 +547,10 @@ def read_study(folder: str | os.PathLike) -> Study:
         if not isinstance(f, str):
             raise StudyError(f"{manifest_path}: file entries must be strings (paths), got {f!r}.", manifest_path)
         if Path(f).is_absolute() or ".." in Path(f).parts:
-            raise StudyError(f"{manifest_path}: {f!r} must be a path relative to the study folder.",
-                             manifest_path)
+            raise StudyError(f"{manifest_path}: {f!r} must be a path inside the study folder (no '..', not "
+                             "absolute), so that the manifest names the same files wherever the folder is moved; "
+                             "to use a file kept elsewhere, put a symbolic link to it in the folder "
+                             "(ln -s /data/scan.nii.gz scans/scan.nii.gz) and name the link.", manifest_path)
         if not (root / f).exists():
             raise MissingFileError(f"{root / f}: named in {manifest_path} but missing.", root / f)
     return Study(root, m)
@@ -559,56 +588,62 @@ def write_phantom_study(phantom, out: str | os.PathLike, *, overwrite: bool = Fa
     stage = _staging_dir(out)
     stage.mkdir()
     report = (lambda *a: None) if progress is None else progress
-    n = len(phantom.poses)
     try:
-        t0 = time.perf_counter()
-        for sub in ("scans", "truth", "logs"):
-            (stage / sub).mkdir()
-        tpl, labels = phantom.template()
-        write_volume(tpl, stage / "template.nii.gz")
-        write_labels(labels, stage / "template_labels.nii.gz")
-        write_json(phantom.skeleton.to_dict(), stage / "skeleton.json")
-        log = {"template_seconds": round(time.perf_counter() - t0, 3), "scans": []}
-        report("template", 0, n)
-        entries = []
-        for i, scan in enumerate(phantom.scans()):
-            t1 = time.perf_counter()
-            sid = scan.id
-            truth = {"correspondence": f"truth/{sid}_correspondence.mha", "pose": f"truth/{sid}_pose.json",
-                     "markers": f"truth/{sid}_markers.json"}
-            write_volume(scan.image, stage / f"scans/{sid}.nii.gz")
-            write_displacement(scan.correspondence, stage / truth["correspondence"])
-            if scan.template_to_scan is not None:
-                truth["template_to_scan"] = f"truth/{sid}_template_to_scan.mha"
-                write_displacement(scan.template_to_scan, stage / truth["template_to_scan"])
-            write_json(scan.pose.to_dict(), stage / truth["pose"])
-            write_json({"format": "avw-markers", "version": 1, "units": "mm", "markers": scan.markers},
-                       stage / truth["markers"])
-            entries.append({"id": sid, "image": f"scans/{sid}.nii.gz", "truth": truth})
-            log["scans"].append({"id": sid, **scan.stats,
-                                 "write_seconds": round(time.perf_counter() - t1, 3)})
-            report("scan", i + 1, n)
-        spec = phantom.spec.to_dict()
-        manifest = {
-            "format": STUDY_FORMAT,
-            "version": 1,
-            "name": name or f"{spec['region']} phantom ({spec['modality']}, {spec['size']}, {spec['posing']})",
-            "units": "mm",
-            "template": "template.nii.gz",
-            "template_labels": "template_labels.nii.gz",
-            "skeleton": "skeleton.json",
-            "scans": entries,
-            "phantom": {**spec, "poses": [{"id": pid, "angles_deg": {k: np.asarray(v).tolist() for k, v in a.items()}}
-                                          for pid, a in phantom.poses],
-                        "generator": "validation.phantoms", "workbench_version": __version__,
-                        "correspondence": "scan_to_template: template position minus scan voxel position, mm"},
-            "stages": {},
-        }
-        log["total_seconds"] = round(time.perf_counter() - t0, 3)
-        write_json(log, stage / "logs" / "phantom.json")
-        write_json(manifest, stage / MANIFEST)
+        with naming_staged(stage, out):  # a failed write named by its place in the study
+            _write_phantom_files(phantom, stage, report, name)
         replace_dir(stage, out)  # an old study is replaced only once the new one is complete
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
     return read_study(out)
+
+
+def _write_phantom_files(phantom, stage: Path, report, name: str | None) -> None:
+    """Generate the phantom's images and truth and write them, with the manifest, into the folder ``stage``."""
+    n = len(phantom.poses)
+    t0 = time.perf_counter()
+    for sub in ("scans", "truth", "logs"):
+        (stage / sub).mkdir()
+    tpl, labels = phantom.template()
+    write_volume(tpl, stage / "template.nii.gz")
+    write_labels(labels, stage / "template_labels.nii.gz")
+    write_json(phantom.skeleton.to_dict(), stage / "skeleton.json")
+    log = {"template_seconds": round(time.perf_counter() - t0, 3), "scans": []}
+    report("template", 0, n)
+    entries = []
+    for i, scan in enumerate(phantom.scans()):
+        t1 = time.perf_counter()
+        sid = scan.id
+        truth = {"correspondence": f"truth/{sid}_correspondence.mha", "pose": f"truth/{sid}_pose.json",
+                 "markers": f"truth/{sid}_markers.json"}
+        write_volume(scan.image, stage / f"scans/{sid}.nii.gz")
+        write_displacement(scan.correspondence, stage / truth["correspondence"])
+        if scan.template_to_scan is not None:
+            truth["template_to_scan"] = f"truth/{sid}_template_to_scan.mha"
+            write_displacement(scan.template_to_scan, stage / truth["template_to_scan"])
+        write_json(scan.pose.to_dict(), stage / truth["pose"])
+        write_json({"format": "avw-markers", "version": 1, "units": "mm", "markers": scan.markers},
+                   stage / truth["markers"])
+        entries.append({"id": sid, "image": f"scans/{sid}.nii.gz", "truth": truth})
+        log["scans"].append({"id": sid, **scan.stats,
+                             "write_seconds": round(time.perf_counter() - t1, 3)})
+        report("scan", i + 1, n)
+    spec = phantom.spec.to_dict()
+    manifest = {
+        "format": STUDY_FORMAT,
+        "version": 1,
+        "name": name or f"{spec['region']} phantom ({spec['modality']}, {spec['size']}, {spec['posing']})",
+        "units": "mm",
+        "template": "template.nii.gz",
+        "template_labels": "template_labels.nii.gz",
+        "skeleton": "skeleton.json",
+        "scans": entries,
+        "phantom": {**spec, "poses": [{"id": pid, "angles_deg": {k: np.asarray(v).tolist() for k, v in a.items()}}
+                                      for pid, a in phantom.poses],
+                    "generator": "validation.phantoms", "workbench_version": __version__,
+                    "correspondence": "scan_to_template: template position minus scan voxel position, mm"},
+        "stages": {},
+    }
+    log["total_seconds"] = round(time.perf_counter() - t0, 3)
+    write_json(log, stage / "logs" / "phantom.json")
+    write_json(manifest, stage / MANIFEST)

@@ -1,8 +1,10 @@
 """Tet meshes (deformation.tetmesh) and harmonic skinning weights (deformation.harmonic).
 
-pytetwild's meshes differ from run to run, so the knee is meshed once per
-module and written as a VTU file; every test downstream reads that file, and
-the determinism test checks that the same file gives bit-identical weights.
+The test knee's body is meshed once per module (the Kuhn lattice,
+deformation.tetmesh.lattice_tetmesh, every 2nd voxel) and written as a VTU
+file; the tests downstream read that file.  The lattice mesher itself, the
+stiffness matrix on it and determinism across processes are tested in
+test_lattice_tetmesh.py.
 """
 
 from __future__ import annotations
@@ -20,11 +22,12 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.harmonic import (constrained_vertices, harmonic_voxel_weights, harmonic_weights, stiffness_matrix,
                                   weights_at_points, weights_on_grid)
 from deformation.skinning import SkinningWeights, distance_weights
-from deformation.tetmesh import TetMesh, body_surface, locate, rasterize, tetrahedralize
+from deformation.isosurface import isosurface
+from deformation.tetmesh import TIE_DIRECTION, TetMesh, lattice_cubes, lattice_tetmesh, locate, rasterize
 from registration.segmentation import segment_body
 from workbench.io.tetmeshes import read_tetmesh, weight_arrays, write_tetmesh
 
-KNEE_EDGE_MM = 10.0  # the test knee's grid is 4.98×4.98×3.69 mm; its patella ≈ 12 cm³
+KNEE_STEP = 2  # lattice step (voxels): the test knee's grid is 4.98×4.98×3.69 mm, so 10×10×7.4 mm cubes
 
 
 # ---------------------------------------------------------------------------------------------
@@ -39,15 +42,14 @@ def knee(tmp_path_factory):
     template, labels = ph.template()
     mask = segment_body(template, threshold=-500.0, smooth_voxels=0)  # CT: air ≈ −1000 HU
     t0 = time.perf_counter()
-    surface = body_surface(mask, target_triangles=3000)
+    mesh = lattice_tetmesh(mask, step=KNEE_STEP)
     t1 = time.perf_counter()
-    mesh = tetrahedralize(surface, edge_length_mm=KNEE_EDGE_MM)
-    t2 = time.perf_counter()
     path = write_tetmesh(mesh, tmp_path_factory.mktemp("knee-tet") / "body.vtu")
     bone_labels = {b: ph.skeleton.label_of(b) for b in ph.skeleton.bone_names}
+    # the skin: the 0.5 isosurface of the mask (voxel staircase and all), closed at the field of view
+    surface = isosurface(Volume(mask.data.astype(np.float32), mask.geometry), 0.5, pad_value=0.0)
     return {"phantom": ph, "template": template, "labels": labels, "mask": mask, "surface": surface,
-            "path": path, "bone_labels": bone_labels,
-            "seconds": {"surface": t1 - t0, "pytetwild": t2 - t1}}
+            "path": path, "bone_labels": bone_labels, "seconds": {"mesh": t1 - t0}}
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +81,7 @@ def _rotated_grid(size=(13, 11, 9), spacing=(0.7, 1.3, 0.9), origin=(3.0, -2.0, 
 
 
 # ---------------------------------------------------------------------------------------------
-# TetMesh, surfaces, pytetwild
+# TetMesh and the knee's lattice mesh
 # ---------------------------------------------------------------------------------------------
 
 def test_tetmesh_validation_and_orientation():
@@ -100,52 +102,42 @@ def test_tetmesh_validation_and_orientation():
     assert len(fixed.edges()) == 9
 
 
-def test_body_surface_honours_spacing_origin_direction():
-    """A ball mask on an anisotropic, rotated grid: the surface is a sphere in world mm, outward oriented."""
-    g = GridGeometry((40, 30, 24), (1.1, 1.5, 1.9), (-20.0, 10.0, 3.0),
-                     Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix().reshape(-1))
-    centre = g.index_to_world([19.3, 14.6, 11.8])
-    radius = 13.0
-    inside = np.linalg.norm(g.world_coordinates() - centre, axis=-1) <= radius
-    surf = body_surface(Volume(inside.astype(np.uint8), g), smooth_sigma_mm=1.0, target_triangles=None)
-    r = np.linalg.norm(surf.vertices - centre, axis=1)
-    assert abs(np.median(r) - radius) < 0.6 and r.min() > radius - 2.0 and r.max() < radius + 2.0
-    p = surf.vertices[surf.triangles]
-    volume = np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6
-    assert volume == pytest.approx(4 / 3 * np.pi * radius ** 3, rel=0.06)  # positive: outward
-    dec = body_surface(Volume(inside.astype(np.uint8), g), target_triangles=500)
-    assert dec.n_triangles <= 520
-    with pytest.raises(ValueError, match="empty"):
-        body_surface(Volume(np.zeros(g.array_shape, np.uint8), g))
-
-
-def test_knee_mesh_is_positive_closed_and_fills_the_body(knee, knee_mesh, record_property):
+def test_knee_mesh_is_positive_conforming_and_fills_its_cubes(knee, knee_mesh, record_property):
     mesh, mask = knee_mesh, knee["mask"]
+    g = mask.geometry
     vol = mesh.signed_volumes()
-    assert vol.min() > 0  # pytetwild's tets come negatively oriented; tetrahedralize flips them
+    assert vol.min() > 0
     assert np.array_equal(np.unique(mesh.tets), np.arange(mesh.n_vertices))  # no unused vertex
-    body_mm3 = mask.data.sum() * np.prod(mask.geometry.spacing)
-    assert vol.sum() == pytest.approx(body_mm3, rel=0.03)
+    assert connected_components(mesh.edge_graph(), directed=False)[0] == 1
+    cubes, (nx_, ny_, nz_) = lattice_cubes(mask, KNEE_STEP)
+    assert mesh.n_tets == 6 * cubes.sum()  # the knee is one piece at this step: every body cube is meshed
+    hz, hy, hx = np.diff(nz_) * g.spacing[2], np.diff(ny_) * g.spacing[1], np.diff(nx_) * g.spacing[0]
+    cube_mm3 = np.multiply.outer(np.multiply.outer(hz, hy), hx)
+    assert vol.sum() == pytest.approx(cube_mm3[cubes].sum(), rel=1e-12)  # exact up to summation round-off
     faces, _ = mesh.boundary_faces()
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    assert np.all(counts == 2)  # closed, manifold boundary
     q = mesh.vertices[faces]
     enclosed = np.einsum("ij,ij->i", q[:, 0], np.cross(q[:, 1], q[:, 2])).sum() / 6
     assert enclosed == pytest.approx(vol.sum(), rel=1e-9)  # boundary faces oriented outward
-    assert connected_components(mesh.edge_graph(), directed=False)[0] == 1
-    # Almost every body voxel centre lies in the mesh.
-    tet, _, count = rasterize(mesh, mask.geometry)
+    # A voxel centre strictly inside a body cube is covered exactly once; none outside every body cube's
+    # closed block is covered at all.
+    tet, _, count = rasterize(mesh, g)
+    assert count.max() == 1
+    cz, cy, cx = np.nonzero(cubes)
+    keep = (np.diff(nz_)[cz] == 2) & (np.diff(ny_)[cy] == 2) & (np.diff(nx_)[cx] == 2)  # cubes with a centre voxel
+    assert np.all(tet[nz_[cz[keep]] + 1, ny_[cy[keep]] + 1, nx_[cx[keep]] + 1] >= 0)
+    near = np.zeros(g.array_shape, bool)
+    for dz in range(3):
+        for dy in range(3):
+            for dx in range(3):
+                near[np.minimum(nz_[cz] + dz, nz_[cz + 1]), np.minimum(ny_[cy] + dy, ny_[cy + 1]),
+                     np.minimum(nx_[cx] + dx, nx_[cx + 1])] = True  # the cubes' closed blocks
+    assert not np.any(tet[~near] >= 0)
     body = mask.data.astype(bool)
-    assert np.mean(tet[body] >= 0) > 0.99 and np.mean(tet[~body] >= 0) < 0.01
-    assert count.max() == 1  # a valid mesh never covers a voxel twice
-    med = float(np.median(mesh.edge_lengths()))
-    print(f"\nknee tet mesh: {mesh.n_vertices} vertices, {mesh.n_tets} tets, median edge {med:.1f} mm; "
-          f"surface {knee['surface'].n_triangles} triangles in {knee['seconds']['surface']:.2f} s, "
-          f"pytetwild {knee['seconds']['pytetwild']:.1f} s")
+    print(f"\nknee lattice mesh (step {KNEE_STEP}): {mesh.n_vertices} vertices, {mesh.n_tets} tets in "
+          f"{knee['seconds']['mesh']:.2f} s; body voxel centres in the mesh {100 * np.mean(tet[body] >= 0):.1f} %, "
+          f"air voxel centres {100 * np.mean(tet[~body] >= 0):.1f} %")
     record_property("knee_tet_vertices", mesh.n_vertices)
     record_property("knee_tets", mesh.n_tets)
-    record_property("pytetwild_seconds", knee["seconds"]["pytetwild"])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -311,10 +303,11 @@ def test_harmonic_weights_solve_laplace_and_obey_the_maximum_principle(knee_mesh
     r = L @ raw
     assert np.abs(r[free]).max() < 1e-9 * np.abs(r[~free]).max()  # harmonic at the free vertices
     assert info["residual"] < 1e-9
-    # Maximum principle, up to what clipping removed (obtuse dihedral angles).
-    assert raw[free].min() >= -info["clipped_max"] - 1e-12
-    assert raw[free].max() <= 1 + info["clipped_max"] + 1e-12
-    assert info["clipped_max"] < 0.02
+    # Maximum principle: the lattice's stiffness matrix is an M-matrix, so no weight leaves [0, 1] beyond the
+    # LU solve's round-off (a few ulp) and clipping removes nothing more (on fTetWild's meshes, with positive
+    # off-diagonals at obtuse dihedral angles, it could)
+    assert -1e-12 <= raw[free].min() and raw[free].max() <= 1.0 + 1e-12
+    assert info["clipped_max"] <= 1e-12
 
 
 @pytest.mark.parametrize("level", [1e-3, 0.05, 0.5])
@@ -346,19 +339,21 @@ def test_bone_without_vertices_is_an_error_or_snapped(knee, knee_mesh):
     data[k, j, i] = 9  # a one-voxel "sesamoid" no vertex falls into
     tiny = Volume(data, g)
     bl = dict(knee["bone_labels"], sesamoid=9)
-    with pytest.raises(ValueError, match=r"sesamoid.*smaller edge length"):
+    with pytest.raises(ValueError, match=r"sesamoid.*smaller lattice step"):
         harmonic_weights(knee_mesh, tiny, bl)
     w, info = harmonic_weights(knee_mesh, tiny, bl, snap_missing=True)
     assert info["snapped"] == ["sesamoid"] and info["n_constrained"]["sesamoid"] == 1
     v = int(np.flatnonzero(info["bone_of_vertex"] == 4)[0])
-    assert np.linalg.norm(knee_mesh.vertices[v] - g.index_to_world([i, j, k])) < KNEE_EDGE_MM
+    # the nearest free vertex: within a lattice cube's diagonal of the voxel (the cube around it has 8 nodes)
+    assert np.linalg.norm(knee_mesh.vertices[v] - g.index_to_world([i, j, k])) < np.linalg.norm(
+        KNEE_STEP * np.asarray(g.spacing))
     np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-6)
     with pytest.raises(ValueError, match="no voxels"):
         harmonic_weights(knee_mesh, labels, dict(knee["bone_labels"], ghost=42))
     bov, snapped = constrained_vertices(knee_mesh, labels, knee["bone_labels"])
     np.testing.assert_array_equal(bov, harmonic_weights(knee_mesh, labels, knee["bone_labels"])[1]["bone_of_vertex"])
-    # the voxel weights the weights stage asks for (snap_missing=True: a pytetwild mesh that happens to hold no
-    # vertex in a tiny bone must not fail the stage): the bone's voxel is one-hot for it, the weights sum to one
+    # the voxel weights the weights stage asks for (snap_missing=True: a lattice coarser than a tiny bone holds
+    # no vertex in it, which must not fail the stage): the bone's voxel is one-hot for it, the weights sum to one
     told = []
     r = harmonic_voxel_weights(tiny, bl, knee["mask"], mesh=knee_mesh, snap_missing=True, progress=told.append)
     assert r.info["snapped"] == "sesamoid" and any("sesamoid" in m for m in told)
@@ -381,7 +376,8 @@ def _reference_grid_dense(mesh, w, geometry, labels, lut):
     inside = tet >= 0
     dense[inside] = np.einsum("nc,ncb->nb", bary[inside], w[mesh.tets[tet[inside]]])
     bverts = mesh.boundary_vertices()
-    _, q = cKDTree(mesh.vertices[bverts]).query(geometry.world_coordinates().reshape(-1, 3)[~inside])
+    tie = 1e-6 * min(geometry.spacing) * TIE_DIRECTION  # ties (common on a lattice) by a hair along TIE_DIRECTION
+    _, q = cKDTree(mesh.vertices[bverts]).query(geometry.world_coordinates().reshape(-1, 3)[~inside] + tie)
     dense[~inside] = w[bverts[q]]
     bone = lut[labels.data.reshape(-1)]
     dense[bone >= 0] = np.eye(w.shape[1])[bone[bone >= 0]]

@@ -516,7 +516,15 @@ def test_joint_limits_round_trip_and_name_what_is_outside():
             Joint("knee", "femur", "tibia", 3, (0.0, 0.0, 0.0), limits=bad)
     no_limits = Skeleton.from_dict({**sk.to_dict(), "joints": [{k: v for k, v in j.to_dict().items()
                                                                if k != "limits"}]})
-    assert no_limits.limit_problems({"knee": [1000, 0, 0]}) == []  # an older skeleton.json: nothing to check
+    # a joint without limits (an older skeleton.json) takes rotations within ±180°: more is a slip (issue Q)
+    assert no_limits.limit_problems({"knee": [170, -180, 180]}) == []
+    assert no_limits.limit_problems({"knee": [1000, 0, -181]}) == [
+        "knee[0] = 1000° is more than half a turn (the joint has no 'limits' in the skeleton; its rotations are "
+        "taken within ±180°)",
+        "knee[2] = -181° is more than half a turn (the joint has no 'limits' in the skeleton; its rotations are "
+        "taken within ±180°)"]
+    six_free = Joint("w", "femur", "tibia", 6, (0.0, 0.0, 0.0))
+    assert six_free.outside_limits([0, 0, 0, 500, 0, 0]) == []  # translations (mm) are not checked
 
 
 @pytest.mark.parametrize("region", ["knee", "hand"])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from deformation.harmonic import harmonic_weights, weights_on_grid
-from deformation.tetmesh import body_surface, tetrahedralize
+from deformation.tetmesh import lattice_tetmesh
 from registration.segmentation import segment_body
 from validation.leave_one_out import leave_one_out
 from validation.phantoms import make_phantom
@@ -19,11 +19,11 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def hand():
     """The test hand with harmonic weights (not the phantom's own blend weights, which would make VBD
-    nearly exact): segmented body, pytetwild mesh, Laplace solve — the `workbench weights` path."""
+    nearly exact): segmented body, lattice tet mesh, Laplace solve — the `workbench weights` path."""
     ph = make_phantom("hand", size="test", modality="mri", n_poses=10, seed=4, noise=False)
     template, labels = ph.template()
     body = segment_body(template, labels=labels)
-    mesh = tetrahedralize(body_surface(body, target_triangles=4000), edge_length_mm=5.0)
+    mesh = lattice_tetmesh(body)  # every voxel (3.1 mm): the weights stage's default at this size
     bone_labels = {b: ph.skeleton.label_of(b) for b in ph.skeleton.bone_names}
     dense, _ = harmonic_weights(mesh, labels, bone_labels)
     return ph, weights_on_grid(mesh, dense, tuple(bone_labels), ph.geometry, labels, bone_labels)

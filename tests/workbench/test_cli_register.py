@@ -109,14 +109,31 @@ def test_register_on_a_study_without_bones_says_what_to_run(tmp_path, study, cap
 
 
 def test_register_init_none_is_deterministic(tmp_path, study):
+    """Rhee's Algorithm 1 in this process and in another: the same bytes in every file, its per-level and
+    per-step log.json included — the times are the manifest entry's ``timings``, not the log's."""
+    import subprocess
+    import sys
+
     a, b = tmp_path / "a", tmp_path / "b"
+    args = ["register", "--scan", "pose01", "--init", "none", *FAST, "--seed", "7", "--quiet"]
     for d in (a, b):
         shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration"))
-        assert main(["register", str(d), "--scan", "pose01", "--init", "none", *FAST, "--seed", "7",
-                     "--quiet"]) == 0
+    assert main([args[0], str(a), *args[1:]]) == 0
+    proc = subprocess.run([sys.executable, "-m", "workbench", args[0], str(b), *args[1:]], capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
     fa = read_displacement(a / "registration" / "pose01" / "correspondence.mha").data
     fb = read_displacement(b / "registration" / "pose01" / "correspondence.mha").data
     assert np.array_equal(fa, fb)
+    names = sorted(p.name for p in (a / "registration" / "pose01").iterdir())
+    assert "log.json" in names and names == sorted(p.name for p in (b / "registration" / "pose01").iterdir())
+    for n in names:
+        assert (a / "registration" / "pose01" / n).read_bytes() == (b / "registration" / "pose01" / n).read_bytes(), n
+    log = read_study(a).registration_log("pose01")
+    assert "seconds" not in json.dumps(log)
+    t = read_study(a).stage_entry("register", "pose01")["timings"]
+    assert len(t["levels"]) == len(log["log"]["levels"]) == 1 and len(t["steps"]) == len(log["log"]["steps"]) > 0
+    assert t["registration"] > 0 and all(v >= 0 for v in t["steps"])
 
 
 def test_register_unfold_init_repairs_the_folds_of_the_map(tmp_path, study, capsys):

@@ -87,8 +87,8 @@ def test_reproduce_table2_through_the_stages(tmp_path, capsys):
 @pytest.mark.slow
 def test_two_workers_give_the_same_tables(tmp_path, capsys):
     """`--workers 2` runs table2's study and the eigenposes in two Dask processes: the same numbers as one
-    process (the weights' tet mesh is the one pytetwild made the first time: the second folder starts from a
-    copy of the first's studies with their stage outputs, so only the registration and the tables are redone)."""
+    process (the second folder starts from a copy of the first's studies with their stage outputs, so only the
+    registration and the tables are redone)."""
     one = tmp_path / "one"
     assert main(["reproduce", "table2", "eigenposes", "--out", str(one), "--quiet"]) == 0
     two = tmp_path / "two"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from workbench.stages.mechanism import Image, Json, Stage, StageNotReady, execute, stage_status
+from workbench.stages.mechanism import Image, Json, Stage, StageNotReady, execute, recorded_times, stage_status
 from workbench.study import read_study
 
 
@@ -79,6 +79,28 @@ def test_a_stage_runs_skips_and_reruns_on_a_new_setting(study):
     assert [o.status for o in execute(study, SCALE, Gain(), registry=REG)] == ["skipped", "skipped"]
     assert [o.status for o in execute(study, SCALE, Gain(3.0), registry=REG)] == ["ran", "ran"]
     assert [o.status for o in execute(study, SCALE, Gain(3.0), registry=REG, force=True)] == ["ran", "ran"]
+
+
+def _timed(ctx):
+    ctx.timings.update(step=0.25, levels=[0.5, np.float64(0.75)])
+    return {"out.json": Json({"n": 1})}
+
+
+TIMED = Stage(name="timed", folder="timed", per_scan=True, settings_type=Gain, run=_timed)
+
+
+def test_a_stage_hands_its_step_times_to_its_manifest_entry_not_to_its_files(study):
+    execute(study, TIMED, Gain(), registry={"timed": TIMED})
+    for sid in ("a", "b"):
+        e = study.stage_entry("timed", sid)
+        assert e["timings"] == {"step": 0.25, "levels": [0.5, 0.75]} and e["seconds"] >= 0
+        assert json.loads((study.root / "timed" / sid / "out.json").read_text()) == {"n": 1}
+    execute(study, SCALE, Gain(), registry=REG)
+    assert "timings" not in study.stage_entry("scale", "a")  # a stage that hands none has none
+    # workbench info's lines: each stage's seconds, its steps' summed over its scans
+    lines = recorded_times(read_study(study.root), ("scale", "timed"))
+    assert [line.split()[0] for line in lines] == ["scale", "timed"]
+    assert "(2 scans)" in lines[1] and "step 0.5 s" in lines[1]
 
 
 def test_needs_are_checked_before_any_work_and_staleness_is_seen(study):
@@ -175,3 +197,37 @@ def test_the_cli_names_the_stages_in_the_pipeline_order():
     from workbench.stages import ORDER
 
     assert _stage_names() == list(ORDER)
+
+
+def _caught_signals() -> int:
+    """The process's caught-signal mask (``SigCgt`` of /proc/self/status): bit n−1 is set while signal n has a
+    handler — what the kernel will do, which Python's ``signal.getsignal`` does not see when C code changed it."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return int(line.split()[1], 16)
+    pytest.skip("no /proc/self/status")
+
+
+def _drops_sigint(ctx):
+    import ctypes
+    import signal
+
+    ctypes.CDLL(None).signal(signal.SIGINT, 0)  # SIG_DFL from C, as pytetwild's fTetWild did
+    return {"x.json": Json({})}
+
+
+def test_a_stage_that_replaces_the_sigint_handler_in_c_gets_python_s_back(study):
+    """Issue Q: after a stage whose library reset SIGINT in C, Python's handler is installed again (else Ctrl-C
+    kills the process without a message and leaves staging folders)."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("SIGINT is not Python's default handler in this process (ignored by the test runner's parent)")
+    sigint = 1 << (signal.SIGINT - 1)
+    assert _caught_signals() & sigint
+    drop = Stage(name="drop", folder="drop", per_scan=False, settings_type=Gain, run=_drops_sigint)
+    try:
+        execute(study, drop, Gain(), registry={"drop": drop})
+        assert _caught_signals() & sigint
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)

@@ -21,6 +21,7 @@ from workbench.errors import (
     MissingFileError,
     NonFiniteError,
     OutputExistsError,
+    OutputWriteError,
     PixelTypeError,
     UnknownFormatError,
     UnreadableFileError,
@@ -448,9 +449,9 @@ def test_failing_write_leaves_no_temporary_file(tmp_path, monkeypatch, suffix):
         raise RuntimeError("disk full (simulated)")
 
     monkeypatch.setattr(sitk.ImageFileWriter, "Execute", half_write_then_fail)
-    with pytest.raises(OSError) as err:
+    with pytest.raises(OutputWriteError, match=rf"scan\{suffix}: the file could not be written completely "
+                                               r"\(SimpleITK could not write the file \(disk full \(simulated\)\)"):
         write_volume(_volume(np.float32, np.random.default_rng(16)), tmp_path / f"scan{suffix}")
-    assert isinstance(err.value.__cause__, RuntimeError)
     assert _listing(tmp_path) == ["other.txt"]
 
 

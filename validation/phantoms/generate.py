@@ -34,6 +34,11 @@ MODALITIES = tuple(CONTRASTS)
 CHUNK = 1 << 17  # points per vectorised chunk: bounds temporary memory (~100 MB)
 RESTARTS = 8  # nearest forward-mapped template voxels tried for voxels Newton did not solve
 N_MARKERS = 12  # skin markers per study (Rhee Table 3 used eight)
+#: a phantom's grid keeps at least this many voxels along each axis (the test hand's is 30 across its thickness):
+#: coarser, its smallest bones fall between voxels and the generator's gradients have too few samples
+MIN_AXIS_VOXELS = 16
+#: and at most this many voxels in all (Kurihara's CT, the largest grid the project works on, has 197 M)
+MAX_GRID_VOXELS = 250_000_000
 
 
 @dataclass(frozen=True)
@@ -125,6 +130,17 @@ class Phantom:
             extent = np.asarray(size) * np.asarray(spacing)
             size = tuple(int(v) for v in np.maximum(1, np.round(extent / np.asarray(spec.spacing, float))))
             spacing = tuple(float(v) for v in spec.spacing)
+            coarsest = extent / MIN_AXIS_VOXELS
+            if min(size) < MIN_AXIS_VOXELS:
+                raise ValueError(f"spacing {tuple(round(v, 4) for v in spacing)} mm leaves the {spec.region}'s field "
+                                 f"of view ({' x '.join(f'{e:.0f}' for e in extent)} mm) only "
+                                 f"{' x '.join(str(n) for n in size)} voxels; a phantom needs at least "
+                                 f"{MIN_AXIS_VOXELS} along each axis: give a spacing of at most "
+                                 f"{', '.join(f'{c:.2f}' for c in coarsest)} mm (x, y, z)")
+            if int(np.prod(size, dtype=np.int64)) > MAX_GRID_VOXELS:
+                raise ValueError(f"spacing {tuple(round(v, 4) for v in spacing)} mm makes a grid of "
+                                 f"{' x '.join(str(n) for n in size)} voxels, more than {MAX_GRID_VOXELS:,}; give a "
+                                 "larger spacing")
         direction = np.eye(3) if spec.direction is None else np.asarray(spec.direction, float).reshape(3, 3)
         centre = np.asarray(self.region.GRID_CENTER, float)
         half = direction @ ((np.asarray(size) - 1) * np.asarray(spacing) / 2.0)

@@ -26,10 +26,10 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-from workbench.errors import OutputExistsError
+from workbench.errors import OutputExistsError, OutputWriteError, WorkbenchError
 
 __all__ = ["atomic_path", "atomic_file_group", "write_text_atomic", "split_suffix", "replace_dir", "commit_file",
-           "check_output_folder"]
+           "check_output_folder", "naming_failures", "naming_staged"]
 
 # Suffixes that only make sense together with the one before them.
 _COMPRESSION_SUFFIXES = {".gz", ".bz2", ".xz", ".zst"}
@@ -119,6 +119,35 @@ def _commit(tmp: Path, final: Path, overwrite: bool) -> None:
         os.unlink(tmp)
 
 
+@contextlib.contextmanager
+def naming_failures(final: str | os.PathLike) -> Iterator[None]:
+    """Turn an :class:`OSError` raised inside (a full disk, a file-size limit, an I/O error — often without a
+    file name, or naming a temporary file) into :class:`~workbench.errors.OutputWriteError` naming ``final``.
+    The workbench's own errors (an existing output, a missing folder) pass through as they are."""
+    try:
+        yield
+    except OSError as e:
+        if isinstance(e, WorkbenchError) and not isinstance(e, OutputWriteError):
+            raise
+        raise OutputWriteError.of(final, e) from e
+
+
+@contextlib.contextmanager
+def naming_staged(staging: str | os.PathLike, final: str | os.PathLike) -> Iterator[None]:
+    """Like :func:`naming_failures` for files written into a staging folder that becomes ``final`` when whole:
+    a failed write is named by the path it would have had under ``final`` (``skinning/weights_value.mha``,
+    not ``.skinning.partial-…/weights_value.mha``)."""
+    staging, final = Path(staging), Path(final)
+    try:
+        yield
+    except OSError as e:
+        if isinstance(e, WorkbenchError) and not isinstance(e, OutputWriteError):
+            raise
+        inner = Path(getattr(e, "path", None) or getattr(e, "filename", None) or staging)
+        where = final / inner.relative_to(staging) if staging in inner.parents else final
+        raise OutputWriteError.of(where, e) from e
+
+
 def _unlink_quietly(path: Path) -> None:
     with contextlib.suppress(FileNotFoundError):
         path.unlink()
@@ -147,23 +176,32 @@ def atomic_path(final_path: str | os.PathLike, *, overwrite: bool = False) -> It
     OutputExistsError
         ``final_path`` exists and ``overwrite`` is false.
     FileNotFoundError
-        The output folder does not exist, or the body wrote no file.
+        The output folder does not exist.
+    FileNotFoundError
+        The body wrote no file.
+    OutputWriteError
+        Writing, flushing or renaming the file failed (a full disk, a
+        file-size limit): the error names ``final_path``.
 
     Notes
     -----
     If the body raises, the temporary file is deleted and the exception
-    propagates; ``final_path`` is untouched.
+    propagates; ``final_path`` is untouched.  A writer that fails without
+    raising (niftilib) must be checked by the body (see
+    :mod:`workbench.io.volumes`).
     """
     final = Path(final_path)
     _check_target(final, overwrite)
     stem, suffix = split_suffix(final.name)
     tmp = final.parent / f".{stem}.tmp-{secrets.token_hex(4)}{suffix}"
     try:
-        yield tmp
-        if not tmp.is_file():
+        with naming_failures(final):
+            yield tmp
+        if not tmp.is_file():  # a writer's bug, not a fault of the disk
             raise FileNotFoundError(f"{final}: the writer produced no file (expected {tmp.name}).")
-        _fsync_file(tmp)
-        _commit(tmp, final, overwrite)
+        with naming_failures(final):
+            _fsync_file(tmp)
+            _commit(tmp, final, overwrite)
     finally:
         _unlink_quietly(tmp)
 
@@ -205,33 +243,36 @@ def atomic_file_group(final_path: str | os.PathLike, *, overwrite: bool = False)
     final = Path(final_path)
     _check_target(final, overwrite)
     tmpdir = final.parent / f".{final.name}.tmp-{secrets.token_hex(4)}"
-    tmpdir.mkdir()
+    with naming_failures(final):
+        tmpdir.mkdir()
     try:
-        yield tmpdir / final.name
+        with naming_failures(final):
+            yield tmpdir / final.name
         written = sorted(p for p in tmpdir.iterdir())
         if tmpdir / final.name not in written:
             raise FileNotFoundError(f"{final}: the writer produced no file.")
-        # Header last, so that a reader never finds a header without its data.
-        order = [p for p in written if p.name != final.name] + [tmpdir / final.name]
-        targets = [final.parent / p.name for p in order]
-        if not overwrite:
-            for t in targets:
-                if t.exists():
-                    raise OutputExistsError(t)
-        moved: list[Path] = []
-        try:
-            for src, dst in zip(order, targets):
-                if not src.is_file():
-                    raise IsADirectoryError(f"{final}: the writer produced a folder {src.name}.")
-                _fsync_file(src)
-                existed = dst.exists()
-                _commit(src, dst, overwrite)
-                if not existed:
-                    moved.append(dst)
-        except BaseException:
-            for dst in moved:
-                _unlink_quietly(dst)
-            raise
+        with naming_failures(final):
+            # Header last, so that a reader never finds a header without its data.
+            order = [p for p in written if p.name != final.name] + [tmpdir / final.name]
+            targets = [final.parent / p.name for p in order]
+            if not overwrite:
+                for t in targets:
+                    if t.exists():
+                        raise OutputExistsError(t)
+            moved: list[Path] = []
+            try:
+                for src, dst in zip(order, targets):
+                    if not src.is_file():
+                        raise IsADirectoryError(f"{final}: the writer produced a folder {src.name}.")
+                    _fsync_file(src)
+                    existed = dst.exists()
+                    _commit(src, dst, overwrite)
+                    if not existed:
+                        moved.append(dst)
+            except BaseException:
+                for dst in moved:
+                    _unlink_quietly(dst)
+                raise
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
 
@@ -299,6 +340,7 @@ def commit_file(tmp: str | os.PathLike, final: str | os.PathLike, *, overwrite: 
     that streams frames into its own temporary file).
     """
     tmp, final = Path(tmp), Path(final)
-    _fsync_file(tmp)
-    _commit(tmp, final, overwrite)
+    with naming_failures(final):
+        _fsync_file(tmp)
+        _commit(tmp, final, overwrite)
     return final

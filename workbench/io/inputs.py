@@ -63,12 +63,13 @@ def _is_number(v) -> bool:
 
 def check_limits(skeleton, angles: dict, where, what: str = "") -> None:
     """One line naming ``where`` (a file) when a joint value of ``angles`` lies outside the skeleton's range of
-    motion (``limits`` of skeleton.json); nothing for joints without limits."""
+    motion (``limits`` of skeleton.json; a joint without them takes rotations within ±180°)."""
     bad = skeleton.limit_problems({k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in angles.items()})
     if bad:
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
-        raise InputFileError(f"{where}: {what}{bad[0]}{more}, the range of motion of the study's skeleton "
-                             "(skeleton.json, 'limits'); give angles within it.", where)
+        where_from = "" if "half a turn" in bad[0] else ", the range of motion of the study's skeleton " \
+                                                         "(skeleton.json, 'limits')"
+        raise InputFileError(f"{where}: {what}{bad[0]}{more}{where_from}; give angles within it.", where)
 
 
 def read_seeds(path, skeleton) -> dict[str, np.ndarray]:

@@ -186,6 +186,41 @@ def _write_open3d(mesh: SurfaceMesh, tmp: Path, fmt: str) -> None:
         )
     if not ok or not tmp.is_file():
         raise OSError(f"{tmp}: Open3D could not write the {fmt} file.")
+    _check_binary_written(tmp, fmt, mesh.n_vertices, mesh.n_triangles)
+
+
+#: bytes of the PLY scalar types Open3D writes
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _check_binary_written(path: Path, fmt: str, n_vertices: int, n_triangles: int) -> None:
+    """Raise :class:`OSError` unless Open3D's binary PLY or STL file is whole: its writer (RPly) reports a
+    short write on standard error and returns success.  The size a whole file has follows from its header
+    (PLY: each element's count times its record's size; a face's list holds 3 indices) or from the triangle
+    count (STL: 84 + 50 bytes a triangle)."""
+    size = path.stat().st_size
+    if fmt == ".stl":
+        expected = 84 + 50 * n_triangles
+    else:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+        end = head.find(b"end_header\n")
+        if end < 0:
+            raise OSError(f"wrote only {size} bytes: the PLY header is cut short")
+        expected, record, count = end + len(b"end_header\n"), 0, 0
+        for line in head[:end].decode("ascii", "replace").splitlines():
+            words = line.split()
+            if words[:1] == ["element"]:
+                expected += record * count
+                record, count = 0, int(words[2])
+            elif words[:2] == ["property", "list"]:
+                record += _PLY_SIZES[words[2]] + 3 * _PLY_SIZES[words[3]]
+            elif words[:1] == ["property"]:
+                record += _PLY_SIZES[words[1]]
+        expected += record * count
+    if size < expected:
+        raise OSError(f"wrote only {size} of {expected} bytes")
 
 
 # ---------------------------------------------------------------------------
@@ -343,13 +378,23 @@ def _write_vtp(mesh: SurfaceMesh, tmp: Path, point_data: dict | None = None) -> 
 
     poly = vtk_polydata(mesh.vertices, mesh.triangles, point_data)
     writer = vtkXMLPolyDataWriter()
-    writer.SetFileName(str(tmp))
     writer.SetInputData(poly)
     writer.SetDataModeToBinary()
+    write_vtk_xml(writer, tmp)
+
+
+def write_vtk_xml(writer, path: Path) -> None:
+    """Run a VTK XML writer (binary data mode: base64 text) into memory, then write its text to ``path`` from
+    Python.  VTK's own file output crashes the process (SIGSEGV) when a write fails for a full disk or a
+    file-size limit; Python's raises :class:`OSError`, which :mod:`workbench.io.atomic` names."""
+    writer.WriteToOutputStringOn()
     with _capture_vtk_output() as caught:
         ok = writer.Write()
     if ok != 1 or caught.errors:
-        raise OSError(f"{tmp}: VTK could not write the .vtp file ({'; '.join(caught.errors) or 'unknown error'}).")
+        raise OSError(f"{path}: VTK could not write the {path.suffix} file "
+                      f"({'; '.join(caught.errors) or 'unknown error'}).")
+    with open(path, "w", encoding="ascii", newline="") as f:
+        f.write(writer.GetOutputString())
 
 
 # ---------------------------------------------------------------------------

@@ -1,16 +1,14 @@
 """Reading and writing tetrahedral meshes as VTK XML unstructured grids (``.vtu``).
 
-A study meshes its body once (pytetwild is not deterministic) and keeps the
-mesh as a ``.vtu`` file, which ParaView, 3D Slicer and PyVista open directly.
-Everything downstream (harmonic weights, voxel weights) is a deterministic
-function of that file.
+The weights stage writes its body mesh, with each bone's harmonic weight, as
+a ``.vtu`` file, which ParaView, 3D Slicer and PyVista open directly.
 
 Format
 ------
 * Points: float64 world millimetres (``x, y, z``), written in VTK's binary
   (base64, zlib-compressed) encoding, so the round trip is bit-exact.
 * Cells: one ``VTK_TETRA`` per tetrahedron, vertex order kept (positively
-  oriented for meshes from :func:`deformation.tetmesh.tetrahedralize`).
+  oriented for meshes from :func:`deformation.tetmesh.lattice_tetmesh`).
 * Point data: any named per-vertex arrays, float64 (or their own dtype).
   Skinning weights are stored as one scalar array per bone named
   ``weight_<bone>`` (:func:`weight_arrays`), so each bone's weight field can
@@ -33,7 +31,7 @@ import numpy as np
 from deformation.tetmesh import TetMesh
 from workbench.io.atomic import atomic_path, split_suffix
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
-from workbench.io.meshes import _capture_vtk_output  # VTK prints errors instead of raising: same capture
+from workbench.io.meshes import _capture_vtk_output, write_vtk_xml  # VTK prints errors instead of raising
 
 __all__ = ["WEIGHT_PREFIX", "read_tetmesh", "write_tetmesh", "weight_arrays", "weights_from_point_data"]
 
@@ -147,14 +145,10 @@ def write_tetmesh(mesh: TetMesh, path: str | os.PathLike, *, point_data: dict | 
         grid.GetPointData().AddArray(va)
     with atomic_path(p, overwrite=overwrite) as tmp:
         writer = vtkXMLUnstructuredGridWriter()
-        writer.SetFileName(str(tmp))
         writer.SetInputData(grid)
         writer.SetDataModeToBinary()
         writer.SetCompressorTypeToZLib()
-        with _capture_vtk_output() as caught:
-            ok = writer.Write()
-        if ok != 1 or caught.errors:
-            raise OSError(f"{tmp}: VTK could not write the .vtu file ({'; '.join(caught.errors) or 'unknown error'}).")
+        write_vtk_xml(writer, tmp)
     return p
 
 

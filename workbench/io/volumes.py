@@ -34,8 +34,11 @@ Readers reject missing files (:class:`MissingFileError`), unknown suffixes
 (:class:`UnknownFormatError`), truncated or corrupt data
 (:class:`UnreadableFileError`, chaining SimpleITK's ``RuntimeError``), images
 that are not 3-D or have the wrong number of components
-(:class:`DimensionError`) and, unless asked, NaN or infinite voxels
-(:class:`NonFiniteError`).  Writers never modify their input, write atomically
+(:class:`DimensionError`), geometry no scan of a body has
+(:class:`ImplausibleGeometryError`: a voxel spacing outside
+:data:`SPACING_RANGE_MM` or a field of view longer than
+:data:`MAX_EXTENT_MM` along an axis) and, unless asked, NaN or infinite
+voxels (:class:`NonFiniteError`).  Writers never modify their input, write atomically
 (:mod:`workbench.io.atomic`) and refuse to overwrite unless ``overwrite=True``.
 
 Three behaviours of ITK's NIfTI reader (niftilib) this module guards against:
@@ -83,6 +86,7 @@ from workbench.errors import (
     UnknownFormatError,
     UnreadableFileError,
 )
+from workbench.errors import ImplausibleGeometryError
 
 __all__ = [
     "SUPPORTED_SUFFIXES",
@@ -118,6 +122,12 @@ _WRITABLE_DTYPES = {np.dtype(t) for t in (
 )}
 
 DICOM = "dicom"
+
+#: Voxel spacings (mm) of scans of a body: from synchrotron micro-CT (about a micrometre) to thick-slice CT or MRI
+#: (10 mm); beyond this range the header is wrong (a unit slip: metres or micrometres for millimetres).
+SPACING_RANGE_MM = (1e-3, 20.0)
+#: A field of view longer than this along an axis (mm) holds no scan of a body (a whole body is about 2 m).
+MAX_EXTENT_MM = 4000.0
 
 
 # ---------------------------------------------------------------------------
@@ -498,6 +508,7 @@ def _dicom_geometry(folder: Path, series_uid: str | None) -> GridGeometry:
     spacing = list(first.GetSpacing())
     if pos is not None:
         spacing[2] = abs(pos[-1] - pos[0]) / (len(pos) - 1)
+    _require_plausible_geometry((nx, ny, len(files)), spacing, folder)
     return GridGeometry(size=(nx, ny, len(files)), spacing=spacing, origin=first.GetOrigin(),
                         direction=first.GetDirection())
 
@@ -567,7 +578,26 @@ def _read_sitk(path: str | os.PathLike, *, series_uid: str | None = None) -> _Lo
             + (" and check that its data file is complete." if fmt in _DETACHED else "."),
             p,
         ) from e
+    if image.GetDimension() == 3:
+        _require_plausible_geometry(image.GetSize(), image.GetSpacing(), p)
     return _Loaded(image, p, nifti)
+
+
+def _require_plausible_geometry(size, spacing, path: Path) -> None:
+    """One clear error for a header whose voxel spacing or field of view no scan of a body has."""
+    lo, hi = SPACING_RANGE_MM
+    bad = [(a, float(v)) for a, v in zip("xyz", spacing) if not lo <= float(v) <= hi]
+    if bad:
+        said = ", ".join(f"{a} {v:g} mm" for a, v in bad)
+        raise ImplausibleGeometryError(
+            f"{path}: voxel spacing {said} is outside {lo:g}–{hi:g} mm, which no scan of a body has; the header's "
+            "spacing is wrong (metres or micrometres for millimetres?). Fix the spacing in the header, e.g. with "
+            "SimpleITK's image.SetSpacing(...) and WriteImage, or 3D Slicer's Volumes module.", path)
+    extent = [float(n) * float(v) for n, v in zip(size, spacing)]
+    if max(extent) > MAX_EXTENT_MM:
+        raise ImplausibleGeometryError(
+            f"{path}: a field of view of {' x '.join(f'{e:g}' for e in extent)} mm is longer than {MAX_EXTENT_MM:g} "
+            "mm along an axis, which no scan of a body has; check the header's spacing and size.", path)
 
 
 def _require_3d(image: sitk.Image, path: Path, what: str) -> None:
@@ -837,6 +867,7 @@ def read_image_geometry(path: str | os.PathLike, *, series_uid: str | None = Non
             f"{p}: the image is {reader.GetDimension()}-D (size {reader.GetSize()}); a 3-D grid is needed.",
             p,
         )
+    _require_plausible_geometry(reader.GetSize(), reader.GetSpacing(), p)
     return GridGeometry(size=reader.GetSize(), spacing=reader.GetSpacing(),
                         origin=reader.GetOrigin(), direction=reader.GetDirection())
 
@@ -886,7 +917,39 @@ def _write_sitk(image: sitk.Image, path: Path, *, overwrite: bool, compress: boo
             writer.Execute(image)
         except RuntimeError as e:
             raise OSError(f"{path}: SimpleITK could not write the file ({_first_line(e)}).") from e
+        if fmt in (".nii", ".nii.gz"):
+            _check_nifti_written(tmp)
     return path
+
+
+def _check_nifti_written(path: Path) -> None:
+    """Raise :class:`OSError` unless the NIfTI file ``path`` holds its whole header and data.
+
+    niftilib (ITK's NIfTI writer) reports a short write only on its own
+    standard error ("NWAD: wrote only 0 of N bytes") and returns normally; the
+    MetaImage and NRRD writers raise.  A plain file must be at least
+    ``vox_offset`` + the data's size; a gzip file must end with the trailer of
+    a stream of exactly that size (RFC 1952's ISIZE, the length modulo 2³²):
+    a stream cut short ends in compressed data instead.
+    """
+    with open(path, "rb") as f:
+        is_gzip = f.read(2) == b"\x1f\x8b"
+    try:
+        with (gzip.open if is_gzip else open)(path, "rb") as f:
+            layout = _nifti_layout(f.read(540), path)
+    except (EOFError, gzip.BadGzipFile, zlib.error, UnreadableFileError) as e:
+        raise OSError(f"the written header is incomplete ({_first_line(e)})") from e
+    expected = layout.vox_offset + layout.n_bytes
+    size = path.stat().st_size
+    if not is_gzip:
+        if size < expected:
+            raise OSError(f"wrote only {size} of {expected} bytes")
+        return
+    with open(path, "rb") as f:
+        f.seek(max(size - 4, 0))
+        isize = int.from_bytes(f.read(4), "little") if size >= 18 else -1
+    if isize != expected % (1 << 32):
+        raise OSError(f"the gzip stream is cut short after {size} bytes")
 
 
 def _image_from(volume: Volume, data: np.ndarray, *, is_vector: bool) -> sitk.Image:

@@ -6,7 +6,7 @@
 * **poses** — each scan's joint angles, each joint's Kurihara Eq. 1 residual,
   the bones the pose stage flagged;
 * **registration** — per scan: similarity (SSD, CC, MI) of the start and the
-  result, the folded voxels, the time, the convergence of each level
+  result, the folded voxels, the convergence of each level
   (LNCC per iteration for the dense method, the metric per accepted step for
   Rhee's Algorithm 1), a control-point or correction map;
 * **overlays** — the registered template (green) over its target (magenta)
@@ -21,6 +21,10 @@
   3 MB embedded whole;
 * **provenance** — software versions, every stage's settings, the study
   digest (SHA-256 over the recorded outputs of every stage).
+
+The report holds no time, date, host or machine name (the times are in
+``study.json``'s entries: ``workbench info``), so the same results give the
+same bytes.
 
 :func:`tables_report` builds it for a ``workbench reproduce`` folder: every
 table with its definitions and notes, then a compact section for each
@@ -45,12 +49,14 @@ MAX_SCANS_COMPACT = 1  # scans shown with pictures per study in a reproduce fold
 
 
 def software_versions() -> dict:
+    """The versions of Python and the packages the results depend on (not the machine's: the report of the same
+    results is the same bytes on another kernel or host)."""
     from importlib import metadata
 
     from workbench import __version__
 
-    out = {"workbench": __version__, "python": platform.python_version(), "platform": platform.platform()}
-    for pkg in ("numpy", "scipy", "SimpleITK", "vtk", "open3d", "matplotlib", "numba", "nlopt", "pytetwild",
+    out = {"workbench": __version__, "python": platform.python_version()}
+    for pkg in ("numpy", "scipy", "SimpleITK", "vtk", "open3d", "matplotlib", "numba", "nlopt",
                 "itk-elastix"):
         try:
             out[pkg] = metadata.version(pkg)
@@ -194,14 +200,14 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
         b, a = s.get("similarity_before") or {}, s.get("similarity_after") or {}
         f = s.get("folding") or {}
         rows.append([sid, s.get("init"), b.get("ssd"), a.get("ssd"), b.get("cc"), a.get("cc"), b.get("mi"), a.get("mi"),
-                     f.get("n_folded"), s.get("registration_seconds")])
+                     f.get("n_folded")])
     parts.append("<p>Similarity of the scan and the template resampled through the start (before) and the result "
                  "(after), over the whole scan grid: SSD mean squared difference (intensity units²), CC Pearson, MI "
                  "nats with 32 bins. Folded: voxels with Jacobian determinant ≤ 0 as the registration counted them "
                  "(over the scan's body for the dense method, the whole grid for Rhee's).</p>")
     parts.append(table_html(["scan", "start", "SSD before", "SSD after", "CC before", "CC after", "MI before",
-                             "MI after", "folded", "seconds"], rows,
-                            decimals=[0, 0, 1, 1, 3, 3, 3, 3, 0, 1]))
+                             "MI after", "folded"], rows,
+                            decimals=[0, 0, 1, 1, 3, 3, 3, 3, 0]))
     for sid in scans:
         if not study.has_registration(sid):
             continue

@@ -124,7 +124,7 @@ def _figure(width=5.2, height=2.8):
 def _png(plt, fig) -> bytes:
     buf = io.BytesIO()
     fig.tight_layout()
-    fig.savefig(buf, format="png")
+    fig.savefig(buf, format="png")  # no date in a PNG's metadata (only "Software"): the same bytes every run
     plt.close(fig)
     return buf.getvalue()
 

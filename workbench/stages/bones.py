@@ -102,6 +102,11 @@ def _run(ctx) -> dict:
         source = "given"
     counts = np.bincount(np.asarray(labels.data).ravel().astype(np.int64),
                          minlength=max(b.label for b in skeleton.bones) + 1)
+    unknown = unknown_labels(counts, skeleton)
+    if unknown:
+        ctx.say(f"warning: {study.template_labels_path()}: {_unknown_text(unknown)} not the label of any bone of "
+                f"{study.manifest['skeleton']}; those voxels are taken as soft tissue (give them a bone in the "
+                "skeleton, or 0 in the label map)")
     frames = bone_frames(labels, skeleton)
     out["bone_frames.json"] = Json({
         "format": "avw-bone-frames", "version": 1, "units": "mm",
@@ -110,8 +115,21 @@ def _run(ctx) -> dict:
         "bones": {b: {"frame": f.frame.tolist(), "half_extents_mm": f.half_extents.tolist(),
                       "centroid": f.centroid.tolist(), "voxels": f.n_voxels} for b, f in frames.items()}})
     out["bones.json"] = Json({"format": "avw-bones", "version": 1, "source": source,
-                              "voxels": {b.name: int(counts[b.label]) for b in skeleton.bones}})
+                              "voxels": {b.name: int(counts[b.label]) for b in skeleton.bones},
+                              "unknown_labels": {str(k): n for k, n in unknown.items()}})
     return out
 
 
-STAGE = Stage(name="bones", folder="bones", per_scan=False, settings_type=BonesSettings, run=_run, inputs=_inputs)
+def unknown_labels(counts: np.ndarray, skeleton) -> dict[int, int]:
+    """``{label id: voxels}`` of the non-zero ids in a label map's ``counts`` (a bincount) that are no bone's."""
+    known = {b.label for b in skeleton.bones} | {0}
+    return {int(k): int(counts[k]) for k in np.flatnonzero(counts) if int(k) not in known}
+
+
+def _unknown_text(unknown: dict) -> str:
+    ids = ", ".join(f"{k} ({n} voxels)" for k, n in sorted(unknown.items()))
+    return f"label id{'s' if len(unknown) > 1 else ''} {ids} {'are' if len(unknown) > 1 else 'is'}"
+
+
+STAGE = Stage(name="bones", folder="bones", per_scan=False, settings_type=BonesSettings, run=_run, inputs=_inputs,
+              version=2)  # 2: bones.json lists the label ids that are no bone's

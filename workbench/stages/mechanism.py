@@ -23,8 +23,11 @@ it reads, and a ``run`` that wires library functions and *returns* its outputs
    :func:`execute` of the stage.
 4. **manifest** — one entry per stage, and per scan for per-scan stages
    (inputs with digests, settings, needs, outputs with their digest, seed,
-   timings, versions), recorded through :meth:`workbench.study.Study.record`
-   (locked, re-read, renamed).  Per-scan stages commit each scan as it
+   timings — the unit's ``seconds`` and the per-step ``timings`` its stage
+   put in ``ctx.timings`` —, versions), recorded through :meth:`workbench.study.Study.record`
+   (locked, re-read, renamed).  Times, dates and hosts go there only: no
+   file under a stage folder holds one, so the same inputs and settings give
+   the same bytes there in every run (``study.json`` alone differs).  Per-scan stages commit each scan as it
    finishes, so an interrupted run resumes from the first unfinished scan.
 5. **scale-out** — with a Dask cluster (:mod:`workbench.scale`), a per-scan
    stage's scans run as tasks that do steps 3 for their scan (their own
@@ -59,13 +62,13 @@ from deformation.geometry import every_nth
 
 from workbench import __version__
 from workbench.errors import WorkbenchError
-from workbench.io.atomic import replace_dir
+from workbench.io.atomic import naming_staged, replace_dir
 from workbench.io.jsonio import to_jsonable, write_json
 from workbench.study import STAGE_COMMANDS, Study, StudyError
 
 __all__ = ["Stage", "Event", "Outcome", "StageNotReady", "execute", "stage_status", "file_digest",
            "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "MeshFile", "CopyFile",
-           "settings_dict", "WORKING_VOXELS", "working_factor", "working_labels"]
+           "settings_dict", "WORKING_VOXELS", "working_factor", "working_labels", "recorded_times"]
 
 log = logging.getLogger("workbench")
 
@@ -241,12 +244,15 @@ class StageContext:
     study: Study
     settings: object
     scan: str | None
-    previous: dict  #: file name → path of the outputs of the previous run (e.g. a kept mesh), if any
+    previous: dict  #: file name → path of the outputs of the previous run, if any
     report: Callable  #: report(done, total, message="")
     options: dict = field(default_factory=dict)  #: run-time options that do not change the result's meaning
     stage_name: str = ""
     emit: Callable = lambda event: None
     runner: object = None  #: a :class:`workbench.scale.Runner` for per-scan work inside a whole-study stage, or None
+    #: wall-clock seconds of the stage's steps (JSON: numbers, lists, dicts), recorded under the unit's manifest
+    #: entry's ``timings``: a stage's files hold no time, so the same inputs and settings give the same bytes
+    timings: dict = field(default_factory=dict)
 
     def map_scans(self, fn, items, *, shared=None, on_result=None) -> list:
         """``fn`` over ``items`` here, or as Dask tasks when the run has a cluster (:mod:`workbench.scale`)."""
@@ -293,8 +299,14 @@ _DIGESTS: dict = {}
 
 
 def file_digest(path: Path) -> str:
-    """SHA-256 of a file's content (cached per process by path, size and modification time)."""
+    """SHA-256 of a file's content (cached per process by path, size and modification time); of a folder (a
+    DICOM series), of the names and contents of the files in it."""
     path = Path(path)
+    if path.is_dir():
+        h = hashlib.sha256()
+        for p in sorted(q for q in path.iterdir() if q.is_file()):
+            h.update(p.name.encode() + b"\0" + file_digest(p).encode())
+        return h.hexdigest()
     st = path.stat()
     key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
     if key not in _DIGESTS:
@@ -445,7 +457,7 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
 
     ``registry`` maps stage names to :class:`Stage` objects (for ``needs``);
     ``options`` reach the stage's ``run`` as ``ctx.options`` and stay out of
-    the digest (e.g. the weights stage's ``remesh``: a new random mesh).
+    the digest (run-time choices that do not change what the outputs mean).
     ``runner`` (:class:`workbench.scale.Runner`): a distributed one runs a per-scan stage's scans as Dask
     tasks, and reaches a whole-study stage's ``run`` as ``ctx.runner`` (its per-scan work).
     Returns one :class:`Outcome` per unit (the study, or each scan).
@@ -518,7 +530,8 @@ def _unit_folder(study: Study, stage: Stage, unit) -> Path:
 
 
 def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=None, forget=None) -> dict:
-    """Run the stage on one unit and swap its outputs into place: ``{"names", "outputs_digest", "seconds"}``.
+    """Run the stage on one unit and swap its outputs into place: ``{"names", "outputs_digest", "seconds",
+    "timings"}`` (``timings``: what the stage put in ``ctx.timings``, plain JSON: it crosses Dask too).
 
     ``forget()`` is called once the outputs are written and before they replace the old ones (the sync path
     forgets the old manifest entry there; a Dask task leaves the manifest to its coordinator)."""
@@ -536,19 +549,41 @@ def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=
     try:
         from workbench.scale import same_bits
 
-        with same_bits():  # the same bits on any machine, for any number of workers
+        with same_bits(), _keeping_sigint():  # the same bits on any machine, for any number of workers
             outputs = stage.run(ctx)
         files = []
         for name, obj in outputs.items():
-            files += _write_output(obj, staging / name)
+            with naming_staged(staging, final):  # a full disk or a file-size limit: named by the final path
+                files += _write_output(obj, staging / name)
         out_digest = _dir_digest(files, staging)
+        timings = to_jsonable(ctx.timings, where=f"{stage.name} timings")  # refused before the swap, not after
         if forget is not None:
             forget()
         replace_dir(staging, final)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    return {"names": list(outputs), "outputs_digest": out_digest, "seconds": time.perf_counter() - t0}
+    return {"names": list(outputs), "outputs_digest": out_digest, "seconds": time.perf_counter() - t0,
+            "timings": timings}
+
+
+@contextlib.contextmanager
+def _keeping_sigint():
+    """Install Python's SIGINT handler again after a stage: a library that replaces it in C (as pytetwild did;
+    Python's own record, ``signal.getsignal``, does not see that) would leave Ctrl-C in the later stages of the
+    same process killing it with no message and staging folders behind."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        yield
+    finally:
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
 
 
 def _record_unit(study: Study, stage: Stage, settings_json, unit, i: int, n: int, digest: str, inputs: dict,
@@ -559,6 +594,8 @@ def _record_unit(study: Study, stage: Stage, settings_json, unit, i: int, n: int
              "outputs": {name: str(rel / name) for name in done["names"]}, "outputs_digest": done["outputs_digest"],
              "seconds": round(seconds, 3), "finished": _now(), "workbench_version": __version__,
              "stage_version": stage.version}
+    if done.get("timings"):  # the stage's own per-step seconds (its files hold no time)
+        entry["timings"] = done["timings"]
     if "seed" in settings_json:
         entry["seed"] = settings_json["seed"]
     study.record(stage.name, entry, unit, stage_info={"folder": stage.folder})
@@ -669,3 +706,33 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
 
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def recorded_times(study: Study, order=()) -> list[str]:
+    """One line per stage recorded in ``study.json`` (``order`` first): its wall-clock seconds (summed over its
+    scans) and those of the steps it recorded in ``timings`` — the times no stage writes into its files."""
+    stages = study.manifest.get("stages") or {}
+    lines = []
+    for name in [n for n in order if n in stages] + [n for n in stages if n not in order]:
+        e = stages[name]
+        units = [u for u in ((e.get("scans") or {}).values() if "scans" in e else [e])
+                 if isinstance(u, dict) and "seconds" in u]
+        if not units:
+            continue
+        steps: dict = {}
+        per_scan: dict = {}
+        for u in units:
+            for k, v in (u.get("timings") or {}).items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    steps[k] = steps.get(k, 0.0) + v
+                elif k == "scans" and isinstance(v, dict):  # a whole-study stage's per-scan work (pose)
+                    per_scan.update({s: t["seconds"] for s, t in v.items() if isinstance(t, dict) and "seconds" in t})
+        text = f"  {name:<10}{sum(u['seconds'] for u in units):>9.1f} s"
+        if "scans" in e:
+            text += f"  ({len(units)} scan{'s' if len(units) != 1 else ''})"
+        if steps:
+            text += "  " + ", ".join(f"{k} {v:.1f} s" for k, v in steps.items())
+        if per_scan:
+            text += "; per scan: " + ", ".join(f"{s} {v:.1f} s" for s, v in per_scan.items())
+        lines.append(text)
+    return lines

@@ -12,10 +12,12 @@ Outputs (``poses/``)::
     skeleton_estimated.json   the skeleton with the estimated joint centres
     pose_vectors.json         each scan's joint angles, concatenated in the skeleton's joint order
     joints.json               per joint: centre, hinge axis, Kurihara Eq. 1 residuals, conditioning
-    fits.json                 per scan and bone: status, metric before/after, iterations, time
+    fits.json                 per scan and bone: status, metric before/after, iterations
     report.json / report.txt  the summary tables
 
-The ground truth is not read here; the validate stage compares the poses with it.
+The ground truth is not read here; the validate stage compares the poses with it.  The times (the
+stage's, each scan's and each bone's fit) are in the stage's ``study.json`` entry, ``timings``: the files
+hold none, so the same inputs and settings give the same bytes.
 """
 
 from __future__ import annotations
@@ -92,6 +94,61 @@ def _inputs(study, s: PoseSettings, scan):
     return files
 
 
+def _require_bones_in_view(study, ids) -> None:
+    """Before any work, with every bone started where the template has it (``--init identity``): each scan's
+    field of view holds at least one bone's centre (the bones stage's ``bone_frames.json``), else one clear error
+    naming the scan — no bone of it could be placed."""
+    from deformation.geometry import GridGeometry
+    from workbench.io.jsonio import read_json
+    from workbench.study import StudyError
+
+    frames = read_json(study.output("bones", "bone_frames.json"))["bones"]
+    centres = np.array([f["centroid"] for f in frames.values()], dtype=np.float64)
+    for sid in ids:
+        path = study.scan_path(sid)
+        g: GridGeometry = read_image_geometry(path)
+        if not g.contains_world(centres).any():
+            lo, hi = _world_box(g)
+            raise StudyError(
+                f"{path}: no bone of the template lies in this scan's field of view (scan {sid!r} spans "
+                f"{_box_text(lo, hi)} mm; the template's bones lie within {_box_text(centres.min(0), centres.max(0))} "
+                "mm), so no bone could be placed: the pose stage starts every bone where the template has it. "
+                "Check the scan's origin and direction (its header), or start the root bone with --init moments "
+                "or an initial-pose file.", path)
+
+
+def _world_box(g) -> tuple[np.ndarray, np.ndarray]:
+    corners = np.array([[i, j, k] for i in (0, g.size[0] - 1) for j in (0, g.size[1] - 1) for k in (0, g.size[2] - 1)],
+                       dtype=np.float64)
+    w = g.index_to_world(corners)
+    return w.min(0), w.max(0)
+
+
+def _box_text(lo, hi) -> str:
+    def mm(v) -> str:
+        t = f"{v:.0f}"
+        return "0" if t == "-0" else t
+
+    return " x ".join(f"[{mm(a)}, {mm(b)}]" for a, b in zip(lo, hi))
+
+
+def _require_placed(study, result) -> None:
+    """A scan of which no bone could be placed (every fit flagged) is one clear error naming the scan: every
+    later stage would start from nothing."""
+    from collections import Counter
+
+    from workbench.study import StudyError
+
+    for r in result.scans:
+        if r.fits and not any(f.ok for f in r.fits.values()):
+            why = ", ".join(f"{n} {status}" for status, n in Counter(f.status for f in r.fits.values()).items())
+            path = study.scan_path(r.scan_id)
+            raise StudyError(f"{path}: no bone of scan {r.scan_id!r} could be placed ({why}; fits.json is not written)."
+                             " Check that the scan shows the template's body part, its header's origin and "
+                             "direction, or give the root bone a start (--init moments or an initial-pose file).",
+                             path)
+
+
 def _fit_arguments(s: PoseSettings, root_init) -> dict:
     """The arguments of :func:`registration.pose.pose_scans` / ``estimate_poses`` the settings give."""
     return dict(method=s.method, root_init=root_init, metric=s.metric, interpolation=s.interpolation,
@@ -135,6 +192,8 @@ def _run(ctx) -> dict:
         root_init = read_initial_poses(s.init, ids, skeleton)
     for sid in ids:  # every scan read once before any work: a corrupt one (NaN voxels) is said at once, not
         study.scan(sid)  # after the scans before it (about 0.3 s a paper-size hand scan; the stage takes minutes)
+    if root_init is None:
+        _require_bones_in_view(study, ids)
     scans = {sid: (lambda sid=sid: read_scan(sid)) for sid in ids}
     n_bones = len(skeleton.bones)
 
@@ -155,10 +214,13 @@ def _run(ctx) -> dict:
         per_scan = ctx.map_scans(_scan_task, ids, shared=(str(study.root.resolve()), f, kwargs), on_result=done)
     result = estimate_poses(template, labels, scans, skeleton, outlier_factor=s.outlier_factor, progress=cb,
                             scan_poses=per_scan, **kwargs)
+    _require_placed(study, result)
     total = time.perf_counter() - t0
+    ctx.timings.update(total=round(total, 3), scans={  # to study.json, not to the files (module docstring)
+        r.scan_id: {"seconds": round(r.seconds, 3), "bones": {b: round(f.seconds, 4) for b, f in r.fits.items()}}
+        for r in result.scans})
     text = f"workbench pose — {study.manifest.get('name', study.root.name)} — method {s.method}\n\n{format_fits(result)}"
-    report = finite({"method": s.method, "metric": s.metric, "grid_factor": f, "seconds_total": round(total, 2),
-                     "seconds_per_scan": {r.scan_id: round(r.seconds, 2) for r in result.scans},
+    report = finite({"method": s.method, "metric": s.metric, "grid_factor": f,
                      "failures": result.failures(), "eq1_rms_mm": result.overall_rms_mm(),
                      "eq1_base_pose_counted": False, "text": text})
     out = {f"{r.scan_id}_pose.json": Json(r.pose.to_dict()) for r in result.scans}
@@ -175,15 +237,21 @@ def _run(ctx) -> dict:
                                       "eq1_rms_mm": result.overall_rms_mm(), "eq1_base_pose_counted": False,
                                       "joints": result.joints_dict()}))
     out["fits.json"] = Json(finite({"format": "avw-fits", "version": 1, "method": s.method,
-                                    "scans": {r.scan_id: {"seconds": r.seconds,
-                                                          "bones": {b: f.to_dict() for b, f in r.fits.items()}}
+                                    "scans": {r.scan_id: {"bones": {b: _untimed(f.to_dict())
+                                                                    for b, f in r.fits.items()}}
                                               for r in result.scans}}))
     out["report.json"] = Json(report)
     out["report.txt"] = Text(text)
     return out
 
 
+def _untimed(fit: dict) -> dict:
+    """A bone fit's record without its time (``ctx.timings`` has it)."""
+    return {k: v for k, v in fit.items() if k != "seconds"}
+
+
 STAGE = Stage(name="pose", folder="poses", per_scan=False, settings_type=PoseSettings, run=_run,
               # 2: ICP (--method surface) with the prior; 3: its matched points only; 4: a flagged bone's pose
-              # follows its nearest placed ancestor
-              needs=lambda s: ("bones",), inputs=_inputs, version=4)
+              # follows its nearest placed ancestor; 5: no time in fits.json, report.json, report.txt (study.json's
+              # timings have them)
+              needs=lambda s: ("bones",), inputs=_inputs, version=5)

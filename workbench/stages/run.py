@@ -81,6 +81,7 @@ def run_stages(study: Study, targets, *, settings: dict | None = None, force=(),
         raise ValueError(f"unknown stage {unknown}; the stages are {list(ORDER)}")
     resolved = {n: settings_for(study, n, settings) for n in ORDER}
     order = _closure(targets, resolved)
+    study.check_writable()
     emit = progress or (lambda e: None)
     outcomes = []
     scan_ids = study.check_scan_ids(scans)
@@ -97,7 +98,13 @@ def run_stages(study: Study, targets, *, settings: dict | None = None, force=(),
 
 
 def parse_set(items) -> dict:
-    """``["register.max_steps_per_level=50", ...]`` → ``{"register": {"max_steps_per_level": 50}}`` (JSON values)."""
+    """``["register.max_steps_per_level=50", ...]`` → ``{"register": {"max_steps_per_level": 50}}`` (JSON values).
+
+    Each value is checked against the type its stage's settings dataclass declares (``int``, ``float``,
+    ``bool``, ``str``, ``tuple`` — a JSON list —, optionally ``| None`` — JSON ``null``), so that a wrong one is
+    one clear line before anything runs or is recorded.  A whole-number float is taken for an ``int`` and a
+    whole number for a ``float``.
+    """
     import json
 
     out: dict = {}
@@ -113,8 +120,50 @@ def parse_set(items) -> dict:
             v = json.loads(value)
         except json.JSONDecodeError:
             v = value  # a bare string
-        out.setdefault(stage, {})[field] = v
+        out.setdefault(stage, {})[field] = _typed(f"{stage}.{field}", v, _declared_type(stage, field))
     return out
+
+
+def _declared_type(stage: str, field: str):
+    import typing
+
+    return typing.get_type_hints(STAGES[stage].settings_type)[field]
+
+
+_TYPE_WORDS = {int: "a whole number (int)", float: "a number (float)", bool: "true or false (bool)",
+               str: "text (str)", tuple: "a JSON list (tuple), e.g. [3, 5]"}
+
+
+def _typed(name: str, value, declared):
+    """``value`` as the type ``declared`` (``X`` or ``X | None``), else one clear :class:`ValueError`."""
+    import json
+    import types
+    import typing
+
+    args = typing.get_args(declared) if isinstance(declared, types.UnionType) or \
+        typing.get_origin(declared) is typing.Union else (declared,)
+    optional = type(None) in args
+    kinds = [a for a in args if a is not type(None)]
+    if value is None and optional:
+        return None
+    for kind in kinds:
+        if kind is bool and isinstance(value, bool):
+            return value
+        if kind is int and isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if kind is int and isinstance(value, float) and value.is_integer():
+            return int(value)
+        if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if kind is str and isinstance(value, str):
+            return value
+        if kind is tuple and isinstance(value, list):
+            return value
+    want = " or ".join(_TYPE_WORDS.get(k, getattr(k, "__name__", str(k))) for k in kinds)
+    if optional:
+        want += " (null for the default)"
+    got = "null" if value is None else f"the text {value!r}" if isinstance(value, str) else json.dumps(value)
+    raise ValueError(f"--set {name}: the setting is {want}, got {got}; nothing was changed.")
 
 
 def merged_settings(study: Study, overrides: dict) -> dict:

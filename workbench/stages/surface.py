@@ -137,7 +137,7 @@ def _run(ctx) -> dict:
     doc = {"format": "avw-surface", "version": 1, "scans": list(ids),
            "template": {"vertices": base.n_vertices, "triangles": base.n_triangles, "weights": how_w,
                         "bones_vertices": bones.n_vertices},
-           "per_scan": {}, "settings": {k: getattr(s, k) for k in s.__dataclass_fields__},
+           "per_scan": {}, "settings": _settings_doc(study, s),
            "workbench_version": __version__}
     sites = {}
     if marks is not None:  # every landmark the user picked, where it lies on S0
@@ -169,6 +169,21 @@ def _run(ctx) -> dict:
         out[f"{sid}_skin.ply"] = MeshFile(meshes["skin"])
     out["surface.json"] = Json(doc)
     return out
+
+
+def _settings_doc(study, s: SurfaceSettings) -> dict:
+    """The settings as surface.json holds them: a landmarks file inside the study named by its path relative to
+    the study (as study.json's inputs), not by the machine's absolute path — a copy of the study writes the same
+    bytes."""
+    from pathlib import Path
+
+    doc = {k: getattr(s, k) for k in s.__dataclass_fields__}
+    if s.landmarks is not None:
+        try:
+            doc["landmarks"] = str(Path(s.landmarks).relative_to(study.root.resolve()))
+        except ValueError:  # outside the study: the path the setting holds
+            pass
+    return doc
 
 
 def _fit_scan(shared, sid: str):
@@ -206,4 +221,5 @@ def _fit_scan(shared, sid: str):
 
 
 STAGE = Stage(name="surface", folder="surface", per_scan=False, settings_type=SurfaceSettings, run=_run,
-              needs=_needs, inputs=_inputs, uses=lambda study, s: s.scans, version=2)  # 2: landmarks on S0's triangles
+              needs=_needs, inputs=_inputs, uses=lambda study, s: s.scans,
+              version=3)  # 2: landmarks on S0's triangles; 3: a landmarks file in the study by its relative path

@@ -1,10 +1,15 @@
 """The ``weights`` stage: skinning weights of every template voxel (Kurihara Eq. 3's w; DESIGN step 4).
 
 ``method="harmonic"``: the body (segmented from the template,
-:func:`registration.segmentation.segment_body`) is meshed with tetrahedra and
-each bone's weight solved as a harmonic function
+:func:`registration.segmentation.segment_body`) is meshed with the Kuhn
+tetrahedra of a lattice of its voxel centres
+(:func:`deformation.tetmesh.lattice_tetmesh`: the mask's own resolution up to
+:data:`~deformation.tetmesh.MAX_LATTICE_VERTICES` vertices, or
+``edge_length_mm``) and each bone's weight solved as a harmonic function
 (:func:`deformation.harmonic.harmonic_voxel_weights`); ``"distance"``:
 inverse-distance weights (:func:`deformation.skinning.distance_voxel_weights`).
+The mesh is a function of the body mask and the step, so a rerun gives the
+same bits.
 
 A template of more than :data:`~workbench.stages.mechanism.WORKING_VOXELS`
 voxels (a CT the size of Kurihara's) gets its weights and body mask on every
@@ -17,10 +22,8 @@ start, model and validate, which need full-grid weights, say so.
 
 Outputs (``skinning/``): ``body_mask.nii.gz``, ``weights.json`` with
 ``weights_index.mha`` and ``weights_value.mha`` (:mod:`workbench.io.weights`),
-and ``tetmesh.vtu`` (with one point array per bone, ``weight_<bone>``: open
-it in ParaView).  pytetwild's meshes differ from run to run (it takes no
-seed), so the mesh is made once and kept: a rerun reuses the previous
-``tetmesh.vtu`` (deterministic weights) unless ``remesh`` is asked for.
+and, for harmonic weights, ``tetmesh.vtu`` (with one point array per bone,
+``weight_<bone>``: open it in ParaView).
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from deformation.geometry import every_nth
 
 from workbench import __version__
 from workbench.errors import InputFileError
-from workbench.stages.mechanism import CopyFile, Labels, Stage, TetMeshFile, WeightMap, working_factor, working_labels
+from workbench.stages.mechanism import Labels, Stage, TetMeshFile, WeightMap, working_factor, working_labels
 
 __all__ = ["WeightsSettings", "STAGE", "WEIGHT_METHODS"]
 
@@ -41,7 +44,9 @@ WEIGHT_METHODS = ("harmonic", "distance")
 @dataclass(frozen=True)
 class WeightsSettings:
     method: str = "harmonic"
-    edge_length_mm: float | None = None  #: target tet edge length of a new mesh (None: 5 % of the body's diagonal)
+    #: the tet lattice's spacing in mm, rounded to whole voxels per axis (None: every voxel, coarser above
+    #: MAX_LATTICE_VERTICES vertices)
+    edge_length_mm: float | None = None
     grid_factor: int | None = None  #: weights on every f-th template voxel (None: 1 up to WORKING_VOXELS, else more)
 
     def __post_init__(self):
@@ -62,7 +67,7 @@ def _run(ctx) -> dict:
     from deformation.harmonic import harmonic_voxel_weights
     from deformation.skinning import distance_voxel_weights
     from registration.segmentation import segment_body
-    from workbench.io.tetmeshes import read_tetmesh, weight_arrays
+    from workbench.io.tetmeshes import weight_arrays
 
     study, s = ctx.study, ctx.settings
     sk = study.skeleton()
@@ -75,31 +80,24 @@ def _run(ctx) -> dict:
         template, labels = template.every(f), working_labels(study, labels, f)
     body = segment_body(template, labels=labels)
     out = {"body_mask.nii.gz": Labels(body)}
-    kept = ctx.previous.get("tetmesh.vtu")
     info = {"method": s.method, "grid_factor": f}
     if s.method == "harmonic":
-        mesh = None
-        if kept is not None and not ctx.options.get("remesh"):
-            mesh, _ = read_tetmesh(kept)
-            ctx.say(f"using the study's tet mesh {kept} ({mesh.n_vertices} vertices, {mesh.n_tets} tets)")
-        # A bone smaller than the tetrahedra (a test-size hand's distal phalanx, 7 voxels) holds no vertex in
-        # some of pytetwild's meshes (they differ from run to run): the vertex nearest to it is fixed instead,
-        # the discrete boundary condition at the mesh's resolution, so that the stage does not fail by chance.
-        r = harmonic_voxel_weights(labels, bone_labels, body, mesh=mesh, edge_length_mm=s.edge_length_mm,
-                                   progress=ctx.say, snap_missing=True)
+        # A bone that holds no lattice node (smaller than a step of several voxels, or where the body is too
+        # thin for a mostly-body cube) fixes the vertex nearest to it instead: the discrete boundary condition
+        # at the mesh's resolution.
+        r = harmonic_voxel_weights(labels, bone_labels, body, edge_length_mm=s.edge_length_mm, progress=ctx.say,
+                                   snap_missing=True)
         weights = r.weights
-        info.update(r.info, mesh="new" if r.new_mesh else "kept")
+        info.update(r.info)
         out["tetmesh.vtu"] = TetMeshFile(r.mesh, weight_arrays(r.bones, r.vertex_weights))
     else:
         try:
             weights = distance_voxel_weights(labels, bone_labels)
         except ValueError as e:
             raise InputFileError(f"{study.template_labels_path()}: {e}", study.template_labels_path()) from e
-        if kept is not None:  # keep the study's mesh for a later harmonic run
-            out["tetmesh.vtu"] = CopyFile(kept)
     out["weights.json"] = WeightMap(weights, template.geometry, {**info, "workbench_version": __version__})
     return out
 
 
 STAGE = Stage(name="weights", folder="skinning", per_scan=False, settings_type=WeightsSettings, run=_run,
-              needs=lambda s: ("bones",), inputs=_inputs, version=2)  # 2: a new mesh's surface decimated by Open3D
+              needs=lambda s: ("bones",), inputs=_inputs, version=3)  # 3: the lattice (Kuhn) mesh replaces fTetWild's

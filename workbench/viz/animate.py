@@ -125,7 +125,8 @@ def _keyframes_from_dict(d, skeleton, where: str, *, check_limits: bool = True, 
         outside = skeleton.limit_problems(full) if check_limits else []
         if outside:
             raise bad(f"keyframe {n}: {outside[0]}" + (f" (and {len(outside) - 1} more)" if len(outside) > 1 else "")
-                      + ", the range of motion of the study's skeleton (skeleton.json, 'limits')")
+                      + ("" if "half a turn" in outside[0] else
+                         ", the range of motion of the study's skeleton (skeleton.json, 'limits')"))
         times.append(float(kf["time"]))
         angles.append(full)
         names.append(str(kf.get("name", f"keyframe {n}")))
@@ -264,6 +265,12 @@ class _Writer:
         return f"{self.out.stem}_{i:04d}.png"
 
     def add(self, img: np.ndarray) -> None:
+        from workbench.io.atomic import naming_failures
+
+        with naming_failures(self.out):  # a full disk or a file-size limit: one line naming the output
+            self._add(img)
+
+    def _add(self, img: np.ndarray) -> None:
         if self.kind == ".mp4":
             self._w.append_data(img)
         elif self.kind == ".gif":
@@ -271,18 +278,26 @@ class _Writer:
         else:
             import imageio.v3 as iio
 
-            iio.imwrite(self.staging / self.frame_name(self.n), img, extension=".png")
+            (self.staging / self.frame_name(self.n)).write_bytes(iio.imwrite("<bytes>", img, extension=".png"))
         self.n += 1
 
     def commit(self) -> list[Path]:
+        from workbench.io.atomic import naming_failures
+
+        with naming_failures(self.out):
+            return self._commit()
+
+    def _commit(self) -> list[Path]:
         if self.kind == ".mp4":
             self._w.close()
             self._w = None
+            _check_video(self.staging, self.n)
         elif self.kind == ".gif":
             import imageio.v3 as iio
 
             # the GIF frame delay is in whole hundredths of a second: 24 fps plays at 25
-            iio.imwrite(self.staging, np.stack(self._gif), extension=".gif", duration=1000.0 / self.fps, loop=0)
+            self.staging.write_bytes(iio.imwrite("<bytes>", np.stack(self._gif), extension=".gif",
+                                                 duration=1000.0 / self.fps, loop=0))
         from workbench.io.atomic import commit_file
 
         if self.kind == ".png":
@@ -315,6 +330,19 @@ class _Writer:
             shutil.rmtree(self.staging, ignore_errors=True)
         elif self.staging.exists():
             self.staging.unlink()
+
+
+def _check_video(path: Path, n_frames: int) -> None:
+    """Raise :class:`OSError` unless the video at ``path`` decodes to ``n_frames`` frames: ffmpeg ends normally
+    when the disk fills or a file-size limit cuts its output short (the container's index is then missing)."""
+    import imageio_ffmpeg
+
+    try:
+        n, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+    except RuntimeError as e:
+        raise OSError("the video is incomplete: ffmpeg cannot read it back") from e
+    if n != n_frames:
+        raise OSError(f"the video holds {n} of its {n_frames} frames")
 
 
 # -- the animation -----------------------------------------------------------------------------------------

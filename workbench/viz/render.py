@@ -910,6 +910,9 @@ def write_png(image: np.ndarray, path, *, overwrite: bool = False) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"{path}: stills are written as PNG; name the file *.png")
+    # encoded in memory, written from Python: imageio writing the file itself repeats a failed write's error
+    # from its finaliser ("Exception ignored ...") after the one that is raised
+    data = iio.imwrite("<bytes>", np.asarray(image, np.uint8), extension=".png")
     with atomic_path(path, overwrite=overwrite) as tmp:
-        iio.imwrite(tmp, np.asarray(image, np.uint8), extension=".png")
+        tmp.write_bytes(data)
     return path
