@@ -329,7 +329,10 @@ def lattice_step(mask: Volume, *, edge_length_mm: float | None = None,
         return (1, 1, 1)
     if not max_vertices >= 8:
         raise ValueError(f"max_vertices must be at least 8 (one cube), got {max_vertices}")
-    s = 1
+    # the vertex count falls about as 1/s³: start at the step that estimate gives, not at 1 (each try is a pass
+    # over the whole mask)
+    body = int(np.count_nonzero(mask.data))
+    s = max(1, int(np.floor((body / max_vertices) ** (1.0 / 3.0))))
     while True:
         cubes, _ = lattice_cubes(mask, s)
         if int(_used_nodes(cubes).sum()) <= max_vertices or s >= max(g.size):

@@ -49,7 +49,7 @@ def check_study_images(study) -> list[str]:
 def study_warnings(study) -> list[str]:
     """One line per thing a study's user should know before the work (see the module docstring)."""
     from workbench.io.volumes import read_image_geometry
-    from workbench.stages.bones import unknown_labels
+    from workbench.stages.bones import unknown_labels, unknown_labels_text
 
     m = study.manifest
     sk = study.skeleton()
@@ -72,9 +72,8 @@ def study_warnings(study) -> list[str]:
                                  minlength=max(b.label for b in sk.bones) + 1)
             unknown = unknown_labels(counts, sk)
             if unknown:
-                ids = ", ".join(f"{k} ({n} voxels)" for k, n in sorted(unknown.items()))
-                out.append(f"{study.template_labels_path()}: label ids {ids} are no bone of {m['skeleton']}; those "
-                           "voxels are taken as soft tissue")
+                out.append(f"{study.template_labels_path()}: {unknown_labels_text(unknown)} no bone of "
+                           f"{m['skeleton']}; those voxels are taken as soft tissue")
             from registration.bone_frames import bone_frames
 
             try:

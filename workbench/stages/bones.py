@@ -104,7 +104,7 @@ def _run(ctx) -> dict:
                          minlength=max(b.label for b in skeleton.bones) + 1)
     unknown = unknown_labels(counts, skeleton)
     if unknown:
-        ctx.say(f"warning: {study.template_labels_path()}: {_unknown_text(unknown)} not the label of any bone of "
+        ctx.say(f"warning: {study.template_labels_path()}: {unknown_labels_text(unknown)} not the label of any bone of "
                 f"{study.manifest['skeleton']}; those voxels are taken as soft tissue (give them a bone in the "
                 "skeleton, or 0 in the label map)")
     frames = bone_frames(labels, skeleton)
@@ -126,7 +126,8 @@ def unknown_labels(counts: np.ndarray, skeleton) -> dict[int, int]:
     return {int(k): int(counts[k]) for k in np.flatnonzero(counts) if int(k) not in known}
 
 
-def _unknown_text(unknown: dict) -> str:
+def unknown_labels_text(unknown: dict) -> str:
+    """``"label ids 7 (3 voxels), 200 (5 voxels) are"``: the start of a sentence about :func:`unknown_labels`."""
     ids = ", ".join(f"{k} ({n} voxels)" for k, n in sorted(unknown.items()))
     return f"label id{'s' if len(unknown) > 1 else ''} {ids} {'are' if len(unknown) > 1 else 'is'}"
 
