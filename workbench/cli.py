@@ -1484,6 +1484,9 @@ def main(argv=None) -> int:
     def terminate(signum, frame):  # SIGTERM: unwind like Ctrl-C, so staging folders are removed
         raise KeyboardInterrupt
 
+    from workbench.progress import tolerate_kernel_cache_failures
+
+    tolerate_kernel_cache_failures()
     previous = signal.signal(signal.SIGTERM, terminate)
     try:
         return args.func(args)

@@ -16,7 +16,7 @@ import logging
 import sys
 import time
 
-__all__ = ["ProgressPrinter", "setup_logging", "compile_note"]
+__all__ = ["ProgressPrinter", "setup_logging", "compile_note", "tolerate_kernel_cache_failures"]
 
 
 def compile_note(*kernels) -> str | None:
@@ -40,6 +40,36 @@ def compile_note(*kernels) -> str | None:
         return None
     return (f"compiling {len(missing)} numba kernel(s) on first use (about 30 s, once; they are cached for "
             "later runs)")
+
+
+def tolerate_kernel_cache_failures() -> None:
+    """Let a command go on when numba cannot save a compiled kernel (a full disk, a file-size limit): the kernel
+    was compiled in memory and is used; the cache is only what saves the next run its compile time.  numba's own
+    ``Cache.save_overload`` raises the OSError (it forgives only EACCES, on Windows), which would fail the
+    user's command with a message about a file it never asked for.  One warning per process names the folder;
+    numba removes its half-written temporary file itself, and a later run whose index names a missing data file
+    compiles again."""
+    try:
+        from numba.core import caching
+        original = caching.Cache.save_overload
+    except (ImportError, AttributeError):  # numba's internals moved: its own behaviour stands
+        return
+    if getattr(original, "_workbench", False):
+        return
+    warned = []
+
+    def save_overload(self, sig, data):
+        try:
+            original(self, sig, data)
+        except OSError as e:
+            if not warned:
+                warned.append(True)
+                where = getattr(self, "_cache_path", "numba's cache folder")
+                print(f"warning: could not save compiled numba kernels in {where} ({e.strerror or e}); going on "
+                      "without the cache (the next run compiles them again)", file=sys.stderr, flush=True)
+
+    save_overload._workbench = True
+    caching.Cache.save_overload = save_overload
 
 
 def setup_logging(verbosity: int = 0) -> logging.Logger:
