@@ -46,7 +46,7 @@ def test_elastix_bspline_recovers_a_smooth_deformation():
     # In its own interpreter: itk-elastix segfaults inside pytest's process (seen with ITK 5.4.7 /
     # itk-elastix 0.25.4; plain Python runs it fine), so the benchmark runs it in-process, the test does not.
     out = subprocess.run([sys.executable, "-c", ELASTIX_SCRIPT, str(Path(__file__).parent)], capture_output=True,
-                         text=True, timeout=600, check=True)
+                         text=True, encoding="utf-8", timeout=600, check=True)
     err0, err = (float(v) for v in out.stdout.split()[-2:])
     assert err < 0.6 * err0  # measured: 0.09 of 0.79 mm
 
@@ -77,7 +77,7 @@ def test_elastix_with_the_rigidity_penalty_runs_and_registers():
     accepts) and still register — the same < 0.6 × start bound as plain elastix (a penalty on a slab the bend
     leaves nearly in place costs little; measured 0.089 of 0.79 mm)."""
     out = subprocess.run([sys.executable, "-c", ELASTIX_RIGIDITY_SCRIPT, str(Path(__file__).parent)],
-                         capture_output=True, text=True, timeout=600, check=True)
+                         capture_output=True, text=True, encoding="utf-8", timeout=600, check=True)
     name, err0, err = out.stdout.split()[-3:]
     assert name == "elastix-bspline-rigidity"
     assert float(err) < 0.6 * float(err0)

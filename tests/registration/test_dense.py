@@ -135,7 +135,7 @@ def test_same_bits_with_one_and_two_threads():
     for n in ("1", "2"):
         env = dict(os.environ, NUMBA_NUM_THREADS=n, OMP_NUM_THREADS=n, OPENBLAS_NUM_THREADS=n, MKL_NUM_THREADS=n,
                    PYTHONPATH=root)
-        out = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT, here], env=env, capture_output=True, text=True,
+        out = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT, here], env=env, capture_output=True, text=True, encoding="utf-8",
                              check=True, timeout=600)
         digests.append(out.stdout.strip().splitlines()[-2:])  # the case without air, then with it
     assert digests[0] == digests[1] and all(len(d.split()[0]) == 64 for d in digests[0])

@@ -186,7 +186,7 @@ def test_the_fits_solver_gives_the_same_bits_for_any_blas_thread_count():
     out = []
     for threads in ("1", "2"):
         env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads}
-        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", env=env, timeout=120)
         assert proc.returncode == 0, proc.stderr
         out.append(proc.stdout.strip())
     assert out[0] == out[1]

@@ -51,7 +51,7 @@ def _read_mp4(path) -> np.ndarray:
     import imageio_ffmpeg
 
     exe = imageio_ffmpeg.get_ffmpeg_exe()
-    info = subprocess.run([exe, "-hide_banner", "-i", str(path)], capture_output=True, text=True).stderr
+    info = subprocess.run([exe, "-hide_banner", "-i", str(path)], capture_output=True, text=True, encoding="utf-8").stderr
     w, h = (int(v) for v in re.search(r"Video: .*?, (\d+)x(\d+)", info).groups())
     raw = subprocess.run([exe, "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "rgb24", "-"],
                          capture_output=True, check=True).stdout

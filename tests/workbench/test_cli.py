@@ -43,7 +43,7 @@ def test_version_and_help(capsys):
 
 
 def test_python_dash_m_runs():
-    r = subprocess.run([sys.executable, "-m", "workbench", "--version"], capture_output=True, text=True, check=True)
+    r = subprocess.run([sys.executable, "-m", "workbench", "--version"], capture_output=True, text=True, encoding="utf-8", check=True)
     assert __version__ in r.stdout
 
 

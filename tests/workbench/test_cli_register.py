@@ -120,7 +120,7 @@ def test_register_init_none_is_deterministic(tmp_path, study):
         shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration"))
     assert main([args[0], str(a), *args[1:]]) == 0
     proc = subprocess.run([sys.executable, "-m", "workbench", args[0], str(b), *args[1:]], capture_output=True,
-                          text=True, timeout=600)
+                          text=True, encoding="utf-8", timeout=600)
     assert proc.returncode == 0, proc.stderr
     fa = read_displacement(a / "registration" / "pose01" / "correspondence.mha").data
     fb = read_displacement(b / "registration" / "pose01" / "correspondence.mha").data

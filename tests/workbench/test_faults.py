@@ -30,7 +30,7 @@ def _workbench(*args, limit_bytes: int | None = None, timeout: float = 300) -> s
     def cap():
         if limit_bytes is not None:
             resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
-    return subprocess.run([sys.executable, "-m", "workbench", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "workbench", *map(str, args)], capture_output=True, text=True, encoding="utf-8",
                           timeout=timeout, preexec_fn=cap)
 
 
@@ -114,7 +114,7 @@ def test_the_manifest_write_cut_short_names_study_json(study, tmp_path):
             f"read_study({str(copy)!r}).update(lambda m: m.setdefault('notes', []).append('x' * 10))\n")
     def cap():
         resource.setrlimit(resource.RLIMIT_FSIZE, (size // 2, size // 2))
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, preexec_fn=cap, timeout=120)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", preexec_fn=cap, timeout=120)
     assert r.returncode != 0
     assert f"{copy / 'study.json'}: the file could not be written completely" in r.stderr, r.stderr
     assert (copy / "study.json").read_bytes() == (study / "study.json").read_bytes()
@@ -140,7 +140,7 @@ else:
     t = np.array([[i, i + 1, i + 2] for i in range(0, 3998)])
     write_mesh(SurfaceMesh(v, t), {str(tmp_path / ('m' + suffix))!r})
 """
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", timeout=120)
     assert r.returncode == 1, (r.returncode, r.stderr)  # 1: a Python exception, not a crash (-11)
     assert "OutputWriteError" in r.stderr and f"m{suffix}: the file could not be written completely" in r.stderr
     assert list(tmp_path.iterdir()) == []
@@ -416,7 +416,7 @@ def test_ctrl_c_during_register_after_a_real_weights_stage_is_clean(study, tmp_p
     # SIGINT at its default in the child: a background job of a non-interactive shell ignores it, and a child
     # inherits that (see tests/workbench/test_run.py)
     proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(root), "--set", "register.levels=[3,4]"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, encoding="utf-8",
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     watchdog = threading.Timer(600, proc.kill)

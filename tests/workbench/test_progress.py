@@ -48,7 +48,7 @@ def test_a_kernel_cache_that_cannot_be_written_does_not_fail_the_command(tmp_pat
                 + "import big_kernel\nprint(big_kernel.twice(21))\n")
         env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / cache),  # numba's first choice: fresh per run
                "PYTHONPATH": os.pathsep.join([str(tmp_path), os.getcwd()]), "PYTHONDONTWRITEBYTECODE": "1"}
-        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300,
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", env=env, timeout=300,
                               preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048)))
 
     bare = run(False, "bare")

@@ -63,7 +63,7 @@ def runs(tmp_path_factory):
     procs = []
     for root in roots:
         procs.append(subprocess.Popen([sys.executable, "-m", "workbench", "run", str(root), *SETTINGS, "--quiet"],
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8"))
         time.sleep(1.5)  # the runs' clocks apart: a time in a file differs
     for p in procs:
         out, err = p.communicate(timeout=900)

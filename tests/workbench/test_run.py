@@ -63,7 +63,7 @@ def done(phantom, tmp_path_factory):
     """The study after one full `workbench run` (stdout, stderr kept)."""
     root = _strip(phantom, tmp_path_factory.mktemp("run-done") / "study")
     proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(root), *SETTINGS], capture_output=True,
-                          text=True, timeout=900)
+                          text=True, encoding="utf-8", timeout=900)
     assert proc.returncode == 0, proc.stderr
     return root, proc.stdout, proc.stderr
 
@@ -95,7 +95,7 @@ def test_second_run_skips_every_stage(done, tmp_path):
     root, _, _ = done
     manifest = (root / "study.json").read_bytes()
     proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(root), *SETTINGS], capture_output=True,
-                          text=True, timeout=300)
+                          text=True, encoding="utf-8", timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert _started(proc.stderr) == []
     n_units = 3 + 1 + 1 + 1 + 4 * 3  # bones, pose, weights, model, surface, report; init, register, validate per scan
@@ -163,7 +163,7 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     # runner's) ignores SIGINT, a child inherits that, and Python then installs no KeyboardInterrupt handler:
     # the run went on to the end through the signal
     proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, encoding="utf-8",
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     # the signal goes when the run says it starts the second registration (the first is then committed and
     # recorded), read from its progress as it comes (an unread pipe can fill and stall the child)
@@ -188,7 +188,7 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     st = read_study(bare)
     assert st.has_registration("pose00") and not st.has_registration("pose03")
     again = subprocess.run([sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS], capture_output=True,
-                           text=True, timeout=900)
+                           text=True, encoding="utf-8", timeout=900)
     assert again.returncode == 0, again.stderr
     assert "pose: up to date, skipped" in again.stderr  # the truth's absence changes no digest before validate
     assert "register pose00: up to date, skipped" in again.stderr
@@ -221,7 +221,7 @@ def test_four_concurrent_register_processes_leave_a_complete_manifest(done, tmp_
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     procs = [subprocess.Popen([sys.executable, "-m", "workbench", "register", str(copy), "--scan", sid,
                                "--method", "adaptive", "--levels", "3", "3", "--max-steps", "4", "--quiet"], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for sid in ids]
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8") for sid in ids]
     for p in procs:
         _, err = p.communicate(timeout=600)
         assert p.returncode == 0, err
@@ -237,7 +237,7 @@ def test_sigterm_in_the_middle_of_a_stage_leaves_nothing_partial(phantom, tmp_pa
     stages before it stay recorded, and nothing of the pose stage is recorded."""
     root = _strip(phantom, tmp_path / "study")
     proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(root), "--until", "pose"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8")
     deadline = time.monotonic() + 300
     while not list(root.glob(".poses.partial-*")):  # the pose stage is at work
         assert proc.poll() is None, proc.communicate()
@@ -453,7 +453,7 @@ def test_report_opens_in_headless_chromium(report, tmp_path):
            "--disable-background-networking", "--disable-component-update", "--disable-sync",
            f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars", "--window-size=1280,2400",
            f"--screenshot={shot}", report.resolve().as_uri()]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+    proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", timeout=180)
     assert shot.exists(), proc.stderr[-2000:]
     from PIL import Image
 
@@ -495,7 +495,7 @@ def test_run_on_a_local_dask_cluster_of_two_workers_gives_the_same_files(done, t
     root, _, _ = done
     two = _strip(root, tmp_path / "two")
     proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(two), *SETTINGS, "--workers", "2"],
-                          capture_output=True, text=True, timeout=900)
+                          capture_output=True, text=True, encoding="utf-8", timeout=900)
     assert proc.returncode == 0, proc.stderr
     assert "register: 4 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
     assert _assert_same_outputs(root, two) > 50
@@ -527,7 +527,7 @@ def test_run_against_a_dask_scheduler_and_two_workers_gives_the_same_files(done,
         with Client(address, timeout="60s") as client:
             client.wait_for_workers(2, timeout=120)
         proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(study), *SETTINGS, "--scheduler",
-                               address], capture_output=True, text=True, timeout=900)
+                               address], capture_output=True, text=True, encoding="utf-8", timeout=900)
     finally:
         for p in procs[::-1]:
             p.terminate()
