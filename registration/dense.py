@@ -14,10 +14,21 @@ at every iteration, and keeps what an articulated body needs:
   (LNCC), insensitive to the MRI bias field and to contrast differences
   between scans; its gradient is that of Avants et al. (ANTs SyN's CC).
 * **Steps**: the gradient, smoothed by a Gaussian ("fluid" regularisation),
-  scaled to at most ``step_mm``, then *composed* into ``U``
-  (``u ← f + u ∘ (id + f)``).  A step with ``det(I + ∇f) ≤ min_jacobian``
-  anywhere is halved until it has none, so every step is one-to-one and so is
-  their composition: no fold is created.
+  scaled so that no voxel moves more than the trust radius, then *composed*
+  into ``U`` (``u ← f + u ∘ (id + f)``) and ``U`` smoothed ("elastic"
+  regularisation, in proportion to the step: half the radius, half the
+  smoothing).  A step with ``det(I + ∇f) ≤ min_jacobian`` anywhere is halved
+  until it has none, so every step is one-to-one and so is their
+  composition: no fold is created.
+* **Convergence** (a trust region on each level's objective, the mean LNCC
+  over the voxels where the force acts): a step is taken only when it raises
+  the objective; otherwise the radius halves and the step is tried again from
+  the same direction; after a taken step the radius grows (``radius_growth``,
+  up to ``step_mm``).  A level stops when no step of radius
+  ``step_mm · 2^-max_halvings`` raises its objective, or when 10 taken steps
+  together gained less than ``tolerance``; ``iterations`` only caps the
+  trials.  Each level's record holds its objective per taken step (it never
+  falls), the rejected trials and why it stopped.
 * **Bones** (the template's labels pulled through the current map):
   ``bones="fixed"`` (default) keeps ``U = id`` on them — the pose stage's
   rigid intensity registration placed them, more precisely than a dense
@@ -57,25 +68,8 @@ at every iteration, and keeps what an articulated body needs:
   removes every fold (``DenseResult.unfold`` says which attempt,
   ``bone_layers_released`` None for the last resort).
 
-Measured on the tuning seeds and not kept: ESM-style symmetric forces (the
-mean of both images' gradients; knee seed 1 at 70°: MED 1.52 mm against
-1.12), halving a level's step whenever its LNCC falls (worse on all four
-tuning cases, e.g. knee seed 1 at 45°: 0.71 against 0.63), bones moving
-rigidly (``bones="rigid"``; tuning hand: bone MED 0.41 against 0.29 held), a
-level handing on its best iterate rather than its last (knee seed 0 at 70°:
-1.12 against 1.07; it hands on its input only when it never improved it), and
-continuing U into the air beyond the scan's body, which the skin markers'
-interpolation reads (knee seed 0 at 70°: markers 3.12 mm against 3.13).  The
-fold repair works over the segmented scan body, which may leave out a skin
-voxel that is partly air (tuning hand, seed 0: 3 folded voxels of the true
-body stay; on seed 1 every repair attempt fails, 101 → 225 at best, and its
-folds stay: 75 voxels of the true body; they sit where fingers touch, where
-neighbouring voxels map 11 mm apart in the template, and 1000 smoothing
-iterations remove them at MED 0.36 → 3.59 mm); repairing over the body grown
-by one voxel removed them but cost more than it gained (MED 0.63 → 0.71 mm:
-136 folded voxels to repair instead of 89, most in the air where curled
-fingers touch; with the restoring passes, on tuning hand seed 0, the
-repair over the grown body failed: 123 → 105).
+The measurements behind these choices (and the variants tried and not kept) are in
+``docs/measurements/dense-registration.md``, with the commands that reproduce them.
 
 References
 ----------
@@ -116,9 +110,8 @@ class DenseSettings:
     """Settings of :func:`register_dense` (lengths in mm, so that they mean the same on any grid)."""
 
     shrink: tuple = (4, 2, 1)  #: subsampling per level, coarse to fine
-    #: iterations per level (at most; see tolerance).  The fine level converges in 35–37 iterations at 70° on
-    #: the tuning knees (MED 1.037 / 1.116 mm, seeds 0 / 1; stopped at 25: 1.069 / 1.143)
-    iterations: tuple = (80, 150, 50)
+    #: trials per level, at most: a cap for safety; a level stops on convergence (tolerance, max_halvings)
+    iterations: tuple = (200, 200, 200)
     #: LNCC Gaussian window σ: about the size of the soft tissue's structure (septa, vessels: a few mm), so that
     #: the correlation follows it rather than the skin's edge.  Tuning knees at 70° (seeds 0 / 1), MED mm:
     #: 5 mm 1.04 / 1.12, 3.5 mm 0.91 / 0.95, 3 mm 0.88 / 0.94, 2.5 mm 0.86 / 0.95, 2 mm 0.93 / 0.97; larger
@@ -127,8 +120,10 @@ class DenseSettings:
     #: seed 101: 172 against 98, and the repair failed)
     window_mm: float = 3.0
     fluid_mm: float = 4.0  #: σ of the smoothing of each step, when fluid_voxels is None
-    step_mm: float = 0.5  #: largest displacement of one step, in units of the level's voxel (see step_voxels)
+    step_mm: float = 0.5  #: the trust radius's upper bound: a voxel's largest move in one step (see step_voxels)
     step_voxels: bool = True  #: step_mm is in voxels of the level (True) or mm (False)
+    radius_growth: float = 1.25  #: the trust radius grows by this factor after a taken step (up to step_mm)
+    max_halvings: int = 5  #: a level stops when a step of radius step_mm·2⁻ᵏ does not raise its LNCC
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
     bones: str = "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
@@ -174,6 +169,9 @@ class DenseSettings:
         if any(v is not None and not v >= 0 for v in (self.fluid_voxels, self.elastic_voxels)):
             raise ValueError(f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, "
                              f"{self.elastic_voxels}")
+        if not self.radius_growth >= 1 or int(self.max_halvings) < 0:
+            raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
+                             f"{self.max_halvings}")
         if not 0 < self.air_weight <= 1:
             raise ValueError(f"air_weight must be in (0, 1], got {self.air_weight}")
 
@@ -508,66 +506,104 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             u_norm = 1.0 / _smooth(u_weight, elastic)
         step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
         bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
-        history = []
-        halvings = 0
         bone_w = []
         inv_sp = 1.0 / sp
-        u_in = u  # by reference: every step below makes a new u before changing it in place
-        for it in range(int(iters) + 1):  # the last pass only measures the last step
-            w = sample_shifted(ml, u, inv_sp)
-            cc, dcc = _lncc_force(fl, w, win, f_stats, regl)
-            history.append(cc)
-            if it == int(iters) or (it >= 10 and history[-1] - history[-11] < st.tolerance):
-                break
+
+        def direction(u_now, dcc, w, refresh_bones):
+            """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
+            radius bounds every voxel's move)."""
+            nonlocal bone_w
             gw = np.gradient(w)
             if regl is not None:
                 dcc = dcc * regl
             force = np.stack(_smooth_all([dcc * gw[a] / sp[a] for a in range(3)], fluid))
             if tissue is not None:
                 force *= force_norm[None]
-            mag = float(np.sqrt((force ** 2).sum(axis=0)).max())
-            if mag <= 0:
-                break
-            fstep = force * (step / mag)
-            if bones:
-                if it % 5 == 0 or not bone_w:  # the bones' regions follow the map (cheap enough every 5 steps)
-                    lab_now = sample_shifted(labl.astype(np.float32), u, inv_sp, order=0).astype(np.int32)
-                    bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
-                for box, m, wgt in bone_w:
-                    sub = fstep[(slice(None),) + box]  # a view: changed in place
-                    if st.bones == "rigid":
-                        _rigid_project(sub, m, [gm[box] for gm in grid_mm], wgt)
-                    else:
-                        sub *= (1.0 - wgt)[None]
+            if bones and (refresh_bones or not bone_w):  # the bones' regions follow the map
+                lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
+                bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
+            return force, float(np.sqrt((force ** 2).sum(axis=0)).max())
+
+        def candidate(u_now, force, scale, radius):
+            """``u_now`` after one step of at most ``radius`` mm per voxel along ``force`` (composed, smoothed,
+            bones held), and the number of halvings that kept the step one-to-one."""
+            fstep = force * np.float32(radius / scale)
+            for box, m, wgt in bone_w:
+                sub = fstep[(slice(None),) + box]  # a view: changed in place
+                if st.bones == "rigid":
+                    _rigid_project(sub, m, [gm[box] for gm in grid_mm], wgt)
+                else:
+                    sub *= (1.0 - wgt)[None]
+            halved = 0
             for _ in range(60):  # 2⁻⁶⁰: a step that still folds is then nothing
                 if _jacobian_min(fstep, sp) > st.min_jacobian:
                     break
                 fstep *= 0.5
-                halvings += 1
+                halved += 1
             # compose: u ← f + u ∘ (id + f)
-            u = (fstep + sample_shifted(u, fstep, inv_sp)).astype(np.float32)
+            u_new = (fstep + sample_shifted(u_now, fstep, inv_sp)).astype(np.float32)
+            # U's smoothing and the bones' hold act in proportion to the step: a step of half the radius is half
+            # of a full one (the composed update and the regularisation alike), so a small enough step follows
+            # the ascent direction and the level's objective can rise until a real balance is reached
+            share = np.float32(radius / step)
             if np.any(elastic > 0):
                 if tissue is not None:
-                    u = _weighted_smooth(list(u), u_weight, u_norm, elastic)
+                    smoothed = _weighted_smooth(list(u_new), u_weight, u_norm, elastic)
                 else:
-                    u = np.stack(_smooth_all(list(u), elastic))
+                    smoothed = np.stack(_smooth_all(list(u_new), elastic))
+                u_new = u_new + share * (smoothed - u_new) if share < 1 else smoothed
                 if bone_w and st.bones == "fixed":
                     keep = np.ones(shape, np.float32)
                     for box, _, wgt in bone_w:
                         keep[box] = np.minimum(keep[box], 1.0 - wgt)
-                    u *= keep[None]
+                    # the bones themselves are held at every step; their margins fade in proportion
+                    u_new *= np.where(keep > 0, 1.0 - share * (1.0 - keep), 0.0).astype(np.float32)[None]
                 elif bone_w:  # smoothing bent the bones: back to each one's rigid motion
                     for box, m, wgt in bone_w:
-                        _rigid_project(u[(slice(None),) + box], m, [gm[box] for gm in grid_mm], wgt)
-        # a level that never betters its input's similarity hands the input on, unchanged (the hand's coarsest
-        # level, 6.4 mm voxels: a finger is 3 voxels wide)
+                        _rigid_project(u_new[(slice(None),) + box], m, [gm[box] for gm in grid_mm], wgt)
+            return u_new, halved
+
+        # A trust region on the level's objective (the mean LNCC over the region): a step is taken only when it
+        # raises the objective; otherwise the radius (each voxel's largest move) halves and the step is tried
+        # again from the same direction; after a taken step the radius doubles, up to ``step``.  The level
+        # stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or when the
+        # last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps the trials.
+        w = sample_shifted(ml, u, inv_sp)
+        cc, dcc = _lncc_force(fl, w, win, f_stats, regl)
+        history = [cc]
+        radius = step
+        halvings = rejected = 0
+        stop = "cap"
+        force = None
+        for trial in range(int(iters)):
+            if force is None:
+                force, scale = direction(u, dcc, w, refresh_bones=len(history) % 5 == 1)
+                if scale <= 0:
+                    stop = "no force"
+                    break
+            u_c, halved = candidate(u, force, scale, radius)
+            halvings += halved
+            w_c = sample_shifted(ml, u_c, inv_sp)
+            cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl)
+            if cc_c > cc:  # taken
+                u, w, cc, dcc = u_c, w_c, cc_c, dcc_c
+                history.append(cc)
+                force = None
+                radius = min(st.radius_growth * radius, step)
+                if len(history) > 10 and history[-1] - history[-11] < st.tolerance:
+                    stop = "converged"
+                    break
+            else:
+                rejected += 1
+                radius *= 0.5
+                if radius < step * 0.5 ** st.max_halvings:
+                    stop = "no better step"
+                    break
         before = history[0]
-        kept = max(history) <= before
-        if kept:
-            u = u_in
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
-               "lncc_before": before, "lncc_after": before if kept else history[-1], "input_kept": kept,
-               "halvings": halvings, "lncc": [round(float(h), 6) for h in history],  # per iteration (reports)
+               "lncc_before": before, "lncc_after": history[-1], "input_kept": len(history) == 1,
+               "rejected": rejected, "stop": stop, "halvings": halvings,
+               "lncc": [round(float(h), 6) for h in history],  # per taken step: never falls (reports)
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)

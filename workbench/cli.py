@@ -78,6 +78,9 @@ definition of every measure, and prints it:
   table3      Rhee Table 3: knee, 4 poses, template registered to the other 3 after VBD
               from the estimated poses; MED (body, markers), SSD, CC, MI, folded
   table4      Rhee Table 4: hand, 10 poses, the same over 9 registrations
+              (tables 2-4: the pipeline's registration and, beside it, Rhee's
+              Algorithm 1 as implemented here, run as --method adaptive would
+              from the same start; rerun every time, no stage keeps it)
   loo         leave one scan out: VBD against EVD built from the other scans'
               registrations, both against the held-out truth (knee and hand)
   eigenposes  principal components of 71 documented grasp/sign/gesture hand poses

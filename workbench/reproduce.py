@@ -79,6 +79,21 @@ class StudyRunner:
         self.say(f"{name}: stages up to {', '.join(targets)} done in {time.perf_counter() - t0:.0f} s")
         return study.reload()
 
+    def register_adaptive(self, study, scan_id: str, *, settings: dict):
+        """Rhee's Algorithm 1 on a study's scan exactly as ``workbench register --method adaptive`` runs it
+        (:func:`workbench.stages.register.adaptive_registration`: the init stage's start, the register stage's
+        ``settings`` with ``method="adaptive"``), in memory: the study is not changed, so its register stage
+        keeps the default method's results (and ``loo`` reuses those).  Run again on every call (no stage
+        caches it).  Returns the :class:`~registration.adaptive.AdaptiveResult`."""
+        from workbench.stages.register import RegisterSettings, adaptive_registration
+
+        s = RegisterSettings(**{**settings, "method": "adaptive"})
+        t0 = time.perf_counter()
+        result = adaptive_registration(study, scan_id, s)
+        self.say(f"{study.root.name} {scan_id}: Rhee's Algorithm 1 (--method adaptive) in "
+                 f"{time.perf_counter() - t0:.0f} s")
+        return result
+
 
 def _same_poses(recorded, poses) -> bool:
     """Whether a manifest's recorded phantom poses (``[{"id", "angles_deg"}]``) are the explicit ``poses``."""

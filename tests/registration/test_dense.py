@@ -297,3 +297,19 @@ def test_tissue_only_applies_when_air_surrounds_the_body(case):
     ring = np.zeros((6, 7, 8), bool)
     ring[1:-1, 1:-1, 1:-1] = True
     assert _air_around(ring) == 1.0 and _air_around(np.ones_like(ring)) == 0.0
+
+
+@pytest.mark.parametrize("air", [False, True])
+def test_each_level_objective_never_falls_at_a_taken_step(air):
+    """Issue M: a step is taken only when it raises the level's LNCC (a trust region: otherwise its radius
+    halves), and a level stops on convergence (10 taken steps gaining < tolerance, or no step of the smallest
+    radius raising it) rather than on its trial cap.  The cap here (200) is far above what the case needs."""
+    template, labels, scan, truth, bone = make_case(air=air)
+    res = register_dense(scan, template, moving_labels=labels,
+                         settings=DenseSettings(shrink=(2, 1), iterations=(200, 200)))
+    for lv in res.levels:
+        h = np.asarray(lv["lncc"])
+        assert np.all(np.diff(h) > 0), (lv["level"], h)  # strictly: an equal objective is not a taken step
+        assert lv["stop"] in ("converged", "no better step"), lv["stop"]
+        assert lv["iterations"] == len(h) - 1 and lv["lncc_after"] >= lv["lncc_before"]
+    assert res.levels[-1]["lncc_after"] > res.levels[-1]["lncc_before"]  # the fine level did improve

@@ -16,7 +16,7 @@ from validation.protocols import PROTOCOLS, Column, Table
 from validation.protocols.eigenposes import eigenposes, explained_variance, loo_reconstruction_rms, pose_matrix
 from validation.protocols.hand_poses import LIBRARY, RANGE_OF_MOTION, check_range, library_angles
 from validation.protocols.kurihara import joint_centre_measures
-from validation.protocols.registration import PAPER, registration_table, ssd_scale
+from validation.protocols.registration import ALGORITHM1_ROW, PAPER, registration_table, ssd_scale
 
 
 def test_table_round_trip_keeps_numbers_and_turns_nan_into_none():
@@ -159,22 +159,59 @@ class _Study:
     def recorded_settings(self, stage):
         return None
 
+    def weights(self):
+        return None, None
+
+
+class _Settings:
+    def to_dict(self):
+        return {"levels": [3, 4], "optimizer": "bobyqa"}
+
+
+class _Result:
+    """A stand-in for an AdaptiveResult: its scan's name in place of the fields, and a time."""
+
+    def __init__(self, sid, seconds):
+        self.registered = self.correspondence = sid
+        self.seconds = seconds
+        self.settings = _Settings()
+
 
 class _Runner:
     with_peers = False
 
     def __init__(self):
         self.asked = []
+        self.adaptive = []
 
     def study(self, name, phantom, *, settings, targets):
         self.asked.append((name, settings, tuple(targets)))
         return _Study()
 
+    def register_adaptive(self, study, sid, *, settings):
+        self.adaptive.append((sid, settings))
+        return _Result(sid, {"pose00": 10.0, "pose01": 20.0, "pose02": 40.0}[sid])
+
     def say(self, m):
         pass
 
 
-def test_table3_averages_the_posed_scans_only_and_scales_ssd_to_8_bit():
+@pytest.fixture
+def scored(monkeypatch):
+    """Algorithm 1's registrations scored by known measures (the scan's MED 0.5 + its index), not by
+    validation_rows on real volumes (which tests/workbench/test_reproduce.py runs)."""
+    from validation.protocols import registration
+
+    def measured(study, sid, template, body, *, registered, field, seconds):
+        assert registered == field == sid  # the result of this scan, as the runner returned it
+        i = int(sid[-1])
+        return {"med_mm": 0.5 + i, "marker_med_mm": 1.0, "ssd": 10.0, "cc": 0.95, "mi": 0.6,
+                "folded_fraction": 0.0, "seconds": seconds}
+
+    monkeypatch.setattr(registration, "_measured", measured)
+
+
+def test_table3_averages_the_posed_scans_only_and_scales_ssd_to_8_bit(scored):
     runner = _Runner()
     t = registration_table(runner, "table3", title="t3", init="vbd")
     assert runner.asked == [("table3", {"init": {"method": "vbd"}, "weights": {}, "register": {}}, ("validate",))]
@@ -190,9 +227,20 @@ def test_table3_averages_the_posed_scans_only_and_scales_ssd_to_8_bit():
     assert reg["seconds"] == pytest.approx(3.0)
     assert t.row("paper: registered")["marker_med_mm"] == PAPER["table3"]["registered"]["marker_med_mm"]
     assert all(k in t.definitions for k in ("med_mm", "ssd", "mi", "folded_fraction"))
+    # Rhee's Algorithm 1 on the same posed scans, with the register stage's (default) settings, averaged alike
+    assert runner.adaptive == [("pose01", {}), ("pose02", {})]
+    alg1 = t.row(ALGORITHM1_ROW)
+    assert alg1["kind"] == "ours" and alg1["n_scans"] == 2
+    assert alg1["med_mm"] == pytest.approx(2.0) and alg1["seconds"] == pytest.approx(30.0)
+    assert alg1["ssd"] == pytest.approx(10.0 * scale)
+    labels = [r["label"] for r in t.rows]
+    assert labels.index("registered (ours)") + 1 == labels.index(ALGORITHM1_ROW) < labels.index("paper: source")
+    assert t.meta["algorithm1_settings"] == {"levels": [3, 4], "optimizer": "bobyqa"}
+    assert any(n.startswith(ALGORITHM1_ROW) and "not the paper's figures" in n for n in t.notes)
 
 
-def test_table2_keeps_its_single_scan():
+def test_table2_keeps_its_single_scan(scored):
     t = registration_table(_Runner(), "table2", title="t2", init="identity")
     assert t.row("source (no deformation)")["med_mm"] == pytest.approx(11.0)  # mean of the three scans
+    assert t.row(ALGORITHM1_ROW)["med_mm"] == pytest.approx(1.5)  # Algorithm 1 on all three as well
     assert t.row("paper: source")["med_mm"] == 5.5

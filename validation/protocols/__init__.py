@@ -24,6 +24,11 @@ supplies the runner.  A runner has
   phantom and settings give the same study, whose finished stages are reused;
 * ``size`` (``"test"`` or ``"paper"``): the phantoms' grid;
 * ``seed``: the phantoms' seed (a protocol that measures against the phantom itself rebuilds it);
+* ``register_adaptive(study, scan_id, *, settings)`` → the
+  :class:`~registration.adaptive.AdaptiveResult` of Rhee's Algorithm 1 on the
+  study's scan, run as the register stage runs ``method="adaptive"`` (from the
+  init stage's start, the register stage's ``settings`` otherwise), without
+  changing the study (Tables 2–4's ``registered (Rhee Algorithm 1, ours)`` row);
 * ``with_peers`` (bool): also run the general-purpose registrations;
 * ``say(message)``: a progress line.
 """

@@ -120,8 +120,8 @@ def _convergence(log: dict) -> bytes | None:
     if levels and any("lncc" in lv for lv in levels):
         series = {f"level {lv['level']} (1/{lv['shrink']})": (np.arange(len(lv["lncc"])), lv["lncc"])
                   for lv in levels if lv.get("lncc")}
-        return F.line_plot(series, xlabel="iteration", ylabel="LNCC (higher is better)",
-                           title="dense registration: local correlation per iteration")
+        return F.line_plot(series, xlabel="taken step", ylabel="LNCC (higher is better)",
+                           title="dense registration: local correlation per taken step")
     steps = (log.get("log") or {}).get("steps") if isinstance(log.get("log"), dict) else None
     if steps:
         y = [s.get("block_after") for s in steps if s.get("accepted", True)]

@@ -43,7 +43,7 @@ import numpy as np
 from workbench import __version__
 from workbench.stages.mechanism import Field, Image, Json, Labels, Stage
 
-__all__ = ["RegisterSettings", "STAGE", "PRESETS"]
+__all__ = ["RegisterSettings", "STAGE", "PRESETS", "adaptive_registration"]
 
 PRESETS = ("auto", "default", "initialised", "paper")
 METHODS = ("auto", "dense", "adaptive")
@@ -141,6 +141,25 @@ def _held_bones(study, start):
     return released_labels(study.template_labels(), study.skeleton(), start.get("flagged_bones", []))
 
 
+def adaptive_registration(study, sid: str, s: RegisterSettings, *, template=None, scan=None, progress=None):
+    """Rhee's Algorithm 1 on scan ``sid`` as this stage runs it (``method="adaptive"``), nothing written: from the
+    init stage's start (its field, or the identity), with :meth:`RegisterSettings.adaptive` for that start's
+    method and, after an articulated start, the bones :func:`_held_bones` holds.  ``template``/``scan``: the
+    study's, when already read.  Returns the :class:`~registration.adaptive.AdaptiveResult` (its
+    ``correspondence`` and ``registered`` are what the stage writes; ``workbench reproduce``'s Tables 2–4 score
+    them directly)."""
+    from registration.adaptive import register_adaptive
+
+    start = study.init_info(sid)  # the start, as the init stage made it: no pose (nor truth) is read here
+    articulated = start["method"] in ("vbd", "polyrigid")
+    settings = s.adaptive(start["method"])
+    rigid = _held_bones(study, start) if (articulated and settings.fix_bones) else None
+    template = study.template() if template is None else template
+    scan = study.scan(sid) if scan is None else scan
+    return register_adaptive(scan, template, initial=study.init_field(sid), rigid_mask=rigid, settings=settings,
+                             progress=progress)
+
+
 def _run(ctx) -> dict:
     from deformation.resample import invert_scan_to_template
 
@@ -148,14 +167,8 @@ def _run(ctx) -> dict:
     start = study.init_info(sid)  # the start, as the init stage made it: no pose (nor truth) is read here
     method = start["method"]
     template, scan = study.template(), study.scan(sid)
-    initial = study.init_field(sid)
-    articulated = method in ("vbd", "polyrigid")
     if s.resolved_method == "dense":
-        return _run_dense(ctx, start, template, scan, initial, articulated)
-    from registration.adaptive import register_adaptive
-
-    settings = s.adaptive(method)
-    rigid = _held_bones(study, start) if (articulated and settings.fix_bones) else None
+        return _run_dense(ctx, start, template, scan, study.init_field(sid), method in ("vbd", "polyrigid"))
     forward = _forward(study, sid, start, template.geometry)
 
     def step(info):
@@ -169,7 +182,7 @@ def _run(ctx) -> dict:
                                         f"{tuple(info['block'])}: {info['metric']} {info['block_before']:.4g} -> "
                                         f"{info['block_after']:.4g}; ~{info['eta']:.0f} s left in this level")
 
-    result = register_adaptive(scan, template, initial=initial, rigid_mask=rigid, settings=settings, progress=step)
+    result = adaptive_registration(study, sid, s, template=template, scan=scan, progress=step)
     ctx.say(f"{sid}: inverting the field onto the template grid ...")
     t0 = time.perf_counter()
     # φ = F⁻¹ ∘ U (F the start's forward map): only the registration's own correction U is inverted numerically
@@ -218,7 +231,8 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
     forward = _forward(study, sid, start, template.geometry)
 
     def level(rec):
-        ctx.say(f"{sid} level {rec['level']} (1/{rec['shrink']} of the grid): {rec['iterations']} iterations, "
+        ctx.say(f"{sid} level {rec['level']} (1/{rec['shrink']} of the grid): {rec['iterations']} steps taken, "
+                f"{rec['rejected']} tried and refused, stopped: {rec['stop']}; "
                 f"LNCC {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}, {rec['seconds']:.1f} s")
 
     result = register_dense(scan, template, initial=initial, moving_labels=labels, settings=settings,
@@ -242,4 +256,4 @@ STAGE = Stage(name="register", folder="registration", per_scan=True, settings_ty
               # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC; 8: bones the pose
               # stage flagged are not held; 9: dense windows and smoothing over the scan's tissue only; 10: no time in
               # log.json (study.json's timings have them)
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=10)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=11)

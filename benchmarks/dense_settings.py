@@ -1,0 +1,132 @@
+"""Compare settings of the dense registration on the TUNING phantoms only (the seeds settings are chosen on).
+
+Each case is the flex protocol's (``benchmarks/registration.py --cases flex``): the knee bent 45° or 70°
+(2.5 mm voxels) or the hand's strongest curl (1.6 mm), poses estimated by the pose stage's method, the
+polyrigid start from them; then :func:`registration.dense.register_dense` once per variant, from that same
+start.  Printed per variant: MED over the body, bone and soft tissue, the 200-marker MED (markers drawn by the
+study's rule), folded voxels of the body, time, and each level's taken steps, refused trials, stop reason and
+LNCC before -> after.  The start (pose estimation, ~1-2 min a case) is cached under ``--cache``.
+
+Only tuning seeds are accepted: held-out seeds and the external set are for reporting
+(``benchmarks/registration.py``), never for choosing a setting.
+
+Usage::
+
+    .venv/bin/python benchmarks/dense_settings.py knee 0 bend70 '{}' '{"radius_growth": 2.0}'
+    .venv/bin/python benchmarks/dense_settings.py hand 1 curl '{}' '{"elastic_voxels": 1.2}'
+
+Each variant is a JSON object of :class:`registration.dense.DenseSettings` fields (lists become tuples);
+``{}`` is the default.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from deformation.fields import folding_statistics  # noqa: E402
+from deformation.geometry import Volume  # noqa: E402
+from registration.dense import DenseSettings, register_dense  # noqa: E402
+from validation.phantoms import make_phantom  # noqa: E402
+from validation.registration_measures import body_on_scan, marker_med  # noqa: E402
+
+
+def _flex_constants():
+    """TUNING_SEEDS, FLEX_KNEE and MARKER_SAMPLE from benchmarks/registration.py (one home; loaded by path: the
+    name ``registration`` is the package's)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_registration", Path(__file__).with_name("registration.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.TUNING_SEEDS, mod.FLEX_KNEE, mod.MARKER_SAMPLE
+
+
+def tuning_case(region: str, seed: int, scan: str, cache: Path) -> dict:
+    """The scan, template, held bones, polyrigid start and truth of one tuning case (cached)."""
+    f = cache / f"{region}{seed}_{scan}.pkl"
+    if f.exists():
+        return pickle.loads(f.read_bytes())
+    from registration.initialise import polyrigid_initial_field
+    from registration.pose import estimate_poses, released_labels
+
+    _, flex_knee, n_markers = _flex_constants()
+    if region == "knee":
+        ph = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
+                          poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + flex_knee)
+    else:
+        ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4)
+        scan = ph.poses[-1][0] if scan == "curl" else scan  # the strongest curl, as the flex case
+    template, labels = ph.template()
+    sk = ph.skeleton
+    sc = {s.id: s for s in ph.scans()}[scan]
+    est = estimate_poses(template, labels, {scan: sc.image}, sk).scans[0]
+    held = released_labels(labels, sk, [b for b, fit in est.fits.items() if not fit.ok])
+    init, _ = polyrigid_initial_field(labels, {b: sk.label_of(b) for b in sk.bone_names},
+                                      {b: sk.bone(b).parent for b in sk.bone_names}, est.pose.transforms,
+                                      sc.image.geometry)
+    xg = ph.geometry.world_coordinates().reshape(-1, 3)
+    body_t = Volume((ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(ph.geometry.array_shape).astype(np.uint8),
+                    ph.geometry)
+    body = body_on_scan(sc.correspondence, body_t)
+    phi = sc.correspondence.data + sc.image.geometry.world_coordinates()
+    bone = (ph.anatomy.distances_fast(phi.reshape(-1, 3))[:, :-1].min(axis=1) < 0).reshape(body.shape) & body
+    d = dict(scan=sc.image, template=template, held=held, init=init, truth=sc.correspondence, body=body,
+             bone=bone, markers=ph.markers(ph.posing_model(dict(ph.poses)[scan]), n=n_markers, sample=1))
+    f.write_bytes(pickle.dumps(d))
+    return d
+
+
+def score(d: dict, field: Volume, seconds: float, tag: str, levels=None) -> dict:
+    err = np.linalg.norm(field.data - d["truth"].data, axis=-1)
+    body, bone = d["body"], d["bone"]
+    out = dict(med=float(err[body].mean()), bone=float(err[bone].mean()), soft=float(err[body & ~bone].mean()),
+               markers=marker_med(field, d["markers"]), folded=folding_statistics(field, body)["n_folded"],
+               seconds=seconds)
+    lv = " ".join(f"[{x['iterations']} taken, {x.get('rejected', 0)} refused, {x.get('stop', '')}: "
+                  f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}]" for x in (levels or []))
+    print(f"| {tag} | {out['med']:.3f} | {out['bone']:.3f} | {out['soft']:.3f} | {out['markers']:.3f} | "
+          f"{out['folded']} | {seconds:.0f} | {lv} |", flush=True)
+    return out
+
+
+def main(argv=None) -> int:
+    tuning, _, n_markers = _flex_constants()
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("region", choices=["knee", "hand"])
+    p.add_argument("seed", type=int, help=f"a tuning seed {tuning}")
+    p.add_argument("scan", help="knee: bend10 / bend45 / bend70; hand: curl (its strongest) or a pose id")
+    p.add_argument("variants", nargs="*", default=["{}"], help="DenseSettings fields as JSON, one per variant")
+    p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
+    args = p.parse_args(argv)
+    if args.seed not in tuning:
+        p.error(f"seed {args.seed} is not a tuning seed {tuning}: held-out seeds are for reporting only")
+    variants = []
+    for v in args.variants:
+        try:
+            kw = {k: tuple(x) if isinstance(x, list) else x for k, x in json.loads(v).items()}
+            variants.append((v, DenseSettings(**kw)))
+        except (ValueError, TypeError) as e:
+            p.error(f"variant {v!r}: {e}")
+    args.cache.mkdir(parents=True, exist_ok=True)
+    d = tuning_case(args.region, args.seed, args.scan, args.cache)
+    print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning)\n")
+    print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
+    print("|---|---|---|---|---|---|---|---|")
+    score(d, d["init"], 0.0, "start (polyrigid, estimated poses)")
+    for tag, st in variants:
+        r = register_dense(d["scan"], d["template"], initial=d["init"], moving_labels=d["held"], settings=st)
+        score(d, r.correspondence, r.seconds, tag, r.levels)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
