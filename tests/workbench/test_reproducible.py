@@ -79,9 +79,9 @@ def test_the_pose_stage_files_hold_no_time_and_are_the_same_bytes_in_two_process
     for name in names:
         assert (a / "poses" / name).read_bytes() == (b / "poses" / name).read_bytes(), name
         if name.endswith(".json"):
-            assert not [k for k in _keys(json.loads((a / "poses" / name).read_text())) if "seconds" in k], name
-    assert "seconds" not in (a / "poses" / "report.txt").read_text()
-    fits = json.loads((a / "poses" / "fits.json").read_text())["scans"]
+            assert not [k for k in _keys(json.loads((a / "poses" / name).read_text(encoding="utf-8"))) if "seconds" in k], name
+    assert "seconds" not in (a / "poses" / "report.txt").read_text(encoding="utf-8")
+    fits = json.loads((a / "poses" / "fits.json").read_text(encoding="utf-8"))["scans"]
     # the times are the manifest's: the stage's, each scan's and each bone's fit
     for root in (a, b):
         t = read_study(root).stage_entry("pose")["timings"]
@@ -96,7 +96,7 @@ def test_the_registration_logs_hold_no_time_and_are_the_same_bytes_in_two_proces
     for sid in ("pose00", "pose01"):
         log = a / "registration" / sid / "log.json"
         assert log.read_bytes() == (b / "registration" / sid / "log.json").read_bytes(), sid
-        doc = json.loads(log.read_text())
+        doc = json.loads(log.read_text(encoding="utf-8"))
         assert not [k for k in _keys(doc) if "seconds" in k]
         for root in (a, b):
             t = read_study(root).stage_entry("register", sid)["timings"]

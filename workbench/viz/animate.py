@@ -183,7 +183,7 @@ def builtin_keyframes(skeleton) -> Keyframes:
                              "pass --keyframes FILE (see `workbench animate --help` for the format).")
     import json
 
-    return _keyframes_from_dict(json.loads(res.read_text()), skeleton, f"<builtin {skeleton.name}.json>")
+    return _keyframes_from_dict(json.loads(res.read_text(encoding="utf-8")), skeleton, f"<builtin {skeleton.name}.json>")
 
 
 def scan_keyframes(study, *, seconds_per_pose: float = 1.0) -> Keyframes:
