@@ -24,6 +24,7 @@ Usage::
     .venv/bin/python benchmarks/registration.py --cases hand
     .venv/bin/python benchmarks/registration.py --cases knee hand --from-truth   # the intensity floor
     .venv/bin/python benchmarks/registration.py --cases flex --split held-out   # issue I's protocol
+    nice .venv/bin/python benchmarks/registration.py --cases external          # the external set (tens of minutes)
 
 ``flex`` (issue I): the knee flexed 10°, 45° and 70° and the hand's strongest
 curl, on phantoms with structured soft tissue and an uneven soft-tissue
@@ -40,6 +41,33 @@ first row is the ground truth itself: its folded voxels are those an exact
 field has on that grid (det of central differences ≤ 0 where curled fingers
 touch or the crease compresses tissue below the voxel: the phantom's map is
 one-to-one, its samples are not).
+
+``external``: the studies of ``--external`` (default
+``<repository>/../shared/data/external-phantoms``; absent: one line, skipped),
+made by a generator independent of the workbench (its README there): an
+elbow MRI and a two-finger CT, three posed scans each, in the workbench's
+study format with exact truth (``truth/<scan>_correspondence.mha``, the
+16 markers of ``truth/<scan>_markers.json``).  These studies are never used
+for choosing settings: ``--split`` does not apply to them, every run is
+held out.  Each study folder is copied into ``--work`` (default a new
+temporary folder; the shared folder is only read, and checked unchanged at
+the end) and the copy goes through the workbench's own chain, ``workbench
+run COPY --until register`` in steps (``--until weights`` for the study's
+stages before it, then ``--until init`` and ``--until register`` with
+``--scan`` for each scan, so that each scan's peak memory is its own).
+From the init stage's start field of each scan, read from the copy,
+elastix's B-spline runs when itk-elastix is installed.  Each scan's table has the flex case's columns
+(its skin and 200-marker columns aside), over the validate stage's body: the
+template's body as the weights stage segments it
+(:func:`registration.segmentation.segment_body` with the bone labels),
+pulled onto the scan through the truth (:func:`body_on_scan`); bone voxels
+are those whose true template position is in ``template_labels``.  Times:
+the init stage's recorded seconds for the start, the register stage's
+recorded ``timings.registration`` for ours (the inversion onto the template
+grid, which elastix does not do, is printed beside it), elastix's own.  The
+summary gives ours / elastix per scan, ours / its start, the worst scan of
+every column over the set, and names any scan where ours is worse than its
+start.
 """
 
 from __future__ import annotations
@@ -58,12 +86,12 @@ from deformation.fields import folding_statistics  # noqa: E402
 from deformation.geometry import Volume  # noqa: E402
 from deformation.skinning import stack_transforms  # noqa: E402
 from registration.adaptive import AdaptiveSettings, register_adaptive  # noqa: E402
-from registration.baselines import (ants_available, ants_syn, elastix_available, elastix_bspline,  # noqa: E402
+from registration.baselines import (_itk, ants_available, ants_syn, elastix_available, elastix_bspline,  # noqa: E402
                                    sitk_bspline, warp_template)
 from registration.initialise import vbd_initial_field  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
 from validation.protocols.registration import PAPER as RHEE_TABLES  # noqa: E402
-from validation.registration_measures import (MEASURE_KEYS, body_on_scan, marker_med,  # noqa: E402
+from validation.registration_measures import (MEASURE_KEYS, body_on_scan, error_map, marker_med,  # noqa: E402
                                              registration_measures)
 
 # Rhee Tables 2-4, one home (validation.protocols.registration); the benchmark's case names
@@ -71,6 +99,7 @@ PAPER = {"table2": RHEE_TABLES["table2"], "knee": RHEE_TABLES["table3"], "hand":
 
 
 OURS = "ours (dense, bones fixed)"
+ELASTIX = "elastix B-spline"
 TRUTH = "ground truth (sampled on the scan grid)"
 TUNING_SEEDS = (0, 1)
 HELD_OUT_SEEDS = (100, 101)
@@ -81,8 +110,9 @@ FLEX_KNEE = (("bend10", {"knee": [10.0, 1.0, 2.0]}), ("bend45", {"knee": [45.0, 
 
 class PeakMemory:
     """Peak resident memory (MiB) above the level at entry, child processes included (ANTs runs in its own
-    venv), sampled every 20 ms in a thread.  Heap that an earlier method freed and this one reuses is not
-    counted (the allocator keeps it): in-process figures are lower bounds."""
+    venv), sampled every 20 ms in a thread.  At entry the C heap's free pages are handed back to the system
+    (glibc's ``malloc_trim``, where there is one); heap that an earlier method freed and the allocator still
+    keeps, and this one reuses, is not counted: in-process figures are lower bounds."""
 
     def _rss(self):
         import psutil
@@ -96,10 +126,17 @@ class PeakMemory:
         return total
 
     def __enter__(self):
+        import ctypes
+        import gc
         import threading
 
         import psutil
 
+        gc.collect()
+        try:
+            ctypes.CDLL("libc.so.6").malloc_trim(0)
+        except (OSError, AttributeError):  # not glibc
+            pass
         self._proc = psutil.Process()
         self.base = self._rss()
         self.peak = self.base
@@ -118,6 +155,28 @@ class PeakMemory:
         self._t.join()
         self.peak = max(self.peak, self._rss())
         self.mib = (self.peak - self.base) / 2**20
+
+
+def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem, **regions):
+    """One row of a flex or external table: :func:`registration_measures` of ``fld`` (CC of the template warped
+    through it), its MED over the ``bone`` voxels of the body and over the rest of the body (soft tissue), its
+    P95 over the body, the body's folded voxels, ``seconds`` and ``mem`` (MiB), and ``<name>_mm``: its MED over
+    each further mask of ``regions``."""
+    m = registration_measures(scan, warp_template(template, fld), fld, truth=truth, body=body, markers=markers)
+    err = error_map(fld, truth, dtype=np.float64)
+    m.update(bone_mm=float(err[bone].mean()), soft_mm=float(err[body & ~bone].mean()),
+             p95_mm=float(np.percentile(err[body], 95)), n_folded=folding_statistics(fld, body)["n_folded"],
+             seconds=seconds, mem_mib=mem)
+    m.update({f"{name}_mm": float(err[mask].mean()) for name, mask in regions.items()})
+    return m
+
+
+def _unfold_line(u):
+    """Our registration's fold repair (``DenseResult.unfold``): which attempt was taken (bones frozen down to which
+    layer, which kernel)."""
+    return (f"  ours, fold repair: {u['n_folded_before']} -> {u['n_folded_after']} folded voxels of the scan's body, "
+            f"{'taken' if u['taken'] else 'not taken'}; bone layers released "
+            f"{u['bone_layers_released'] if u['bone_layers_released'] is not None else 'all'}, kernel {u['kernel']}")
 
 
 def _flex_phantoms(seed, args):
@@ -170,7 +229,6 @@ def run_flex(args):
                 phi = truth.data + sc.image.geometry.world_coordinates()
                 bone = (ph.anatomy.distances_fast(phi.reshape(-1, 3))[:, :-1].min(axis=1) < 0).reshape(body.shape)
                 bone &= body
-                soft = body & ~bone
                 # the skin: the body's outermost voxel layer (face neighbours), thousands of points where the
                 # study's markers are a dozen (Rhee Table 3's measure, one marker moving the mean by ~0.3 mm); a
                 # limb cut by the grid's edge has no skin there (border_value=1)
@@ -184,15 +242,9 @@ def run_flex(args):
                 rows = {}
 
                 def add(method, fld, seconds, mem):
-                    m = registration_measures(sc.image, warp_template(template, fld), fld, truth=truth, body=body,
-                                              markers=sc.markers)
-                    err = np.linalg.norm(fld.data - truth.data, axis=-1)
-                    m.update(bone_mm=float(err[bone].mean()), soft_mm=float(err[soft].mean()),
-                             skin_mm=float(err[skin].mean()), skin_joint_mm=float(err[skin_joint].mean()),
-                             markers_many_mm=marker_med(fld, many),
-                             n_folded=folding_statistics(fld, body)["n_folded"],
-                             p95_mm=float(np.percentile(err[body], 95)), seconds=seconds, mem_mib=mem)
-                    rows[method] = m
+                    rows[method] = field_measures(sc.image, template, fld, truth, body, bone, sc.markers, seconds,
+                                                  mem, skin=skin, skin_joint=skin_joint)
+                    rows[method]["markers_many_mm"] = marker_med(fld, many)
 
                 # the truth sampled on the scan grid folds too, where curled fingers touch or the crease compresses
                 # tissue below the voxel: its row says how many of a method's folded voxels any exact field has
@@ -216,12 +268,8 @@ def run_flex(args):
                     r = register_dense(sc.image, template, initial=init, moving_labels=held[sid],
                                        settings=DenseSettings())
                 add(OURS, r.correspondence, r.seconds, pm.mib)
-                if r.unfold:  # which repair attempt was taken (bones frozen down to which layer, which kernel)
-                    u = r.unfold
-                    print(f"  ours, fold repair: {u['n_folded_before']} -> {u['n_folded_after']} folded voxels of "
-                          f"the scan's body, {'taken' if u['taken'] else 'not taken'}; bone layers released "
-                          f"{u['bone_layers_released'] if u['bone_layers_released'] is not None else 'all'}, "
-                          f"kernel {u['kernel']}", flush=True)
+                if r.unfold:
+                    print(_unfold_line(r.unfold), flush=True)
                 if not args.no_adaptive:
                     with PeakMemory() as pm:
                         r = register_adaptive(sc.image, template, initial=init, rigid_mask=held[sid],
@@ -230,7 +278,7 @@ def run_flex(args):
                 if elastix_available() and not args.no_elastix:
                     with PeakMemory() as pm:
                         b = elastix_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed)
-                    add("elastix B-spline", b.correspondence, b.seconds, pm.mib)
+                    add(ELASTIX, b.correspondence, b.seconds, pm.mib)
                     with PeakMemory() as pm:
                         b = elastix_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed,
                                             rigidity_labels=held[sid])
@@ -268,33 +316,255 @@ def flex_summary(summary, split):
           f"{MARKER_SAMPLE} markers: drawn by the study's rule, beside its 12)", flush=True)
 
 
+# the columns of flex_report's tables: (header, measure, cell text of a row, the worse of two values); a table has
+# those its rows all measured (the external set has no skin nor 200-marker columns)
+REPORT_COLUMNS = (
+    ("MED mm", "med_mm", lambda v: f"{v['med_mm']:.2f}", max),
+    ("bone", "bone_mm", lambda v: f"{v['bone_mm']:.3f}", max),
+    ("soft", "soft_mm", lambda v: f"{v['soft_mm']:.2f}", max),
+    ("P95", "p95_mm", lambda v: f"{v['p95_mm']:.2f}", max),
+    ("marker MED", "marker_med_mm", lambda v: f"{v['marker_med_mm']:.2f}", max),
+    (f"{MARKER_SAMPLE} markers", "markers_many_mm", lambda v: f"{v['markers_many_mm']:.2f}", max),
+    ("skin MED", "skin_mm", lambda v: f"{v['skin_mm']:.2f}", max),
+    ("near joints", "skin_joint_mm", lambda v: f"{v['skin_joint_mm']:.2f}", max),
+    ("CC", "cc", lambda v: f"{v['cc']:.3f}", min),
+    ("folded (voxels)", "n_folded", lambda v: f"{v['folded_fraction']:.5f} ({v['n_folded']})", max),
+    ("s", "seconds", lambda v: f"{v['seconds']:.1f}", max),
+    ("peak MiB", "mem_mib", lambda v: f"{v['mem_mib']:.0f}", max),
+)
+
+
+def _columns(rows):
+    rows = list(rows)
+    return [c for c in REPORT_COLUMNS if all(c[1] in v for v in rows)]
+
+
 def flex_report(title, rows):
+    """One case's table (the columns its rows have) and ours against the best peer; returns the summary's
+    figures (``None`` without ours or a peer)."""
+    cols = _columns(rows.values())
     print(f"\n### {title}\n")
-    print(f"| method | MED mm | bone | soft | P95 | marker MED | {MARKER_SAMPLE} markers | skin MED | near joints | CC | "
-          "folded (voxels) | s | peak MiB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| method | " + " | ".join(c[0] for c in cols) + " |")
+    print("|---" * (len(cols) + 1) + "|")
     for m, v in rows.items():
-        print(f"| {m} | {v['med_mm']:.2f} | {v['bone_mm']:.3f} | {v['soft_mm']:.2f} | {v['p95_mm']:.2f} | "
-              f"{v['marker_med_mm']:.2f} | {v['markers_many_mm']:.2f} | {v['skin_mm']:.2f} | {v['skin_joint_mm']:.2f} | {v['cc']:.3f} | {v['folded_fraction']:.5f} ({v['n_folded']}) | "
-              f"{v['seconds']:.1f} | "
-              f"{v['mem_mib']:.0f} |")
+        print(f"| {m} | " + " | ".join(c[2](v) for c in cols) + " |")
     peers = {m: v for m, v in rows.items() if not m.startswith(("ours", "initialised")) and m != TRUTH}
     ours = rows.get(OURS)
     if peers and ours:
         best = min(peers, key=lambda m: peers[m]["med_mm"])
-        el = peers.get("elastix B-spline")
-        out = {"case": title, "best": best, "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
+        el = peers.get(ELASTIX)
+        out = {"case": title, "best": best, "rows": rows, "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
                "marker_ratio": ours["marker_med_mm"] / peers[best]["marker_med_mm"],
-               "many_ratio": ours["markers_many_mm"] / peers[best]["markers_many_mm"],
-               "skin_ratio": ours["skin_mm"] / min(v["skin_mm"] for v in peers.values()),
-               "skin_joint_ratio": ours["skin_joint_mm"] / min(v["skin_joint_mm"] for v in peers.values()),
-               "n_folded": ours["n_folded"], "n_folded_truth": rows[TRUTH]["n_folded"],
+               "n_folded": ours["n_folded"], "n_folded_truth": rows[TRUTH]["n_folded"] if TRUTH in rows else None,
                "bone_mm": ours["bone_mm"],
                "time_ratio": ours["seconds"] / el["seconds"] if el else float("nan")}
+        if "markers_many_mm" in ours:
+            out["many_ratio"] = ours["markers_many_mm"] / peers[best]["markers_many_mm"]
+        for k in ("skin", "skin_joint"):
+            if f"{k}_mm" in ours:
+                out[f"{k}_ratio"] = ours[f"{k}_mm"] / min(v[f"{k}_mm"] for v in peers.values())
         print(f"\nours / best peer ({best}): MED {out['med_ratio']:.2f}, marker MED {out['marker_ratio']:.2f}"
               + (f"; time / elastix {out['time_ratio']:.2f}" if el else ""), flush=True)
         return out
     return None
+
+
+def _tree_state(root):
+    """``{relative path: (size, modification time ns)}`` of every file under ``root``."""
+    return {str(f.relative_to(root)): (f.stat().st_size, f.stat().st_mtime_ns) for f in sorted(root.rglob("*"))
+            if f.is_file()}
+
+
+def _workbench(argv):
+    """``workbench ARGV`` in this process (:func:`workbench.cli.main`); returns ``(exit code, error text)``, the
+    text being the command's stderr lines that name an error, or the traceback of an exception it let through."""
+    import contextlib
+    import io
+    import traceback
+
+    from workbench.cli import main as workbench_main
+
+    class Tee(io.StringIO):  # what the command writes to stderr, still shown as it goes
+        def write(self, text):
+            sys.__stderr__.write(text)
+            return super().write(text)
+
+    err = Tee()
+    print(f"  workbench {' '.join(argv)}", flush=True)
+    try:
+        with contextlib.redirect_stderr(err):
+            rc = workbench_main(argv)
+    except Exception:  # noqa: BLE001 — reported as the study's failure, the other studies still run
+        return 1, traceback.format_exc()
+    lines = [ln for ln in err.getvalue().splitlines() if "error" in ln.lower()]
+    return rc, "\n".join(lines) or err.getvalue().strip()
+
+
+def run_external(args):
+    """The external set (module docstring): each study copied into ``args.work``, run through ``workbench run``,
+    elastix from the init stage's start; one table per scan and the set's summary.  Returns the number of
+    studies whose ``workbench run`` failed."""
+    import json
+    import shutil
+    import tempfile
+
+    from registration.segmentation import segment_body
+    from workbench.stages import ORDER
+    from workbench.stages.mechanism import recorded_times
+    from workbench.study import read_study
+
+    src = Path(args.external).resolve()
+    if not src.is_dir():
+        print(f"external: {src} is absent; the external case is skipped", flush=True)
+        return 0
+    studies = sorted(d for d in src.iterdir() if (d / "study.json").is_file())
+    work = Path(args.work).resolve() if args.work else Path(tempfile.mkdtemp(prefix="avw-external-"))
+    print(f"\nexternal set {src} ({', '.join(d.name for d in studies)}; held out: never used for choosing settings), "
+          f"study copies in {work}", flush=True)
+    before = _tree_state(src)
+    if elastix_available() and not args.no_elastix:
+        _itk()  # ITK's modules loaded before any sampler starts: elastix's peak memory is its registration's
+    summary, failures = [], []
+    for d in studies:
+        copy = work / d.name
+        if copy.exists():
+            raise SystemExit(f"external: {copy} exists; give --work a folder without it (each run starts from a "
+                             "fresh copy)")
+        shutil.copytree(d, copy)
+        print(f"\n{d.name}: copied to {copy}", flush=True)
+        scan_ids = read_study(copy).scan_ids
+        mem = {}
+        # workbench run COPY --until register, in steps: the whole-study stages before it (bones, pose, weights),
+        # then each scan's init and register, each under its own memory sampler
+        steps = [("weights", None, ["run", str(copy), "--until", "weights", "--quiet"])]
+        for sid in scan_ids:
+            steps += [(stage, sid, ["run", str(copy), "--until", stage, "--scan", sid, "--quiet"])
+                      for stage in ("init", "register")]
+        for stage, sid, argv in steps:
+            with PeakMemory() as pm:
+                rc, error = _workbench(argv)
+            if rc != 0:
+                break
+            mem[stage, sid] = pm.mib
+        if rc != 0:
+            print(f"{d.name}: `workbench {' '.join(argv)}` failed (exit {rc}); the study is skipped", flush=True)
+            failures.append((d.name, argv, rc, error))
+            continue
+        st = read_study(copy)
+        print(f"{d.name}: the workbench's recorded times (study.json)", flush=True)
+        print("\n".join(recorded_times(st, ORDER)), flush=True)
+        template, labels = st.template(), st.template_labels()
+        body_t = segment_body(template, labels=labels)  # the weights stage's body mask, which validate scores over
+        bones_t = Volume((np.asarray(labels.data) > 0).astype(np.uint8), labels.geometry)
+        log = st.path("logs/phantom.json")
+        logged = ({s["id"]: s.get("body_voxels_scan") for s in json.loads(log.read_text()).get("scans", [])}
+                  if log.is_file() else {})
+        for sid in scan_ids:
+            scan, truth, markers = st.scan(sid), st.truth_correspondence(sid), st.truth_markers(sid)
+            body = body_on_scan(truth, body_t)
+            bone = body_on_scan(truth, bones_t) & body
+            init, ours = st.init_field(sid), st.registration_correspondence(sid)
+            start_info, reg_log = st.init_info(sid), st.registration_log(sid)
+            e_init, e_reg = st.stage_entry("init", sid), st.stage_entry("register", sid)
+            t_reg = e_reg.get("timings") or {}
+            print(f"\n{d.name} / {sid}: {scan.geometry.describe()}; body {int(body.sum())} voxels"
+                  + (f" (the generator's log: {logged[sid]})" if logged.get(sid) is not None else "")
+                  + f", bone {int(bone.sum())}; start: {start_info['method']} "
+                  f"({start_info.get('pose', 'estimated')} pose), bones the pose stage flagged: "
+                  f"{start_info.get('flagged_bones') or 'none'}; ours: {reg_log.get('method')}, register stage "
+                  f"{e_reg['seconds']:.1f} s (registration {t_reg.get('registration', float('nan')):.1f} s, "
+                  f"inversion onto the template grid {t_reg.get('inverse', float('nan')):.1f} s)", flush=True)
+            unfold = (reg_log.get("summary") or {}).get("unfold")
+            if unfold:
+                print(_unfold_line(unfold), flush=True)
+            rows = {}
+
+            def add(method, fld, seconds, mib):
+                rows[method] = field_measures(scan, template, fld, truth, body, bone, markers, seconds, mib)
+
+            add(TRUTH, truth, 0.0, 0.0)
+            add(f"initialised ({start_info['method']}, {start_info.get('pose', 'estimated')} poses)", init,
+                e_init["seconds"], mem["init", sid])
+            add(OURS, ours, t_reg.get("registration", e_reg["seconds"]), mem["register", sid])
+            if elastix_available() and not args.no_elastix:
+                with PeakMemory() as pm:
+                    b = elastix_bspline(scan, template, initial=init, metric="mi", seed=args.seed)
+                add(ELASTIX, b.correspondence, b.seconds, pm.mib)
+            out = flex_report(f"{d.name} / {sid} (external, held out)", rows) or {"case": d.name, "rows": rows}
+            out["label"] = f"{d.name}/{sid}"
+            summary.append(out)
+    external_summary(summary, failures, elastix_available() and not args.no_elastix)
+    after = _tree_state(src)
+    changed = sorted(f for f in set(before) | set(after) if before.get(f) != after.get(f))
+    print(f"\nthe shared folder {src}: " + ("CHANGED: " + ", ".join(changed) if changed else
+                                            "unchanged (every file's size and modification time as before)"),
+          flush=True)
+    print(f"study copies (the stages' outputs) left in {work}", flush=True)
+    return len(failures)
+
+
+def external_summary(summary, failures, elastix):
+    """The external set's summary: per scan ours against elastix and against its own start, the worst scan of
+    every column, and the scans where ours is worse than its start."""
+    print("\n## summary: the external set (held out), ours (dense) against elastix from the same start\n")
+    if not elastix:
+        print("(elastix unavailable: itk-elastix not installed, `make bench`, or --no-elastix)")
+    for name, argv, rc, error in failures:
+        print(f"{name}: `workbench {' '.join(argv)}` failed (exit {rc}):\n{error}\n")
+    if not summary:
+        return
+    start_of = {s["label"]: next(m for m in s["rows"] if m.startswith("initialised")) for s in summary}
+    print("| scan | MED ours / elastix | marker MED ours / elastix | time ours / elastix | MED ours / start | "
+          "marker MED ours / start |")
+    print("|---|---|---|---|---|---|")
+    nan = float("nan")
+    table = []
+    for s in summary:
+        o, i = s["rows"][OURS], s["rows"][start_of[s["label"]]]
+        table.append((s["label"], s.get("med_ratio", nan), s.get("marker_ratio", nan), s.get("time_ratio", nan),
+                      o["med_mm"] / i["med_mm"], o["marker_med_mm"] / i["marker_med_mm"]))
+    for r in table:
+        print(f"| {r[0]} | " + " | ".join(f"{v:.2f}" for v in r[1:]) + " |")
+
+    def worst(k):
+        finite = [r for r in table if np.isfinite(r[k])]
+        if not finite:
+            return "–"
+        r = max(finite, key=lambda r: r[k])
+        return f"{r[k]:.2f} [{r[0]}]"
+
+    print("| **worst** | " + " | ".join(worst(k) for k in range(1, 6)) + " |")
+
+    print("\n### worst scan of each column over the external set\n")
+    methods = [TRUTH, "start (init stage)", OURS, ELASTIX]
+    per_method = {m: [(s["label"], s["rows"][start_of[s["label"]]] if m == "start (init stage)" else s["rows"][m])
+                      for s in summary if m == "start (init stage)" or m in s["rows"]] for m in methods}
+    cols = _columns(v for s in summary for v in s["rows"].values())
+    print("| method | " + " | ".join(c[0] for c in cols) + " |")
+    print("|---" * (len(cols) + 1) + "|")
+    for m, items in per_method.items():
+        if not items:
+            continue
+        cells = []
+        for _, key, cell, worse in cols:
+            finite = [(lab, v) for lab, v in items if np.isfinite(v[key])]
+            if not finite:
+                cells.append("–")
+                continue
+            lab, v = worse(finite, key=lambda t: t[1][key])
+            cells.append(f"{cell(v)} [{lab}]")
+        print(f"| {m} | " + " | ".join(cells) + " |")
+    worse_than_start = [f"{lab} (MED {s['rows'][OURS]['med_mm']:.2f} vs {s['rows'][start_of[lab]]['med_mm']:.2f} mm, "
+                        f"marker MED {s['rows'][OURS]['marker_med_mm']:.2f} vs "
+                        f"{s['rows'][start_of[lab]]['marker_med_mm']:.2f} mm)"
+                        for s in summary for lab in [s["label"]]
+                        if s["rows"][OURS]["med_mm"] > s["rows"][start_of[lab]]["med_mm"]
+                        or s["rows"][OURS]["marker_med_mm"] > s["rows"][start_of[lab]]["marker_med_mm"]]
+    print("\nours worse than its own start (MED or marker MED): "
+          + ("; ".join(worse_than_start) if worse_than_start else "no scan"))
+    print("(worst: the largest value of a column over the scans [which scan], the smallest for CC; ratios > 1: ours "
+          "is worse. Times: the start's is the init stage's, ours the register stage's registration without the inversion, "
+          "on a shared machine: compare ratios, not seconds)", flush=True)
 
 
 def _cases(args):
@@ -426,9 +696,17 @@ def report(name, rows):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--cases", nargs="+", choices=["table2", "knee", "hand", "flex"], default=["table2", "knee"])
+    p.add_argument("--cases", nargs="+", choices=["table2", "knee", "hand", "flex", "external"],
+                   default=["table2", "knee"])
     p.add_argument("--split", choices=["tuning", "held-out"], default="held-out",
-                   help="flex: the seeds settings were tuned on, or the held-out ones (default)")
+                   help="flex: the seeds settings were tuned on, or the held-out ones (default). external: no "
+                        "split, its studies are never used for choosing settings (always held out)")
+    p.add_argument("--external", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"
+                                             / "external-phantoms"),
+                   help="external: the folder of study folders (default: <repository>/../shared/data/"
+                        "external-phantoms); only read: each study is copied into --work")
+    p.add_argument("--work", help="external: the folder the study copies are made and run in (default: a new "
+                                  "temporary folder); it must not hold folders of the studies' names")
     p.add_argument("--seeds", type=int, nargs="+", help="flex: these seeds instead of the split's")
     p.add_argument("--knee-only", action="store_true", help="flex: leave the hand out")
     p.add_argument("--hand-only", action="store_true", help="flex: leave the knee out")
@@ -457,16 +735,19 @@ def main(argv=None) -> int:
     if args.cases == ["flex"]:  # its own seeds and start (run_flex prints them per case)
         print(f"registration benchmark, issue I's flex cases ({args.split} seeds), polyrigid start from the "
               f"estimated poses; elastix {elx}")
+    elif args.cases == ["external"]:  # the workbench's own chain and start (run_external prints them per study)
+        print(f"registration benchmark, the external set (held out), the workbench's start; elastix {elx}")
     else:
         print(f"registration benchmark, {args.size} size, seed {args.seed}, "
               f"{'ground-truth' if args.from_truth else 'unfolded VBD' if args.unfold_init else 'raw VBD'} "
               f"initialisation; elastix {elx}")
     if "flex" in args.cases:
         run_flex(args)
+    failed = run_external(args) if "external" in args.cases else 0
     for name, ph, articulated in _cases(args):
         print(f"\n{name}: {ph.geometry.describe()}", flush=True)
         report(name, run_case(name, ph, articulated, args))
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
