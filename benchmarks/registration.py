@@ -24,6 +24,8 @@ Usage::
     .venv/bin/python benchmarks/registration.py --cases hand
     .venv/bin/python benchmarks/registration.py --cases knee hand --from-truth   # the intensity floor
     .venv/bin/python benchmarks/registration.py --cases flex --split held-out   # issue I's protocol
+    .venv/bin/python benchmarks/registration.py --cases flex --start vbd         # every method from VBD
+    .venv/bin/python benchmarks/registration.py --cases flex --start perturbed   # poses off 2-5 deg, 2 mm
     nice .venv/bin/python benchmarks/registration.py --cases external          # the external set (tens of minutes)
 
 ``flex`` (issue I): the knee flexed 10°, 45° and 70° and the hand's strongest
@@ -99,6 +101,10 @@ PAPER = {"table2": RHEE_TABLES["table2"], "knee": RHEE_TABLES["table3"], "hand":
 
 
 OURS = "ours (dense, bones fixed)"
+#: flex: the start every method registers from (--start)
+START_ROWS = {"polyrigid": "initialised (polyrigid, estimated poses)",
+              "vbd": "initialised (VBD, distance weights, estimated poses)",
+              "perturbed": "initialised (polyrigid, estimated poses off by 2-5 deg and 2 mm)"}
 ELASTIX = "elastix B-spline"
 TRUTH = "ground truth (sampled on the scan grid)"
 TUNING_SEEDS = (0, 1)
@@ -189,6 +195,32 @@ def _flex_phantoms(seed, args):
         yield "hand", hand, [hand.poses[-1][0]]  # the strongest curl
 
 
+def perturbed_transforms(transforms: dict, labels: Volume, bone_labels: dict, seed: int, *,
+                         degrees=(2.0, 5.0), shift_mm: float = 2.0) -> dict:
+    """A pose stage that erred (issue M part 3): each bone's template → scan transform followed by a rotation of
+    ``degrees`` (uniform in the range) about a random axis through the bone's posed centroid and a ``shift_mm``
+    translation in a random direction, drawn from ``seed``."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    lab = np.asarray(labels.data)
+    ijk_to_world = labels.geometry.index_to_world_matrix
+    out = {}
+    for bone in sorted(transforms):
+        idx = np.argwhere(lab == bone_labels[bone])[:, ::-1]  # (i, j, k)
+        c_t = (ijk_to_world[:3, :3] @ idx.mean(axis=0)) + ijk_to_world[:3, 3] if len(idx) else np.zeros(3)
+        t = np.asarray(transforms[bone], float)
+        c = t[:3, :3] @ c_t + t[:3, 3]  # the bone's centroid in the scan
+        axis = rng.normal(size=3)
+        r = Rotation.from_rotvec(np.deg2rad(rng.uniform(*degrees)) * axis / np.linalg.norm(axis)).as_matrix()
+        d = rng.normal(size=3)
+        err = np.eye(4)
+        err[:3, :3] = r
+        err[:3, 3] = c - r @ c + shift_mm * d / np.linalg.norm(d)
+        out[bone] = err @ t
+    return out
+
+
 def run_flex(args):
     """Issue I's protocol (module docstring): one table per case, methods side by side on the same start."""
     from registration.dense import DenseSettings, register_dense
@@ -249,13 +281,22 @@ def run_flex(args):
                 # the truth sampled on the scan grid folds too, where curled fingers touch or the crease compresses
                 # tissue below the voxel: its row says how many of a method's folded voxels any exact field has
                 add(TRUTH, truth, 0.0, 0.0)
+                transforms = poses[sid].transforms
+                if args.start == "perturbed":  # the estimated poses, each bone off by 2-5 degrees and 2 mm
+                    transforms = perturbed_transforms(transforms, labels, bl, seed=seed)
                 with PeakMemory() as pm:
                     t1 = time.perf_counter()
-                    init, _ = polyrigid_initial_field(labels, bl, parents, poses[sid].transforms,
-                                                      sc.image.geometry)
+                    if args.start == "vbd":  # what `--init vbd` starts from: distance weights, estimated poses
+                        if "distance" not in vbd_weights:
+                            vbd_weights["distance"] = _weights(ph, "distance")
+                        w, _ = vbd_weights["distance"]
+                        init, _ = vbd_initial_field(ph.geometry, sc.image.geometry, w,
+                                                    stack_transforms(transforms, w.bones), body=body_t.data)
+                    else:
+                        init, _ = polyrigid_initial_field(labels, bl, parents, transforms, sc.image.geometry)
                     t_init = time.perf_counter() - t1
-                add("initialised (polyrigid, estimated poses)", init, t_init, pm.mib)
-                if not args.no_vbd_starts:  # issue I part 3: the same poses blended by VBD, two kinds of weights
+                add(START_ROWS[args.start], init, t_init, pm.mib)
+                if not args.no_vbd_starts and args.start == "polyrigid":  # issue I part 3: the same poses blended by VBD, two kinds of weights
                     for kind in ("distance", "harmonic"):
                         if kind not in vbd_weights:
                             vbd_weights[kind] = _weights(ph, kind)
@@ -291,7 +332,7 @@ def run_flex(args):
                     with PeakMemory() as pm:
                         b = ants_syn(sc.image, template, initial=init, seed=args.seed)
                     add("ANTs SyN", b.correspondence, b.seconds, pm.mib)
-                summary.append(flex_report(f"{region} {sid}, seed {seed} ({args.split})", rows))
+                summary.append(flex_report(f"{region} {sid}, seed {seed} ({args.split}), {args.start} start", rows))
     flex_summary(summary, args.split)
 
 
@@ -712,6 +753,10 @@ def main(argv=None) -> int:
     p.add_argument("--hand-only", action="store_true", help="flex: leave the knee out")
     p.add_argument("--no-adaptive", action="store_true", help="flex: leave Rhee's Algorithm 1 out")
     p.add_argument("--no-sitk", action="store_true")
+    p.add_argument("--start", choices=list(START_ROWS), default="polyrigid",
+                   help="flex: the start every method registers from (issue M part 3): the polyrigid flow of the "
+                        "estimated poses (the workbench's default), VBD of the same poses (it folds in the crease), "
+                        "or the polyrigid flow of the estimated poses with every bone off by 2-5 degrees and 2 mm")
     p.add_argument("--no-vbd-starts", action="store_true",
                    help="flex: leave out the VBD starts (distance and harmonic weights) measured beside the polyrigid one")
     p.add_argument("--size", choices=["test", "paper"], default="test")
