@@ -187,11 +187,12 @@ def _unfold_line(u):
 
 def _flex_phantoms(seed, args):
     if not args.hand_only:
-        knee = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
+        knee = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5), acquisition=args.acquisition,
                             poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + FLEX_KNEE)
         yield "knee", knee, ["bend10", "bend45", "bend70"]
     if not args.knee_only:
-        hand = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4)
+        hand = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4,
+                            acquisition=args.acquisition)
         yield "hand", hand, [hand.poses[-1][0]]  # the strongest curl
 
 
@@ -757,6 +758,10 @@ def main(argv=None) -> int:
                    help="flex: the start every method registers from (issue M part 3): the polyrigid flow of the "
                         "estimated poses (the workbench's default), VBD of the same poses (it folds in the crease), "
                         "or the polyrigid flow of the estimated poses with every bone off by 2-5 degrees and 2 mm")
+    p.add_argument("--acquisition", choices=["fixed", "random"], default="fixed",
+                   help="flex: the phantoms' acquisition: the modality's fixed noise, bias and contrast, or drawn per "
+                        "seed (noise model and SNR 8-40, bias 0-20 %%, gain, a contrast between T1-like and CT-like; "
+                        "validation.phantoms.generate.draw_acquisition). The voxel spacing stays the case's")
     p.add_argument("--no-vbd-starts", action="store_true",
                    help="flex: leave out the VBD starts (distance and harmonic weights) measured beside the polyrigid one")
     p.add_argument("--size", choices=["test", "paper"], default="test")

@@ -459,6 +459,14 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--seed", type=int, default=0, help="random seed (texture, noise, jitter, markers). Default: 0")
     ph.add_argument("--noise-free", action="store_true",
                     help="no noise and no bias field (for exact-resampling checks)")
+    ph.add_argument("--acquisition", choices=["fixed", "random"], default="fixed",
+                    help="'fixed': every image gets the modality's tissue intensities, noise and bias; 'random': "
+                         "drawn from the seed: per study a tissue-intensity table between the MRI (T1-like, bright "
+                         "fat) and CT (dark fat, bright cortex) ones and, without --spacing, anisotropic voxels "
+                         "(one axis up to 3x coarser relative to the others, same field of view); per image Rician or Gaussian "
+                         "noise at an SNR of 8-40 (muscle signal above air over sigma), a 0-20%% bias field, a "
+                         "gain of 0.9-1.1 (and a small offset with Gaussian noise). Recorded in study.json "
+                         "(phantom.acquisition_drawn). Default: fixed")
     ph.add_argument("--force", action="store_true", help="replace DIR if it exists")
     _common(ph)
     ph.set_defaults(func=cmd_phantom)
@@ -1332,7 +1340,7 @@ def cmd_phantom(args) -> int:
     try:
         spec = PhantomSpec(region=args.region, size=args.size, modality=args.modality, n_poses=args.poses,
                            posing=args.posing, seed=args.seed, noise=not args.noise_free, poses=poses,
-                           spacing=_spacing(args.spacing))
+                           spacing=_spacing(args.spacing), acquisition=args.acquisition)
         phantom = Phantom(spec)
     except ValueError as e:
         if args.poses_file:
@@ -1376,6 +1384,16 @@ def summarize(study) -> str:
              f"{tuple(round(s, 4) for s in g.spacing)} mm, extent {tuple(round(e, 1) for e in g.extent_mm)} mm",
              f"skeleton: {sk.name}, {len(sk.bones)} bones, {len(sk.joints)} joints, {sk.n_dof} DOF "
              f"(6-DOF joints: {', '.join(j.name for j in sk.joints if j.dof == 6) or 'none'})"]
+    drawn = (m.get("phantom") or {}).get("acquisition_drawn")
+    if isinstance(drawn, dict):  # a random-acquisition phantom: what it drew
+        st, images = drawn.get("study", {}), drawn.get("images", {})
+        images = {i: images[i] for i in sorted(images, key=lambda i: i != "template")}  # the template first
+        c = st.get("contrast", {})
+        fat = (c.get("fat", 0.0) - c.get("air", 0.0)) / max(c.get("muscle", 1.0) - c.get("air", 0.0), 1e-9)
+        lines.append(f"acquisition: random, contrast {st.get('contrast_weight_ct', float('nan')):.2f} of the way "
+                     f"from the MRI table to the CT one (fat/muscle {fat:.2f} above air)"
+                     + "".join(f"; {i}: {a['noise']}, SNR {a['snr']:.0f}, gain {a['gain']:.2f}, bias "
+                               f"{100 * a['bias_amplitude']:.0f}%" for i, a in images.items()))
     vox_ml = float(np.prod(g.spacing)) / 1000.0
     if study.has_template_labels:
         labels = study.template_labels().data

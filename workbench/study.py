@@ -641,7 +641,10 @@ def _write_phantom_files(phantom, stage: Path, report, name: str | None) -> None
         "phantom": {**spec, "poses": [{"id": pid, "angles_deg": {k: np.asarray(v).tolist() for k, v in a.items()}}
                                       for pid, a in phantom.poses],
                     "generator": "validation.phantoms", "workbench_version": __version__,
-                    "correspondence": "scan_to_template: template position minus scan voxel position, mm"},
+                    "correspondence": "scan_to_template: template position minus scan voxel position, mm",
+                    # acquisition="random": what was drawn (validation.phantoms.draw_acquisition)
+                    **({"acquisition_drawn": phantom.acquisition}
+                       if getattr(phantom, "acquisition", None) is not None else {})},
         "stages": {},
     }
     log["total_seconds"] = round(time.perf_counter() - t0, 3)

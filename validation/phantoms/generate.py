@@ -9,11 +9,23 @@ Randomness: one ``seed`` feeds a :class:`numpy.random.SeedSequence`, spawned
 into independent streams for the texture, pose jitter, markers, and each
 image's noise and bias field, so the same seed gives identical files and
 another seed gives different noise (and jitter).
+
+Acquisition: by default (``acquisition="fixed"``) every image of a modality
+has the same tissue intensities, noise model, noise level and bias amplitude
+(:data:`~validation.phantoms.anatomy.CONTRASTS`).  ``acquisition="random"``
+draws them instead (:func:`draw_acquisition`), from a stream of their own
+(the root sequence's sixth child, spawned into [study, image 0, image 1, ...];
+image 0 is the template): per study a tissue-intensity table and, unless the
+spec gives ``spacing``, an anisotropic voxel spacing; per image a noise model,
+SNR, gain, offset and bias amplitude.  The noise and bias field themselves
+still come from each image's own noise/bias stream.  Only intensities and the
+grid change: the anatomy, poses, correspondence and markers are those of the
+same seed without it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Iterator
 
 import numpy as np
@@ -22,11 +34,12 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.skeleton import Pose, Skeleton
 
 from . import hand, knee
-from .anatomy import CONTRASTS, Anatomy, Texture
+from .anatomy import CONTRASTS, Anatomy, Contrast, Texture
 from .posing import POSING_MODES, PosingModel, residual_waves
 from .soft_tissue import SoftTissue
 
-__all__ = ["PhantomSpec", "PhantomScan", "Phantom", "REGIONS", "make_phantom", "SIZES", "MODALITIES"]
+__all__ = ["PhantomSpec", "PhantomScan", "Phantom", "REGIONS", "make_phantom", "SIZES", "MODALITIES",
+           "ACQUISITIONS", "draw_acquisition"]
 
 REGIONS = {"knee": knee, "hand": hand}
 SIZES = ("test", "paper")
@@ -39,6 +52,20 @@ N_MARKERS = 12  # skin markers per study (Rhee Table 3 used eight)
 MIN_AXIS_VOXELS = 16
 #: and at most this many voxels in all (Kurihara's CT, the largest grid the project works on, has 197 M)
 MAX_GRID_VOXELS = 250_000_000
+
+#: ``PhantomSpec.acquisition``: "fixed" (the modality's table, noise and bias for every image) or "random"
+ACQUISITIONS = ("fixed", "random")
+#: Ranges of ``acquisition="random"`` (see :func:`draw_acquisition`).  SNR is the muscle's mean signal above
+#: air (times the image's gain) over the noise σ: σ = gain · (muscle − air) / SNR.
+SNR_RANGE = (8.0, 40.0)  # log-uniform
+BIAS_RANGE = (0.0, 0.20)  # max |bias − 1|, uniform
+GAIN_RANGE = (0.9, 1.1)  # uniform
+OFFSET_FRACTION = 0.02  # Gaussian-noise images: offset uniform in ±this × (muscle − air); Rician: none
+ANISOTROPY_RANGE = (1.0, 3.0)  # slice / in-plane spacing factor, log-uniform
+TISSUE_JITTER = 0.10  # each tissue's signal above air (but muscle's) times uniform 1 ± this
+#: the tissues of a Contrast with an intensity (muscle is the reference of the random tables)
+TISSUES = ("skin", "fat", "muscle", "cortex", "marrow", "tendon", "vessel")
+_ACQUISITION_STREAM = 5  # the root SeedSequence's child holding the random acquisition's draws (see Phantom)
 
 
 @dataclass(frozen=True)
@@ -55,6 +82,7 @@ class PhantomSpec:
     poses: tuple | None = None  # explicit joint angles: tuple of (id, {joint: angles})
     direction: tuple | None = None  # grid direction (default identity)
     spacing: tuple | None = None  # override the size's voxel spacing (mm); the field of view is kept
+    acquisition: str = "fixed"  # "random": draw contrast, noise, bias, gain and spacing (draw_acquisition)
 
     def __post_init__(self):
         if self.region not in REGIONS:
@@ -71,6 +99,8 @@ class PhantomSpec:
                 raise ValueError(f"spacing must be 3 positive numbers (mm), got {self.spacing!r}")
         if self.n_poses is not None and self.n_poses < 1:
             raise ValueError(f"n_poses must be at least 1, got {self.n_poses}")
+        if self.acquisition not in ACQUISITIONS:
+            raise ValueError(f"acquisition must be one of {ACQUISITIONS}, got {self.acquisition!r}")
 
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in ("region", "size", "modality", "n_poses", "posing", "seed", "noise")}
@@ -78,7 +108,25 @@ class PhantomSpec:
             d["direction"] = list(self.direction)
         if self.spacing is not None:
             d["spacing"] = list(self.spacing)
+        if self.acquisition != "fixed":  # recorded only when not the default: older manifests stay the same
+            d["acquisition"] = self.acquisition
         return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PhantomSpec":
+        """The spec :meth:`to_dict` wrote (e.g. a study manifest's ``phantom`` entry).
+
+        Keys :meth:`to_dict` does not write are not read: a manifest's recorded ``poses`` (the poses the
+        spec drew, or its explicit ones, which :meth:`to_dict` leaves out), ``acquisition_drawn`` and the
+        generator's notes.  ``PhantomSpec.from_dict(spec.to_dict()) == spec`` for every spec without
+        explicit ``poses``.
+        """
+        known = {f.name for f in fields(cls)} - {"poses", "direction", "spacing"}
+        kw = {k: v for k, v in d.items() if k in known}
+        for k in ("direction", "spacing"):
+            if d.get(k) is not None:
+                kw[k] = tuple(float(v) for v in np.ravel(np.asarray(d[k], float)))
+        return cls(**kw)
 
 
 @dataclass
@@ -101,6 +149,98 @@ class PhantomScan:
     markers: list
     stats: dict = field(default_factory=dict)
     template_to_scan: Volume | None = None
+
+
+def _acquisition_seq(seed: int, child: int) -> np.random.SeedSequence:
+    """Child ``child`` (0: the study, 1 + i: image i) of the random acquisition's stream of ``seed``."""
+    return np.random.SeedSequence(seed, spawn_key=(_ACQUISITION_STREAM, int(child)))
+
+
+def _draw_study(spec: PhantomSpec) -> dict:
+    """The study's tissue-intensity table and (unless ``spec.spacing``) anisotropic spacing (see
+    :func:`draw_acquisition`)."""
+    rng = np.random.default_rng(_acquisition_seq(spec.seed, 0))
+    mri, ct, base = CONTRASTS["mri"], CONTRASTS["ct"], CONTRASTS[spec.modality]
+    weight = float(rng.beta(0.5, 0.5))  # 0: the MRI (T1-like) table, 1: the CT table; the ends most likely
+    jitter = {t: (1.0 if t == "muscle" else float(rng.uniform(1 - TISSUE_JITTER, 1 + TISSUE_JITTER)))
+              for t in TISSUES}
+
+    def relative(c, t):  # signal above air in units of the muscle's
+        return (getattr(c, t) - c.air) / (c.muscle - c.air)
+
+    span = base.muscle - base.air
+    table = {"air": float(base.air)}
+    for t in TISSUES:
+        rel = (1 - weight) * relative(mri, t) + weight * relative(ct, t)
+        table[t] = float(base.air + span * rel * jitter[t])
+    table["texture_amplitude"] = float((1 - weight) * mri.texture_amplitude + weight * ct.texture_amplitude)
+    out = {"contrast_weight_ct": weight, "tissue_jitter": jitter, "contrast": table,
+           "spacing": None, "slice_axis": None, "anisotropy": None}
+    # The spacing is drawn (the same numbers) whether or not the spec gives one; it is used only when not.
+    ratio = float(np.exp(rng.uniform(*np.log(ANISOTROPY_RANGE))))
+    axis = int(rng.integers(3))
+    if spec.spacing is None:
+        size, spacing = REGIONS[spec.region].GRIDS[spec.size]
+        spacing = np.asarray(spacing, float)
+        extent = np.asarray(size) * spacing
+        # the voxel's volume is kept: in-plane ratio^(-1/3), slice ratio^(2/3), so ratio between them
+        sp = spacing * ratio ** (-1.0 / 3.0)
+        sp[axis] = spacing[axis] * ratio ** (2.0 / 3.0)
+        coarsest = np.floor(extent / MIN_AXIS_VOXELS * 1e4) / 1e4  # MIN_AXIS_VOXELS along every axis
+        sp = np.minimum(np.round(sp, 4), coarsest)
+        out.update(spacing=[float(v) for v in sp], slice_axis="xyz"[axis], anisotropy=ratio)
+    return out
+
+
+def _draw_image(seed: int, index: int, span: float) -> dict:
+    """Image ``index``'s (0: the template) noise model, SNR, σ, gain, offset and bias amplitude; ``span`` is the
+    study's muscle − air (see :func:`draw_acquisition`)."""
+    rng = np.random.default_rng(_acquisition_seq(seed, 1 + index))
+    noise = "rician" if rng.uniform() < 0.5 else "gaussian"
+    snr = float(np.exp(rng.uniform(*np.log(SNR_RANGE))))
+    gain = float(rng.uniform(*GAIN_RANGE))
+    offset = float(rng.uniform(-OFFSET_FRACTION, OFFSET_FRACTION) * span)
+    bias = float(rng.uniform(*BIAS_RANGE))
+    return {"noise": noise, "snr": snr, "noise_sigma": gain * span / snr, "gain": gain,
+            "offset": offset if noise == "gaussian" else 0.0, "bias_amplitude": bias}
+
+
+def _image_count(spec: PhantomSpec) -> int:
+    return 1 + (len(spec.poses) if spec.poses is not None else spec.n_poses or REGIONS[spec.region].DEFAULT_POSES)
+
+
+def draw_acquisition(spec: PhantomSpec, n_images: int | None = None) -> dict:
+    """The acquisition ``acquisition="random"`` draws for ``spec`` (whatever ``spec.acquisition`` says).
+
+    Returns ``{"study": {...}, "images": [template, scan 0, scan 1, ...]}`` (``n_images`` entries, by default
+    the template and the spec's scans), all from ``spec.seed`` through the acquisition's own stream: child 0
+    for the study, child 1 + i for image i, so an image's draws do not depend on how many images there are.
+
+    Per study (the template and the scans share it, as one protocol's scans do):
+
+    * ``contrast``: each tissue's signal above air in units of the muscle's is interpolated between the MRI
+      (T1-like: fat 2.4 and marrow 2.1 times muscle, cortex dark) and the CT table (fat 0.86 times muscle,
+      cortex bright) with weight ``contrast_weight_ct`` ~ Beta(½, ½) on [0, 1] (the two tables the most likely;
+      in between, fat a little brighter than muscle and cortex near muscle; fat is darker than muscle for
+      weights above about 0.9, a fifth of the draws), then times ``tissue_jitter`` ~ U(1 ± TISSUE_JITTER)
+      per tissue but muscle.  The modality sets the units: its air level and its muscle − air.
+      ``texture_amplitude`` is interpolated likewise.
+    * ``spacing``: when the spec gives none, the size's spacing with one axis (``slice_axis``, uniform) made
+      thicker by ``anisotropy``^(2/3) and the others finer by ``anisotropy``^(-1/3) (log-uniform in
+      ANISOTROPY_RANGE; the voxel volume and field of view are kept), rounded to 1e-4 mm and capped so that
+      every axis keeps MIN_AXIS_VOXELS voxels.  ``None`` (and ``slice_axis``, ``anisotropy`` None) when
+      the spec gives ``spacing``.
+
+    Per image: ``noise`` "rician" or "gaussian" (probability ½ each); ``snr`` log-uniform in SNR_RANGE, where
+    SNR is the muscle's mean signal above air (times ``gain``) over σ, so ``noise_sigma`` = gain · (muscle −
+    air) / snr; ``gain`` ~ U(GAIN_RANGE); ``offset`` ~ U(±OFFSET_FRACTION · (muscle − air)) for Gaussian
+    noise (a CT-like calibration shift), 0 for Rician; ``bias_amplitude`` ~ U(BIAS_RANGE), the largest
+    |bias − 1| of the image's smooth multiplicative bias field.
+    """
+    study = _draw_study(spec)
+    span = study["contrast"]["muscle"] - study["contrast"]["air"]
+    n = _image_count(spec) if n_images is None else int(n_images)
+    return {"study": study, "images": [_draw_image(spec.seed, i, span) for i in range(n)]}
 
 
 def _chunks(n: int, size: int = CHUNK):
@@ -126,10 +266,27 @@ class Phantom:
         self.skeleton: Skeleton = self.anatomy.skeleton
         self.contrast = CONTRASTS[spec.modality]
         size, spacing = self.region.GRIDS[spec.size]
-        if spec.spacing is not None:  # keep the field of view, change the sampling
+        override = spec.spacing
+        #: ``acquisition="random"``: ``{"study": {...}, "images": {image id: {...}}}`` (draw_acquisition; the
+        #: template's id is "template"; no images with ``noise=False``, whose images are not acquired); else None
+        self.acquisition = None
+        if spec.acquisition == "random":
+            study = _draw_study(spec)
+            t = study["contrast"]
+            base = self.contrast
+            # the study's table; its noise fields stay the modality's and are not used (each image's noise,
+            # σ and bias amplitude are in self.acquisition["images"])
+            self.contrast = Contrast(f"{base.name}-random", air=t["air"], skin=t["skin"], fat=t["fat"],
+                                     muscle=t["muscle"], cortex=t["cortex"], marrow=t["marrow"], noise=base.noise,
+                                     noise_sigma=base.noise_sigma, texture_amplitude=t["texture_amplitude"],
+                                     bias_amplitude=base.bias_amplitude, tendon=t["tendon"], vessel=t["vessel"])
+            self.acquisition = {"study": study, "images": {}}
+            if override is None:
+                override = tuple(study["spacing"])
+        if override is not None:  # keep the field of view, change the sampling
             extent = np.asarray(size) * np.asarray(spacing)
-            size = tuple(int(v) for v in np.maximum(1, np.round(extent / np.asarray(spec.spacing, float))))
-            spacing = tuple(float(v) for v in spec.spacing)
+            size = tuple(int(v) for v in np.maximum(1, np.round(extent / np.asarray(override, float))))
+            spacing = tuple(float(v) for v in override)
             coarsest = extent / MIN_AXIS_VOXELS
             if min(size) < MIN_AXIS_VOXELS:
                 raise ValueError(f"spacing {tuple(round(v, 4) for v in spacing)} mm leaves the {spec.region}'s field "
@@ -164,6 +321,11 @@ class Phantom:
         self.poses = self._make_poses()
         # One independent noise/bias stream per image: [template, scan 0, scan 1, ...].
         self._image_seqs = self._noise_seq.spawn(len(self.poses) + 1)
+        if self.acquisition is not None and spec.noise:
+            span = self.contrast.muscle - self.contrast.air
+            ids = ["template"] + [pid for pid, _ in self.poses]
+            self._image_draws = [_draw_image(spec.seed, i, span) for i in range(len(ids))]
+            self.acquisition["images"] = dict(zip(ids, self._image_draws))
 
     # -- poses --------------------------------------------------------------------------
     def _make_poses(self) -> list[tuple[str, dict]]:
@@ -217,9 +379,10 @@ class Phantom:
                                                   texture=self.texture, bone_frames=frames, tissue=self.tissue)
         return out
 
-    def _bias_field(self, rng: np.random.Generator) -> np.ndarray:
-        """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1."""
-        amp = self.contrast.bias_amplitude
+    def _bias_field(self, rng: np.random.Generator, amplitude: float | None = None) -> np.ndarray:
+        """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1, max |bias − 1| = ``amplitude``
+        (default: the contrast's)."""
+        amp = self.contrast.bias_amplitude if amplitude is None else amplitude
         if amp == 0:
             return np.ones(self.geometry.array_shape)
         nz, ny, nx = self.geometry.array_shape
@@ -235,10 +398,13 @@ class Phantom:
         field_ /= max(np.abs(field_).max(), 1e-12)
         return 1.0 + amp * field_
 
-    def _acquire(self, clean: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Bias field and noise of a scanner acquisition (Rician for MRI, Gaussian for CT)."""
+    def _acquire(self, clean: np.ndarray, rng: np.random.Generator, image: int = 0) -> np.ndarray:
+        """Bias field and noise of a scanner acquisition (Rician for MRI, Gaussian for CT); with
+        ``acquisition="random"``, image ``image``'s drawn one (:meth:`_acquire_drawn`)."""
         if not self.spec.noise:
             return clean.astype(np.float32)
+        if self.acquisition is not None:
+            return self._acquire_drawn(clean, rng, image)
         c = self.contrast
         img = clean - c.air
         img = img * self._bias_field(rng)
@@ -247,6 +413,27 @@ class Phantom:
         else:
             img = img + rng.normal(0, c.noise_sigma, img.shape)
         return (img + c.air).astype(np.float32)
+
+    def _acquire_drawn(self, clean: np.ndarray, rng: np.random.Generator, image: int) -> np.ndarray:
+        """``air + offset + noise(gain · bias · (clean − air))`` with image ``image``'s drawn parameters;
+        the bias field is drawn first from ``rng``, then the noise (as :meth:`_acquire` does)."""
+        a = self._image_draws[image]
+        air = self.contrast.air
+        img = (clean - air) * (a["gain"] * self._bias_field(rng, a["bias_amplitude"]))
+        sigma = a["noise_sigma"]
+        if a["noise"] == "rician":
+            img = np.hypot(img + rng.normal(0, sigma, img.shape), rng.normal(0, sigma, img.shape))
+        else:
+            img = img + rng.normal(0, sigma, img.shape)
+        return (img + (air + a["offset"])).astype(np.float32)
+
+    def bias_field(self, image: int) -> np.ndarray:
+        """The multiplicative bias field image ``image`` (0: the template, 1 + i: scan i) was acquired with,
+        ``(nz, ny, nx)``; ones with ``noise=False``.  Redrawn from the image's noise/bias stream."""
+        if not self.spec.noise:
+            return np.ones(self.geometry.array_shape)
+        amp = None if self.acquisition is None else self._image_draws[image]["bias_amplitude"]
+        return self._bias_field(np.random.default_rng(self._image_seqs[image]), amp)
 
     def template(self) -> tuple[Volume, Volume]:
         """``(template image, bone label map)`` on the template grid."""
@@ -462,7 +649,7 @@ class Phantom:
             clean = self.render(phi.reshape(-1, 3), scan_points=self._world_points(), pose=pose)
         clean = clean.reshape(self.geometry.array_shape)
         rng = np.random.default_rng(self._image_seqs[index + 1])
-        img = self._acquire(clean, rng)
+        img = self._acquire(clean, rng, index + 1)
         x = self._world_points().reshape(phi.shape)
         disp = (phi - x)
         body = self.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(residual.shape) < 0
