@@ -133,7 +133,7 @@ class DenseSettings:
     #: (seed 0) 3 voxels gave MED 1.07 mm against 1.32 with a fixed 4 mm and 1.09 with 10 mm.
     fluid_voxels: float | None = 3.0
     elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
-    #: a level stops when 10 iterations gain less than this much LNCC, the mean over the voxels where the force
+    #: a level stops when 10 taken steps gain less than this much LNCC, the mean over the voxels where the force
     #: acts (until 2026-12-03 over the whole grid, air included: its noise's correlation changing as U spread
     #: into the air kept levels going or stopped them by chance; over the region, tuning knees at 70°, seeds
     #: 0 / 1: MED 0.857 / 0.928 mm, 200-marker MED 2.78 / 2.84 against 0.874 / 0.928 and 2.86 / 2.84)
