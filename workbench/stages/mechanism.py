@@ -545,8 +545,10 @@ def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=
 
     ctx = StageContext(study, settings, unit, previous, report, dict(options or {}), stage.name, emit, runner)
     staging = final.parent / f".{final.name}.partial-{_HOST}-{os.getpid()}-{secrets.token_hex(4)}"
-    staging.mkdir()
     try:
+        # made inside the try: a Ctrl-C handled just after mkdir returns (Python runs its handler at the next
+        # bytecode) must still remove it
+        staging.mkdir()
         from workbench.scale import same_bits
 
         with same_bits(), _keeping_sigint():  # the same bits on any machine, for any number of workers
