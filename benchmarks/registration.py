@@ -92,6 +92,7 @@ from registration.baselines import (_itk, ants_available, ants_syn, elastix_avai
                                    sitk_bspline, warp_template)
 from registration.initialise import vbd_initial_field  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
+from validation.phantoms.generate import ACQUISITIONS  # noqa: E402
 from validation.protocols.registration import PAPER as RHEE_TABLES  # noqa: E402
 from validation.registration_measures import (MEASURE_KEYS, body_on_scan, error_map, marker_med,  # noqa: E402
                                              registration_measures)
@@ -196,20 +197,24 @@ def _flex_phantoms(seed, args):
         yield "hand", hand, [hand.poses[-1][0]]  # the strongest curl
 
 
-def perturbed_transforms(transforms: dict, labels: Volume, bone_labels: dict, seed: int, *,
+def perturbed_transforms(transforms: dict, labels: Volume, bone_labels: dict, seed, *,
                          degrees=(2.0, 5.0), shift_mm: float = 2.0) -> dict:
     """A pose stage that erred (issue M part 3): each bone's template → scan transform followed by a rotation of
     ``degrees`` (uniform in the range) about a random axis through the bone's posed centroid and a ``shift_mm``
-    translation in a random direction, drawn from ``seed``."""
+    translation in a random direction, drawn from ``seed`` (an int or a sequence of ints: numpy's SeedSequence
+    entropy).  A bone without voxels in ``labels`` is left as it is."""
     from scipy.spatial.transform import Rotation
 
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
     lab = np.asarray(labels.data)
     ijk_to_world = labels.geometry.index_to_world_matrix
     out = {}
     for bone in sorted(transforms):
         idx = np.argwhere(lab == bone_labels[bone])[:, ::-1]  # (i, j, k)
-        c_t = (ijk_to_world[:3, :3] @ idx.mean(axis=0)) + ijk_to_world[:3, 3] if len(idx) else np.zeros(3)
+        if not len(idx):
+            out[bone] = transforms[bone]
+            continue
+        c_t = (ijk_to_world[:3, :3] @ idx.mean(axis=0)) + ijk_to_world[:3, 3]
         t = np.asarray(transforms[bone], float)
         c = t[:3, :3] @ c_t + t[:3, 3]  # the bone's centroid in the scan
         axis = rng.normal(size=3)
@@ -284,12 +289,14 @@ def run_flex(args):
                 add(TRUTH, truth, 0.0, 0.0)
                 transforms = poses[sid].transforms
                 if args.start == "perturbed":  # the estimated poses, each bone off by 2-5 degrees and 2 mm
-                    transforms = perturbed_transforms(transforms, labels, bl, seed=seed)
+                    # its own draw per study seed, region and scan
+                    transforms = perturbed_transforms(transforms, labels, bl,
+                                                      seed=[seed, ("knee", "hand").index(region), wanted.index(sid)])
+                if args.start == "vbd" and "distance" not in vbd_weights:  # the weights stage's work, not timed
+                    vbd_weights["distance"] = _weights(ph, "distance")
                 with PeakMemory() as pm:
                     t1 = time.perf_counter()
                     if args.start == "vbd":  # what `--init vbd` starts from: distance weights, estimated poses
-                        if "distance" not in vbd_weights:
-                            vbd_weights["distance"] = _weights(ph, "distance")
                         w, _ = vbd_weights["distance"]
                         init, _ = vbd_initial_field(ph.geometry, sc.image.geometry, w,
                                                     stack_transforms(transforms, w.bones), body=body_t.data)
@@ -758,7 +765,7 @@ def main(argv=None) -> int:
                    help="flex: the start every method registers from (issue M part 3): the polyrigid flow of the "
                         "estimated poses (the workbench's default), VBD of the same poses (it folds in the crease), "
                         "or the polyrigid flow of the estimated poses with every bone off by 2-5 degrees and 2 mm")
-    p.add_argument("--acquisition", choices=["fixed", "random"], default="fixed",
+    p.add_argument("--acquisition", choices=list(ACQUISITIONS), default="fixed",
                    help="flex: the phantoms' acquisition: the modality's fixed noise, bias and contrast, or drawn per "
                         "seed (noise model and SNR 8-40, bias 0-20 %%, gain, a contrast between T1-like and CT-like; "
                         "validation.phantoms.generate.draw_acquisition). The voxel spacing stays the case's")
@@ -783,8 +790,8 @@ def main(argv=None) -> int:
         p.error("--from-truth starts from the ground truth, --unfold-init repairs the VBD start: give one of them")
     elx = 'available' if elastix_available() else 'not installed (pip install -e .[bench])'
     if args.cases == ["flex"]:  # its own seeds and start (run_flex prints them per case)
-        print(f"registration benchmark, issue I's flex cases ({args.split} seeds), polyrigid start from the "
-              f"estimated poses; elastix {elx}")
+        print(f"registration benchmark, issue I's flex cases ({args.split} seeds), start: "
+              f"{START_ROWS[args.start].removeprefix('initialised ')}; elastix {elx}")
     elif args.cases == ["external"]:  # the workbench's own chain and start (run_external prints them per study)
         print(f"registration benchmark, the external set (held out), the workbench's start; elastix {elx}")
     else:

@@ -134,9 +134,7 @@ class DenseSettings:
     fluid_voxels: float | None = 3.0
     elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
     #: a level stops when 10 taken steps gain less than this much LNCC, the mean over the voxels where the force
-    #: acts (until 2026-12-03 over the whole grid, air included: its noise's correlation changing as U spread
-    #: into the air kept levels going or stopped them by chance; over the region, tuning knees at 70°, seeds
-    #: 0 / 1: MED 0.857 / 0.928 mm, 200-marker MED 2.78 / 2.84 against 0.874 / 0.928 and 2.86 / 2.84)
+    #: acts (or when no step of the smallest radius raises it: max_halvings)
     tolerance: float = 1e-4
     #: the LNCC windows and both smoothings keep to the scan's tissue (U's by normalised convolution, Knutsson
     #: & Westin 1993).  A Gaussian across the skin averages the skin's motion with the air's, which no image force
@@ -169,7 +167,7 @@ class DenseSettings:
         if any(v is not None and not v >= 0 for v in (self.fluid_voxels, self.elastic_voxels)):
             raise ValueError(f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, "
                              f"{self.elastic_voxels}")
-        if not self.radius_growth >= 1 or int(self.max_halvings) < 0:
+        if not self.radius_growth >= 1 or not isinstance(self.max_halvings, int) or self.max_halvings < 0:
             raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
                              f"{self.max_halvings}")
         if not 0 < self.air_weight <= 1:
@@ -524,10 +522,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
             return force, float(np.sqrt((force ** 2).sum(axis=0)).max())
 
-        def candidate(u_now, force, scale, radius):
+        def candidate(u_now, force, fmax, radius):
             """``u_now`` after one step of at most ``radius`` mm per voxel along ``force`` (composed, smoothed,
             bones held), and the number of halvings that kept the step one-to-one."""
-            fstep = force * np.float32(radius / scale)
+            fstep = force * np.float32(radius / fmax)
             for box, m, wgt in bone_w:
                 sub = fstep[(slice(None),) + box]  # a view: changed in place
                 if st.bones == "rigid":
@@ -565,7 +563,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
 
         # A trust region on the level's objective (the mean LNCC over the region): a step is taken only when it
         # raises the objective; otherwise the radius (each voxel's largest move) halves and the step is tried
-        # again from the same direction; after a taken step the radius doubles, up to ``step``.  The level
+        # again from the same direction; after a taken step the radius grows by radius_growth, up to ``step``.  The level
         # stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or when the
         # last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps the trials.
         w = sample_shifted(ml, u, inv_sp)
@@ -577,11 +575,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         force = None
         for trial in range(int(iters)):
             if force is None:
-                force, scale = direction(u, dcc, w, refresh_bones=len(history) % 5 == 1)
-                if scale <= 0:
+                force, fmax = direction(u, dcc, w, refresh_bones=len(history) % 5 == 1)
+                if fmax <= 0:
                     stop = "no force"
                     break
-            u_c, halved = candidate(u, force, scale, radius)
+            u_c, halved = candidate(u, force, fmax, radius)
             halvings += halved
             w_c = sample_shifted(ml, u_c, inv_sp)
             cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl)

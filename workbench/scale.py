@@ -96,6 +96,9 @@ def same_bits():
 
 
 def _task(fn, *args):
+    from workbench.progress import tolerate_kernel_cache_failures
+
+    tolerate_kernel_cache_failures()  # a worker process compiles its own kernels: the CLI's guard is not there
     with same_bits():
         return fn(*args)
 

@@ -90,6 +90,9 @@ def test_settings_are_checked():
         DenseSettings(fluid_voxels=-1.0)
     with pytest.raises(ValueError, match="air_weight"):
         DenseSettings(air_weight=0.0)
+    for bad in ({"radius_growth": 0.5}, {"max_halvings": -1}, {"max_halvings": 2.5}, {"max_halvings": None}):
+        with pytest.raises(ValueError, match="radius_growth must be ≥ 1 and max_halvings ≥ 0"):
+            DenseSettings(**bad)
 
 
 def test_rigid_bones_move_as_rigid_bodies(case):
@@ -309,7 +312,8 @@ def test_each_level_objective_never_falls_at_a_taken_step(air):
                          settings=DenseSettings(shrink=(2, 1), iterations=(200, 200)))
     for lv in res.levels:
         h = np.asarray(lv["lncc"])
-        assert np.all(np.diff(h) > 0), (lv["level"], h)  # strictly: an equal objective is not a taken step
+        # strictly: an equal objective is not a taken step (fails if a refused candidate were ever recorded)
+        assert np.all(np.diff(h) > 0), (lv["level"], h)
         assert lv["stop"] in ("converged", "no better step"), lv["stop"]
         assert lv["iterations"] == len(h) - 1 and lv["lncc_after"] >= lv["lncc_before"]
     assert res.levels[-1]["lncc_after"] > res.levels[-1]["lncc_before"]  # the fine level did improve

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+from pathlib import Path
 
 from workbench.progress import compile_note
 
@@ -35,7 +36,8 @@ def test_the_deformation_kernels_are_cached_dispatchers():
 def test_a_kernel_cache_that_cannot_be_written_does_not_fail_the_command(tmp_path):
     """On a full disk numba's cache write raised EFBIG out of `workbench deform` (CI on a fresh clone, where no
     kernel was cached yet): with the guard the kernel runs from memory and one warning names the folder; without
-    it the same child fails.  The cap (2 KiB) lets numba write its index (~1.7 KiB) but not the compiled data."""
+    it the same child fails.  The cap (2 KiB) is below the size of the compiled kernel's data file, which numba
+    writes before its index."""
     import os
     import resource
     import subprocess
@@ -47,7 +49,7 @@ def test_a_kernel_cache_that_cannot_be_written_does_not_fail_the_command(tmp_pat
         code = ("import workbench.progress as p\n" + ("p.tolerate_kernel_cache_failures()\n" if guard else "")
                 + "import big_kernel\nprint(big_kernel.twice(21))\n")
         env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / cache),  # numba's first choice: fresh per run
-               "PYTHONPATH": os.pathsep.join([str(tmp_path), os.getcwd()]), "PYTHONDONTWRITEBYTECODE": "1"}
+               "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[2])]), "PYTHONDONTWRITEBYTECODE": "1"}
         return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", env=env, timeout=300,
                               preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048)))
 
