@@ -563,9 +563,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
 
         # A trust region on the level's objective (the mean LNCC over the region): a step is taken only when it
         # raises the objective; otherwise the radius (each voxel's largest move) halves and the step is tried
-        # again from the same direction; after a taken step the radius grows by radius_growth, up to ``step``.  The level
-        # stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or when the
-        # last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps the trials.
+        # again from the same direction; after a taken step the radius grows by radius_growth, up to ``step``.
+        # The level stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or
+        # when the last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps
+        # the trials.
         w = sample_shifted(ml, u, inv_sp)
         cc, dcc = _lncc_force(fl, w, win, f_stats, regl)
         history = [cc]
@@ -573,7 +574,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         halvings = rejected = 0
         stop = "cap"
         force = None
-        for trial in range(int(iters)):
+        for _ in range(int(iters)):
             if force is None:
                 force, fmax = direction(u, dcc, w, refresh_bones=len(history) % 5 == 1)
                 if fmax <= 0:
@@ -605,8 +606,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
-        log.info("dense level %d (shrink %d): %d iterations, LNCC %.4f -> %.4f", lv, s, rec["iterations"],
-                 rec["lncc_before"] or 0, rec["lncc_after"] or 0)
+        log.info("dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; LNCC %.4f -> %.4f", lv, s,
+                 rec["iterations"], rejected, stop, rec["lncc_before"] or 0, rec["lncc_after"] or 0)
         if progress is not None:
             progress(rec)
         prev_s = s
