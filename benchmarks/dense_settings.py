@@ -32,33 +32,33 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from deformation.fields import folding_statistics  # noqa: E402
 from deformation.geometry import Volume  # noqa: E402
 from registration.dense import DenseSettings, register_dense  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
 from validation.registration_measures import body_on_scan, marker_med  # noqa: E402
 
 
-def _flex_constants():
-    """TUNING_SEEDS, FLEX_KNEE and MARKER_SAMPLE from benchmarks/registration.py (one home; loaded by path: the
-    name ``registration`` is the package's)."""
+def _bench():
+    """benchmarks/registration.py as a module (one home for the flex case's constants and a row's measures;
+    loaded by path: the name ``registration`` is the package's)."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("bench_registration", Path(__file__).with_name("registration.py"))
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    return mod.TUNING_SEEDS, mod.FLEX_KNEE, mod.MARKER_SAMPLE
+    return mod
 
 
 def tuning_case(region: str, seed: int, scan: str, cache: Path) -> dict:
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached)."""
-    f = cache / f"{region}{seed}_{scan}.pkl"
+    f = cache / f"{region}{seed}_{scan}.v2.pkl"  # v2: the study markers and the 200 drawn ones
     if f.exists():
         return pickle.loads(f.read_bytes())
     from registration.initialise import polyrigid_initial_field
     from registration.pose import estimate_poses, released_labels
 
-    _, flex_knee, n_markers = _flex_constants()
+    bench = _bench()
+    flex_knee, n_markers = bench.FLEX_KNEE, bench.MARKER_SAMPLE
     if region == "knee":
         ph = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
                           poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + flex_knee)
@@ -80,26 +80,26 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path) -> dict:
     phi = sc.correspondence.data + sc.image.geometry.world_coordinates()
     bone = (ph.anatomy.distances_fast(phi.reshape(-1, 3))[:, :-1].min(axis=1) < 0).reshape(body.shape) & body
     d = dict(scan=sc.image, template=template, held=held, init=init, truth=sc.correspondence, body=body,
-             bone=bone, markers=ph.markers(ph.posing_model(dict(ph.poses)[scan]), n=n_markers, sample=1))
+             bone=bone, markers=sc.markers, many=ph.markers(ph.posing_model(dict(ph.poses)[scan]), n=n_markers, sample=1))
     f.write_bytes(pickle.dumps(d))
     return d
 
 
 def score(d: dict, field: Volume, seconds: float, tag: str, levels=None) -> dict:
-    err = np.linalg.norm(field.data - d["truth"].data, axis=-1)
-    body, bone = d["body"], d["bone"]
-    out = dict(med=float(err[body].mean()), bone=float(err[bone].mean()), soft=float(err[body & ~bone].mean()),
-               markers=marker_med(field, d["markers"]), folded=folding_statistics(field, body)["n_folded"],
-               seconds=seconds)
+    """The flex case's row (benchmarks/registration.py ``field_measures``) of ``field``, printed with the levels."""
+    out = _bench().field_measures(d["scan"], d["template"], field, d["truth"], d["body"], d["bone"], d["markers"],
+                                  seconds, 0.0)
+    out["markers_many_mm"] = marker_med(field, d["many"])
     lv = " ".join(f"[{x['iterations']} taken, {x.get('rejected', 0)} refused, {x.get('stop', '')}: "
                   f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}]" for x in (levels or []))
-    print(f"| {tag} | {out['med']:.3f} | {out['bone']:.3f} | {out['soft']:.3f} | {out['markers']:.3f} | "
-          f"{out['folded']} | {seconds:.0f} | {lv} |", flush=True)
+    print(f"| {tag} | {out['med_mm']:.3f} | {out['bone_mm']:.3f} | {out['soft_mm']:.3f} | "
+          f"{out['markers_many_mm']:.3f} | {out['n_folded']} | {seconds:.0f} | {lv} |", flush=True)
     return out
 
 
 def main(argv=None) -> int:
-    tuning, _, n_markers = _flex_constants()
+    bench = _bench()
+    tuning, n_markers = bench.TUNING_SEEDS, bench.MARKER_SAMPLE
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("region", choices=["knee", "hand"])
     p.add_argument("seed", type=int, help=f"a tuning seed {tuning}")
