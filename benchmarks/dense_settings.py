@@ -49,9 +49,12 @@ def _bench():
     return mod
 
 
-def tuning_case(region: str, seed: int, scan: str, cache: Path) -> dict:
-    """The scan, template, held bones, polyrigid start and truth of one tuning case (cached)."""
-    f = cache / f"{region}{seed}_{scan}.v2.pkl"  # v2: the study markers and the 200 drawn ones
+def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "polyrigid") -> dict:
+    """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
+    "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
+    ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made."""
+    tag = "" if start == "polyrigid" else f"_{start}"
+    f = cache / f"{region}{seed}_{scan}{tag}.v2.pkl"  # v2: the study markers and the 200 drawn ones
     if f.exists():
         return pickle.loads(f.read_bytes())
     from registration.initialise import polyrigid_initial_field
@@ -70,8 +73,11 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path) -> dict:
     sc = {s.id: s for s in ph.scans()}[scan]
     est = estimate_poses(template, labels, {scan: sc.image}, sk).scans[0]
     held = released_labels(labels, sk, [b for b, fit in est.fits.items() if not fit.ok])
-    init, _ = polyrigid_initial_field(labels, {b: sk.label_of(b) for b in sk.bone_names},
-                                      {b: sk.bone(b).parent for b in sk.bone_names}, est.pose.transforms,
+    bl = {b: sk.label_of(b) for b in sk.bone_names}
+    transforms = est.pose.transforms
+    if start == "perturbed":
+        transforms = bench.perturbed_transforms(transforms, labels, bl, seed=[seed, ("knee", "hand").index(region)])
+    init, _ = polyrigid_initial_field(labels, bl, {b: sk.bone(b).parent for b in sk.bone_names}, transforms,
                                       sc.image.geometry)
     xg = ph.geometry.world_coordinates().reshape(-1, 3)
     body_t = Volume((ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(ph.geometry.array_shape).astype(np.uint8),
@@ -105,6 +111,8 @@ def main(argv=None) -> int:
     p.add_argument("seed", type=int, help=f"a tuning seed {tuning}")
     p.add_argument("scan", help="knee: bend10 / bend45 / bend70; hand: curl (its strongest) or a pose id")
     p.add_argument("variants", nargs="*", default=["{}"], help="DenseSettings fields as JSON, one per variant")
+    p.add_argument("--start", choices=["polyrigid", "perturbed"], default="polyrigid",
+                   help="perturbed: every estimated pose off by 2-5 degrees and 2 mm before the polyrigid start")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
     args = p.parse_args(argv)
     if args.seed not in tuning:
@@ -117,11 +125,11 @@ def main(argv=None) -> int:
         except (ValueError, TypeError) as e:
             p.error(f"variant {v!r}: {e}")
     args.cache.mkdir(parents=True, exist_ok=True)
-    d = tuning_case(args.region, args.seed, args.scan, args.cache)
-    print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning)\n")
+    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start)
+    print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}\n")
     print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
     print("|---|---|---|---|---|---|---|---|")
-    score(d, d["init"], 0.0, "start (polyrigid, estimated poses)")
+    score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)")
     for tag, st in variants:
         r = register_dense(d["scan"], d["template"], initial=d["init"], moving_labels=d["held"], settings=st)
         score(d, r.correspondence, r.seconds, tag, r.levels)

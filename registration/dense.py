@@ -127,6 +127,24 @@ class DenseSettings:
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
     bones: str = "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
+    #: with bones="fixed": at the start of each level each held bone's pose is refined as a rigid body on the
+    #: level's objective (the soft tissue held), within refine_deg (rotation vector, each component) and
+    #: refine_mm (each axis) of the start's pose: the pose stage's estimate is corrected, not replaced
+    refine_bones: bool = True
+    refine_deg: float = 8.0
+    refine_mm: float = 4.0
+    refine_evaluations: int = 150  #: objective evaluations per bone and round, at most (NLopt BOBYQA)
+    #: rounds of the bones' refinement per level, at most: one before the steps, then one each time the steps
+    #: stop, the steps going on while a round raises the objective
+    refine_rounds: int = 3
+    refine_shrinks: tuple = (4, 2, 1)  #: the levels (their shrink factors) on which the bones are refined
+    refine_margin_voxels: float | None = 1.0  #: a refined bone's motion fades over this many level voxels
+    #: a bone's pose is first changed only when the refinement moves one of its voxels by more than this many
+    #: voxels of the scan; once changed it is refined on every later round
+    refine_min_move_voxels: float = 0.5
+    #: a bone not moved so far is tested on the first round of each level where it is at least this many level
+    #: voxels thick (its inscribed diameter), and on the finest level only if no coarser level tested it
+    refine_min_voxels: float = 3.0
     elastic_mm: float = 2.0  #: σ of the smoothing of the field after each step (0: none), when elastic_voxels is None
     #: fluid σ in voxels of each level (None: fluid_mm).  In voxels, as ANTs SyN's update field: each level
     #: regularises at its own scale (coarse levels smoothly, the fine one locally).  On the tuning knee at 70°
@@ -170,6 +188,11 @@ class DenseSettings:
         if not self.radius_growth >= 1 or not isinstance(self.max_halvings, int) or self.max_halvings < 0:
             raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
                              f"{self.max_halvings}")
+        if not (self.refine_deg >= 0 and self.refine_mm >= 0 and isinstance(self.refine_evaluations, int)
+                and self.refine_evaluations >= 13 and isinstance(self.refine_rounds, int) and self.refine_rounds >= 1):
+            raise ValueError(f"refine_deg and refine_mm must be ≥ 0, refine_evaluations a whole number ≥ 13 "
+                             f"(BOBYQA's first model needs 2·6 + 1) and refine_rounds ≥ 1, got {self.refine_deg}, "
+                             f"{self.refine_mm}, {self.refine_evaluations}, {self.refine_rounds}")
         if not 0 < self.air_weight <= 1:
             raise ValueError(f"air_weight must be in (0, 1], got {self.air_weight}")
 
@@ -356,7 +379,7 @@ def _bone_cores(labels: np.ndarray, peel: int, sp) -> np.ndarray:
 
 
 def _bone_weights(lab: np.ndarray, bones, sp, margin_mm: float) -> list:
-    """Per bone of ``lab`` (≥ 4 voxels): ``(box, mask, weight)`` on the bone's bounding box grown by the
+    """Per bone of ``lab`` (≥ 4 voxels): ``(label, box, mask, weight)`` on the bone's bounding box grown by the
     margin — ``weight`` 1 on the bone, falling linearly to 0 at ``margin_mm`` (mm, spacing ``sp``) — so that
     the distance maps cost the bones' neighbourhoods, not the grid (21 bones on a hand)."""
     out = []
@@ -370,7 +393,7 @@ def _bone_weights(lab: np.ndarray, bones, sp, margin_mm: float) -> list:
         if m.sum() < 4:
             continue
         d = ndimage.distance_transform_edt(~m, sampling=sp)
-        out.append((box, m, np.clip(1.0 - d / margin_mm, 0.0, 1.0).astype(np.float32)))
+        out.append((b, box, m, np.clip(1.0 - d / margin_mm, 0.0, 1.0).astype(np.float32)))
     return out
 
 
@@ -419,6 +442,85 @@ def _rigid_project(f, mask, grid_mm, weight):
     for a_ in range(3):
         f[a_][near] = (1.0 - wn) * f[a_][near] + wn * rig[a_]
     return f
+
+
+def _rigid_displacement(p, centre, grid_mm, box) -> np.ndarray:
+    """``T(x) − x`` on ``box`` (3, …; mm along the array axes) for the rigid motion ``T(y) = R (y − c) + c + t``,
+    ``p`` = (rotation vector in degrees, ``t`` in mm), ``c`` = ``centre``."""
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_rotvec(np.deg2rad(np.asarray(p[:3], float))).as_matrix()
+    x = [g[box] - np.float32(c) for g, c in zip(grid_mm, centre)]
+    return np.stack([r[a, 0] * x[0] + r[a, 1] * x[1] + r[a, 2] * x[2] - x[a] + p[3 + a]
+                     for a in range(3)]).astype(np.float32)
+
+
+def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, sp, st):
+    """One held bone's rigid pose refined on the level's objective, the soft tissue held.
+
+    The candidate field is ``u`` moved towards the bone's rigid displacement by its weight (exactly rigid on
+    the bone, fading over its margin); its objective is the LNCC's mean over the voxels whose value the bone's
+    motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
+    that the windows' statistics there are the whole grid's.  A rise of that mean is a rise of the level's
+    objective.  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
+    ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``; ``gain`` ≤ 0 means keep ``p0``.
+    """
+    import nlopt
+
+    shape = fl.shape
+    reach = np.ceil(3.0 * np.asarray(win, float)).astype(int) + 1
+    inner = tuple(slice(max(b.start - r, 0), min(b.stop + r, n)) for b, r, n in zip(box, reach, shape))
+    outer = tuple(slice(max(b.start - 2 * r, 0), min(b.stop + 2 * r, n)) for b, r, n in zip(box, reach, shape))
+
+    def rel(bx):
+        return tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(bx, outer))
+
+    fo = fl[outer]
+    stats = _local_stats(fo, win, None if tissue is None else tissue[outer])
+    reg = np.zeros(fo.shape, np.float32)
+    reg[rel(inner)] = 1.0 if region is None else region[inner]
+    uo = u[(slice(None),) + outer]
+    rb = (slice(None),) + rel(box)
+    wb = wgt[None]
+    go = [g[outer] for g in grid_mm]
+    base = [np.arange(o.start, o.stop, dtype=np.float32) for o in outer]
+    idx = np.meshgrid(*base, indexing="ij")
+    inv = (1.0 / np.asarray(sp, float)).astype(np.float32)
+
+    def objective(p, grad=None):
+        uc = uo.copy()
+        uc[rb] += wb * (_rigid_displacement(p, centre, go, rel(box)) - uc[rb])
+        w = ndimage.map_coordinates(ml, [idx[a] + uc[a] * inv[a] for a in range(3)], order=1, mode="nearest")
+        return _lncc_force(fo, w.astype(np.float32), win, stats, reg)[0]
+
+    x0 = np.asarray(p0, float)
+    bound = np.r_[np.full(3, st.refine_deg), np.full(3, st.refine_mm)]
+    x0 = np.clip(x0, -bound, bound)
+    f0 = objective(x0)
+    if not np.all(bound > 0):
+        return x0, 0.0, 1
+    best = [x0.copy(), f0, 1]
+
+    def tracked(x, grad):
+        f = objective(x)
+        best[2] += 1
+        if f > best[1]:
+            best[0], best[1] = np.array(x, float), f
+        return f
+
+    opt = nlopt.opt(nlopt.LN_BOBYQA, 6)
+    opt.set_lower_bounds(-bound)
+    opt.set_upper_bounds(bound)
+    # first trial moves: 1° and half a level voxel (a voxel's worth at 30 mm from the centre for the rotation)
+    opt.set_initial_step(np.minimum(np.r_[np.full(3, 1.0), np.full(3, 0.5 * float(np.min(sp)))], bound))
+    opt.set_xtol_abs(np.full(6, 0.01))  # 0.01° and 0.01 mm: far below a voxel
+    opt.set_maxeval(int(st.refine_evaluations))
+    opt.set_max_objective(tracked)
+    try:
+        opt.optimize(x0)
+    except (nlopt.RoundoffLimited, RuntimeError, ValueError):
+        pass  # the best point seen is still valid
+    return best[0], best[1] - f0, best[2]
 
 
 def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = None,
@@ -470,6 +572,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         lab0 = lab0[crop]
     if region is not None:
         region = region[crop]
+    # the held bones' rigid corrections (settings.refine_bones): label → (rotation vector °, t mm) about the
+    # bone's centroid on the scan (mm along the array axes of the box, the same on every level)
+    centres, params, tested = {}, {}, set()
+    if lab0 is not None and st.bones == "fixed" and st.refine_bones:
+        for b, sl in enumerate(ndimage.find_objects(lab0), start=1):
+            if sl is not None:
+                centres[b] = np.array([(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a]
+                                       for a in range(3)])
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
     prev_s = None  # the previous level's shrink factor
     levels = []
@@ -505,7 +615,57 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
         bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
         bone_w = []
+        hold = (None, None)  # bone_hold() of the current bone_w
         inv_sp = 1.0 / sp
+
+        def bone_hold():
+            """Where U is held (0 on a bone, rising to 1 past its margin) and the held value there: each
+            refined bone's rigid displacement (the nearest bone's where margins meet), None before any."""
+            keep, held = np.ones(shape, np.float32), None
+            for b, box, _, wgt in bone_w:
+                kb = 1.0 - wgt
+                if b in params:
+                    if held is None:
+                        held = np.zeros((3,) + shape, np.float32)
+                    take = kb < keep[box]
+                    hb = held[(slice(None),) + box]
+                    hb[:, take] = _rigid_displacement(params[b], centres[b], grid_mm, box)[:, take]
+                keep[box] = np.minimum(keep[box], kb)
+            return keep, held
+
+        def refine(u_now, test_all):
+            """settings.refine_bones: each held bone's pose refined in turn (:func:`_refine_bone`), only those
+            already moved unless ``test_all``; returns the new ``u`` (``u_now`` untouched) and the record."""
+            nonlocal bone_w
+            u_now = u_now.copy()
+            lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
+            margin = st.bone_margin_mm if st.refine_margin_voxels is None else st.refine_margin_voxels * float(sp.min())
+            bone_w = _bone_weights(lab_now, bones, sp, margin)
+            evaluations, moved = 0, {}
+            finest = lv == len(st.shrink) - 1
+            for b, box, m, wgt in bone_w:
+                if b not in centres:
+                    continue
+                if b not in params:  # not moved so far: tested on a level's first round where it is thick enough
+                    # voxels across at its thickest (a single voxel: 1): a pose is read from two opposite edges
+                    thick = 2.0 * float(ndimage.distance_transform_edt(m).max()) - 1.0
+                    if not test_all or thick < st.refine_min_voxels or (finest and b in tested):
+                        continue
+                    tested.add(b)
+                p, gain, n = _refine_bone(params.get(b, np.zeros(6)), centres[b], box, wgt, u_now, fl, ml, win,
+                                          tissue, regl, grid_mm, sp, st)
+                evaluations += n
+                if gain > 0 and b not in params:  # the start's pose stands unless the image shows it off
+                    with np.errstate(invalid="ignore"):
+                        move = np.sqrt((_rigid_displacement(p, centres[b], grid_mm, box)[:, m] ** 2).sum(axis=0)).max()
+                    if move <= st.refine_min_move_voxels * float(sp_full.min()):
+                        continue
+                if gain > 0:
+                    params[b] = p
+                    sub = u_now[(slice(None),) + box]  # a view
+                    sub += wgt[None] * (_rigid_displacement(p, centres[b], grid_mm, box) - sub)
+                    moved[b] = p
+            return u_now, {"evaluations": evaluations, "bones_moved": len(moved)}
 
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
@@ -517,16 +677,18 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             force = np.stack(_smooth_all([dcc * gw[a] / sp[a] for a in range(3)], fluid))
             if tissue is not None:
                 force *= force_norm[None]
+            nonlocal hold
             if bones and (refresh_bones or not bone_w):  # the bones' regions follow the map
                 lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
                 bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
+                hold = bone_hold() if st.bones == "fixed" else (None, None)
             return force, float(np.sqrt((force ** 2).sum(axis=0)).max())
 
         def candidate(u_now, force, fmax, radius):
             """``u_now`` after one step of at most ``radius`` mm per voxel along ``force`` (composed, smoothed,
             bones held), and the number of halvings that kept the step one-to-one."""
             fstep = force * np.float32(radius / fmax)
-            for box, m, wgt in bone_w:
+            for _, box, m, wgt in bone_w:
                 sub = fstep[(slice(None),) + box]  # a view: changed in place
                 if st.bones == "rigid":
                     _rigid_project(sub, m, [gm[box] for gm in grid_mm], wgt)
@@ -551,13 +713,13 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     smoothed = np.stack(_smooth_all(list(u_new), elastic))
                 u_new = u_new + share * (smoothed - u_new) if share < 1 else smoothed
                 if bone_w and st.bones == "fixed":
-                    keep = np.ones(shape, np.float32)
-                    for box, _, wgt in bone_w:
-                        keep[box] = np.minimum(keep[box], 1.0 - wgt)
-                    # the bones themselves are held at every step; their margins fade in proportion
-                    u_new *= np.where(keep > 0, 1.0 - share * (1.0 - keep), 0.0).astype(np.float32)[None]
+                    keep, held = hold
+                    # the bones themselves are held at every step (at their refined rigid motion, 0 before any
+                    # refinement); their margins fade in proportion
+                    factor = np.where(keep > 0, 1.0 - share * (1.0 - keep), 0.0).astype(np.float32)[None]
+                    u_new = u_new * factor if held is None else held + (u_new - held) * factor
                 elif bone_w:  # smoothing bent the bones: back to each one's rigid motion
-                    for box, m, wgt in bone_w:
+                    for _, box, m, wgt in bone_w:
                         _rigid_project(u_new[(slice(None),) + box], m, [gm[box] for gm in grid_mm], wgt)
             return u_new, halved
 
@@ -569,12 +731,47 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # the trials.
         w = sample_shifted(ml, u, inv_sp)
         cc, dcc = _lncc_force(fl, w, win, f_stats, regl)
+        rounds = []  # the bones' refinements (settings.refine_bones)
+
+        def bone_round():
+            """The held bones refined as rigid bodies; taken only if the level's objective rises (each bone's
+            refinement raises its own part of it).  True when taken."""
+            nonlocal u, w, cc, dcc, bone_w
+            t_b = time.perf_counter()
+            kept = dict(params)
+            # every bone is tested on the first round of each level but the finest; later rounds, and the finest
+            # level, refine the bones already moved (an error past the gate shows on the coarser grids)
+            u_b, rec_b = refine(u, test_all=not rounds)
+            w_b = sample_shifted(ml, u_b, inv_sp)
+            cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl)
+            rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
+                         seconds=round(time.perf_counter() - t_b, 2))
+            if cc_b > cc:
+                u, w, cc, dcc = u_b, w_b, cc_b, dcc_b
+            else:
+                params.clear()
+                params.update(kept)
+            bone_w = []  # recomputed (with the hold) from the map at the next step
+            # each bone's rotation (°) and shift (mm) from the start's pose, so far
+            rec_b["poses"] = {int(b): [round(float(np.linalg.norm(p[:3])), 3), round(float(np.linalg.norm(p[3:])), 3)]
+                              for b, p in sorted(params.items())}
+            rounds.append(rec_b)
+            return rec_b["taken"]
+
+        # Block-coordinate ascent: the held bones as rigid bodies, then the dense steps until they stop, then
+        # the bones again, ... until a round of the bones no longer raises the objective (or refine_rounds).
+        refining = bool(bones and centres) and s in tuple(int(v) for v in st.refine_shrinks)
+
+        if refining:
+            bone_round()
         history = [cc]
         radius = step
         halvings = rejected = 0
         stop = "cap"
         force = None
-        for _ in range(int(iters)):
+        trials = 0
+        while trials < int(iters):
+            trials += 1
             if force is None:
                 force, fmax = direction(u, dcc, w, refresh_bones=len(history) % 5 == 1)
                 if fmax <= 0:
@@ -584,26 +781,34 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             halvings += halved
             w_c = sample_shifted(ml, u_c, inv_sp)
             cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl)
+            stopped = None
             if cc_c > cc:  # taken
                 u, w, cc, dcc = u_c, w_c, cc_c, dcc_c
                 history.append(cc)
                 force = None
                 radius = min(st.radius_growth * radius, step)
                 if len(history) > 10 and history[-1] - history[-11] < st.tolerance:
-                    stop = "converged"
-                    break
+                    stopped = "converged"
             else:
                 rejected += 1
                 radius *= 0.5
                 if radius < step * 0.5 ** st.max_halvings:
-                    stop = "no better step"
-                    break
-        before = history[0]
+                    stopped = "no better step"
+            if stopped:
+                stop = stopped
+                if refining and len(rounds) < st.refine_rounds and bone_round():
+                    history.append(cc)  # the bones' round raised the objective: the steps go on from there
+                    force, radius = None, step
+                    continue
+                break
+        before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
-               "lncc_before": before, "lncc_after": history[-1], "input_kept": len(history) == 1,
+               "lncc_before": before, "lncc_after": history[-1],
+               "input_kept": history[-1] == before and not any(r["taken"] for r in rounds),
                "rejected": rejected, "stop": stop, "halvings": halvings,
-               "lncc": [round(float(h), 6) for h in history],  # per taken step: never falls (reports)
+               "lncc": [round(float(h), 6) for h in history],  # per taken step (and bones' round): never falls
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
+               "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
         log.info("dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; LNCC %.4f -> %.4f", lv, s,
