@@ -27,6 +27,14 @@ Usage::
     .venv/bin/python benchmarks/registration.py --cases flex --start vbd         # every method from VBD
     .venv/bin/python benchmarks/registration.py --cases flex --start perturbed   # poses off 2-5 deg, 2 mm
     nice .venv/bin/python benchmarks/registration.py --cases external          # the external set (tens of minutes)
+    nice .venv/bin/python benchmarks/registration.py --cases suite --no-sitk --no-adaptive  # all three sets (~2 h)
+
+``suite`` (issue M part 5): the flex cases on the tuning seeds, then on the
+held-out seeds (``--acquisition``, ``--start`` apply to both), then the
+external set; at the end one table per set: per case the start's, ours' and
+elastix's MED, ours / elastix for MED, soft tissue, P95, markers, CC, time
+and peak memory, both bone MEDs, ours' folded voxels beside the start's,
+ours / start, and a last row with the worst case of each column.
 
 ``flex`` (issue I): the knee flexed 10°, 45° and 70° and the hand's strongest
 curl, on phantoms with structured soft tissue and an uneven soft-tissue
@@ -340,8 +348,75 @@ def run_flex(args):
                     with PeakMemory() as pm:
                         b = ants_syn(sc.image, template, initial=init, seed=args.seed)
                     add("ANTs SyN", b.correspondence, b.seconds, pm.mib)
-                summary.append(flex_report(f"{region} {sid}, seed {seed} ({args.split}), {args.start} start", rows))
-    flex_summary(summary, args.split)
+                out = flex_report(f"{region} {sid}, seed {seed} ({args.split}), {args.start} start", rows)
+                summary.append(out or {"case": f"{region} {sid} s{seed}", "rows": rows})
+                summary[-1]["label"] = f"{region} {sid} s{seed}"
+    flex_summary([s for s in summary if "med_ratio" in s], args.split)
+    return summary
+
+
+def _ratio(key):
+    def f(rows):
+        o, e = rows.get(OURS), rows.get(ELASTIX)
+        return o[key] / e[key] if o and e and e[key] else float("nan")
+    return f
+
+
+def _start_row(rows):
+    return next(v for m, v in rows.items() if m.startswith("initialised"))
+
+
+#: the one table per set (set_table): (header, value from a case's rows, the worse of two, cell format)
+SET_COLUMNS = (
+    ("start MED", lambda r: _start_row(r)["med_mm"], max, "{:.2f}"),
+    ("ours MED", lambda r: r[OURS]["med_mm"], max, "{:.2f}"),
+    ("elastix MED", lambda r: r[ELASTIX]["med_mm"] if ELASTIX in r else float("nan"), max, "{:.2f}"),
+    ("MED ours / elastix", _ratio("med_mm"), max, "{:.2f}"),
+    ("bone ours / elastix mm", lambda r: (r[OURS]["bone_mm"], r[ELASTIX]["bone_mm"] if ELASTIX in r else float("nan")),
+     None, "{:.3f} / {:.3f}"),
+    ("soft ours / elastix", _ratio("soft_mm"), max, "{:.2f}"),
+    ("P95 ours / elastix", _ratio("p95_mm"), max, "{:.2f}"),
+    ("markers ours / elastix", _ratio("marker_med_mm"), max, "{:.2f}"),
+    ("CC ours / elastix", _ratio("cc"), min, "{:.3f}"),
+    ("folded ours (start)", lambda r: (r[OURS]["n_folded"], _start_row(r)["n_folded"]), None, "{} ({})"),
+    ("time ours / elastix", _ratio("seconds"), max, "{:.2f}"),
+    ("peak MiB ours / elastix", _ratio("mem_mib"), max, "{:.2f}"),
+    ("MED ours / start", lambda r: r[OURS]["med_mm"] / _start_row(r)["med_mm"], max, "{:.2f}"),
+)
+
+
+def set_table(name, summary):
+    """One set's table (issue M part 5): per case ours against elastix from the same start and against the start,
+    then the worst case of each column (the largest ratio, the smallest CC ratio; bone: ours' largest; folded:
+    ours' most added to the start's) naming the case."""
+    items = [(s["label"], s["rows"]) for s in summary if OURS in s.get("rows", {})]
+    print(f"\n## {name}: ours (dense) against elastix from the same start ({len(items)} cases)\n")
+    if not items:
+        print("(no case ran)")
+        return
+    print("| case | " + " | ".join(c[0] for c in SET_COLUMNS) + " |")
+    print("|---" * (len(SET_COLUMNS) + 1) + "|")
+
+    def cell(fmt, v):
+        v = v if isinstance(v, tuple) else (v,)
+        return "–" if any(isinstance(x, float) and not np.isfinite(x) for x in v) else fmt.format(*v)
+
+    for label, rows in items:
+        print(f"| {label} | " + " | ".join(cell(fmt, f(rows)) for _, f, _, fmt in SET_COLUMNS) + " |")
+    worst = []
+    for _, f, worse, fmt in SET_COLUMNS:
+        vals = [(label, f(rows)) for label, rows in items]
+        if worse is None:  # a pair: ours' value decides (bone: the largest; folded: the most added)
+            key = (lambda v: v[0]) if "{:.3f}" in fmt else (lambda v: v[0] - v[1])
+            label, v = max(vals, key=lambda t: key(t[1]))
+        else:
+            finite = [t for t in vals if np.isfinite(t[1])]
+            if not finite:
+                worst.append("–")
+                continue
+            label, v = worse(finite, key=lambda t: t[1])
+        worst.append(f"{cell(fmt, v)} [{label}]")
+    print("| **worst** | " + " | ".join(worst) + " |", flush=True)
 
 
 def flex_summary(summary, split):
@@ -549,6 +624,7 @@ def run_external(args):
                                             "unchanged (every file's size and modification time as before)"),
           flush=True)
     print(f"study copies (the stages' outputs) left in {work}", flush=True)
+    args.external_summary = summary
     return len(failures)
 
 
@@ -745,7 +821,7 @@ def report(name, rows):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--cases", nargs="+", choices=["table2", "knee", "hand", "flex", "external"],
+    p.add_argument("--cases", nargs="+", choices=["table2", "knee", "hand", "flex", "external", "suite"],
                    default=["table2", "knee"])
     p.add_argument("--split", choices=["tuning", "held-out"], default="held-out",
                    help="flex: the seeds settings were tuned on, or the held-out ones (default). external: no "
@@ -792,12 +868,31 @@ def main(argv=None) -> int:
     if args.cases == ["flex"]:  # its own seeds and start (run_flex prints them per case)
         print(f"registration benchmark, issue I's flex cases ({args.split} seeds), start: "
               f"{START_ROWS[args.start].removeprefix('initialised ')}; elastix {elx}")
+    elif args.cases == ["suite"]:
+        print(f"registration benchmark, the three sets: tuning and held-out draws ({args.acquisition} acquisition, "
+              f"{START_ROWS[args.start].removeprefix('initialised ')}) and the external set; elastix {elx}")
     elif args.cases == ["external"]:  # the workbench's own chain and start (run_external prints them per study)
         print(f"registration benchmark, the external set (held out), the workbench's start; elastix {elx}")
     else:
         print(f"registration benchmark, {args.size} size, seed {args.seed}, "
               f"{'ground-truth' if args.from_truth else 'unfolded VBD' if args.unfold_init else 'raw VBD'} "
               f"initialisation; elastix {elx}")
+    if "suite" in args.cases:  # issue M part 5: the tuning draws, the held-out draws and the external set
+        import copy
+
+        sets = []
+        for split in ("tuning", "held-out"):
+            a = copy.copy(args)
+            a.split, a.seeds = split, None
+            sets.append((f"{split} draws ({a.acquisition} acquisition, {a.start} start)", run_flex(a)))
+        failed = run_external(args)
+        sets.append(("the external set (held out, the workbench's own start)", getattr(args, "external_summary", [])))
+        print("\n# The three sets, one table each\n")
+        for name, summary in sets:
+            set_table(name, summary)
+        print("\n(ratios > 1: ours is worse; CC ratio < 1: ours is worse; bone: ours' and elastix's bone MED; folded: "
+              "ours' folded voxels of the body (the start's); times on a shared machine in one run: compare ratios)")
+        return 1 if failed else 0
     if "flex" in args.cases:
         run_flex(args)
     failed = run_external(args) if "external" in args.cases else 0

