@@ -27,7 +27,8 @@ Usage::
     .venv/bin/python benchmarks/registration.py --cases flex --start vbd         # every method from VBD
     .venv/bin/python benchmarks/registration.py --cases flex --start perturbed   # poses off 2-5 deg, 2 mm
     nice .venv/bin/python benchmarks/registration.py --cases external          # the external set (tens of minutes)
-    nice .venv/bin/python benchmarks/registration.py --cases suite --no-sitk --no-adaptive  # all three sets (~2 h)
+    nice .venv/bin/python benchmarks/registration.py --cases suite --no-sitk --no-adaptive --no-vbd-starts \
+        --no-elastix-rigidity --acquisition random    # all three sets, one table each (about an hour)
 
 ``suite`` (issue M part 5): the flex cases on the tuning seeds, then on the
 held-out seeds (``--acquisition``, ``--start`` apply to both), then the
@@ -336,10 +337,11 @@ def run_flex(args):
                     with PeakMemory() as pm:
                         b = elastix_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed)
                     add(ELASTIX, b.correspondence, b.seconds, pm.mib)
-                    with PeakMemory() as pm:
-                        b = elastix_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed,
-                                            rigidity_labels=held[sid])
-                    add("elastix B-spline + rigidity penalty", b.correspondence, b.seconds, pm.mib)
+                    if not args.no_elastix_rigidity:
+                        with PeakMemory() as pm:
+                            b = elastix_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed,
+                                                rigidity_labels=held[sid])
+                        add("elastix B-spline + rigidity penalty", b.correspondence, b.seconds, pm.mib)
                 if not args.no_sitk:
                     with PeakMemory() as pm:
                         b = sitk_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed)
@@ -398,8 +400,11 @@ def set_table(name, summary):
     print("|---" * (len(SET_COLUMNS) + 1) + "|")
 
     def cell(fmt, v):
-        v = v if isinstance(v, tuple) else (v,)
-        return "–" if any(isinstance(x, float) and not np.isfinite(x) for x in v) else fmt.format(*v)
+        if isinstance(v, tuple):  # a pair: each part on its own ("–" where one is missing)
+            parts = fmt.replace(" (", " / ").rstrip(")").split(" / ")
+            text = ["–" if isinstance(x, float) and not np.isfinite(x) else f.format(x) for f, x in zip(parts, v)]
+            return f"{text[0]} ({text[1]})" if " (" in fmt else " / ".join(text)
+        return "–" if isinstance(v, float) and not np.isfinite(v) else fmt.format(v)
 
     for label, rows in items:
         print(f"| {label} | " + " | ".join(cell(fmt, f(rows)) for _, f, _, fmt in SET_COLUMNS) + " |")
@@ -408,14 +413,16 @@ def set_table(name, summary):
         vals = [(label, f(rows)) for label, rows in items]
         if worse is None:  # a pair: ours' value decides (bone: the largest; folded: the most added)
             key = (lambda v: v[0]) if "{:.3f}" in fmt else (lambda v: v[0] - v[1])
-            label, v = max(vals, key=lambda t: key(t[1]))
+            finite = [t for t in vals if np.isfinite(key(t[1]))]
         else:
+            key = None
             finite = [t for t in vals if np.isfinite(t[1])]
-            if not finite:
-                worst.append("–")
-                continue
-            label, v = worse(finite, key=lambda t: t[1])
-        worst.append(f"{cell(fmt, v)} [{label}]")
+        if not finite:
+            worst.append("–")
+            continue
+        label, v = max(finite, key=lambda t: key(t[1])) if key else worse(finite, key=lambda t: t[1])
+        of = f", {len(finite)} of {len(vals)}" if len(finite) < len(vals) else ""
+        worst.append(f"{cell(fmt, v)} [{label}{of}]")
     print("| **worst** | " + " | ".join(worst) + " |", flush=True)
 
 
@@ -858,6 +865,8 @@ def main(argv=None) -> int:
                         "the truth): each method's MED is how far intensity alone pulls it off the exact answer, "
                         "the floor below which no start can be improved")
     p.add_argument("--no-elastix", action="store_true")
+    p.add_argument("--no-elastix-rigidity", action="store_true",
+                   help="flex: leave out elastix with the rigidity penalty on the bones (the slowest peer)")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     if args.knee_only and args.hand_only:

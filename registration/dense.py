@@ -43,8 +43,9 @@ at every iteration, and keeps what an articulated body needs:
   parameters about its centroid) is optimised with the soft tissue held
   (NLopt BOBYQA, derivative-free; the candidate moves the bone and fades over
   ``refine_margin_voxels``; the objective is the LNCC over the voxels that
-  motion can change, which is the level's objective's change), and the
-  round is taken only if the level's objective rises; the steps then go on.
+  motion can change, against its value as ``U`` is; a move that would bring
+  ``det(I + ∇u)`` below ``min_jacobian`` is refused), and the round is taken
+  only if the level's objective rises; the steps then go on.
   The pose stage's estimate stands unless the image moves a bone past
   ``refine_min_move_voxels`` (half a scan voxel): the LNCC's windows reach
   into the soft tissue, and its optimum sits a few tenths of a mm from the
@@ -203,16 +204,17 @@ class DenseSettings:
         if not self.radius_growth >= 1 or not isinstance(self.max_halvings, int) or self.max_halvings < 0:
             raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
                              f"{self.max_halvings}")
-        if not (self.refine_deg >= 0 and self.refine_mm >= 0 and isinstance(self.refine_evaluations, int)
-                and self.refine_evaluations >= 13 and isinstance(self.refine_rounds, int) and self.refine_rounds >= 1):
-            raise ValueError(f"refine_deg and refine_mm must be ≥ 0, refine_evaluations a whole number ≥ 13 "
+        whole = [isinstance(v, int) and not isinstance(v, bool) for v in (self.refine_evaluations, self.refine_rounds)]
+        if not (self.refine_deg > 0 and self.refine_mm > 0 and all(whole) and self.refine_evaluations >= 13
+                and self.refine_rounds >= 1):
+            raise ValueError(f"refine_deg and refine_mm must be > 0, refine_evaluations a whole number ≥ 13 "
                              f"(BOBYQA's first model needs 2·6 + 1) and refine_rounds ≥ 1, got {self.refine_deg}, "
                              f"{self.refine_mm}, {self.refine_evaluations}, {self.refine_rounds}")
-        if not (self.refine_min_move_voxels >= 0 and self.refine_min_voxels >= 1
-                and (self.refine_margin_voxels is None or self.refine_margin_voxels >= 0)):
-            raise ValueError(f"refine_min_move_voxels ≥ 0, refine_min_voxels ≥ 1 and refine_margin_voxels ≥ 0 (or "
-                             f"None) are required, got {self.refine_min_move_voxels}, {self.refine_min_voxels}, "
-                             f"{self.refine_margin_voxels}")
+        if not (self.refine_min_move_voxels >= 0 and self.refine_min_voxels >= 1 and self.bone_margin_mm > 0
+                and (self.refine_margin_voxels is None or self.refine_margin_voxels > 0)):
+            raise ValueError(f"refine_min_move_voxels ≥ 0, refine_min_voxels ≥ 1, bone_margin_mm > 0 and "
+                             f"refine_margin_voxels > 0 (or None) are required, got {self.refine_min_move_voxels}, "
+                             f"{self.refine_min_voxels}, {self.bone_margin_mm}, {self.refine_margin_voxels}")
         if not 0 < self.air_weight <= 1:
             raise ValueError(f"air_weight must be in (0, 1], got {self.air_weight}")
 
@@ -483,7 +485,8 @@ def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, 
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
     that the windows' statistics there are the whole grid's.  A rise of that mean is a rise of the level's
     objective.  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
-    ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``; ``gain`` ≤ 0 means keep ``p0``.
+    ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
+    less the objective of ``u`` as it is (≤ 0: keep ``u``).
     """
     import nlopt
 
@@ -513,13 +516,12 @@ def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, 
         w = ndimage.map_coordinates(ml, [idx[a] + uc[a] * inv[a] for a in range(3)], order=1, mode="nearest")
         return _lncc_force(fo, w.astype(np.float32), win, stats, reg)[0]
 
+    w_now = ndimage.map_coordinates(ml, [idx[a] + uo[a] * inv[a] for a in range(3)], order=1, mode="nearest")
+    f_now = _lncc_force(fo, w_now.astype(np.float32), win, stats, reg)[0]  # the objective as u is now
     x0 = np.asarray(p0, float)
     bound = np.r_[np.full(3, st.refine_deg), np.full(3, st.refine_mm)]
     x0 = np.clip(x0, -bound, bound)
-    f0 = objective(x0)
-    if not np.all(bound > 0):
-        return x0, 0.0, 1
-    best = [x0.copy(), f0, 1]
+    best = [x0.copy(), objective(x0), 2]  # u moved to p0's rigid motion with this fade: not quite u
 
     def tracked(x, grad):
         f = objective(x)
@@ -540,7 +542,7 @@ def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, 
         opt.optimize(x0)
     except (nlopt.RoundoffLimited, RuntimeError, ValueError):
         pass  # the best point seen is still valid
-    return best[0], best[1] - f0, best[2]
+    return best[0], best[1] - f_now, best[2]
 
 
 def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = None,
@@ -641,15 +643,15 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         def bone_hold():
             """Where U is held (0 on a bone, rising to 1 past its margin) and the held value there: each
             refined bone's rigid displacement (the nearest bone's where margins meet), None before any."""
-            keep, held = np.ones(shape, np.float32), None
+            keep = np.ones(shape, np.float32)
+            held = np.zeros((3,) + shape, np.float32) if params else None
             for b, box, _, wgt in bone_w:
                 kb = 1.0 - wgt
-                if b in params:
-                    if held is None:
-                        held = np.zeros((3,) + shape, np.float32)
+                if held is not None:  # where this bone is the nearest: its rigid displacement, or 0 if not refined
                     take = kb < keep[box]
                     hb = held[(slice(None),) + box]
-                    hb[:, take] = _rigid_displacement(params[b], centres[b], grid_mm, box)[:, take]
+                    hb[:, take] = (_rigid_displacement(params[b], centres[b], grid_mm, box)[:, take] if b in params
+                                   else 0.0)
                 keep[box] = np.minimum(keep[box], kb)
             return keep, held
 
@@ -659,9 +661,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             nonlocal bone_w
             u_now = u_now.copy()
             lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
-            margin = st.bone_margin_mm if st.refine_margin_voxels is None else st.refine_margin_voxels * float(sp.min())
+            # the candidate's fade: refine_margin_voxels of the level's largest spacing (at least that many voxels
+            # along every axis)
+            margin = st.bone_margin_mm if st.refine_margin_voxels is None else st.refine_margin_voxels * float(sp.max())
             bone_w = _bone_weights(lab_now, bones, sp, margin)
-            evaluations, moved = 0, {}
+            evaluations, moved, folded = 0, {}, 0
             finest = lv == len(st.shrink) - 1
             for b, box, m, wgt in bone_w:
                 if b not in centres:
@@ -672,6 +676,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     if not test_all or thick < st.refine_min_voxels or (finest and b in tested):
                         continue
                     tested.add(b)
+                lb = lab_now[box]
+                wgt = np.where((lb == 0) | (lb == b), wgt, np.float32(0.0))  # a bone's move moves no other bone
                 p, gain, n = _refine_bone(params.get(b, np.zeros(6)), centres[b], box, wgt, u_now, fl, ml, win,
                                           tissue, regl, grid_mm, sp, st)
                 evaluations += n
@@ -681,11 +687,21 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     if move <= st.refine_min_move_voxels * float(sp_full.min()):
                         continue
                 if gain > 0:
-                    params[b] = p
+                    # the move must keep U one-to-one as every step does: det(I + ∇u) on the box (grown by a
+                    # voxel) above min_jacobian, or not below its value before where it already was
+                    grown = (slice(None),) + tuple(slice(max(c.start - 1, 0), min(c.stop + 1, n))
+                                                   for c, n in zip(box, shape))
+                    det_before = _jacobian_min(u_now[grown], sp)
                     sub = u_now[(slice(None),) + box]  # a view
+                    kept_sub = sub.copy()
                     sub += wgt[None] * (_rigid_displacement(p, centres[b], grid_mm, box) - sub)
+                    if _jacobian_min(u_now[grown], sp) <= min(st.min_jacobian, det_before):
+                        sub[...] = kept_sub
+                        folded += 1
+                        continue
+                    params[b] = p
                     moved[b] = p
-            return u_now, {"evaluations": evaluations, "bones_moved": len(moved)}
+            return u_now, {"evaluations": evaluations, "bones_moved": len(moved), "refused_folding": folded}
 
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
@@ -754,13 +770,13 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         rounds = []  # the bones' refinements (settings.refine_bones)
 
         def bone_round():
-            """The held bones refined as rigid bodies; taken only if the level's objective rises (each bone's
-            refinement raises its own part of it).  True when taken."""
+            """The held bones refined as rigid bodies, each on its own part of the objective; the round is
+            taken only if the level's objective rises.  True when taken."""
             nonlocal u, w, cc, dcc, bone_w
             t_b = time.perf_counter()
             kept = dict(params)
-            # a level's first round tests the bones not moved so far (refine() says which); every round refines
-            # the bones already moved
+            # a level's first recorded round tests the bones not moved so far (refine() says which); every round
+            # refines the bones already moved
             u_b, rec_b = refine(u, test_all=not rounds)
             if not rec_b["evaluations"]:  # no bone to test or refine on this round
                 bone_w = []  # refine() made them with its own margin: recomputed at the next step
@@ -769,6 +785,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl)
             rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
                          seconds=round(time.perf_counter() - t_b, 2))
+            if not rec_b["taken"]:
+                rec_b["bones_moved"] = 0
             if cc_b > cc:
                 u, w, cc, dcc = u_b, w_b, cc_b, dcc_b
             else:
@@ -821,7 +839,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 stop = stopped
                 if refining and len(rounds) < st.refine_rounds and bone_round():
                     history.append(cc)  # the bones' round raised the objective: the steps go on from there
-                    force, radius = None, step
+                    force, radius, stop = None, step, "cap"
                     continue
                 break
         before = rounds[0]["lncc_before"] if rounds else history[0]
