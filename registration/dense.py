@@ -794,7 +794,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 params.update(kept)
             bone_w = []  # recomputed (with the hold) from the map at the next step
             # each bone's rotation (°) and shift (mm) from the start's pose, so far
-            rec_b["poses"] = {int(b): [round(float(np.linalg.norm(p[:3])), 3), round(float(np.linalg.norm(p[3:])), 3)]
+            rec_b["poses"] = {str(b): [round(float(np.linalg.norm(p[:3])), 3), round(float(np.linalg.norm(p[3:])), 3)]
                               for b, p in sorted(params.items())}
             rounds.append(rec_b)
             return rec_b["taken"]
