@@ -28,7 +28,7 @@ Usage::
     .venv/bin/python benchmarks/registration.py --cases flex --start perturbed   # poses off 2-5 deg, 2 mm
     nice .venv/bin/python benchmarks/registration.py --cases external          # the external set (tens of minutes)
     nice .venv/bin/python benchmarks/registration.py --cases suite --no-sitk --no-adaptive --no-vbd-starts \
-        --no-elastix-rigidity --acquisition random    # all three sets, one table each (about an hour)
+        --no-elastix-rigidity --acquisition random    # all three sets, one table each (~40 min)
 
 ``suite`` (issue M part 5): the flex cases on the tuning seeds, then on the
 held-out seeds (``--acquisition``, ``--start`` apply to both), then the
