@@ -49,11 +49,12 @@ def _bench():
     return mod
 
 
-def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "polyrigid") -> dict:
+def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "polyrigid",
+                acquisition: str = "fixed") -> dict:
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
     "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
     ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made."""
-    tag = "" if start == "polyrigid" else f"_{start}"
+    tag = ("" if start == "polyrigid" else f"_{start}") + ("" if acquisition == "fixed" else f"_{acquisition}")
     f = cache / f"{region}{seed}_{scan}{tag}.v2.pkl"  # v2: the study markers and the 200 drawn ones
     if f.exists():
         return pickle.loads(f.read_bytes())
@@ -64,9 +65,10 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "po
     flex_knee, n_markers = bench.FLEX_KNEE, bench.MARKER_SAMPLE
     if region == "knee":
         ph = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
-                          poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + flex_knee)
+                          poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + flex_knee, acquisition=acquisition)
     else:
-        ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4)
+        ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4,
+                          acquisition=acquisition)
         scan = ph.poses[-1][0] if scan == "curl" else scan  # the strongest curl, as the flex case
     template, labels = ph.template()
     sk = ph.skeleton
@@ -113,6 +115,8 @@ def main(argv=None) -> int:
     p.add_argument("variants", nargs="*", default=["{}"], help="DenseSettings fields as JSON, one per variant")
     p.add_argument("--start", choices=["polyrigid", "perturbed"], default="polyrigid",
                    help="perturbed: every estimated pose off by 2-5 degrees and 2 mm before the polyrigid start")
+    p.add_argument("--acquisition", choices=["fixed", "random"], default="fixed",
+                   help="the phantom's acquisition, as benchmarks/registration.py's --acquisition")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
     args = p.parse_args(argv)
     if args.seed not in tuning:
@@ -125,8 +129,9 @@ def main(argv=None) -> int:
         except (ValueError, TypeError) as e:
             p.error(f"variant {v!r}: {e}")
     args.cache.mkdir(parents=True, exist_ok=True)
-    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start)
-    print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}\n")
+    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition)
+    print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}, acquisition: "
+          f"{args.acquisition}\n")
     print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
     print("|---|---|---|---|---|---|---|---|")
     score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)")
