@@ -502,7 +502,8 @@ def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, 
     the bone, fading over its margin); its objective is the LNCC's mean over the voxels whose value the bone's
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
     that the windows' statistics there are the whole grid's.  A rise of that mean is a rise of the level's
-    objective.  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
+    objective, up to rounding (the samples here are map_coordinates', the level's sample_shifted's: the round
+    is checked on the whole level).  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
     ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
     less the objective of ``u`` as it is (≤ 0: keep ``u``).
     """
