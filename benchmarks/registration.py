@@ -101,7 +101,7 @@ from registration.baselines import (_itk, ants_available, ants_syn, elastix_avai
                                    sitk_bspline, warp_template)
 from registration.initialise import vbd_initial_field  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
-from validation.phantoms.generate import ACQUISITIONS  # noqa: E402
+from validation.phantoms.generate import ACQUISITIONS, describe_acquisition  # noqa: E402
 from validation.protocols.registration import PAPER as RHEE_TABLES  # noqa: E402
 from validation.registration_measures import (MEASURE_KEYS, body_on_scan, error_map, marker_med,  # noqa: E402
                                              registration_measures)
@@ -206,16 +206,6 @@ def _flex_phantoms(seed, args):
         yield "hand", hand, [hand.poses[-1][0]]  # the strongest curl
 
 
-def acquisition_line(acq: dict) -> str:
-    """One line of a drawn acquisition (validation.phantoms.generate.draw_acquisition): the study's contrast (0 is
-    T1-like MRI, 1 CT-like) and each image's noise, SNR, bias and gain."""
-    st = acq["study"]
-    imgs = acq["images"].items() if isinstance(acq["images"], dict) else enumerate(acq["images"])
-    per = "; ".join(f"{k}: {v['noise']} SNR {v['snr']:.0f}, bias {100 * v['bias_amplitude']:.0f} %, gain "
-                    f"{v['gain']:.2f}" for k, v in imgs)
-    return f"acquisition drawn: contrast {st['contrast_weight_ct']:.2f} (0 T1-like, 1 CT-like); {per}"
-
-
 def perturbed_transforms(transforms: dict, labels: Volume, bone_labels: dict, seed, *,
                          degrees=(2.0, 5.0), shift_mm: float = 2.0) -> dict:
     """A pose stage that erred (issue M part 3): each bone's template → scan transform followed by a rotation of
@@ -273,7 +263,7 @@ def run_flex(args):
             held = {s.scan_id: released_labels(labels, sk, [b for b, f in s.fits.items() if not f.ok])
                     for s in est.scans}
             if ph.acquisition is not None:  # --acquisition random: what was drawn
-                print(f"\n{region} seed {seed}: {acquisition_line(ph.acquisition)}", flush=True)
+                print(f"\n{region} seed {seed}: {describe_acquisition(ph.acquisition)}", flush=True)
             print(f"\n{region} seed {seed} ({args.split}): {ph.geometry.describe()}; poses estimated in "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
             parents = {b: sk.bone(b).parent for b in sk.bone_names}

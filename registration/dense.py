@@ -186,9 +186,6 @@ class DenseSettings:
     #: (Applied only when air surrounds the scan's body, AIR_AROUND; each level's record says whether it was.)
     tissue_only: bool = True
     air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
-    #: the LNCC's local variances each get the image's noise variance added (_noise_variance on the full grid,
-    #: carried through each level's pre-smoothing): windows whose variance is mostly noise count and pull less
-    noise_floor: bool = False
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
 
@@ -294,30 +291,17 @@ def _smooth_all(arrays, sigma_vox) -> list:
     return out
 
 
-def _local_stats(f, sig, mask=None, noise=(0.0, 0.0)):
-    """The fixed image's local mean and variance in the LNCC window (the same at every step of a level), the
-    window's mask, its local weight and mask·f (``None`` without a mask), and ``noise``: the two images' noise
-    variances, added to their local variances in :func:`_lncc_force` (settings.noise_floor)."""
+def _local_stats(f, sig, mask=None):
+    """The fixed image's local mean and variance in the LNCC window (the same at every step of a level), and
+    the window's mask, its local weight and mask·f (``None`` without a mask)."""
     if mask is None:
         mf, sff = _smooth_all([f, f * f], sig)
-        return mf, sff - mf * mf, None, noise
+        return mf, sff - mf * mf, None
     masked_f = mask * f  # kept: every step's f·w term uses it
     sm, smf, smff = _smooth_all([mask, masked_f, masked_f * f], sig)
     sm = np.maximum(sm, 1e-3)
     mf = smf / sm
-    return mf, smff / sm - mf * mf, (mask, sm, masked_f), noise
-
-
-def _noise_variance(a, region=None) -> float:
-    """The noise variance of image ``a`` from its Laplacian's median absolute deviation over ``region`` (or
-    all): for white noise of variance σ² the 6-neighbour Laplacian has variance 42 σ², and the median ignores
-    the edges (Immerkær 1996's idea in 3-D, with a robust scale)."""
-    lap = ndimage.laplace(np.asarray(a, np.float64), mode="nearest")
-    vals = lap if region is None else lap[region > 0]
-    if not vals.size:
-        return 0.0
-    sigma = 1.4826 * float(np.median(np.abs(vals - np.median(vals)))) / np.sqrt(42.0)
-    return sigma * sigma
+    return mf, smff / sm - mf * mf, (mask, sm, masked_f)
 
 
 def _lncc_force(f, w, sig, f_stats, region=None):
@@ -325,7 +309,7 @@ def _lncc_force(f, w, sig, f_stats, region=None):
     respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`_local_stats` of ``f``.  With a window mask
     the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed
     force still reaches into the air from the tissue)."""
-    mf, sff, masked, (noise_f, noise_w) = f_stats
+    mf, sff, masked = f_stats
     if masked is None:
         mw, sww, sfw = _smooth_all([w, w * w, f * w], sig)
     else:
@@ -338,10 +322,8 @@ def _lncc_force(f, w, sig, f_stats, region=None):
     # correlation to follow.  A constant, not a mean over the image: float32 reductions round differently
     # with the arrays' memory alignment, and the result must be the same bits on every run.
     eps = 1e-5
-    # settings.noise_floor: the images' noise variances added (0 without), so that windows are compared on their
-    # structure above the noise and one whose variance is noise alone pulls little
-    sff = np.maximum(sff, eps) + np.float32(noise_f)
-    sww = np.maximum(sww, eps) + np.float32(noise_w)
+    sff = np.maximum(sff, eps)
+    sww = np.maximum(sww, eps)
     cc = sfw * sfw / (sff * sww)
     dcc = 2.0 * sfw / (sff * sww) * ((f - mf) - sfw / sww * (w - mw))
     if masked is not None:
@@ -495,7 +477,7 @@ def _rigid_displacement(p, centre, grid_mm, box) -> np.ndarray:
                      for a in range(3)]).astype(np.float32)
 
 
-def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, sp, st, noise=(0.0, 0.0)):
+def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, sp, st):
     """One held bone's rigid pose refined on the level's objective, the soft tissue held.
 
     The candidate field is ``u`` moved towards the bone's rigid displacement by its weight (exactly rigid on
@@ -518,7 +500,7 @@ def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, 
         return tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(bx, outer))
 
     fo = fl[outer]
-    stats = _local_stats(fo, win, None if tissue is None else tissue[outer], noise)
+    stats = _local_stats(fo, win, None if tissue is None else tissue[outer])
     reg = np.zeros(fo.shape, np.float32)
     reg[rel(inner)] = 1.0 if region is None else region[inner]
     uo = u[(slice(None),) + outer]
@@ -621,8 +603,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             if sl is not None:
                 centres[b] = np.array([(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a]
                                        for a in range(3)])
-    # the images' noise variances on the full grid, over the force's region (settings.noise_floor)
-    noise0 = (_noise_variance(f0, region), _noise_variance(m0, region)) if st.noise_floor else (0.0, 0.0)
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
     prev_s = None  # the previous level's shrink factor
     levels = []
@@ -648,15 +628,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         win = st.window_mm / sp
         # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
         tissue = None if tissue0 is None else _smooth(tissue0, sig_pre)[::s, ::s, ::s].astype(np.float32)
-        # settings.noise_floor: the images' noise on this level, the full grid's (white) through the level's
-        # pre-smoothing, whose kernel's squared weights sum to the variance's factor (subsampling keeps it)
-        noise = (0.0, 0.0)
-        if st.noise_floor:
-            impulse = np.zeros((13, 13, 13))
-            impulse[6, 6, 6] = 1.0
-            gain = float((_smooth(impulse, sig_pre) ** 2).sum())
-            noise = (noise0[0] * gain, noise0[1] * gain)
-        f_stats = _local_stats(fl, win, tissue, noise)
+        f_stats = _local_stats(fl, win, tissue)
         fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
         elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
         if tissue is not None:  # the normalised convolutions' denominators (settings.tissue_only)
@@ -708,7 +680,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 lb = lab_now[box]
                 wgt = np.where((lb == 0) | (lb == b), wgt, np.float32(0.0))  # a bone's move moves no other bone
                 p, gain, n = _refine_bone(params.get(b, np.zeros(6)), centres[b], box, wgt, u_now, fl, ml, win,
-                                          tissue, regl, grid_mm, sp, st, f_stats[3])
+                                          tissue, regl, grid_mm, sp, st)
                 evaluations += n
                 if gain > 0 and b not in params:  # the start's pose stands unless the image shows it off
                     with np.errstate(invalid="ignore"):
@@ -878,7 +850,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "rejected": rejected, "stop": stop, "halvings": halvings,
                "lncc": [round(float(h), 6) for h in history],  # per taken step (and bones' round): never falls
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
-               "noise_variance": [float(v) for v in noise],  # scan's, template's (settings.noise_floor; 0: off)
                "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)

@@ -1386,14 +1386,9 @@ def summarize(study) -> str:
              f"(6-DOF joints: {', '.join(j.name for j in sk.joints if j.dof == 6) or 'none'})"]
     drawn = (m.get("phantom") or {}).get("acquisition_drawn")
     if isinstance(drawn, dict):  # a random-acquisition phantom: what it drew
-        st, images = drawn.get("study", {}), drawn.get("images", {})
-        images = {i: images[i] for i in sorted(images, key=lambda i: i != "template")}  # the template first
-        c = st.get("contrast", {})
-        fat = (c.get("fat", 0.0) - c.get("air", 0.0)) / max(c.get("muscle", 1.0) - c.get("air", 0.0), 1e-9)
-        lines.append(f"acquisition: random, contrast {st.get('contrast_weight_ct', float('nan')):.2f} of the way "
-                     f"from the MRI table to the CT one (fat/muscle {fat:.2f} above air)"
-                     + "".join(f"; {i}: {a['noise']}, SNR {a['snr']:.0f}, gain {a['gain']:.2f}, bias "
-                               f"{100 * a['bias_amplitude']:.0f}%" for i, a in images.items()))
+        from validation.phantoms.generate import describe_acquisition
+
+        lines.append(describe_acquisition(drawn))
     vox_ml = float(np.prod(g.spacing)) / 1000.0
     if study.has_template_labels:
         labels = study.template_labels().data

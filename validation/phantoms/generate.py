@@ -243,6 +243,22 @@ def draw_acquisition(spec: PhantomSpec, n_images: int | None = None) -> dict:
     return {"study": study, "images": [_draw_image(spec.seed, i, span) for i in range(n)]}
 
 
+def describe_acquisition(drawn: dict) -> str:
+    """One line of a drawn acquisition (:func:`draw_acquisition`'s, or ``Phantom.acquisition``, or the manifest's
+    ``phantom.acquisition_drawn``): the study's contrast and fat/muscle ratio, then each image's noise, SNR, gain
+    and bias, the template first."""
+    st, images = drawn.get("study", {}), drawn.get("images", {})
+    if not isinstance(images, dict):
+        images = dict(enumerate(images))
+    images = {i: images[i] for i in sorted(images, key=lambda i: i != "template")}
+    c = st.get("contrast", {})
+    fat = (c.get("fat", 0.0) - c.get("air", 0.0)) / max(c.get("muscle", 1.0) - c.get("air", 0.0), 1e-9)
+    return (f"acquisition: random, contrast {st.get('contrast_weight_ct', float('nan')):.2f} of the way from the "
+            f"MRI table to the CT one (fat/muscle {fat:.2f} above air)"
+            + "".join(f"; {i}: {a['noise']}, SNR {a['snr']:.0f}, gain {a['gain']:.2f}, bias "
+                      f"{100 * a['bias_amplitude']:.0f}%" for i, a in images.items()))
+
+
 def _chunks(n: int, size: int = CHUNK):
     for s in range(0, n, size):
         yield slice(s, min(s + size, n))
