@@ -7,9 +7,11 @@ everything at once halves the start's error.  This stage moves every voxel
 at every iteration, and keeps what an articulated body needs:
 
 * **Start**: ``φ₀`` (scan → template), one-to-one (the polyrigid flow of
-  :mod:`deformation.polyrigid`); the template is resampled through it once
-  (``M₀ = M ∘ φ₀``) and the registration finds ``U = id + u`` on the scan grid
-  with ``F ≈ M₀ ∘ U``; the result is ``φ = φ₀ ∘ U`` (composed, not added).
+  :mod:`deformation.polyrigid`); the registration finds ``U = id + u`` on the
+  scan grid with ``F ≈ M ∘ φ₀ ∘ U``, the template sampled once through the
+  composed map at every trial (:class:`_TemplateSampler`: resampling an
+  already resampled template rewards sub-voxel shifts that smooth its noise);
+  the result is ``φ = φ₀ ∘ U`` (composed, not added).
 * **Similarity**: local normalised cross-correlation in a Gaussian window
   (LNCC), insensitive to the MRI bias field and to contrast differences
   between scans; its gradient is that of Avants et al. (ANTs SyN's CC).
@@ -112,10 +114,10 @@ from scipy import ndimage
 
 from deformation.fields import folding_statistics, jacobian_determinant_components, unfold
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample_shifted
+from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted
 
 from .baselines import warp_template
-from .metrics import similarity
+from .metrics import air_level, similarity
 
 __all__ = ["DenseSettings", "DenseResult", "register_dense"]
 
@@ -477,14 +479,71 @@ def _rigid_displacement(p, centre, grid_mm, box) -> np.ndarray:
                      for a in range(3)]).astype(np.float32)
 
 
-def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, sp, st):
+class _TemplateSampler:
+    """The template seen through ``φ₀ ∘ U`` on each level: ``w(x) = M(x + u(x) + φ₀(x + u(x)))``, the template
+    itself sampled once (trilinear) at every trial, its intensities divided by ``scale``.
+
+    The template resampled through ``φ₀`` once and then through ``U`` (``M₀ ∘ U``) is interpolated twice:
+    ``U = 0`` reads ``M₀``'s grid values and every other ``U`` averages neighbours, which lowers the variance of
+    the template's noise in ``w``, and the LNCC rises with it (an interpolation artefact, as Pluim et al. 2000
+    describe for mutual information).  The steps then climb towards shifts of a fraction of a voxel wherever the
+    tissue is flat.  Sampled once, through the composed map, no ``U`` is privileged.
+
+    Each level's template is smoothed on its own grid by the level's pre-smoothing (a Gaussian of ``sig_pre``
+    scan voxels along each scan axis, its variance projected onto the template's axes).  Beyond the template's
+    grid ``w`` is the template's air; ``φ₀`` continues by its edge values beyond the scan's box."""
+
+    def __init__(self, moving: Volume, initial: Volume, scale: float, crop: tuple):
+        self.geometry = moving.geometry
+        self.data = np.asarray(moving.data, np.float32) / np.float32(scale)
+        self.air = float(air_level(moving)) / scale
+        self.phi = np.moveaxis(np.asarray(initial.data, np.float32)[crop], -1, 0)  # (3, box): world mm
+        self.scan = initial.geometry
+        self.corner = np.array([crop[2].start, crop[1].start, crop[0].start], float)  # the box's first (i, j, k)
+
+    def level(self, s: int, sig_pre: float, shape: tuple):
+        """``(warp, sample)`` on the level of shrink ``s`` (grid ``shape``): ``warp(u)`` is ``w`` on the whole
+        level for ``u`` (3, *shape) mm along the array axes; ``sample(coords)`` is ``w`` at fractional level
+        indices ``coords`` (z, y, x arrays of any one shape), through ``φ₀`` there."""
+        g, tg = self.scan, self.geometry
+        m = self.data
+        if sig_pre > 0:
+            dg, dt = g.direction_matrix, tg.direction_matrix
+            cov = dg @ np.diag((sig_pre * np.asarray(g.spacing, float)) ** 2) @ dg.T  # world mm²
+            sigma = np.sqrt(np.einsum("ia,ij,ja->a", dt, cov, dt)) / np.asarray(tg.spacing, float)  # i, j, k
+            m = _smooth(m, sigma[::-1])
+        phi = np.ascontiguousarray(self.phi[:, ::s, ::s, ::s])
+        lg = GridGeometry(size=tuple(int(v) for v in shape[::-1]), spacing=tuple(float(v) * s for v in g.spacing),
+                          origin=tuple(float(v) for v in g.index_to_world(self.corner)), direction=g.direction)
+        d = g.direction_matrix
+        inv_sp = 1.0 / (np.asarray(g.spacing, float)[::-1] * s)
+        w2i, i2w = tg.world_to_index_matrix, lg.index_to_world_matrix
+        air = self.air
+
+        def warp(u):
+            ph = sample_shifted(phi, u, inv_sp)
+            # u along the array axes (z, y, x) → world, written out (no BLAS: the same bits on every run)
+            disp = np.stack([d[r, 0] * u[2] + d[r, 1] * u[1] + d[r, 2] * u[0] + ph[r] for r in range(3)], axis=-1)
+            return sample_displaced_array(m, w2i, lg, disp, 1, air).astype(np.float32)
+
+        def sample(coords):
+            ijk = (coords[2], coords[1], coords[0])
+            world = [i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3]
+                     + ndimage.map_coordinates(phi[r], coords, order=1, mode="nearest") for r in range(3)]
+            points = np.stack([np.ravel(v) for v in world], axis=-1)
+            return sample_array(m, w2i, points, 1, air).reshape(np.shape(coords[0])).astype(np.float32)
+
+        return warp, sample
+
+
+def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, grid_mm, sp, st):
     """One held bone's rigid pose refined on the level's objective, the soft tissue held.
 
     The candidate field is ``u`` moved towards the bone's rigid displacement by its weight (exactly rigid on
     the bone, fading over its margin); its objective is the LNCC's mean over the voxels whose value the bone's
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
     that the windows' statistics there are the whole grid's.  A rise of that mean is a rise of the level's
-    objective, up to rounding (the samples here are map_coordinates', the level's sample_shifted's: the round
+    objective, up to rounding (the samples here are map_coordinates', the level's numba kernels': the round
     is checked on the whole level).  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
     ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
     less the objective of ``u`` as it is (≤ 0: keep ``u``).
@@ -511,13 +570,21 @@ def _refine_bone(p0, centre, box, wgt, u, fl, ml, win, tissue, region, grid_mm, 
     idx = np.meshgrid(*base, indexing="ij")
     inv = (1.0 / np.asarray(sp, float)).astype(np.float32)
 
+    # the candidates keep U one-to-one as every step does: det(I + ∇u) on the box grown by a voxel above
+    # min_jacobian (or not below its value as u is, where it already was); one that does not is never the best
+    # (the LNCC can rise by crushing the tissue between two bones into the fade)
+    grown = (slice(None),) + tuple(slice(max(r.start - 1, 0), min(r.stop + 1, n)) for r, n in zip(rel(box), fo.shape))
+    det_floor = min(st.min_jacobian, _jacobian_min(uo[grown], sp))
+
     def objective(p, grad=None):
         uc = uo.copy()
         uc[rb] += wb * (_rigid_displacement(p, centre, go, rel(box)) - uc[rb])
-        w = ndimage.map_coordinates(ml, [idx[a] + uc[a] * inv[a] for a in range(3)], order=1, mode="nearest")
+        if _jacobian_min(uc[grown], sp) <= det_floor:
+            return f_now - 1.0  # below every LNCC a one-to-one candidate can reach from here (it is ≤ 1)
+        w = sample_w([idx[a] + uc[a] * inv[a] for a in range(3)])
         return _lncc_force(fo, w.astype(np.float32), win, stats, reg)[0]
 
-    w_now = ndimage.map_coordinates(ml, [idx[a] + uo[a] * inv[a] for a in range(3)], order=1, mode="nearest")
+    w_now = sample_w([idx[a] + uo[a] * inv[a] for a in range(3)])
     f_now = _lncc_force(fo, w_now.astype(np.float32), win, stats, reg)[0]  # the objective as u is now
     x0 = np.asarray(p0, float)
     bound = np.r_[np.full(3, st.refine_deg), np.full(3, st.refine_mm)]
@@ -566,8 +633,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     f0 = np.array(fixed.data, np.float32, copy=True)  # normalised in place below: never the caller's array
     lab0 = None
     if st.bones != "free" and moving_labels is not None:
-        from deformation.interpolate import sample_displaced_array
-
         lab0 = sample_displaced_array(np.asarray(moving_labels.data), moving_labels.geometry.world_to_index_matrix,
                                       g, initial.data, 0, 0).astype(np.int32)
     # Normalise intensities so that step sizes do not depend on the scanner's units.
@@ -586,7 +651,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     crop = _crop_box(region, g.array_shape,
                      np.ceil((3.0 * st.window_mm + max(st.shrink) * sp_full.max()) / sp_full),
                      int(np.lcm.reduce([int(v) for v in st.shrink])))
-    f0, m0 = f0[crop], m0[crop]
+    f0 = f0[crop]
+    del m0  # the steps sample the template itself (_TemplateSampler), not this resampled copy
+    template = _TemplateSampler(moving, initial, scale, crop)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
     if st.tissue_only and scan_body is not None and _air_around(scan_body) >= AIR_AROUND:
         tissue0 = scan_body[crop].astype(np.float32)
@@ -612,8 +679,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         sp = sp_full * s
         sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
         fl = _smooth(f0, sig_pre)[::s, ::s, ::s].astype(np.float32)
-        ml = _smooth(m0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         shape = fl.shape
+        warp_w, sample_w = template.level(s, sig_pre, shape)
         grid = np.indices(shape, dtype=np.float32)
         grid_mm = [grid[a] * sp[a] for a in range(3)]
         if u is None:
@@ -679,7 +746,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     tested.add(b)
                 lb = lab_now[box]
                 wgt = np.where((lb == 0) | (lb == b), wgt, np.float32(0.0))  # a bone's move moves no other bone
-                p, gain, n = _refine_bone(params.get(b, np.zeros(6)), centres[b], box, wgt, u_now, fl, ml, win,
+                p, gain, n = _refine_bone(params.get(b, np.zeros(6)), centres[b], box, wgt, u_now, fl, sample_w, win,
                                           tissue, regl, grid_mm, sp, st)
                 evaluations += n
                 if gain > 0 and b not in params:  # the start's pose stands unless the image shows it off
@@ -766,7 +833,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # The level stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or
         # when the last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps
         # the trials.
-        w = sample_shifted(ml, u, inv_sp)
+        w = warp_w(u)
         cc, dcc = _lncc_force(fl, w, win, f_stats, regl)
         rounds = []  # the bones' refinements (settings.refine_bones)
 
@@ -782,7 +849,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             if not rec_b["evaluations"]:  # no bone to test or refine on this round
                 bone_w = []  # refine() made them with its own margin: recomputed at the next step
                 return False
-            w_b = sample_shifted(ml, u_b, inv_sp)
+            w_b = warp_w(u_b)
             cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl)
             rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
                          seconds=round(time.perf_counter() - t_b, 2))
@@ -821,7 +888,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     break
             u_c, halved = candidate(u, force, fmax, radius)
             halvings += halved
-            w_c = sample_shifted(ml, u_c, inv_sp)
+            w_c = warp_w(u_c)
             cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl)
             stopped = None
             if cc_c > cc:  # taken
