@@ -526,11 +526,18 @@ class _TemplateSampler:
             disp = np.stack([d[r, 0] * u[2] + d[r, 1] * u[1] + d[r, 2] * u[0] + ph[r] for r in range(3)], axis=-1)
             return sample_displaced_array(m, w2i, lg, disp, 1, air).astype(np.float32)
 
+        phi_last = np.ascontiguousarray(np.moveaxis(phi, 0, -1))  # (nz, ny, nx, 3) for sample_array
+        lw2i = lg.world_to_index_matrix
+
         def sample(coords):
-            ijk = (coords[2], coords[1], coords[0])
-            world = [i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3]
-                     + ndimage.map_coordinates(phi[r], coords, order=1, mode="nearest") for r in range(3)]
-            points = np.stack([np.ravel(v) for v in world], axis=-1)
+            # φ₀ continues by its edge values (as sample_shifted's): the indices clamped to the grid
+            ijk = [np.clip(np.ravel(coords[2 - r]), 0, shape[2 - r] - 1) for r in range(3)]
+            at = np.stack([i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3]
+                           for r in range(3)], axis=-1)
+            moved = [np.ravel(coords[2 - r]) for r in range(3)]
+            world = np.stack([i2w[r, 0] * moved[0] + i2w[r, 1] * moved[1] + i2w[r, 2] * moved[2] + i2w[r, 3]
+                              for r in range(3)], axis=-1)
+            points = world + sample_array(phi_last, lw2i, at, 1, 0.0)
             return sample_array(m, w2i, points, 1, air).reshape(np.shape(coords[0])).astype(np.float32)
 
         return warp, sample
@@ -581,11 +588,13 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
         uc[rb] += wb * (_rigid_displacement(p, centre, go, rel(box)) - uc[rb])
         if _jacobian_min(uc[grown], sp) <= det_floor:
             return f_now - 1.0  # below every LNCC a one-to-one candidate can reach from here (it is ≤ 1)
-        w = sample_w([idx[a] + uc[a] * inv[a] for a in range(3)])
-        return _lncc_force(fo, w.astype(np.float32), win, stats, reg)[0]
+        w = w_now.copy()  # only the bone's box changes
+        w[rbox] = sample_w([idx[a][rbox] + uc[a][rbox] * inv[a] for a in range(3)])
+        return _lncc_force(fo, w, win, stats, reg)[0]
 
+    rbox = rel(box)
     w_now = sample_w([idx[a] + uo[a] * inv[a] for a in range(3)])
-    f_now = _lncc_force(fo, w_now.astype(np.float32), win, stats, reg)[0]  # the objective as u is now
+    f_now = _lncc_force(fo, w_now, win, stats, reg)[0]  # the objective as u is now
     x0 = np.asarray(p0, float)
     bound = np.r_[np.full(3, st.refine_deg), np.full(3, st.refine_mm)]
     x0 = np.clip(x0, -bound, bound)
