@@ -45,13 +45,15 @@ at every iteration, and keeps what an articulated body needs:
   parameters about its centroid) is optimised with the soft tissue held
   (NLopt BOBYQA, derivative-free; the candidate moves the bone and fades over
   ``refine_margin_voxels``; the objective is the LNCC over the voxels that
-  motion can change, against its value as ``U`` is; a move that would bring
-  ``det(I + ∇u)`` below ``min_jacobian`` is refused), and the round is taken
-  only if the level's objective rises; the steps then go on.
+  motion can change, against its value as ``U`` is; a candidate that would
+  bring ``det(I + ∇u)`` below ``min_jacobian`` scores below every one-to-one
+  one), and the round is taken only if the level's objective rises; the
+  steps then go on.
   The pose stage's estimate stands unless the image moves a bone past
-  ``refine_min_move_voxels`` (half a scan voxel): the LNCC's windows reach
+  ``refine_min_move_voxels`` (half a scan voxel: the LNCC's windows reach
   into the soft tissue, and its optimum sits a few tenths of a mm from the
-  bone's own fit; a bone is tested on a level only where it is at least
+  bone's own fit) and the bone's own fit rises significantly with it
+  (``refine_significance``, :func:`_bone_fit_improves`); a bone is tested on a level only where it is at least
   ``refine_min_voxels`` across (a pose is read from opposite edges), once on
   the finest level if no coarser one could, and once moved it is refined on
   every later round.
@@ -163,6 +165,9 @@ class DenseSettings:
     #: a bone not moved so far is tested on the first round of each level where it is at least this many level
     #: voxels thick (its inscribed diameter), and on the finest level only if no coarser level tested it
     refine_min_voxels: float = 3.0
+    #: ... and only when the bone's own fit rises with it, by more than this many standard errors (Fisher's z of
+    #: its NCC over its voxels and one voxel around: _bone_fit_improves); 0 accepts any rise
+    refine_significance: float = 2.0
     elastic_mm: float = 2.0  #: σ of the smoothing of the field after each step (0: none), when elastic_voxels is None
     #: fluid σ in voxels of each level (None: fluid_mm).  In voxels, as ANTs SyN's update field: each level
     #: regularises at its own scale (coarse levels smoothly, the fine one locally).  On the tuning knee at 70°
@@ -213,8 +218,10 @@ class DenseSettings:
                              f"(BOBYQA's first model needs 2·6 + 1) and refine_rounds ≥ 1, got {self.refine_deg}, "
                              f"{self.refine_mm}, {self.refine_evaluations}, {self.refine_rounds}")
         if not (self.refine_min_move_voxels >= 0 and self.refine_min_voxels >= 1 and self.bone_margin_mm > 0
+                and self.refine_significance >= 0
                 and (self.refine_margin_voxels is None or self.refine_margin_voxels > 0)):
-            raise ValueError(f"refine_min_move_voxels ≥ 0, refine_min_voxels ≥ 1, bone_margin_mm > 0 and "
+            raise ValueError(f"refine_min_move_voxels ≥ 0, refine_min_voxels ≥ 1, bone_margin_mm > 0, "
+                             f"refine_significance ≥ 0 (got {self.refine_significance}) and "
                              f"refine_margin_voxels > 0 (or None) are required, got {self.refine_min_move_voxels}, "
                              f"{self.refine_min_voxels}, {self.bone_margin_mm}, {self.refine_margin_voxels}")
         if not 0 < self.air_weight <= 1:
@@ -543,6 +550,32 @@ class _TemplateSampler:
         return warp, sample
 
 
+def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, st) -> bool:
+    """Whether the bone's own fit shows its pose off: the NCC of the scan and the template over the bone's voxels
+    and one voxel around (``m`` dilated, on the level), with the bone at pose ``p`` against ``u`` as it is,
+    compared by Fisher's z-transform: True when ``atanh(r₁) − atanh(r₀)`` exceeds ``st.refine_significance``
+    standard errors ``√(2 / (n − 3))`` (that of two independent correlations over ``n`` voxels; the two here
+    share the scan, so the test is conservative).  The refinement's own objective spans the soft tissue around
+    the bone, whose map is still being fitted; a thin bone's roll is barely seen by its own voxels, and the
+    noise of a CT-like scan can then pay for a wrong one."""
+    base = [np.arange(o.start, o.stop, dtype=np.float32) for o in box]
+    idx = np.meshgrid(*base, indexing="ij")
+    inv = 1.0 / np.asarray(sp, float)
+    ub = u[(slice(None),) + box]
+    mask = ndimage.binary_dilation(m)
+    fv = fl[box][mask].astype(np.float64)
+    r = []
+    for q in (None, p):
+        uc = ub if q is None else ub + wgt[None] * (_rigid_displacement(q, centre, grid_mm, box) - ub)
+        wv = sample_w([idx[a] + uc[a] * inv[a] for a in range(3)])[mask].astype(np.float64)
+        a_, b_ = fv - fv.mean(), wv - wv.mean()
+        r.append(float((a_ * b_).sum() / max(np.sqrt((a_ * a_).sum() * (b_ * b_).sum()), 1e-30)))
+    n = int(mask.sum())
+    z = (np.arctanh(min(r[1], 0.999999)) - np.arctanh(min(r[0], 0.999999))) * np.sqrt(max(n - 3, 1) / 2.0)
+    log.debug("bone %d first move: own NCC %.4f -> %.4f over %d voxels, z %.2f", b, r[0], r[1], n, z)
+    return z > st.refine_significance
+
+
 def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, grid_mm, sp, st):
     """One held bone's rigid pose refined on the level's objective, the soft tissue held.
 
@@ -742,7 +775,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             # along every axis)
             margin = st.bone_margin_mm if st.refine_margin_voxels is None else st.refine_margin_voxels * float(sp.max())
             bone_w = _bone_weights(lab_now, bones, sp, margin)
-            evaluations, moved, folded = 0, {}, 0
+            evaluations, moved, folded, unseen = 0, {}, 0, 0
             finest = lv == len(st.shrink) - 1
             for b, box, m, wgt in bone_w:
                 if b not in centres:
@@ -763,6 +796,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         move = np.sqrt((_rigid_displacement(p, centres[b], grid_mm, box)[:, m] ** 2).sum(axis=0)).max()
                     if move <= st.refine_min_move_voxels * float(sp_full.min()):
                         continue
+                    if not _bone_fit_improves(p, b, box, m, wgt, u_now, fl, sample_w, centres[b], grid_mm, sp, st):
+                        unseen += 1
+                        continue
                 if gain > 0:
                     # the move must keep U one-to-one as every step does: det(I + ∇u) on the box (grown by a
                     # voxel) above min_jacobian, or not below its value before where it already was
@@ -778,7 +814,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         continue
                     params[b] = p
                     moved[b] = p
-            return u_now, {"evaluations": evaluations, "bones_moved": len(moved), "refused_folding": folded}
+            return u_now, {"evaluations": evaluations, "bones_moved": len(moved), "refused_folding": folded,
+                           "refused_not_significant": unseen}
 
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
