@@ -470,8 +470,7 @@ def test_a_bone_first_moves_only_when_its_own_fit_rises_significantly():
     assert _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st)
     # the same bone under independent noise in scan and template, its template off by 0.1 mm only: the correcting
     # shift raises its own NCC by less than the noise can (measured 0.728 → 0.737, z 0.6): it passes a test that
-    # accepts any rise, not
-    # the default's two standard errors
+    # accepts any rise, not the default's two standard errors
     noisy = tex + 0.5 * float(tex.std()) * rng.normal(size=shape).astype(np.float32)
     templ = (ndimage.shift(tex, (0.0, 0.0, 0.1), order=3, mode="nearest")
              + 0.5 * float(tex.std()) * rng.normal(size=shape).astype(np.float32))
