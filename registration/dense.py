@@ -494,7 +494,10 @@ class _TemplateSampler:
     ``U = 0`` reads ``M₀``'s grid values and every other ``U`` averages neighbours, which lowers the variance of
     the template's noise in ``w``, and the LNCC rises with it (an interpolation artefact, as Pluim et al. 2000
     describe for mutual information).  The steps then climb towards shifts of a fraction of a voxel wherever the
-    tissue is flat.  Sampled once, through the composed map, no ``U`` is privileged.
+    tissue is flat.  Sampled once, through the composed map, ``U = 0`` is no longer privileged: the start's
+    positions fall at any fraction of the template's voxels.  The artefact is not gone: a position at a template
+    voxel's centre still carries more of its noise than one between centres, so the LNCC still favours some
+    sub-voxel positions, now in a pattern that varies with ``φ₀`` rather than one shift everywhere.
 
     Each level's template is smoothed on its own grid by the level's pre-smoothing (a Gaussian of ``sig_pre``
     scan voxels along each scan axis, its variance projected onto the template's axes).  Beyond the template's
@@ -554,8 +557,10 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
     """Whether the bone's own fit shows its pose off: the NCC of the scan and the template over the bone's voxels
     and one voxel around (``m`` dilated, on the level), with the bone at pose ``p`` against ``u`` as it is,
     compared by Fisher's z-transform: True when ``atanh(r₁) − atanh(r₀)`` exceeds ``st.refine_significance``
-    standard errors ``√(2 / (n − 3))`` (that of two independent correlations over ``n`` voxels; the two here
-    share the scan, so the test is conservative).  The refinement's own objective spans the soft tissue around
+    standard errors ``√(2 / (n − 3))`` (that of two independent correlations over ``n`` independent voxels).
+    It is not conservative: a smoothed level's neighbouring voxels are correlated (fewer independent voxels
+    than ``n``), and a candidate between the template's voxel centres averages its noise and raises the NCC
+    (:class:`_TemplateSampler`'s artefact), so moves within the noise can pass.  The refinement's own objective spans the soft tissue around
     the bone, whose map is still being fitted; a thin bone's roll is barely seen by its own voxels, and the
     noise of a CT-like scan can then pay for a wrong one."""
     base = [np.arange(o.start, o.stop, dtype=np.float32) for o in box]
@@ -619,7 +624,9 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
     def objective(p, grad=None):
         uc = uo.copy()
         uc[rb] += wb * (_rigid_displacement(p, centre, go, rel(box)) - uc[rb])
-        if _jacobian_min(uc[grown], sp) <= det_floor:
+        # strictly below: where u already is at or under min_jacobian, a candidate that leaves that voxel as it is
+        # is one-to-one as u is (with ≤ every candidate would be refused)
+        if _jacobian_min(uc[grown], sp) < det_floor:
             return f_now - 1.0  # below every LNCC a one-to-one candidate can reach from here (it is ≤ 1)
         w = w_now.copy()  # only the bone's box changes
         w[rbox] = sample_w([idx[a][rbox] + uc[a][rbox] * inv[a] for a in range(3)])
@@ -808,7 +815,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     sub = u_now[(slice(None),) + box]  # a view
                     kept_sub = sub.copy()
                     sub += wgt[None] * (_rigid_displacement(p, centres[b], grid_mm, box) - sub)
-                    if _jacobian_min(u_now[grown], sp) <= min(st.min_jacobian, det_before):
+                    if _jacobian_min(u_now[grown], sp) < min(st.min_jacobian, det_before):
                         sub[...] = kept_sub
                         folded += 1
                         continue

@@ -480,3 +480,44 @@ def test_a_bone_first_moves_only_when_its_own_fit_rises_significantly():
     assert _bone_fit_improves(small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp,
                               DenseSettings(refine_significance=0.0))
     assert not _bone_fit_improves(small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp, st)
+
+
+def test_template_sampler_reads_the_template_through_the_composed_map_on_another_grid():
+    """registration.dense._TemplateSampler against a direct computation in world mm: a template on its own grid
+    (other spacing per axis, origin), a scan box whose corner is not the grid's, an affine start, level 2 with
+    its pre-smoothing (0.5 scan voxel, carried to the template's axes in mm) and a constant u.  ``warp`` and
+    ``sample`` must read the template smoothed by σ = 0.5 · scan spacing / template spacing per axis at
+    x + u + φ₀(x + u).  Tolerance 1e-4 of the image's range: float32 sampling; interior level voxels only
+    (φ₀ continues by its edge values beyond the box, which the affine reference does not)."""
+    from registration.dense import _TemplateSampler
+
+    gs = GridGeometry((20, 18, 16), (1.2, 1.5, 2.0), (-5.0, 3.0, 1.0))
+    gt = GridGeometry((44, 40, 34), (0.8, 1.1, 1.6), (-12.0, -6.0, -9.0))
+    rng = np.random.default_rng(3)
+    tdata = ndimage.gaussian_filter(rng.normal(size=gt.array_shape), 2.0).astype(np.float32)
+    tdata = tdata - tdata.min() + 0.1
+    a = np.array([[0.02, -0.01, 0.0], [0.01, 0.015, 0.005], [0.0, -0.01, 0.02]])
+    b = np.array([0.7, -0.4, 0.3])
+    xs = gs.world_coordinates()
+    phi = Volume((xs @ a.T + b).astype(np.float32), gs)  # affine scan_to_template displacement
+    crop = (slice(2, 14), slice(4, 16), slice(6, 18))  # array axes (z, y, x)
+    s, sig_pre = 2, 0.5
+    shape = tuple(len(range(c.start, c.stop, s)) for c in crop)
+    warp, sample = _TemplateSampler(Volume(tdata, gt), phi, 1.0, crop).level(s, sig_pre, shape)
+    u = np.zeros((3,) + shape, np.float32)
+    u[0], u[1], u[2] = 0.3, -0.2, 0.5  # mm along z, y, x
+    # the reference: smoothed on the template's grid, σ per array axis (z, y, x) in its voxels
+    sigma = sig_pre * np.asarray(gs.spacing)[::-1] / np.asarray(gt.spacing)[::-1]
+    ref_img = ndimage.gaussian_filter(tdata.astype(np.float64), sigma, mode="nearest", truncate=3.0)
+    kk, jj, ii = np.meshgrid(*[np.arange(c.start, c.stop, s) for c in crop], indexing="ij")
+    x = np.stack([ii, jj, kk, np.ones_like(ii)], axis=-1) @ gs.index_to_world_matrix.T
+    y = x[..., :3] + np.array([0.5, -0.2, 0.3])  # u along x, y, z (identity direction)
+    y = y + y @ a.T + b  # + φ₀(x + u)
+    t = np.concatenate([y, np.ones(y.shape[:-1] + (1,))], axis=-1) @ gt.world_to_index_matrix.T
+    ref = ndimage.map_coordinates(ref_img, [t[..., 2], t[..., 1], t[..., 0]], order=1)
+    inner = (slice(1, -1),) * 3
+    tol = 1e-4 * float(tdata.max() - tdata.min())
+    assert np.abs(warp(u)[inner] - ref[inner]).max() < tol
+    idx = np.indices(shape).astype(np.float64)
+    got = sample([idx[a_] + u[a_] / (np.asarray(gs.spacing)[::-1][a_] * s) for a_ in range(3)])
+    assert np.abs(got[inner] - ref[inner]).max() < tol
