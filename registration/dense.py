@@ -119,7 +119,7 @@ from deformation.geometry import GridGeometry, Volume
 from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted
 
 from .baselines import warp_template
-from .metrics import air_level, similarity
+from .metrics import air_level, cc, similarity
 
 __all__ = ["DenseSettings", "DenseResult", "register_dense"]
 
@@ -539,15 +539,15 @@ class _TemplateSampler:
         phi_last = np.ascontiguousarray(np.moveaxis(phi, 0, -1))  # (nz, ny, nx, 3) for sample_array
         lw2i = lg.world_to_index_matrix
 
+        def world(ijk):  # level index (i, j, k arrays) → world mm (N, 3), written out as warp's
+            return np.stack([i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3]
+                             for r in range(3)], axis=-1)
+
         def sample(coords):
-            # φ₀ continues by its edge values (as sample_shifted's): the indices clamped to the grid
-            ijk = [np.clip(np.ravel(coords[2 - r]), 0, shape[2 - r] - 1) for r in range(3)]
-            at = np.stack([i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3]
-                           for r in range(3)], axis=-1)
-            moved = [np.ravel(coords[2 - r]) for r in range(3)]
-            world = np.stack([i2w[r, 0] * moved[0] + i2w[r, 1] * moved[1] + i2w[r, 2] * moved[2] + i2w[r, 3]
-                              for r in range(3)], axis=-1)
-            points = world + sample_array(phi_last, lw2i, at, 1, 0.0)
+            ijk = [np.ravel(coords[2 - r]) for r in range(3)]  # array axes (z, y, x) → index axes (i, j, k)
+            # φ₀ continues by its edge values (as sample_shifted's): read at the indices clamped to the grid
+            at = world([np.clip(ijk[r], 0, shape[2 - r] - 1) for r in range(3)])
+            points = world(ijk) + sample_array(phi_last, lw2i, at, 1, 0.0)
             return sample_array(m, w2i, points, 1, air).reshape(np.shape(coords[0])).astype(np.float32)
 
         return warp, sample
@@ -560,21 +560,18 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
     standard errors ``√(2 / (n − 3))`` (that of two independent correlations over ``n`` independent voxels).
     It is not conservative: a smoothed level's neighbouring voxels are correlated (fewer independent voxels
     than ``n``), and a candidate between the template's voxel centres averages its noise and raises the NCC
-    (:class:`_TemplateSampler`'s artefact), so moves within the noise can pass.  The refinement's own objective spans the soft tissue around
-    the bone, whose map is still being fitted; a thin bone's roll is barely seen by its own voxels, and the
-    noise of a CT-like scan can then pay for a wrong one."""
-    base = [np.arange(o.start, o.stop, dtype=np.float32) for o in box]
-    idx = np.meshgrid(*base, indexing="ij")
+    (:class:`_TemplateSampler`'s artefact), so moves within the noise can pass.  The refinement's own objective
+    spans the soft tissue around the bone, whose map is still being fitted; a thin bone's roll is barely seen by
+    its own voxels, and the noise of a CT-like scan can then pay for a wrong one.  (A constant image: NaN, not
+    significant.)"""
+    idx = np.meshgrid(*[np.arange(o.start, o.stop, dtype=np.float32) for o in box], indexing="ij")
     inv = 1.0 / np.asarray(sp, float)
     ub = u[(slice(None),) + box]
     mask = ndimage.binary_dilation(m)
-    fv = fl[box][mask].astype(np.float64)
     r = []
     for q in (None, p):
         uc = ub if q is None else ub + wgt[None] * (_rigid_displacement(q, centre, grid_mm, box) - ub)
-        wv = sample_w([idx[a] + uc[a] * inv[a] for a in range(3)])[mask].astype(np.float64)
-        a_, b_ = fv - fv.mean(), wv - wv.mean()
-        r.append(float((a_ * b_).sum() / max(np.sqrt((a_ * a_).sum() * (b_ * b_).sum()), 1e-30)))
+        r.append(cc(fl[box], sample_w([idx[a] + uc[a] * inv[a] for a in range(3)]), mask))
     n = int(mask.sum())
     z = (np.arctanh(min(r[1], 0.999999)) - np.arctanh(min(r[0], 0.999999))) * np.sqrt(max(n - 3, 1) / 2.0)
     log.debug("bone %d first move: own NCC %.4f -> %.4f over %d voxels, z %.2f", b, r[0], r[1], n, z)
@@ -588,8 +585,8 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
     the bone, fading over its margin); its objective is the LNCC's mean over the voxels whose value the bone's
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
     that the windows' statistics there are the whole grid's.  A rise of that mean is a rise of the level's
-    objective, up to rounding (the samples here are map_coordinates', the level's numba kernels': the round
-    is checked on the whole level).  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
+    objective (the same template samples as the level's: :class:`_TemplateSampler`; the round is checked on
+    the whole level all the same).  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
     ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
     less the objective of ``u`` as it is (≤ 0: keep ``u``).
     """
