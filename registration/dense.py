@@ -53,7 +53,8 @@ at every iteration, and keeps what an articulated body needs:
   ``refine_min_move_voxels`` (half a scan voxel: the LNCC's windows reach
   into the soft tissue, and its optimum sits a few tenths of a mm from the
   bone's own fit) and the bone's own fit rises significantly with it
-  (``refine_significance``, :func:`_bone_fit_improves`); a bone is tested on a level only where it is at least
+  (``refine_significance``, :func:`_bone_fit_improves`: the images smoothed
+  by a scan voxel, the noise's correlation counted); a bone is tested on a level only where it is at least
   ``refine_min_voxels`` across (a pose is read from opposite edges), once on
   the finest level if no coarser one could, and once moved it is refined on
   every later round.
@@ -244,6 +245,12 @@ class DenseResult:
     #: which voxels) and ``n_folded_u``, the folds of U alone (0: every step was one-to-one)
     folding: dict = field(default_factory=dict)
     unfold: dict | None = None  #: what the final repair changed (deformation.fields.unfold), None if nothing
+
+
+#: the bones' significance test compares images smoothed by at least this σ (scan voxels): trilinear
+#: interpolation between voxel centres then changes the template's noise variance by at most ~30 % (against 8×
+#: unsmoothed), so a candidate's NCC cannot rise by sampling the template's noise more thinly
+TEST_SMOOTH_VOXELS = 1.0
 
 
 def _smooth(a, sigma_vox):
@@ -553,17 +560,49 @@ class _TemplateSampler:
         return warp, sample
 
 
-def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, st) -> bool:
+def _noise_correlation_factor(f, w, air, shape_voxels: float) -> float:
+    """How many voxels of the level carry one independent sample of the noise, for a correlation between ``f``
+    and ``w`` (Bartlett 1935; Bretherton et al. 1999): the product over the axes of ``Σ_k ρ_f(k) ρ_w(k)``, each
+    image's autocorrelation taken as a Gaussian of the lag, ``ρ(k) = ρ₁^(k²)`` (white noise smoothed by a
+    Gaussian), with ``ρ₁`` its lag-1 autocorrelation measured in the ``air`` (no anatomy: noise alone; a
+    magnitude image's Rayleigh air shows about ρ² of its noise's correlation, so this then errs towards more
+    samples).  With fewer than 1000 air voxels, white noise smoothed by a Gaussian of ``shape_voxels`` level
+    voxels in both images.  At least 1."""
+    factor = 1.0
+    k = np.arange(-12, 13, dtype=float) ** 2
+    for a in range(3):
+        if air is not None and int(air.sum()) >= 1000:
+            rho = []
+            for img in (f, w):
+                lo = [slice(None)] * 3
+                hi = [slice(None)] * 3
+                lo[a], hi[a] = slice(0, -1), slice(1, None)
+                both = air[tuple(lo)] & air[tuple(hi)]
+                x, y = img[tuple(lo)][both].astype(np.float64), img[tuple(hi)][both].astype(np.float64)
+                x, y = x - x.mean(), y - y.mean()
+                den = np.sqrt((x * x).sum() * (y * y).sum())
+                rho.append(float((x * y).sum() / den) if den > 0 else 0.0)
+            r = float(np.clip(rho[0], 0.0, 0.99) * np.clip(rho[1], 0.0, 0.99))
+        else:
+            r = float(np.exp(-1.0 / (2.0 * shape_voxels ** 2))) if shape_voxels > 0 else 0.0
+        factor *= float((r ** k).sum()) if r > 0 else 1.0
+    return max(factor, 1.0)
+
+
+def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, st, per_sample: float = 1.0) -> bool:
     """Whether the bone's own fit shows its pose off: the NCC of the scan and the template over the bone's voxels
     and one voxel around (``m`` dilated, on the level), with the bone at pose ``p`` against ``u`` as it is,
     compared by Fisher's z-transform: True when ``atanh(r₁) − atanh(r₀)`` exceeds ``st.refine_significance``
-    standard errors ``√(2 / (n − 3))`` (that of two independent correlations over ``n`` independent voxels).
-    It is not conservative: a smoothed level's neighbouring voxels are correlated (fewer independent voxels
-    than ``n``), and a candidate between the template's voxel centres averages its noise and raises the NCC
-    (:class:`_TemplateSampler`'s artefact), so moves within the noise can pass.  The refinement's own objective
-    spans the soft tissue around the bone, whose map is still being fitted; a thin bone's roll is barely seen by
-    its own voxels, and the noise of a CT-like scan can then pay for a wrong one.  (A constant image: NaN, not
-    significant.)"""
+    standard errors ``√(2 / (n_eff − 3))``, that of two independent correlations over ``n_eff = n / per_sample``
+    independent samples (``per_sample``: :func:`_noise_correlation_factor`).  The candidate is the one the
+    refinement's search found best on the same noise, so a test of dependent correlations (Steiger 1980, more
+    powerful: they share the scan) would pass what the search fitted; the independent correlations' error is
+    kept on purpose, the larger.  ``fl`` and ``sample_w`` are the
+    level's images smoothed for the test (``register_dense``: at least one scan voxel), so that a candidate
+    between the template's voxel centres hardly lowers its noise (:class:`_TemplateSampler`'s artefact).
+    The refinement's own objective spans the soft tissue around the bone, whose map is still being fitted; a
+    thin bone's roll is barely seen by its own voxels, and the noise of a CT-like scan can then pay for a wrong
+    one.  (A constant image: NaN, not significant.)"""
     idx = np.meshgrid(*[np.arange(o.start, o.stop, dtype=np.float32) for o in box], indexing="ij")
     inv = 1.0 / np.asarray(sp, float)
     ub = u[(slice(None),) + box]
@@ -572,9 +611,10 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
     for q in (None, p):
         uc = ub if q is None else ub + wgt[None] * (_rigid_displacement(q, centre, grid_mm, box) - ub)
         r.append(cc(fl[box], sample_w([idx[a] + uc[a] * inv[a] for a in range(3)]), mask))
-    n = int(mask.sum())
-    z = (np.arctanh(min(r[1], 0.999999)) - np.arctanh(min(r[0], 0.999999))) * np.sqrt(max(n - 3, 1) / 2.0)
-    log.debug("bone %d first move: own NCC %.4f -> %.4f over %d voxels, z %.2f", b, r[0], r[1], n, z)
+    n = int(mask.sum()) / max(float(per_sample), 1.0)
+    z = (np.arctanh(min(r[1], 0.999999)) - np.arctanh(min(r[0], 0.999999))) * np.sqrt(max(n - 3.0, 1.0) / 2.0)
+    log.debug("bone %d first move: own NCC %.4f -> %.4f over %d voxels (%.0f independent), z %.2f", b, r[0], r[1],
+              int(mask.sum()), n, z)
     return z > st.refine_significance
 
 
@@ -750,6 +790,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             u_norm = 1.0 / _smooth(u_weight, elastic)
         step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
         bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
+        test = None  # the bones' significance test's images (_bone_fit_improves), made when first needed
         bone_w = []
         hold = (None, None)  # bone_hold() of the current bone_w
         inv_sp = 1.0 / sp
@@ -772,7 +813,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         def refine(u_now, test_all):
             """settings.refine_bones: each held bone's pose refined in turn (:func:`_refine_bone`), only those
             already moved unless ``test_all``; returns the new ``u`` (``u_now`` untouched) and the record."""
-            nonlocal bone_w
+            nonlocal bone_w, test
             u_now = u_now.copy()
             lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
             # the candidate's fade: refine_margin_voxels of the level's largest spacing (at least that many voxels
@@ -800,7 +841,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         move = np.sqrt((_rigid_displacement(p, centres[b], grid_mm, box)[:, m] ** 2).sum(axis=0)).max()
                     if move <= st.refine_min_move_voxels * float(sp_full.min()):
                         continue
-                    if not _bone_fit_improves(p, b, box, m, wgt, u_now, fl, sample_w, centres[b], grid_mm, sp, st):
+                    if test is None:  # smoothed by at least one scan voxel: see _bone_fit_improves
+                        sig_t = max(sig_pre, TEST_SMOOTH_VOXELS)
+                        fl_t = _smooth(f0, sig_t)[::s, ::s, ::s].astype(np.float32)
+                        warp_t, sample_t = template.level(s, sig_t, shape)
+                        air = None if regl is None else regl == 0  # beyond the bodies grown by two windows
+                        test = (fl_t, sample_t, _noise_correlation_factor(fl_t, warp_t(u_now), air, sig_t / s))
+                    if not _bone_fit_improves(p, b, box, m, wgt, u_now, test[0], test[1], centres[b], grid_mm, sp,
+                                              st, test[2]):
                         unseen += 1
                         continue
                 if gain > 0:
