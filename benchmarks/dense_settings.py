@@ -50,11 +50,29 @@ def _bench():
 
 
 def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "polyrigid",
-                acquisition: str = "fixed") -> dict:
+                acquisition: str = "fixed", without: str | None = None) -> dict:
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
     "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
-    ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made."""
+    ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made.  ``without``
+    ("bias" or "noise", random acquisition only): the same draw with every bias amplitude 0 or every SNR 10⁶
+    (the other draws unchanged: each image's parameters come from its own stream in the same order)."""
     tag = ("" if start == "polyrigid" else f"_{start}") + ("" if acquisition == "fixed" else f"_{acquisition}")
+    tag += f"_no{without}" if without else ""
+    if without:
+        from validation.phantoms import generate
+
+        name, value = {"bias": ("BIAS_RANGE", (0.0, 0.0)), "noise": ("SNR_RANGE", (1e6, 1e6))}[without]
+        kept = getattr(generate, name)
+        setattr(generate, name, value)
+        try:
+            return _build_case(region, seed, scan, cache, start, acquisition, tag)
+        finally:
+            setattr(generate, name, kept)
+    return _build_case(region, seed, scan, cache, start, acquisition, tag)
+
+
+def _build_case(region, seed, scan, cache, start, acquisition, tag) -> dict:
+    """:func:`tuning_case`'s work, cached under ``tag``."""
     f = cache / f"{region}{seed}_{scan}{tag}.v2.pkl"  # v2: the study markers and the 200 drawn ones
     if f.exists():
         return pickle.loads(f.read_bytes())
@@ -117,6 +135,11 @@ def main(argv=None) -> int:
                    help="perturbed: every estimated pose off by 2-5 degrees and 2 mm before the polyrigid start")
     p.add_argument("--acquisition", choices=["fixed", "random"], default="fixed",
                    help="the phantom's acquisition, as benchmarks/registration.py's --acquisition")
+    p.add_argument("--without", choices=["bias", "noise"],
+                   help="with --acquisition random: the same draw without bias fields, or without noise (SNR 10^6)")
+    p.add_argument("--from-truth", action="store_true",
+                   help="every variant starts at the true correspondence: how far its objective's maximum lies from "
+                        "the truth")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
     args = p.parse_args(argv)
     if args.seed not in tuning:
@@ -128,15 +151,19 @@ def main(argv=None) -> int:
             variants.append((v, DenseSettings(**kw)))
         except (ValueError, TypeError) as e:
             p.error(f"variant {v!r}: {e}")
+    if args.without and args.acquisition != "random":
+        p.error("--without needs --acquisition random (the fixed acquisition draws no bias or SNR)")
     args.cache.mkdir(parents=True, exist_ok=True)
-    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition)
+    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, args.without)
     print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}, acquisition: "
-          f"{args.acquisition}\n")
+          f"{args.acquisition}{f', without {args.without}' if args.without else ''}"
+          f"{', every variant from the truth' if args.from_truth else ''}\n")
     print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
     print("|---|---|---|---|---|---|---|---|")
     score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)")
     for tag, st in variants:
-        r = register_dense(d["scan"], d["template"], initial=d["init"], moving_labels=d["held"], settings=st)
+        r = register_dense(d["scan"], d["template"], initial=d["truth"] if args.from_truth else d["init"],
+                           moving_labels=d["held"], settings=st)
         score(d, r.correspondence, r.seconds, tag, r.levels)
     return 0
 
