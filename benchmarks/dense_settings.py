@@ -54,14 +54,18 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "po
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
     "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
     ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made.  ``without``
-    ("bias" or "noise", random acquisition only): the same draw with every bias amplitude 0 or every SNR 10⁶
+    ("bias" or "noise", random acquisition only): the same draw with every bias amplitude 1e-12 or every SNR 10⁶
     (the other draws unchanged: each image's parameters come from its own stream in the same order)."""
     tag = ("" if start == "polyrigid" else f"_{start}") + ("" if acquisition == "fixed" else f"_{acquisition}")
     tag += f"_no{without}" if without else ""
+    if without and acquisition != "random":
+        raise ValueError("without= needs acquisition='random' (the fixed acquisition draws no bias or SNR)")
     if without:
         from validation.phantoms import generate
 
-        name, value = {"bias": ("BIAS_RANGE", (0.0, 0.0)), "noise": ("SNR_RANGE", (1e6, 1e6))}[without]
+        # a bias of 1e-12, not 0: a zero amplitude skips the bias field's draws, and the noise drawn after them
+        # from the same stream would be another realisation
+        name, value = {"bias": ("BIAS_RANGE", (1e-12, 1e-12)), "noise": ("SNR_RANGE", (1e6, 1e6))}[without]
         kept = getattr(generate, name)
         setattr(generate, name, value)
         try:
@@ -160,7 +164,8 @@ def main(argv=None) -> int:
           f"{', every variant from the truth' if args.from_truth else ''}\n")
     print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
     print("|---|---|---|---|---|---|---|---|")
-    score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)")
+    score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)"
+          + ("; the variants below start at the truth" if args.from_truth else ""))
     for tag, st in variants:
         r = register_dense(d["scan"], d["template"], initial=d["truth"] if args.from_truth else d["init"],
                            moving_labels=d["held"], settings=st)

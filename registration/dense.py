@@ -247,9 +247,9 @@ class DenseResult:
     unfold: dict | None = None  #: what the final repair changed (deformation.fields.unfold), None if nothing
 
 
-#: the bones' significance test compares images smoothed by at least this σ (scan voxels): trilinear
-#: interpolation between voxel centres then changes the template's noise variance by at most ~30 % (against 8×
-#: unsmoothed), so a candidate's NCC cannot rise by sampling the template's noise more thinly
+#: the bones' significance test compares images smoothed by at least this σ in scan voxels and in template voxels
+#: (the larger in mm): trilinear interpolation between the template's voxel centres then changes its noise variance
+#: by at most ~1.5× (against 8× unsmoothed), so a candidate's NCC hardly rises by sampling its noise more thinly
 TEST_SMOOTH_VOXELS = 1.0
 
 
@@ -560,31 +560,38 @@ class _TemplateSampler:
         return warp, sample
 
 
-def _noise_correlation_factor(f, w, air, shape_voxels: float) -> float:
+def _noise_correlation_factor(f, w, air, shape_voxels: float, w_fill: float | None = None) -> float:
     """How many voxels of the level carry one independent sample of the noise, for a correlation between ``f``
-    and ``w`` (Bartlett 1935; Bretherton et al. 1999): the product over the axes of ``Σ_k ρ_f(k) ρ_w(k)``, each
+    and ``w``: Bartlett's (1935) variance of a correlation between two autocorrelated fields, the product over
+    the axes of ``Σ_k ρ_f(k) ρ_w(k)`` (exact for uncorrelated fields; for a bone's NCC of 0.9 a heuristic), each
     image's autocorrelation taken as a Gaussian of the lag, ``ρ(k) = ρ₁^(k²)`` (white noise smoothed by a
-    Gaussian), with ``ρ₁`` its lag-1 autocorrelation measured in the ``air`` (no anatomy: noise alone; a
-    magnitude image's Rayleigh air shows about ρ² of its noise's correlation, so this then errs towards more
-    samples).  With fewer than 1000 air voxels, white noise smoothed by a Gaussian of ``shape_voxels`` level
-    voxels in both images.  At least 1."""
+    Gaussian), with ``ρ₁`` its lag-1 autocorrelation measured in the ``air`` (no anatomy: noise alone; ``w``'s
+    voxels equal to ``w_fill``, beyond the template's grid, left out; a magnitude image's Rayleigh air shows
+    about ρ² of its noise's correlation, so this then errs towards more samples).  An image whose air is
+    constant, or with fewer than 1000 air voxels: white noise smoothed by a Gaussian of ``shape_voxels`` level
+    voxels, ``ρ₁ = exp(−1 / (4 σ²))``.  At least 1."""
+    model = float(np.exp(-1.0 / (4.0 * shape_voxels ** 2))) if shape_voxels > 0 else 0.0
     factor = 1.0
     k = np.arange(-12, 13, dtype=float) ** 2
     for a in range(3):
-        if air is not None and int(air.sum()) >= 1000:
-            rho = []
-            for img in (f, w):
-                lo = [slice(None)] * 3
-                hi = [slice(None)] * 3
-                lo[a], hi[a] = slice(0, -1), slice(1, None)
-                both = air[tuple(lo)] & air[tuple(hi)]
-                x, y = img[tuple(lo)][both].astype(np.float64), img[tuple(hi)][both].astype(np.float64)
-                x, y = x - x.mean(), y - y.mean()
-                den = np.sqrt((x * x).sum() * (y * y).sum())
-                rho.append(float((x * y).sum() / den) if den > 0 else 0.0)
-            r = float(np.clip(rho[0], 0.0, 0.99) * np.clip(rho[1], 0.0, 0.99))
-        else:
-            r = float(np.exp(-1.0 / (2.0 * shape_voxels ** 2))) if shape_voxels > 0 else 0.0
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[a], hi[a] = slice(0, -1), slice(1, None)
+        lo, hi = tuple(lo), tuple(hi)
+        rho = []
+        for img, fill in ((f, None), (w, w_fill)):
+            r = model
+            if air is not None:
+                ok = air if fill is None else air & (img != np.float32(fill))
+                both = ok[lo] & ok[hi]
+                if int(both.sum()) >= 1000:
+                    x, y = img[lo][both].astype(np.float64), img[hi][both].astype(np.float64)
+                    x, y = x - x.mean(), y - y.mean()
+                    den = np.sqrt((x * x).sum() * (y * y).sum())
+                    if den > 0:
+                        r = float((x * y).sum() / den)
+            rho.append(float(np.clip(r, 0.0, 0.99)))
+        r = rho[0] * rho[1]
         factor *= float((r ** k).sum()) if r > 0 else 1.0
     return max(factor, 1.0)
 
@@ -595,10 +602,10 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
     compared by Fisher's z-transform: True when ``atanh(r₁) − atanh(r₀)`` exceeds ``st.refine_significance``
     standard errors ``√(2 / (n_eff − 3))``, that of two independent correlations over ``n_eff = n / per_sample``
     independent samples (``per_sample``: :func:`_noise_correlation_factor`).  The candidate is the one the
-    refinement's search found best on the same noise, so a test of dependent correlations (Steiger 1980, more
-    powerful: they share the scan) would pass what the search fitted; the independent correlations' error is
-    kept on purpose, the larger.  ``fl`` and ``sample_w`` are the
-    level's images smoothed for the test (``register_dense``: at least one scan voxel), so that a candidate
+    refinement's search found best on the same noise, which no error of a fixed comparison accounts for; the
+    independent correlations' error is the larger one (Steiger's 1980 test of correlations sharing the scan
+    would pass smaller gains), and is kept for that, not because it corrects the search's selection.  ``fl`` and ``sample_w`` are the
+    level's images smoothed for the test (``register_dense``: at least one scan and one template voxel), so that a candidate
     between the template's voxel centres hardly lowers its noise (:class:`_TemplateSampler`'s artefact).
     The refinement's own objective spans the soft tissue around the bone, whose map is still being fitted; a
     thin bone's roll is barely seen by its own voxels, and the noise of a CT-like scan can then pay for a wrong
@@ -612,7 +619,9 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
         uc = ub if q is None else ub + wgt[None] * (_rigid_displacement(q, centre, grid_mm, box) - ub)
         r.append(cc(fl[box], sample_w([idx[a] + uc[a] * inv[a] for a in range(3)]), mask))
     n = int(mask.sum()) / max(float(per_sample), 1.0)
-    z = (np.arctanh(min(r[1], 0.999999)) - np.arctanh(min(r[0], 0.999999))) * np.sqrt(max(n - 3.0, 1.0) / 2.0)
+    if n <= 3.0:  # too few independent samples to tell anything
+        return False
+    z = (np.arctanh(min(r[1], 0.999999)) - np.arctanh(min(r[0], 0.999999))) * np.sqrt((n - 3.0) / 2.0)
     log.debug("bone %d first move: own NCC %.4f -> %.4f over %d voxels (%.0f independent), z %.2f", b, r[0], r[1],
               int(mask.sum()), n, z)
     return z > st.refine_significance
@@ -741,7 +750,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     del m0  # the steps sample the template itself (_TemplateSampler), not this resampled copy
     template = _TemplateSampler(moving, initial, scale, crop)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
-    if st.tissue_only and scan_body is not None and _air_around(scan_body) >= AIR_AROUND:
+    air_around = scan_body is not None and _air_around(scan_body) >= AIR_AROUND
+    # the template's voxel in scan voxels, along the scan axis where it is the most (its extent along each scan
+    # axis, over that axis's spacing): the bones' test smooths by at least one voxel of each
+    cosines = np.abs(np.asarray(moving.geometry.direction_matrix).T @ np.asarray(g.direction_matrix))  # [t, s]
+    template_voxel = float(np.max(np.asarray(moving.geometry.spacing, float) @ cosines / np.asarray(g.spacing, float)))
+    if st.tissue_only and air_around:
         tissue0 = scan_body[crop].astype(np.float32)
     lab_full = lab0  # the fold repair below works on the whole grid
     if lab0 is not None:
@@ -842,11 +856,18 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     if move <= st.refine_min_move_voxels * float(sp_full.min()):
                         continue
                     if test is None:  # smoothed by at least one scan voxel: see _bone_fit_improves
-                        sig_t = max(sig_pre, TEST_SMOOTH_VOXELS)
-                        fl_t = _smooth(f0, sig_t)[::s, ::s, ::s].astype(np.float32)
-                        warp_t, sample_t = template.level(s, sig_t, shape)
-                        air = None if regl is None else regl == 0  # beyond the bodies grown by two windows
-                        test = (fl_t, sample_t, _noise_correlation_factor(fl_t, warp_t(u_now), air, sig_t / s))
+                        # at least a scan voxel and a template voxel (in mm, as scan voxels)
+                        sig_t = max(sig_pre, TEST_SMOOTH_VOXELS, TEST_SMOOTH_VOXELS * template_voxel)
+                        fl_t, sample_t = fl, sample_w
+                        if sig_t > sig_pre:
+                            fl_t = _smooth(f0, sig_t)[::s, ::s, ::s].astype(np.float32)
+                            warp_t, sample_t = template.level(s, sig_t, shape)
+                        else:
+                            warp_t = warp_w
+                        # the air: beyond the bodies grown by two windows, where air surrounds the scan's body
+                        air = regl == 0 if (regl is not None and air_around) else None
+                        test = (fl_t, sample_t, _noise_correlation_factor(fl_t, warp_t(u_now), air, sig_t / s,
+                                                                          template.air))
                     if not _bone_fit_improves(p, b, box, m, wgt, u_now, test[0], test[1], centres[b], grid_mm, sp,
                                               st, test[2]):
                         unseen += 1

@@ -474,6 +474,11 @@ def test_a_bone_first_moves_only_when_its_own_fit_rises_significantly():
                                 tuple(slice(0, n) for n in shape)).level(1, 0.0, shape)[1]
     fix = np.array([0, 0, 0, 0.0, 0.0, 1.5])  # u = +s: the scan at x is the template at x + s
     assert _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st)
+    # the same gain over 100 times fewer independent samples (the noise correlated over ~4.6 voxels along each
+    # axis): z 15 / 10 = 1.5, not significant; over 3 or fewer, never
+    assert not _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st, 100.0)
+    assert not _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp,
+                                  DenseSettings(refine_significance=0.0), 1700.0)
     # the same bone under independent noise in scan and template, its template off by 0.1 mm only: the correcting
     # shift raises its own NCC by less than the noise can (measured 0.728 → 0.737, z 0.6): it passes a test that
     # accepts any rise, not the default's two standard errors
