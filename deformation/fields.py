@@ -33,7 +33,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .geometry import GeometryMismatchError, GridGeometry, Volume, from_every, slabs
-from .interpolate import _SERIAL_BELOW, _interp_vector, _native, _to_index, sample_displaced_array
+from .interpolate import _SERIAL_BELOW, _interp_vector, _native, _to_index, sample_displaced_array, serial_twin
 
 __all__ = [
     "positions",
@@ -261,7 +261,8 @@ def _jacobian_det_zyx(u, inv_sp, out):
 
 
 # -- helpers --------------------------------------------------------------------------------
-_jacobian_det_serial = nb.njit(cache=True)(_jacobian_det.py_func)  # small crops: no thread team
+_jacobian_det_serial = serial_twin(_jacobian_det)  # small crops: no thread team
+_jacobian_det_zyx_serial = serial_twin(_jacobian_det_zyx)  # the same, components along array axes
 
 
 def _update_jacobian_det(u, m, det, box) -> None:
@@ -473,7 +474,8 @@ def jacobian_determinant_components(u: np.ndarray, spacing_zyx) -> np.ndarray:
     if u.ndim != 4 or u.shape[0] != 3:
         raise ValueError(f"u must be (3, nz, ny, nx), got {u.shape}")
     out = np.empty(u.shape[1:], dtype=np.float64)
-    _jacobian_det_zyx(u, 1.0 / np.asarray(spacing_zyx, dtype=np.float64), out)
+    (_jacobian_det_zyx_serial if out.size < _SERIAL_BELOW else _jacobian_det_zyx)(
+        u, 1.0 / np.asarray(spacing_zyx, dtype=np.float64), out)
     return out
 
 

@@ -211,8 +211,24 @@ def _sample_points_vector(f, nx, ny, nz, w2i, points, order, fill, out):
 # below _SERIAL_BELOW points, starting the thread team costs more than the work, the more so on a busy
 # machine.  Same arithmetic per point, so the same result.
 _SERIAL_BELOW = 32768
-_sample_points_scalar_serial = nb.njit(cache=True)(_sample_points_scalar.py_func)
-_sample_points_vector_serial = nb.njit(cache=True)(_sample_points_vector.py_func)
+
+
+def serial_twin(kernel):
+    """``kernel`` (a ``parallel=True`` numba function) compiled without threads, ``prange`` running as
+    ``range``.  The twin's Python function is a copy under a name of its own (``…_serial``): numba's on-disk
+    cache names a function's entry by its qualified name and first line, so a twin made from the same function
+    would share the parallel kernel's entry, and whichever compiled first would be loaded for both."""
+    import types
+
+    f = kernel.py_func
+    twin = types.FunctionType(f.__code__, f.__globals__, f.__name__ + "_serial", f.__defaults__, f.__closure__)
+    twin.__qualname__ = f.__qualname__ + "_serial"
+    twin.__doc__ = f.__doc__
+    return nb.njit(cache=True)(twin)
+
+
+_sample_points_scalar_serial = serial_twin(_sample_points_scalar)
+_sample_points_vector_serial = serial_twin(_sample_points_vector)
 
 
 @nb.njit(cache=True)

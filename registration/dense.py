@@ -117,7 +117,7 @@ from scipy import ndimage
 
 from deformation.fields import folding_statistics, jacobian_determinant_components, unfold
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted
+from deformation.interpolate import _SERIAL_BELOW, sample_array, sample_displaced_array, sample_shifted
 
 from .baselines import warp_template
 from .metrics import air_level, cc, similarity
@@ -265,12 +265,13 @@ os.register_at_fork(after_in_child=_POOL.clear)
 
 def _smooth_all(arrays, sigma_vox) -> list:
     """:func:`_smooth` of each array, on as many threads as numba's setting allows (SciPy's filters release
-    the GIL).  Whole arrays go to the threads in turn; the ones left over (the third of three on two threads)
+    the GIL; arrays of fewer than ``_SERIAL_BELOW`` voxels serially).  Whole arrays go to the threads in turn; the ones left over (the third of three on two threads)
     are cut into one slab per thread along their longest axis, each with a halo of the kernel's reach: a
     Gaussian is a 1-D filter per axis, and every output voxel of a slab is computed from the same inputs in
     the same order as on the whole array, so the bits do not depend on the thread count."""
     n = min(len(arrays), max(int(numba.get_num_threads()), 1))
-    if n <= 1 or not np.any(np.asarray(sigma_vox) > 0):
+    # small arrays (a bone's box in the refinement) serially: handing them to the threads costs more than it saves
+    if n <= 1 or not np.any(np.asarray(sigma_vox) > 0) or arrays[0].size < _SERIAL_BELOW:
         return [_smooth(a, sigma_vox) for a in arrays]
     with _POOL_LOCK:
         if n not in _POOL:
