@@ -222,9 +222,12 @@ def serial_twin(kernel):
 
     f = kernel.py_func
     twin = types.FunctionType(f.__code__, f.__globals__, f.__name__ + "_serial", f.__defaults__, f.__closure__)
+    twin.__kwdefaults__ = f.__kwdefaults__
     twin.__qualname__ = f.__qualname__ + "_serial"
     twin.__doc__ = f.__doc__
-    return nb.njit(cache=True)(twin)
+    # the kernel's other options (fastmath, error_model, ...) kept: the same arithmetic, the same bits
+    options = {k: v for k, v in kernel.targetoptions.items() if k not in ("parallel", "nopython")}
+    return nb.njit(cache=True, **options)(twin)
 
 
 _sample_points_scalar_serial = serial_twin(_sample_points_scalar)

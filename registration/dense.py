@@ -117,7 +117,7 @@ from scipy import ndimage
 
 from deformation.fields import folding_statistics, jacobian_determinant_components, unfold
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import _SERIAL_BELOW, sample_array, sample_displaced_array, sample_shifted
+from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted
 
 from .baselines import warp_template
 from .metrics import air_level, cc, similarity
@@ -257,6 +257,9 @@ def _smooth(a, sigma_vox):
     return ndimage.gaussian_filter(a, sigma_vox, mode="nearest", truncate=3.0) if np.any(np.asarray(sigma_vox) > 0) else a
 
 
+#: arrays smaller than this (voxels) are smoothed serially: handing a bone's box to the threads costs more than
+#: it saves (32³, as the interpolation's serial threshold)
+_SMOOTH_SERIAL_BELOW = 32768
 _POOL: dict = {}  # one thread pool per thread count, kept: starting threads at every step cost ~1 s a run
 _POOL_LOCK = threading.Lock()
 # a forked child inherits the pools without their threads, and map() on one would wait forever
@@ -265,13 +268,13 @@ os.register_at_fork(after_in_child=_POOL.clear)
 
 def _smooth_all(arrays, sigma_vox) -> list:
     """:func:`_smooth` of each array, on as many threads as numba's setting allows (SciPy's filters release
-    the GIL; arrays of fewer than ``_SERIAL_BELOW`` voxels serially).  Whole arrays go to the threads in turn; the ones left over (the third of three on two threads)
-    are cut into one slab per thread along their longest axis, each with a halo of the kernel's reach: a
+    the GIL; arrays of fewer than ``_SMOOTH_SERIAL_BELOW`` voxels serially).  Whole arrays go to the threads in
+    turn; the ones left over (the third of three on two threads) are cut into one slab per thread along their longest axis, each with a halo of the kernel's reach: a
     Gaussian is a 1-D filter per axis, and every output voxel of a slab is computed from the same inputs in
     the same order as on the whole array, so the bits do not depend on the thread count."""
     n = min(len(arrays), max(int(numba.get_num_threads()), 1))
     # small arrays (a bone's box in the refinement) serially: handing them to the threads costs more than it saves
-    if n <= 1 or not np.any(np.asarray(sigma_vox) > 0) or arrays[0].size < _SERIAL_BELOW:
+    if n <= 1 or not np.any(np.asarray(sigma_vox) > 0) or max(a.size for a in arrays) < _SMOOTH_SERIAL_BELOW:
         return [_smooth(a, sigma_vox) for a in arrays]
     with _POOL_LOCK:
         if n not in _POOL:

@@ -290,7 +290,11 @@ def test_smoothing_split_into_slabs_gives_the_whole_arrays_bits():
     before = numba.get_num_threads()
     numba.set_num_threads(2)
     try:
-        got = dense._smooth_all(arrays, sigma)
+        dense._POOL.clear()
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(dense, "_SMOOTH_SERIAL_BELOW", 0)  # these small arrays would be smoothed serially
+            got = dense._smooth_all(arrays, sigma)
+        assert dense._POOL, "the threads did not run"
     finally:
         numba.set_num_threads(before)
     for a, g in zip(arrays, got):
