@@ -269,9 +269,10 @@ os.register_at_fork(after_in_child=_POOL.clear)
 def _smooth_all(arrays, sigma_vox) -> list:
     """:func:`_smooth` of each array, on as many threads as numba's setting allows (SciPy's filters release
     the GIL; arrays of fewer than ``_SMOOTH_SERIAL_BELOW`` voxels serially).  Whole arrays go to the threads in
-    turn; the ones left over (the third of three on two threads) are cut into one slab per thread along their longest axis, each with a halo of the kernel's reach: a
-    Gaussian is a 1-D filter per axis, and every output voxel of a slab is computed from the same inputs in
-    the same order as on the whole array, so the bits do not depend on the thread count."""
+    turn; the ones left over (the third of three on two threads) are cut into one slab per thread along their
+    longest axis, each with a halo of the kernel's reach: a Gaussian is a 1-D filter per axis, and every output
+    voxel of a slab is computed from the same inputs in the same order as on the whole array, so the bits do
+    not depend on the thread count."""
     n = min(len(arrays), max(int(numba.get_num_threads()), 1))
     # small arrays (a bone's box in the refinement) serially: handing them to the threads costs more than it saves
     if n <= 1 or not np.any(np.asarray(sigma_vox) > 0) or max(a.size for a in arrays) < _SMOOTH_SERIAL_BELOW:
@@ -608,9 +609,10 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
     independent samples (``per_sample``: :func:`_noise_correlation_factor`).  The candidate is the one the
     refinement's search found best on the same noise, which no error of a fixed comparison accounts for; the
     independent correlations' error is the larger one (Steiger's 1980 test of correlations sharing the scan
-    would pass smaller gains), and is kept for that, not because it corrects the search's selection.  ``fl`` and ``sample_w`` are the
-    level's images smoothed for the test (``register_dense``: at least one scan and one template voxel), so that a candidate
-    between the template's voxel centres hardly lowers its noise (:class:`_TemplateSampler`'s artefact).
+    would pass smaller gains), and is kept for that, not because it corrects the search's selection.  ``fl``
+    and ``sample_w`` are the level's images smoothed for the test (``register_dense``: at least one scan and
+    one template voxel), so that a candidate between the template's voxel centres hardly lowers its noise
+    (:class:`_TemplateSampler`'s artefact).
     The refinement's own objective spans the soft tissue around the bone, whose map is still being fitted; a
     thin bone's roll is barely seen by its own voxels, and the noise of a CT-like scan can then pay for a wrong
     one.  (A constant image: NaN, not significant.)"""
