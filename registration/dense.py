@@ -63,11 +63,11 @@ at every iteration, and keeps what an articulated body needs:
   interpolation.  The smoothing σ are in voxels of each level by default
   (``fluid_voxels``, ``elastic_voxels``), as ANTs SyN's.
 * **Body only**: the force acts inside the two images' bodies
-  (:func:`registration.segmentation.segment_body`) grown by two windows; in
-  air the noise alone moved the map by 18 mm on the test knee.  The levels
+  (:func:`registration.segmentation.segment_body`) grown by two windows: in
+  air the noise alone moves the map, and nothing anatomical holds it.  The levels
   compute on the box around that region grown by the LNCC statistics' reach
-  (the test knee's box is 70 % of its grid, the hand's 49 %: a third less
-  time on the knee at 70°), and U takes its edge values beyond the box.
+  (less time where the body fills a small part of the grid), and U takes
+  its edge values beyond the box.
 * **Tissue only** (``tissue_only``, when air surrounds the scan's body):
   the LNCC windows are over the scan's body only, the smoothed force is
   divided by the tissue's share of the kernel (at least 1/2), and ``U`` is
@@ -85,8 +85,7 @@ at every iteration, and keeps what an articulated body needs:
   deepest voxels frozen, then fewer; as a last resort none), every smoothed
   voxel then going back towards the registered value as far as the
   determinant allows (unfold's restoring passes: the smoothing replaces
-  patches, a fold needs a few voxels; tuning knee seed 0 at 70°, bone MED
-  0.080 → 0.054 mm, 0.051 unrepaired), and the repair is taken only when it
+  patches, a fold needs a few voxels), and the repair is taken only when it
   removes every fold (``DenseResult.unfold`` says which attempt,
   ``bone_layers_released`` None for the last resort).
 
@@ -135,11 +134,8 @@ class DenseSettings:
     #: trials per level, at most: a cap for safety; a level stops on convergence (tolerance, max_halvings)
     iterations: tuple = (200, 200, 200)
     #: LNCC Gaussian window σ: about the size of the soft tissue's structure (septa, vessels: a few mm), so that
-    #: the correlation follows it rather than the skin's edge.  Tuning knees at 70° (seeds 0 / 1), MED mm:
-    #: 5 mm 1.04 / 1.12, 3.5 mm 0.91 / 0.95, 3 mm 0.88 / 0.94, 2.5 mm 0.86 / 0.95, 2 mm 0.93 / 0.97; larger
-    #: windows on the coarse levels (2 or 3 voxels of each level) were worse (1.05 / 1.14, 1.26 / 1.33).  Where
-    #: curled fingers touch, the narrower window leaves more grid-level folds for the repair (held-out hand,
-    #: seed 101: 172 against 98, and the repair failed)
+    #: the correlation follows it rather than the skin's edge (the measurements: docs/measurements/
+    #: dense-registration.md, "Measurements behind the settings")
     window_mm: float = 3.0
     fluid_mm: float = 4.0  #: σ of the smoothing of each step, when fluid_voxels is None
     step_mm: float = 0.5  #: the trust radius's upper bound: a voxel's largest move in one step (see step_voxels)
@@ -171,8 +167,7 @@ class DenseSettings:
     refine_significance: float = 2.0
     elastic_mm: float = 2.0  #: σ of the smoothing of the field after each step (0: none), when elastic_voxels is None
     #: fluid σ in voxels of each level (None: fluid_mm).  In voxels, as ANTs SyN's update field: each level
-    #: regularises at its own scale (coarse levels smoothly, the fine one locally).  On the tuning knee at 70°
-    #: (seed 0) 3 voxels gave MED 1.07 mm against 1.32 with a fixed 4 mm and 1.09 with 10 mm.
+    #: regularises at its own scale (coarse levels smoothly, the fine one locally)
     fluid_voxels: float | None = 3.0
     elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
     #: a level stops when 10 taken steps gain less than this much LNCC, the mean over the voxels where the force
@@ -180,18 +175,12 @@ class DenseSettings:
     tolerance: float = 1e-4
     #: the LNCC windows and both smoothings keep to the scan's tissue (U's by normalised convolution, Knutsson
     #: & Westin 1993).  A Gaussian across the skin averages the skin's motion with the air's, which no image force
-    #: drives, and an LNCC window across it is ruled by the body/air step, blind to sliding along the skin: the
-    #: skin's tangential slide was under-recovered (tuning knee at 70°, seed 0, the skin within 0.75 of a joint
-    #: radius proximal of the joint centre: error along the limb 3.2 mm RMS against elastix's 2.5, 15–25 mm deeper 0.7
-    #: against 1.3 mm; the held-out seed 100, where our markers lost, alike).  With it the windows' statistics
-    #: are over the scan's body only, the force's smoothing is divided by the tissue's share of the kernel
-    #: (floored at 1/2: at the skin the force is the tissue's mean, into the air at most twice the plain one)
-    #: and U's smoothing weighs the air by air_weight.  Tuning knees (seeds 0 / 1), 200-marker MED at 70°
-    #: 2.78 / 2.84 → 2.22 / 2.31 mm (elastix 2.63 / 2.37), at 45° 1.77 / 1.70 → 1.29 / 1.43, MED at 70° 0.857 /
-    #: 0.928 → 0.758 / 0.854; the tuning hands' MED 0.371 / 0.395 → 0.35 / 0.36.  Air weight 0.2 was
-    #: worse at 70° (2.43), 0.01 alike (2.31 / 2.30); the force normalised by the same weights as U was worse
-    #: (2.54 / 2.38: the air's steps grow), the windows over the body grown by a voxel alike (2.36 / 2.30).
-    #: (Applied only when air surrounds the scan's body, AIR_AROUND; each level's record says whether it was.)
+    #: drives, and an LNCC window across it is ruled by the body/air step, blind to sliding along the skin (the
+    #: skin's tangential slide was under-recovered).  With it the windows' statistics are over the scan's body
+    #: only, the force's smoothing is divided by the tissue's share of the kernel (floored at 1/2: at the skin the
+    #: force is the tissue's mean, into the air at most twice the plain one) and U's smoothing weighs the air by
+    #: air_weight.  (Applied only when air surrounds the scan's body, AIR_AROUND; each level's record says
+    #: whether it was.)
     tissue_only: bool = True
     air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
@@ -747,8 +736,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     # force is zero, so padding the box's edges by their values (the filters' "nearest") smooths the force
     # as the whole grid would.  Near the box's edge, in the air, the result is not the whole grid's: U's
     # smoothing and composition there see U continued flat (on the whole grid it decays), and the levels'
-    # pre-smoothing sees the edge continued.  Measured on Table 3's knee (pose03): MED 2.926 mm with the box,
-    # 2.925 on the whole grid.  Test knee at 70°: 70 % of the grid; hand: 49 %.
+    # pre-smoothing sees the edge continued (the MED it changes: the docs' "Measurements behind the settings").
     crop = _crop_box(region, g.array_shape,
                      np.ceil((3.0 * st.window_mm + max(st.shrink) * sp_full.max()) / sp_full),
                      int(np.lcm.reduce([int(v) for v in st.shrink])))
@@ -1090,8 +1078,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             # hand's fist), so then the folds stay, reported in ``folding``.
             # Each attempt first smooths only the folded voxels with a narrow kernel (σ 0.7 voxel, no margin):
             # on the hand the folds sit where curled fingers touch, where neighbouring voxels map to different
-            # fingers and a wider average lands between them (tuning hand, seed 1: MED 0.64 mm against 0.72
-            # with unfold's defaults); the knee's crease folds need the defaults (σ 1, one voxel of margin).
+            # fingers and a wider average lands between them; the knee's crease folds need the defaults (σ 1,
+            # one voxel of margin).
             best = None
             for peel in ((1, 2, 3, None) if lab_now is not None else (None,)):
                 frozen = None if peel is None else _bone_cores(lab_now, peel, sp_full)
