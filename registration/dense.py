@@ -54,8 +54,8 @@ at every iteration, and keeps what an articulated body needs:
   into the soft tissue, and its optimum sits a few tenths of a mm from the
   bone's own fit) and the bone's own fit rises significantly with it
   (``refine_significance``, :func:`_bone_fit_improves`: the images smoothed
-  by a scan voxel, the noise's correlation counted); a bone is tested on a level only where it is at least
-  ``refine_min_voxels`` across (a pose is read from opposite edges), once on
+  by a scan voxel, the noise's correlation counted); a bone is tested on a
+  level only where it is at least ``refine_min_voxels`` across (a pose is read from opposite edges), once on
   the finest level if no coarser one could, and once moved it is refined on
   every later round.
 * **Multi-resolution**: the images are smoothed and subsampled by
@@ -554,6 +554,14 @@ class _TemplateSampler:
         return warp, sample
 
 
+def _voxel_in_voxels(a: GridGeometry, b: GridGeometry) -> float:
+    """Grid ``a``'s voxel in voxels of grid ``b``, along the axis of ``b`` where it is the most: the voxel's
+    extent along each of ``b``'s axes (its edges, world mm, projected through both directions) over ``b``'s
+    spacing there."""
+    cosines = np.abs(np.asarray(a.direction_matrix).T @ np.asarray(b.direction_matrix))  # [axis of a, axis of b]
+    return float(np.max(np.asarray(a.spacing, float) @ cosines / np.asarray(b.spacing, float)))
+
+
 def _noise_correlation_factor(f, w, air, shape_voxels: float, w_fill: float | None = None) -> float:
     """How many voxels of the level carry one independent sample of the noise, for a correlation between ``f``
     and ``w``: Bartlett's (1935) variance of a correlation between two autocorrelated fields, the product over
@@ -745,10 +753,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     template = _TemplateSampler(moving, initial, scale, crop)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
     air_around = scan_body is not None and _air_around(scan_body) >= AIR_AROUND
-    # the template's voxel in scan voxels, along the scan axis where it is the most (its extent along each scan
-    # axis, over that axis's spacing): the bones' test smooths by at least one voxel of each
-    cosines = np.abs(np.asarray(moving.geometry.direction_matrix).T @ np.asarray(g.direction_matrix))  # [t, s]
-    template_voxel = float(np.max(np.asarray(moving.geometry.spacing, float) @ cosines / np.asarray(g.spacing, float)))
+    template_voxel = _voxel_in_voxels(moving.geometry, g)  # the bones' test smooths by at least one of each
     if st.tissue_only and air_around:
         tissue0 = scan_body[crop].astype(np.float32)
     lab_full = lab0  # the fold repair below works on the whole grid

@@ -553,8 +553,9 @@ def test_noise_correlation_factor_counts_the_samples_smoothing_leaves():
     """registration.dense._noise_correlation_factor (Bartlett's variance of a correlation between two
     autocorrelated fields): white noise in both images carries one sample per voxel; both smoothed by a Gaussian
     of σ = 1.5 voxels, ρ(k) = exp(−k²/4σ²) each, Σ_k ρ_f(k) ρ_w(k) = Σ_k exp(−k²/2σ²) ≈ √(2π)·1.5 = 3.76 per axis,
-    53 over three.  Measured in the air (a box around an empty body); the tolerance (±20 %) covers the lag-1
-    estimate's sampling error on 24³ voxels and the Gaussian filter's truncation.  Without enough air, the
+    53 over three.  Measured in the air (a 40³ grid around a 12³ body: ~62 000 voxels); the tolerance (±20 %)
+    covers the discrete filter's lag-1 correlation against the continuous formula's, cubed with the sum (a 1 %
+    error in ρ₁ moves the factor by ~7 %), and its sampling error (~0.4 % of ρ₁).  Without enough air, the
     stated smoothing's value."""
     from registration.dense import _noise_correlation_factor
 
@@ -597,3 +598,21 @@ def test_bone_refinement_runs_where_u_already_sits_under_the_jacobian_floor():
                               grid_mm, sp, DenseSettings())
     assert gain > 0, gain
     assert abs(p[5] - 1.5) < 0.5 and np.all(np.abs(p[3:5]) < 0.5), p
+
+
+def test_a_voxel_of_one_grid_in_voxels_of_another_follows_both_directions():
+    """registration.dense._voxel_in_voxels (how much the bones' test smooths for a coarser template): a template
+    whose index axes are a cycle of the scan's (its i along world y, j along z, k along x) with anisotropic
+    (0.5, 2.0, 1.0) mm voxels, against a scan of (1.0, 0.8, 3.0) mm: along the scan's x its voxel is 1.0 mm (k) =
+    1 scan voxel, along y 0.5 / 0.8, along z 2.0 / 3.0: 1.0.  The cycle is not its own transpose and the spacings
+    are not palindromes, so a transposed direction (2.0), a reversed template spacing (1.25) or a reversed scan
+    spacing (2.0) would show.  Unrotated: 2.0 / 0.8 = 2.5 along y.  Exact to rounding."""
+    from registration.dense import _voxel_in_voxels
+
+    scan = GridGeometry((8, 8, 8), (1.0, 0.8, 3.0))
+    cycled = GridGeometry((8, 8, 8), (0.5, 2.0, 1.0), direction=(0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0))
+    assert np.array_equal(np.asarray(cycled.direction_matrix)[:, 0], [0.0, 1.0, 0.0])  # i along world y
+    assert _voxel_in_voxels(cycled, scan) == pytest.approx(1.0, abs=1e-12)
+    plain = GridGeometry((8, 8, 8), (0.5, 2.0, 1.0))
+    assert _voxel_in_voxels(plain, scan) == pytest.approx(2.5, abs=1e-12)
+    assert _voxel_in_voxels(scan, scan) == pytest.approx(1.0, abs=1e-12)

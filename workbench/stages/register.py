@@ -267,6 +267,7 @@ STAGE = Stage(name="register", folder="registration", per_scan=True, settings_ty
               # stage flagged are not held; 9: dense windows and smoothing over the scan's tissue only; 10: no time in
               # log.json (study.json's timings have them); 11: each dense level converges under a trust region; 12: the
               # held bones' poses refined rigidly (dense refine_bones); 13: the template sampled once through φ₀ ∘ U, the
-              # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly; 15: ... on
-              # images smoothed by a scan voxel, counting the independent samples the noise's correlation leaves
+              # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
+              # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
+              # leaves
               needs=lambda s: ("init", "bones"), inputs=_inputs, version=15)
