@@ -115,6 +115,32 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag) -> dict:
     return d
 
 
+def shift_template(d: dict, fraction: float) -> dict:
+    """``d`` with the template (and its labels) moved by ``fraction`` of a template voxel along each of its
+    axes, and the truth, the start and the markers' template positions with it: the same case, the scan's
+    voxels now falling at that fraction between the template's.  The phantoms render every image on one grid,
+    so where nothing moves the truth reads the template at its voxel centres; real scans never share the
+    template's grid."""
+    if not fraction:
+        return d
+    from deformation.geometry import GridGeometry
+
+    tg = d["template"].geometry
+    delta = np.asarray(tg.direction_matrix) @ (fraction * np.asarray(tg.spacing, float))  # world mm
+
+    def moved(v: Volume) -> Volume:
+        g = GridGeometry(tg.size, tg.spacing, tuple(np.asarray(tg.origin, float) + delta), tg.direction)
+        return Volume(v.data, g)
+
+    def plus(v: Volume) -> Volume:
+        return Volume((np.asarray(v.data, np.float32) + delta.astype(np.float32)), v.geometry)
+
+    out = dict(d, template=moved(d["template"]), held=moved(d["held"]), truth=plus(d["truth"]), init=plus(d["init"]))
+    for k in ("markers", "many"):
+        out[k] = [dict(m, template=list(np.asarray(m["template"], float) + delta)) for m in d[k]]
+    return out
+
+
 def score(d: dict, field: Volume, seconds: float, tag: str, levels=None) -> dict:
     """The flex case's row (benchmarks/registration.py ``field_measures``) of ``field``, printed with the levels."""
     out = _bench().field_measures(d["scan"], d["template"], field, d["truth"], d["body"], d["bone"], d["markers"],
@@ -141,9 +167,15 @@ def main(argv=None) -> int:
                    help="the phantom's acquisition, as benchmarks/registration.py's --acquisition")
     p.add_argument("--without", choices=["bias", "noise"],
                    help="with --acquisition random: the same draw without bias fields, or without noise (SNR 10^6)")
+    p.add_argument("--noise-free", choices=["template", "scan"],
+                   help="with --acquisition random: that image from the same draw without noise (SNR 10^6), the "
+                        "other as drawn: which image's noise moves the registration")
     p.add_argument("--from-truth", action="store_true",
                    help="every variant starts at the true correspondence: how far its objective's maximum lies from "
                         "the truth")
+    p.add_argument("--template-shift", type=float, default=0.0, metavar="F",
+                   help="move the template's grid by F of its voxel along each axis (truth and start with it): the "
+                        "phantoms render every image on one grid, real scans never share the template's")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
     args = p.parse_args(argv)
     if args.seed not in tuning:
@@ -155,13 +187,21 @@ def main(argv=None) -> int:
             variants.append((v, DenseSettings(**kw)))
         except (ValueError, TypeError) as e:
             p.error(f"variant {v!r}: {e}")
-    if args.without and args.acquisition != "random":
-        p.error("--without needs --acquisition random (the fixed acquisition draws no bias or SNR)")
+    if (args.without or args.noise_free) and args.acquisition != "random":
+        p.error("--without and --noise-free need --acquisition random (the fixed acquisition draws no bias or SNR)")
+    if args.without and args.noise_free:
+        p.error("--noise-free takes one image's noise away; --without takes it from both: give one of them")
     args.cache.mkdir(parents=True, exist_ok=True)
     d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, args.without)
+    if args.noise_free:  # the same draw without noise (its images only: its poses were estimated on clean images)
+        clean = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, "noise")
+        d = dict(d, **{args.noise_free: clean[args.noise_free]})
+    d = shift_template(d, args.template_shift)
     print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}, acquisition: "
           f"{args.acquisition}{f', without {args.without}' if args.without else ''}"
-          f"{', every variant from the truth' if args.from_truth else ''}\n")
+          f"{', every variant from the truth' if args.from_truth else ''}"
+          f"{f', the {args.noise_free} without noise' if args.noise_free else ''}"
+          f"{f', template moved by {args.template_shift} voxel' if args.template_shift else ''}\n")
     print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
     print("|---|---|---|---|---|---|---|---|")
     score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)"

@@ -185,6 +185,11 @@ class DenseSettings:
     air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
+    #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
+    #: (_interpolation_noise, the template's noise measured in its air): no sub-voxel position is preferred for the
+    #: noise it averages away.  Off by default: it helps most tuning cases and loses the identity start of Rhee's
+    #: Table 2 protocol (docs/measurements/dense-registration.md, "The template's noise and the interpolation")
+    interpolation_noise: bool = False
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -314,18 +319,20 @@ def _local_stats(f, sig, mask=None):
     return mf, smff / sm - mf * mf, (mask, sm, masked_f)
 
 
-def _lncc_force(f, w, sig, f_stats, region=None):
+def _lncc_force(f, w, sig, f_stats, region=None, v=None):
     """LNCC of ``f`` and ``w`` (mean over the voxels where ``region`` > 0, or all) and its gradient with
     respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`_local_stats` of ``f``.  With a window mask
-    the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed
-    force still reaches into the air from the tissue)."""
+    the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed force
+    still reaches into the air from the tissue).  ``v`` (or ``None``): a variance added to ``w``'s at each
+    voxel (:func:`_interpolation_noise`), in its local second moment."""
     mf, sff, masked = f_stats
     if masked is None:
-        mw, sww, sfw = _smooth_all([w, w * w, f * w], sig)
+        mw, sww, sfw = _smooth_all([w, w * w if v is None else w * w + v, f * w], sig)
     else:
         mask, sm, masked_f = masked
         mask_w = mask * w
-        mw, sww, sfw = (a / sm for a in _smooth_all([mask_w, mask_w * w, masked_f * w], sig))
+        ww = mask_w * w if v is None else mask_w * w + mask * v
+        mw, sww, sfw = (a / sm for a in _smooth_all([mask_w, ww, masked_f * w], sig))
     sww = sww - mw * mw
     sfw = sfw - mf * mw
     # A floor on the local variances (intensities are normalised to ~[0, 1]): flat air or marrow has no
@@ -339,6 +346,96 @@ def _lncc_force(f, w, sig, f_stats, region=None):
     if masked is not None:
         dcc = dcc * masked[0]
     return float(np.mean(cc if region is None else cc[region > 0], dtype=np.float64)), dcc
+
+
+def _pseudo_residual_variance(d: np.ndarray, where: np.ndarray | None) -> float:
+    """Gasser et al.'s pseudo-residual ``(2 I_k − I_{k−1} − I_{k+1}) / √6`` along each axis (white noise's
+    variance; a smooth signal cancels), its robust scale (1.4826 × the median absolute value) squared, averaged
+    over the axes, over the voxels of ``where`` (or all).  Gasser T, Sroka L, Jennen-Steinmetz C. Residual
+    variance and residual pattern in nonlinear regression. Biometrika 73 (1986) 625–633."""
+    var = []
+    for a in range(3):
+        if d.shape[a] < 3:
+            continue
+        c = [slice(1, -1) if b == a else slice(None) for b in range(3)]
+        lo = [slice(0, -2) if b == a else slice(None) for b in range(3)]
+        hi = [slice(2, None) if b == a else slice(None) for b in range(3)]
+        e = (2.0 * d[tuple(c)] - d[tuple(lo)] - d[tuple(hi)]) / np.sqrt(6.0)
+        if where is not None:
+            e = e[where[tuple(c)] & where[tuple(lo)] & where[tuple(hi)]]
+        if e.size:
+            var.append((1.4826 * float(np.median(np.abs(e)))) ** 2)
+    return float(np.mean(var)) if var else 0.0
+
+
+#: the air (beyond the body grown by this many voxels) gives the noise when it has at least AIR_NOISE_VOXELS
+AIR_NOISE_GROW, AIR_NOISE_VOXELS = 2, 1000
+
+
+def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[float, float]:
+    """The variance of an image's voxel-to-voxel (white) noise in its tissue and in its air, measured in the air
+    where there is enough of it: there is no anatomy there, so the pseudo-residual
+    (:func:`_pseudo_residual_variance`) is the noise's alone.  A magnitude image's air (no value below 0, mean
+    over SD within 1.6-2.3 of the Rayleigh's 1.91) holds Rayleigh noise, whose variance is (2 − π/2) of the
+    tissue's Gaussian σ² (Gudbjartsson & Patz 1995); any other air's noise is the tissue's (CT, a Gaussian
+    MRI).  Without air (or ``body`` None): the pseudo-residual over the body a voxel inside its edge (which the
+    tissue's voxel-scale texture inflates) for both.  Gudbjartsson H, Patz S. The Rician distribution of noisy
+    MRI data. Magn Reson Med 34 (1995) 910–914."""
+    d = np.asarray(data, np.float32)
+    if body is not None:
+        air = ~ndimage.binary_dilation(body, iterations=AIR_NOISE_GROW)
+        if int(air.sum()) >= AIR_NOISE_VOXELS:
+            x = d[air].astype(np.float64)
+            var = _pseudo_residual_variance(d, air)
+            sd = float(x.std())
+            if var > 0:
+                if x.min() >= 0 and sd > 0 and 1.6 <= x.mean() / sd <= 2.3:
+                    return var / (2.0 - np.pi / 2.0), var
+                return var, var
+        inner = ndimage.binary_erosion(body, iterations=1)
+        if int(inner.sum()) >= 100:
+            var = _pseudo_residual_variance(d, inner)
+            return var, var
+    var = _pseudo_residual_variance(d, None)
+    return var, var
+
+
+def _kernel_noise(sigma: float) -> tuple[float, float]:
+    """White noise smoothed by :func:`_smooth`'s Gaussian of ``sigma`` voxels along one axis: its variance
+    (as a share of the unsmoothed one) and the correlation of neighbouring voxels."""
+    if sigma <= 0:
+        return 1.0, 0.0
+    delta = np.zeros(2 * int(3.0 * sigma + 0.5) + 3)
+    delta[len(delta) // 2] = 1.0
+    k = ndimage.gaussian_filter1d(delta, sigma, mode="constant", truncate=3.0)
+    return float((k * k).sum()), float((k[1:] * k[:-1]).sum() / (k * k).sum())
+
+
+def _interpolation_noise(p: np.ndarray, var: float, rho) -> np.ndarray:
+    """What evens out the template's noise variance over the positions trilinear sampling reads it at: for
+    index positions ``p`` (3, ...) of a template whose noise has variance ``var`` and neighbour correlation
+    ``rho[a]`` along index axis ``a``, the variance the noise keeps on average over positions less the one it
+    keeps at ``p``.
+
+    Sampling between voxel centres averages neighbours: at fraction ``t`` along an axis the noise keeps
+    ``(1 − t)² + t² + 2 t (1 − t) ρ = 1 − 2 t (1 − t)(1 − ρ)`` of its variance (the three axes multiply), down
+    to 1/8 for white noise midway on all three.  A map that falls between centres lowers the sampled template's
+    local variance and the LNCC rises with it: the registration is drawn to such positions wherever the tissue
+    is flat (the interpolation artefact Pluim et al. 2000 describe for mutual information).  Added to the
+    sampled template's local variance, this leaves every position with the noise of the average position
+    (``Π (1 − (1 − ρ_a) / 3)``, fractions spread evenly): the artefact is gone, and the windows' noise weighs
+    on the correlation as much as it does on average without the correction (the whole noise, as at a voxel
+    centre, would favour maps that bring more of the template's signal variance into a window, such as its
+    skin's edge into the scan's body).  Negative at and near the centres.  Pluim JPW, Maintz JBA, Viergever
+    MA. Interpolation artefacts in mutual information-based image registration. Comput Vis Image Underst 77
+    (2000) 211–232."""
+    f = np.ones(p.shape[1:], np.float32)
+    mean = 1.0
+    for a in range(3):
+        t = p[a] - np.floor(p[a])
+        f *= 1.0 - 2.0 * (1.0 - rho[a]) * t * (1.0 - t)
+        mean *= 1.0 - (1.0 - rho[a]) / 3.0  # fractions spread evenly: the mean of 2 t (1 − t) is 1/3
+    return (np.float32(var) * (np.float32(mean) - f)).astype(np.float32)
 
 
 def _weighted_smooth(arrays, weight, norm, sigma_vox) -> np.ndarray:
@@ -504,9 +601,17 @@ class _TemplateSampler:
     scan voxels along each scan axis, its variance projected onto the template's axes).  Beyond the template's
     grid ``w`` is the template's air; ``φ₀`` continues by its edge values beyond the scan's box."""
 
-    def __init__(self, moving: Volume, initial: Volume, scale: float, crop: tuple):
+    def __init__(self, moving: Volume, initial: Volume, scale: float, crop: tuple, noise_body=False):
         self.geometry = moving.geometry
         self.data = np.asarray(moving.data, np.float32) / np.float32(scale)
+        # the template's voxel noise variance (settings.interpolation_noise) in its tissue and its air, measured
+        # with its body (``noise_body``: a mask on its grid, None: every voxel); False: not counted.  Where the two
+        # differ (a magnitude image's Rayleigh air) a map of it on the template's grid, the body's value inside
+        self.noise_var = self.noise_map = None
+        if noise_body is not False:
+            self.noise_var, self.noise_air = _voxel_noise_variance(self.data, noise_body)
+            if noise_body is not None and abs(self.noise_air - self.noise_var) > 0.05 * self.noise_var:
+                self.noise_map = np.where(noise_body, np.float32(self.noise_var), np.float32(self.noise_air))
         self.air = float(air_level(moving)) / scale
         self.phi = np.moveaxis(np.asarray(initial.data, np.float32)[crop], -1, 0)  # (3, box): world mm
         self.scan = initial.geometry
@@ -518,11 +623,20 @@ class _TemplateSampler:
         indices ``coords`` (z, y, x arrays of any one shape), through ``φ₀`` there."""
         g, tg = self.scan, self.geometry
         m = self.data
+        sigma = np.zeros(3)
         if sig_pre > 0:
             dg, dt = g.direction_matrix, tg.direction_matrix
             cov = dg @ np.diag((sig_pre * np.asarray(g.spacing, float)) ** 2) @ dg.T  # world mm²
             sigma = np.sqrt(np.einsum("ia,ij,ja->a", dt, cov, dt)) / np.asarray(tg.spacing, float)  # i, j, k
             m = _smooth(m, sigma[::-1])
+        # the level's template noise: its variance and neighbours' correlation along i, j, k after the smoothing
+        kn = [_kernel_noise(float(v)) for v in sigma]
+        kappa = kn[0][0] * kn[1][0] * kn[2][0]
+        noise_var = None if self.noise_var is None else self.noise_var * kappa
+        noise_map = None
+        if self.noise_map is not None:  # the tissue's and the air's, smoothed as the template (its mean: the map's)
+            noise_map = (_smooth(self.noise_map, sigma[::-1]) if sig_pre > 0 else self.noise_map) * np.float32(kappa)
+        rho = [k[1] for k in kn]
         phi = np.ascontiguousarray(self.phi[:, ::s, ::s, ::s])
         lg = GridGeometry(size=tuple(int(v) for v in shape[::-1]), spacing=tuple(float(v) * s for v in g.spacing),
                           origin=tuple(float(v) for v in g.index_to_world(self.corner)), direction=g.direction)
@@ -532,10 +646,22 @@ class _TemplateSampler:
         air = self.air
 
         def warp(u):
+            """``(w, v)``: the template through the map and the variance that evens out its noise over the
+            sampled positions (:func:`_interpolation_noise`; None when not counted)."""
             ph = sample_shifted(phi, u, inv_sp)
             # u along the array axes (z, y, x) → world, written out (no BLAS: the same bits on every run)
             disp = np.stack([d[r, 0] * u[2] + d[r, 1] * u[1] + d[r, 2] * u[0] + ph[r] for r in range(3)], axis=-1)
-            return sample_displaced_array(m, w2i, lg, disp, 1, air).astype(np.float32)
+            w = sample_displaced_array(m, w2i, lg, disp, 1, air).astype(np.float32)
+            if noise_var is None:
+                return w, None
+            pos = xw + disp
+            p = np.stack([w2i[r, 0] * pos[..., 0] + w2i[r, 1] * pos[..., 1] + w2i[r, 2] * pos[..., 2] + w2i[r, 3]
+                          for r in range(3)]).astype(np.float32)
+            v = _interpolation_noise(p, noise_var, rho)
+            if noise_map is not None:  # the variance at the sampled place over the body's (the map's there)
+                v *= sample_displaced_array(noise_map, w2i, lg, disp, 1, self.noise_air * kappa).astype(
+                    np.float32) / np.float32(noise_var)
+            return w, v
 
         phi_last = np.ascontiguousarray(np.moveaxis(phi, 0, -1))  # (nz, ny, nx, 3) for sample_array
         lw2i = lg.world_to_index_matrix
@@ -543,6 +669,9 @@ class _TemplateSampler:
         def world(ijk):  # level index (i, j, k arrays) → world mm (N, 3), written out as warp's
             return np.stack([i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3]
                              for r in range(3)], axis=-1)
+
+        # the level's world positions (nz, ny, nx, 3), for the template positions of warp's noise
+        xw = None if noise_var is None else world(np.indices(shape[::-1], dtype=np.float32).transpose(0, 3, 2, 1))
 
         def sample(coords):
             ijk = [np.ravel(coords[2 - r]) for r in range(3)]  # array axes (z, y, x) → index axes (i, j, k)
@@ -750,7 +879,15 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                      int(np.lcm.reduce([int(v) for v in st.shrink])))
     f0 = f0[crop]
     del m0  # the steps sample the template itself (_TemplateSampler), not this resampled copy
-    template = _TemplateSampler(moving, initial, scale, crop)
+    noise_body = False  # settings.interpolation_noise: the template's body, where its noise is measured
+    if st.interpolation_noise:
+        from .segmentation import segment_body
+
+        try:
+            noise_body = segment_body(moving).data > 0
+        except ValueError:
+            noise_body = None
+    template = _TemplateSampler(moving, initial, scale, crop, noise_body)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
     air_around = scan_body is not None and _air_around(scan_body) >= AIR_AROUND
     template_voxel = _voxel_in_voxels(moving.geometry, g)  # the bones' test smooths by at least one of each
@@ -779,7 +916,17 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
         fl = _smooth(f0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         shape = fl.shape
-        warp_w, sample_w = template.level(s, sig_pre, shape)
+        warp_template_level, sample_w = template.level(s, sig_pre, shape)
+        # a window of few voxels holds less of the noise's variance: the expected variance of the window's
+        # (nearly independent: the pre-smoothing's σ is under half a level voxel) noise samples about their
+        # weighted mean is 1 − Σ K² of theirs, K the window's weights (its discrete kernel; ~1 when the window is
+        # under a voxel, as on the coarse levels, where there is then nothing to even out).  The tissue-only
+        # windows' masks are left out of it.
+        window_share = np.float32(1.0 - np.prod([_kernel_noise(float(v))[0] for v in st.window_mm / sp]))
+
+        def warp_w(u_now):
+            w_now, v_now = warp_template_level(u_now)
+            return w_now, None if v_now is None else v_now * window_share
         grid = np.indices(shape, dtype=np.float32)
         grid_mm = [grid[a] * sp[a] for a in range(3)]
         if u is None:
@@ -865,7 +1012,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                             warp_t = warp_w
                         # the air: beyond the bodies grown by two windows, where air surrounds the scan's body
                         air = regl == 0 if (regl is not None and air_around) else None
-                        test = (fl_t, sample_t, _noise_correlation_factor(fl_t, warp_t(u_now), air, sig_t / s,
+                        test = (fl_t, sample_t, _noise_correlation_factor(fl_t, warp_t(u_now)[0], air, sig_t / s,
                                                                           template.air))
                     if not _bone_fit_improves(p, b, box, m, wgt, u_now, test[0], test[1], centres[b], grid_mm, sp,
                                               st, test[2]):
@@ -891,7 +1038,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
 
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
-            radius bounds every voxel's move)."""
+            radius bounds every voxel's move).  The interpolation's noise term (settings.interpolation_noise)
+            has no part in it: the central differences of ``w`` are uncorrelated with the noise ``w`` keeps at
+            the voxel itself (with trilinear sampling, the two neighbours' shares of it cancel), so the force
+            carries no pull towards any sub-voxel position for the term to undo; the term corrects the objective
+            that decides whether a step is taken."""
             nonlocal bone_w
             gw = np.gradient(w)
             if regl is not None:
@@ -951,8 +1102,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # The level stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or
         # when the last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps
         # the trials.
-        w = warp_w(u)
-        cc, dcc = _lncc_force(fl, w, win, f_stats, regl)
+        w, v = warp_w(u)
+        cc, dcc = _lncc_force(fl, w, win, f_stats, regl, v)
         rounds = []  # the bones' refinements (settings.refine_bones)
 
         def bone_round():
@@ -967,8 +1118,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             if not rec_b["evaluations"]:  # no bone to test or refine on this round
                 bone_w = []  # refine() made them with its own margin: recomputed at the next step
                 return False
-            w_b = warp_w(u_b)
-            cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl)
+            w_b, v_b = warp_w(u_b)
+            cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl, v_b)
             rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
                          seconds=round(time.perf_counter() - t_b, 2))
             if not rec_b["taken"]:
@@ -1006,8 +1157,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     break
             u_c, halved = candidate(u, force, fmax, radius)
             halvings += halved
-            w_c = warp_w(u_c)
-            cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl)
+            w_c, v_c = warp_w(u_c)
+            cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl, v_c)
             stopped = None
             if cc_c > cc:  # taken
                 u, w, cc, dcc = u_c, w_c, cc_c, dcc_c
@@ -1035,6 +1186,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "rejected": rejected, "stop": stop, "halvings": halvings,
                "lncc": [round(float(h), 6) for h in history],  # per taken step (and bones' round): never falls
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
+               # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
+               "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
                "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)

@@ -72,6 +72,7 @@ print(r.name, np.linalg.norm(u, axis=-1).mean(), np.linalg.norm(r.correspondence
 
 
 @pytest.mark.skipif(not elastix_available(), reason="itk-elastix not installed (optional extra: .[bench])")
+@pytest.mark.slow  # ~20 s; plain elastix's test stays in the default suite (`make test-slow`)
 def test_elastix_with_the_rigidity_penalty_runs_and_registers():
     """The strongest bone-aware peer: the penalty must be wired (its own name, a multi-metric map that elastix
     accepts) and still register — the same < 0.6 × start bound as plain elastix (a penalty on a slab the bend

@@ -220,6 +220,8 @@ def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, sma
     assert "--seeds" not in capsys.readouterr().err
 
 
+# slow (~35 s: a knee at twice the test size's voxels per axis); `make test-slow`
+@pytest.mark.slow
 def test_pose_on_every_other_voxel_of_a_finer_scan(tmp_path, capsys):
     """`workbench pose --grid-factor 2` (what a template over 60 M voxels gets by default): template and scans
     smoothed and taken on every 2nd voxel, the bones registered there.  On a knee at half the test size's

@@ -504,6 +504,9 @@ def test_run_on_a_local_dask_cluster_of_two_workers_gives_the_same_files(done, t
     assert set(st.stage_entry("pose")["timings"]["scans"]) == set(st.scan_ids)
 
 
+# slow (~85 s on 2 cores): the default suite's LocalCluster test above checks the same files from Dask workers; this
+# one adds the `--scheduler` deployment (`make test-slow`)
+@pytest.mark.slow
 def test_run_against_a_dask_scheduler_and_two_workers_gives_the_same_files(done, tmp_path):
     """`--scheduler ADDRESS` against `dask scheduler` and two `dask worker` processes on localhost (what a
     cluster runs; README 'Many scans, big machines'): from the pose stage's outputs on, the same files."""
