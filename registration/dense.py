@@ -351,8 +351,11 @@ def _lncc_force(f, w, sig, f_stats, region=None, v=None):
 def _pseudo_residual_variance(d: np.ndarray, where: np.ndarray | None) -> float:
     """Gasser et al.'s pseudo-residual ``(2 I_k − I_{k−1} − I_{k+1}) / √6`` along each axis (white noise's
     variance; a smooth signal cancels), its robust scale (1.4826 × the median absolute value) squared, averaged
-    over the axes, over the voxels of ``where`` (or all).  Gasser T, Sroka L, Jennen-Steinmetz C. Residual
-    variance and residual pattern in nonlinear regression. Biometrika 73 (1986) 625–633."""
+    over the axes, over the voxels of ``where`` (or all).  Runs of three equal voxels are left out: a constant
+    fill (a CT's outside of its reconstruction circle, a zero-filled background) has no noise to measure, and
+    would pull the median to 0.  An axis with fewer than 100 stencils is skipped; 0 when none is left.
+    Gasser T, Sroka L, Jennen-Steinmetz C. Residual variance and residual pattern in nonlinear regression.
+    Biometrika 73 (1986) 625–633."""
     var = []
     for a in range(3):
         if d.shape[a] < 3:
@@ -361,9 +364,11 @@ def _pseudo_residual_variance(d: np.ndarray, where: np.ndarray | None) -> float:
         lo = [slice(0, -2) if b == a else slice(None) for b in range(3)]
         hi = [slice(2, None) if b == a else slice(None) for b in range(3)]
         e = (2.0 * d[tuple(c)] - d[tuple(lo)] - d[tuple(hi)]) / np.sqrt(6.0)
+        keep = (d[tuple(c)] != d[tuple(lo)]) | (d[tuple(c)] != d[tuple(hi)])
         if where is not None:
-            e = e[where[tuple(c)] & where[tuple(lo)] & where[tuple(hi)]]
-        if e.size:
+            keep &= where[tuple(c)] & where[tuple(lo)] & where[tuple(hi)]
+        e = e[keep]
+        if e.size >= 100:  # a median over fewer is no measure
             var.append((1.4826 * float(np.median(np.abs(e)))) ** 2)
     return float(np.mean(var)) if var else 0.0
 
@@ -376,20 +381,27 @@ def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[fl
     """The variance of an image's voxel-to-voxel (white) noise in its tissue and in its air, measured in the air
     where there is enough of it: there is no anatomy there, so the pseudo-residual
     (:func:`_pseudo_residual_variance`) is the noise's alone.  A magnitude image's air (no value below 0, mean
-    over SD within 1.6-2.3 of the Rayleigh's 1.91) holds Rayleigh noise, whose variance is (2 − π/2) of the
-    tissue's Gaussian σ² (Gudbjartsson & Patz 1995); any other air's noise is the tissue's (CT, a Gaussian
-    MRI).  Without air (or ``body`` None): the pseudo-residual over the body a voxel inside its edge (which the
-    tissue's voxel-scale texture inflates) for both.  Gudbjartsson H, Patz S. The Rician distribution of noisy
-    MRI data. Magn Reson Med 34 (1995) 910–914."""
+    over SD within 1.6-2.3 of the Rayleigh's 1.91 and median over mean within 0.03 of its 0.939) holds
+    Rayleigh noise, whose variance is (2 − π/2) of the tissue's Gaussian σ² (Gudbjartsson & Patz 1995); any
+    other air's noise is the tissue's (CT, a Gaussian MRI).  Without enough air that is not a constant fill (or
+    ``body`` None): the pseudo-residual over the body a voxel inside its edge (which the tissue's voxel-scale
+    texture inflates) for both.  The noise is taken as white: a correlated one (a reconstruction kernel,
+    zero-filling) is measured low, and the correction then does less than it could.  Gudbjartsson H, Patz S.
+    The Rician distribution of noisy MRI data. Magn Reson Med 34 (1995) 910–914."""
     d = np.asarray(data, np.float32)
     if body is not None:
         air = ~ndimage.binary_dilation(body, iterations=AIR_NOISE_GROW)
         if int(air.sum()) >= AIR_NOISE_VOXELS:
             x = d[air].astype(np.float64)
+            values, counts = np.unique(x, return_counts=True)
+            if counts.max() > 0.05 * x.size:  # a constant fill is no noise: its statistics are the rest's
+                x = x[x != values[counts.argmax()]]
             var = _pseudo_residual_variance(d, air)
-            sd = float(x.std())
-            if var > 0:
-                if x.min() >= 0 and sd > 0 and 1.6 <= x.mean() / sd <= 2.3:
+            if var > 0 and x.size >= AIR_NOISE_VOXELS:
+                sd = float(x.std())
+                rayleigh = (x.min() >= 0 and sd > 0 and 1.6 <= x.mean() / sd <= 2.3
+                            and abs(float(np.median(x)) / x.mean() - np.sqrt(np.log(4.0) / (np.pi / 2.0))) < 0.03)
+                if rayleigh:
                     return var / (2.0 - np.pi / 2.0), var
                 return var, var
         inner = ndimage.binary_erosion(body, iterations=1)
@@ -671,7 +683,8 @@ class _TemplateSampler:
                              for r in range(3)], axis=-1)
 
         # the level's world positions (nz, ny, nx, 3), for the template positions of warp's noise
-        xw = None if noise_var is None else world(np.indices(shape[::-1], dtype=np.float32).transpose(0, 3, 2, 1))
+        xw = None if noise_var is None else world(np.indices(shape[::-1], dtype=np.float32).transpose(0, 3, 2, 1)
+                                                  ).astype(np.float32)
 
         def sample(coords):
             ijk = [np.ravel(coords[2 - r]) for r in range(3)]  # array axes (z, y, x) → index axes (i, j, k)
@@ -885,7 +898,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
 
         try:
             noise_body = segment_body(moving).data > 0
-        except ValueError:
+        except (ValueError, RuntimeError):  # no tissue found; SimpleITK's smoothing on an axis under 4 voxels
             noise_body = None
     template = _TemplateSampler(moving, initial, scale, crop, noise_body)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
@@ -1039,10 +1052,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
             radius bounds every voxel's move).  The interpolation's noise term (settings.interpolation_noise)
-            has no part in it: the central differences of ``w`` are uncorrelated with the noise ``w`` keeps at
-            the voxel itself (with trilinear sampling, the two neighbours' shares of it cancel), so the force
-            carries no pull towards any sub-voxel position for the term to undo; the term corrects the objective
-            that decides whether a step is taken."""
+            enters through ``dcc`` (the local variance it is added to) but its own derivative with respect to
+            the map is left out: the central differences of ``w`` are uncorrelated with the noise ``w`` keeps at
+            the voxel itself (with trilinear sampling on a grid aligned with the template's, the two
+            neighbours' shares of it cancel; approximately on a rotated one), so the force carries no pull
+            towards any sub-voxel position for a derivative to undo; the term corrects the objective that
+            decides whether a step is taken."""
             nonlocal bone_w
             gw = np.gradient(w)
             if regl is not None:
