@@ -12,6 +12,7 @@ from registration.baselines import ants_available, ants_syn, elastix_available, 
 from test_adaptive import G, _bent_pair  # same folder (rootdir-less test modules)
 
 
+@pytest.mark.slow  # ~16 s; elastix's B-spline, the main peer, stays in the default suite (`make test-slow`)
 def test_sitk_bspline_recovers_a_smooth_deformation():
     fixed, moving, u = _bent_pair()
     res = sitk_bspline(fixed, moving, metric="ssd", grid_spacing_mm=8.0, shrink=(2, 1), smoothing_voxels=(1, 0),

@@ -70,6 +70,7 @@ def test_angles_and_centres_are_recorded_per_scan(knee_result, knee_ct_study):
                                    + s.pose.transforms["femur"][:3, 3])
 
 
+@pytest.mark.slow  # ~12 s; the CLI's bone-out-of-view test stays in the default suite (`make test-slow`)
 def test_a_bone_outside_the_field_of_view_is_reported(knee_ct_study):
     """Cut the scan above the knee: the tibia and fibula are missing and must be reported, not accepted.
 
@@ -199,6 +200,7 @@ def test_a_joint_that_barely_moves_keeps_the_skeleton_centre_and_is_not_scored(k
     assert all(not e["estimated"] for e in acc["joints"].values())
 
 
+@pytest.mark.slow  # ~11 s each; the flagged bones' test above stays in the default suite (`make test-slow`)
 def test_a_bone_that_leaves_its_joint_is_flagged(knee_ct_study):
     """Each fit records how far the joint centre lands from where the parent puts it; past the limit the
     bone is 'joint_detached' and reported, however well it correlates."""
@@ -221,6 +223,7 @@ def test_a_bone_that_leaves_its_joint_is_flagged(knee_ct_study):
     assert strict["femur"].ok
 
 
+@pytest.mark.slow  # ~11 s each; the flagged bones' test above stays in the default suite (`make test-slow`)
 def test_a_child_of_a_flagged_bone_is_flagged_too(knee_ct_study):
     """A bone is fitted from its parent's result, so once the parent is flagged the child is not
     trusted, however well it correlates: a chain that moved together (a finger registered onto its

@@ -241,6 +241,7 @@ def test_a_one_dof_joint_takes_a_number_alone(tmp_path):
         read_target_pose(p, sk)
 
 
+@pytest.mark.slow  # ~14 s: a template at twice the test size's voxels per axis (`make test-slow`)
 def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path, capsys, monkeypatch):
     """`workbench weights --grid-factor 2` (what a Kurihara-size CT gets by default): the weights and body
     mask on every 2nd template voxel; `deform` solves its maps there and writes the posed volume on the

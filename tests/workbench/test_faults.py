@@ -73,7 +73,8 @@ def study(tmp_path_factory):
     (["animate", "{study}", "--frames", "6", "--size", "320x240"], "knee.gif", 20_480),
     (["animate", "{study}", "--frames", "6", "--size", "320x240"], "knee.mp4", 5_120),
     (["animate", "{study}", "--frames", "6", "--size", "320x240"], "frames.png", 2_048),
-    (["phantom", "knee", "--quiet"], "new-study", 20_480),  # named by its place in the study, not the staging folder
+    # named by its place in the study, not the staging folder; slow (~14 s: a whole phantom study), `make test-slow`
+    pytest.param(["phantom", "knee", "--quiet"], "new-study", 20_480, marks=pytest.mark.slow),
 ])
 def test_a_write_cut_short_is_an_error_naming_the_file(study, tmp_path, command, out, limit):
     before = _tree(study)

@@ -152,6 +152,9 @@ def _finished_pairs(a: Path, b: Path, stage: str):
     return [(eb, ea["finished"])]
 
 
+# slow (~50 s on 2 cores: two runs from the pose stage on); the default suite's Ctrl-C during register is
+# tests/workbench/test_faults.py's (`make test-slow`)
+@pytest.mark.slow
 def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(done, phantom, tmp_path):
     """SIGINT in the middle of register: nothing partial is left, the next run resumes with the first
     unfinished scan, and the final fields are the uninterrupted run's to the bit — from a copy without ground
@@ -489,6 +492,33 @@ def _assert_same_outputs(a: Path, b: Path):
     return compared
 
 
+def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(done, tmp_path):
+    """`workbench register --workers 2` from the synchronous run's init: the four registrations as Dask tasks on a
+    LocalCluster of 2 processes write the synchronous run's files to the bit (the default suite's check of the
+    workers; the whole run's is the slow test below)."""
+    root, _, _ = done
+    two = _strip(root, tmp_path / "two", keep=("bones", "pose", "weights", "init"))
+    # (SETTINGS' register entries are Rhee's Algorithm 1's, which the dense registration does not read)
+    proc = subprocess.run([sys.executable, "-m", "workbench", "register", str(two), "--workers", "2"],
+                          capture_output=True, text=True, encoding="utf-8", timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    assert "4 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
+    compared = 0
+    for sid in read_study(root).scan_ids:
+        for f in sorted((root / "registration" / sid).iterdir()):
+            if f.suffix == ".json":  # the log: all but the stage's settings (SETTINGS set Algorithm 1's levels)
+                a_, b_ = (json.loads(p_.read_text()) for p_ in (f, two / "registration" / sid / f.name))
+                assert {k: v for k, v in a_.items() if k != "settings"} == \
+                    {k: v for k, v in b_.items() if k != "settings"}, sid
+            else:
+                assert (two / "registration" / sid / f.name).read_bytes() == f.read_bytes(), (sid, f.name)
+            compared += 1
+    assert compared >= 20  # correspondence, template_to_scan, registered, log, inverse status of the 4 scans
+
+
+# slow (~90 s on 2 cores: the whole chain again, from the pose stage on, with two worker processes); the test above
+# checks the workers on the register stage in the default suite (`make test-slow`)
+@pytest.mark.slow
 def test_run_on_a_local_dask_cluster_of_two_workers_gives_the_same_files(done, tmp_path):
     """`workbench run --workers 2`: pose's scans, init, register, surface's scans and validate as Dask tasks on
     a LocalCluster of 2 processes; every output file is the synchronous run's (the module's fixture)."""
