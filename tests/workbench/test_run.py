@@ -104,6 +104,9 @@ def test_second_run_skips_every_stage(done, tmp_path):
     assert (root / "study.json").read_bytes() == manifest
 
 
+# slow (~26 s: the chain from register on, again); tests/workbench/test_stages.py's rerun on a new setting stays in
+# the default suite (`make test-slow`)
+@pytest.mark.slow
 def test_changing_one_registration_setting_reruns_register_model_and_validate_only(done, tmp_path):
     root, _, _ = done
     copy = tmp_path / "study"
