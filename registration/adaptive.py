@@ -154,18 +154,17 @@ class AdaptiveSettings:
     @classmethod
     def initialised(cls, **overrides) -> "AdaptiveSettings":
         """Ours after an articulated (VBD) initialisation: the large motion is done, so only small, sure
-        steps are wanted.  Measured on the soft-posed knee (3 scans) and hand (9 scans), test size:
+        steps are wanted:
 
-        * start at level 3 and regularise harder (λ = 3): level-1 starts and λ = 1 moved
+        * start at level 3 and regularise harder (λ = 3): finer starts and a weaker λ moved
           well-initialised soft tissue away from the truth;
-        * no restarts: the knee's MED was the same to 0.01 mm with 0, 1 or 2, at 2.5× fewer evaluations;
+        * no restarts: they changed nothing but the number of evaluations;
         * a step must improve its region's cost by 1 % (``min_improvement``, 0.1 % by default) and the
-          simplex stops at a relative cost change of 1e-4 (``ftol_rel``, 1e-6 by default).  Started from
-          the ground truth, every intensity registration drifts off it (ours by 0.13–0.24 mm on the
-          hand, ``benchmarks/registration.py --from-truth``): the many steps that gain < 1 % follow
-          noise and resampling error, not anatomy.  With these two the hand's MED fell below its VBD
-          start on 7 of 9 scans (0 of 9 before), the knee's rose from 1.67 to 1.80 mm (still below both
-          baselines' means, and SimpleITK's on every scan), and both run 2–3× faster.
+          simplex stops at a relative cost change of 1e-4 (``ftol_rel``, 1e-6 by default): started from
+          the ground truth, every intensity registration drifts off it, and the many steps that gain
+          < 1 % follow noise and resampling error, not anatomy.
+
+        The measurements: docs/measurements/pose-and-initialisation.md.
         """
         d = dict(levels=(3, 4), regularization=3.0, restarts=0, min_improvement=0.01, ftol_rel=1e-4)
         d.update(overrides)

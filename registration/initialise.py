@@ -82,9 +82,8 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
     into the template (elsewhere it keeps a clamped position, det ~0 without
     a fold: those are left as they are); this makes the field one-to-one there
     at a cost in accuracy, since the repaired band maps to tissue between the
-    two sheets: measured on the soft knee, MED +0.1 to +1.2 mm per scan; on
-    the hand, where the creases lie between thin fingers, far more (README,
-    "Registration").
+    two sheets (most where the creases lie between thin fingers; the
+    measurements: docs/measurements/pose-and-initialisation.md).
 
     ``factor`` f > 1: ``weights`` and ``body`` are on every f-th template voxel
     (``workbench weights --grid-factor``, a big template); the maps are solved

@@ -125,10 +125,10 @@ def correct_bias(image: Volume) -> Volume:
 
     The multiplicative bias of an MRI scan differs between scans, so a bone's
     intensities differ by a smooth gain *gradient* that the per-bone linear
-    intensity fit (``metric="ncc"``) cannot absorb.  Measured on the test-size
-    MRI knee: median bone rotation error 0.67° → 0.48°, translation 0.34 →
-    0.21 mm.  The body mask is Otsu's; large images are corrected on a grid
-    shrunk to about 200k voxels and the bias is evaluated at full resolution.
+    intensity fit (``metric="ncc"``) cannot absorb (its effect on the pose:
+    docs/measurements/pose-and-initialisation.md).  The body mask is Otsu's;
+    large images are corrected on a grid shrunk to about 200k voxels and the
+    bias is evaluated at full resolution.
     """
     import SimpleITK as sitk
 
@@ -207,9 +207,8 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
 
             fit = refine(init, prior_center)
             # A flagged fit gets second chances from the grid search's runners-up, refined at the fine scale: the
-            # search's blur widens the basin but can rank a wrong pose of a thin bone first (tuning hand seed 1,
-            # strongest curl: the middle finger's distal phalanx, from its true parent, scored 185 hyperextended
-            # against 207 at the truth blurred; 2849 against 441 at the fine scale).  There the search's own
+            # search's blur widens the basin but can rank a wrong pose of a thin bone first, which the fine scale
+            # tells apart (docs/measurements/pose-and-initialisation.md).  There the search's own
             # remedy (points turned out of the scan count as unmatched, coarse_rotation_search) was what placed
             # it; this is the fallback.  The best passing one is taken; a bone none of them places stays flagged.
             if not fit.ok and runners_up and fits[joint.parent].ok:
@@ -404,12 +403,8 @@ def placed_transforms(fits: dict, skeleton: Skeleton) -> dict:
     """The pose's transforms: each placed bone's fit; a flagged bone (its fit is kept in ``fits``) follows its
     nearest placed ancestor rigidly, its joints as in the template.  A flagged fit is one the image did not
     confirm (NCC < 0.5, outside the scan, detached from its joint, an Eq. 1 outlier): handing it on made
-    every later stage start from it.  Measured on issue I's hand curl, whose distal thumb phalanx, partly
-    outside the scan, is flagged in every seed (8.6 mm off on held-out seed 100): the polyrigid start's MED
-    0.427 / 0.455 → 0.404 / 0.435 mm on tuning seeds 0 / 1 (bones 0.064 / 0.090 → 0.064 / 0.080), and the
-    dense registration with that bone not held rigid (:func:`released_labels`) 0.389 / 0.408 → 0.371 / 0.395
-    (bones 0.065 / 0.087 → 0.065 / 0.069); held-out seed 100: 0.391 → 0.375, bones 0.106 → 0.093.  A flagged
-    root keeps its fit (nothing to follow)."""
+    every later stage start from it (the measurements: docs/measurements/pose-and-initialisation.md).  A
+    flagged root keeps its fit (nothing to follow)."""
     out = {}
     for b in skeleton.order:
         parent = skeleton.bone(b).parent

@@ -58,24 +58,18 @@ __all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish
 
 # Voxels per independent sample of the residual in the polish's data term.  The smoothing (σ 0.6 voxel), the
 # scanner's point spread and model error near the bone's edge correlate neighbouring residuals, so counting
-# every voxel as independent makes the posterior too sure of itself: on the test-size phantoms the errors in
-# weakly seen directions were 2-5x the reported standard deviation.  A value of 4 (prior relatively 4x
-# stronger) was measured: knee MRI worst bone 3.27° → 2.00°, hand CT median 2.83° → 1.67°, but the 3-scan CT
-# knee of the tests got worse (fibula 1.8° → 3.4°).  Mixed, so the default stays 1 (each voxel counts) and
-# the reported standard deviations are optimistic by about that factor's square root.
+# every voxel as independent makes the posterior too sure of itself; a larger value helped some phantoms and
+# hurt others, so each voxel counts, and the reported standard deviations are optimistic by about the
+# correlation's square root (docs/measurements/pose-and-initialisation.md).
 NOISE_CORRELATION = 1.0
 
 # The polish's robust loss (scipy.optimize.least_squares) and its threshold in units of the residual's robust
 # scale (1.4826 x its MAD).  A bone's dilated region holds soft tissue that does not move with the bone (it
-# slides and bulges near a flexed joint), which pulls the least-squares minimum off the truth: measured on the
-# noise-free test-size CT knee at 70° of flexion, started from the truth, the tibia settled 1.6° off with
-# squares, 0.9° with Huber (threshold 2x the RMS residual) and 0.4° with Cauchy at 1x; but Cauchy threw away
-# information on the noise-limited MRI knee (median 0.54-0.67° against 0.49-0.51°), while Huber at 2σ keeps
-# ~99 % of the squares' efficiency on Gaussian noise.  The threshold is set on the MAD, not the RMS, because
-# the outliers inflate the RMS (tests/registration/test_rigid.py: a lump on the rim pulls squares 1.7° off,
-# Huber on the RMS 1.2°, Huber on the MAD 0.5°).  Measured over the 4-scan test-size knees (median / worst
-# bone rotation error): CT 0.26° / 1.59° (squares) → 0.23° / 0.85°; MRI 0.49° / 1.81° → 0.51° / 1.85° (the
-# MRI knee is noise-limited: see validation.information_bound).
+# slides and bulges near a flexed joint), which pulls the least-squares minimum off the truth.  Huber at 2σ
+# bounds those voxels' pull and keeps ~99 % of the squares' efficiency on Gaussian noise (Cauchy, which throws
+# them away, also threw away information on a noise-limited scan); the threshold is on the MAD, not the RMS,
+# which the outliers inflate (tests/registration/test_rigid.py; the measurements:
+# docs/measurements/pose-and-initialisation.md).
 ROBUST_LOSS = "huber"
 ROBUST_SCALE = 2.0
 PRIOR_MM = 2.0  # the polish's translation prior (the rotation prior is the callers' prior_deg)
@@ -192,7 +186,7 @@ def bone_regions(template: Volume, labels: Volume, skeleton, *, margin_mm: float
 class Sampler:
     """Interpolates one scan at world points: trilinear (``order=1``, Rhee's choice) or cubic B-spline
     (``order=3``, the default: on coarse grids trilinear interpolation of a rotated bone leaves a residual
-    that biases the SSD minimum; measured on the test-size knee it is 4x larger than the cubic one).
+    that biases the SSD minimum, several times the cubic one's; docs/measurements/pose-and-initialisation.md).
     The B-spline coefficients are computed once per scan.  Points outside the grid give NaN."""
 
     def __init__(self, image: Volume, order: int = 3, smooth_voxels: float = 0.0):
@@ -222,11 +216,10 @@ def smooth(image: Volume, sigma_voxels: float) -> Volume:
 
     Both images are smoothed a little before Eq. 1: interpolating unsmoothed
     noise lowers its variance between grid points, so the SSD of a noisy scan
-    prefers transforms that put samples off the grid (the femur of the
-    test-size MRI knee, truly at rest, moved 1.3° to the SSD minimum).
-    Measured by minimising Eq. 1 from the true pose on the test-size knee
-    (16 bone fits each): σ = 0.6 voxel moved the median minimum from 1.28° to
-    0.9° off the truth (MRI-like) and from 1.65° to 0.21° (CT-like).
+    prefers transforms that put samples off the grid (Pluim et al. 2000's
+    interpolation artefact); a little smoothing correlates neighbouring
+    voxels' noise, so interpolation between them lowers it much less
+    (the measurements: docs/measurements/pose-and-initialisation.md).
     """
     if not sigma_voxels:
         return image
@@ -326,10 +319,10 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
 
     With ``outside_unmatched`` (default; ``metric="ncc"``) stages 1 and 2 count
     the region's points that a candidate puts outside the scan as matched by
-    nothing (their share of the template's variance), not as absent: the middle
-    finger's distal phalanx at the tuning hand's strongest curl (seed 1) was
-    otherwise placed hyperextended, half out of the field of view (cost 185
-    over its inside half; the truth's pose, all inside, 205), 15.6 mm off.
+    nothing (their share of the template's variance), not as absent: otherwise
+    a pose that turns half of a bone out of the scan is scored on its inside
+    half alone and can win (a distal phalanx placed hyperextended, half out of
+    view: docs/measurements/pose-and-initialisation.md).
 
     ``runners_up`` (optional list) receives ``(cost, angles, transform)`` of
     the other local winners of stage 2 (cost as stage 2 scored it), best first, each more than two steps
@@ -441,9 +434,9 @@ def _levels(region: BoneRegion, multires: bool) -> tuple[list[int], list[float]]
     With ``multires`` (a root bone started from a rough initial pose) the
     crop is also registered shrunk by 4 and 2 when it is big enough.  Child
     bones start within a few degrees (the coarse joint search), where a
-    smoothed level only moves the SSD minimum of a small bone: measured on
-    the test-size knee, a smoothed first level left the fibula 1.3° off
-    instead of 0.4°, so they get one full-resolution level.
+    smoothed level only moves the SSD minimum of a small bone (the fibula:
+    docs/measurements/pose-and-initialisation.md), so they get one
+    full-resolution level.
     """
     small = min(region.crop.geometry.size)
     if not multires:
@@ -495,10 +488,9 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
     reg.SetMetricFixedMask(mask)
     reg.SetMetricSamplingStrategy(reg.NONE)
     reg.SetInterpolator(sitk.sitkBSpline if sampler.order == 3 else sitk.sitkLinear)
-    # Measured on the test-size knee from 3.5° / 1.5 mm off: ITK's regular-step descent (learning rate 1, physical-
-    # shift scales) got closest and fastest; line-search descent and conjugate gradients stopped 1.5-2° short;
-    # Amoeba diverged on the fibula; L-BFGS-B ignores the scales.  None reaches the SSD minimum in rotation, which
-    # is why polish_with_prior follows.
+    # ITK's regular-step descent (learning rate 1, physical-shift scales): of ITK's optimisers it got closest and
+    # fastest from a few degrees off (docs/measurements/pose-and-initialisation.md); none reaches the SSD minimum
+    # in rotation, which is why polish_with_prior follows.
     reg.SetOptimizerAsRegularStepGradientDescent(learningRate=1.0, minStep=1e-4, numberOfIterations=iterations,
                                                  relaxationFactor=0.7, gradientMagnitudeTolerance=1e-12)
     reg.SetOptimizerScalesFromPhysicalShift()
