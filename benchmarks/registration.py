@@ -84,6 +84,7 @@ start.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -326,7 +327,7 @@ def run_flex(args):
                         add(f"initialised (VBD, {kind} weights)", v, time.perf_counter() - t1, 0.0)
                 with PeakMemory() as pm:
                     r = register_dense(sc.image, template, initial=init, moving_labels=held[sid],
-                                       settings=DenseSettings())
+                                       settings=getattr(args, "dense", None) or DenseSettings())
                 add(OURS, r.correspondence, r.seconds, pm.mib)
                 if r.unfold:
                     print(_unfold_line(r.unfold), flush=True)
@@ -870,7 +871,23 @@ def main(argv=None) -> int:
     p.add_argument("--no-elastix-rigidity", action="store_true",
                    help="flex: leave out elastix with the rigidity penalty on the bones (the slowest peer)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dense-settings", metavar="JSON", default="{}",
+                   help="flex: the dense registration's settings (registration.dense.DenseSettings fields as a JSON "
+                        "object, e.g. '{\"interpolation_noise\": true}'; default: its defaults).  The external set "
+                        "runs the workbench's own chain, which does not take them")
     args = p.parse_args(argv)
+    try:
+        from registration.dense import DenseSettings
+
+        kw = json.loads(args.dense_settings)
+        if not isinstance(kw, dict):
+            raise ValueError("not a JSON object")
+        args.dense = DenseSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()})
+    except (ValueError, TypeError) as e:
+        p.error(f"--dense-settings {args.dense_settings!r}: {e}")
+    if kw and any(c in args.cases for c in ("external", "suite", "table2", "knee", "hand")):
+        p.error("--dense-settings applies to --cases flex only (the external set runs the workbench's own chain, "
+                "the others the defaults): run the flex cases with it")
     if args.knee_only and args.hand_only:
         p.error("--knee-only and --hand-only leave nothing to run: give one of them")
     if args.from_truth and args.unfold_init:
@@ -878,7 +895,8 @@ def main(argv=None) -> int:
     elx = 'available' if elastix_available() else 'not installed (pip install -e .[bench])'
     if args.cases == ["flex"]:  # its own seeds and start (run_flex prints them per case)
         print(f"registration benchmark, issue I's flex cases ({args.split} seeds), start: "
-              f"{START_ROWS[args.start].removeprefix('initialised ')}; elastix {elx}")
+              f"{START_ROWS[args.start].removeprefix('initialised ')}; elastix {elx}"
+              + (f"; ours with the dense settings {args.dense_settings}" if kw else ""))
     elif args.cases == ["suite"]:
         print(f"registration benchmark, the three sets: tuning and held-out draws ({args.acquisition} acquisition, "
               f"{START_ROWS[args.start].removeprefix('initialised ')}) and the external set; elastix {elx}")
