@@ -173,6 +173,7 @@ def test_knee_contrast_mri_and_ct():
             assert cortex > marrow > muscle > fat_i  # bright cortical bone in HU
 
 
+@pytest.mark.slow  # ~12 s; tests/workbench/test_cli.py's same-seed files test stays in the default suite
 def test_same_seed_same_images_other_seed_other_noise():
     a = make_phantom("knee", seed=11, n_poses=2)
     b = make_phantom("knee", seed=11, n_poses=2)
