@@ -324,8 +324,17 @@ def _lncc_force(f, w, sig, f_stats, region=None, v=None):
     respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`_local_stats` of ``f``.  With a window mask
     the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed force
     still reaches into the air from the tissue).  ``v`` (or ``None``): a variance added to ``w``'s at each
-    voxel (:func:`_interpolation_noise`), in its local second moment."""
+    voxel (:func:`_interpolation_noise`), in its local second moment, times the share of a voxel's noise
+    variance a window's variance holds: the variance of independent samples about their weighted mean is
+    ``1 − Σ K²`` of theirs, ``K`` the window's weights (its discrete kernel; ~0 for a window under a voxel, as on
+    the coarse levels, where there is then nothing to even out; the level's samples are nearly independent, the
+    pre-smoothing's σ being under half a level voxel; a tissue-only window's mask is left out of it).  The
+    factor ignores that sampling between centres also correlates neighbouring samples' noise, which a window of
+    about a voxel or less feels: there the term over-corrects (docs/measurements/dense-registration.md)."""
     mf, sff, masked = f_stats
+    if v is not None:
+        v = v * np.float32(1.0 - np.prod([_kernel_noise(float(x))[0]
+                                          for x in np.broadcast_to(np.asarray(sig, float), (3,))]))
     if masked is None:
         mw, sww, sfw = _smooth_all([w, w * w if v is None else w * w + v, f * w], sig)
     else:
@@ -619,7 +628,7 @@ class _TemplateSampler:
         # the template's voxel noise variance (settings.interpolation_noise) in its tissue and its air, measured
         # with its body (``noise_body``: a mask on its grid, None: every voxel); False: not counted.  Where the two
         # differ (a magnitude image's Rayleigh air) a map of it on the template's grid, the body's value inside
-        self.noise_var = self.noise_map = None
+        self.noise_var = self.noise_air = self.noise_map = None
         if noise_body is not False:
             self.noise_var, self.noise_air = _voxel_noise_variance(self.data, noise_body)
             if noise_body is not None and abs(self.noise_air - self.noise_var) > 0.05 * self.noise_var:
@@ -929,17 +938,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
         fl = _smooth(f0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         shape = fl.shape
-        warp_template_level, sample_w = template.level(s, sig_pre, shape)
-        # a window of few voxels holds less of the noise's variance: the expected variance of the window's
-        # (nearly independent: the pre-smoothing's σ is under half a level voxel) noise samples about their
-        # weighted mean is 1 − Σ K² of theirs, K the window's weights (its discrete kernel; ~1 when the window is
-        # under a voxel, as on the coarse levels, where there is then nothing to even out).  The tissue-only
-        # windows' masks are left out of it.
-        window_share = np.float32(1.0 - np.prod([_kernel_noise(float(v))[0] for v in st.window_mm / sp]))
-
-        def warp_w(u_now):
-            w_now, v_now = warp_template_level(u_now)
-            return w_now, None if v_now is None else v_now * window_share
+        warp_w, sample_w = template.level(s, sig_pre, shape)
         grid = np.indices(shape, dtype=np.float32)
         grid_mm = [grid[a] * sp[a] for a in range(3)]
         if u is None:
