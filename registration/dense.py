@@ -1253,18 +1253,36 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             # fingers and a wider average lands between them; the knee's crease folds need the defaults (σ 1,
             # one voxel of margin).
             best = None
-            for peel in ((1, 2, 3, None) if lab_now is not None else (None,)):
+
+            def attempt(peel):
+                """Both kernels with the bones' cores less ``peel`` layers frozen (None: nothing frozen), until
+                one leaves no fold: the better ``(field, info)``."""
                 frozen = None if peel is None else _bone_cores(lab_now, peel, sp_full)
+                out = None
                 for kernel in ({"sigma": 0.7, "margin": 0}, {}):
                     fixed_c, info = unfold(corr, mask=mask, frozen=frozen, **kernel)
                     info["bone_layers_released"] = peel
                     info["kernel"] = kernel or "unfold's defaults"
-                    if best is None or info["n_folded_after"] < best[1]["n_folded_after"]:
-                        best = (fixed_c, info)
+                    if out is None or info["n_folded_after"] < out[1]["n_folded_after"]:
+                        out = (fixed_c, info)
                     if not info["n_folded_after"]:
                         break
-                if not best[1]["n_folded_after"]:
+                return out
+
+            # the first attempt that leaves no fold, in that order; else the one that leaves the fewest.  Freezing
+            # voxels only takes freedom from the smoothing: when nothing frozen leaves folds, the attempts that
+            # freeze more are not run (each would spend unfold's whole iteration budget in vain)
+            order = [None] if lab_now is None else [1, None, 2, 3]
+            tried = {}
+            for peel in order:
+                tried[peel] = attempt(peel)
+                if best is None or tried[peel][1]["n_folded_after"] < best[1]["n_folded_after"]:
+                    best = tried[peel]
+                if (peel is None) == bool(tried[peel][1]["n_folded_after"]):  # None failed, or a freezing one did it
                     break
+            done = [peel for peel in (1, 2, 3, None) if peel in tried and not tried[peel][1]["n_folded_after"]]
+            if done:
+                best = tried[done[0]]
             repair = best[1]
             repair["taken"] = repair["n_folded_after"] == 0
             if repair["taken"]:
