@@ -190,6 +190,17 @@ class DenseSettings:
     #: noise it averages away.  Off by default: it helps most tuning cases and loses the identity start of Rhee's
     #: Table 2 protocol (docs/measurements/dense-registration.md, "The template's noise and the interpolation")
     interpolation_noise: bool = False
+    #: data fission (Leiner et al. 2023): both images split into ``x + a z`` for the steps and ``x − z / a`` held
+    #: out, ``z`` Gaussian of each image's own noise SD (measured in its air), so that the two copies' noises are
+    #: independent; each level returns the map of its taken steps whose held-out LNCC (the template read at its
+    #: nearest voxel: no sub-voxel position favoured) is the highest, and stops after holdout_patience taken steps
+    #: without a new highest.  Off by default: it keeps the CT-like knee near its start on one noise draw of two
+    #: and loses on large motions and on Rhee's Table 2 protocol (docs/measurements/dense-registration.md,
+    #: "A held-out copy of the noise")
+    holdout: bool = False
+    holdout_share: float = 0.35  #: ``a``: the steps' images keep (1 + a²) of the noise variance, the held-out (1 + 1/a²)
+    holdout_patience: int = 10
+    holdout_seed: int = 0  #: the draw of ``z`` (same inputs and seed, same bits)
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -219,6 +230,9 @@ class DenseSettings:
                              f"refine_significance ≥ 0 (got {self.refine_significance}) and "
                              f"refine_margin_voxels > 0 (or None) are required, got {self.refine_min_move_voxels}, "
                              f"{self.refine_min_voxels}, {self.bone_margin_mm}, {self.refine_margin_voxels}")
+        if not (self.holdout_share > 0 and isinstance(self.holdout_patience, int) and self.holdout_patience >= 1):
+            raise ValueError(f"holdout_share must be > 0 and holdout_patience a whole number ≥ 1, got "
+                             f"{self.holdout_share}, {self.holdout_patience}")
         if not 0 < self.air_weight <= 1:
             raise ValueError(f"air_weight must be in (0, 1], got {self.air_weight}")
 
@@ -419,6 +433,33 @@ def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[fl
             return var, var
     var = _pseudo_residual_variance(d, None)
     return var, var
+
+
+def _fission(f: np.ndarray, moving: Volume, body: np.ndarray | None, st) -> tuple:
+    """Data fission of both images (settings.holdout): ``x + a z`` for the steps and ``x − z / a`` held out,
+    ``z`` Gaussian white noise of each image's own noise SD (:func:`_voxel_noise_variance`, in its tissue: a
+    magnitude image's noise is Gaussian there), so that the two copies' noises are independent where the
+    image's noise is Gaussian and white (Leiner J, Duan B, Wasserman L, Ramdas A. Data fission: splitting a
+    single data point. J Am Stat Assoc (2023)).  ``f`` is the scan on the levels' box, ``body`` its body
+    there (None: measured over every voxel).  Returns ``((f_held_out, template_held_out, sds), f_steps,
+    template_steps)``: new arrays and volumes, the inputs untouched."""
+    from .segmentation import segment_body
+
+    a = np.float32(st.holdout_share)
+    rng = np.random.default_rng(st.holdout_seed)
+    m = np.asarray(moving.data, np.float32)
+    try:
+        m_body = segment_body(moving).data > 0
+    except (ValueError, RuntimeError):  # no tissue found; SimpleITK's smoothing on an axis under 4 voxels
+        m_body = None
+    sd_f = np.float32(np.sqrt(_voxel_noise_variance(f, body)[0]))
+    sd_m = np.float32(np.sqrt(_voxel_noise_variance(m, m_body)[0]))
+    z = rng.standard_normal(f.shape, dtype=np.float32) * sd_f
+    f_steps, f_held = (f + a * z).astype(np.float32), (f - z / a).astype(np.float32)
+    z = rng.standard_normal(m.shape, dtype=np.float32) * sd_m
+    m_steps = Volume((m + a * z).astype(np.float32), moving.geometry)
+    m_held = Volume((m - z / a).astype(np.float32), moving.geometry)
+    return (f_held, m_held, (float(sd_f), float(sd_m))), f_steps, m_steps
 
 
 def _kernel_noise(sigma: float) -> tuple[float, float]:
@@ -641,7 +682,8 @@ class _TemplateSampler:
     def level(self, s: int, sig_pre: float, shape: tuple):
         """``(warp, sample)`` on the level of shrink ``s`` (grid ``shape``): ``warp(u)`` is ``w`` on the whole
         level for ``u`` (3, *shape) mm along the array axes; ``sample(coords)`` is ``w`` at fractional level
-        indices ``coords`` (z, y, x arrays of any one shape), through ``φ₀`` there."""
+        indices ``coords`` (z, y, x arrays of any one shape), through ``φ₀`` there.  Both read the template
+        trilinearly, or at its nearest voxel with ``order=0``."""
         g, tg = self.scan, self.geometry
         m = self.data
         sigma = np.zeros(3)
@@ -666,14 +708,14 @@ class _TemplateSampler:
         w2i, i2w = tg.world_to_index_matrix, lg.index_to_world_matrix
         air = self.air
 
-        def warp(u):
+        def warp(u, order=1):
             """``(w, v)``: the template through the map and the variance that evens out its noise over the
             sampled positions (:func:`_interpolation_noise`; None when not counted)."""
             ph = sample_shifted(phi, u, inv_sp)
             # u along the array axes (z, y, x) → world, written out (no BLAS: the same bits on every run)
             disp = np.stack([d[r, 0] * u[2] + d[r, 1] * u[1] + d[r, 2] * u[0] + ph[r] for r in range(3)], axis=-1)
-            w = sample_displaced_array(m, w2i, lg, disp, 1, air).astype(np.float32)
-            if noise_var is None:
+            w = sample_displaced_array(m, w2i, lg, disp, order, air).astype(np.float32)
+            if noise_var is None or order == 0:
                 return w, None
             pos = xw + disp
             p = np.stack([w2i[r, 0] * pos[..., 0] + w2i[r, 1] * pos[..., 1] + w2i[r, 2] * pos[..., 2] + w2i[r, 3]
@@ -695,12 +737,12 @@ class _TemplateSampler:
         xw = None if noise_var is None else world(np.indices(shape[::-1], dtype=np.float32).transpose(0, 3, 2, 1)
                                                   ).astype(np.float32)
 
-        def sample(coords):
+        def sample(coords, order=1):
             ijk = [np.ravel(coords[2 - r]) for r in range(3)]  # array axes (z, y, x) → index axes (i, j, k)
             # φ₀ continues by its edge values (as sample_shifted's): read at the indices clamped to the grid
             at = world([np.clip(ijk[r], 0, shape[2 - r] - 1) for r in range(3)])
             points = world(ijk) + sample_array(phi_last, lw2i, at, 1, 0.0)
-            return sample_array(m, w2i, points, 1, air).reshape(np.shape(coords[0])).astype(np.float32)
+            return sample_array(m, w2i, points, order, air).reshape(np.shape(coords[0])).astype(np.float32)
 
         return warp, sample
 
@@ -909,7 +951,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             noise_body = segment_body(moving).data > 0
         except (ValueError, RuntimeError):  # no tissue found; SimpleITK's smoothing on an axis under 4 voxels
             noise_body = None
-    template = _TemplateSampler(moving, initial, scale, crop, noise_body)
+    held_out = None  # settings.holdout: (scan's held-out copy on the box, its template sampler, noise SDs)
+    if st.holdout:
+        held_out, f0, moving_steps = _fission(f0, moving, scan_body if scan_body is None else scan_body[crop], st)
+    else:
+        moving_steps = moving
+    template = _TemplateSampler(moving_steps, initial, scale, crop, noise_body)
+    if held_out is not None:
+        held_out = (held_out[0], _TemplateSampler(held_out[1], initial, scale, crop), held_out[2])
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
     air_around = scan_body is not None and _air_around(scan_body) >= AIR_AROUND
     template_voxel = _voxel_in_voxels(moving.geometry, g)  # the bones' test smooths by at least one of each
@@ -954,6 +1003,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
         tissue = None if tissue0 is None else _smooth(tissue0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         f_stats = _local_stats(fl, win, tissue)
+        held_score = None  # settings.holdout: the held-out LNCC of a map (the template at its nearest voxel)
+        if held_out is not None:
+            flv = _smooth(held_out[0], sig_pre)[::s, ::s, ::s].astype(np.float32)
+            fv_stats = _local_stats(flv, win, tissue)
+            warp_v = held_out[1].level(s, sig_pre, shape)[0]
+
+            def held_score(u_now):
+                return _lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl)[0]
         fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
         elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
         if tissue is not None:  # the normalised convolutions' denominators (settings.tissue_only)
@@ -1157,6 +1214,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         if refining:
             bone_round()
         history = [cc]
+        best = None  # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses) of the best map
+        if held_score is not None:
+            held = [held_score(u)]
+            best = (held[0], len(history), u, w, cc, dcc, dict(params))
+            since = len(history)  # the patience counts from the best map or the last bones' round
         radius = step
         halvings = rejected = 0
         stop = "cap"
@@ -1181,6 +1243,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 radius = min(st.radius_growth * radius, step)
                 if len(history) > 10 and history[-1] - history[-11] < st.tolerance:
                     stopped = "converged"
+                if best is not None:
+                    held.append(held_score(u))
+                    if held[-1] > best[0]:
+                        best = (held[-1], len(history), u, w, cc, dcc, dict(params))
+                    elif len(history) - max(best[1], since) >= st.holdout_patience:
+                        stopped = "held-out"
             else:
                 rejected += 1
                 radius *= 0.5
@@ -1190,19 +1258,35 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 stop = stopped
                 if refining and len(rounds) < st.refine_rounds and bone_round():
                     history.append(cc)  # the bones' round raised the objective: the steps go on from there
+                    if best is not None:
+                        held.append(held_score(u))
+                        since = len(history)
+                        if held[-1] > best[0]:
+                            best = (held[-1], len(history), u, w, cc, dcc, dict(params))
                     force, radius, stop = None, step, "cap"
                     continue
                 break
+        held_rec = None
+        if best is not None:
+            if best[2] is not u:  # back to the map the held-out copy scored highest
+                u, w, cc, dcc = best[2:6]
+                params.clear()
+                params.update(best[6])
+            held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": best[1] - 1,
+                        "noise_sd": [round(v * scale, 6) for v in held_out[2][:1]] + [round(held_out[2][1], 6)]}
         before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
-               "lncc_before": before, "lncc_after": history[-1],
-               "input_kept": history[-1] == before and not any(r["taken"] for r in rounds),
+               "lncc_before": before, "lncc_after": cc,
+               "input_kept": cc == before and not any(r["taken"] for r in rounds),
                "rejected": rejected, "stop": stop, "halvings": halvings,
                "lncc": [round(float(h), 6) for h in history],  # per taken step (and bones' round): never falls
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
                # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
                "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
                "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
+               # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input) and
+               # the two images' noise SDs (their units), None when off
+               "held_out": held_rec,
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
         log.info("dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; LNCC %.4f -> %.4f", lv, s,
