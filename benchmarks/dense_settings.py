@@ -141,8 +141,9 @@ def shift_template(d: dict, fraction: float) -> dict:
     return out
 
 
-def score(d: dict, field: Volume, seconds: float, tag: str, levels=None) -> dict:
-    """The flex case's row (benchmarks/registration.py ``field_measures``) of ``field``, printed with the levels."""
+def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bone: bool = False) -> dict:
+    """The flex case's row (benchmarks/registration.py ``field_measures``) of ``field``, printed with the levels;
+    ``per_bone``: then each held bone's MED (mm, over its voxels on the scan: its label pulled through the truth)."""
     out = _bench().field_measures(d["scan"], d["template"], field, d["truth"], d["body"], d["bone"], d["markers"],
                                   seconds, 0.0)
     out["markers_many_mm"] = marker_med(field, d["many"])
@@ -150,6 +151,15 @@ def score(d: dict, field: Volume, seconds: float, tag: str, levels=None) -> dict
                   f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}]" for x in (levels or []))
     print(f"| {tag} | {out['med_mm']:.3f} | {out['bone_mm']:.3f} | {out['soft_mm']:.3f} | "
           f"{out['markers_many_mm']:.3f} | {out['n_folded']} | {seconds:.0f} | {lv} |", flush=True)
+    if per_bone:
+        from deformation.interpolate import sample_displaced_array
+
+        held = d["held"]
+        lab = sample_displaced_array(np.asarray(held.data), held.geometry.world_to_index_matrix,
+                                     d["scan"].geometry, d["truth"].data, 0, 0).astype(int)
+        err = np.linalg.norm(np.asarray(field.data, float) - np.asarray(d["truth"].data, float), axis=-1)
+        print("|  | per bone (label: MED mm): " + ", ".join(f"{b}: {err[lab == b].mean():.2f}"
+                                                          for b in np.unique(lab) if b) + " |||||||", flush=True)
     return out
 
 
@@ -176,6 +186,8 @@ def main(argv=None) -> int:
     p.add_argument("--template-shift", type=float, default=0.0, metavar="F",
                    help="move the template's grid by F of its voxel along each axis (truth and start with it): the "
                         "phantoms render every image on one grid, real scans never share the template's")
+    p.add_argument("--per-bone", action="store_true",
+                   help="also print each held bone's MED (its voxels on the scan): which bones a start's error stays on")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
     args = p.parse_args(argv)
     if args.seed not in tuning:
@@ -205,11 +217,11 @@ def main(argv=None) -> int:
     print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
     print("|---|---|---|---|---|---|---|---|")
     score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)"
-          + ("; the variants below start at the truth" if args.from_truth else ""))
+          + ("; the variants below start at the truth" if args.from_truth else ""), per_bone=args.per_bone)
     for tag, st in variants:
         r = register_dense(d["scan"], d["template"], initial=d["truth"] if args.from_truth else d["init"],
                            moving_labels=d["held"], settings=st)
-        score(d, r.correspondence, r.seconds, tag, r.levels)
+        score(d, r.correspondence, r.seconds, tag, r.levels, args.per_bone)
     return 0
 
 
