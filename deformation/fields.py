@@ -384,27 +384,10 @@ def invert(field: Volume, *, geometry: GridGeometry | None = None, initial=None,
     points outside ``u``'s grid (there ``U`` is the identity, so no ``y`` inside
     can be reached from outside).
 
-    Library or own?  Measured with ``benchmarks/interpolation.py`` on the
-    paper-size hand grid (255×255×90, 0.78×0.78×1 mm; a smooth field of three
-    sinusoidal modes, |u| ≤ 3.4 mm, |∇u| < 0.6; 2 cores shared with other
-    work, so times vary ×2 between runs), residuals ``|U(y + v) - y|`` over
-    the interior (8 voxels from the faces) with the same trilinear ``U``:
-
-    * this function, 20 iterations (``tol_mm=0``): 2.9–6.1 s, max residual
-      5.7e-12 mm (10 iterations already give 2.4e-6 mm); with the defaults
-      (``tol_mm=1e-3``, converged voxels frozen): 1.0–1.8 s;
-    * ``sitk.InvertDisplacementFieldImageFilter`` (the same fixed-point idea,
-      but a damped update, ×0.5–0.75 per step in ITK's source; output only on
-      the input's grid), 20 iterations, tolerances 0, boundary condition off:
-      4.8–12.4 s (1.1–2.0× ours in the same run), max residual 6.7e-5 mm
-      (30 iterations: 6.2e-7 mm, ≈ 13 s);
-    * ``sitk.IterativeInverseDisplacementFieldImageFilter`` on a 96×96×45 grid:
-      2.9 s for 20 iterations (ours: 0.17 s) and a max residual stuck at
-      0.12 mm.
-
-    Hence our own kernel: 1.1–2× faster per iteration than the library and,
-    undamped, converging faster (20 iterations: 5.7e-12 vs 6.7e-5 mm); it can
-    invert onto another grid, start from a guess, and returns the residual.
+    Our own kernel rather than SimpleITK's inverse filters: it is undamped (it
+    converges in fewer iterations), can invert onto another grid, starts from a
+    guess and returns the residual (the measurements:
+    docs/measurements/library-choices.md).
     """
     u = _check_field(field)
     geo = field.geometry if geometry is None else geometry
@@ -548,9 +531,6 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     :data:`RESTORE_PASSES`).
     No determinant of the mask drops below ``min_det`` by it, so it never
     adds a fold, and it may finish a repair the smoothing left incomplete.
-    (Dense registration, tuning knee seed 0 at 70°, 195 folds repaired: bone
-    MED 0.079 → 0.054 mm, 0.051 before the repair; MED 0.883 → 0.874 mm,
-    0.871 before.  Taking the bones' voxels first instead: 0.053 mm.)
     Returns the new field (``field`` is not modified) and ``dict(iterations,
     n_folded_before, n_folded_after, n_changed, n_restored, max_change_mm)``
     (``n_changed``: voxels that differ from the input in the end,

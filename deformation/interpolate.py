@@ -30,13 +30,8 @@ dtype with ``order=0``.  A float32 *point* carries its own rounding
 (≈ 6e-8 × its coordinate, e.g. 6e-6 mm at 100 mm).
 
 Speed.  The kernels are numba-compiled (``parallel=True``, ``cache=True``,
-no fastmath).  A full trilinear pass over the paper-size hand grid
-(255×255×90 float32, 5.85 M points; ``benchmarks/interpolation.py``, 2 cores
-shared with other work) took 0.09 s on one thread against 0.29–0.42 s for
-``scipy.ndimage.map_coordinates(order=1)`` (4.5× per core), and 0.05–0.17 s
-on two threads depending on the load (2.5–6× SciPy; two idle cores would give
-≈ 2 × 4.5 ≈ 9×, not measured here); ``sitk.Resample`` with the same points took 0.22–0.65 s.  It is
-compute-bound: the bandwidth floor of the same data is ~0.01 s.
+no fastmath); against SciPy's and SimpleITK's resampling:
+docs/measurements/library-choices.md (``benchmarks/interpolation.py``).
 """
 
 from __future__ import annotations

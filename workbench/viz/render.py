@@ -5,9 +5,9 @@ off-screen OpenGL context — EGL first, then OSMesa (``AVW_OPENGL=egl`` or
 ``osmesa`` forces one) — and says which, with the OpenGL renderer string.  On
 a software renderer (Mesa's llvmpipe, as on machines without a GPU) the CPU
 ray caster ``vtkFixedPointVolumeRayCastMapper`` is used: it is faster there
-than the GPU ray caster, which then runs on the CPU through Mesa (measured
-here, ``benchmarks/rendering.py``: 1.9–2.3× at test size, 1.5× on a
-paper-size knee); with a hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
+than the GPU ray caster, which then runs on the CPU through Mesa
+(docs/measurements/library-choices.md, ``benchmarks/rendering.py``); with a
+hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
 
 Geometry is honest: the volume is placed in world millimetres (ITK physical
 space) by its origin, spacing *and* direction — the direction goes into the
