@@ -1369,6 +1369,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 best = tried[done[0]]
             repair = best[1]
             repair["taken"] = repair["n_folded_after"] == 0
+            # every attempt run, in order: bone layers released (None: nothing frozen) and the folds it left
+            repair["attempts"] = [[peel, info["n_folded_after"]] for peel, (_, info) in tried.items()]
             if repair["taken"]:
                 corr = Volume(best[0].data.astype(np.float32), g)
     registered = warp_template(moving, corr)

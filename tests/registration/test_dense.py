@@ -853,3 +853,39 @@ def test_holdout_returns_the_map_its_held_out_copy_scores_highest():
     tissue = (scan.data > 0) & ~bone
     drift = [np.linalg.norm(r.correspondence.data - truth.data, axis=-1)[tissue].mean() for r in (res, plain)]
     assert drift[0] < drift[1], drift
+
+
+@pytest.mark.parametrize("outcome", ["all fail", "nothing frozen and 2 layers succeed"])
+def test_fold_repair_skips_the_freezing_attempts_when_nothing_frozen_fails(monkeypatch, outcome):
+    """The final repair's attempts (register_dense, settings.unfold): 1 bone layer released first, then nothing
+    frozen; the attempts that freeze more (2, 3 layers) run only when nothing frozen removed every fold (freezing
+    takes freedom from the smoothing: they would fail too, each spending unfold's whole budget), and the first
+    that removes every fold in the order 1, 2, 3, nothing is taken.  ``unfold`` is replaced by a stand-in that
+    records each call and succeeds as ``outcome`` says; the start folds the body (the halves above and below a
+    plane each moved 3 mm towards the other), so the repair runs."""
+    import registration.dense as dense
+
+    template, labels, scan, truth, bone = make_case(air=True)
+    start = np.zeros(truth.data.shape, np.float32)
+    z = scan.geometry.world_coordinates()[..., 2]
+    start[..., 2] = np.where(z > np.median(z), -3.0, 3.0)  # the voxels across the plane overlap: det < 0
+    calls = []
+
+    def fake_unfold(field, *, mask=None, frozen=None, **kernel):
+        calls.append((frozen is None, dict(kernel)))
+        ok = outcome != "all fail" and (frozen is None or len(calls) >= 4)  # the 4th call: 2 layers
+        return field, {"iterations": 200, "n_folded_before": 9, "n_folded_after": 0 if ok else 9, "n_changed": 0,
+                       "n_restored": 0, "max_change_mm": 0.0}
+
+    monkeypatch.setattr(dense, "unfold", fake_unfold)
+    res = register_dense(scan, template, initial=Volume(start, scan.geometry), moving_labels=labels,
+                         settings=DenseSettings(shrink=(2,), iterations=(3,)))
+    rep = res.unfold
+    if outcome == "all fail":
+        # 1 layer (both kernels), nothing frozen (both kernels), and no more
+        assert [c[0] for c in calls] == [False, False, True, True] and not rep["taken"]
+        assert rep["attempts"] == [[1, 9], [None, 9]]
+    else:
+        # 1 layer fails (2 calls), nothing frozen succeeds at once (1), 2 layers succeeds (1): 2 layers is taken
+        assert [c[0] for c in calls] == [False, False, True, False] and rep["taken"]
+        assert rep["attempts"] == [[1, 9], [None, 0], [2, 0]] and rep["bone_layers_released"] == 2
