@@ -1214,10 +1214,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         if refining:
             bone_round()
         history = [cc]
-        best = None  # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses) of the best map
+        held_best = None  # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses) of the best map
         if held_score is not None:
             held = [held_score(u)]
-            best = (held[0], len(history), u, w, cc, dcc, dict(params))
+            held_best = (held[0], len(history), u, w, cc, dcc, dict(params))
             since = len(history)  # the patience counts from the best map or the last bones' round
         radius = step
         halvings = rejected = 0
@@ -1243,11 +1243,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 radius = min(st.radius_growth * radius, step)
                 if len(history) > 10 and history[-1] - history[-11] < st.tolerance:
                     stopped = "converged"
-                if best is not None:
+                if held_best is not None:
                     held.append(held_score(u))
-                    if held[-1] > best[0]:
-                        best = (held[-1], len(history), u, w, cc, dcc, dict(params))
-                    elif len(history) - max(best[1], since) >= st.holdout_patience:
+                    if held[-1] > held_best[0]:
+                        held_best = (held[-1], len(history), u, w, cc, dcc, dict(params))
+                    elif len(history) - max(held_best[1], since) >= st.holdout_patience:
                         stopped = "held-out"
             else:
                 rejected += 1
@@ -1258,21 +1258,21 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 stop = stopped
                 if refining and len(rounds) < st.refine_rounds and bone_round():
                     history.append(cc)  # the bones' round raised the objective: the steps go on from there
-                    if best is not None:
+                    if held_best is not None:
                         held.append(held_score(u))
                         since = len(history)
-                        if held[-1] > best[0]:
-                            best = (held[-1], len(history), u, w, cc, dcc, dict(params))
+                        if held[-1] > held_best[0]:
+                            held_best = (held[-1], len(history), u, w, cc, dcc, dict(params))
                     force, radius, stop = None, step, "cap"
                     continue
                 break
         held_rec = None
-        if best is not None:
-            if best[2] is not u:  # back to the map the held-out copy scored highest
-                u, w, cc, dcc = best[2:6]
+        if held_best is not None:
+            if held_best[2] is not u:  # back to the map the held-out copy scored highest
+                u, w, cc, dcc = held_best[2:6]
                 params.clear()
-                params.update(best[6])
-            held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": best[1] - 1,
+                params.update(held_best[6])
+            held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": held_best[1] - 1,
                         "noise_sd": [round(v * scale, 6) for v in held_out[2][:1]] + [round(held_out[2][1], 6)]}
         before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
