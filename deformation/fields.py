@@ -530,7 +530,8 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
     the largest changes first; passes repeat until one moves nothing (at most
     :data:`RESTORE_PASSES`).
     No determinant of the mask drops below ``min_det`` by it, so it never
-    adds a fold, and it may finish a repair the smoothing left incomplete.
+    adds a fold, and it may finish a repair the smoothing left incomplete
+    (what the passes change: docs/measurements/library-choices.md).
     Returns the new field (``field`` is not modified) and ``dict(iterations,
     n_folded_before, n_folded_after, n_changed, n_restored, max_change_mm)``
     (``n_changed``: voxels that differ from the input in the end,

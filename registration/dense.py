@@ -82,7 +82,8 @@ at every iteration, and keeps what an articulated body needs:
   start compresses a crease below the voxel size or curled fingers touch;
   those voxels of the scan's body are smoothed locally
   (:func:`deformation.fields.unfold`) around the bones' interiors (their
-  deepest voxels frozen, then fewer; as a last resort none), every smoothed
+  deepest voxels frozen, then fewer; as a last resort none, which is tried
+  second as a probe: when it leaves folds, freezing more is not tried), every smoothed
   voxel then going back towards the registered value as far as the
   determinant allows (unfold's restoring passes: the smoothing replaces
   patches, a fold needs a few voxels), and the repair is taken only when it
@@ -191,14 +192,16 @@ class DenseSettings:
     #: Table 2 protocol (docs/measurements/dense-registration.md, "The template's noise and the interpolation")
     interpolation_noise: bool = False
     #: data fission (Leiner et al. 2023): both images split into ``x + a z`` for the steps and ``x − z / a`` held
-    #: out, ``z`` Gaussian of each image's own noise SD (measured in its air), so that the two copies' noises are
+    #: out, ``z`` Gaussian of each image's own noise SD (its tissue's, measured in its air where there is enough:
+    #: _voxel_noise_variance), so that the two copies' noises are
     #: independent; each level returns the map of its taken steps whose held-out LNCC (the template read at its
     #: nearest voxel: no sub-voxel position favoured) is the highest, and stops after holdout_patience taken steps
-    #: without a new highest.  Off by default: it keeps the CT-like knee near its start on one noise draw of two
-    #: and loses on large motions and on Rhee's Table 2 protocol (docs/measurements/dense-registration.md,
-    #: "A held-out copy of the noise")
+    #: without a new highest.  Off by default: it keeps the CT-like knee near its start on one noise draw of two,
+    #: and loses on Rhee's Table 2 protocol (identity start) and, with a share of 0.5, on the large motions
+    #: (docs/measurements/dense-registration.md, "A held-out copy of the noise")
     holdout: bool = False
-    holdout_share: float = 0.35  #: ``a``: the steps' images keep (1 + a²) of the noise variance, the held-out (1 + 1/a²)
+    #: ``a``: the steps' images carry (1 + a²) times the image's noise variance, the held-out copy (1 + 1/a²) times
+    holdout_share: float = 0.35
     holdout_patience: int = 10
     holdout_seed: int = 0  #: the draw of ``z`` (same inputs and seed, same bits)
 
@@ -437,8 +440,8 @@ def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[fl
 
 def _fission(f: np.ndarray, moving: Volume, body: np.ndarray | None, st) -> tuple:
     """Data fission of both images (settings.holdout): ``x + a z`` for the steps and ``x − z / a`` held out,
-    ``z`` Gaussian white noise of each image's own noise SD (:func:`_voxel_noise_variance`, in its tissue: a
-    magnitude image's noise is Gaussian there), so that the two copies' noises are independent where the
+    ``z`` Gaussian white noise of each image's own noise SD (its tissue's, measured in its air where there is
+    enough: :func:`_voxel_noise_variance`; a magnitude image's noise is Gaussian in the tissue), so that the two copies' noises are independent where the
     image's noise is Gaussian and white (Leiner J, Duan B, Wasserman L, Ramdas A. Data fission: splitting a
     single data point. J Am Stat Assoc (2023)).  ``f`` is the scan on the levels' box, ``body`` its body
     there (None: measured over every voxel).  Returns ``((f_held_out, template_held_out, sds), f_steps,
@@ -683,7 +686,7 @@ class _TemplateSampler:
         """``(warp, sample)`` on the level of shrink ``s`` (grid ``shape``): ``warp(u)`` is ``w`` on the whole
         level for ``u`` (3, *shape) mm along the array axes; ``sample(coords)`` is ``w`` at fractional level
         indices ``coords`` (z, y, x arrays of any one shape), through ``φ₀`` there.  Both read the template
-        trilinearly, or at its nearest voxel with ``order=0``."""
+        trilinearly; ``warp(u, order=0)`` at its nearest voxel."""
         g, tg = self.scan, self.geometry
         m = self.data
         sigma = np.zeros(3)
@@ -737,12 +740,12 @@ class _TemplateSampler:
         xw = None if noise_var is None else world(np.indices(shape[::-1], dtype=np.float32).transpose(0, 3, 2, 1)
                                                   ).astype(np.float32)
 
-        def sample(coords, order=1):
+        def sample(coords):
             ijk = [np.ravel(coords[2 - r]) for r in range(3)]  # array axes (z, y, x) → index axes (i, j, k)
             # φ₀ continues by its edge values (as sample_shifted's): read at the indices clamped to the grid
             at = world([np.clip(ijk[r], 0, shape[2 - r] - 1) for r in range(3)])
             points = world(ijk) + sample_array(phi_last, lw2i, at, 1, 0.0)
-            return sample_array(m, w2i, points, order, air).reshape(np.shape(coords[0])).astype(np.float32)
+            return sample_array(m, w2i, points, 1, air).reshape(np.shape(coords[0])).astype(np.float32)
 
         return warp, sample
 
@@ -953,7 +956,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             noise_body = None
     held_out = None  # settings.holdout: (scan's held-out copy on the box, its template sampler, noise SDs)
     if st.holdout:
-        held_out, f0, moving_steps = _fission(f0, moving, scan_body if scan_body is None else scan_body[crop], st)
+        held_out, f0, moving_steps = _fission(f0, moving, None if scan_body is None else scan_body[crop], st)
     else:
         moving_steps = moving
     template = _TemplateSampler(moving_steps, initial, scale, crop, noise_body)
@@ -1172,7 +1175,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # again from the same direction; after a taken step the radius grows by radius_growth, up to ``step``.
         # The level stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or
         # when the last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps
-        # the trials.
+        # the trials.  With settings.holdout it also stops after holdout_patience taken steps without a new highest
+        # held-out LNCC, and returns the map of that highest (possibly an earlier one).
         w, v = warp_w(u)
         cc, dcc = _lncc_force(fl, w, win, f_stats, regl, v)
         rounds = []  # the bones' refinements (settings.refine_bones)
@@ -1214,10 +1218,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         if refining:
             bone_round()
         history = [cc]
-        held_best = None  # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses) of the best map
+        # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses, bones tested, bones' rounds) of
+        # the best map; step 0 is the level's input after its first bones' round (which no held-out score judges)
+        held_best = None
         if held_score is not None:
             held = [held_score(u)]
-            held_best = (held[0], len(history), u, w, cc, dcc, dict(params))
+            held_best = (held[0], len(history), u, w, cc, dcc, dict(params), set(tested), len(rounds))
             since = len(history)  # the patience counts from the best map or the last bones' round
         radius = step
         halvings = rejected = 0
@@ -1246,7 +1252,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 if held_best is not None:
                     held.append(held_score(u))
                     if held[-1] > held_best[0]:
-                        held_best = (held[-1], len(history), u, w, cc, dcc, dict(params))
+                        held_best = (held[-1], len(history), u, w, cc, dcc, dict(params), set(tested), len(rounds))
                     elif len(history) - max(held_best[1], since) >= st.holdout_patience:
                         stopped = "held-out"
             else:
@@ -1262,7 +1268,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         held.append(held_score(u))
                         since = len(history)
                         if held[-1] > held_best[0]:
-                            held_best = (held[-1], len(history), u, w, cc, dcc, dict(params))
+                            held_best = (held[-1], len(history), u, w, cc, dcc, dict(params), set(tested), len(rounds))
                     force, radius, stop = None, step, "cap"
                     continue
                 break
@@ -1272,20 +1278,24 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 u, w, cc, dcc = held_best[2:6]
                 params.clear()
                 params.update(held_best[6])
+                tested.clear()  # a bone first tested after the best map may be tested again
+                tested.update(held_best[7])
+                for r in rounds[held_best[8]:]:  # the bones' rounds after it are undone with it
+                    r["discarded"] = True
             held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": held_best[1] - 1,
                         "noise_sd": [round(v * scale, 6) for v in held_out[2][:1]] + [round(held_out[2][1], 6)]}
         before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
                "lncc_before": before, "lncc_after": cc,
-               "input_kept": cc == before and not any(r["taken"] for r in rounds),
+               "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
                "rejected": rejected, "stop": stop, "halvings": halvings,
                "lncc": [round(float(h), 6) for h in history],  # per taken step (and bones' round): never falls
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
                # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
                "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
                "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
-               # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input) and
-               # the two images' noise SDs (their units), None when off
+               # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
+               # its first bones' round) and the two images' noise SDs (their units), None when off
                "held_out": held_rec,
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
@@ -1328,7 +1338,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         if n_folded:
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
             # pressed against a bone frees one more voxel layer of it at a time (up to 3, a bone's deepest
-            # voxels staying, _bone_cores); as a last resort nothing is frozen (the smoothing stays local to
+            # voxels staying, _bone_cores); nothing frozen is the last choice (it runs second, as a probe) (the smoothing stays local to
             # the folds, but may then bend a bone next to one: the bone MED measures it).  Only a complete
             # repair is taken: a failing one smooths an ever larger region (it moved tissue by 100 mm on the
             # hand's fist), so then the folds stay, reported in ``folding``.
@@ -1353,9 +1363,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         break
                 return out
 
-            # the first attempt that leaves no fold, in that order; else the one that leaves the fewest.  Freezing
-            # voxels only takes freedom from the smoothing: when nothing frozen leaves folds, the attempts that
-            # freeze more are not run (each would spend unfold's whole iteration budget in vain)
+            # the first attempt that leaves no fold in the order 1, 2, 3 layers, nothing frozen; else the one that
+            # leaves the fewest (not taken).  Nothing frozen runs second, as a probe: freezing voxels only takes
+            # freedom from the smoothing, so when it leaves folds the attempts that freeze more are not run (each
+            # would spend unfold's whole iteration budget in vain; the record then describes the best of the two
+            # attempts run, not of all four)
             order = [None] if lab_now is None else [1, None, 2, 3]
             tried = {}
             for peel in order:
