@@ -438,23 +438,18 @@ def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[fl
     return var, var
 
 
-def _fission(f: np.ndarray, moving: Volume, body: np.ndarray | None, st) -> tuple:
+def _fission(f: np.ndarray, body: np.ndarray | None, moving: Volume, m_body: np.ndarray | None, st) -> tuple:
     """Data fission of both images (settings.holdout): ``x + a z`` for the steps and ``x − z / a`` held out,
     ``z`` Gaussian white noise of each image's own noise SD (its tissue's, measured in its air where there is
-    enough: :func:`_voxel_noise_variance`; a magnitude image's noise is Gaussian in the tissue), so that the two copies' noises are independent where the
-    image's noise is Gaussian and white (Leiner J, Duan B, Wasserman L, Ramdas A. Data fission: splitting a
-    single data point. J Am Stat Assoc (2023)).  ``f`` is the scan on the levels' box, ``body`` its body
-    there (None: measured over every voxel).  Returns ``((f_held_out, template_held_out, sds), f_steps,
-    template_steps)``: new arrays and volumes, the inputs untouched."""
-    from .segmentation import segment_body
-
+    enough: :func:`_voxel_noise_variance`; a magnitude image's noise is Gaussian in the tissue), so that the two
+    copies' noises are independent where the image's noise is Gaussian and white (Leiner J, Duan B, Wasserman
+    L, Ramdas A. Data fission: splitting a single data point. J Am Stat Assoc (2023)).  ``f`` is the scan's
+    array, ``body`` its body and ``m_body`` the template's (None: the noise measured over every voxel).  Returns
+    ``((f_held_out, template_held_out, sds), f_steps, template_steps)``: new arrays and volumes, the inputs
+    untouched."""
     a = np.float32(st.holdout_share)
     rng = np.random.default_rng(st.holdout_seed)
     m = np.asarray(moving.data, np.float32)
-    try:
-        m_body = segment_body(moving).data > 0
-    except (ValueError, RuntimeError):  # no tissue found; SimpleITK's smoothing on an axis under 4 voxels
-        m_body = None
     sd_f = np.float32(np.sqrt(_voxel_noise_variance(f, body)[0]))
     sd_m = np.float32(np.sqrt(_voxel_noise_variance(m, m_body)[0]))
     z = rng.standard_normal(f.shape, dtype=np.float32) * sd_f
@@ -944,24 +939,24 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     crop = _crop_box(region, g.array_shape,
                      np.ceil((3.0 * st.window_mm + max(st.shrink) * sp_full.max()) / sp_full),
                      int(np.lcm.reduce([int(v) for v in st.shrink])))
-    f0 = f0[crop]
     del m0  # the steps sample the template itself (_TemplateSampler), not this resampled copy
-    noise_body = False  # settings.interpolation_noise: the template's body, where its noise is measured
-    if st.interpolation_noise:
+    # the template's body, where its noise is measured (settings.interpolation_noise, settings.holdout): a mask on
+    # its grid, None where none is found (every voxel then); False: not needed
+    template_body = False
+    if st.interpolation_noise or st.holdout:
         from .segmentation import segment_body
 
         try:
-            noise_body = segment_body(moving).data > 0
+            template_body = segment_body(moving).data > 0
         except (ValueError, RuntimeError):  # no tissue found; SimpleITK's smoothing on an axis under 4 voxels
-            noise_body = None
+            template_body = None
     held_out = None  # settings.holdout: (scan's held-out copy on the box, its template sampler, noise SDs)
-    if st.holdout:
-        held_out, f0, moving_steps = _fission(f0, moving, None if scan_body is None else scan_body[crop], st)
-    else:
-        moving_steps = moving
-    template = _TemplateSampler(moving_steps, initial, scale, crop, noise_body)
-    if held_out is not None:
-        held_out = (held_out[0], _TemplateSampler(held_out[1], initial, scale, crop), held_out[2])
+    moving_steps = moving
+    if st.holdout:  # on the whole scan, before the crop: its noise is measured in all of its air
+        held_out, f0, moving_steps = _fission(f0, scan_body, moving, template_body, st)
+        held_out = (held_out[0][crop], _TemplateSampler(held_out[1], initial, scale, crop), held_out[2])
+    f0 = f0[crop]
+    template = _TemplateSampler(moving_steps, initial, scale, crop, template_body if st.interpolation_noise else False)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
     air_around = scan_body is not None and _air_around(scan_body) >= AIR_AROUND
     template_voxel = _voxel_in_voxels(moving.geometry, g)  # the bones' test smooths by at least one of each
@@ -1283,7 +1278,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 for r in rounds[held_best[8]:]:  # the bones' rounds after it are undone with it
                     r["discarded"] = True
             held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": held_best[1] - 1,
-                        "noise_sd": [round(v * scale, 6) for v in held_out[2][:1]] + [round(held_out[2][1], 6)]}
+                        "noise_sd": [round(held_out[2][0] * scale, 6), round(held_out[2][1], 6)]}
         before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
                "lncc_before": before, "lncc_after": cc,

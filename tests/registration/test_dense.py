@@ -812,7 +812,7 @@ def test_data_fission_splits_the_noise_into_independent_copies():
     moving = Volume((signal + noise[1]).astype(np.float32), g)
     f_in, m_in = f.copy(), moving.data.copy()
     st = DenseSettings(holdout=True, holdout_share=a)
-    (f_held, m_held, sds), f_steps, m_steps = _fission(f, moving, body, st)
+    (f_held, m_held, sds), f_steps, m_steps = _fission(f, body, moving, body, st)
     assert np.array_equal(f, f_in) and np.array_equal(moving.data, m_in)
     assert sds[0] == pytest.approx(sigma, rel=0.03) and sds[1] == pytest.approx(sigma, rel=0.03)
     for steps, held, n in ((f_steps, f_held, noise[0]), (m_steps.data, m_held.data, noise[1])):
@@ -820,9 +820,9 @@ def test_data_fission_splits_the_noise_into_independent_copies():
         assert abs(np.corrcoef(e1, e2)[0, 1]) < 0.04
         assert e1.var() == pytest.approx((1 + a * a) * sigma ** 2, rel=0.05)
         assert e2.var() == pytest.approx((1 + 1 / (a * a)) * sigma ** 2, rel=0.07)
-    again = _fission(f, moving, body, st)
+    again = _fission(f, body, moving, body, st)
     assert np.array_equal(again[1], f_steps) and np.array_equal(again[0][1].data, m_held.data)
-    other = _fission(f, moving, body, DenseSettings(holdout=True, holdout_share=a, holdout_seed=1))
+    other = _fission(f, body, moving, body, DenseSettings(holdout=True, holdout_share=a, holdout_seed=1))
     assert not np.array_equal(other[1], f_steps)
 
 
