@@ -256,10 +256,13 @@ Register the template to each scan by intensity alone, starting from an
 articulated start to the scan's estimated pose.
 
 --method dense (default) moves every voxel at every iteration: local
-normalised cross-correlation (5 mm window) pulls the template, each step is
-smoothed and composed so that no step folds (det > 0.2 everywhere), the bones
-stay where the pose stage put them, coarse to fine over 3 levels
-(registration.dense).  --method adaptive is Rhee et al. 2011's locally
+normalised cross-correlation (3 mm window) pulls the template, each step is
+smoothed and composed so that no step folds (det > 0.2 everywhere) and is
+taken only when it raises the level's similarity (a trust region), the bones
+stay where the pose stage put them up to a rigid refinement, coarse to fine
+over 3 levels (registration.dense).  --dense NAME=VALUE sets any of its
+settings (registration.dense.DenseSettings; the value is JSON), e.g.
+--dense holdout=true --dense iterations=[200,200,50].  --method adaptive is Rhee et al. 2011's locally
 adaptive block registration (§4, Algorithm 1): the worst-matching block gets
 8 clamped-plate-spline control points whose 24 displacements an NLopt simplex
 optimises, level by level; --preset paper gives its published settings
@@ -293,6 +296,8 @@ examples:
   workbench register knee-study --scan pose01 --init none
   workbench register knee-study --preset paper --init vbd --seed 3   # Rhee as published
   workbench register knee-study --method adaptive --levels 3 5
+  workbench register knee-study --dense window_mm=4 --dense refine_bones=false
+  workbench register knee-study --dense default          # the dense settings' defaults again
 """
 
 
@@ -736,6 +741,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "Default: 0")
     rg.add_argument("--no-unfold-init", action="store_false", dest="unfold_init", default=argparse.SUPPRESS,
                     help="start from the plain VBD field again after an earlier --unfold-init")
+    rg.add_argument("--dense", action="append", default=argparse.SUPPRESS, metavar="NAME=VALUE",
+                    help="a setting of the dense registration (registration.dense.DenseSettings), the value as JSON "
+                         "(true, 4, [200, 200, 50], null); repeatable; given, the list replaces the one the study "
+                         "last ran with; 'default' alone clears it")
     rg.add_argument("--no-fix-bones", default=argparse.SUPPRESS, action="store_true",
                     help="let the bones move with the soft tissue (dense: no force is zeroed on them; adaptive: no "
                          "zero-displacement control points on bone voxels)")
@@ -961,6 +970,26 @@ def _same(v):
     return v
 
 
+def _dense_options(items) -> tuple:
+    """``--dense NAME=VALUE`` options as ``(name, value)`` pairs (values JSON, else text); ``default`` alone: none.
+    The names and types are checked by :class:`workbench.stages.register.RegisterSettings`."""
+    import json
+
+    if list(items) == ["default"]:
+        return ()
+    out = []
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ValueError(f"--dense {item!r}: expected NAME=VALUE (e.g. --dense window_mm=4), or 'default' alone")
+        try:
+            v = json.loads(value)
+        except json.JSONDecodeError:
+            v = value
+        out.append((name.strip(), v))
+    return tuple(out)
+
+
 def _bones_settings(args):
     from workbench.stages.bones import BonesSettings
 
@@ -1075,6 +1104,8 @@ def _register_settings(args):
     reg_implied = {}
     if getattr(args, "preset", None) == "paper":
         reg_implied["method"] = "auto"
+    if getattr(args, "preset", None) == "paper" or getattr(args, "method", None) == "adaptive":
+        reg_implied["dense_settings"] = ()  # the dense registration's, recorded by an earlier run
     if getattr(args, "method", None) == "dense":  # nor Algorithm 1's options recorded by an earlier run
         reg_implied.update(preset="auto", levels=None, optimizer=None, metric=None, max_steps_per_level=None)
     init = _given(args, args.study, "init", {"method": ("init", lambda v: "identity" if v == "none" else v),
@@ -1085,7 +1116,8 @@ def _register_settings(args):
         "method": ("method", _same), "preset": ("preset", lambda v: "paper" if v == "paper" else "auto"),
         "levels": ("levels", tuple),
         "optimizer": ("optimizer", _same), "metric": ("metric", _same), "max_steps_per_level": ("max_steps", _same),
-        "fix_bones": ("no_fix_bones", lambda v: not v), "seed": ("seed", _same)}, reg_implied)
+        "fix_bones": ("no_fix_bones", lambda v: not v), "seed": ("seed", _same),
+        "dense_settings": ("dense", _dense_options)}, reg_implied)
     given = [opt for opt, a in (("--levels", "levels"), ("--optimizer", "optimizer"), ("--metric", "metric"),
                                 ("--max-steps", "max_steps")) if hasattr(args, a)]
     if given and reg.resolved_method == "dense":  # the dense method would ignore them without a word

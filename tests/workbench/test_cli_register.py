@@ -319,3 +319,49 @@ def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path
     assert s["register"].levels is None and s["register"].optimizer is None  # Algorithm 1's: dropped
     args = build_parser().parse_args(["register", str(d), "--preset", "paper"])
     assert _register_settings(args)["register"].resolved_method == "adaptive"
+
+
+def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tmp_path, study, capsys):
+    """``--dense NAME=VALUE`` sets a DenseSettings field (JSON value), recorded with the stage's settings so that
+    a rerun with the same ones is skipped; a wrong name, type, range, the bones' own option or Algorithm 1 get
+    one line naming the option, before anything is written."""
+    d = tmp_path / "ds"
+    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
+    m = json.loads((d / "study.json").read_text())
+    for k in ("init", "register", "validate"):
+        m.get("stages", {}).pop(k, None)
+    (d / "study.json").write_text(json.dumps(m))
+    bad = [(["--dense", "window=4"], "no setting 'window'"),
+           (["--dense", "window_mm=four"], "--dense window_mm: the setting is a number (float), got the text 'four'"),
+           (["--dense", "window_mm=-1"], "window_mm > 0"),
+           (["--dense", "bones=free"], "--no-fix-bones"),
+           (["--dense", "window_mm"], "expected NAME=VALUE"),
+           (["--dense", "tolerance=1e-3", "--dense", "tolerance=1e-2"], "given twice"),
+           (["--dense", "holdout=true", "--method", "adaptive"], "do not apply to Rhee's Algorithm 1")]
+    for extra, words in bad:
+        assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", *extra, "--quiet"]) == 1, extra
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1, (extra, err)
+        assert not (d / "registration").exists() and not (d / "init").exists()
+    # three short levels (2 trials each: a fast run) and a wider window, given as JSON
+    opts = ["--dense", "iterations=[2, 2, 2]", "--dense", "window_mm=4", "--dense", "refine_bones=false"]
+    assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", *opts, "--quiet"]) == 0
+    st = read_study(d)
+    ds = st.registration_log("pose01")["dense_settings"]
+    assert ds["iterations"] == [2, 2, 2] and ds["window_mm"] == 4.0 and ds["refine_bones"] is False
+    assert ds["bones"] == "fixed" and ds["fluid_voxels"] == 3.0  # the rest: the defaults
+    assert all(lv["iterations"] + lv["rejected"] <= 2 for lv in st.registration_log("pose01")["summary"]["levels"])
+    digest = st.stage_entry("register", "pose01")["digest"]
+    log_time = (d / "registration" / "pose01" / "log.json").stat().st_mtime_ns
+    assert main(["register", str(d), "--scan", "pose01", "--quiet"]) == 0  # options left out: the recorded ones
+    st = read_study(d)
+    assert st.stage_entry("register", "pose01")["digest"] == digest  # up to date: not run again
+    assert (d / "registration" / "pose01" / "log.json").stat().st_mtime_ns == log_time
+    assert st.stage_entry("register", "pose01")["settings"]["dense_settings"] == [
+        ["iterations", [2, 2, 2]], ["window_mm", 4.0], ["refine_bones", False]]
+    from workbench.cli import _register_settings, build_parser
+
+    args = build_parser().parse_args(["register", str(d), "--dense", "default"])
+    assert _register_settings(args)["register"].dense_settings == ()
+    args = build_parser().parse_args(["register", str(d), "--preset", "paper"])  # Algorithm 1: theirs dropped
+    assert _register_settings(args)["register"].dense_settings == ()

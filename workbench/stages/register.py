@@ -59,7 +59,8 @@ class RegisterSettings:
     start, ``default`` after none), ``default``, ``initialised`` or ``paper``
     (Rhee's published settings) — :class:`registration.adaptive.AdaptiveSettings`.
     ``levels``/``optimizer``/``metric``/``max_steps_per_level`` are the adaptive
-    method's; ``fix_bones`` is both methods'.
+    method's; ``fix_bones`` is both methods'.  ``dense_settings``: ``(name, value)`` pairs applied over
+    :class:`registration.dense.DenseSettings`' defaults (the dense method's; ``bones`` follows ``fix_bones``).
     """
 
     method: str = "auto"
@@ -70,6 +71,7 @@ class RegisterSettings:
     max_steps_per_level: int | None = None
     fix_bones: bool = True
     seed: int = 0
+    dense_settings: tuple = ()
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -81,7 +83,12 @@ class RegisterSettings:
                              "(or leave --method out)")
         if self.levels is not None:
             object.__setattr__(self, "levels", tuple(int(v) for v in self.levels))
+        object.__setattr__(self, "dense_settings", _dense_pairs(self.dense_settings))
+        if self.dense_settings and self.resolved_method != "dense":
+            raise ValueError(f"--dense {self.dense_settings[0][0]}=...: the dense registration's settings do not "
+                             "apply to Rhee's Algorithm 1 (--method adaptive, --preset): leave them out")
         self.adaptive("vbd")  # validates the overrides now, not after the first scan
+        self.dense()
 
     @property
     def resolved_method(self) -> str:
@@ -94,7 +101,8 @@ class RegisterSettings:
         start, which placed them)."""
         from registration.dense import DenseSettings
 
-        return DenseSettings(bones="fixed" if (self.fix_bones and articulated) else "free")
+        over = {k: tuple(v) if isinstance(v, list) else v for k, v in self.dense_settings}
+        return DenseSettings(**over, bones="fixed" if (self.fix_bones and articulated) else "free")
 
     def adaptive(self, init_method: str):
         """The :class:`~registration.adaptive.AdaptiveSettings` for a start made by ``init_method``."""
@@ -111,6 +119,34 @@ class RegisterSettings:
         if preset == "initialised":
             return AdaptiveSettings.initialised(**over)
         return AdaptiveSettings(**over)
+
+
+def _dense_pairs(pairs) -> tuple:
+    """``dense_settings`` as ``((name, value), ...)`` in the given order, each name a setting of
+    :class:`~registration.dense.DenseSettings` (not ``bones``: ``fix_bones``) given once and each value of the
+    type it declares; else one clear :class:`ValueError`.  JSON lists (a recorded study) become tuples."""
+    import typing
+
+    from registration.dense import DenseSettings
+    from workbench.stages.run import _typed
+
+    hints = typing.get_type_hints(DenseSettings)
+    out, seen = [], set()
+    for pair in pairs or ():
+        if not isinstance(pair, (list, tuple)) or len(pair) != 2 or not isinstance(pair[0], str):
+            raise ValueError(f"dense_settings: expected [name, value] pairs, got {pair!r}")
+        name, value = pair
+        if name == "bones":
+            raise ValueError("--dense bones=...: the bones are held or not by --no-fix-bones (fix_bones)")
+        if name not in hints:
+            raise ValueError(f"--dense {name}=...: the dense registration has no setting {name!r}; its settings are "
+                             f"{sorted(k for k in hints if k != 'bones')}")
+        if name in seen:
+            raise ValueError(f"--dense {name}=... is given twice: give each setting once")
+        seen.add(name)
+        value = _typed(name, list(value) if isinstance(value, tuple) else value, hints[name], option="--dense")
+        out.append((name, tuple(value) if isinstance(value, list) else value))
+    return tuple(out)
 
 
 def _inputs(study, s, scan):

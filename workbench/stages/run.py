@@ -134,7 +134,7 @@ _TYPE_WORDS = {int: "a whole number (int)", float: "a number (float)", bool: "tr
                str: "text (str)", tuple: "a JSON list (tuple), e.g. [3, 5]"}
 
 
-def _typed(name: str, value, declared):
+def _typed(name: str, value, declared, option: str = "--set"):
     """``value`` as the type ``declared`` (``X`` or ``X | None``), else one clear :class:`ValueError`."""
     import json
     import types
@@ -163,7 +163,7 @@ def _typed(name: str, value, declared):
     if optional:
         want += " (null for the default)"
     got = "null" if value is None else f"the text {value!r}" if isinstance(value, str) else json.dumps(value)
-    raise ValueError(f"--set {name}: the setting is {want}, got {got}; nothing was changed.")
+    raise ValueError(f"{option} {name}: the setting is {want}, got {got}; nothing was changed.")
 
 
 def merged_settings(study: Study, overrides: dict) -> dict:
