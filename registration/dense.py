@@ -183,12 +183,6 @@ class DenseSettings:
     #: air_weight.  (Applied only when air surrounds the scan's body, AIR_AROUND; each level's record says
     #: whether it was.)
     tissue_only: bool = True
-    #: both images smoothed by at least this Gaussian σ (scan voxels) on every level, the finest included (the
-    #: coarser levels' pre-smoothing, 0.5·(shrink − 1), where larger)
-    smooth_voxels: float = 0.0
-    #: the LNCC keeps each window's correlation's sign (_lncc_force): one anatomy in one modality never
-    #: anticorrelates where it is aligned.  False: Avants' squared correlation, which an inverted contrast raises
-    signed_lncc: bool = False
     air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
@@ -342,7 +336,7 @@ def _local_stats(f, sig, mask=None):
     return mf, smff / sm - mf * mf, (mask, sm, masked_f)
 
 
-def _lncc_force(f, w, sig, f_stats, region=None, v=None, signed=True):
+def _lncc_force(f, w, sig, f_stats, region=None, v=None):
     """LNCC of ``f`` and ``w`` (mean over the voxels where ``region`` > 0, or all) and its gradient with
     respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`_local_stats` of ``f``.  With a window mask
     the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed force
@@ -353,11 +347,7 @@ def _lncc_force(f, w, sig, f_stats, region=None, v=None, signed=True):
     the coarse levels, where there is then nothing to even out; the level's samples are nearly independent, the
     pre-smoothing's σ being under half a level voxel; a tissue-only window's mask is left out of it).  The
     factor ignores that sampling between centres also correlates neighbouring samples' noise, which a window of
-    about a voxel or less feels: there the term over-corrects (docs/measurements/dense-registration.md).
-
-    ``signed``: each window's squared correlation keeps its covariance's sign (``cov·|cov| / (var_f var_w)``): the
-    template and the scan show one anatomy in one modality, so a window where they anticorrelate is misaligned.
-    Avants' squared form (``signed=False``) scores an inverted contrast as a match and pulls towards it."""
+    about a voxel or less feels: there the term over-corrects (docs/measurements/dense-registration.md)."""
     mf, sff, masked = f_stats
     if v is not None:
         v = v * np.float32(1.0 - np.prod([_kernel_noise(float(x))[0]
@@ -377,9 +367,8 @@ def _lncc_force(f, w, sig, f_stats, region=None, v=None, signed=True):
     eps = 1e-5
     sff = np.maximum(sff, eps)
     sww = np.maximum(sww, eps)
-    r = np.abs(sfw) if signed else sfw  # d(cov·|cov|) = 2 |cov| d cov
-    cc = sfw * r / (sff * sww)
-    dcc = 2.0 * r / (sff * sww) * ((f - mf) - sfw / sww * (w - mw))
+    cc = sfw * sfw / (sff * sww)
+    dcc = 2.0 * sfw / (sff * sww) * ((f - mf) - sfw / sww * (w - mw))
     if masked is not None:
         dcc = dcc * masked[0]
     return float(np.mean(cc if region is None else cc[region > 0], dtype=np.float64)), dcc
@@ -881,11 +870,11 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
             return f_now - 1.0  # below every LNCC a one-to-one candidate can reach from here (it is ≤ 1)
         w = w_now.copy()  # only the bone's box changes
         w[rbox] = sample_w([idx[a][rbox] + uc[a][rbox] * inv[a] for a in range(3)])
-        return _lncc_force(fo, w, win, stats, reg, signed=st.signed_lncc)[0]
+        return _lncc_force(fo, w, win, stats, reg)[0]
 
     rbox = rel(box)
     w_now = sample_w([idx[a] + uo[a] * inv[a] for a in range(3)])
-    f_now = _lncc_force(fo, w_now, win, stats, reg, signed=st.signed_lncc)[0]  # the objective as u is now
+    f_now = _lncc_force(fo, w_now, win, stats, reg)[0]  # the objective as u is now
     x0 = np.asarray(p0, float)
     bound = np.r_[np.full(3, st.refine_deg), np.full(3, st.refine_mm)]
     x0 = np.clip(x0, -bound, bound)
@@ -993,7 +982,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         t_level = time.perf_counter()
         s = int(s)
         sp = sp_full * s
-        sig_pre = max(0.5 * (s - 1), float(st.smooth_voxels))
+        sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
         fl = _smooth(f0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         shape = fl.shape
         warp_w, sample_w = template.level(s, sig_pre, shape)
@@ -1019,7 +1008,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             warp_v = held_out[1].level(s, sig_pre, shape)[0]
 
             def held_score(u_now):
-                return _lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl, signed=st.signed_lncc)[0]
+                return _lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl)[0]
         fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
         elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
         if tissue is not None:  # the normalised convolutions' denominators (settings.tissue_only)
@@ -1184,7 +1173,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # the trials.  With settings.holdout it also stops after holdout_patience taken steps without a new highest
         # held-out LNCC, and returns the map of that highest (possibly an earlier one).
         w, v = warp_w(u)
-        cc, dcc = _lncc_force(fl, w, win, f_stats, regl, v, signed=st.signed_lncc)
+        cc, dcc = _lncc_force(fl, w, win, f_stats, regl, v)
         rounds = []  # the bones' refinements (settings.refine_bones)
 
         def bone_round():
@@ -1200,7 +1189,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 bone_w = []  # refine() made them with its own margin: recomputed at the next step
                 return False
             w_b, v_b = warp_w(u_b)
-            cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl, v_b, signed=st.signed_lncc)
+            cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl, v_b)
             rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
                          seconds=round(time.perf_counter() - t_b, 2))
             if not rec_b["taken"]:
@@ -1246,7 +1235,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             u_c, halved = candidate(u, force, fmax, radius)
             halvings += halved
             w_c, v_c = warp_w(u_c)
-            cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl, v_c, signed=st.signed_lncc)
+            cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl, v_c)
             stopped = None
             if cc_c > cc:  # taken
                 u, w, cc, dcc = u_c, w_c, cc_c, dcc_c
