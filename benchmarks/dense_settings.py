@@ -38,6 +38,12 @@ from validation.phantoms import make_phantom  # noqa: E402
 from validation.registration_measures import body_on_scan, marker_med  # noqa: E402
 
 
+#: the hand's middle finger curled (MCP / PIP / DIP flexion, degrees), every other joint at the template's: one
+#: finger's crease and the sliding web beside straight neighbours, a motion the flex cases (every finger curling
+#: together) do not have
+CURL_ONE = {"middle_mcp": [70.0, 0.0, 0.0], "middle_pip": [75.0, 0.0, 0.0], "middle_dip": [50.0, 0.0, 0.0]}
+
+
 def _bench():
     """benchmarks/registration.py as a module (one home for the flex case's constants and a row's measures;
     loaded by path: the name ``registration`` is the package's)."""
@@ -50,14 +56,19 @@ def _bench():
 
 
 def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "polyrigid",
-                acquisition: str = "fixed", without: str | None = None) -> dict:
+                acquisition: str = "fixed", without: str | None = None, shift: float = 0.0) -> dict:
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
     "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
     ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made.  ``without``
     ("bias" or "noise", random acquisition only): the same draw with every bias amplitude 1e-12 or every SNR 10⁶
-    (the other draws unchanged: each image's parameters come from its own stream in the same order)."""
+    (the other draws unchanged: each image's parameters come from its own stream in the same order).  ``shift``:
+    the template rendered on its grid moved by that fraction of its voxel along each axis (the scans' grids, the
+    draws and the anatomy unchanged; the poses estimated and the start made on that template): the phantoms
+    render every image on one lattice, so that wherever nothing moves the truth reads the template at its voxel
+    centres, which real scans never do."""
     tag = ("" if start == "polyrigid" else f"_{start}") + ("" if acquisition == "fixed" else f"_{acquisition}")
     tag += f"_no{without}" if without else ""
+    tag += f"_shift{shift:g}" if shift else ""
     if without and acquisition != "random":
         raise ValueError("without= needs acquisition='random' (the fixed acquisition draws no bias or SNR)")
     if without:
@@ -69,13 +80,13 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "po
         kept = getattr(generate, name)
         setattr(generate, name, value)
         try:
-            return _build_case(region, seed, scan, cache, start, acquisition, tag)
+            return _build_case(region, seed, scan, cache, start, acquisition, tag, shift)
         finally:
             setattr(generate, name, kept)
-    return _build_case(region, seed, scan, cache, start, acquisition, tag)
+    return _build_case(region, seed, scan, cache, start, acquisition, tag, shift)
 
 
-def _build_case(region, seed, scan, cache, start, acquisition, tag) -> dict:
+def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0) -> dict:
     """:func:`tuning_case`'s work, cached under ``tag``."""
     f = cache / f"{region}{seed}_{scan}{tag}.v2.pkl"  # v2: the study markers and the 200 drawn ones
     if f.exists():
@@ -88,11 +99,14 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag) -> dict:
     if region == "knee":
         ph = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
                           poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + flex_knee, acquisition=acquisition)
+    elif scan == "curl_one":
+        ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), acquisition=acquisition,
+                          poses=(("curl_one", CURL_ONE),))
     else:
         ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4,
                           acquisition=acquisition)
         scan = ph.poses[-1][0] if scan == "curl" else scan  # the strongest curl, as the flex case
-    template, labels = ph.template()
+    template, labels = _template(ph, shift)
     sk = ph.skeleton
     sc = {s.id: s for s in ph.scans()}[scan]
     est = estimate_poses(template, labels, {scan: sc.image}, sk).scans[0]
@@ -103,9 +117,9 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag) -> dict:
         transforms = bench.perturbed_transforms(transforms, labels, bl, seed=[seed, ("knee", "hand").index(region)])
     init, _ = polyrigid_initial_field(labels, bl, {b: sk.bone(b).parent for b in sk.bone_names}, transforms,
                                       sc.image.geometry)
-    xg = ph.geometry.world_coordinates().reshape(-1, 3)
-    body_t = Volume((ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(ph.geometry.array_shape).astype(np.uint8),
-                    ph.geometry)
+    xg = template.geometry.world_coordinates().reshape(-1, 3)
+    body_t = Volume((ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(template.geometry.array_shape).astype(
+        np.uint8), template.geometry)
     body = body_on_scan(sc.correspondence, body_t)
     phi = sc.correspondence.data + sc.image.geometry.world_coordinates()
     bone = (ph.anatomy.distances_fast(phi.reshape(-1, 3))[:, :-1].min(axis=1) < 0).reshape(body.shape) & body
@@ -115,30 +129,22 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag) -> dict:
     return d
 
 
-def shift_template(d: dict, fraction: float) -> dict:
-    """``d`` with the template (and its labels) moved by ``fraction`` of a template voxel along each of its
-    axes, and the truth, the start and the markers' template positions with it: the same case, the scan's
-    voxels now falling at that fraction between the template's.  The phantoms render every image on one grid,
-    so where nothing moves the truth reads the template at its voxel centres; real scans never share the
-    template's grid."""
-    if not fraction:
-        return d
+def _template(ph, shift: float):
+    """The phantom's template and labels, rendered on its grid moved by ``shift`` of a voxel along each axis
+    (the same draws: the image's noise stream is its own)."""
+    if not shift:
+        return ph.template()
     from deformation.geometry import GridGeometry
 
-    tg = d["template"].geometry
-    delta = np.asarray(tg.direction_matrix) @ (fraction * np.asarray(tg.spacing, float))  # world mm
-
-    def moved(v: Volume) -> Volume:
-        g = GridGeometry(tg.size, tg.spacing, tuple(np.asarray(tg.origin, float) + delta), tg.direction)
-        return Volume(v.data, g)
-
-    def plus(v: Volume) -> Volume:
-        return Volume((np.asarray(v.data, np.float32) + delta.astype(np.float32)), v.geometry)
-
-    out = dict(d, template=moved(d["template"]), held=moved(d["held"]), truth=plus(d["truth"]), init=plus(d["init"]))
-    for k in ("markers", "many"):
-        out[k] = [dict(m, template=list(np.asarray(m["template"], float) + delta)) for m in d[k]]
-    return out
+    g = ph.geometry
+    delta = np.asarray(g.direction_matrix) @ (shift * np.asarray(g.spacing, float))
+    # the phantom's caches of its grid's points are dropped before and after (they are the scans' grid's)
+    kept, ph.geometry = g, GridGeometry(g.size, g.spacing, tuple(np.asarray(g.origin, float) + delta), g.direction)
+    ph._x = ph._tpl_body = None
+    try:
+        return ph.template()
+    finally:
+        ph.geometry, ph._x, ph._tpl_body = kept, None, None
 
 
 def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bone: bool = False) -> dict:
@@ -169,7 +175,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("region", choices=["knee", "hand"])
     p.add_argument("seed", type=int, help=f"a tuning seed {tuning}")
-    p.add_argument("scan", help="knee: bend10 / bend45 / bend70; hand: curl (its strongest) or a pose id")
+    p.add_argument("scan", help="knee: bend10 / bend45 / bend70; hand: curl (its strongest), curl_one (the middle finger "
+                        "alone curled) or a pose id")
     p.add_argument("variants", nargs="*", default=["{}"], help="DenseSettings fields as JSON, one per variant")
     p.add_argument("--start", choices=["polyrigid", "perturbed"], default="polyrigid",
                    help="perturbed: every estimated pose off by 2-5 degrees and 2 mm before the polyrigid start")
@@ -184,8 +191,9 @@ def main(argv=None) -> int:
                    help="every variant starts at the true correspondence: how far its objective's maximum lies from "
                         "the truth")
     p.add_argument("--template-shift", type=float, default=0.0, metavar="F",
-                   help="move the template's grid by F of its voxel along each axis (truth and start with it): the "
-                        "phantoms render every image on one grid, real scans never share the template's")
+                   help="render the template on its grid moved by F of its voxel along each axis (poses and start "
+                        "made on it): the phantoms render every image on one lattice, real scans never share the "
+                        "template's")
     p.add_argument("--per-bone", action="store_true",
                    help="also print each held bone's MED (its voxels on the scan): which bones a start's error stays on")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
@@ -204,11 +212,12 @@ def main(argv=None) -> int:
     if args.without and args.noise_free:
         p.error("--noise-free takes one image's noise away; --without takes it from both: give one of them")
     args.cache.mkdir(parents=True, exist_ok=True)
-    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, args.without)
+    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, args.without,
+                    args.template_shift)
     if args.noise_free:  # the same draw without noise (its images only: its poses were estimated on clean images)
-        clean = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, "noise")
+        clean = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, "noise",
+                            args.template_shift)
         d = dict(d, **{args.noise_free: clean[args.noise_free]})
-    d = shift_template(d, args.template_shift)
     print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}, acquisition: "
           f"{args.acquisition}{f', without {args.without}' if args.without else ''}"
           f"{', every variant from the truth' if args.from_truth else ''}"
