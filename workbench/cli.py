@@ -262,12 +262,13 @@ taken only when it raises the level's similarity (a trust region), the bones
 stay where the pose stage put them up to a rigid refinement, coarse to fine
 over 3 levels (registration.dense).  --dense NAME=VALUE sets any of its
 settings (registration.dense.DenseSettings; the value is JSON), e.g.
---dense holdout=true --dense iterations=[200,200,50].  --method adaptive is Rhee et al. 2011's locally
-adaptive block registration (§4, Algorithm 1): the worst-matching block gets
-8 clamped-plate-spline control points whose 24 displacements an NLopt simplex
-optimises, level by level; --preset paper gives its published settings
-(levels 3-5, Nelder-Mead, tolerance 1.5 x the base MI, no regulariser) and
-selects --method adaptive.  Issue I's benchmark (README, "Registration")
+--dense holdout=true --dense 'iterations=[200, 200, 50]'.
+
+--method adaptive is Rhee et al. 2011's locally adaptive block registration
+(§4, Algorithm 1): the worst-matching block gets 8 clamped-plate-spline
+control points whose 24 displacements an NLopt simplex optimises, level by
+level; --preset paper gives its published settings (levels 3-5, Nelder-Mead,
+tolerance 1.5 x the base MI, no regulariser) and selects --method adaptive.  Issue I's benchmark (README, "Registration")
 compares both with elastix, SimpleITK and ANTs on the same starts.
 
 --init polyrigid (default) starts from the bones' rigid motions to the
