@@ -27,6 +27,16 @@ def study(tmp_path_factory):
     return root
 
 
+def _unregistered_copy(study, d):
+    """``study`` copied to ``d`` as if never registered: no init, register or validate outputs nor recorded
+    settings (the defaults apply, not the settings an earlier test ran with)."""
+    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
+    m = json.loads((d / "study.json").read_text())
+    for stage in ("init", "register", "validate"):
+        m.get("stages", {}).pop(stage, None)
+    (d / "study.json").write_text(json.dumps(m))
+
+
 def test_register_writes_fields_in_the_truth_convention(study, capsys):
     assert main(["register", str(study), "--scan", "pose01", *FAST, *VBD, "--quiet"]) == 0
     table = capsys.readouterr().out
@@ -181,11 +191,7 @@ def test_default_registration_is_the_polyrigid_start_and_dense_steps(tmp_path, s
     from workbench.io.volumes import read_labels
 
     d = tmp_path / "dense"
-    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
-    m = json.loads((d / "study.json").read_text())
-    for stage in ("init", "register", "validate"):  # as if never run: the defaults, not the settings recorded
-        m.get("stages", {}).pop(stage, None)
-    (d / "study.json").write_text(json.dumps(m))
+    _unregistered_copy(study, d)
     assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", "--quiet"]) == 0
     st = read_study(d)
     assert st.stage_entry("init", "pose01")["settings"]["method"] == "polyrigid"
@@ -238,11 +244,7 @@ def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
     from registration.initialise import polyrigid_initial_field
 
     d = tmp_path / "mf"
-    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
-    m = json.loads((d / "study.json").read_text())
-    for stage in ("init", "register", "validate"):
-        m.get("stages", {}).pop(stage, None)
-    (d / "study.json").write_text(json.dumps(m))
+    _unregistered_copy(study, d)
     for argv, match in ((["--init", "vbd", "--map-factor", "2"], "--init polyrigid"),
                         (["--map-factor", "0"], "--map-factor must be a whole number"),
                         (["--map-factor", "99"], "--map-factor 99 leaves the scan's")):
@@ -287,11 +289,7 @@ def test_register_refuses_paper_preset_with_dense(tmp_path, study, capsys):
 def test_register_refuses_algorithm_1_options_with_dense(tmp_path, study, capsys):
     # --levels / --max-steps are Rhee's Algorithm 1's; the dense method would ignore them without a word
     d = tmp_path / "a"
-    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
-    m = json.loads((d / "study.json").read_text())
-    for k in ("init", "register", "validate"):  # no recorded method: the default (dense) applies
-        m.get("stages", {}).pop(k, None)
-    (d / "study.json").write_text(json.dumps(m))
+    _unregistered_copy(study, d)
     assert main(["register", str(d), "--scan", "pose01", "--levels", "3", "4", "--max-steps", "9", "--quiet"]) == 1
     err = capsys.readouterr().err
     assert "--levels, --max-steps are settings of Rhee's Algorithm 1" in err and "--method adaptive" in err
@@ -326,11 +324,7 @@ def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tm
     a rerun with the same ones is skipped; a wrong name, type, range, the bones' own option or Algorithm 1 get
     one line naming the option, before anything is written."""
     d = tmp_path / "ds"
-    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
-    m = json.loads((d / "study.json").read_text())
-    for k in ("init", "register", "validate"):
-        m.get("stages", {}).pop(k, None)
-    (d / "study.json").write_text(json.dumps(m))
+    _unregistered_copy(study, d)
     bad = [(["--dense", "window=4"], "no setting 'window'"),
            (["--dense", "window_mm=four"], "--dense window_mm: the setting is a number (float), got the text 'four'"),
            (["--dense", "window_mm=-1"], "window_mm > 0"),
