@@ -191,10 +191,6 @@ class DenseSettings:
     #: noise it averages away.  Off by default: it helps most tuning cases and loses the identity start of Rhee's
     #: Table 2 protocol (docs/measurements/dense-registration.md, "The template's noise and the interpolation")
     interpolation_noise: bool = False
-    #: each step smoothed within each held bone's segment of the body (the voxels nearest that bone, softened by a
-    #: voxel), the segments' smoothed forces blended by their memberships: one segment's motion is not carried
-    #: into another's by the step's Gaussian
-    segment_smoothing: bool = False
     #: data fission (Leiner et al. 2023): both images split into ``x + a z`` for the steps and ``x − z / a`` held
     #: out, ``z`` Gaussian of each image's own noise SD (its tissue's, measured in its air where there is enough:
     #: _voxel_noise_variance), so that the two copies' noises are
@@ -587,25 +583,6 @@ def _bone_weights(lab: np.ndarray, bones, sp, margin_mm: float) -> list:
             continue
         d = ndimage.distance_transform_edt(~m, sampling=sp)
         out.append((b, box, m, np.clip(1.0 - d / margin_mm, 0.0, 1.0).astype(np.float32)))
-    return out
-
-
-def _segments(lab: np.ndarray, bones, sp, tissue, fluid) -> list:
-    """settings.segment_smoothing: per bone, its soft membership (the voxels whose nearest bone it is, smoothed
-    by a voxel; the memberships sum to 1) and the reciprocal of the smoothed membership-weighted tissue (the
-    normalised convolution's denominator, floored at half the membership's own as tissue_only's)."""
-    _, idx = ndimage.distance_transform_edt(lab == 0, sampling=sp, return_indices=True)
-    near = lab[tuple(idx)]
-    ms = [_smooth((near == b).astype(np.float32), 1.0) for b in bones]
-    total = np.maximum(np.sum(ms, axis=0), np.float32(1e-6))
-    out = []
-    for m in ms:
-        m = (m / total).astype(np.float32)
-        if not np.any(m > 1e-3):
-            continue
-        wt = m if tissue is None else m * tissue
-        den = np.maximum(_smooth(wt, fluid), 0.5 * _smooth(m, fluid))
-        out.append((m, (1.0 / np.maximum(den, np.float32(1e-6))).astype(np.float32)))
     return out
 
 
@@ -1043,7 +1020,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         test = None  # the bones' significance test's images (_bone_fit_improves), made when first needed
         bone_w = []
         hold = (None, None)  # bone_hold() of the current bone_w
-        segments = []  # settings.segment_smoothing: (membership, 1 / its smoothed tissue weight) per bone
         inv_sp = 1.0 / sp
 
         def bone_hold():
@@ -1137,27 +1113,17 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             towards any sub-voxel position for a derivative to undo; the term corrects the objective that
             decides whether a step is taken."""
             nonlocal bone_w
-            nonlocal hold, segments
+            gw = np.gradient(w)
+            if regl is not None:
+                dcc = dcc * regl
+            force = np.stack(_smooth_all([dcc * gw[a] / sp[a] for a in range(3)], fluid))
+            if tissue is not None:
+                force *= force_norm[None]
+            nonlocal hold
             if bones and (refresh_bones or not bone_w):  # the bones' regions follow the map
                 lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
                 bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
                 hold = bone_hold() if st.bones == "fixed" else (None, None)
-                if st.segment_smoothing:
-                    segments = _segments(lab_now, bones, sp, tissue, fluid)
-            gw = np.gradient(w)
-            if regl is not None:
-                dcc = dcc * regl
-            g = [dcc * gw[a] / sp[a] for a in range(3)]
-            if segments:
-                force = np.zeros((3,) + shape, np.float32)
-                for m, norm in segments:
-                    sm = _smooth_all([m * ga for ga in g], fluid)
-                    for a in range(3):
-                        force[a] += m * sm[a] * norm
-            else:
-                force = np.stack(_smooth_all(g, fluid))
-                if tissue is not None:
-                    force *= force_norm[None]
             return force, float(np.sqrt((force ** 2).sum(axis=0)).max())
 
         def candidate(u_now, force, fmax, radius):
