@@ -198,6 +198,8 @@ def main(argv=None) -> int:
                    help="also print each held bone's MED (its voxels on the scan): which bones a start's error stays on")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
     args = p.parse_args(argv)
+    if args.region == "knee" and args.scan not in ("bend10", "bend45", "bend70"):
+        p.error(f"the knee's scans are bend10, bend45 and bend70, got {args.scan!r}")
     if args.seed not in tuning:
         p.error(f"seed {args.seed} is not a tuning seed {tuning}: held-out seeds are for reporting only")
     variants = []

@@ -268,8 +268,9 @@ settings (registration.dense.DenseSettings; the value is JSON), e.g.
 (§4, Algorithm 1): the worst-matching block gets 8 clamped-plate-spline
 control points whose 24 displacements an NLopt simplex optimises, level by
 level; --preset paper gives its published settings (levels 3-5, Nelder-Mead,
-tolerance 1.5 x the base MI, no regulariser) and selects --method adaptive.  Issue I's benchmark (README, "Registration")
-compares both with elastix, SimpleITK and ANTs on the same starts.
+tolerance 1.5 x the base MI, no regulariser) and selects --method adaptive.
+Issue I's benchmark (README, "Registration") compares both with elastix,
+SimpleITK and ANTs on the same starts.
 
 --init polyrigid (default) starts from the bones' rigid motions to the
 scan's pose blended as a flow: one-to-one by construction (no fold in the
@@ -738,7 +739,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="local steps per level at most (--method adaptive). Default: 200")
     rg.add_argument("--seed", type=int, default=argparse.SUPPRESS,
                     help="seed of the simplex restarts (--method adaptive; after an articulated start the default "
-                         "preset makes none, so the seed has no effect there; dense has no random choice). "
+                         "preset makes none, so the seed has no effect there; the dense method's one random choice, "
+                         "--dense holdout=true's noise, has its own seed: --dense holdout_seed=N). "
                          "Default: 0")
     rg.add_argument("--no-unfold-init", action="store_false", dest="unfold_init", default=argparse.SUPPRESS,
                     help="start from the plain VBD field again after an earlier --unfold-init")

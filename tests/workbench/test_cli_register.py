@@ -331,7 +331,11 @@ def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tm
            (["--dense", "bones=free"], "--no-fix-bones"),
            (["--dense", "window_mm"], "expected NAME=VALUE"),
            (["--dense", "tolerance=1e-3", "--dense", "tolerance=1e-2"], "given twice"),
-           (["--dense", "holdout=true", "--method", "adaptive"], "do not apply to Rhee's Algorithm 1")]
+           (["--dense", "holdout=true", "--method", "adaptive"], "do not apply to Rhee's Algorithm 1"),
+           (["--dense", "shrink=[null, 1, 1]"], "--dense shrink: the setting is a list of whole numbers ≥ 1"),
+           (["--dense", "iterations=[2.5, 2, 2]"], "--dense iterations: the setting is a list of whole numbers"),
+           (["--dense", "window_mm=NaN"], "--dense window_mm: the setting must be a finite number"),
+           (["--dense", "iterations=[200, 200]"], "--dense: shrink and iterations need one entry per level")]
     for extra, words in bad:
         assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", *extra, "--quiet"]) == 1, extra
         err = capsys.readouterr().err
@@ -351,8 +355,12 @@ def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tm
     st = read_study(d)
     assert st.stage_entry("register", "pose01")["digest"] == digest  # up to date: not run again
     assert (d / "registration" / "pose01" / "log.json").stat().st_mtime_ns == log_time
-    assert st.stage_entry("register", "pose01")["settings"]["dense_settings"] == [
-        ["iterations", [2, 2, 2]], ["window_mm", 4.0], ["refine_bones", False]]
+    assert st.stage_entry("register", "pose01")["settings"]["dense_settings"] == [  # sorted: one digest
+        ["iterations", [2, 2, 2]], ["refine_bones", False], ["window_mm", 4.0]]
+    from workbench.stages.register import RegisterSettings
+
+    assert RegisterSettings(dense_settings=(("window_mm", 4), ("iterations", [2.0, 2, 2]))).dense_settings == (
+        ("iterations", (2, 2, 2)), ("window_mm", 4.0))
     from workbench.cli import _register_settings, build_parser
 
     args = build_parser().parse_args(["register", str(d), "--dense", "default"])

@@ -122,9 +122,12 @@ class RegisterSettings:
 
 
 def _dense_pairs(pairs) -> tuple:
-    """``dense_settings`` as ``((name, value), ...)`` in the given order, each name a setting of
-    :class:`~registration.dense.DenseSettings` (not ``bones``: ``fix_bones``) given once and each value of the
-    type it declares; else one clear :class:`ValueError`.  JSON lists (a recorded study) become tuples."""
+    """``dense_settings`` as ``((name, value), ...)`` sorted by name (one digest for one set of settings), each
+    name a setting of :class:`~registration.dense.DenseSettings` (not ``bones``: ``fix_bones``) given once, each
+    value of the type it declares (a number finite; ``shrink`` whole numbers ≥ 1, ``iterations`` ≥ 0) and the
+    whole accepted by ``DenseSettings``; else one clear :class:`ValueError`.  JSON lists (a recorded study)
+    become tuples."""
+    import math
     import typing
 
     from registration.dense import DenseSettings
@@ -145,7 +148,21 @@ def _dense_pairs(pairs) -> tuple:
             raise ValueError(f"--dense {name}=... is given twice: give each setting once")
         seen.add(name)
         value = _typed(name, list(value) if isinstance(value, tuple) else value, hints[name], option="--dense")
-        out.append((name, tuple(value) if isinstance(value, list) else value))
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"--dense {name}: the setting must be a finite number, got {value}")
+        if isinstance(value, list):  # shrink, iterations: one whole number per level
+            low = 1 if name == "shrink" else 0
+            value = [int(v) if isinstance(v, float) and v.is_integer() else v for v in value]
+            if not all(isinstance(v, int) and not isinstance(v, bool) and v >= low for v in value):
+                raise ValueError(f"--dense {name}: the setting is a list of whole numbers ≥ {low}, one per level, "
+                                 f"got {value}")
+            value = tuple(value)
+        out.append((name, value))
+    out.sort(key=lambda kv: kv[0])
+    try:
+        DenseSettings(**dict(out))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--dense: {e}") from e
     return tuple(out)
 
 
