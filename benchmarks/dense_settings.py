@@ -131,20 +131,14 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0) -
 
 def _template(ph, shift: float):
     """The phantom's template and labels, rendered on its grid moved by ``shift`` of a voxel along each axis
-    (the same draws: the image's noise stream is its own)."""
+    (the same draws)."""
     if not shift:
         return ph.template()
     from deformation.geometry import GridGeometry
 
     g = ph.geometry
-    delta = np.asarray(g.direction_matrix) @ (shift * np.asarray(g.spacing, float))
-    # the phantom's caches of its grid's points are dropped before and after (they are the scans' grid's)
-    kept, ph.geometry = g, GridGeometry(g.size, g.spacing, tuple(np.asarray(g.origin, float) + delta), g.direction)
-    ph._x = ph._tpl_body = None
-    try:
-        return ph.template()
-    finally:
-        ph.geometry, ph._x, ph._tpl_body = kept, None, None
+    delta = np.asarray(g.direction_matrix) @ (shift * np.asarray(g.spacing, float))  # world mm
+    return ph.template(GridGeometry(g.size, g.spacing, tuple(np.asarray(g.origin, float) + delta), g.direction))
 
 
 def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bone: bool = False) -> dict:
@@ -175,8 +169,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("region", choices=["knee", "hand"])
     p.add_argument("seed", type=int, help=f"a tuning seed {tuning}")
-    p.add_argument("scan", help="knee: bend10 / bend45 / bend70; hand: curl (its strongest), curl_one (the middle finger "
-                        "alone curled) or a pose id")
+    p.add_argument("scan", help="knee: bend10 / bend45 / bend70; hand: curl (its strongest), curl_one (the middle "
+                        "finger alone curled) or a pose id")
     p.add_argument("variants", nargs="*", default=["{}"], help="DenseSettings fields as JSON, one per variant")
     p.add_argument("--start", choices=["polyrigid", "perturbed"], default="polyrigid",
                    help="perturbed: every estimated pose off by 2-5 degrees and 2 mm before the polyrigid start")

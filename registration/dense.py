@@ -83,8 +83,8 @@ at every iteration, and keeps what an articulated body needs:
   those voxels of the scan's body are smoothed locally
   (:func:`deformation.fields.unfold`) around the bones' interiors (their
   deepest voxels frozen, then fewer; as a last resort none, which is tried
-  second as a probe: when it leaves folds, freezing more is not tried), every smoothed
-  voxel then going back towards the registered value as far as the
+  second as a probe: when it leaves folds, freezing more is not tried),
+  every smoothed voxel then going back towards the registered value as far as the
   determinant allows (unfold's restoring passes: the smoothing replaces
   patches, a fold needs a few voxels), and the repair is taken only when it
   removes every fold (``DenseResult.unfold`` says which attempt,
@@ -1333,8 +1333,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         if n_folded:
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
             # pressed against a bone frees one more voxel layer of it at a time (up to 3, a bone's deepest
-            # voxels staying, _bone_cores); nothing frozen is the last choice (it runs second, as a probe) (the smoothing stays local to
-            # the folds, but may then bend a bone next to one: the bone MED measures it).  Only a complete
+            # voxels staying, _bone_cores); nothing frozen is the last choice, though it runs second as a probe
+            # (the smoothing stays local to the folds, but may then bend a bone next to one: the bone MED
+            # measures it).  Only a complete
             # repair is taken: a failing one smooths an ever larger region (it moved tissue by 100 mm on the
             # hand's fist), so then the folds stay, reported in ``folding``.
             # Each attempt first smooths only the folded voxels with a narrow kernel (σ 0.7 voxel, no margin):

@@ -976,7 +976,7 @@ def _same(v):
 def _dense_options(items) -> tuple:
     """``--dense NAME=VALUE`` options as ``(name, value)`` pairs (values JSON, else text); ``default`` alone: none.
     The names and types are checked by :class:`workbench.stages.register.RegisterSettings`."""
-    import json
+    from workbench.stages.run import json_value
 
     if list(items) == ["default"]:
         return ()
@@ -985,11 +985,7 @@ def _dense_options(items) -> tuple:
         name, sep, value = item.partition("=")
         if not sep or not name.strip():
             raise ValueError(f"--dense {item!r}: expected NAME=VALUE (e.g. --dense window_mm=4), or 'default' alone")
-        try:
-            v = json.loads(value)
-        except json.JSONDecodeError:
-            v = value
-        out.append((name.strip(), v))
+        out.append((name.strip(), json_value(value)))
     return tuple(out)
 
 

@@ -254,3 +254,25 @@ def test_mirrored_grid_direction_still_places_markers():
     """A left-handed grid (det D = −1) flips index-space orientation, not the world's."""
     ph = make_phantom("knee", n_poses=2, direction=(-1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0))
     assert len(ph.template_markers()) >= 8
+
+
+def test_template_on_a_moved_grid_renders_the_same_anatomy_there(knee):
+    """Phantom.template(grid): the template rendered on another placement of its grid (here moved by one whole
+    voxel along x, a non-identity direction would move it along the grid's own axis) shows the same anatomy at
+    the same world points, so its voxels match the default template's shifted by one along x (noise off: the
+    render is a function of the point; 1e-3 of the intensity scale allows the world coordinates' rounding), and
+    a grid of another size is one clear error."""
+    from deformation.geometry import GridGeometry
+
+    ph, tpl, labels, _ = knee
+    g = ph.geometry
+    delta = np.asarray(g.direction_matrix) @ np.array([g.spacing[0], 0.0, 0.0])
+    moved = GridGeometry(g.size, g.spacing, tuple(np.asarray(g.origin, float) + delta), g.direction)
+    tm, lm = ph.template(moved)
+    assert tm.geometry is moved and lm.geometry is moved
+    scale = float(np.abs(tpl.data).max())
+    assert np.allclose(tm.data[..., :-1], tpl.data[..., 1:], atol=1e-3 * scale)
+    assert np.mean(lm.data[..., :-1] == labels.data[..., 1:]) > 0.999
+    assert not np.allclose(tm.data, tpl.data, atol=1e-3 * scale)  # it did move
+    with pytest.raises(ValueError, match="give a grid of that size"):
+        ph.template(GridGeometry((g.size[0] + 1, g.size[1], g.size[2]), g.spacing, g.origin, g.direction))

@@ -451,14 +451,20 @@ class Phantom:
         amp = None if self.acquisition is None else self._image_draws[image]["bias_amplitude"]
         return self._bias_field(np.random.default_rng(self._image_seqs[image]), amp)
 
-    def template(self) -> tuple[Volume, Volume]:
-        """``(template image, bone label map)`` on the template grid."""
-        p = self._world_points()
-        clean = self.render(p).reshape(self.geometry.array_shape)
-        labels = _apply_chunked(self._labels, p, dtype=np.uint8).reshape(self.geometry.array_shape)
+    def template(self, grid: GridGeometry | None = None) -> tuple[Volume, Volume]:
+        """``(template image, bone label map)`` on the template grid, or on ``grid``: another placement of a grid
+        of the same size (e.g. moved by a fraction of a voxel, so that the scans do not share its lattice), with
+        the same acquisition draws."""
+        g = self.geometry if grid is None else grid
+        if g.array_shape != self.geometry.array_shape:
+            raise ValueError(f"grid {g.describe()}: the template's grid has {self.geometry.array_shape} voxels "
+                             "(z, y, x); give a grid of that size")
+        p = self._world_points() if grid is None else g.world_coordinates().reshape(-1, 3)
+        clean = self.render(p).reshape(g.array_shape)
+        labels = _apply_chunked(self._labels, p, dtype=np.uint8).reshape(g.array_shape)
         rng = np.random.default_rng(self._image_seqs[0])
         img = self._acquire(clean, rng)
-        return Volume(img, self.geometry), Volume(labels, self.geometry)
+        return Volume(img, g), Volume(labels, g)
 
     def _template_body_distance(self) -> np.ndarray:
         """Body distance at every template voxel (flat, cached)."""

@@ -88,7 +88,6 @@ class RegisterSettings:
             raise ValueError(f"--dense {self.dense_settings[0][0]}=...: the dense registration's settings do not "
                              "apply to Rhee's Algorithm 1 (--method adaptive, --preset): leave them out")
         self.adaptive("vbd")  # validates the overrides now, not after the first scan
-        self.dense()
 
     @property
     def resolved_method(self) -> str:
@@ -101,8 +100,7 @@ class RegisterSettings:
         start, which placed them)."""
         from registration.dense import DenseSettings
 
-        over = {k: tuple(v) if isinstance(v, list) else v for k, v in self.dense_settings}
-        return DenseSettings(**over, bones="fixed" if (self.fix_bones and articulated) else "free")
+        return DenseSettings(**dict(self.dense_settings), bones="fixed" if (self.fix_bones and articulated) else "free")
 
     def adaptive(self, init_method: str):
         """The :class:`~registration.adaptive.AdaptiveSettings` for a start made by ``init_method``."""

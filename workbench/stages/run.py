@@ -19,7 +19,7 @@ from workbench.stages import ORDER, STAGES
 from workbench.stages.mechanism import Event, Outcome, _settings_from_json, execute, stage_status
 from workbench.study import Study, StudyError
 
-__all__ = ["run_stages", "settings_for", "parse_set", "dependents"]
+__all__ = ["run_stages", "settings_for", "parse_set", "dependents", "json_value"]
 
 
 def settings_for(study: Study, name: str, given: dict | None = None):
@@ -105,8 +105,6 @@ def parse_set(items) -> dict:
     one clear line before anything runs or is recorded.  A whole-number float is taken for an ``int`` and a
     whole number for a ``float``.
     """
-    import json
-
     out: dict = {}
     for item in items or ():
         key, sep, value = item.partition("=")
@@ -116,12 +114,18 @@ def parse_set(items) -> dict:
         names = [f.name for f in dataclasses.fields(STAGES[stage].settings_type)]
         if field not in names:
             raise ValueError(f"--set {item!r}: the {stage} stage has no setting {field!r}; its settings are {names}")
-        try:
-            v = json.loads(value)
-        except json.JSONDecodeError:
-            v = value  # a bare string
-        out.setdefault(stage, {})[field] = _typed(f"{stage}.{field}", v, _declared_type(stage, field))
+        out.setdefault(stage, {})[field] = _typed(f"{stage}.{field}", json_value(value), _declared_type(stage, field))
     return out
+
+
+def json_value(text: str):
+    """A command line's setting value: JSON (``true``, ``4``, ``[3, 5]``, ``null``), else the text itself."""
+    import json
+
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
 
 
 def _declared_type(stage: str, field: str):
