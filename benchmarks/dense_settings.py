@@ -22,6 +22,7 @@ Each variant is a JSON object of :class:`registration.dense.DenseSettings` field
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pickle
 import sys
@@ -56,7 +57,8 @@ def _bench():
 
 
 def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "polyrigid",
-                acquisition: str = "fixed", without: str | None = None, shift: float = 0.0) -> dict:
+                acquisition: str = "fixed", without: str | None = None, shift: float = 0.0,
+                texture: float = 1.0) -> dict:
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
     "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
     ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made.  ``without``
@@ -65,10 +67,13 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "po
     the template rendered on its grid moved by that fraction of its voxel along each axis (the scans' grids, the
     draws and the anatomy unchanged; the poses estimated and the start made on that template): the phantoms
     render every image on one lattice, so that wherever nothing moves the truth reads the template at its voxel
-    centres, which real scans never do."""
+    centres, which real scans never do.  ``texture``: the soft tissue's texture (its plane waves, the spread
+    between muscle cells and between fat lobules) scaled by that factor; 0 leaves muscle and fat uniform with their
+    septa, tendons and vessels, as flat as soft tissue in CT."""
     tag = ("" if start == "polyrigid" else f"_{start}") + ("" if acquisition == "fixed" else f"_{acquisition}")
     tag += f"_no{without}" if without else ""
     tag += f"_shift{shift:g}" if shift else ""
+    tag += f"_texture{texture:g}" if texture != 1.0 else ""
     if without and acquisition != "random":
         raise ValueError("without= needs acquisition='random' (the fixed acquisition draws no bias or SNR)")
     if without:
@@ -80,13 +85,13 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "po
         kept = getattr(generate, name)
         setattr(generate, name, value)
         try:
-            return _build_case(region, seed, scan, cache, start, acquisition, tag, shift)
+            return _build_case(region, seed, scan, cache, start, acquisition, tag, shift, texture)
         finally:
             setattr(generate, name, kept)
-    return _build_case(region, seed, scan, cache, start, acquisition, tag, shift)
+    return _build_case(region, seed, scan, cache, start, acquisition, tag, shift, texture)
 
 
-def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0) -> dict:
+def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0, texture=1.0) -> dict:
     """:func:`tuning_case`'s work, cached under ``tag``."""
     f = cache / f"{region}{seed}_{scan}{tag}.v2.pkl"  # v2: the study markers and the 200 drawn ones
     if f.exists():
@@ -106,6 +111,10 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0) -
         ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4,
                           acquisition=acquisition)
         scan = ph.poses[-1][0] if scan == "curl" else scan  # the strongest curl, as the flex case
+    if texture != 1.0:  # before any image is rendered: the phantom renders from these at every call
+        ph.contrast = dataclasses.replace(ph.contrast, texture_amplitude=texture * ph.contrast.texture_amplitude)
+        ph.tissue = dataclasses.replace(ph.tissue, cell_amplitude=texture * ph.tissue.cell_amplitude,
+                                        lobule_amplitude=texture * ph.tissue.lobule_amplitude)
     template, labels = _template(ph, shift)
     sk = ph.skeleton
     sc = {s.id: s for s in ph.scans()}[scan]
@@ -188,6 +197,10 @@ def main(argv=None) -> int:
                    help="render the template on its grid moved by F of its voxel along each axis (poses and start "
                         "made on it): the phantoms render every image on one lattice, real scans never share the "
                         "template's")
+    p.add_argument("--texture", type=float, default=1.0, metavar="F",
+                   help="the soft tissue's texture (plane waves, the spread between muscle cells and fat lobules) "
+                        "scaled by F: 0 leaves muscle and fat uniform (with their septa, tendons and vessels), as "
+                        "flat as soft tissue in CT")
     p.add_argument("--per-bone", action="store_true",
                    help="also print each held bone's MED (its voxels on the scan): which bones a start's error stays on")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
@@ -208,17 +221,20 @@ def main(argv=None) -> int:
     if args.without and args.noise_free:
         p.error("--noise-free takes one image's noise away; --without takes it from both: give one of them")
     args.cache.mkdir(parents=True, exist_ok=True)
+    if not (np.isfinite(args.texture) and args.texture >= 0):
+        p.error(f"--texture must be a number >= 0, got {args.texture}")
     d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, args.without,
-                    args.template_shift)
+                    args.template_shift, args.texture)
     if args.noise_free:  # the same draw without noise (its images only: its poses were estimated on clean images)
         clean = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, "noise",
-                            args.template_shift)
+                            args.template_shift, args.texture)
         d = dict(d, **{args.noise_free: clean[args.noise_free]})
     print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}, acquisition: "
           f"{args.acquisition}{f', without {args.without}' if args.without else ''}"
           f"{', every variant from the truth' if args.from_truth else ''}"
           f"{f', the {args.noise_free} without noise' if args.noise_free else ''}"
-          f"{f', template moved by {args.template_shift} voxel' if args.template_shift else ''}\n")
+          f"{f', template moved by {args.template_shift} voxel' if args.template_shift else ''}"
+          f"{f', texture x {args.texture:g}' if args.texture != 1.0 else ''}\n")
     print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
     print("|---|---|---|---|---|---|---|---|")
     score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)"

@@ -77,6 +77,14 @@ at every iteration, and keeps what an articulated body needs:
   tissue's texture rather than the body/air step; as sliding-motion
   registration smooths each region on its own (Risser et al. 2013,
   piecewise-diffeomorphic registration).
+* **The skin** (``skin_weight``, with the tissue-only windows): those windows
+  do not see the skin, and in flat tissue (soft tissue in CT) nothing else
+  does, so a step driven elsewhere could pull the registered body's outline
+  inside the scan's.  The level's objective is the LNCC less ``skin_weight``
+  times the mean squared difference of the two bodies' masks, each smoothed
+  by the window (the template's sampled through the same map; unknown beyond
+  its grid, where the term is left out): a force across the skin, not along
+  it.
 * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
   grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
   start compresses a crease below the voxel size or curled fingers touch;
@@ -184,6 +192,12 @@ class DenseSettings:
     #: whether it was.)
     tissue_only: bool = True
     air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
+    #: with tissue_only, the skin's term: the tissue-only windows do not see the skin, so nothing holds the
+    #: registered body's outline on the scan's.  The level's objective is the LNCC less skin_weight times the mean
+    #: squared difference of the two bodies' masks (segment_body), each smoothed by the LNCC's window: a force
+    #: across the skin only (sliding along it stays free).  At 1 a voxel where the bodies disagree costs what a
+    #: voxel with no correlation does; 0: off
+    skin_weight: float = 1.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
@@ -217,6 +231,8 @@ class DenseSettings:
         if any(v is not None and not v >= 0 for v in (self.fluid_voxels, self.elastic_voxels)):
             raise ValueError(f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, "
                              f"{self.elastic_voxels}")
+        if not (np.isfinite(self.skin_weight) and self.skin_weight >= 0):
+            raise ValueError(f"skin_weight must be ≥ 0, got {self.skin_weight}")
         if not self.radius_growth >= 1 or not isinstance(self.max_halvings, int) or self.max_halvings < 0:
             raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
                              f"{self.max_halvings}")
@@ -962,6 +978,21 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     template_voxel = _voxel_in_voxels(moving.geometry, g)  # the bones' test smooths by at least one of each
     if st.tissue_only and air_around:
         tissue0 = scan_body[crop].astype(np.float32)
+    skin = None  # settings.skin_weight: (the template body's sampler, the scan's body on the box), both smoothed
+    if tissue0 is not None and st.skin_weight > 0:
+        if template_body is False:
+            from .segmentation import segment_body
+
+            try:
+                template_body = segment_body(moving).data > 0
+            except (ValueError, RuntimeError):
+                template_body = None
+        if template_body is not None:
+            t_sig = st.window_mm / np.asarray(moving.geometry.spacing, float)[::-1]
+            skin = _TemplateSampler(Volume(_smooth(template_body.astype(np.float32), t_sig), moving.geometry),
+                                    initial, 1.0, crop)
+            skin.air = -1e4  # beyond the template's grid: unknown, the term leaves it out (score())
+            skin = (skin, _smooth(tissue0, st.window_mm / sp_full))
     lab_full = lab0  # the fold repair below works on the whole grid
     if lab0 is not None:
         lab0 = lab0[crop]
@@ -1001,6 +1032,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
         tissue = None if tissue0 is None else _smooth(tissue0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         f_stats = _local_stats(fl, win, tissue)
+        skin_warp = skin_l = None
+        if skin is not None:
+            skin_warp = skin[0].level(s, sig_pre, shape)[0]
+            skin_l = _smooth(skin[1], sig_pre)[::s, ::s, ::s].astype(np.float32)
         held_score = None  # settings.holdout: the held-out LNCC of a map (the template at its nearest voxel)
         if held_out is not None:
             flv = _smooth(held_out[0], sig_pre)[::s, ::s, ::s].astype(np.float32)
@@ -1103,6 +1138,24 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             return u_now, {"evaluations": evaluations, "bones_moved": len(moved), "refused_folding": folded,
                            "refused_not_significant": unseen}
 
+        def score(u_now):
+            """``(w, objective, (dcc, skin))`` at ``u_now``: the template through the map, the level's objective
+            (the mean LNCC over the region, less settings.skin_weight times the bodies' mean squared difference)
+            and its derivatives: the LNCC's with respect to ``w`` and, with the skin's term, ``(b, d)``: the
+            template's smoothed body through the map and the term's derivative with respect to it."""
+            w_now, v_now = warp_w(u_now)
+            cc_now, dcc_now = _lncc_force(fl, w_now, win, f_stats, regl, v_now)
+            if skin_warp is None:
+                return w_now, cc_now, (dcc_now, None)
+            # beyond the template's grid (its body unknown there: a limb leaving the field of view; any trilinear
+            # share of it reads far below 0) the template's body is taken as the scan's: no cost, no force
+            b = skin_warp(u_now)[0]
+            b = np.where(b >= 0.0, b, skin_l).astype(np.float32)
+            diff = b - skin_l
+            sq = diff * diff
+            cost = float(np.mean(sq if regl is None else sq[regl > 0], dtype=np.float64))
+            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * diff))
+
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
             radius bounds every voxel's move).  The interpolation's noise term (settings.interpolation_noise)
@@ -1113,10 +1166,15 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             towards any sub-voxel position for a derivative to undo; the term corrects the objective that
             decides whether a step is taken."""
             nonlocal bone_w
+            dcc, skin = dcc
             gw = np.gradient(w)
+            parts = [dcc * gw[a] / sp[a] for a in range(3)]
+            if skin is not None:  # the skin's term: its derivative times the template body's gradient
+                gm = np.gradient(skin[0])
+                parts = [parts[a] + skin[1] * gm[a] / sp[a] for a in range(3)]
             if regl is not None:
-                dcc = dcc * regl
-            force = np.stack(_smooth_all([dcc * gw[a] / sp[a] for a in range(3)], fluid))
+                parts = [p * regl for p in parts]
+            force = np.stack(_smooth_all(parts, fluid))
             if tissue is not None:
                 force *= force_norm[None]
             nonlocal hold
@@ -1172,8 +1230,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # when the last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps
         # the trials.  With settings.holdout it also stops after holdout_patience taken steps without a new highest
         # held-out LNCC, and returns the map of that highest (possibly an earlier one).
-        w, v = warp_w(u)
-        cc, dcc = _lncc_force(fl, w, win, f_stats, regl, v)
+        w, cc, dcc = score(u)
         rounds = []  # the bones' refinements (settings.refine_bones)
 
         def bone_round():
@@ -1188,8 +1245,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             if not rec_b["evaluations"]:  # no bone to test or refine on this round
                 bone_w = []  # refine() made them with its own margin: recomputed at the next step
                 return False
-            w_b, v_b = warp_w(u_b)
-            cc_b, dcc_b = _lncc_force(fl, w_b, win, f_stats, regl, v_b)
+            w_b, cc_b, dcc_b = score(u_b)
             rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
                          seconds=round(time.perf_counter() - t_b, 2))
             if not rec_b["taken"]:
@@ -1234,8 +1290,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     break
             u_c, halved = candidate(u, force, fmax, radius)
             halvings += halved
-            w_c, v_c = warp_w(u_c)
-            cc_c, dcc_c = _lncc_force(fl, w_c, win, f_stats, regl, v_c)
+            w_c, cc_c, dcc_c = score(u_c)
             stopped = None
             if cc_c > cc:  # taken
                 u, w, cc, dcc = u_c, w_c, cc_c, dcc_c
@@ -1286,6 +1341,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "rejected": rejected, "stop": stop, "halvings": halvings,
                "lncc": [round(float(h), 6) for h in history],  # per taken step (and bones' round): never falls
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
+               "skin_term": skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
                # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
                "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
                "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
