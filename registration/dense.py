@@ -198,10 +198,6 @@ class DenseSettings:
     #: across the skin only (sliding along it stays free).  At 1 a voxel where the bodies disagree costs what a
     #: voxel with no correlation does; 0: off
     skin_weight: float = 1.0
-    #: the correction's membrane energy in the level's objective: stiffness times the mean over the region's soft
-    #: tissue of |∇u|² (mm/mm, forward differences; u = U − id, the correction of the start).  Where the images say
-    #: nothing (flat tissue, noise) a step that moves tissue then costs, so the start stands there; 0: off
-    stiffness: float = 0.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
@@ -235,9 +231,8 @@ class DenseSettings:
         if any(v is not None and not v >= 0 for v in (self.fluid_voxels, self.elastic_voxels)):
             raise ValueError(f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, "
                              f"{self.elastic_voxels}")
-        for name in ("skin_weight", "stiffness"):
-            if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
-                raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)}")
+        if not (np.isfinite(self.skin_weight) and self.skin_weight >= 0):
+            raise ValueError(f"skin_weight must be ≥ 0, got {self.skin_weight}")
         if not self.radius_growth >= 1 or not isinstance(self.max_halvings, int) or self.max_halvings < 0:
             raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
                              f"{self.max_halvings}")
@@ -923,27 +918,6 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
     return best[0], best[1] - f_now, best[2]
 
 
-def _membrane(u: np.ndarray, weight: np.ndarray, sp) -> tuple[float, np.ndarray]:
-    """The membrane energy ``Σ m |∇u|²`` of ``u`` (3, *shape; mm along the array axes) by forward differences,
-    each pair of neighbours weighed by the product of their ``weight`` (``m``), and its derivative with respect to
-    ``u`` (3, *shape): exact for this discrete energy, so that a step along its negative lowers it."""
-    energy = 0.0
-    grad = np.zeros_like(u)
-    for b in range(3):
-        lo = [slice(None)] * 4
-        hi = [slice(None)] * 4
-        lo[b + 1], hi[b + 1] = slice(None, -1), slice(1, None)
-        lo, hi = tuple(lo), tuple(hi)
-        pair = weight[lo[1:]] * weight[hi[1:]]
-        d = (u[hi] - u[lo]) / u.dtype.type(sp[b])
-        wd = pair[None] * d
-        energy += float(np.sum(wd * d, dtype=np.float64))
-        g = wd * u.dtype.type(2.0 / sp[b])
-        grad[hi] += g
-        grad[lo] -= g
-    return energy, grad
-
-
 def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = None,
                    moving_labels: Volume | None = None, settings: DenseSettings | None = None,
                    progress=None) -> DenseResult:
@@ -1058,18 +1032,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
         tissue = None if tissue0 is None else _smooth(tissue0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         f_stats = _local_stats(fl, win, tissue)
-        # settings.stiffness: the membrane energy's weights (the region's soft tissue: the bones are held rigid) and
-        # the mean's denominator (the region's voxels, as the LNCC's)
-        membrane_w = None
-        # the energy guards against fitting the noise: its weight follows the share of the images' voxel noise
-        # variance the level's pre-smoothing keeps (1 on the finest level)
-        stiffness = st.stiffness * _kernel_noise(sig_pre)[0] ** 3
-        if stiffness > 0:
-            membrane_w = np.ones(shape, np.float32) if regl is None else (regl > 0).astype(np.float32)
-            if labl is not None:
-                membrane_w[labl > 0] = 0.0
-            n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
-            u_input = u.copy()  # the energy is the level's own change's: the coarser levels' result is its prior
         skin_warp = skin_l = None
         if skin is not None:
             skin_warp = skin[0].level(s, sig_pre, shape)[0]
@@ -1183,13 +1145,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             template's smoothed body through the map and the term's derivative with respect to it."""
             w_now, v_now = warp_w(u_now)
             cc_now, dcc_now = _lncc_force(fl, w_now, win, f_stats, regl, v_now)
-            membrane = None
-            if membrane_w is not None:
-                energy, membrane = _membrane(u_now - u_input, membrane_w, sp)
-                cc_now -= stiffness * energy / n_region
-                membrane *= np.float32(-stiffness)  # the objective's ascent along u (times the region's voxels)
             if skin_warp is None:
-                return w_now, cc_now, (dcc_now, None, membrane)
+                return w_now, cc_now, (dcc_now, None)
             # beyond the template's grid (its body unknown there: a limb leaving the field of view; any trilinear
             # share of it reads far below 0) the template's body is taken as the scan's: no cost, no force
             b = skin_warp(u_now)[0]
@@ -1197,8 +1154,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             diff = b - skin_l
             sq = diff * diff
             cost = float(np.mean(sq if regl is None else sq[regl > 0], dtype=np.float64))
-            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * diff),
-                                                            membrane)
+            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * diff))
 
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
@@ -1210,14 +1166,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             towards any sub-voxel position for a derivative to undo; the term corrects the objective that
             decides whether a step is taken."""
             nonlocal bone_w
-            dcc, skin, membrane = dcc
+            dcc, skin = dcc
             gw = np.gradient(w)
             parts = [dcc * gw[a] / sp[a] for a in range(3)]
             if skin is not None:  # the skin's term: its derivative times the template body's gradient
                 gm = np.gradient(skin[0])
                 parts = [parts[a] + skin[1] * gm[a] / sp[a] for a in range(3)]
-            if membrane is not None:  # settings.stiffness: the energy's descent, on u itself
-                parts = [parts[a] + membrane[a] for a in range(3)]
             if regl is not None:
                 parts = [p * regl for p in parts]
             force = np.stack(_smooth_all(parts, fluid))
