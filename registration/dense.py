@@ -83,8 +83,9 @@ at every iteration, and keeps what an articulated body needs:
   inside the scan's.  The level's objective is the LNCC less ``skin_weight``
   times the mean squared difference of the two bodies' masks, each smoothed
   by the window (the template's sampled through the same map; unknown beyond
-  its grid, where the term is left out): a force across the skin, not along
-  it.
+  its grid, where the term is left out), counted near the scan's skin only
+  (deep in its body the template's air is a crease whose skins touch in the
+  scan): a force across the skin, not along it.
 * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
   grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
   start compresses a crease below the voxel size or curled fingers touch;
@@ -194,9 +195,10 @@ class DenseSettings:
     air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
     #: with tissue_only, the skin's term: the tissue-only windows do not see the skin, so nothing holds the
     #: registered body's outline on the scan's.  The level's objective is the LNCC less skin_weight times the mean
-    #: squared difference of the two bodies' masks (segment_body), each smoothed by the LNCC's window: a force
-    #: across the skin only (sliding along it stays free).  At 1 a voxel where the bodies disagree costs what a
-    #: voxel with no correlation does; 0: off
+    #: squared difference of the two bodies' masks (segment_body), each smoothed by the LNCC's window, near the
+    #: scan's skin (weighed by 4 s (1 − s), s the scan's smoothed mask): a force across the skin only (sliding
+    #: along it stays free).  At 1 a voxel where the bodies disagree costs what a voxel with no correlation does
+    #: (at the skin); 0: off
     skin_weight: float = 1.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
@@ -1036,6 +1038,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         if skin is not None:
             skin_warp = skin[0].level(s, sig_pre, shape)[0]
             skin_l = _smooth(skin[1], sig_pre)[::s, ::s, ::s].astype(np.float32)
+            # the term counts where the scan shows an outline: 1 at its skin, falling to 0 a few windows inside and
+            # outside.  Deep in the scan's body the template's air is a crease whose skins touch in the scan
+            # (contact), which no map of one outline onto the other can mend
+            skin_band = (4.0 * skin_l * (1.0 - skin_l)).astype(np.float32)
         held_score = None  # settings.holdout: the held-out LNCC of a map (the template at its nearest voxel)
         if held_out is not None:
             flv = _smooth(held_out[0], sig_pre)[::s, ::s, ::s].astype(np.float32)
@@ -1152,12 +1158,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             b = skin_warp(u_now)[0]
             b = np.where(b >= 0.0, b, skin_l).astype(np.float32)
             diff = b - skin_l
-            sq = diff * diff
+            wdiff = skin_band * diff
+            sq = wdiff * diff
             cost = float(np.mean(sq if regl is None else sq[regl > 0], dtype=np.float64))
-            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * diff))
+            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * wdiff))
 
         def direction(u_now, dcc, w, refresh_bones):
-            """The smoothed LNCC gradient at ``u_now`` (mm, array axes) and its largest magnitude (the trust
+            """The smoothed gradient of the level's objective at ``u_now`` (mm, array axes; ``dcc`` is
+            :func:`score`'s derivatives: the LNCC's and the skin's term's) and its largest magnitude (the trust
             radius bounds every voxel's move).  The interpolation's noise term (settings.interpolation_noise)
             enters through ``dcc`` (the local variance it is added to) but its own derivative with respect to
             the map is left out: the central differences of ``w`` are uncorrelated with the noise ``w`` keeps at
@@ -1339,7 +1347,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "lncc_before": before, "lncc_after": cc,
                "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
                "rejected": rejected, "stop": stop, "halvings": halvings,
-               "lncc": [round(float(h), 6) for h in history],  # per taken step (and bones' round): never falls
+               # the level's objective (the LNCC, less the skin's term when "skin_term") per taken step (and bones'
+               # round): never falls; lncc_before / lncc_after are the same objective's
+               "lncc": [round(float(h), 6) for h in history],
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
                "skin_term": skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
                # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off

@@ -7,8 +7,9 @@
   the bones the pose stage flagged;
 * **registration** — per scan: similarity (SSD, CC, MI) of the start and the
   result, the folded voxels, the convergence of each level
-  (LNCC per iteration for the dense method, the metric per accepted step for
-  Rhee's Algorithm 1), a control-point or correction map;
+  (each level's objective per taken step for the dense method, the metric
+  per accepted step for Rhee's Algorithm 1), a control-point or correction
+  map;
 * **overlays** — the registered template (green) over its target (magenta)
   on three index planes, with a toggle/flicker between the two greyscale
   pictures, and the start beside it;
@@ -120,8 +121,10 @@ def _convergence(log: dict) -> bytes | None:
     if levels and any("lncc" in lv for lv in levels):
         series = {f"level {lv['level']} (1/{lv['shrink']})": (np.arange(len(lv["lncc"])), lv["lncc"])
                   for lv in levels if lv.get("lncc")}
-        return F.line_plot(series, xlabel="taken step", ylabel="LNCC (higher is better)",
-                           title="dense registration: local correlation per taken step")
+        skin = any(lv.get("skin_term") for lv in levels)
+        return F.line_plot(series, xlabel="taken step",
+                           ylabel=("LNCC less the skin's term" if skin else "LNCC") + " (higher is better)",
+                           title="dense registration: each level's objective per taken step")
     steps = (log.get("log") or {}).get("steps") if isinstance(log.get("log"), dict) else None
     if steps:
         y = [s.get("block_after") for s in steps if s.get("accepted", True)]
