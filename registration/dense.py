@@ -86,6 +86,13 @@ at every iteration, and keeps what an articulated body needs:
   its grid, where the term is left out), counted near the scan's skin only
   (deep in its body the template's air is a crease whose skins touch in the
   scan): a force across the skin, not along it.
+* **Where the scan shows only noise** (``stiffness``): a step that moves
+  tissue there raises the LNCC by fitting the noise, and nothing in the
+  images holds the start.  The level's objective also subtracts a membrane
+  energy of the correction ``u``, each voxel weighed by the share of the
+  scan's local variance (in the LNCC's window) its noise makes up: near 1 in
+  flat tissue, near 0 where structure rises above the noise, so a correction
+  the images support costs little and one they do not support costs.
 * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
   grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
   start compresses a crease below the voxel size or curled fingers touch;
@@ -200,6 +207,12 @@ class DenseSettings:
     #: along it stays free).  At 1 a voxel where the bodies disagree costs what a voxel with no correlation does
     #: (at the skin); 0: off
     skin_weight: float = 1.0
+    #: the start stands where the scan shows only its noise: the level's objective also subtracts stiffness times
+    #: the mean over the region of n |∇u|² (u the correction of the start, mm/mm by forward differences; the
+    #: bones left out), n the share of the scan's local variance in the LNCC's window that its noise makes up (1
+    #: where the window holds noise only, towards 0 where structure rises above it; the noise measured in the
+    #: scan's air, _voxel_noise_variance, and thinned by the level's pre-smoothing).  0: off
+    stiffness: float = 3.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
@@ -233,8 +246,9 @@ class DenseSettings:
         if any(v is not None and not v >= 0 for v in (self.fluid_voxels, self.elastic_voxels)):
             raise ValueError(f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, "
                              f"{self.elastic_voxels}")
-        if not (np.isfinite(self.skin_weight) and self.skin_weight >= 0):
-            raise ValueError(f"skin_weight must be ≥ 0, got {self.skin_weight}")
+        for name in ("skin_weight", "stiffness"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)}")
         if not self.radius_growth >= 1 or not isinstance(self.max_halvings, int) or self.max_halvings < 0:
             raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
                              f"{self.max_halvings}")
@@ -920,6 +934,27 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
     return best[0], best[1] - f_now, best[2]
 
 
+def _membrane(u: np.ndarray, weight: np.ndarray, sp) -> tuple[float, np.ndarray]:
+    """The membrane energy ``Σ m |∇u|²`` of ``u`` (3, *shape; mm along the array axes) by forward differences,
+    each pair of neighbours weighed by the product of their ``weight`` (``m``), and its derivative with respect to
+    ``u`` (3, *shape): exact for this discrete energy, so that a step along its negative lowers it."""
+    energy = 0.0
+    grad = np.zeros_like(u)
+    for b in range(3):
+        lo = [slice(None)] * 4
+        hi = [slice(None)] * 4
+        lo[b + 1], hi[b + 1] = slice(None, -1), slice(1, None)
+        lo, hi = tuple(lo), tuple(hi)
+        pair = weight[lo[1:]] * weight[hi[1:]]
+        d = (u[hi] - u[lo]) / u.dtype.type(sp[b])
+        wd = pair[None] * d
+        energy += float(np.sum(wd * d, dtype=np.float64))
+        g = wd * u.dtype.type(2.0 / sp[b])
+        grad[hi] += g
+        grad[lo] -= g
+    return energy, grad
+
+
 def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = None,
                    moving_labels: Volume | None = None, settings: DenseSettings | None = None,
                    progress=None) -> DenseResult:
@@ -948,6 +983,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     m0 /= scale
     sp_full = np.asarray(g.spacing, float)[::-1]  # array axes (z, y, x)
     scan_body, region = _body_region(Volume(f0, g), Volume(m0, g), 2.0 * st.window_mm) if st.body_only else (None, None)
+    # settings.stiffness: the scan's voxel noise variance (normalised intensities), measured in its air
+    noise_var = _voxel_noise_variance(f0, scan_body)[0] if st.stiffness > 0 else None
     # The levels work on the box around the force's region only: a region voxel's force reads the LNCC
     # statistics within 3 windows of it (truncate 3), rounded to a level voxel, and beyond the region the
     # force is zero, so padding the box's edges by their values (the filters' "nearest") smooths the force
@@ -1034,6 +1071,17 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
         tissue = None if tissue0 is None else _smooth(tissue0, sig_pre)[::s, ::s, ::s].astype(np.float32)
         f_stats = _local_stats(fl, win, tissue)
+        # settings.stiffness: each voxel's weight in the membrane energy (the share of the scan's local variance its
+        # noise makes up, the bones and beyond the region 0) and the mean's denominator (the LNCC's: the region)
+        membrane_w = None
+        if noise_var is not None and noise_var > 0:
+            level_noise = np.float32(noise_var * _kernel_noise(sig_pre)[0] ** 3)  # the pre-smoothing thins it
+            membrane_w = np.clip(level_noise / np.maximum(f_stats[1], np.float32(1e-12)), 0.0, 1.0).astype(np.float32)
+            if regl is not None:
+                membrane_w *= regl > 0
+            if labl is not None:
+                membrane_w[labl > 0] = 0.0
+            n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
         skin_warp = skin_l = None
         if skin is not None:
             skin_warp = skin[0].level(s, sig_pre, shape)[0]
@@ -1145,14 +1193,20 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                            "refused_not_significant": unseen}
 
         def score(u_now):
-            """``(w, objective, (dcc, skin))`` at ``u_now``: the template through the map, the level's objective
-            (the mean LNCC over the region, less settings.skin_weight times the bodies' mean squared difference)
-            and its derivatives: the LNCC's with respect to ``w`` and, with the skin's term, ``(b, d)``: the
-            template's smoothed body through the map and the term's derivative with respect to it."""
+            """``(w, objective, (dcc, skin, membrane))`` at ``u_now``: the template through the map, the level's
+            objective (the mean LNCC over the region, less settings.skin_weight times the bodies' weighted mean
+            squared difference and settings.stiffness times the membrane energy's mean) and its derivatives: the
+            LNCC's with respect to ``w``; with the skin's term ``(b, d)``, the template's smoothed body through the
+            map and the term's derivative with respect to it; with the energy, its ascent along ``u``."""
             w_now, v_now = warp_w(u_now)
             cc_now, dcc_now = _lncc_force(fl, w_now, win, f_stats, regl, v_now)
+            membrane = None
+            if membrane_w is not None:
+                energy, membrane = _membrane(u_now, membrane_w, sp)
+                cc_now -= st.stiffness * energy / n_region
+                membrane *= np.float32(-st.stiffness)  # the objective's ascent along u (times the region's voxels)
             if skin_warp is None:
-                return w_now, cc_now, (dcc_now, None)
+                return w_now, cc_now, (dcc_now, None, membrane)
             # beyond the template's grid (its body unknown there: a limb leaving the field of view; any trilinear
             # share of it reads far below 0) the template's body is taken as the scan's: no cost, no force
             b = skin_warp(u_now)[0]
@@ -1161,7 +1215,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             wdiff = skin_band * diff
             sq = wdiff * diff
             cost = float(np.mean(sq if regl is None else sq[regl > 0], dtype=np.float64))
-            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * wdiff))
+            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * wdiff),
+                                                            membrane)
 
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed gradient of the level's objective at ``u_now`` (mm, array axes; ``dcc`` is
@@ -1174,12 +1229,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             towards any sub-voxel position for a derivative to undo; the term corrects the objective that
             decides whether a step is taken."""
             nonlocal bone_w
-            dcc, skin = dcc
+            dcc, skin, membrane = dcc
             gw = np.gradient(w)
             parts = [dcc * gw[a] / sp[a] for a in range(3)]
             if skin is not None:  # the skin's term: its derivative times the template body's gradient
                 gm = np.gradient(skin[0])
                 parts = [parts[a] + skin[1] * gm[a] / sp[a] for a in range(3)]
+            if membrane is not None:  # settings.stiffness: the energy's descent, on u itself
+                parts = [parts[a] + membrane[a] for a in range(3)]
             if regl is not None:
                 parts = [p * regl for p in parts]
             force = np.stack(_smooth_all(parts, fluid))
@@ -1347,11 +1404,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "lncc_before": before, "lncc_after": cc,
                "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
                "rejected": rejected, "stop": stop, "halvings": halvings,
-               # the level's objective (the LNCC, less the skin's term when "skin_term") per taken step (and bones'
-               # round): never falls; lncc_before / lncc_after are the same objective's
+               # the level's objective (the LNCC, less the skin's term when "skin_term" and the membrane energy when
+               # "noise_share") per taken step (and bones' round): never falls; lncc_before / lncc_after are its
                "lncc": [round(float(h), 6) for h in history],
                "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
                "skin_term": skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
+               # settings.stiffness: the membrane energy's mean weight over the region (the noise's share of the
+               # scan's local variance), None when off
+               "noise_share": None if membrane_w is None else round(float(membrane_w.sum() / n_region), 4),
                # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
                "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
                "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off

@@ -320,5 +320,6 @@ STAGE = Stage(name="register", folder="registration", per_scan=True, settings_ty
               # held bones' poses refined rigidly (dense refine_bones); 13: the template sampled once through φ₀ ∘ U, the
               # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
               # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
-              # leaves; 16: the skin's term in the dense objective (skin_weight)
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=16)
+              # leaves; 16: the skin's term in the dense objective (skin_weight); 17: the membrane energy where the
+              # scan shows only noise (stiffness)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=17)
