@@ -67,9 +67,9 @@ def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "po
     the template rendered on its grid moved by that fraction of its voxel along each axis (the scans' grids, the
     draws and the anatomy unchanged; the poses estimated and the start made on that template): the phantoms
     render every image on one lattice, so that wherever nothing moves the truth reads the template at its voxel
-    centres, which real scans never do.  ``texture``: the soft tissue's texture (its plane waves, the spread
-    between muscle cells and between fat lobules) scaled by that factor; 0 leaves muscle and fat uniform with their
-    septa, tendons and vessels, as flat as soft tissue in CT."""
+    centres, which real scans never do.  ``texture``: the tissues' texture (its plane waves, which also modulate
+    the marrow, and the spread between muscle cells and between fat lobules) scaled by that factor; 0 leaves
+    muscle and fat uniform with their septa, tendons and vessels, as flat as soft tissue in CT."""
     tag = ("" if start == "polyrigid" else f"_{start}") + ("" if acquisition == "fixed" else f"_{acquisition}")
     tag += f"_no{without}" if without else ""
     tag += f"_shift{shift:g}" if shift else ""
@@ -198,9 +198,9 @@ def main(argv=None) -> int:
                         "made on it): the phantoms render every image on one lattice, real scans never share the "
                         "template's")
     p.add_argument("--texture", type=float, default=1.0, metavar="F",
-                   help="the soft tissue's texture (plane waves, the spread between muscle cells and fat lobules) "
-                        "scaled by F: 0 leaves muscle and fat uniform (with their septa, tendons and vessels), as "
-                        "flat as soft tissue in CT")
+                   help="the tissues' texture (its plane waves, which also modulate the marrow, and the spread "
+                        "between muscle cells and fat lobules) scaled by F: 0 leaves muscle and fat uniform (with "
+                        "their septa, tendons and vessels), as flat as soft tissue in CT")
     p.add_argument("--per-bone", action="store_true",
                    help="also print each held bone's MED (its voxels on the scan): which bones a start's error stays on")
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")

@@ -23,7 +23,8 @@ at every iteration, and keeps what an articulated body needs:
   until it has none, so every step is one-to-one and so is their
   composition: no fold is created.
 * **Convergence** (a trust region on each level's objective, the mean LNCC
-  over the voxels where the force acts): a step is taken only when it raises
+  over the voxels where the force acts less the skin's term and the membrane
+  energy below): a step is taken only when it raises
   the objective; otherwise the radius halves and the step is tried again from
   the same direction; after a taken step the radius grows (``radius_growth``,
   up to ``step_mm``).  A level stops when no step of radius
@@ -158,7 +159,7 @@ class DenseSettings:
     step_mm: float = 0.5  #: the trust radius's upper bound: a voxel's largest move in one step (see step_voxels)
     step_voxels: bool = True  #: step_mm is in voxels of the level (True) or mm (False)
     radius_growth: float = 1.25  #: the trust radius grows by this factor after a taken step (up to step_mm)
-    max_halvings: int = 5  #: a level stops when a step of radius step_mm·2⁻ᵏ does not raise its LNCC
+    max_halvings: int = 5  #: a level stops when a step of radius step_mm·2⁻ᵏ does not raise its objective
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
     bones: str = "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
@@ -187,7 +188,7 @@ class DenseSettings:
     #: regularises at its own scale (coarse levels smoothly, the fine one locally)
     fluid_voxels: float | None = 3.0
     elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
-    #: a level stops when 10 taken steps gain less than this much LNCC, the mean over the voxels where the force
+    #: a level stops when 10 taken steps gain less than this much objective (the LNCC's mean over the voxels where the force
     #: acts (or when no step of the smallest radius raises it: max_halvings)
     tolerance: float = 1e-4
     #: the LNCC windows and both smoothings keep to the scan's tissue (U's by normalised convolution, Knutsson
@@ -204,14 +205,14 @@ class DenseSettings:
     #: registered body's outline on the scan's.  The level's objective is the LNCC less skin_weight times the mean
     #: squared difference of the two bodies' masks (segment_body), each smoothed by the LNCC's window, near the
     #: scan's skin (weighed by 4 s (1 − s), s the scan's smoothed mask): a force across the skin only (sliding
-    #: along it stays free).  At 1 a voxel where the bodies disagree costs what a voxel with no correlation does
-    #: (at the skin); 0: off
+    #: along it stays free).  At 1 its cost per voxel (at most 0.42) is of the order of the LNCC's; 0: off
     skin_weight: float = 1.0
     #: the start stands where the scan shows only its noise: the level's objective also subtracts stiffness times
     #: the mean over the region of n |∇u|² (u the correction of the start, mm/mm by forward differences; the
     #: bones left out), n the share of the scan's local variance in the LNCC's window that its noise makes up (1
     #: where the window holds noise only, towards 0 where structure rises above it; the noise measured in the
-    #: scan's air, _voxel_noise_variance, and thinned by the level's pre-smoothing).  0: off
+    #: scan's air, _voxel_noise_variance, and thinned by the level's pre-smoothing; the air around the body, which
+    #: shows only noise, weighs 1).  0: off
     stiffness: float = 3.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
@@ -854,14 +855,14 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
 
 
 def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, grid_mm, sp, st):
-    """One held bone's rigid pose refined on the level's objective, the soft tissue held.
+    """One held bone's rigid pose refined on the LNCC, the soft tissue held.
 
     The candidate field is ``u`` moved towards the bone's rigid displacement by its weight (exactly rigid on
     the bone, fading over its margin); its objective is the LNCC's mean over the voxels whose value the bone's
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
-    that the windows' statistics there are the whole grid's.  A rise of that mean is a rise of the level's
-    objective (the same template samples as the level's: :class:`_TemplateSampler`; the round is checked on
-    the whole level all the same).  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
+    that the windows' statistics there are the whole grid's (the same template samples as the level's:
+    :class:`_TemplateSampler`).  The skin's term and the membrane energy are left out of it: the round is taken
+    only when the whole level's objective, which has them, rises.  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
     ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
     less the objective of ``u`` as it is (≤ 0: keep ``u``).
     """
@@ -955,6 +956,28 @@ def _membrane(u: np.ndarray, weight: np.ndarray, sp) -> tuple[float, np.ndarray]
     return energy, grad
 
 
+def _penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffness: float, n_region: float):
+    """The level's objective is the LNCC's mean less the returned penalties: ``skin_weight`` times the mean over
+    the region of ``band (b − s)²`` (``b``: the template's smoothed body through the map, ``s`` the scan's; ``b``
+    None: no skin term) plus ``stiffness`` times the membrane energy of ``u`` weighed by ``membrane_w``
+    (:func:`_membrane`; None: none) over ``n_region``.  Returns ``(penalty, skin, membrane)``: the objective's
+    ascent along ``b`` and along ``u`` times ``n_region`` (as the LNCC's force is: the derivative of its sum),
+    None where the term is off.  ``penalty`` is ``(membrane's, skin's)``, subtracted in that order."""
+    skin_penalty = membrane_penalty = 0.0
+    skin = membrane = None
+    if b is not None:
+        diff = b - s
+        wdiff = band * diff
+        sq = wdiff * diff
+        skin_penalty = skin_weight * float(np.mean(sq if region is None else sq[region > 0], dtype=np.float64))
+        skin = np.float32(-2.0 * skin_weight) * wdiff
+    if membrane_w is not None:
+        energy, membrane = _membrane(u, membrane_w, sp)
+        membrane_penalty = stiffness * energy / n_region
+        membrane *= u.dtype.type(-stiffness)
+    return (membrane_penalty, skin_penalty), skin, membrane
+
+
 def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = None,
                    moving_labels: Volume | None = None, settings: DenseSettings | None = None,
                    progress=None) -> DenseResult:
@@ -983,8 +1006,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     m0 /= scale
     sp_full = np.asarray(g.spacing, float)[::-1]  # array axes (z, y, x)
     scan_body, region = _body_region(Volume(f0, g), Volume(m0, g), 2.0 * st.window_mm) if st.body_only else (None, None)
-    # settings.stiffness: the scan's voxel noise variance (normalised intensities), measured in its air
-    noise_var = _voxel_noise_variance(f0, scan_body)[0] if st.stiffness > 0 else None
     # The levels work on the box around the force's region only: a region voxel's force reads the LNCC
     # statistics within 3 windows of it (truncate 3), rounded to a level voxel, and beyond the region the
     # force is zero, so padding the box's edges by their values (the filters' "nearest") smooths the force
@@ -1010,6 +1031,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     if st.holdout:  # on the whole scan, before the crop: its noise is measured in all of its air
         held_out, f0, moving_steps = _fission(f0, scan_body, moving, template_body, st)
         held_out = (held_out[0][crop], _TemplateSampler(held_out[1], initial, scale, crop), held_out[2])
+    # settings.stiffness: the voxel noise variance of the scan the steps see (normalised; with holdout, its steps'
+    # copy), measured in its air
+    noise_var = _voxel_noise_variance(f0, scan_body)[0] if st.stiffness > 0 else None
     f0 = f0[crop]
     template = _TemplateSampler(moving_steps, initial, scale, crop, template_body if st.interpolation_noise else False)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
@@ -1074,6 +1098,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # settings.stiffness: each voxel's weight in the membrane energy (the share of the scan's local variance its
         # noise makes up, the bones and beyond the region 0) and the mean's denominator (the LNCC's: the region)
         membrane_w = None
+        n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
         if noise_var is not None and noise_var > 0:
             level_noise = np.float32(noise_var * _kernel_noise(sig_pre)[0] ** 3)  # the pre-smoothing thins it
             membrane_w = np.clip(level_noise / np.maximum(f_stats[1], np.float32(1e-12)), 0.0, 1.0).astype(np.float32)
@@ -1081,8 +1106,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 membrane_w *= regl > 0
             if labl is not None:
                 membrane_w[labl > 0] = 0.0
-            n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
-        skin_warp = skin_l = None
+        skin_warp = skin_l = skin_band = None
         if skin is not None:
             skin_warp = skin[0].level(s, sig_pre, shape)[0]
             skin_l = _smooth(skin[1], sig_pre)[::s, ::s, ::s].astype(np.float32)
@@ -1200,27 +1224,20 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             map and the term's derivative with respect to it; with the energy, its ascent along ``u``."""
             w_now, v_now = warp_w(u_now)
             cc_now, dcc_now = _lncc_force(fl, w_now, win, f_stats, regl, v_now)
-            membrane = None
-            if membrane_w is not None:
-                energy, membrane = _membrane(u_now, membrane_w, sp)
-                cc_now -= st.stiffness * energy / n_region
-                membrane *= np.float32(-st.stiffness)  # the objective's ascent along u (times the region's voxels)
-            if skin_warp is None:
-                return w_now, cc_now, (dcc_now, None, membrane)
-            # beyond the template's grid (its body unknown there: a limb leaving the field of view; any trilinear
-            # share of it reads far below 0) the template's body is taken as the scan's: no cost, no force
-            b = skin_warp(u_now)[0]
-            b = np.where(b >= 0.0, b, skin_l).astype(np.float32)
-            diff = b - skin_l
-            wdiff = skin_band * diff
-            sq = wdiff * diff
-            cost = float(np.mean(sq if regl is None else sq[regl > 0], dtype=np.float64))
-            return w_now, cc_now - st.skin_weight * cost, (dcc_now, (b, np.float32(-2.0 * st.skin_weight) * wdiff),
-                                                            membrane)
+            b = None
+            if skin_warp is not None:
+                # beyond the template's grid (its body unknown there: a limb leaving the field of view; any
+                # trilinear share of it reads far below 0) the template's body is taken as the scan's: no cost
+                b = skin_warp(u_now)[0]
+                b = np.where(b >= 0.0, b, skin_l).astype(np.float32)
+            penalty, skin_d, membrane = _penalties(b, skin_l, skin_band, regl, st.skin_weight, u_now, membrane_w, sp,
+                                                   st.stiffness, n_region)
+            return w_now, cc_now - penalty[0] - penalty[1], (dcc_now, None if b is None else (b, skin_d), membrane)
 
         def direction(u_now, dcc, w, refresh_bones):
             """The smoothed gradient of the level's objective at ``u_now`` (mm, array axes; ``dcc`` is
-            :func:`score`'s derivatives: the LNCC's and the skin's term's) and its largest magnitude (the trust
+            :func:`score`'s derivatives: the LNCC's, the skin's term's and the membrane energy's) and its largest
+            magnitude (the trust
             radius bounds every voxel's move).  The interpolation's noise term (settings.interpolation_noise)
             enters through ``dcc`` (the local variance it is added to) but its own derivative with respect to
             the map is left out: the central differences of ``w`` are uncorrelated with the noise ``w`` keeps at
@@ -1288,7 +1305,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         _rigid_project(u_new[(slice(None),) + box], m, [gm[box] for gm in grid_mm], wgt)
             return u_new, halved
 
-        # A trust region on the level's objective (the mean LNCC over the region): a step is taken only when it
+        # A trust region on the level's objective (score()): a step is taken only when it
         # raises the objective; otherwise the radius (each voxel's largest move) halves and the step is tried
         # again from the same direction; after a taken step the radius grows by radius_growth, up to ``step``.
         # The level stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or
@@ -1411,7 +1428,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "skin_term": skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
                # settings.stiffness: the membrane energy's mean weight over the region (the noise's share of the
                # scan's local variance), None when off
-               "noise_share": None if membrane_w is None else round(float(membrane_w.sum() / n_region), 4),
+               "noise_share": None if membrane_w is None else round(float(membrane_w.sum(dtype=np.float64) / n_region),
+                                                                     4),
                # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
                "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
                "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
@@ -1420,7 +1438,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                "held_out": held_rec,
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
-        log.info("dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; LNCC %.4f -> %.4f", lv, s,
+        log.info("dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; objective %.4f -> %.4f", lv, s,
                  rec["iterations"], rejected, stop, rec["lncc_before"] or 0, rec["lncc_after"] or 0)
         if progress is not None:
             progress(rec)

@@ -121,9 +121,10 @@ def _convergence(log: dict) -> bytes | None:
     if levels and any("lncc" in lv for lv in levels):
         series = {f"level {lv['level']} (1/{lv['shrink']})": (np.arange(len(lv["lncc"])), lv["lncc"])
                   for lv in levels if lv.get("lncc")}
-        skin = any(lv.get("skin_term") for lv in levels)
+        less = (["the skin's term"] if any(lv.get("skin_term") for lv in levels) else []) + (
+            ["the membrane energy"] if any(lv.get("noise_share") is not None for lv in levels) else [])
         return F.line_plot(series, xlabel="taken step",
-                           ylabel=("LNCC less the skin's term" if skin else "LNCC") + " (higher is better)",
+                           ylabel=("LNCC" + (" less " + " and ".join(less) if less else "")) + " (higher is better)",
                            title="dense registration: each level's objective per taken step")
     steps = (log.get("log") or {}).get("steps") if isinstance(log.get("log"), dict) else None
     if steps:

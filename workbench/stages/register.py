@@ -294,7 +294,7 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
                  f"estimate" if moved else "")
         ctx.say(f"{sid} level {rec['level']} (1/{rec['shrink']} of the grid): {rec['iterations']} steps taken, "
                 f"{rec['rejected']} tried and refused, stopped: {rec['stop']}; "
-                f"LNCC {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}{bones}, {rec['seconds']:.1f} s")
+                f"objective {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}{bones}, {rec['seconds']:.1f} s")
 
     result = register_dense(scan, template, initial=initial, moving_labels=labels, settings=settings,
                             progress=level)
