@@ -188,8 +188,9 @@ class DenseSettings:
     #: regularises at its own scale (coarse levels smoothly, the fine one locally)
     fluid_voxels: float | None = 3.0
     elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
-    #: a level stops when 10 taken steps gain less than this much objective (the LNCC's mean over the voxels where the force
-    #: acts (or when no step of the smallest radius raises it: max_halvings)
+    #: a level stops when 10 taken steps gain less than this much objective (the LNCC's mean over the voxels where
+    #: the force acts, less the skin's term and the membrane energy), or when no step of the smallest radius raises
+    #: it (max_halvings)
     tolerance: float = 1e-4
     #: the LNCC windows and both smoothings keep to the scan's tissue (U's by normalised convolution, Knutsson
     #: & Westin 1993).  A Gaussian across the skin averages the skin's motion with the air's, which no image force
@@ -862,7 +863,8 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
     that the windows' statistics there are the whole grid's (the same template samples as the level's:
     :class:`_TemplateSampler`).  The skin's term and the membrane energy are left out of it: the round is taken
-    only when the whole level's objective, which has them, rises.  Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
+    only when the whole level's objective, which has them, rises.
+    Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
     ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
     less the objective of ``u`` as it is (≤ 0: keep ``u``).
     """
