@@ -693,9 +693,10 @@ class _TemplateSampler:
 
     Each level's template is smoothed on its own grid by the level's pre-smoothing (a Gaussian of ``sig_pre``
     scan voxels along each scan axis, its variance projected onto the template's axes).  Beyond the template's
-    grid ``w`` is the template's air; ``φ₀`` continues by its edge values beyond the scan's box."""
+    grid ``w`` is the template's air (or ``outside``); ``φ₀`` continues by its edge values beyond the scan's box."""
 
-    def __init__(self, moving: Volume, initial: Volume, scale: float, crop: tuple, noise_body=False):
+    def __init__(self, moving: Volume, initial: Volume, scale: float, crop: tuple, noise_body=False,
+                 outside: float | None = None):
         self.geometry = moving.geometry
         self.data = np.asarray(moving.data, np.float32) / np.float32(scale)
         # the template's voxel noise variance (settings.interpolation_noise) in its tissue and its air, measured
@@ -706,7 +707,8 @@ class _TemplateSampler:
             self.noise_var, self.noise_air = _voxel_noise_variance(self.data, noise_body)
             if noise_body is not None and abs(self.noise_air - self.noise_var) > 0.05 * self.noise_var:
                 self.noise_map = np.where(noise_body, np.float32(self.noise_var), np.float32(self.noise_air))
-        self.air = float(air_level(moving)) / scale
+        # read beyond the template's grid: its air (``outside`` None), else ``outside``
+        self.air = float(air_level(moving)) / scale if outside is None else float(outside)
         self.phi = np.moveaxis(np.asarray(initial.data, np.float32)[crop], -1, 0)  # (3, box): world mm
         self.scan = initial.geometry
         self.corner = np.array([crop[2].start, crop[1].start, crop[0].start], float)  # the box's first (i, j, k)
@@ -1054,10 +1056,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 template_body = None
         if template_body is not None:
             t_sig = st.window_mm / np.asarray(moving.geometry.spacing, float)[::-1]
-            skin = _TemplateSampler(Volume(_smooth(template_body.astype(np.float32), t_sig), moving.geometry),
-                                    initial, 1.0, crop)
-            skin.air = -1e4  # beyond the template's grid: unknown, the term leaves it out (score())
-            skin = (skin, _smooth(tissue0, st.window_mm / sp_full))
+            # beyond the template's grid its body is unknown: read as far below 0, which score() leaves out
+            skin = (_TemplateSampler(Volume(_smooth(template_body.astype(np.float32), t_sig), moving.geometry),
+                                     initial, 1.0, crop, outside=-1e4),
+                    _smooth(tissue0, st.window_mm / sp_full))
     lab_full = lab0  # the fold repair below works on the whole grid
     if lab0 is not None:
         lab0 = lab0[crop]
@@ -1231,7 +1233,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 # beyond the template's grid (its body unknown there: a limb leaving the field of view; any
                 # trilinear share of it reads far below 0) the template's body is taken as the scan's: no cost
                 b = skin_warp(u_now)[0]
-                b = np.where(b >= 0.0, b, skin_l).astype(np.float32)
+                b = np.where(b >= 0.0, b, skin_l)
             penalty, skin_d, membrane = _penalties(b, skin_l, skin_band, regl, st.skin_weight, u_now, membrane_w, sp,
                                                    st.stiffness, n_region)
             return w_now, cc_now - penalty[0] - penalty[1], (dcc_now, None if b is None else (b, skin_d), membrane)
