@@ -2,8 +2,8 @@
 the HTML report the run ends with (issue J: every table and picture, a study without truth, bad outputs, the
 page in headless Chromium).
 
-One test-size knee study (4 poses) runs once for the module with a small registration budget and distance
-weights (the plumbing is under test here; registration accuracy is tested in tests/registration).
+One test-size knee study (3 poses: 0°, 20°, 35°) runs once for the module with a small registration budget
+and distance weights (the plumbing is under test here; registration accuracy is tested in tests/registration).
 """
 
 from __future__ import annotations
@@ -53,8 +53,11 @@ def _started(err: str) -> list[str]:
 
 @pytest.fixture(scope="module")
 def phantom(tmp_path_factory):
-    root = tmp_path_factory.mktemp("run") / "phantom"
-    assert main(["phantom", "knee", "--out", str(root), "--quiet"]) == 0
+    base = tmp_path_factory.mktemp("run")
+    root, poses = base / "phantom", base / "poses.json"
+    poses.write_text(json.dumps({"poses": [{"id": f"pose{i:02d}", "angles": {"knee": [a, 0, 0]}}
+                                           for i, a in enumerate((0, 20, 35))]}))
+    assert main(["phantom", "knee", "--poses-file", str(poses), "--out", str(root), "--quiet"]) == 0
     return root
 
 
@@ -86,8 +89,8 @@ def test_run_goes_through_every_stage_with_truth_only_in_validate(done):
     # the printed table is the validate stage's: MED of each scan, registered after initialised
     rows = st.validation("pose02")["rows"]
     assert f"| pose02 | registered | {rows['registered']['med_mm']:.2f} |" in out
-    # VBD from estimated poses is far better than no deformation at the 35° bend (16.9 mm for the truth's
-    # own source row in the README's run; the estimate costs well under a millimetre)
+    # the polyrigid start from estimated poses is far better than no deformation at the 35° bend (a quarter: the
+    # source is off by the whole bend, the start by the blend's and the pose estimate's errors, a few mm at most)
     assert rows["initialised"]["med_mm"] < 0.25 * rows["source"]["med_mm"]
 
 
@@ -98,7 +101,7 @@ def test_second_run_skips_every_stage(done, tmp_path):
                           text=True, encoding="utf-8", timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert _started(proc.stderr) == []
-    n_units = 3 + 1 + 1 + 1 + 4 * 3  # bones, pose, weights, model, surface, report; init, register, validate per scan
+    n_units = 3 + 1 + 1 + 1 + 3 * 3  # bones, pose, weights, model, surface, report; init, register, validate per scan
     assert proc.stderr.count("up to date, skipped") == n_units
     assert "0 stage run(s)" in proc.stdout
     assert (root / "study.json").read_bytes() == manifest
@@ -192,7 +195,7 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     left = [p for p in bare.rglob("*") if ".partial-" in p.name or ".tmp-" in p.name or ".old-" in p.name]
     assert left == []
     st = read_study(bare)
-    assert st.has_registration("pose00") and not st.has_registration("pose03")
+    assert st.has_registration("pose00") and not st.has_registration("pose02")
     again = subprocess.run([sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS], capture_output=True,
                            text=True, encoding="utf-8", timeout=900)
     assert again.returncode == 0, again.stderr
@@ -215,7 +218,7 @@ def _registered(root: Path, sid: str) -> bool:
     return sid in (m.get("stages", {}).get("register", {}).get("scans") or {})
 
 
-def test_four_concurrent_register_processes_leave_a_complete_manifest(done, tmp_path):
+def test_concurrent_register_processes_one_per_scan_leave_a_complete_manifest(done, tmp_path):
     root, _, _ = done
     copy = tmp_path / "study"
     shutil.copytree(root, copy, ignore=shutil.ignore_patterns("registration", "validation", "model"))
@@ -496,7 +499,7 @@ def _assert_same_outputs(a: Path, b: Path):
 
 
 def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(done, tmp_path):
-    """`workbench register --workers 2` from the synchronous run's init: the four registrations as Dask tasks on a
+    """`workbench register --workers 2` from the synchronous run's init: the three registrations as Dask tasks on a
     LocalCluster of 2 processes write the synchronous run's files to the bit (the default suite's check of the
     workers; the whole run's is the slow test below)."""
     root, _, _ = done
@@ -505,7 +508,7 @@ def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(d
     proc = subprocess.run([sys.executable, "-m", "workbench", "register", str(two), "--workers", "2"],
                           capture_output=True, text=True, encoding="utf-8", timeout=900)
     assert proc.returncode == 0, proc.stderr
-    assert "4 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
+    assert "3 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
     compared = 0
     for sid in read_study(root).scan_ids:
         for f in sorted((root / "registration" / sid).iterdir()):
@@ -516,7 +519,7 @@ def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(d
             else:
                 assert (two / "registration" / sid / f.name).read_bytes() == f.read_bytes(), (sid, f.name)
             compared += 1
-    assert compared >= 20  # correspondence, template_to_scan, registered, log, inverse status of the 4 scans
+    assert compared >= 15  # correspondence, template_to_scan, registered, log, inverse status of the 3 scans
 
 
 # slow (~90 s on 2 cores: the whole chain again, from the pose stage on, with two worker processes); the test above
@@ -530,7 +533,7 @@ def test_run_on_a_local_dask_cluster_of_two_workers_gives_the_same_files(done, t
     proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(two), *SETTINGS, "--workers", "2"],
                           capture_output=True, text=True, encoding="utf-8", timeout=900)
     assert proc.returncode == 0, proc.stderr
-    assert "register: 4 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
+    assert "register: 3 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
     assert _assert_same_outputs(root, two) > 50
     st = read_study(two)  # the stages' own times came back from the workers to the manifest
     assert all(st.stage_entry("register", s)["timings"]["registration"] > 0 for s in st.scan_ids)
@@ -573,7 +576,7 @@ def test_run_against_a_dask_scheduler_and_two_workers_gives_the_same_files(done,
             except subprocess.TimeoutExpired:
                 p.kill()
     assert proc.returncode == 0, proc.stderr
-    assert f"register: 4 scan(s) as Dask tasks on the Dask cluster at {address} (2 workers now)" in proc.stderr
+    assert f"register: 3 scan(s) as Dask tasks on the Dask cluster at {address} (2 workers now)" in proc.stderr
     assert "pose: up to date, skipped" in proc.stderr
     assert _assert_same_outputs(root, study) > 50
 

@@ -192,6 +192,62 @@ def test_concurrent_executions_of_the_same_stages_all_succeed(study):
     assert not [p for p in study.root.rglob("*") if ".partial-" in p.name or ".old-" in p.name]
 
 
+def _held_mean(ctx):
+    """Reads scan a's scale output twice, across a pause the test controls (files ``hold.in`` / ``hold.go``)."""
+    import time
+
+    from workbench.stages.mechanism import file_digest
+
+    hold = Path(ctx.options["hold"])
+    before = file_digest(Path(ctx.study.output("scale", "info.json", "a")))
+    (hold / "in").touch()
+    for _ in range(600):  # the test lets it go after a few seconds; the cap only ends a broken test
+        if (hold / "go").exists():
+            break
+        time.sleep(0.05)
+    return {"mean.json": Json({"same": file_digest(Path(ctx.study.output("scale", "info.json", "a"))) == before})}
+
+
+HELD_MEAN = Stage(name="mean", folder="mean", per_scan=False, settings_type=Gain, run=_held_mean,
+                  needs=lambda s: ("scale",))
+
+
+def _execute_held_mean(root, hold):
+    execute(read_study(root), HELD_MEAN, Gain(), registry={"scale": SCALE, "mean": HELD_MEAN},
+            options={"hold": hold})
+
+
+def _rerun_scale_a(root):
+    execute(read_study(root), SCALE, Gain(4.0), registry=REG, scans=["a"], force=True)
+
+
+def test_a_stage_is_not_rerun_under_a_stage_reading_it(study, tmp_path):
+    """While a whole-study stage runs, a forced rerun of a stage it reads (in another process) waits for it:
+    the outputs it read do not change under it (a shared lock on each unit it reads). Without the lock the
+    rerun would finish during the pause; with it, the rerun ends after the reader, and the reader is stale."""
+    execute(study, SCALE, Gain(), registry=REG)
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    ctx = mp.get_context("spawn")
+    reader = ctx.Process(target=_execute_held_mean, args=(str(study.root), str(hold)))
+    reader.start()
+    for _ in range(1200):
+        if (hold / "in").exists() or not reader.is_alive():
+            break
+        reader.join(0.05)
+    writer = ctx.Process(target=_rerun_scale_a, args=(str(study.root),))
+    writer.start()
+    writer.join(3.0)  # time for an unlocked rerun to finish (it takes well under a second here)
+    (hold / "go").touch()
+    for p in (reader, writer):
+        p.join(120)
+        assert p.exitcode == 0
+    st = read_study(study.root)
+    assert json.loads(Path(st.output("mean", "mean.json")).read_text())["same"]
+    assert st.stage_entry("scale", "a")["settings"] == {"factor": 4.0}  # the rerun did happen, after the reader
+    assert stage_status(st, HELD_MEAN, registry={"scale": SCALE, "mean": HELD_MEAN}) == "stale"
+
+
 def test_the_cli_names_the_stages_in_the_pipeline_order():
     from workbench.cli import _stage_names
     from workbench.stages import ORDER

@@ -348,9 +348,7 @@ def _need_digests(study: Study, stage: Stage, settings, scan, scans, registry) -
     for name in stage.needs(settings):
         need = registry[name]
         for unit in _need_units(need, scan, scans):
-            with _unit_lock(study.root, name, unit):  # not while another process swaps that unit's outputs
-                study.reload()
-                e = study.stage_entry(name, unit)
+            e = study.stage_entry(name, unit)  # the caller holds the unit's shared lock (_needs_held)
             what = f"the {name} stage" + (f" of scan {unit!r}" if unit else "")
             cmd = f"`{STAGE_COMMANDS.get(name, 'workbench run')} {study.root}`"
             if e is not None and e.get("skipped"):
@@ -469,33 +467,49 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
     units = list(scans) if stage.per_scan else [None]
     settings_json = settings_dict(settings)
     need_scans = scans if stage.per_scan else study.check_scan_ids(stage.uses(study, settings))
-    # every need is checked before any work, so that a missing stage is reported at once
-    need_digests = {u: _need_digests(study, stage, settings, u, need_scans, registry) for u in units}
-    root = study.root
-    folder = root / stage.folder
-    _clean_dead_staging(folder if stage.per_scan else root)
-    if stage.per_scan and runner is not None and runner.distributed:
-        return _execute_distributed(study, stage, settings, settings_json, units, need_digests, force, emit, options,
-                                    runner)
-    outcomes = []
-    n = len(units)
-    for i, unit in enumerate(units):
-        # One process at a time per unit: a second one waits, then finds the work done (and skips it).
-        with _unit_lock(root, stage.name, unit):
-            study.reload()
-            outcomes.append(_execute_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit],
-                                          force, emit, options, runner))
-    return outcomes
+    with _needs_held(study, stage, settings, units, need_scans, registry):
+        study.reload()
+        # every need is checked before any work, so that a missing stage is reported at once
+        need_digests = {u: _need_digests(study, stage, settings, u, need_scans, registry) for u in units}
+        root = study.root
+        folder = root / stage.folder
+        _clean_dead_staging(folder if stage.per_scan else root)
+        if stage.per_scan and runner is not None and runner.distributed:
+            return _execute_distributed(study, stage, settings, settings_json, units, need_digests, force, emit,
+                                        options, runner)
+        outcomes = []
+        n = len(units)
+        for i, unit in enumerate(units):
+            # One process at a time per unit: a second one waits, then finds the work done (and skips it).
+            with _unit_lock(root, stage.name, unit):
+                study.reload()
+                outcomes.append(_execute_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit],
+                                              force, emit, options, runner))
+        return outcomes
 
 
 @contextlib.contextmanager
-def _unit_lock(root: Path, stage: str, unit):
+def _needs_held(study: Study, stage: Stage, settings, units, need_scans, registry):
+    """Shared locks on every unit of the stages ``stage`` reads, held while it runs: another process may read
+    them too, but not rerun them (forget their entries, swap their folders) under it. Needs form a DAG, so a
+    process holding a unit's exclusive lock never waits on a unit downstream of it: no deadlock."""
+    held = sorted({(name, unit or "") for name in stage.needs(settings)
+                   for u in units for unit in _need_units(registry[name], u, need_scans)})
+    with contextlib.ExitStack() as stack:
+        for name, unit in held:
+            stack.enter_context(_unit_lock(study.root, name, unit or None, shared=True))
+        yield
+
+
+@contextlib.contextmanager
+def _unit_lock(root: Path, stage: str, unit, *, shared: bool = False):
+    """A unit's lock: exclusive to run (or record) it, shared to read its outputs while another stage runs."""
     import fcntl
 
     locks = root / ".locks"
     locks.mkdir(exist_ok=True)
     with open(locks / (f"{stage}-{unit}.lock" if unit else f"{stage}.lock"), "a+") as f:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        fcntl.flock(f.fileno(), fcntl.LOCK_SH if shared else fcntl.LOCK_EX)
         try:
             yield
         finally:
