@@ -192,19 +192,24 @@ def test_concurrent_executions_of_the_same_stages_all_succeed(study):
     assert not [p for p in study.root.rglob("*") if ".partial-" in p.name or ".old-" in p.name]
 
 
-def _held_mean(ctx):
-    """Reads scan a's scale output twice, across a pause the test controls (files ``hold.in`` / ``hold.go``)."""
+def _wait_for(path: Path, proc=None) -> None:
+    """Until ``path`` exists (or ``proc`` has ended); the cap only ends a broken test."""
     import time
 
+    for _ in range(1200):
+        if path.exists() or (proc is not None and not proc.is_alive()):
+            return
+        time.sleep(0.05)
+
+
+def _held_mean(ctx):
+    """Reads scan a's scale output twice, across a pause the test controls (files ``hold/in``, ``hold/go``)."""
     from workbench.stages.mechanism import file_digest
 
     hold = Path(ctx.options["hold"])
     before = file_digest(Path(ctx.study.output("scale", "info.json", "a")))
     (hold / "in").touch()
-    for _ in range(600):  # the test lets it go after a few seconds; the cap only ends a broken test
-        if (hold / "go").exists():
-            break
-        time.sleep(0.05)
+    _wait_for(hold / "go")
     return {"mean.json": Json({"same": file_digest(Path(ctx.study.output("scale", "info.json", "a"))) == before})}
 
 
@@ -217,8 +222,10 @@ def _execute_held_mean(root, hold):
             options={"hold": hold})
 
 
-def _rerun_scale_a(root):
-    execute(read_study(root), SCALE, Gain(4.0), registry=REG, scans=["a"], force=True)
+def _rerun_scale_a(root, hold):
+    st = read_study(root)
+    (Path(hold) / "started").touch()  # imports done: what is left is the rerun itself
+    execute(st, SCALE, Gain(4.0), registry=REG, scans=["a"], force=True)
 
 
 def test_a_stage_is_not_rerun_under_a_stage_reading_it(study, tmp_path):
@@ -231,13 +238,11 @@ def test_a_stage_is_not_rerun_under_a_stage_reading_it(study, tmp_path):
     ctx = mp.get_context("spawn")
     reader = ctx.Process(target=_execute_held_mean, args=(str(study.root), str(hold)))
     reader.start()
-    for _ in range(1200):
-        if (hold / "in").exists() or not reader.is_alive():
-            break
-        reader.join(0.05)
-    writer = ctx.Process(target=_rerun_scale_a, args=(str(study.root),))
+    _wait_for(hold / "in", reader)
+    writer = ctx.Process(target=_rerun_scale_a, args=(str(study.root), str(hold)))
     writer.start()
-    writer.join(3.0)  # time for an unlocked rerun to finish (it takes well under a second here)
+    _wait_for(hold / "started", writer)
+    writer.join(3.0)  # time for an unlocked rerun to finish (one 6x5x4 scan, its imports done)
     (hold / "go").touch()
     for p in (reader, writer):
         p.join(120)
@@ -246,6 +251,67 @@ def test_a_stage_is_not_rerun_under_a_stage_reading_it(study, tmp_path):
     assert json.loads(Path(st.output("mean", "mean.json")).read_text())["same"]
     assert st.stage_entry("scale", "a")["settings"] == {"factor": 4.0}  # the rerun did happen, after the reader
     assert stage_status(st, HELD_MEAN, registry={"scale": SCALE, "mean": HELD_MEAN}) == "stale"
+
+
+def _held_scaled(ctx):
+    hold = Path(ctx.options["hold"])
+    (hold / "in").touch()
+    _wait_for(hold / "go")
+    return _scaled(ctx)
+
+
+def _per_scan_b(ctx):
+    return {"b.json": Json({"size": Path(ctx.study.output("scale", "info.json", ctx.scan)).stat().st_size})}
+
+
+def _whole_c(ctx):
+    return {"c.json": Json({"n": len(ctx.study.scan_ids)})}
+
+
+B = Stage(name="b", folder="b", per_scan=True, settings_type=Gain, run=_per_scan_b, needs=lambda s: ("scale",))
+C = Stage(name="c", folder="c", per_scan=False, settings_type=Gain, run=_whole_c, needs=lambda s: ("b",))
+CHAIN = {"scale": SCALE, "b": B, "c": C}
+
+
+def _rerun_scale_a_held(root, hold):
+    held = Stage(name="scale", folder="scaled", per_scan=True, settings_type=Gain, run=_held_scaled,
+                 inputs=SCALE.inputs)
+    execute(read_study(root), held, Gain(4.0), registry={"scale": held}, scans=["a"], force=True,
+            options={"hold": hold})
+
+
+def _execute_c(root, hold):
+    st = read_study(root)
+    (Path(hold) / "reader").touch()  # imports done
+    try:
+        execute(st, C, Gain(), registry=CHAIN)
+        (Path(hold) / "ran").touch()
+    except StageNotReady as e:
+        (Path(hold) / "stale").write_text(str(e))
+
+
+def test_a_stage_waits_for_a_rerun_two_stages_upstream(study, tmp_path):
+    """c needs b, b needs scale. While another process reruns scale on scan a with a new setting, c waits for
+    it (a shared lock on every unit upstream, not only on b's: c's check of b reads scale's entry), then finds
+    b out of date and says so; it does not run on b's outputs while scale's are being replaced."""
+    execute(study, SCALE, Gain(), registry=REG)
+    execute(study, B, Gain(), registry=CHAIN)
+    hold = tmp_path / "hold"
+    hold.mkdir()
+    ctx = mp.get_context("spawn")
+    writer = ctx.Process(target=_rerun_scale_a_held, args=(str(study.root), str(hold)))
+    writer.start()
+    _wait_for(hold / "in", writer)  # the writer is inside scale's run on scan a, its lock held
+    reader = ctx.Process(target=_execute_c, args=(str(study.root), str(hold)))
+    reader.start()
+    _wait_for(hold / "reader", reader)
+    reader.join(3.0)  # an unlocked reader would run c in this time (b's entries are still recorded)
+    (hold / "go").touch()
+    for p in (writer, reader):
+        p.join(120)
+        assert p.exitcode == 0
+    assert not (hold / "ran").exists()
+    assert "the b stage of scan 'a' is out of date" in (hold / "stale").read_text()
 
 
 def test_the_cli_names_the_stages_in_the_pipeline_order():

@@ -467,7 +467,7 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
     units = list(scans) if stage.per_scan else [None]
     settings_json = settings_dict(settings)
     need_scans = scans if stage.per_scan else study.check_scan_ids(stage.uses(study, settings))
-    with _needs_held(study, stage, settings, units, need_scans, registry):
+    with _needs_held(study, stage, settings, units, registry):
         study.reload()
         # every need is checked before any work, so that a missing stage is reported at once
         need_digests = {u: _need_digests(study, stage, settings, u, need_scans, registry) for u in units}
@@ -488,13 +488,35 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
         return outcomes
 
 
+def _upstream_units(study: Study, stage: Stage, settings, units, registry) -> list:
+    """``(stage name, unit)`` of every unit upstream of ``stage``'s ``units``: its needs, their needs (which
+    :func:`stage_status` reads to tell whether a need is up to date), and so on.  A need's own needs are taken
+    under its recorded settings and its defaults both (an over-estimate costs a writer a wait, no more)."""
+    out, todo = set(), [(name, u) for name in stage.needs(settings) for u in units]
+    while todo:
+        name, u = todo.pop()
+        need = registry[name]
+        for unit in _need_units(need, u, study.scan_ids):  # a whole-study unit: every scan (an over-estimate)
+            if (name, unit or "") in out:
+                continue
+            out.add((name, unit or ""))
+            recorded = (study.stage_entry(name, unit) or {}).get("settings") or {}
+            try:
+                sets = [need.settings_type(**_settings_from_json(need.settings_type, recorded))]
+            except (TypeError, ValueError):
+                sets = []
+            sets.append(need.settings_type())
+            todo += [(m, unit) for st in sets for m in need.needs(st)]
+    return sorted(out)
+
+
 @contextlib.contextmanager
-def _needs_held(study: Study, stage: Stage, settings, units, need_scans, registry):
-    """Shared locks on every unit of the stages ``stage`` reads, held while it runs: another process may read
-    them too, but not rerun them (forget their entries, swap their folders) under it. Needs form a DAG, so a
-    process holding a unit's exclusive lock never waits on a unit downstream of it: no deadlock."""
-    held = sorted({(name, unit or "") for name in stage.needs(settings)
-                   for u in units for unit in _need_units(registry[name], u, need_scans)})
+def _needs_held(study: Study, stage: Stage, settings, units, registry):
+    """Shared locks on every unit upstream of the stage (:func:`_upstream_units`), held while it runs: another
+    process may read them too, but not rerun them (forget their entries, swap their folders) under it.  Needs
+    form a DAG and no process takes a unit's lock while it holds an exclusive one, so this cannot deadlock."""
+    study.reload()
+    held = _upstream_units(study, stage, settings, units, registry)
     with contextlib.ExitStack() as stack:
         for name, unit in held:
             stack.enter_context(_unit_lock(study.root, name, unit or None, shared=True))
@@ -652,33 +674,25 @@ def _unit_task(job: tuple) -> dict:
         if event.kind in ("progress", "message"):
             send(dataclasses.asdict(event))
 
-    with _unit_lock(study.root, name, unit):
-        done = _run_unit(study, stage, settings, unit, emit, options)
-        done["stats"] = _file_stats(_unit_folder(study, stage, unit), done["names"])
-        return done
-
-
-def _file_stats(folder: Path, names) -> dict | None:
-    """``{name: (size, mtime_ns)}`` of a unit's files (None when one is missing): which run's files they are."""
-    try:
-        return {n: ((st := (folder / n).stat()).st_size, st.st_mtime_ns) for n in names}
-    except OSError:
-        return None
+    # the unit's lock is the coordinator's, held from before its entry is forgotten until the result is recorded
+    return _run_unit(study, stage, settings, unit, emit, options)
 
 
 def _execute_distributed(study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit,
                          options, runner) -> list[Outcome]:
     """The scans of a per-scan stage as Dask tasks (:mod:`workbench.scale`); the manifest is written here only.
 
-    Each scan's old entry is forgotten before its task is sent (a task swaps its folder itself), so a run
-    that fails or is interrupted reruns every scan it had sent, finished ones excepted: they are recorded as
-    they arrive.  A scan another process ran meanwhile keeps that process's record.
+    This process holds each scan's lock from before its old entry is forgotten (a task swaps its folder itself)
+    until its result is recorded: another process that would run the scan, or read it, waits.  A run that
+    fails or is interrupted reruns every scan it had sent, finished ones excepted: they are recorded as they
+    arrive.
     """
     n = len(units)
     outcomes: dict = {}
     jobs = []
-    for i, unit in enumerate(units):
-        with _unit_lock(study.root, stage.name, unit):
+    with contextlib.ExitStack() as locks:
+        for i, unit in enumerate(units):
+            locks.enter_context(_unit_lock(study.root, stage.name, unit))
             study.reload()
             prep = _prepare_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit], force, emit)
             if isinstance(prep, Outcome):
@@ -687,36 +701,27 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
             if study.stage_entry(stage.name, unit) is not None:
                 # forgotten before the task swaps its folder: a run interrupted in between reruns the scan
                 study.forget(stage.name, unit)
-        jobs.append((i, unit, prep))
-    if jobs:
-        emit(Event(stage.name, None, 0, 0, f"{stage.name}: {len(jobs)} scan(s) as Dask tasks on "
-                                           f"{runner.description}", "message"))
-        for i, unit, _ in jobs:
-            emit(Event(stage.name, unit, i, n, f"{stage.name} {unit}: running", "start"))
+            jobs.append((i, unit, prep))
+        if jobs:
+            emit(Event(stage.name, None, 0, 0, f"{stage.name}: {len(jobs)} scan(s) as Dask tasks on "
+                                               f"{runner.description}", "message"))
+            for i, unit, _ in jobs:
+                emit(Event(stage.name, unit, i, n, f"{stage.name} {unit}: running", "start"))
 
-        def recorded(k, done):
-            i, unit, (digest, inputs) = jobs[k]
-            with _unit_lock(study.root, stage.name, unit):
-                study.reload()
-                if _file_stats(_unit_folder(study, stage, unit), done["names"]) != done["stats"]:
-                    # another process ran this scan between our task's swap and now (the lock is not held
-                    # across the task): the folder is its run's, and so is the manifest entry it recorded
-                    entry = study.stage_entry(stage.name, unit) or {}
-                    emit(Event(stage.name, unit, i + 1, n, f"{stage.name} {unit}: done by another process "
-                                                           "meanwhile; its result kept", "done"))
-                    outcomes[i] = Outcome(stage.name, unit, "skipped", 0.0, entry)
-                    return
+            def recorded(k, done):
+                i, unit, (digest, inputs) = jobs[k]
                 outcomes[i] = _record_unit(study, stage, settings_json, unit, i, n, digest, inputs,
                                            need_digests[unit], done, emit)
 
-        fields = {f.name for f in dataclasses.fields(Event)}  # Dask adds the sender ('worker') to each message
+            fields = {f.name for f in dataclasses.fields(Event)}  # Dask adds the sender ('worker') to each message
 
-        def forwarded(message: dict) -> None:
-            emit(Event(**{k: v for k, v in message.items() if k in fields}))
+            def forwarded(message: dict) -> None:
+                emit(Event(**{k: v for k, v in message.items() if k in fields}))
 
-        with runner.forwarding(forwarded) as topic:
-            runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}),
-                                     topic) for _, unit, _ in jobs], name=f"{stage.name}", on_result=recorded)
+            with runner.forwarding(forwarded) as topic:
+                runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit,
+                                         dict(options or {}), topic) for _, unit, _ in jobs],
+                           name=f"{stage.name}", on_result=recorded)
     return [outcomes[i] for i in range(n)]
 
 
