@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from registration.pose import contact_point, estimate_poses
+from registration.pose import contact_point, estimate_poses, pose_scans
 from registration.report import accuracy
 from registration.rigid import bone_regions
 
@@ -18,10 +20,20 @@ def cut_above_knee(scan):
 
 
 @pytest.fixture(scope="module")
-def knee_result(knee_ct_study):
+def knee_fits(knee_ct_study):
+    """Every bone of every scan (the first half of estimate_poses), for the tests to reuse; copy before use
+    (estimate_poses places each scan's pose on its ScanPose)."""
+    st = knee_ct_study
+    return pose_scans(st.template(), st.template_labels(), {s: (lambda s=s: st.scan(s)) for s in st.scan_ids},
+                      st.skeleton())
+
+
+@pytest.fixture(scope="module")
+def knee_result(knee_ct_study, knee_fits):
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
-    res = estimate_poses(tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk)
+    res = estimate_poses(tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk,
+                         scan_poses=copy.deepcopy(knee_fits))
     centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
     acc = accuracy(res, {s: st.truth_pose(s) for s in st.scan_ids}, sk, centroids)
     return res, acc
@@ -142,13 +154,16 @@ def test_root_from_image_moments_follows_a_shifted_scan(knee_ct_study):
         np.testing.assert_allclose(t[:3, :3] @ c + t[:3, 3] - c, shift, atol=0.5, err_msg=b)
 
 
-def test_flagged_bones_do_not_feed_joint_centres_or_angles(knee_ct_study):
+def test_flagged_bones_do_not_feed_joint_centres_or_angles(knee_ct_study, knee_fits):
     """A scan missing the shank: its knee motion is not used for the knee's centre and gets no angles."""
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
     scans = {s: st.scan(s) for s in st.scan_ids}
     scans["pose02"] = cut_above_knee(scans["pose02"])
-    res = estimate_poses(tpl, lab, scans, sk)
+    # the other scans' fits are the module's (the same arguments); the cut scan's bones are fitted here
+    fits = [copy.deepcopy(f) for f in knee_fits if f.scan_id != "pose02"]
+    fits += pose_scans(tpl, lab, {"pose02": scans["pose02"]}, sk)
+    res = estimate_poses(tpl, lab, scans, sk, scan_poses=fits)
     cut = next(s for s in res.scans if s.scan_id == "pose02")
     assert not cut.fits["tibia"].ok
     for j in sk.joints:  # angles exactly for the joints whose two bones were found
