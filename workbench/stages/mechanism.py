@@ -501,11 +501,13 @@ def _upstream_units(study: Study, stage: Stage, settings, units, registry) -> li
                 continue
             out.add((name, unit or ""))
             recorded = (study.stage_entry(name, unit) or {}).get("settings") or {}
-            try:
-                sets = [need.settings_type(**_settings_from_json(need.settings_type, recorded))]
-            except (TypeError, ValueError):
-                sets = []
-            sets.append(need.settings_type())
+            sets = []
+            for make in (lambda: need.settings_type(**_settings_from_json(need.settings_type, recorded)),
+                         need.settings_type):
+                try:
+                    sets.append(make())
+                except (TypeError, ValueError):
+                    pass
             todo += [(m, unit) for st in sets for m in need.needs(st)]
     return sorted(out)
 
@@ -513,13 +515,20 @@ def _upstream_units(study: Study, stage: Stage, settings, units, registry) -> li
 @contextlib.contextmanager
 def _needs_held(study: Study, stage: Stage, settings, units, registry):
     """Shared locks on every unit upstream of the stage (:func:`_upstream_units`), held while it runs: another
-    process may read them too, but not rerun them (forget their entries, swap their folders) under it.  Needs
-    form a DAG and no process takes a unit's lock while it holds an exclusive one, so this cannot deadlock."""
-    study.reload()
-    held = _upstream_units(study, stage, settings, units, registry)
+    process may read them too, but not rerun them (forget their entries, swap their folders) under it.  The set
+    is made again under the locks until no unit is added (a need rerun meanwhile with other settings may need
+    other stages).  A process holding a unit's exclusive lock takes no other lock (a Dask task's coordinator
+    holds none while its tasks run), so this cannot deadlock."""
+    held: set = set()
     with contextlib.ExitStack() as stack:
-        for name, unit in held:
-            stack.enter_context(_unit_lock(study.root, name, unit or None, shared=True))
+        while True:
+            study.reload()
+            new = [u for u in _upstream_units(study, stage, settings, units, registry) if u not in held]
+            if not new:
+                break
+            for name, unit in new:
+                stack.enter_context(_unit_lock(study.root, name, unit or None, shared=True))
+                held.add((name, unit))
         yield
 
 
@@ -674,25 +683,33 @@ def _unit_task(job: tuple) -> dict:
         if event.kind in ("progress", "message"):
             send(dataclasses.asdict(event))
 
-    # the unit's lock is the coordinator's, held from before its entry is forgotten until the result is recorded
-    return _run_unit(study, stage, settings, unit, emit, options)
+    with _unit_lock(study.root, name, unit):
+        done = _run_unit(study, stage, settings, unit, emit, options)
+        done["stats"] = _file_stats(_unit_folder(study, stage, unit), done["names"])
+        return done
+
+
+def _file_stats(folder: Path, names) -> dict | None:
+    """``{name: (size, mtime_ns)}`` of a unit's files (None when one is missing): which run's files they are."""
+    try:
+        return {n: ((st := (folder / n).stat()).st_size, st.st_mtime_ns) for n in names}
+    except OSError:
+        return None
 
 
 def _execute_distributed(study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit,
                          options, runner) -> list[Outcome]:
     """The scans of a per-scan stage as Dask tasks (:mod:`workbench.scale`); the manifest is written here only.
 
-    This process holds each scan's lock from before its old entry is forgotten (a task swaps its folder itself)
-    until its result is recorded: another process that would run the scan, or read it, waits.  A run that
-    fails or is interrupted reruns every scan it had sent, finished ones excepted: they are recorded as they
-    arrive.
+    Each scan's old entry is forgotten before its task is sent (a task swaps its folder itself), so a run
+    that fails or is interrupted reruns every scan it had sent, finished ones excepted: they are recorded as
+    they arrive.  A scan another process ran meanwhile keeps that process's record.
     """
     n = len(units)
     outcomes: dict = {}
     jobs = []
-    with contextlib.ExitStack() as locks:
-        for i, unit in enumerate(units):
-            locks.enter_context(_unit_lock(study.root, stage.name, unit))
+    for i, unit in enumerate(units):
+        with _unit_lock(study.root, stage.name, unit):
             study.reload()
             prep = _prepare_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit], force, emit)
             if isinstance(prep, Outcome):
@@ -701,27 +718,36 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
             if study.stage_entry(stage.name, unit) is not None:
                 # forgotten before the task swaps its folder: a run interrupted in between reruns the scan
                 study.forget(stage.name, unit)
-            jobs.append((i, unit, prep))
-        if jobs:
-            emit(Event(stage.name, None, 0, 0, f"{stage.name}: {len(jobs)} scan(s) as Dask tasks on "
-                                               f"{runner.description}", "message"))
-            for i, unit, _ in jobs:
-                emit(Event(stage.name, unit, i, n, f"{stage.name} {unit}: running", "start"))
+        jobs.append((i, unit, prep))
+    if jobs:
+        emit(Event(stage.name, None, 0, 0, f"{stage.name}: {len(jobs)} scan(s) as Dask tasks on "
+                                           f"{runner.description}", "message"))
+        for i, unit, _ in jobs:
+            emit(Event(stage.name, unit, i, n, f"{stage.name} {unit}: running", "start"))
 
-            def recorded(k, done):
-                i, unit, (digest, inputs) = jobs[k]
+        def recorded(k, done):
+            i, unit, (digest, inputs) = jobs[k]
+            with _unit_lock(study.root, stage.name, unit):
+                study.reload()
+                if _file_stats(_unit_folder(study, stage, unit), done["names"]) != done["stats"]:
+                    # another process ran this scan between our task's swap and now (the lock is not held
+                    # across the task): the folder is its run's, and so is the manifest entry it recorded
+                    entry = study.stage_entry(stage.name, unit) or {}
+                    emit(Event(stage.name, unit, i + 1, n, f"{stage.name} {unit}: done by another process "
+                                                           "meanwhile; its result kept", "done"))
+                    outcomes[i] = Outcome(stage.name, unit, "skipped", 0.0, entry)
+                    return
                 outcomes[i] = _record_unit(study, stage, settings_json, unit, i, n, digest, inputs,
                                            need_digests[unit], done, emit)
 
-            fields = {f.name for f in dataclasses.fields(Event)}  # Dask adds the sender ('worker') to each message
+        fields = {f.name for f in dataclasses.fields(Event)}  # Dask adds the sender ('worker') to each message
 
-            def forwarded(message: dict) -> None:
-                emit(Event(**{k: v for k, v in message.items() if k in fields}))
+        def forwarded(message: dict) -> None:
+            emit(Event(**{k: v for k, v in message.items() if k in fields}))
 
-            with runner.forwarding(forwarded) as topic:
-                runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit,
-                                         dict(options or {}), topic) for _, unit, _ in jobs],
-                           name=f"{stage.name}", on_result=recorded)
+        with runner.forwarding(forwarded) as topic:
+            runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}),
+                                     topic) for _, unit, _ in jobs], name=f"{stage.name}", on_result=recorded)
     return [outcomes[i] for i in range(n)]
 
 
