@@ -28,6 +28,13 @@ from workbench.cli import main
 from workbench.stages import STAGES
 from workbench.study import read_study
 
+# slow (~30 s in the default suite's 2 workers: two whole runs at once, harmonic weights included), to keep the
+# default suite under 6 minutes on CI; `make test-slow` runs it.  The default suite keeps the same rule piecewise:
+# a Dask worker's registrations are the synchronous run's bytes (tests/workbench/test_run.py), a phantom is the
+# same files for the same seed (tests/workbench/test_cli.py), the dense registration the same bits on 1 and 2
+# threads (tests/registration/test_dense.py).
+pytestmark = pytest.mark.slow
+
 SETTINGS = ["--set", "pose.grid_factor=2", "--set", "init.map_factor=2"]
 #: what may differ between two runs: the manifest (its entries' times and dates) and the phantom's log
 ALLOWED = ("study.json", "logs/")
