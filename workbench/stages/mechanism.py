@@ -517,8 +517,8 @@ def _needs_held(study: Study, stage: Stage, settings, units, registry):
     """Shared locks on every unit upstream of the stage (:func:`_upstream_units`), held while it runs: another
     process may read them too, but not rerun them (forget their entries, swap their folders) under it.  The set
     is made again under the locks until no unit is added (a need rerun meanwhile with other settings may need
-    other stages).  A process holding a unit's exclusive lock takes no other lock (a Dask task's coordinator
-    holds none while its tasks run), so this cannot deadlock."""
+    other stages).  A process holding a unit's exclusive lock takes no other lock (a Dask coordinator holds no
+    exclusive one while its tasks run; each task takes its own scan's), so this cannot deadlock."""
     held: set = set()
     with contextlib.ExitStack() as stack:
         while True:
