@@ -202,6 +202,24 @@ def _wait_for(path: Path, proc=None) -> None:
         time.sleep(0.05)
 
 
+def _second_while_first_is_paused(root, hold: Path, first, first_in: str, second, second_in: str) -> None:
+    """``first(root, hold)`` in a process, until it writes ``hold/first_in`` (it then pauses until ``hold/go``);
+    then ``second(root, hold)`` likewise, until ``hold/second_in`` (its imports done), and 3 s more: an unlocked
+    second would finish in that time (a 6x5x4 study).  Then the first goes on, and both must end cleanly."""
+    ctx = mp.get_context("spawn")
+    a = ctx.Process(target=first, args=(str(root), str(hold)))
+    a.start()
+    _wait_for(hold / first_in, a)
+    b = ctx.Process(target=second, args=(str(root), str(hold)))
+    b.start()
+    _wait_for(hold / second_in, b)
+    b.join(3.0)
+    (hold / "go").touch()
+    for proc in (a, b):
+        proc.join(120)
+        assert proc.exitcode == 0
+
+
 def _held_mean(ctx):
     """Reads scan a's scale output twice, across a pause the test controls (files ``hold/in``, ``hold/go``)."""
     from workbench.stages.mechanism import file_digest
@@ -235,18 +253,8 @@ def test_a_stage_is_not_rerun_under_a_stage_reading_it(study, tmp_path):
     execute(study, SCALE, Gain(), registry=REG)
     hold = tmp_path / "hold"
     hold.mkdir()
-    ctx = mp.get_context("spawn")
-    reader = ctx.Process(target=_execute_held_mean, args=(str(study.root), str(hold)))
-    reader.start()
-    _wait_for(hold / "in", reader)
-    writer = ctx.Process(target=_rerun_scale_a, args=(str(study.root), str(hold)))
-    writer.start()
-    _wait_for(hold / "started", writer)
-    writer.join(3.0)  # time for an unlocked rerun to finish (one 6x5x4 scan, its imports done)
-    (hold / "go").touch()
-    for p in (reader, writer):
-        p.join(120)
-        assert p.exitcode == 0
+    # the reader pauses inside mean's run; the writer's rerun of scale a gets 3 s to happen under it
+    _second_while_first_is_paused(study.root, hold, _execute_held_mean, "in", _rerun_scale_a, "started")
     st = read_study(study.root)
     assert json.loads(Path(st.output("mean", "mean.json")).read_text())["same"]
     assert st.stage_entry("scale", "a")["settings"] == {"factor": 4.0}  # the rerun did happen, after the reader
@@ -298,18 +306,8 @@ def test_a_stage_waits_for_a_rerun_two_stages_upstream(study, tmp_path):
     execute(study, B, Gain(), registry=CHAIN)
     hold = tmp_path / "hold"
     hold.mkdir()
-    ctx = mp.get_context("spawn")
-    writer = ctx.Process(target=_rerun_scale_a_held, args=(str(study.root), str(hold)))
-    writer.start()
-    _wait_for(hold / "in", writer)  # the writer is inside scale's run on scan a, its lock held
-    reader = ctx.Process(target=_execute_c, args=(str(study.root), str(hold)))
-    reader.start()
-    _wait_for(hold / "reader", reader)
-    reader.join(3.0)  # an unlocked reader would run c in this time (b's entries are still recorded)
-    (hold / "go").touch()
-    for p in (writer, reader):
-        p.join(120)
-        assert p.exitcode == 0
+    # the writer pauses inside scale's run on scan a (its lock held, b's entries still recorded); c gets 3 s
+    _second_while_first_is_paused(study.root, hold, _rerun_scale_a_held, "in", _execute_c, "reader")
     assert not (hold / "ran").exists()
     assert "the b stage of scan 'a' is out of date" in (hold / "stale").read_text()
 
