@@ -157,7 +157,10 @@ def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bon
                                   seconds, 0.0)
     out["markers_many_mm"] = marker_med(field, d["many"])
     lv = " ".join(f"[{x['iterations']} taken, {x.get('rejected', 0)} refused, {x.get('stop', '')}: "
-                  f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}]" for x in (levels or []))
+                  f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}"
+                  + (f"; agreement {x['agreement']['before']:.4f} -> {x['agreement']['after']:.4f}"
+                     f"{'' if x['agreement']['kept'] else ', undone'}" if x.get("agreement") else "") + "]"
+                  for x in (levels or []))
     print(f"| {tag} | {out['med_mm']:.3f} | {out['bone_mm']:.3f} | {out['soft_mm']:.3f} | "
           f"{out['markers_many_mm']:.3f} | {out['n_folded']} | {seconds:.0f} | {lv} |", flush=True)
     if per_bone:
