@@ -321,5 +321,6 @@ STAGE = Stage(name="register", folder="registration", per_scan=True, settings_ty
               # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
               # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
               # leaves; 16: the skin's term in the dense objective (skin_weight); 17: the membrane energy where the
-              # scan shows only noise (stiffness)
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=17)
+              # scan shows only noise (stiffness); 18: a level's change kept only if the images agree better at the
+              # scan's resolution (level_check)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=18)
