@@ -216,10 +216,11 @@ class DenseSettings:
     #: shows only noise, weighs 1).  0: off
     stiffness: float = 3.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
-    #: each level's change (its steps and its bones' rounds) is kept only if it raises the two images' correlation
+    #: the result is kept only if the two images agree better through it than through the start: their correlation
     #: over the scan's body at the scan's resolution, both smoothed by a scan voxel and a template voxel
-    #: (:func:`_agreement`); otherwise the next level starts from this level's input
-    level_check: bool = True
+    #: (:func:`_agreement`); otherwise ``U = id`` (the start, repaired as any result).  Each level's record holds the
+    #: agreement at its input and after it
+    start_check: bool = True
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
     #: (_interpolation_noise, the template's noise measured in its air): no sub-voxel position is preferred for the
@@ -294,6 +295,9 @@ class DenseResult:
     #: which voxels) and ``n_folded_u``, the folds of U alone (0: every step was one-to-one)
     folding: dict = field(default_factory=dict)
     unfold: dict | None = None  #: what the final repair changed (deformation.fields.unfold), None if nothing
+    #: settings.start_check: the images' agreement through the start and through the result, and whether the result
+    #: was kept (False: the start was returned); None when off
+    start_check: dict | None = None
 
 
 #: the bones' significance test compares images smoothed by at least this σ in scan voxels and in template voxels
@@ -796,7 +800,7 @@ def _to_box(u: np.ndarray, s: int, box_shape: tuple) -> np.ndarray:
 
 
 def _agreement(f: np.ndarray, warp, u: np.ndarray, s: int, body: np.ndarray | None) -> float:
-    """settings.level_check: the Pearson correlation over ``body`` (None: every voxel) of the scan ``f`` and the
+    """settings.start_check: the Pearson correlation over ``body`` (None: every voxel) of the scan ``f`` and the
     template through ``U = id + u`` (``warp``, the sampler's on the box's full grid; ``u`` of the level of shrink
     ``s``).  The level's objective is a local correlation: each window's gain and offset are free, so a map can
     raise it by fitting the texture in each window while it puts tissue where the scan shows another intensity;
@@ -1099,8 +1103,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             if sl is not None:
                 centres[b] = np.array([(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a]
                                        for a in range(3)])
-    check = None  # settings.level_check: (the scan smoothed, the template's sampler on the box, the scan's body)
-    if st.level_check:
+    check = None  # settings.start_check: (the scan smoothed, the template's sampler on the box, the scan's body)
+    if st.start_check:
         sig_c = max(TEST_SMOOTH_VOXELS, TEST_SMOOTH_VOXELS * template_voxel)
         check = (_smooth(f0, sig_c), template.level(1, sig_c, f0.shape)[0],
                  None if scan_body is None else scan_body[crop])
@@ -1124,9 +1128,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             coords = grid * ratio
             coords = [np.minimum(coords[a], u.shape[a + 1] - 1) for a in range(3)]
             u = np.stack([_sample(u[a], coords) for a in range(3)]).astype(np.float32)
-        level_input = None  # settings.level_check: u, the bones' poses and tests, the agreement at the level's input
+        agreement_in = None  # settings.start_check: the images' agreement at the level's input
         if check is not None:
-            level_input = (u, dict(params), set(tested), _agreement(check[0], check[1], u, s, check[2]))
+            agreement_in = _agreement(check[0], check[1], u, s, check[2])
         labl = lab0[::s, ::s, ::s] if lab0 is not None else None
         regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
         win = st.window_mm / sp
@@ -1455,21 +1459,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": held_best[1] - 1,
                         "noise_sd": [round(held_out[2][0] * scale, 6), round(held_out[2][1], 6)]}
         check_rec = None
-        if level_input is not None:
-            after = _agreement(check[0], check[1], u, s, check[2])
-            check_rec = {"before": round(level_input[3], 6), "after": round(after, 6),
-                         "kept": bool(after > level_input[3])}
-            if not check_rec["kept"]:  # the level's change is undone: the next level starts from its input
-                u = level_input[0]
-                params.clear()
-                params.update(level_input[1])
-                tested.clear()
-                tested.update(level_input[2])
+        if agreement_in is not None:
+            check_rec = {"before": agreement_in, "after": _agreement(check[0], check[1], u, s, check[2])}
         before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
                "lncc_before": before, "lncc_after": cc,
-               "input_kept": (cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds))
-               or (check_rec is not None and not check_rec["kept"]),
+               "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
                "rejected": rejected, "stop": stop, "halvings": halvings,
                # the level's objective (the LNCC, less the skin's term when "skin_term" and the membrane energy when
                # "noise_share") per taken step (and bones' round): never falls; lncc_before / lncc_after are its
@@ -1486,8 +1481,8 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
                # its first bones' round) and the two images' noise SDs (their units), None when off
                "held_out": held_rec,
-               # settings.level_check: the images' agreement (_agreement) at the level's input and after its
-               # change, and whether the change was kept (None when off)
+               # settings.start_check: the images' agreement (_agreement) at the level's input and after it (None
+               # when off)
                "agreement": check_rec,
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
@@ -1499,6 +1494,15 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     # u (array axes, mm) → world displacement on the scan grid, then φ = φ₀ ∘ U
     box_shape = f0.shape
     u = _to_box(u, prev_s, box_shape)
+    start_check = None
+    if check is not None:  # settings.start_check: the result against the start, as the images agree through them
+        start_check = {"start": levels[0]["agreement"]["before"],
+                       "result": _agreement(check[0], check[1], u, 1, check[2])}
+        start_check["kept"] = bool(start_check["result"] > start_check["start"])
+        if not start_check["kept"]:
+            log.warning("dense: the registered template agrees with the scan less than the start's (correlation "
+                        "%.4f against %.4f): the start is kept", start_check["result"], start_check["start"])
+            u = np.zeros_like(u)
     if box_shape != g.array_shape:  # beyond the box (air), U's edge values: the levels' "nearest" padding
         u = np.pad(u, [(0, 0)] + [(c.start, n - c.stop) for c, n in zip(crop, g.array_shape)], mode="edge")
     lab0 = lab_full
@@ -1583,4 +1587,4 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                        folding={**folding_statistics(corr, scan_body),
                                 "over": "all voxels" if scan_body is None else "the scan's body",
                                 "n_folded_u": u_folds},
-                       unfold=repair)
+                       unfold=repair, start_check=start_check)
