@@ -157,10 +157,7 @@ def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bon
                                   seconds, 0.0)
     out["markers_many_mm"] = marker_med(field, d["many"])
     lv = " ".join(f"[{x['iterations']} taken, {x.get('rejected', 0)} refused, {x.get('stop', '')}: "
-                  f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}"
-                  + (f"; agreement {x['agreement']['before']:.4f} -> {x['agreement']['after']:.4f}"
-                     if x.get("agreement") else "") + "]"
-                  for x in (levels or []))
+                  f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}]" for x in (levels or []))
     print(f"| {tag} | {out['med_mm']:.3f} | {out['bone_mm']:.3f} | {out['soft_mm']:.3f} | "
           f"{out['markers_many_mm']:.3f} | {out['n_folded']} | {seconds:.0f} | {lv} |", flush=True)
     if per_bone:
@@ -246,9 +243,6 @@ def main(argv=None) -> int:
         r = register_dense(d["scan"], d["template"], initial=d["truth"] if args.from_truth else d["init"],
                            moving_labels=d["held"], settings=st)
         score(d, r.correspondence, r.seconds, tag, r.levels, args.per_bone)
-        if r.start_check and not r.start_check["kept"]:
-            print(f"|  | the start kept (settings.start_check): the images' agreement {r.start_check['result']:.4f} "
-                  f"through the result, {r.start_check['start']:.4f} through the start |||||||", flush=True)
     return 0
 
 

@@ -216,11 +216,6 @@ class DenseSettings:
     #: shows only noise, weighs 1).  0: off
     stiffness: float = 3.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
-    #: the result is kept only if the two images agree better through it than through the start: their correlation
-    #: over the scan's body at the scan's resolution, both smoothed by a scan voxel and a template voxel
-    #: (:func:`_agreement`); otherwise ``U = id`` (the start, repaired as any result).  Each level's record holds the
-    #: agreement at its input and after it
-    start_check: bool = True
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
     #: (_interpolation_noise, the template's noise measured in its air): no sub-voxel position is preferred for the
@@ -295,9 +290,6 @@ class DenseResult:
     #: which voxels) and ``n_folded_u``, the folds of U alone (0: every step was one-to-one)
     folding: dict = field(default_factory=dict)
     unfold: dict | None = None  #: what the final repair changed (deformation.fields.unfold), None if nothing
-    #: settings.start_check: the images' agreement through the start and through the result, and whether the result
-    #: was kept (False: the start was returned); None when off
-    start_check: dict | None = None
 
 
 #: the bones' significance test compares images smoothed by at least this σ in scan voxels and in template voxels
@@ -789,28 +781,6 @@ class _TemplateSampler:
         return warp, sample
 
 
-def _to_box(u: np.ndarray, s: int, box_shape: tuple) -> np.ndarray:
-    """``u`` of the level of shrink ``s`` on the box's full grid (trilinear; its edge values beyond the level's
-    last voxel)."""
-    if u.shape[1:] == tuple(box_shape):
-        return u
-    grid = np.indices(box_shape, dtype=np.float32)
-    coords = [np.minimum(grid[a] / s, u.shape[a + 1] - 1) for a in range(3)]
-    return np.stack([_sample(u[a], coords) for a in range(3)])
-
-
-def _agreement(f: np.ndarray, warp, u: np.ndarray, s: int, body: np.ndarray | None) -> float:
-    """settings.start_check: the Pearson correlation over ``body`` (None: every voxel) of the scan ``f`` and the
-    template through ``U = id + u`` (``warp``, the sampler's on the box's full grid; ``u`` of the level of shrink
-    ``s``).  The level's objective is a local correlation: each window's gain and offset are free, so a map can
-    raise it by fitting the texture in each window while it puts tissue where the scan shows another intensity;
-    one correlation over the whole body measures that agreement, which the two images of one subject under one
-    protocol share up to a smooth bias field.  Both images are smoothed by a scan voxel and a template voxel
-    (as the bones' test, TEST_SMOOTH_VOXELS) so that a sub-voxel position of the template is not preferred for
-    the noise trilinear sampling averages away."""
-    return cc(f, warp(_to_box(u, s, f.shape))[0], body)
-
-
 def _voxel_in_voxels(a: GridGeometry, b: GridGeometry) -> float:
     """Grid ``a``'s voxel in voxels of grid ``b``, along the axis of ``b`` where it is the most: the voxel's
     extent along each of ``b``'s axes (its edges, world mm, projected through both directions) over ``b``'s
@@ -1103,11 +1073,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             if sl is not None:
                 centres[b] = np.array([(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a]
                                        for a in range(3)])
-    check = None  # settings.start_check: (the scan smoothed, the template's sampler on the box, the scan's body)
-    if st.start_check:
-        sig_c = max(TEST_SMOOTH_VOXELS, TEST_SMOOTH_VOXELS * template_voxel)
-        check = (_smooth(f0, sig_c), template.level(1, sig_c, f0.shape)[0],
-                 None if scan_body is None else scan_body[crop])
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
     prev_s = None  # the previous level's shrink factor
     levels = []
@@ -1128,9 +1093,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             coords = grid * ratio
             coords = [np.minimum(coords[a], u.shape[a + 1] - 1) for a in range(3)]
             u = np.stack([_sample(u[a], coords) for a in range(3)]).astype(np.float32)
-        agreement_in = None  # settings.start_check: the images' agreement at the level's input
-        if check is not None:
-            agreement_in = _agreement(check[0], check[1], u, s, check[2])
         labl = lab0[::s, ::s, ::s] if lab0 is not None else None
         regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
         win = st.window_mm / sp
@@ -1458,9 +1420,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     r["discarded"] = True
             held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": held_best[1] - 1,
                         "noise_sd": [round(held_out[2][0] * scale, 6), round(held_out[2][1], 6)]}
-        check_rec = None
-        if agreement_in is not None:
-            check_rec = {"before": agreement_in, "after": _agreement(check[0], check[1], u, s, check[2])}
         before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
                "lncc_before": before, "lncc_after": cc,
@@ -1481,9 +1440,6 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
                # its first bones' round) and the two images' noise SDs (their units), None when off
                "held_out": held_rec,
-               # settings.start_check: the images' agreement (_agreement) at the level's input and after it (None
-               # when off)
-               "agreement": check_rec,
                "seconds": round(time.perf_counter() - t_level, 2)}
         levels.append(rec)
         log.info("dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; objective %.4f -> %.4f", lv, s,
@@ -1493,16 +1449,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         prev_s = s
     # u (array axes, mm) → world displacement on the scan grid, then φ = φ₀ ∘ U
     box_shape = f0.shape
-    u = _to_box(u, prev_s, box_shape)
-    start_check = None
-    if check is not None:  # settings.start_check: the result against the start, as the images agree through them
-        start_check = {"start": levels[0]["agreement"]["before"],
-                       "result": _agreement(check[0], check[1], u, 1, check[2])}
-        start_check["kept"] = bool(start_check["result"] > start_check["start"])
-        if not start_check["kept"]:
-            log.warning("dense: the registered template agrees with the scan less than the start's (correlation "
-                        "%.4f against %.4f): the start is kept", start_check["result"], start_check["start"])
-            u = np.zeros_like(u)
+    if u.shape[1:] != box_shape:
+        grid = np.indices(box_shape, dtype=np.float32)
+        coords = [np.minimum(grid[a] / prev_s, u.shape[a + 1] - 1) for a in range(3)]
+        u = np.stack([_sample(u[a], coords) for a in range(3)])
     if box_shape != g.array_shape:  # beyond the box (air), U's edge values: the levels' "nearest" padding
         u = np.pad(u, [(0, 0)] + [(c.start, n - c.stop) for c, n in zip(crop, g.array_shape)], mode="edge")
     lab0 = lab_full
@@ -1587,4 +1537,4 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                        folding={**folding_statistics(corr, scan_body),
                                 "over": "all voxels" if scan_body is None else "the scan's body",
                                 "n_folded_u": u_folds},
-                       unfold=repair, start_check=start_check)
+                       unfold=repair)

@@ -304,13 +304,10 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
     levels, level_seconds = _untimed(result.levels)
     ctx.timings.update(registration=round(result.seconds, 3), inverse=round(time.perf_counter() - t0, 3),
                        levels=level_seconds)
-    if result.start_check and not result.start_check["kept"]:
-        ctx.say(f"{sid}: the registered template agrees with the scan less than the start's (correlation "
-                f"{result.start_check['result']:.4f} against {result.start_check['start']:.4f}): the start is kept")
     summary = {"scan": sid, "init": start["method"],
                "control_points": None, "levels": levels, "inverse": bm.summary(),
                "folding": result.folding, "unfold": result.unfold, "similarity_before": result.similarity_before,
-               "similarity_after": result.similarity_after, "start_check": result.start_check}
+               "similarity_after": result.similarity_after}
     return _outputs(result, bm, template, {
         "method": f"dense (LNCC diffeomorphic steps, bones {settings.bones}; registration.dense)",
         "settings": dataclasses.asdict(s), "dense_settings": settings.to_dict(), "summary": summary})
@@ -324,6 +321,5 @@ STAGE = Stage(name="register", folder="registration", per_scan=True, settings_ty
               # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
               # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
               # leaves; 16: the skin's term in the dense objective (skin_weight); 17: the membrane energy where the
-              # scan shows only noise (stiffness); 18: the result kept only if the images agree better through it
-              # than through the start at the scan's resolution (start_check)
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=18)
+              # scan shows only noise (stiffness)
+              needs=lambda s: ("init", "bones"), inputs=_inputs, version=17)
