@@ -173,11 +173,12 @@ def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bon
 
 
 def agreement_measures(d: dict, field: Volume) -> dict:
-    """``--measures``: how well the scan and the template through ``field`` agree, measures the optimiser does not
-    climb, over the scan's body (``segment_body``): ``cc0`` the Pearson correlation, ``cc1`` the same with both
-    images smoothed by one scan voxel (Gaussian σ), ``lncc3`` / ``lncc9`` the mean of each voxel's squared local
-    correlation in Gaussian windows of σ 3 and 9 mm (scipy's default truncation); and ``MED`` against the
-    truth, for the ranking."""
+    """``--measures``: how well the scan and the template through ``field`` agree over the scan's body
+    (``segment_body``): ``cc0`` the Pearson correlation, ``cc1`` the same with both images smoothed by one scan
+    voxel (Gaussian σ), neither climbed by the optimiser; ``lncc3`` / ``lncc9`` the mean of each voxel's squared
+    local correlation in Gaussian windows of σ 3 and 9 mm (scipy's default truncation; ``lncc3`` is close to the
+    finest level's LNCC, over the whole body and without its penalties); and ``MED`` against the truth, for the
+    ranking."""
     from scipy import ndimage
 
     from registration.baselines import warp_template
