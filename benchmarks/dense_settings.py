@@ -278,19 +278,18 @@ def main(argv=None) -> int:
         print("| map | MED mm | cc0 | cc1 | lncc3 | lncc9 |\n|---|---|---|---|---|---|")
         _print_measures("start", agreement_measures(d, d["init"]))
         _print_measures("truth", agreement_measures(d, d["truth"]))
-        for tag, st in variants:
-            r = register_dense(d["scan"], d["template"], initial=d["truth"] if args.from_truth else d["init"],
-                               moving_labels=d["held"], settings=st)
-            _print_measures(tag, agreement_measures(d, r.correspondence))
-        return 0
-    print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
-    print("|---|---|---|---|---|---|---|---|")
-    score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)"
-          + ("; the variants below start at the truth" if args.from_truth else ""), per_bone=args.per_bone)
+    else:
+        print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
+        print("|---|---|---|---|---|---|---|---|")
+        score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)"
+              + ("; the variants below start at the truth" if args.from_truth else ""), per_bone=args.per_bone)
     for tag, st in variants:
         r = register_dense(d["scan"], d["template"], initial=d["truth"] if args.from_truth else d["init"],
                            moving_labels=d["held"], settings=st)
-        score(d, r.correspondence, r.seconds, tag, r.levels, args.per_bone)
+        if args.measures:
+            _print_measures(tag, agreement_measures(d, r.correspondence))
+        else:
+            score(d, r.correspondence, r.seconds, tag, r.levels, args.per_bone)
     return 0
 
 

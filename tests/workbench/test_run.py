@@ -507,12 +507,14 @@ def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(d
     root, _, _ = done
     two = _strip(root, tmp_path / "two", keep=("bones", "pose", "weights", "init"))
     # (SETTINGS' register entries are Rhee's Algorithm 1's, which the dense registration does not read)
-    proc = subprocess.run([sys.executable, "-m", "workbench", "register", str(two), "--workers", "2", "--scan",
-                           "pose01", "--scan", "pose02"], capture_output=True, text=True, encoding="utf-8", timeout=900)
+    scans = ("pose01", "pose02")
+    proc = subprocess.run([sys.executable, "-m", "workbench", "register", str(two), "--workers", "2",
+                           *[a for sid in scans for a in ("--scan", sid)]],
+                          capture_output=True, text=True, encoding="utf-8", timeout=900)
     assert proc.returncode == 0, proc.stderr
     assert "2 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
     compared = 0
-    for sid in ("pose01", "pose02"):
+    for sid in scans:
         for f in sorted((root / "registration" / sid).iterdir()):
             if f.suffix == ".json":  # the log: all but the stage's settings (SETTINGS set Algorithm 1's levels)
                 a_, b_ = (json.loads(p_.read_text()) for p_ in (f, two / "registration" / sid / f.name))
