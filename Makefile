@@ -20,14 +20,15 @@ TEST_DEB_PACKAGES := chromium
 # Shell: the packages of $(1) that dpkg does not list as installed, in $$missing.
 missing_of = missing=""; for p in $(1); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; done
 
-.PHONY: demo test test-slow system-deps test-deps venv clean help bench bench-ants
+.PHONY: demo test lint test-slow system-deps test-deps venv clean help bench bench-ants
 
 help:
 	@echo "make demo       set up, build a phantom knee study in $(DEMO_DIR)/ and run the pipeline on it (bones, pose,"
 	@echo "                weights, registrations, an EVD model from them; the truth only validates), deform it to a"
 	@echo "                45° bend ($(DEMO_DIR)/bend45.nii.gz), render it ($(DEMO_DIR)/bend45.png) and animate a"
 	@echo "                bend-and-straighten ($(DEMO_DIR)/knee.mp4)"
-	@echo "make test       set up, then run the test suite (slow tests excluded)"
+	@echo "make test       set up, then run the gates (make lint) and the test suite (slow tests excluded)"
+	@echo "make lint       ruff (lint and format) and import-linter's layering contract"
 	@echo "make test-slow  paper-size tests (minutes)"
 	@echo "make bench      add the benchmarks' peers to .venv (itk-elastix, psutil)"
 	@echo "make bench-ants ANTs SyN for benchmarks/registration.py, in its own .venv-ants (antspyx pins an"
@@ -87,7 +88,14 @@ demo: venv
 	echo "  knee.mp4                    bend and straighten"; \
 	echo "demo took $$(( $$(date +%s) - start )) s"
 
-test: venv test-deps
+# The gates: ruff's lint and format, and import-linter's layering (workbench → validation → registration →
+# deformation, pyproject.toml); `make lint` runs them alone.
+lint: venv
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/lint-imports
+
+test: venv test-deps lint
 	$(VENV)/bin/pytest -n 2 --dist loadfile
 
 test-slow: venv test-deps

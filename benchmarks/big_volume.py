@@ -102,8 +102,17 @@ def keyframes(out: Path) -> Path:
     """Two keyframes for ``animate``: the rest pose and the fingers flexed 40° at the MCP joints."""
     bend = {f"{f}_mcp": [40, 0, 0] for f in ("index", "middle", "ring", "little")}
     path = out / "keyframes.json"
-    path.write_text(json.dumps({"format": "avw-keyframes", "version": 1, "skeleton": "hand", "fps": 24,
-                                "keyframes": [{"time": 0.0, "angles": {}}, {"time": 1.0, "angles": bend}]}))
+    path.write_text(
+        json.dumps(
+            {
+                "format": "avw-keyframes",
+                "version": 1,
+                "skeleton": "hand",
+                "fps": 24,
+                "keyframes": [{"time": 0.0, "angles": {}}, {"time": 1.0, "angles": bend}],
+            }
+        )
+    )
     return path
 
 
@@ -117,8 +126,23 @@ def build_study(out: Path, size) -> tuple[Path, Path]:
         return study, out / "target_pose.json"
     if small.exists():
         shutil.rmtree(small)
-    subprocess.run([sys.executable, "-m", "workbench", "phantom", "hand", "--modality", "ct", "--poses", "2",
-                    "--out", str(small), "--quiet"], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "workbench",
+            "phantom",
+            "hand",
+            "--modality",
+            "ct",
+            "--poses",
+            "2",
+            "--out",
+            str(small),
+            "--quiet",
+        ],
+        check=True,
+    )
     m = json.loads((small / "study.json").read_text())
     shutil.copyfile(small / m["scans"][-1]["truth"]["pose"], out / "target_pose.json")
     ref = sitk.ReadImage(str(small / m["template"]))
@@ -132,8 +156,14 @@ def build_study(out: Path, size) -> tuple[Path, Path]:
     def resample(rel: str, name: str, labels: bool = False) -> str:
         img = sitk.ReadImage(str(small / rel))
         fill = 0 if labels else float(sitk.GetArrayViewFromImage(img).min())
-        big = sitk.Resample(img, grid, sitk.Transform(), sitk.sitkNearestNeighbor if labels else sitk.sitkLinear,
-                            fill, sitk.sitkUInt16 if labels else sitk.sitkInt16)
+        big = sitk.Resample(
+            img,
+            grid,
+            sitk.Transform(),
+            sitk.sitkNearestNeighbor if labels else sitk.sitkLinear,
+            fill,
+            sitk.sitkUInt16 if labels else sitk.sitkInt16,
+        )
         sitk.WriteImage(big, str(study / name))
         return name
 
@@ -156,17 +186,21 @@ def pose_accuracy(out: Path) -> str:
 
     small, big = read_study(out / "phantom"), read_study(out / "study")
     labels, sk = small.template_labels(), small.skeleton()
-    centroids = {b: small.template().geometry.index_to_world(
-        np.argwhere(labels.data == sk.label_of(b))[:, ::-1].mean(0)) for b in sk.bone_names}
+    centroids = {
+        b: small.template().geometry.index_to_world(np.argwhere(labels.data == sk.label_of(b))[:, ::-1].mean(0))
+        for b in sk.bone_names
+    }
     flagged = json.loads((out / "study" / "poses" / "fits.json").read_text())["scans"]
     lines = []
     for sid in big.scan_ids:
         est = big.pose(sid)
         kept = {b: t for b, t in est.transforms.items() if flagged[sid]["bones"][b]["status"] == "ok"}
         e = pose_errors(type(est)(kept, skeleton=est.skeleton), small.truth_pose(sid), centroids)
-        lines.append(f"{sid}: {len(kept)} bones, rotation mean {e['mean_rotation_deg']:.2f}° max "
-                     f"{e['max_rotation_deg']:.2f}°, translation mean {e['mean_translation_mm']:.2f} mm max "
-                     f"{e['max_translation_mm']:.2f} mm")
+        lines.append(
+            f"{sid}: {len(kept)} bones, rotation mean {e['mean_rotation_deg']:.2f}° max "
+            f"{e['max_rotation_deg']:.2f}°, translation mean {e['mean_translation_mm']:.2f} mm max "
+            f"{e['max_translation_mm']:.2f} mm"
+        )
     return "; ".join(lines)
 
 
@@ -174,32 +208,89 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("/tmp/avw-big"))
     p.add_argument("--size", type=int, nargs=3, default=[512, 512, 750], metavar=("NX", "NY", "NZ"))
-    p.add_argument("--stages", nargs="+", default=["pose", "weights", "init", "deform"],
-                   choices=["pose", "weights", "init", "unfold", "deform", "field", "animate"])
+    p.add_argument(
+        "--stages",
+        nargs="+",
+        default=["pose", "weights", "init", "deform"],
+        choices=["pose", "weights", "init", "unfold", "deform", "field", "animate"],
+    )
     p.add_argument("--kill-gib", type=float, default=20.0)
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     study, target = build_study(a.out, a.size)
     n = int(np.prod(a.size))
-    print(f"study: {study} — {a.size[0]}×{a.size[1]}×{a.size[2]} = {n / 1e6:.0f} M voxels at "
-          f"{'×'.join(f'{v:.3f}' for v in spacing_for(a.size))} mm, 2 scans (built or reused in {time.perf_counter() - t0:.0f} s)",
-          flush=True)
+    print(
+        f"study: {study} — {a.size[0]}×{a.size[1]}×{a.size[2]} = {n / 1e6:.0f} M voxels at "
+        f"{'×'.join(f'{v:.3f}' for v in spacing_for(a.size))} mm, 2 scans (built or reused in "
+        f"{time.perf_counter() - t0:.0f} s)",
+        flush=True,
+    )
     wb = [sys.executable, "-m", "workbench"]
-    commands = {"pose": wb + ["pose", str(study), "--force", "--quiet"],
-                "weights": wb + ["weights", str(study), "--force", "--quiet"],
-                "init": wb + ["run", str(study), "--until", "init", "--set", "init.method=vbd", "--force", "init",
-                              "--quiet"],
-                "unfold": wb + ["run", str(study), "--until", "init", "--set", "init.method=vbd", "--set",
-                                "init.unfold=true", "--force", "init", "--quiet"],
-                "deform": wb + ["deform", str(study), "--pose", str(target), "--method", "vbd", "--force",
-                                "--out", str(a.out / "posed.nii"), "--quiet"],
-                "field": wb + ["deform", str(study), "--pose", str(target), "--method", "vbd", "--force",
-                               "--out", str(a.out / "posed.nii"), "--field-out", str(a.out / "posed_field.mha"),
-                               "--quiet"],
-                "animate": wb + ["animate", str(study), "--keyframes", str(a.out / "keyframes.json"), "--method",
-                                 "vbd", "--size", "320x240", "--frames", "6", "--force", "--out",
-                                 str(a.out / "anim.gif"), "--quiet"]}
+    commands = {
+        "pose": wb + ["pose", str(study), "--force", "--quiet"],
+        "weights": wb + ["weights", str(study), "--force", "--quiet"],
+        "init": wb + ["run", str(study), "--until", "init", "--set", "init.method=vbd", "--force", "init", "--quiet"],
+        "unfold": wb
+        + [
+            "run",
+            str(study),
+            "--until",
+            "init",
+            "--set",
+            "init.method=vbd",
+            "--set",
+            "init.unfold=true",
+            "--force",
+            "init",
+            "--quiet",
+        ],
+        "deform": wb
+        + [
+            "deform",
+            str(study),
+            "--pose",
+            str(target),
+            "--method",
+            "vbd",
+            "--force",
+            "--out",
+            str(a.out / "posed.nii"),
+            "--quiet",
+        ],
+        "field": wb
+        + [
+            "deform",
+            str(study),
+            "--pose",
+            str(target),
+            "--method",
+            "vbd",
+            "--force",
+            "--out",
+            str(a.out / "posed.nii"),
+            "--field-out",
+            str(a.out / "posed_field.mha"),
+            "--quiet",
+        ],
+        "animate": wb
+        + [
+            "animate",
+            str(study),
+            "--keyframes",
+            str(a.out / "keyframes.json"),
+            "--method",
+            "vbd",
+            "--size",
+            "320x240",
+            "--frames",
+            "6",
+            "--force",
+            "--out",
+            str(a.out / "anim.gif"),
+            "--quiet",
+        ],
+    }
     if "animate" in a.stages:
         keyframes(a.out)
     print(f"| stage | exit | peak GiB (budget {BUDGET_GIB:g}) | bytes per voxel | seconds |")

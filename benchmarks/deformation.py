@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from timing import best_of  # noqa: E402  (benchmarks/timing.py)
 
-from deformation.geometry import Volume  # noqa: E402
 from deformation.evd import ExampleVolumeDeformation, vbd_forward  # noqa: E402
+from deformation.geometry import Volume  # noqa: E402
 from deformation.posespace import PoseSpace, psd_training, skin, wpsd_deform  # noqa: E402
 from deformation.resample import backward_map, resample_forward  # noqa: E402
 from deformation.skinning import distance_weights, lbs, stack_transforms  # noqa: E402
@@ -85,8 +85,10 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     ph = make_phantom("hand", size=size, modality="mri", n_poses=n_poses + 1, seed=5)
     g = ph.geometry
     x = g.world_coordinates().reshape(-1, 3)
-    print(f"grid {g.size[0]}×{g.size[1]}×{g.size[2]} = {g.n_voxels:,} voxels at "
-          f"{'×'.join(f'{s:.2f}' for s in g.spacing)} mm; {n_poses} example poses + 1 query pose")
+    print(
+        f"grid {g.size[0]}×{g.size[1]}×{g.size[2]} = {g.n_voxels:,} voxels at "
+        f"{'×'.join(f'{s:.2f}' for s in g.spacing)} mm; {n_poses} example poses + 1 query pose"
+    )
     template = ph.template()[0].data.astype(np.float32)
     mem.phase("phantom and its template image")
     if weights_kind != "distance":
@@ -96,13 +98,13 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     n_bones = len(ph.skeleton.bone_names)
     d = np.empty((len(x), n_bones + 1), dtype=np.float32)
     for lo in range(0, len(x), 1 << 18):
-        d[lo:lo + (1 << 18)] = ph.anatomy.distances_fast(x[lo:lo + (1 << 18)])
+        d[lo : lo + (1 << 18)] = ph.anatomy.distances_fast(x[lo : lo + (1 << 18)])
     body = (d[:, -1] < 0).reshape(g.array_shape)
     w = distance_weights(d[:, :-1], ph.skeleton.bone_names)
     del d
     mem.phase("distances to every bone, distance weights")
     poses, fields = [], []
-    for pid, ang in ph.poses[:n_poses]:
+    for _pid, ang in ph.poses[:n_poses]:
         poses.append(ph.pose_of(ang))
         fields.append(ph.posing_model(ang).forward(x).reshape(g.array_shape + (3,)).astype(np.float32))
     query = ph.pose_of(ph.poses[n_poses][1])
@@ -114,8 +116,12 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     t = stack_transforms(query.transforms, w.bones)
 
     def floor():
-        return (float(template.sum()) + float(w.index.sum(dtype=np.uint64)) + float(w.value.sum())
-                + float(model.displacements.sum()))
+        return (
+            float(template.sum())
+            + float(w.index.sum(dtype=np.uint64))
+            + float(w.value.sum())
+            + float(model.displacements.sum())
+        )
 
     nbytes = template.nbytes + w.index.nbytes + w.value.nbytes + model.displacements.nbytes
     t_floor, _ = best_of(floor, repeats)
@@ -148,29 +154,43 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     mem.phase("VBD, EVD and WPSD-EVD, each with backward map and resample")
     t_scipy, _ = best_of(lambda: ndimage.map_coordinates(template, coords, order=1, mode="constant"), repeats)
     summ = bm_evd.summary()
-    print(f"memory floor (one NumPy sum over {nbytes / 2**20:,.0f} MiB: template, weights, "
-          f"{n_poses} example fields): {t_floor * 1e3:8.1f} ms")
+    print(
+        f"memory floor (one NumPy sum over {nbytes / 2**20:,.0f} MiB: template, weights, "
+        f"{n_poses} example fields): {t_floor * 1e3:8.1f} ms"
+    )
     print(f"naive: one scipy map_coordinates trilinear pass of the grid:           {t_scipy * 1e3:8.1f} ms")
-    print(f"VBD + resample:                                                        {t_vbd * 1e3:8.1f} ms"
-          f"   ratio to floor {t_vbd / t_floor:5.2f}")
-    print(f"EVD + resample (Rhee Eq. 6, normalised RBF pose weights):             {t_evd * 1e3:8.1f} ms"
-          f"   ratio to floor {t_evd / t_floor:5.2f}   (forward pass alone {t_fwd * 1e3:.1f} ms, "
-          f"{t_fwd / t_floor:.2f}× floor)")
-    print(f"EVD + resample with per-voxel WPSD weights (Kurihara Eq. 16):          {t_wpsd * 1e3:8.1f} ms"
-          f"   ratio to floor {t_wpsd / t_floor:5.2f}")
-    print(f"EVD + resample, maps on every other voxel (--map-factor 2):           {t_evd2 * 1e3:8.1f} ms"
-          f"   ratio to floor {t_evd2 / t_floor:5.2f}")
+    print(
+        f"VBD + resample:                                                        {t_vbd * 1e3:8.1f} ms"
+        f"   ratio to floor {t_vbd / t_floor:5.2f}"
+    )
+    print(
+        f"EVD + resample (Rhee Eq. 6, normalised RBF pose weights):             {t_evd * 1e3:8.1f} ms"
+        f"   ratio to floor {t_evd / t_floor:5.2f}   (forward pass alone {t_fwd * 1e3:.1f} ms, "
+        f"{t_fwd / t_floor:.2f}× floor)"
+    )
+    print(
+        f"EVD + resample with per-voxel WPSD weights (Kurihara Eq. 16):          {t_wpsd * 1e3:8.1f} ms"
+        f"   ratio to floor {t_wpsd / t_floor:5.2f}"
+    )
+    print(
+        f"EVD + resample, maps on every other voxel (--map-factor 2):           {t_evd2 * 1e3:8.1f} ms"
+        f"   ratio to floor {t_evd2 / t_floor:5.2f}"
+    )
     print(f"EVD + resample vs the naive scipy pass: {t_evd / t_scipy:.2f}×;  Rhee's EVD took 3.5 s on this grid")
     fine2 = posed2.backward.full()  # the blended fine map (pose() pulls through it without making it)
     good = (bm_evd.status <= 1) & (fine2.status <= 1) & body
     diff = np.linalg.norm(fine2.template_positions()[good] - bm_evd.template_positions()[good], axis=1)
-    print(f"--map-factor 2 against the exact map over {good.sum():,} voxels inside the body mask: preimage "
-          f"difference mean {diff.mean():.3f} mm, P99 {np.percentile(diff, 99):.2f} mm; |intensity difference| "
-          f"mean {np.abs(posed2.volume.data - vol_evd.data)[good].mean():.2f} (template range "
-          f"{np.ptp(template):.0f})")
-    print(f"backward map of the EVD pose: {summ['n_ok']:,} ok, {summ['n_folded']:,} folded, "
-          f"{summ['n_not_converged']:,} not converged, {summ['n_outside']:,} outside the template; "
-          f"max residual {summ['max_residual_mm']:.2e} mm")
+    print(
+        f"--map-factor 2 against the exact map over {good.sum():,} voxels inside the body mask: preimage "
+        f"difference mean {diff.mean():.3f} mm, P99 {np.percentile(diff, 99):.2f} mm; |intensity difference| "
+        f"mean {np.abs(posed2.volume.data - vol_evd.data)[good].mean():.2f} (template range "
+        f"{np.ptp(template):.0f})"
+    )
+    print(
+        f"backward map of the EVD pose: {summ['n_ok']:,} ok, {summ['n_folded']:,} folded, "
+        f"{summ['n_not_converged']:,} not converged, {summ['n_outside']:,} outside the template; "
+        f"max residual {summ['max_residual_mm']:.2e} mm"
+    )
     mem.report()
     del vol_vbd, vol_evd, bm_vbd
 
@@ -211,8 +231,10 @@ def mesh_benchmark(n_vertices: int, n_poses: int, repeats: int):
     # ratio, which the machine's other work disturbs least), then on all of numba's threads.
     n_threads = numba.get_num_threads()
     cores = sorted(os.sched_getaffinity(0))
-    print(f"mesh: {n_vertices:,} vertices near the hand phantom's skin, {n_poses} example poses "
-          f"({sk.n_dof} DOF); best of {repeats * 20} calls each")
+    print(
+        f"mesh: {n_vertices:,} vertices near the hand phantom's skin, {n_poses} example poses "
+        f"({sk.n_dof} DOF); best of {repeats * 20} calls each"
+    )
     try:
         for threads in dict.fromkeys((1, n_threads)):
             numba.set_num_threads(threads)
@@ -223,10 +245,15 @@ def mesh_benchmark(n_vertices: int, n_poses: int, repeats: int):
             t_wpsd, _ = best_of(lambda: wpsd_deform(base, w, pts_space, query, t, folded=folded), repeats * 20)
             print(f"  {threads} thread(s){' pinned to core ' + str(cores[0]) if threads == 1 else ''}:")
             print(f"    LBS (compiled):  {t_lbs * 1e3:7.2f} ms   (NumPy LBS {t_np * 1e3:.2f} ms)")
-            print(f"    PSD:             {t_psd * 1e3:7.2f} ms   ratio PSD / LBS  {t_psd / t_lbs:5.2f}   "
-                  "(Kurihara: 62 ms)")
-            print(f"    WPSD:            {t_wpsd * 1e3:7.2f} ms   ratio WPSD / LBS {t_wpsd / t_lbs:5.2f}   "
-                  f"(Kurihara: 157 ms; per-vertex coefficients and folded samples precomputed once in {t_pre * 1e3:.0f} ms)")
+            print(
+                f"    PSD:             {t_psd * 1e3:7.2f} ms   ratio PSD / LBS  {t_psd / t_lbs:5.2f}   "
+                "(Kurihara: 62 ms)"
+            )
+            print(
+                f"    WPSD:            {t_wpsd * 1e3:7.2f} ms   ratio WPSD / LBS {t_wpsd / t_lbs:5.2f}   "
+                f"(Kurihara: 157 ms; per-vertex coefficients and folded samples precomputed once "
+                f"in {t_pre * 1e3:.0f} ms)"
+            )
     finally:
         numba.set_num_threads(n_threads)
         os.sched_setaffinity(0, cores)

@@ -38,7 +38,6 @@ from registration.dense import DenseSettings, register_dense  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
 from validation.registration_measures import body_on_scan, marker_med  # noqa: E402
 
-
 #: the hand's middle finger curled (MCP / PIP / DIP flexion, degrees), every other joint at the template's: one
 #: finger's crease and the sliding web beside straight neighbours, a motion the flex cases (every finger curling
 #: together) do not have
@@ -56,9 +55,17 @@ def _bench():
     return mod
 
 
-def tuning_case(region: str, seed: int, scan: str, cache: Path, start: str = "polyrigid",
-                acquisition: str = "fixed", without: str | None = None, shift: float = 0.0,
-                texture: float = 1.0) -> dict:
+def tuning_case(
+    region: str,
+    seed: int,
+    scan: str,
+    cache: Path,
+    start: str = "polyrigid",
+    acquisition: str = "fixed",
+    without: str | None = None,
+    shift: float = 0.0,
+    texture: float = 1.0,
+) -> dict:
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
     "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
     ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made.  ``without``
@@ -102,19 +109,33 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0, t
     bench = _bench()
     flex_knee, n_markers = bench.FLEX_KNEE, bench.MARKER_SAMPLE
     if region == "knee":
-        ph = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5),
-                          poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + flex_knee, acquisition=acquisition)
+        ph = make_phantom(
+            "knee",
+            size="test",
+            seed=seed,
+            spacing=(2.5, 2.5, 2.5),
+            poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + flex_knee,
+            acquisition=acquisition,
+        )
     elif scan == "curl_one":
-        ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), acquisition=acquisition,
-                          poses=(("curl_one", CURL_ONE),))
+        ph = make_phantom(
+            "hand",
+            size="test",
+            seed=seed,
+            spacing=(1.6, 1.6, 1.6),
+            acquisition=acquisition,
+            poses=(("curl_one", CURL_ONE),),
+        )
     else:
-        ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4,
-                          acquisition=acquisition)
+        ph = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4, acquisition=acquisition)
         scan = ph.poses[-1][0] if scan == "curl" else scan  # the strongest curl, as the flex case
     if texture != 1.0:  # before any image is rendered: the phantom renders from these at every call
         ph.contrast = dataclasses.replace(ph.contrast, texture_amplitude=texture * ph.contrast.texture_amplitude)
-        ph.tissue = dataclasses.replace(ph.tissue, cell_amplitude=texture * ph.tissue.cell_amplitude,
-                                        lobule_amplitude=texture * ph.tissue.lobule_amplitude)
+        ph.tissue = dataclasses.replace(
+            ph.tissue,
+            cell_amplitude=texture * ph.tissue.cell_amplitude,
+            lobule_amplitude=texture * ph.tissue.lobule_amplitude,
+        )
     template, labels = _template(ph, shift)
     sk = ph.skeleton
     sc = {s.id: s for s in ph.scans()}[scan]
@@ -124,16 +145,28 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0, t
     transforms = est.pose.transforms
     if start == "perturbed":
         transforms = bench.perturbed_transforms(transforms, labels, bl, seed=[seed, ("knee", "hand").index(region)])
-    init, _ = polyrigid_initial_field(labels, bl, {b: sk.bone(b).parent for b in sk.bone_names}, transforms,
-                                      sc.image.geometry)
+    init, _ = polyrigid_initial_field(
+        labels, bl, {b: sk.bone(b).parent for b in sk.bone_names}, transforms, sc.image.geometry
+    )
     xg = template.geometry.world_coordinates().reshape(-1, 3)
-    body_t = Volume((ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(template.geometry.array_shape).astype(
-        np.uint8), template.geometry)
+    body_t = Volume(
+        (ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(template.geometry.array_shape).astype(np.uint8),
+        template.geometry,
+    )
     body = body_on_scan(sc.correspondence, body_t)
     phi = sc.correspondence.data + sc.image.geometry.world_coordinates()
     bone = (ph.anatomy.distances_fast(phi.reshape(-1, 3))[:, :-1].min(axis=1) < 0).reshape(body.shape) & body
-    d = dict(scan=sc.image, template=template, held=held, init=init, truth=sc.correspondence, body=body,
-             bone=bone, markers=sc.markers, many=ph.markers(ph.posing_model(dict(ph.poses)[scan]), n=n_markers, sample=1))
+    d = dict(
+        scan=sc.image,
+        template=template,
+        held=held,
+        init=init,
+        truth=sc.correspondence,
+        body=body,
+        bone=bone,
+        markers=sc.markers,
+        many=ph.markers(ph.posing_model(dict(ph.poses)[scan]), n=n_markers, sample=1),
+    )
     f.write_bytes(pickle.dumps(d))
     return d
 
@@ -153,22 +186,34 @@ def _template(ph, shift: float):
 def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bone: bool = False) -> dict:
     """The flex case's row (benchmarks/registration.py ``field_measures``) of ``field``, printed with the levels;
     ``per_bone``: then each held bone's MED (mm, over its voxels on the scan: its label pulled through the truth)."""
-    out = _bench().field_measures(d["scan"], d["template"], field, d["truth"], d["body"], d["bone"], d["markers"],
-                                  seconds, 0.0)
+    out = _bench().field_measures(
+        d["scan"], d["template"], field, d["truth"], d["body"], d["bone"], d["markers"], seconds, 0.0
+    )
     out["markers_many_mm"] = marker_med(field, d["many"])
-    lv = " ".join(f"[{x['iterations']} taken, {x.get('rejected', 0)} refused, {x.get('stop', '')}: "
-                  f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}]" for x in (levels or []))
-    print(f"| {tag} | {out['med_mm']:.3f} | {out['bone_mm']:.3f} | {out['soft_mm']:.3f} | "
-          f"{out['markers_many_mm']:.3f} | {out['n_folded']} | {seconds:.0f} | {lv} |", flush=True)
+    lv = " ".join(
+        f"[{x['iterations']} taken, {x.get('rejected', 0)} refused, {x.get('stop', '')}: "
+        f"{x['lncc_before']:.4f} -> {x['lncc_after']:.4f}]"
+        for x in (levels or [])
+    )
+    print(
+        f"| {tag} | {out['med_mm']:.3f} | {out['bone_mm']:.3f} | {out['soft_mm']:.3f} | "
+        f"{out['markers_many_mm']:.3f} | {out['n_folded']} | {seconds:.0f} | {lv} |",
+        flush=True,
+    )
     if per_bone:
         from deformation.interpolate import sample_displaced_array
 
         held = d["held"]
-        lab = sample_displaced_array(np.asarray(held.data), held.geometry.world_to_index_matrix,
-                                     d["scan"].geometry, d["truth"].data, 0, 0).astype(int)
+        lab = sample_displaced_array(
+            np.asarray(held.data), held.geometry.world_to_index_matrix, d["scan"].geometry, d["truth"].data, 0, 0
+        ).astype(int)
         err = np.linalg.norm(np.asarray(field.data, float) - np.asarray(d["truth"].data, float), axis=-1)
-        print("|  | per bone (label: MED mm): " + ", ".join(f"{b}: {err[lab == b].mean():.2f}"
-                                                          for b in np.unique(lab) if b) + " |||||||", flush=True)
+        print(
+            "|  | per bone (label: MED mm): "
+            + ", ".join(f"{b}: {err[lab == b].mean():.2f}" for b in np.unique(lab) if b)
+            + " |||||||",
+            flush=True,
+        )
     return out
 
 
@@ -189,22 +234,30 @@ def agreement_measures(d: dict, field: Volume) -> dict:
     w = np.asarray(warp_template(d["template"], field).data, np.float64)
     body = segment_body(d["scan"]).data > 0
     err = np.linalg.norm(np.asarray(field.data, float) - np.asarray(d["truth"].data, float), axis=-1)
-    out = {"MED": float(err[d["body"]].mean()), "cc0": cc(f, w, body),
-           "cc1": cc(ndimage.gaussian_filter(f, 1.0), ndimage.gaussian_filter(w, 1.0), body)}
+    out = {
+        "MED": float(err[d["body"]].mean()),
+        "cc0": cc(f, w, body),
+        "cc1": cc(ndimage.gaussian_filter(f, 1.0), ndimage.gaussian_filter(w, 1.0), body),
+    }
     sp = np.asarray(d["scan"].geometry.spacing, float)[::-1]
     for win in (3.0, 9.0):
+
         def g(z):
             return ndimage.gaussian_filter(z, win / sp)
 
         mf, mw = g(f), g(w)
-        local = (g(f * w) - mf * mw) ** 2 / np.maximum((g(f * f) - mf ** 2) * (g(w * w) - mw ** 2), 1e-12)
+        local = (g(f * w) - mf * mw) ** 2 / np.maximum((g(f * f) - mf**2) * (g(w * w) - mw**2), 1e-12)
         out[f"lncc{win:g}"] = float(local[body].mean())
     return out
 
 
 def _print_measures(tag: str, m: dict) -> None:
-    print(f"| {tag} | " + " | ".join(f"{m[k]:.3f}" if k == "MED" else f"{m[k]:.4f}" for k in
-                                     ("MED", "cc0", "cc1", "lncc3", "lncc9")) + " |", flush=True)
+    print(
+        f"| {tag} | "
+        + " | ".join(f"{m[k]:.3f}" if k == "MED" else f"{m[k]:.4f}" for k in ("MED", "cc0", "cc1", "lncc3", "lncc9"))
+        + " |",
+        flush=True,
+    )
 
 
 def main(argv=None) -> int:
@@ -213,35 +266,70 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("region", choices=["knee", "hand"])
     p.add_argument("seed", type=int, help=f"a tuning seed {tuning}")
-    p.add_argument("scan", help="knee: bend10 / bend45 / bend70; hand: curl (its strongest), curl_one (the middle "
-                        "finger alone curled) or a pose id")
+    p.add_argument(
+        "scan",
+        help="knee: bend10 / bend45 / bend70; hand: curl (its strongest), curl_one (the middle "
+        "finger alone curled) or a pose id",
+    )
     p.add_argument("variants", nargs="*", default=["{}"], help="DenseSettings fields as JSON, one per variant")
-    p.add_argument("--start", choices=["polyrigid", "perturbed"], default="polyrigid",
-                   help="perturbed: every estimated pose off by 2-5 degrees and 2 mm before the polyrigid start")
-    p.add_argument("--acquisition", choices=["fixed", "random"], default="fixed",
-                   help="the phantom's acquisition, as benchmarks/registration.py's --acquisition")
-    p.add_argument("--without", choices=["bias", "noise"],
-                   help="with --acquisition random: the same draw without bias fields, or without noise (SNR 10^6)")
-    p.add_argument("--noise-free", choices=["template", "scan"],
-                   help="with --acquisition random: that image from the same draw without noise (SNR 10^6), the "
-                        "other as drawn: which image's noise moves the registration")
-    p.add_argument("--from-truth", action="store_true",
-                   help="every variant starts at the true correspondence: how far its objective's maximum lies from "
-                        "the truth")
-    p.add_argument("--template-shift", type=float, default=0.0, metavar="F",
-                   help="render the template on its grid moved by F of its voxel along each axis (poses and start "
-                        "made on it): the phantoms render every image on one lattice, real scans never share the "
-                        "template's")
-    p.add_argument("--texture", type=float, default=1.0, metavar="F",
-                   help="the tissues' texture (its plane waves, which also modulate the marrow, and the spread "
-                        "between muscle cells and fat lobules) scaled by F: 0 leaves muscle and fat uniform (with "
-                        "their septa, tendons and vessels), as flat as soft tissue in CT")
-    p.add_argument("--per-bone", action="store_true",
-                   help="also print each held bone's MED (its voxels on the scan): which bones a start's error stays on")
-    p.add_argument("--measures", action="store_true",
-                   help="print instead how well the images agree through the start, the truth and each variant "
-                        "(correlations over the scan's body, raw and smoothed by a voxel; local correlations in "
-                        "3 and 9 mm windows): measures the optimiser does not climb, beside the MED")
+    p.add_argument(
+        "--start",
+        choices=["polyrigid", "perturbed"],
+        default="polyrigid",
+        help="perturbed: every estimated pose off by 2-5 degrees and 2 mm before the polyrigid start",
+    )
+    p.add_argument(
+        "--acquisition",
+        choices=["fixed", "random"],
+        default="fixed",
+        help="the phantom's acquisition, as benchmarks/registration.py's --acquisition",
+    )
+    p.add_argument(
+        "--without",
+        choices=["bias", "noise"],
+        help="with --acquisition random: the same draw without bias fields, or without noise (SNR 10^6)",
+    )
+    p.add_argument(
+        "--noise-free",
+        choices=["template", "scan"],
+        help="with --acquisition random: that image from the same draw without noise (SNR 10^6), the "
+        "other as drawn: which image's noise moves the registration",
+    )
+    p.add_argument(
+        "--from-truth",
+        action="store_true",
+        help="every variant starts at the true correspondence: how far its objective's maximum lies from the truth",
+    )
+    p.add_argument(
+        "--template-shift",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="render the template on its grid moved by F of its voxel along each axis (poses and start "
+        "made on it): the phantoms render every image on one lattice, real scans never share the "
+        "template's",
+    )
+    p.add_argument(
+        "--texture",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="the tissues' texture (its plane waves, which also modulate the marrow, and the spread "
+        "between muscle cells and fat lobules) scaled by F: 0 leaves muscle and fat uniform (with "
+        "their septa, tendons and vessels), as flat as soft tissue in CT",
+    )
+    p.add_argument(
+        "--per-bone",
+        action="store_true",
+        help="also print each held bone's MED (its voxels on the scan): which bones a start's error stays on",
+    )
+    p.add_argument(
+        "--measures",
+        action="store_true",
+        help="print instead how well the images agree through the start, the truth and each variant "
+        "(correlations over the scan's body, raw and smoothed by a voxel; local correlations in "
+        "3 and 9 mm windows): measures the optimiser does not climb, beside the MED",
+    )
     p.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "avw-dense-settings")
     args = p.parse_args(argv)
     if args.region == "knee" and args.scan not in ("bend10", "bend45", "bend70"):
@@ -262,18 +350,38 @@ def main(argv=None) -> int:
     args.cache.mkdir(parents=True, exist_ok=True)
     if not (np.isfinite(args.texture) and args.texture >= 0):
         p.error(f"--texture must be a number >= 0, got {args.texture}")
-    d = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, args.without,
-                    args.template_shift, args.texture)
+    d = tuning_case(
+        args.region,
+        args.seed,
+        args.scan,
+        args.cache,
+        args.start,
+        args.acquisition,
+        args.without,
+        args.template_shift,
+        args.texture,
+    )
     if args.noise_free:  # the same draw without noise (its images only: its poses were estimated on clean images)
-        clean = tuning_case(args.region, args.seed, args.scan, args.cache, args.start, args.acquisition, "noise",
-                            args.template_shift, args.texture)
+        clean = tuning_case(
+            args.region,
+            args.seed,
+            args.scan,
+            args.cache,
+            args.start,
+            args.acquisition,
+            "noise",
+            args.template_shift,
+            args.texture,
+        )
         d = dict(d, **{args.noise_free: clean[args.noise_free]})
-    print(f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}, acquisition: "
-          f"{args.acquisition}{f', without {args.without}' if args.without else ''}"
-          f"{', every variant from the truth' if args.from_truth else ''}"
-          f"{f', the {args.noise_free} without noise' if args.noise_free else ''}"
-          f"{f', template moved by {args.template_shift} voxel' if args.template_shift else ''}"
-          f"{f', texture x {args.texture:g}' if args.texture != 1.0 else ''}\n")
+    print(
+        f"\n{args.region} seed {args.seed}, {args.scan} (tuning), start: {args.start}, acquisition: "
+        f"{args.acquisition}{f', without {args.without}' if args.without else ''}"
+        f"{', every variant from the truth' if args.from_truth else ''}"
+        f"{f', the {args.noise_free} without noise' if args.noise_free else ''}"
+        f"{f', template moved by {args.template_shift} voxel' if args.template_shift else ''}"
+        f"{f', texture x {args.texture:g}' if args.texture != 1.0 else ''}\n"
+    )
     if args.measures:
         print("| map | MED mm | cc0 | cc1 | lncc3 | lncc9 |\n|---|---|---|---|---|---|")
         _print_measures("start", agreement_measures(d, d["init"]))
@@ -281,11 +389,22 @@ def main(argv=None) -> int:
     else:
         print(f"| variant | MED mm | bone | soft | {n_markers} markers | folded | s | levels |")
         print("|---|---|---|---|---|---|---|---|")
-        score(d, d["init"], 0.0, f"start ({args.start}, estimated poses)"
-              + ("; the variants below start at the truth" if args.from_truth else ""), per_bone=args.per_bone)
+        score(
+            d,
+            d["init"],
+            0.0,
+            f"start ({args.start}, estimated poses)"
+            + ("; the variants below start at the truth" if args.from_truth else ""),
+            per_bone=args.per_bone,
+        )
     for tag, st in variants:
-        r = register_dense(d["scan"], d["template"], initial=d["truth"] if args.from_truth else d["init"],
-                           moving_labels=d["held"], settings=st)
+        r = register_dense(
+            d["scan"],
+            d["template"],
+            initial=d["truth"] if args.from_truth else d["init"],
+            moving_labels=d["held"],
+            settings=st,
+        )
         if args.measures:
             _print_measures(tag, agreement_measures(d, r.correspondence))
         else:

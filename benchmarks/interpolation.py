@@ -47,8 +47,11 @@ from deformation.interpolate import sample, sample_displaced_array  # noqa: E402
 
 def smooth_field(g: GridGeometry) -> np.ndarray:
     x = g.world_coordinates()
-    modes = [((1.5, 0.5, -1.0), (0.05, 0.08, -0.06), 0.3), ((-1.0, 1.2, 0.4), (-0.07, 0.03, 0.09), 1.1),
-             ((0.6, -0.8, 1.3), (0.04, -0.09, 0.05), 2.0)]
+    modes = [
+        ((1.5, 0.5, -1.0), (0.05, 0.08, -0.06), 0.3),
+        ((-1.0, 1.2, 0.4), (-0.07, 0.03, 0.09), 1.1),
+        ((0.6, -0.8, 1.3), (0.04, -0.09, 0.05), 2.0),
+    ]
     u = np.zeros_like(x)
     for a, k, ph in modes:
         u += np.asarray(a) * np.sin(x @ np.asarray(k) + ph)[..., None]
@@ -70,11 +73,15 @@ def main(argv=None):
     field = Volume(u, g)
     pts = g.world_coordinates() + u
     n = g.n_voxels
-    print(f"grid {g.size} (x, y, z) = {n} voxels, spacing {g.spacing} mm, float32 data; "
-          f"|u| ≤ {np.linalg.norm(u, axis=-1).max():.2f} mm")
-    print(f"threads: numba {numba.get_num_threads()} ({numba.config.THREADING_LAYER}), "
-          f"SimpleITK {sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()}, SciPy 1; "
-          f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    print(
+        f"grid {g.size} (x, y, z) = {n} voxels, spacing {g.spacing} mm, float32 data; "
+        f"|u| ≤ {np.linalg.norm(u, axis=-1).max():.2f} mm"
+    )
+    print(
+        f"threads: numba {numba.get_num_threads()} ({numba.config.THREADING_LAYER}), "
+        f"SimpleITK {sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()}, SciPy 1; "
+        f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs"
+    )
 
     # -- sampling ------------------------------------------------------------------------------
     w2i = g.world_to_index_matrix
@@ -92,8 +99,7 @@ def main(argv=None):
     t_scipy, ref_scipy = best_of(lambda: ndi.map_coordinates(data, coords, order=1, mode="nearest"), rep)
     img = vol.to_sitk()
     tx = F.to_sitk_transform(field)
-    t_sitk, ref_sitk = best_of(lambda: sitk.GetArrayFromImage(sitk.Resample(img, img, tx, sitk.sitkLinear, 0.0)),
-                               rep)
+    t_sitk, ref_sitk = best_of(lambda: sitk.GetArrayFromImage(sitk.Resample(img, img, tx, sitk.sitkLinear, 0.0)), rep)
     big = np.empty(pts.size, dtype=np.float64)
     src = pts.reshape(-1)
     t_copy, _ = best_of(lambda: np.copyto(big, src), rep)
@@ -103,20 +109,28 @@ def main(argv=None):
 
     inside = np.all((coords >= 0) & (coords <= np.asarray(g.array_shape)[:, None, None, None] - 1), axis=0)
     print(f"\nfull trilinear pass ({n} points)            seconds   vs ours")
-    rows = [("interpolate.sample (float64 points)", t_ours), ("sample_displaced_array (fused)", t_fused),
-            ("interpolate.sample order=0", t_near), ("interpolate.sample, 1 thread", t_one),
-            ("scipy map_coordinates order=1 (1 thread)", t_scipy),
-            ("sitk.Resample + DisplacementFieldTransform", t_sitk),
-            (f"bandwidth floor ({bandwidth / 1e9:.1f} GB/s), sample", floor),
-            ("bandwidth floor, fused", floor_fused)]
+    rows = [
+        ("interpolate.sample (float64 points)", t_ours),
+        ("sample_displaced_array (fused)", t_fused),
+        ("interpolate.sample order=0", t_near),
+        ("interpolate.sample, 1 thread", t_one),
+        ("scipy map_coordinates order=1 (1 thread)", t_scipy),
+        ("sitk.Resample + DisplacementFieldTransform", t_sitk),
+        (f"bandwidth floor ({bandwidth / 1e9:.1f} GB/s), sample", floor),
+        ("bandwidth floor, fused", floor_fused),
+    ]
     for name, t in rows:
         print(f"  {name:<42}{t:>8.3f}{t / t_ours:>9.1f}x")
-    print(f"  speed-up vs SciPy {t_scipy / t_ours:.1f}x (fused {t_scipy / t_fused:.1f}x, "
-          f"one thread each {t_scipy / t_one:.1f}x); "
-          f"vs sitk.Resample {t_sitk / t_ours:.1f}x (fused {t_sitk / t_fused:.1f}x)")
-    print(f"  agreement: |ours - sitk| ≤ {np.abs(ours - ref_sitk).max():.2e}, "
-          f"|ours - scipy| ≤ {np.abs(ours - ref_scipy)[inside].max():.2e} (inside the voxel-centre box), "
-          f"|fused - sample| ≤ {np.abs(fused - ours).max():.2e}; data range ±{np.abs(data).max():.2f}")
+    print(
+        f"  speed-up vs SciPy {t_scipy / t_ours:.1f}x (fused {t_scipy / t_fused:.1f}x, "
+        f"one thread each {t_scipy / t_one:.1f}x); "
+        f"vs sitk.Resample {t_sitk / t_ours:.1f}x (fused {t_sitk / t_fused:.1f}x)"
+    )
+    print(
+        f"  agreement: |ours - sitk| ≤ {np.abs(ours - ref_sitk).max():.2e}, "
+        f"|ours - scipy| ≤ {np.abs(ours - ref_scipy)[inside].max():.2e} (inside the voxel-centre box), "
+        f"|fused - sample| ≤ {np.abs(fused - ours).max():.2e}; data range ±{np.abs(data).max():.2f}"
+    )
 
     # -- field operations ----------------------------------------------------------------------
     small = Volume(u[:3, :3, :3].copy(), GridGeometry((3, 3, 3), (1, 1, 1)))
@@ -125,16 +139,17 @@ def main(argv=None):
     t_comp, _ = best_of(lambda: F.compose(field, field), rep)
     t_jac, det = best_of(lambda: F.jacobian_determinant(field), rep)
     fimg = field.to_sitk()
-    t_sjac, sdet = best_of(lambda: sitk.GetArrayFromImage(sitk.DisplacementFieldJacobianDeterminant(fimg, True)),
-                           rep)
+    t_sjac, sdet = best_of(lambda: sitk.GetArrayFromImage(sitk.DisplacementFieldJacobianDeterminant(fimg, True)), rep)
     t_pos, _ = best_of(lambda: F.positions(field), rep)
     t_tx, _ = best_of(lambda: F.from_sitk_transform(tx, g), 1)
     print(f"  {'compose(field, field)':<44}{t_comp:>8.3f}")
     print(f"  {'positions(field)':<44}{t_pos:>8.3f}")
     print(f"  {'from_sitk_transform(tx, grid)':<44}{t_tx:>8.3f}")
     print(f"  {'jacobian_determinant':<44}{t_jac:>8.3f}")
-    print(f"  {'sitk.DisplacementFieldJacobianDeterminant':<44}{t_sjac:>8.3f}  "
-          f"(interior |diff| ≤ {np.abs(det - sdet)[1:-1, 1:-1, 1:-1].max():.1e})")
+    print(
+        f"  {'sitk.DisplacementFieldJacobianDeterminant':<44}{t_sjac:>8.3f}  "
+        f"(interior |diff| ≤ {np.abs(det - sdet)[1:-1, 1:-1, 1:-1].max():.1e})"
+    )
 
     k = args.invert_iter
     margin = 8  # voxels: the preimages of the interior lie inside the grid (|u| ≤ 4.5 mm)
@@ -147,14 +162,20 @@ def main(argv=None):
     flt.SetEnforceBoundaryCondition(False)
     t_sinv, sinv = best_of(lambda: flt.Execute(fimg), 1)
     _, sresid = F.invert(field, initial=Volume.from_sitk(sinv).data, max_iter=0)  # residual with our U
-    print(f"  invert, {k} iterations: ours {t_inv:.2f} s, max/mean interior residual "
-          f"{resid[interior].max():.1e}/{resid[interior].mean():.1e} mm")
-    print(f"  sitk.InvertDisplacementFieldImageFilter, {k} iterations: {t_sinv:.2f} s "
-          f"({t_sinv / t_inv:.1f}x ours), max/mean interior residual "
-          f"{sresid[interior].max():.1e}/{sresid[interior].mean():.1e} mm")
+    print(
+        f"  invert, {k} iterations: ours {t_inv:.2f} s, max/mean interior residual "
+        f"{resid[interior].max():.1e}/{resid[interior].mean():.1e} mm"
+    )
+    print(
+        f"  sitk.InvertDisplacementFieldImageFilter, {k} iterations: {t_sinv:.2f} s "
+        f"({t_sinv / t_inv:.1f}x ours), max/mean interior residual "
+        f"{sresid[interior].max():.1e}/{sresid[interior].mean():.1e} mm"
+    )
     t_def, (_, r_def) = best_of(lambda: F.invert(field), 1)
-    print(f"  invert with defaults (tol 1e-3 mm, stall rule): {t_def:.2f} s, interior max residual "
-          f"{r_def[interior].max():.1e} mm, whole-grid max {r_def.max():.2f} mm (boundary: preimage outside)")
+    print(
+        f"  invert with defaults (tol 1e-3 mm, stall rule): {t_def:.2f} s, interior max residual "
+        f"{r_def[interior].max():.1e} mm, whole-grid max {r_def.max():.2f} mm (boundary: preimage outside)"
+    )
 
 
 if __name__ == "__main__":

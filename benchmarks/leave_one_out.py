@@ -61,11 +61,17 @@ def run_case(case: str, size: str, seed: int, out: Path, spacing=None, n_poses=N
     if (out / case / "study.json").exists():  # a study from an earlier run: its stages skip what is up to date
         study = read_study(out / case)
     else:
-        kw = {k: v for k, v in (("spacing", None if spacing is None else (spacing,) * 3), ("n_poses", n_poses))
-              if v is not None}
+        kw = {
+            k: v
+            for k, v in (("spacing", None if spacing is None else (spacing,) * 3), ("n_poses", n_poses))
+            if v is not None
+        }
         study = write_phantom_study(make_phantom(case, size=size, seed=seed, **kw), out / case)
-    print(f"{case}: {study.template().geometry.describe()}; thinnest bone "
-          f"{thinnest_bone_voxels(study.template_labels()):.1f} voxels across", flush=True)
+    print(
+        f"{case}: {study.template().geometry.describe()}; thinnest bone "
+        f"{thinnest_bone_voxels(study.template_labels()):.1f} voxels across",
+        flush=True,
+    )
     t0 = time.perf_counter()
     run_stages(study, ["bones", "pose", "weights", "init", "register"], progress=_say)
     print(f"{case}: pipeline {time.perf_counter() - t0:.1f} s", flush=True)
@@ -85,8 +91,10 @@ def run_case(case: str, size: str, seed: int, out: Path, spacing=None, n_poses=N
     true_pos = {sid: study.truth_template_to_scan(sid).data + g.world_coordinates() for sid in ids}
     images = {sid: study.scan(sid) for sid in ids}
     rows = []
-    for label, poses, pos in (("registrations + estimated poses", est_poses, reg_pos),
-                              ("truth (exact correspondences, true poses)", true_poses, true_pos)):
+    for label, poses, pos in (
+        ("registrations + estimated poses", est_poses, reg_pos),
+        ("truth (exact correspondences, true poses)", true_poses, true_pos),
+    ):
         res = leave_one_out_correspondences(template, weights, body, sk, poses, pos, true_pos, images=images)
         rows.append((case, label, res))
     return rows
@@ -99,8 +107,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--spacing", type=float, help="isotropic voxel size of the phantoms, mm (default: the size's)")
     ap.add_argument("--n-poses", type=int, help="scans per phantom (default: the case's)")
-    ap.add_argument("--out", type=Path, help="where the studies are written (default: a temporary folder); studies "
-                                             "already there are reused, their stages rerun only where out of date")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="where the studies are written (default: a temporary folder); studies "
+        "already there are reused, their stages rerun only where out of date",
+    )
     args = ap.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="avw-loo-"))
     out.mkdir(parents=True, exist_ok=True)
@@ -111,12 +123,16 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|---|---|---|")
     for case, label, res in table:
         for r in res:
-            print(f"| {case} | {label} | {r.scan} | {r.med_vbd:.2f} | {r.med_evd:.2f} | {r.cc_vbd:.3f} | "
-                  f"{r.cc_evd:.3f} | {'yes' if r.med_evd < r.med_vbd else 'no'} |")
+            print(
+                f"| {case} | {label} | {r.scan} | {r.med_vbd:.2f} | {r.med_evd:.2f} | {r.cc_vbd:.3f} | "
+                f"{r.cc_evd:.3f} | {'yes' if r.med_evd < r.med_vbd else 'no'} |"
+            )
         mv, me = np.mean([r.med_vbd for r in res]), np.mean([r.med_evd for r in res])
         cv, ce = np.mean([r.cc_vbd for r in res]), np.mean([r.cc_evd for r in res])
-        print(f"| {case} | {label} | mean | {mv:.2f} | {me:.2f} | {cv:.3f} | {ce:.3f} | "
-              f"{sum(r.med_evd < r.med_vbd for r in res)}/{len(res)} |")
+        print(
+            f"| {case} | {label} | mean | {mv:.2f} | {me:.2f} | {cv:.3f} | {ce:.3f} | "
+            f"{sum(r.med_evd < r.med_vbd for r in res)}/{len(res)} |"
+        )
     print(f"studies in {out}")
     return 0
 

@@ -19,6 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from timing import best_of  # noqa: E402  (benchmarks/timing.py)
+
 from validation.phantoms import make_phantom  # noqa: E402
 
 
@@ -35,14 +36,15 @@ def main(argv=None):
     a = ph.anatomy
     cases = {
         "distances": (lambda: a.distances_fast(p), lambda: (a.bone_distances(p), a.body_distance(p))),
-        "intensity": (lambda: a.intensity_fast(p, ph.contrast, edge_mm=ph.edge_mm, texture=ph.texture),
-                      lambda: a.intensity(p, ph.contrast, edge_mm=ph.edge_mm, texture=ph.texture)),
+        "intensity": (
+            lambda: a.intensity_fast(p, ph.contrast, edge_mm=ph.edge_mm, texture=ph.texture),
+            lambda: a.intensity(p, ph.contrast, edge_mm=ph.edge_mm, texture=ph.texture),
+        ),
     }
     for mode in ("soft", "vbd"):
         m = ph.posing_model(angles, mode=mode)
         cases[f"forward ({mode})"] = (lambda m=m: m.forward(p), lambda m=m: m.forward_reference(p))
-    print(f"{args.region}, {args.points} random points in the paper-size field of view, "
-          f"{len(a.bone_names)} bones")
+    print(f"{args.region}, {args.points} random points in the paper-size field of view, {len(a.bone_names)} bones")
     print(f"{'kernel':<18}{'compiled s':>12}{'numpy s':>10}{'ratio':>8}")
     for name, (fast, ref) in cases.items():
         fast()  # compile / warm up

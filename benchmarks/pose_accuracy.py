@@ -69,31 +69,46 @@ def print_bound(phantom, regions, study, summary):
     angles = dict(phantom.poses)
     out = {}
     for label, prior in (("no prior", None), (PRIOR_LABEL, 2.0)):
-        b = [phantom_pose_bounds(phantom, angles[s], regions, prior_deg=prior, prior_mm=prior)
-             for s in study.scan_ids]
+        b = [phantom_pose_bounds(phantom, angles[s], regions, prior_deg=prior, prior_mm=prior) for s in study.scan_ids]
         rot = median_error_norm([x.rotation_cov_deg2 for bs in b for x in bs.values()])
         tr = median_error_norm([x.translation_cov_mm2 for bs in b for x in bs.values()])
         if prior is None:
             # The template is a scan too: to first order its noise doubles the error covariance.
             rot2 = median_error_norm([2 * x.rotation_cov_deg2 for bs in b for x in bs.values()])
             out["noisy template"] = rot2
-            print(f"bound (no prior; template as noisy as the scan, covariance x2): median |rotation error| ≥ "
-                  f"{rot2:.2f}°", flush=True)
-        finite = [(x.rotation_rms_deg, n, s) for s, bs in zip(study.scan_ids, b) for n, x in bs.items()
-                  if np.isfinite(x.rotation_rms_deg)]
-        unseen = [f"{n} in {s}" for s, bs in zip(study.scan_ids, b) for n, x in bs.items()
-                  if not np.isfinite(x.rotation_rms_deg)]
+            print(
+                f"bound (no prior; template as noisy as the scan, covariance x2): median |rotation error| ≥ "
+                f"{rot2:.2f}°",
+                flush=True,
+            )
+        finite = [
+            (x.rotation_rms_deg, n, s)
+            for s, bs in zip(study.scan_ids, b)
+            for n, x in bs.items()
+            if np.isfinite(x.rotation_rms_deg)
+        ]
+        unseen = [
+            f"{n} in {s}"
+            for s, bs in zip(study.scan_ids, b)
+            for n, x in bs.items()
+            if not np.isfinite(x.rotation_rms_deg)
+        ]
         worst = max(finite)
         out[label] = rot
-        print(f"bound ({label}; noise-free template): median |rotation error| ≥ {rot:.2f}°, "
-              f"|translation error| ≥ {tr:.3f} mm; weakest bone {worst[1]} ({worst[2]}) rms ≥ {worst[0]:.2f}°"
-              + (f"; not determined at all (region outside the scan): {', '.join(unseen)}" if unseen else ""),
-              flush=True)
+        print(
+            f"bound ({label}; noise-free template): median |rotation error| ≥ {rot:.2f}°, "
+            f"|translation error| ≥ {tr:.3f} mm; weakest bone {worst[1]} ({worst[2]}) rms ≥ {worst[0]:.2f}°"
+            + (f"; not determined at all (region outside the scan): {', '.join(unseen)}" if unseen else ""),
+            flush=True,
+        )
     if summary is not None:
         m = summary["rotation_deg"]["median"]
-        print(f"ratio ours/bound: median rotation error {m / out['no prior']:.2f} (no prior), "
-              f"{m / out['noisy template']:.2f} (no prior, noisy template), "
-              f"{m / out[PRIOR_LABEL]:.2f} (with the prior)", flush=True)
+        print(
+            f"ratio ours/bound: median rotation error {m / out['no prior']:.2f} (no prior), "
+            f"{m / out['noisy template']:.2f} (no prior, noisy template), "
+            f"{m / out[PRIOR_LABEL]:.2f} (with the prior)",
+            flush=True,
+        )
 
 
 def run_phantoms(args, root: Path):
@@ -106,10 +121,13 @@ def run_phantoms(args, root: Path):
         for modality in args.modalities:
             t0 = time.perf_counter()
             st, ph = phantom_study(region, modality, args.scale, root)
-            print(f"\n== {region} {modality} (scale {args.scale:g}: "
-                  f"{st.template().geometry.size} voxels, spacing "
-                  f"{tuple(round(s, 2) for s in st.template().geometry.spacing)} mm; "
-                  f"{len(st.scan_ids)} scans; generated in {time.perf_counter() - t0:.0f} s)", flush=True)
+            print(
+                f"\n== {region} {modality} (scale {args.scale:g}: "
+                f"{st.template().geometry.size} voxels, spacing "
+                f"{tuple(round(s, 2) for s in st.template().geometry.spacing)} mm; "
+                f"{len(st.scan_ids)} scans; generated in {time.perf_counter() - t0:.0f} s)",
+                flush=True,
+            )
             sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
             regions = bone_regions(tpl, lab, sk)
             centroids = {k: r.centroid for k, r in regions.items()}
@@ -117,8 +135,7 @@ def run_phantoms(args, root: Path):
             per = {}
             for name in args.methods:
                 t0 = time.perf_counter()
-                res = estimate_poses(tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk,
-                                     **CONFIGS[name])
+                res = estimate_poses(tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk, **CONFIGS[name])
                 dt = (time.perf_counter() - t0) / len(st.scan_ids)
                 acc = accuracy(res, truth, sk, centroids)
                 s = acc["summary"]
@@ -130,14 +147,16 @@ def run_phantoms(args, root: Path):
                 def f(v):
                     return "   —" if v is None else f"{v:6.2f}"
 
-                print(f"{name:<8} rot median {f(s['rotation_deg']['median'])}° max {f(s['rotation_deg']['max'])}°"
-                      f" | trans median {f(s['translation_mm']['median'])} max {f(s['translation_mm']['max'])} mm"
-                      f" | centre (2-3 DOF, moving; n={c['n']}) median {f(c['median'])} max {f(c['max'])} mm"
-                      f" | hinges n={h['n']}: c→axis max {f(h['max'])} mm, axis max {f(a['max'])}°"
-                      f" | {dt:5.1f} s/scan | bones flagged {fails}"
-                      f" | unflagged: rot median {f(s['rotation_deg_unflagged']['median'])}° max "
-                      f"{f(s['rotation_deg_unflagged']['max'])}°, trans max {f(s['translation_mm_unflagged']['max'])} mm",
-                      flush=True)
+                print(
+                    f"{name:<8} rot median {f(s['rotation_deg']['median'])}° max {f(s['rotation_deg']['max'])}°"
+                    f" | trans median {f(s['translation_mm']['median'])} max {f(s['translation_mm']['max'])} mm"
+                    f" | centre (2-3 DOF, moving; n={c['n']}) median {f(c['median'])} max {f(c['max'])} mm"
+                    f" | hinges n={h['n']}: c→axis max {f(h['max'])} mm, axis max {f(a['max'])}°"
+                    f" | {dt:5.1f} s/scan | bones flagged {fails}"
+                    f" | unflagged: rot median {f(s['rotation_deg_unflagged']['median'])}° max "
+                    f"{f(s['rotation_deg_unflagged']['max'])}°, trans max {f(s['translation_mm_unflagged']['max'])} mm",
+                    flush=True,
+                )
                 rows.append((region, modality, name, s, dt, fails))
                 if name == "ours" and args.tables:
                     from registration.report import format_accuracy
@@ -147,9 +166,12 @@ def run_phantoms(args, root: Path):
                 print_bound(ph, regions, st, per["ours"][0] if "ours" in per else None)
             if "ours" in per and "paper" in per:
                 (so, to), (sp, tp) = per["ours"], per["paper"]
-                print(f"ratio ours/paper: median rotation error {so['rotation_deg']['median'] / sp['rotation_deg']['median']:.2f}, "
-                      f"worst rotation error {so['rotation_deg']['max'] / sp['rotation_deg']['max']:.2f}, "
-                      f"time per scan {to / tp:.2f}")
+                print(
+                    f"ratio ours/paper: median rotation error "
+                    f"{so['rotation_deg']['median'] / sp['rotation_deg']['median']:.2f}, "
+                    f"worst rotation error {so['rotation_deg']['max'] / sp['rotation_deg']['max']:.2f}, "
+                    f"time per scan {to / tp:.2f}"
+                )
     return rows
 
 
@@ -165,8 +187,10 @@ def run_wrist():
         print("\n== real wrist bones: ../shared/data/wrist-bones-mri is absent, skipped")
         return
     rng = np.random.default_rng(0)
-    print("\n== real wrist bones (Foster et al.), ICP from a resampled (every other vertex), noised "
-          "(0.05 mm) copy, started 5° / 3 mm off")
+    print(
+        "\n== real wrist bones (Foster et al.), ICP from a resampled (every other vertex), noised "
+        "(0.05 mm) copy, started 5° / 3 mm off"
+    )
     for v in wrist_volunteers():
         w = load_wrist_study(v)
         base = w.poses[0]
@@ -177,8 +201,9 @@ def run_wrist():
                 src = bone.positions[base]
                 tgt = bone.positions[pose][::2] + rng.normal(0, 0.05, size=bone.positions[pose][::2].shape)
                 c = src.mean(axis=0)
-                off = from_rotation_translation(Rotation.from_rotvec(
-                    np.deg2rad(5) * rng.normal(size=3) / np.sqrt(3)).as_matrix())
+                off = from_rotation_translation(
+                    Rotation.from_rotvec(np.deg2rad(5) * rng.normal(size=3) / np.sqrt(3)).as_matrix()
+                )
                 off[:3, 3] = c - off[:3, :3] @ c + rng.normal(0, 3 / np.sqrt(3), size=3)
                 r = icp_point_to_plane(src, tgt, init=compose(truth, off))
                 e = compose(invert(truth), r.transform)
@@ -189,20 +214,28 @@ def run_wrist():
         for b in range(len(w.bones)):
             if b == fixed:
                 continue
-            motions = [compose(invert(true_motion(w, w.bones[fixed], base, p).transform),
-                               true_motion(w, w.bones[b], base, p).transform) for p in w.poses[1:]]
+            motions = [
+                compose(
+                    invert(true_motion(w, w.bones[fixed], base, p).transform),
+                    true_motion(w, w.bones[b], base, p).transform,
+                )
+                for p in w.poses[1:]
+            ]
             try:
                 # Kurihara's figure is Eq. 1's plain minimum: no hinge rule (carpal bones translate, so the
                 # centre's sd along the weakest direction is millimetres and the rule would pin it).
-                res.append(estimate_joint_center(motions, reference=w.bones[b].positions[base].mean(axis=0),
-                                                 hinge_sd_mm=None))
+                res.append(
+                    estimate_joint_center(motions, reference=w.bones[b].positions[base].mean(axis=0), hinge_sd_mm=None)
+                )
             except ValueError:
                 pass
         per = np.concatenate([r.per_motion_mm for r in res])
-        print(f"volunteer {v}: ICP over {n} bone motions: worst rotation {worst_r:.3f}°, worst point "
-              f"{worst_t:.3f} mm (asked: ≤ 0.5°, ≤ 0.3 mm) | Eq. 1 residual of the real motion, relative to "
-              f"the largest bone, {len(res)} bones × {len(w.poses) - 1} motions: RMS {np.sqrt(np.mean(per**2)):.2f} mm, "
-              f"per bone {', '.join(f'{r.rms_mm:.1f}' for r in res)} mm (Kurihara: 0.91 mm)")
+        print(
+            f"volunteer {v}: ICP over {n} bone motions: worst rotation {worst_r:.3f}°, worst point "
+            f"{worst_t:.3f} mm (asked: ≤ 0.5°, ≤ 0.3 mm) | Eq. 1 residual of the real motion, relative to "
+            f"the largest bone, {len(res)} bones × {len(w.poses) - 1} motions: RMS {np.sqrt(np.mean(per**2)):.2f} mm, "
+            f"per bone {', '.join(f'{r.rms_mm:.1f}' for r in res)} mm (Kurihara: 0.91 mm)"
+        )
 
 
 def main(argv=None):
@@ -213,8 +246,12 @@ def main(argv=None):
     p.add_argument("--scale", type=float, default=1.0, help="voxels per test-size voxel along each axis")
     p.add_argument("--tables", action="store_true", help="also print per-bone and per-joint tables for 'ours'")
     p.add_argument("--no-wrist", action="store_true")
-    p.add_argument("--no-bound", dest="bound", action="store_false",
-                   help="skip the Cramér–Rao bound on each phantom (validation.information_bound)")
+    p.add_argument(
+        "--no-bound",
+        dest="bound",
+        action="store_false",
+        help="skip the Cramér–Rao bound on each phantom (validation.information_bound)",
+    )
     p.add_argument("--out", type=Path, help="keep the phantom studies here (default: a temporary folder)")
     args = p.parse_args(argv)
     if args.out:

@@ -98,14 +98,26 @@ from deformation.fields import folding_statistics  # noqa: E402
 from deformation.geometry import Volume  # noqa: E402
 from deformation.skinning import stack_transforms  # noqa: E402
 from registration.adaptive import AdaptiveSettings, register_adaptive  # noqa: E402
-from registration.baselines import (_itk, ants_available, ants_syn, elastix_available, elastix_bspline,  # noqa: E402
-                                   sitk_bspline, warp_template)
+from registration.baselines import (
+    _itk,
+    ants_available,
+    ants_syn,
+    elastix_available,
+    elastix_bspline,  # noqa: E402
+    sitk_bspline,
+    warp_template,
+)
 from registration.initialise import vbd_initial_field  # noqa: E402
 from validation.phantoms import make_phantom  # noqa: E402
 from validation.phantoms.generate import ACQUISITIONS, describe_acquisition  # noqa: E402
 from validation.protocols.registration import PAPER as RHEE_TABLES  # noqa: E402
-from validation.registration_measures import (MEASURE_KEYS, body_on_scan, error_map, marker_med,  # noqa: E402
-                                             registration_measures)
+from validation.registration_measures import (
+    MEASURE_KEYS,
+    body_on_scan,
+    error_map,
+    marker_med,  # noqa: E402
+    registration_measures,
+)
 
 # Rhee Tables 2-4, one home (validation.protocols.registration); the benchmark's case names
 PAPER = {"table2": RHEE_TABLES["table2"], "knee": RHEE_TABLES["table3"], "hand": RHEE_TABLES["table4"]}
@@ -113,16 +125,21 @@ PAPER = {"table2": RHEE_TABLES["table2"], "knee": RHEE_TABLES["table3"], "hand":
 
 OURS = "ours (dense, bones fixed)"
 #: flex: the start every method registers from (--start)
-START_ROWS = {"polyrigid": "initialised (polyrigid, estimated poses)",
-              "vbd": "initialised (VBD, distance weights, estimated poses)",
-              "perturbed": "initialised (polyrigid, estimated poses off by 2-5 deg and 2 mm)"}
+START_ROWS = {
+    "polyrigid": "initialised (polyrigid, estimated poses)",
+    "vbd": "initialised (VBD, distance weights, estimated poses)",
+    "perturbed": "initialised (polyrigid, estimated poses off by 2-5 deg and 2 mm)",
+}
 ELASTIX = "elastix B-spline"
 TRUTH = "ground truth (sampled on the scan grid)"
 TUNING_SEEDS = (0, 1)
 HELD_OUT_SEEDS = (100, 101)
 MARKER_SAMPLE = 200  # flex: markers drawn beside the study's 12, by the same rule (validation.phantoms)
-FLEX_KNEE = (("bend10", {"knee": [10.0, 1.0, 2.0]}), ("bend45", {"knee": [45.0, 2.0, 5.0]}),
-             ("bend70", {"knee": [70.0, 2.0, 8.0]}))
+FLEX_KNEE = (
+    ("bend10", {"knee": [10.0, 1.0, 2.0]}),
+    ("bend45", {"knee": [45.0, 2.0, 5.0]}),
+    ("bend70", {"knee": [70.0, 2.0, 8.0]}),
+)
 
 
 class PeakMemory:
@@ -181,9 +198,14 @@ def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem
     each further mask of ``regions``."""
     m = registration_measures(scan, warp_template(template, fld), fld, truth=truth, body=body, markers=markers)
     err = error_map(fld, truth, dtype=np.float64)
-    m.update(bone_mm=float(err[bone].mean()), soft_mm=float(err[body & ~bone].mean()),
-             p95_mm=float(np.percentile(err[body], 95)), n_folded=folding_statistics(fld, body)["n_folded"],
-             seconds=seconds, mem_mib=mem)
+    m.update(
+        bone_mm=float(err[bone].mean()),
+        soft_mm=float(err[body & ~bone].mean()),
+        p95_mm=float(np.percentile(err[body], 95)),
+        n_folded=folding_statistics(fld, body)["n_folded"],
+        seconds=seconds,
+        mem_mib=mem,
+    )
     m.update({f"{name}_mm": float(err[mask].mean()) for name, mask in regions.items()})
     return m
 
@@ -191,24 +213,34 @@ def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem
 def _unfold_line(u):
     """Our registration's fold repair (``DenseResult.unfold``): which attempt was taken (bones frozen down to which
     layer, which kernel)."""
-    return (f"  ours, fold repair: {u['n_folded_before']} -> {u['n_folded_after']} folded voxels of the scan's body, "
-            f"{'taken' if u['taken'] else 'not taken'}; bone layers released "
-            f"{u['bone_layers_released'] if u['bone_layers_released'] is not None else 'all'}, kernel {u['kernel']}")
+    return (
+        f"  ours, fold repair: {u['n_folded_before']} -> {u['n_folded_after']} folded voxels of the scan's body, "
+        f"{'taken' if u['taken'] else 'not taken'}; bone layers released "
+        f"{u['bone_layers_released'] if u['bone_layers_released'] is not None else 'all'}, kernel {u['kernel']}"
+    )
 
 
 def _flex_phantoms(seed, args):
     if not args.hand_only:
-        knee = make_phantom("knee", size="test", seed=seed, spacing=(2.5, 2.5, 2.5), acquisition=args.acquisition,
-                            poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + FLEX_KNEE)
+        knee = make_phantom(
+            "knee",
+            size="test",
+            seed=seed,
+            spacing=(2.5, 2.5, 2.5),
+            acquisition=args.acquisition,
+            poses=(("straight", {"knee": [0.0, 0.0, 0.0]}),) + FLEX_KNEE,
+        )
         yield "knee", knee, ["bend10", "bend45", "bend70"]
     if not args.knee_only:
-        hand = make_phantom("hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4,
-                            acquisition=args.acquisition)
+        hand = make_phantom(
+            "hand", size="test", seed=seed, spacing=(1.6, 1.6, 1.6), n_poses=4, acquisition=args.acquisition
+        )
         yield "hand", hand, [hand.poses[-1][0]]  # the strongest curl
 
 
-def perturbed_transforms(transforms: dict, labels: Volume, bone_labels: dict, seed, *,
-                         degrees=(2.0, 5.0), shift_mm: float = 2.0) -> dict:
+def perturbed_transforms(
+    transforms: dict, labels: Volume, bone_labels: dict, seed, *, degrees=(2.0, 5.0), shift_mm: float = 2.0
+) -> dict:
     """A pose stage that erred (issue M part 3): each bone's template → scan transform followed by a rotation of
     ``degrees`` (uniform in the range) about a random axis through the bone's posed centroid and a ``shift_mm``
     translation in a random direction, drawn from ``seed`` (an int or a sequence of ints: numpy's SeedSequence
@@ -253,20 +285,26 @@ def run_flex(args):
             sk = ph.skeleton
             bl = {b: sk.label_of(b) for b in sk.bone_names}
             xg = ph.geometry.world_coordinates().reshape(-1, 3)
-            body_t = Volume((ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(ph.geometry.array_shape)
-                            .astype(np.uint8), ph.geometry)
+            body_t = Volume(
+                (ph.anatomy.distances_fast(xg)[:, -1] < 0).reshape(ph.geometry.array_shape).astype(np.uint8),
+                ph.geometry,
+            )
             scans = {sc.id: sc for sc in ph.scans()}
             t0 = time.perf_counter()
             est = estimate_poses(template, labels, {k: v.image for k, v in scans.items()}, sk)
             poses = {s.scan_id: s.pose for s in est.scans}
             # bones the pose stage could not place: their pose follows an ancestor (placed_transforms) and no
             # method holds them rigid (the workbench's init and register stages do the same)
-            held = {s.scan_id: released_labels(labels, sk, [b for b, f in s.fits.items() if not f.ok])
-                    for s in est.scans}
+            held = {
+                s.scan_id: released_labels(labels, sk, [b for b, f in s.fits.items() if not f.ok]) for s in est.scans
+            }
             if ph.acquisition is not None:  # --acquisition random: what was drawn
                 print(f"\n{region} seed {seed}: {describe_acquisition(ph.acquisition)}", flush=True)
-            print(f"\n{region} seed {seed} ({args.split}): {ph.geometry.describe()}; poses estimated in "
-                  f"{time.perf_counter() - t0:.0f} s", flush=True)
+            print(
+                f"\n{region} seed {seed} ({args.split}): {ph.geometry.describe()}; poses estimated in "
+                f"{time.perf_counter() - t0:.0f} s",
+                flush=True,
+            )
             parents = {b: sk.bone(b).parent for b in sk.bone_names}
             vbd_weights = {}
             for sid in wanted:
@@ -292,8 +330,19 @@ def run_flex(args):
                 rows = {}
 
                 def add(method, fld, seconds, mem):
-                    rows[method] = field_measures(sc.image, template, fld, truth, body, bone, sc.markers, seconds,
-                                                  mem, skin=skin, skin_joint=skin_joint)
+                    rows[method] = field_measures(
+                        sc.image,
+                        template,
+                        fld,
+                        truth,
+                        body,
+                        bone,
+                        sc.markers,
+                        seconds,
+                        mem,
+                        skin=skin,
+                        skin_joint=skin_joint,
+                    )
                     rows[method]["markers_many_mm"] = marker_med(fld, many)
 
                 # the truth sampled on the scan grid folds too, where curled fingers touch or the crease compresses
@@ -302,39 +351,58 @@ def run_flex(args):
                 transforms = poses[sid].transforms
                 if args.start == "perturbed":  # the estimated poses, each bone off by 2-5 degrees and 2 mm
                     # its own draw per study seed, region and scan
-                    transforms = perturbed_transforms(transforms, labels, bl,
-                                                      seed=[seed, ("knee", "hand").index(region), wanted.index(sid)])
+                    transforms = perturbed_transforms(
+                        transforms, labels, bl, seed=[seed, ("knee", "hand").index(region), wanted.index(sid)]
+                    )
                 if args.start == "vbd" and "distance" not in vbd_weights:  # the weights stage's work, not timed
                     vbd_weights["distance"] = _weights(ph, "distance")
                 with PeakMemory() as pm:
                     t1 = time.perf_counter()
                     if args.start == "vbd":  # what `--init vbd` starts from: distance weights, estimated poses
                         w, _ = vbd_weights["distance"]
-                        init, _ = vbd_initial_field(ph.geometry, sc.image.geometry, w,
-                                                    stack_transforms(transforms, w.bones), body=body_t.data)
+                        init, _ = vbd_initial_field(
+                            ph.geometry, sc.image.geometry, w, stack_transforms(transforms, w.bones), body=body_t.data
+                        )
                     else:
                         init, _ = polyrigid_initial_field(labels, bl, parents, transforms, sc.image.geometry)
                     t_init = time.perf_counter() - t1
                 add(START_ROWS[args.start], init, t_init, pm.mib)
-                if not args.no_vbd_starts and args.start == "polyrigid":  # issue I part 3: the same poses blended by VBD, two kinds of weights
+                if (
+                    not args.no_vbd_starts and args.start == "polyrigid"
+                ):  # issue I part 3: the same poses blended by VBD, two kinds of weights
                     for kind in ("distance", "harmonic"):
                         if kind not in vbd_weights:
                             vbd_weights[kind] = _weights(ph, kind)
                         w, _ = vbd_weights[kind]
                         t1 = time.perf_counter()
-                        v, _ = vbd_initial_field(ph.geometry, sc.image.geometry, w,
-                                                 stack_transforms(poses[sid].transforms, w.bones), body=body_t.data)
+                        v, _ = vbd_initial_field(
+                            ph.geometry,
+                            sc.image.geometry,
+                            w,
+                            stack_transforms(poses[sid].transforms, w.bones),
+                            body=body_t.data,
+                        )
                         add(f"initialised (VBD, {kind} weights)", v, time.perf_counter() - t1, 0.0)
                 with PeakMemory() as pm:
-                    r = register_dense(sc.image, template, initial=init, moving_labels=held[sid],
-                                       settings=getattr(args, "dense", None) or DenseSettings())
+                    r = register_dense(
+                        sc.image,
+                        template,
+                        initial=init,
+                        moving_labels=held[sid],
+                        settings=getattr(args, "dense", None) or DenseSettings(),
+                    )
                 add(OURS, r.correspondence, r.seconds, pm.mib)
                 if r.unfold:
                     print(_unfold_line(r.unfold), flush=True)
                 if not args.no_adaptive:
                     with PeakMemory() as pm:
-                        r = register_adaptive(sc.image, template, initial=init, rigid_mask=held[sid],
-                                              settings=AdaptiveSettings.initialised(seed=args.seed))
+                        r = register_adaptive(
+                            sc.image,
+                            template,
+                            initial=init,
+                            rigid_mask=held[sid],
+                            settings=AdaptiveSettings.initialised(seed=args.seed),
+                        )
                     add("ours (Rhee Alg. 1, initialised preset)", r.correspondence, r.seconds, pm.mib)
                 if elastix_available() and not args.no_elastix:
                     with PeakMemory() as pm:
@@ -342,8 +410,9 @@ def run_flex(args):
                     add(ELASTIX, b.correspondence, b.seconds, pm.mib)
                     if not args.no_elastix_rigidity:
                         with PeakMemory() as pm:
-                            b = elastix_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed,
-                                                rigidity_labels=held[sid])
+                            b = elastix_bspline(
+                                sc.image, template, initial=init, metric="mi", seed=args.seed, rigidity_labels=held[sid]
+                            )
                         add("elastix B-spline + rigidity penalty", b.correspondence, b.seconds, pm.mib)
                 if not args.no_sitk:
                     with PeakMemory() as pm:
@@ -364,6 +433,7 @@ def _ratio(key):
     def f(rows):
         o, e = rows.get(OURS), rows.get(ELASTIX)
         return o[key] / e[key] if o and e and e[key] else float("nan")
+
     return f
 
 
@@ -377,8 +447,12 @@ SET_COLUMNS = (
     ("ours MED", lambda r: r[OURS]["med_mm"], max, "{:.2f}"),
     ("elastix MED", lambda r: r[ELASTIX]["med_mm"] if ELASTIX in r else float("nan"), max, "{:.2f}"),
     ("MED ours / elastix", _ratio("med_mm"), max, "{:.2f}"),
-    ("bone ours / elastix mm", lambda r: (r[OURS]["bone_mm"], r[ELASTIX]["bone_mm"] if ELASTIX in r else float("nan")),
-     None, "{:.3f} / {:.3f}"),
+    (
+        "bone ours / elastix mm",
+        lambda r: (r[OURS]["bone_mm"], r[ELASTIX]["bone_mm"] if ELASTIX in r else float("nan")),
+        None,
+        "{:.3f} / {:.3f}",
+    ),
     ("soft ours / elastix", _ratio("soft_mm"), max, "{:.2f}"),
     ("P95 ours / elastix", _ratio("p95_mm"), max, "{:.2f}"),
     ("markers ours / elastix", _ratio("marker_med_mm"), max, "{:.2f}"),
@@ -435,19 +509,27 @@ def flex_summary(summary, split):
     if not summary:
         return
     print(f"\n## summary ({split} seeds): ours (dense) against the best peer per case\n")
-    print(f"| case | best peer | MED ours / best | marker MED ours / best | {MARKER_SAMPLE} markers ours / best | "
-          "skin MED ours / lowest peer's | skin near joints ours / lowest peer's | folded voxels ours (truth's) | "
-          "bone MED ours mm | time ours / elastix |")
+    print(
+        f"| case | best peer | MED ours / best | marker MED ours / best | {MARKER_SAMPLE} markers ours / best | "
+        "skin MED ours / lowest peer's | skin near joints ours / lowest peer's | folded voxels ours (truth's) | "
+        "bone MED ours mm | time ours / elastix |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for s in summary:
-        print(f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | "
-              f"{s['many_ratio']:.2f} | {s['skin_ratio']:.2f} | "
-              f"{s['skin_joint_ratio']:.2f} | {s['n_folded']} "
-              f"({s['n_folded_truth']}) | "
-              f"{s['bone_mm']:.3f} | {s['time_ratio']:.2f} |")
-    print("\n(issue I asks: MED ratio ≤ 0.8, marker ratio ≤ 1, 0 folded, bone ≤ 0.1 mm, time ratio ≤ 2; the skin MED is "
-          f"the markers' measure over the body's outer voxel layer, near the joints its part where the markers are drawn; "
-          f"{MARKER_SAMPLE} markers: drawn by the study's rule, beside its 12)", flush=True)
+        print(
+            f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | "
+            f"{s['many_ratio']:.2f} | {s['skin_ratio']:.2f} | "
+            f"{s['skin_joint_ratio']:.2f} | {s['n_folded']} "
+            f"({s['n_folded_truth']}) | "
+            f"{s['bone_mm']:.3f} | {s['time_ratio']:.2f} |"
+        )
+    print(
+        "\n(issue I asks: MED ratio ≤ 0.8, marker ratio ≤ 1, 0 folded, bone ≤ 0.1 mm, time ratio ≤ 2; the skin MED is "
+        f"the markers' measure over the body's outer voxel layer, near the joints its part where the markers "
+        f"are drawn; "
+        f"{MARKER_SAMPLE} markers: drawn by the study's rule, beside its 12)",
+        flush=True,
+    )
 
 
 # the columns of flex_report's tables: (header, measure, cell text of a row, the worse of two values); a table has
@@ -487,26 +569,38 @@ def flex_report(title, rows):
     if peers and ours:
         best = min(peers, key=lambda m: peers[m]["med_mm"])
         el = peers.get(ELASTIX)
-        out = {"case": title, "best": best, "rows": rows, "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
-               "marker_ratio": ours["marker_med_mm"] / peers[best]["marker_med_mm"],
-               "n_folded": ours["n_folded"], "n_folded_truth": rows[TRUTH]["n_folded"] if TRUTH in rows else None,
-               "bone_mm": ours["bone_mm"],
-               "time_ratio": ours["seconds"] / el["seconds"] if el else float("nan")}
+        out = {
+            "case": title,
+            "best": best,
+            "rows": rows,
+            "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
+            "marker_ratio": ours["marker_med_mm"] / peers[best]["marker_med_mm"],
+            "n_folded": ours["n_folded"],
+            "n_folded_truth": rows[TRUTH]["n_folded"] if TRUTH in rows else None,
+            "bone_mm": ours["bone_mm"],
+            "time_ratio": ours["seconds"] / el["seconds"] if el else float("nan"),
+        }
         if "markers_many_mm" in ours:
             out["many_ratio"] = ours["markers_many_mm"] / peers[best]["markers_many_mm"]
         for k in ("skin", "skin_joint"):
             if f"{k}_mm" in ours:
                 out[f"{k}_ratio"] = ours[f"{k}_mm"] / min(v[f"{k}_mm"] for v in peers.values())
-        print(f"\nours / best peer ({best}): MED {out['med_ratio']:.2f}, marker MED {out['marker_ratio']:.2f}"
-              + (f"; time / elastix {out['time_ratio']:.2f}" if el else ""), flush=True)
+        print(
+            f"\nours / best peer ({best}): MED {out['med_ratio']:.2f}, marker MED {out['marker_ratio']:.2f}"
+            + (f"; time / elastix {out['time_ratio']:.2f}" if el else ""),
+            flush=True,
+        )
         return out
     return None
 
 
 def _tree_state(root):
     """``{relative path: (size, modification time ns)}`` of every file under ``root``."""
-    return {str(f.relative_to(root)): (f.stat().st_size, f.stat().st_mtime_ns) for f in sorted(root.rglob("*"))
-            if f.is_file()}
+    return {
+        str(f.relative_to(root)): (f.stat().st_size, f.stat().st_mtime_ns)
+        for f in sorted(root.rglob("*"))
+        if f.is_file()
+    }
 
 
 def _workbench(argv):
@@ -553,8 +647,11 @@ def run_external(args):
         return 0
     studies = sorted(d for d in src.iterdir() if (d / "study.json").is_file())
     work = Path(args.work).resolve() if args.work else Path(tempfile.mkdtemp(prefix="avw-external-"))
-    print(f"\nexternal set {src} ({', '.join(d.name for d in studies)}; held out: never used for choosing settings), "
-          f"study copies in {work}", flush=True)
+    print(
+        f"\nexternal set {src} ({', '.join(d.name for d in studies)}; held out: never used for choosing settings), "
+        f"study copies in {work}",
+        flush=True,
+    )
     before = _tree_state(src)
     if elastix_available() and not args.no_elastix:
         _itk()  # ITK's modules loaded before any sampler starts: elastix's peak memory is its registration's
@@ -562,8 +659,9 @@ def run_external(args):
     for d in studies:
         copy = work / d.name
         if copy.exists():
-            raise SystemExit(f"external: {copy} exists; give --work a folder without it (each run starts from a "
-                             "fresh copy)")
+            raise SystemExit(
+                f"external: {copy} exists; give --work a folder without it (each run starts from a fresh copy)"
+            )
         shutil.copytree(d, copy)
         print(f"\n{d.name}: copied to {copy}", flush=True)
         scan_ids = read_study(copy).scan_ids
@@ -572,8 +670,10 @@ def run_external(args):
         # then each scan's init and register, each under its own memory sampler
         steps = [("weights", None, ["run", str(copy), "--until", "weights", "--quiet"])]
         for sid in scan_ids:
-            steps += [(stage, sid, ["run", str(copy), "--until", stage, "--scan", sid, "--quiet"])
-                      for stage in ("init", "register")]
+            steps += [
+                (stage, sid, ["run", str(copy), "--until", stage, "--scan", sid, "--quiet"])
+                for stage in ("init", "register")
+            ]
         for stage, sid, argv in steps:
             with PeakMemory() as pm:
                 rc, error = _workbench(argv)
@@ -591,8 +691,11 @@ def run_external(args):
         body_t = segment_body(template, labels=labels)  # the weights stage's body mask, which validate scores over
         bones_t = Volume((np.asarray(labels.data) > 0).astype(np.uint8), labels.geometry)
         log = st.path("logs/phantom.json")
-        logged = ({s["id"]: s.get("body_voxels_scan") for s in json.loads(log.read_text()).get("scans", [])}
-                  if log.is_file() else {})
+        logged = (
+            {s["id"]: s.get("body_voxels_scan") for s in json.loads(log.read_text()).get("scans", [])}
+            if log.is_file()
+            else {}
+        )
         for sid in scan_ids:
             scan, truth, markers = st.scan(sid), st.truth_correspondence(sid), st.truth_markers(sid)
             body = body_on_scan(truth, body_t)
@@ -601,13 +704,16 @@ def run_external(args):
             start_info, reg_log = st.init_info(sid), st.registration_log(sid)
             e_init, e_reg = st.stage_entry("init", sid), st.stage_entry("register", sid)
             t_reg = e_reg.get("timings") or {}
-            print(f"\n{d.name} / {sid}: {scan.geometry.describe()}; body {int(body.sum())} voxels"
-                  + (f" (the generator's log: {logged[sid]})" if logged.get(sid) is not None else "")
-                  + f", bone {int(bone.sum())}; start: {start_info['method']} "
-                  f"({start_info.get('pose', 'estimated')} pose), bones the pose stage flagged: "
-                  f"{start_info.get('flagged_bones') or 'none'}; ours: {reg_log.get('method')}, register stage "
-                  f"{e_reg['seconds']:.1f} s (registration {t_reg.get('registration', float('nan')):.1f} s, "
-                  f"inversion onto the template grid {t_reg.get('inverse', float('nan')):.1f} s)", flush=True)
+            print(
+                f"\n{d.name} / {sid}: {scan.geometry.describe()}; body {int(body.sum())} voxels"
+                + (f" (the generator's log: {logged[sid]})" if logged.get(sid) is not None else "")
+                + f", bone {int(bone.sum())}; start: {start_info['method']} "
+                f"({start_info.get('pose', 'estimated')} pose), bones the pose stage flagged: "
+                f"{start_info.get('flagged_bones') or 'none'}; ours: {reg_log.get('method')}, register stage "
+                f"{e_reg['seconds']:.1f} s (registration {t_reg.get('registration', float('nan')):.1f} s, "
+                f"inversion onto the template grid {t_reg.get('inverse', float('nan')):.1f} s)",
+                flush=True,
+            )
             unfold = (reg_log.get("summary") or {}).get("unfold")
             if unfold:
                 print(_unfold_line(unfold), flush=True)
@@ -617,8 +723,12 @@ def run_external(args):
                 rows[method] = field_measures(scan, template, fld, truth, body, bone, markers, seconds, mib)
 
             add(TRUTH, truth, 0.0, 0.0)
-            add(f"initialised ({start_info['method']}, {start_info.get('pose', 'estimated')} poses)", init,
-                e_init["seconds"], mem["init", sid])
+            add(
+                f"initialised ({start_info['method']}, {start_info.get('pose', 'estimated')} poses)",
+                init,
+                e_init["seconds"],
+                mem["init", sid],
+            )
             add(OURS, ours, t_reg.get("registration", e_reg["seconds"]), mem["register", sid])
             if elastix_available() and not args.no_elastix:
                 with PeakMemory() as pm:
@@ -630,9 +740,15 @@ def run_external(args):
     external_summary(summary, failures, elastix_available() and not args.no_elastix)
     after = _tree_state(src)
     changed = sorted(f for f in set(before) | set(after) if before.get(f) != after.get(f))
-    print(f"\nthe shared folder {src}: " + ("CHANGED: " + ", ".join(changed) if changed else
-                                            "unchanged (every file's size and modification time as before)"),
-          flush=True)
+    print(
+        f"\nthe shared folder {src}: "
+        + (
+            "CHANGED: " + ", ".join(changed)
+            if changed
+            else "unchanged (every file's size and modification time as before)"
+        ),
+        flush=True,
+    )
     print(f"study copies (the stages' outputs) left in {work}", flush=True)
     args.external_summary = summary
     return len(failures)
@@ -649,15 +765,25 @@ def external_summary(summary, failures, elastix):
     if not summary:
         return
     start_of = {s["label"]: next(m for m in s["rows"] if m.startswith("initialised")) for s in summary}
-    print("| scan | MED ours / elastix | marker MED ours / elastix | time ours / elastix | MED ours / start | "
-          "marker MED ours / start |")
+    print(
+        "| scan | MED ours / elastix | marker MED ours / elastix | time ours / elastix | MED ours / start | "
+        "marker MED ours / start |"
+    )
     print("|---|---|---|---|---|---|")
     nan = float("nan")
     table = []
     for s in summary:
         o, i = s["rows"][OURS], s["rows"][start_of[s["label"]]]
-        table.append((s["label"], s.get("med_ratio", nan), s.get("marker_ratio", nan), s.get("time_ratio", nan),
-                      o["med_mm"] / i["med_mm"], o["marker_med_mm"] / i["marker_med_mm"]))
+        table.append(
+            (
+                s["label"],
+                s.get("med_ratio", nan),
+                s.get("marker_ratio", nan),
+                s.get("time_ratio", nan),
+                o["med_mm"] / i["med_mm"],
+                o["marker_med_mm"] / i["marker_med_mm"],
+            )
+        )
     for r in table:
         print(f"| {r[0]} | " + " | ".join(f"{v:.2f}" for v in r[1:]) + " |")
 
@@ -672,8 +798,14 @@ def external_summary(summary, failures, elastix):
 
     print("\n### worst scan of each column over the external set\n")
     methods = [TRUTH, "start (init stage)", OURS, ELASTIX]
-    per_method = {m: [(s["label"], s["rows"][start_of[s["label"]]] if m == "start (init stage)" else s["rows"][m])
-                      for s in summary if m == "start (init stage)" or m in s["rows"]] for m in methods}
+    per_method = {
+        m: [
+            (s["label"], s["rows"][start_of[s["label"]]] if m == "start (init stage)" else s["rows"][m])
+            for s in summary
+            if m == "start (init stage)" or m in s["rows"]
+        ]
+        for m in methods
+    }
     cols = _columns(v for s in summary for v in s["rows"].values())
     print("| method | " + " | ".join(c[0] for c in cols) + " |")
     print("|---" * (len(cols) + 1) + "|")
@@ -689,23 +821,33 @@ def external_summary(summary, failures, elastix):
             lab, v = worse(finite, key=lambda t: t[1][key])
             cells.append(f"{cell(v)} [{lab}]")
         print(f"| {m} | " + " | ".join(cells) + " |")
-    worse_than_start = [f"{lab} (MED {s['rows'][OURS]['med_mm']:.2f} vs {s['rows'][start_of[lab]]['med_mm']:.2f} mm, "
-                        f"marker MED {s['rows'][OURS]['marker_med_mm']:.2f} vs "
-                        f"{s['rows'][start_of[lab]]['marker_med_mm']:.2f} mm)"
-                        for s in summary for lab in [s["label"]]
-                        if s["rows"][OURS]["med_mm"] > s["rows"][start_of[lab]]["med_mm"]
-                        or s["rows"][OURS]["marker_med_mm"] > s["rows"][start_of[lab]]["marker_med_mm"]]
-    print("\nours worse than its own start (MED or marker MED): "
-          + ("; ".join(worse_than_start) if worse_than_start else "no scan"))
-    print("(worst: the largest value of a column over the scans [which scan], the smallest for CC; ratios > 1: ours "
-          "is worse. Times: the start's is the init stage's, ours the register stage's registration without the inversion, "
-          "on a shared machine: compare ratios, not seconds)", flush=True)
+    worse_than_start = [
+        f"{lab} (MED {s['rows'][OURS]['med_mm']:.2f} vs {s['rows'][start_of[lab]]['med_mm']:.2f} mm, "
+        f"marker MED {s['rows'][OURS]['marker_med_mm']:.2f} vs "
+        f"{s['rows'][start_of[lab]]['marker_med_mm']:.2f} mm)"
+        for s in summary
+        for lab in [s["label"]]
+        if s["rows"][OURS]["med_mm"] > s["rows"][start_of[lab]]["med_mm"]
+        or s["rows"][OURS]["marker_med_mm"] > s["rows"][start_of[lab]]["marker_med_mm"]
+    ]
+    print(
+        "\nours worse than its own start (MED or marker MED): "
+        + ("; ".join(worse_than_start) if worse_than_start else "no scan")
+    )
+    print(
+        "(worst: the largest value of a column over the scans [which scan], the smallest for CC; ratios > 1: ours "
+        "is worse. Times: the start's is the init stage's, ours the register stage's registration without the "
+        "inversion, "
+        "on a shared machine: compare ratios, not seconds)",
+        flush=True,
+    )
 
 
 def _cases(args):
     if "table2" in args.cases:
-        ph = make_phantom("knee", size=args.size, posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),),
-                          seed=args.seed)
+        ph = make_phantom(
+            "knee", size=args.size, posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),), seed=args.seed
+        )
         yield "table2", ph, False
     if "knee" in args.cases:
         yield "knee", make_phantom("knee", size=args.size, seed=args.seed), True
@@ -730,18 +872,27 @@ def _weights(ph, method):
 
 def _level_progress(tag):
     """Print each finished block level of our registration (paper-size runs take many minutes)."""
+
     def show(info):
         lv = info.get("level_done")
         if lv is not None:
-            print(f"    {tag} level {lv.level}: {lv.steps} steps, {lv.accepted} accepted, "
-                  f"{lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, {lv.seconds:.1f} s", flush=True)
+            print(
+                f"    {tag} level {lv.level}: {lv.steps} steps, {lv.accepted} accepted, "
+                f"{lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, {lv.seconds:.1f} s",
+                flush=True,
+            )
+
     return show
 
 
 def run_case(name, ph, articulated, args):
     template, labels = ph.template()
-    body_t = Volume((ph.anatomy.distances_fast(ph.geometry.world_coordinates().reshape(-1, 3))[:, -1] < 0)
-                    .reshape(ph.geometry.array_shape).astype(np.uint8), ph.geometry)
+    body_t = Volume(
+        (ph.anatomy.distances_fast(ph.geometry.world_coordinates().reshape(-1, 3))[:, -1] < 0)
+        .reshape(ph.geometry.array_shape)
+        .astype(np.uint8),
+        ph.geometry,
+    )
     weights = _weights(ph, args.weights)[0] if articulated and not args.from_truth else None  # VBD only
     rows: dict[str, list] = {}
     scans = list(ph.scans())
@@ -766,15 +917,22 @@ def run_case(name, ph, articulated, args):
         elif articulated:
             t0 = time.perf_counter()
             t = stack_transforms(sc.pose.transforms, weights.bones)
-            initial, _ = vbd_initial_field(ph.geometry, sc.image.geometry, weights, t, body=body_t.data,
-                                           unfold=args.unfold_init)
+            initial, _ = vbd_initial_field(
+                ph.geometry, sc.image.geometry, weights, t, body=body_t.data, unfold=args.unfold_init
+            )
             add("initialised", initial, warp_template(template, initial), time.perf_counter() - t0)
         if articulated or args.from_truth:
             st = AdaptiveSettings.initialised(seed=args.seed)
         else:
             st = AdaptiveSettings(seed=args.seed)
-        res = register_adaptive(sc.image, template, initial=initial, rigid_mask=labels if articulated else None,
-                                settings=st, progress=_level_progress(f"{sc.id} ours"))
+        res = register_adaptive(
+            sc.image,
+            template,
+            initial=initial,
+            rigid_mask=labels if articulated else None,
+            settings=st,
+            progress=_level_progress(f"{sc.id} ours"),
+        )
         add("ours", res.correspondence, res.registered, res.seconds)
         rows["ours"][-1]["control_points"] = res.control_points
         from registration.dense import register_dense
@@ -782,10 +940,14 @@ def run_case(name, ph, articulated, args):
         d = register_dense(sc.image, template, initial=initial, moving_labels=labels if articulated else None)
         add("ours (dense)", d.correspondence, d.registered, d.seconds)
         if args.paper_preset:
-            res = register_adaptive(sc.image, template, initial=initial,
-                                    rigid_mask=labels if articulated else None,
-                                    settings=AdaptiveSettings.paper(seed=args.seed),
-                                    progress=_level_progress(f"{sc.id} ours (paper preset)"))
+            res = register_adaptive(
+                sc.image,
+                template,
+                initial=initial,
+                rigid_mask=labels if articulated else None,
+                settings=AdaptiveSettings.paper(seed=args.seed),
+                progress=_level_progress(f"{sc.id} ours (paper preset)"),
+            )
             add("ours (paper preset)", res.correspondence, res.registered, res.seconds)
         b = sitk_bspline(sc.image, template, initial=initial, metric="mi", seed=args.seed)
         add("sitk-bspline", b.correspondence, b.registered, b.seconds)
@@ -799,6 +961,7 @@ def run_case(name, ph, articulated, args):
 
 def report(name, rows):
     keys = list(MEASURE_KEYS) + ["seconds"]
+
     def avg(values):
         v = np.asarray(values, float)
         return float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else float("nan")
@@ -808,16 +971,22 @@ def report(name, rows):
     print("| volume | MED mm | marker MED mm | SSD | CC | MI | folded | s |")
     print("|---|---|---|---|---|---|---|---|")
     for m, v in mean.items():
-        print(f"| {m} | {v['med_mm']:.2f} | {v['marker_med_mm']:.2f} | {v['ssd']:.1f} | {v['cc']:.3f} | "
-              f"{v['mi']:.3f} | {v['folded_fraction']:.5f} | {v['seconds']:.1f} |")
+        print(
+            f"| {m} | {v['med_mm']:.2f} | {v['marker_med_mm']:.2f} | {v['ssd']:.1f} | {v['cc']:.3f} | "
+            f"{v['mi']:.3f} | {v['folded_fraction']:.5f} | {v['seconds']:.1f} |"
+        )
     for m, v in PAPER.get(name, {}).items():
-        print(f"| paper {m} | {v.get('med_mm', float('nan')):.2f} | {v.get('marker_med_mm', float('nan')):.2f} | "
-              f"{v.get('ssd', float('nan')):.1f} | {v.get('cc', float('nan')):.3f} | "
-              f"{v.get('mi', float('nan')):.3f} | | |")
+        print(
+            f"| paper {m} | {v.get('med_mm', float('nan')):.2f} | {v.get('marker_med_mm', float('nan')):.2f} | "
+            f"{v.get('ssd', float('nan')):.1f} | {v.get('cc', float('nan')):.3f} | "
+            f"{v.get('mi', float('nan')):.3f} | | |"
+        )
     src = mean["source"]["med_mm"]
     ours = mean["ours"]
-    print(f"\nours: MED reduced by {100 * (1 - ours['med_mm'] / src):.0f} % from the source; "
-          f"{np.mean([r.get('control_points', 0) for r in rows['ours']]):.0f} control points per scan")
+    print(
+        f"\nours: MED reduced by {100 * (1 - ours['med_mm'] / src):.0f} % from the source; "
+        f"{np.mean([r.get('control_points', 0) for r in rows['ours']]):.0f} control points per scan"
+    )
     if "initialised" in mean:
         better = sum(o["med_mm"] < i["med_mm"] for o, i in zip(rows["ours"], rows["initialised"]))
         print(f"ours beats the initialisation on MED on {better}/{len(rows['ours'])} scans")
@@ -825,56 +994,99 @@ def report(name, rows):
         for base in ("sitk-bspline", "elastix-bspline"):
             if base in mean and method in mean:
                 b, o = mean[base], mean[method]
-                print(f"{method} / {base}: MED ratio {o['med_mm'] / b['med_mm']:.2f}, time ratio "
-                      f"{o['seconds'] / b['seconds']:.2f}")
+                print(
+                    f"{method} / {base}: MED ratio {o['med_mm'] / b['med_mm']:.2f}, time ratio "
+                    f"{o['seconds'] / b['seconds']:.2f}"
+                )
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--cases", nargs="+", choices=["table2", "knee", "hand", "flex", "external", "suite"],
-                   default=["table2", "knee"])
-    p.add_argument("--split", choices=["tuning", "held-out"], default="held-out",
-                   help="flex: the seeds settings were tuned on, or the held-out ones (default). external: no "
-                        "split, its studies are never used for choosing settings (always held out)")
-    p.add_argument("--external", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"
-                                             / "external-phantoms"),
-                   help="external: the folder of study folders (default: <repository>/../shared/data/"
-                        "external-phantoms); only read: each study is copied into --work")
-    p.add_argument("--work", help="external: the folder the study copies are made and run in (default: a new "
-                                  "temporary folder); it must not hold folders of the studies' names")
+    p.add_argument(
+        "--cases",
+        nargs="+",
+        choices=["table2", "knee", "hand", "flex", "external", "suite"],
+        default=["table2", "knee"],
+    )
+    p.add_argument(
+        "--split",
+        choices=["tuning", "held-out"],
+        default="held-out",
+        help="flex: the seeds settings were tuned on, or the held-out ones (default). external: no "
+        "split, its studies are never used for choosing settings (always held out)",
+    )
+    p.add_argument(
+        "--external",
+        default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "external-phantoms"),
+        help="external: the folder of study folders (default: <repository>/../shared/data/"
+        "external-phantoms); only read: each study is copied into --work",
+    )
+    p.add_argument(
+        "--work",
+        help="external: the folder the study copies are made and run in (default: a new "
+        "temporary folder); it must not hold folders of the studies' names",
+    )
     p.add_argument("--seeds", type=int, nargs="+", help="flex: these seeds instead of the split's")
     p.add_argument("--knee-only", action="store_true", help="flex: leave the hand out")
     p.add_argument("--hand-only", action="store_true", help="flex: leave the knee out")
     p.add_argument("--no-adaptive", action="store_true", help="flex: leave Rhee's Algorithm 1 out")
     p.add_argument("--no-sitk", action="store_true")
-    p.add_argument("--start", choices=list(START_ROWS), default="polyrigid",
-                   help="flex: the start every method registers from (issue M part 3): the polyrigid flow of the "
-                        "estimated poses (the workbench's default), VBD of the same poses (it folds in the crease), "
-                        "or the polyrigid flow of the estimated poses with every bone off by 2-5 degrees and 2 mm")
-    p.add_argument("--acquisition", choices=list(ACQUISITIONS), default="fixed",
-                   help="flex: the phantoms' acquisition: the modality's fixed noise, bias and contrast, or drawn per "
-                        "seed (noise model and SNR 8-40, bias 0-20 %%, gain, a contrast between T1-like and CT-like; "
-                        "validation.phantoms.generate.draw_acquisition). The voxel spacing stays the case's")
-    p.add_argument("--no-vbd-starts", action="store_true",
-                   help="flex: leave out the VBD starts (distance and harmonic weights) measured beside the polyrigid one")
+    p.add_argument(
+        "--start",
+        choices=list(START_ROWS),
+        default="polyrigid",
+        help="flex: the start every method registers from (issue M part 3): the polyrigid flow of the "
+        "estimated poses (the workbench's default), VBD of the same poses (it folds in the crease), "
+        "or the polyrigid flow of the estimated poses with every bone off by 2-5 degrees and 2 mm",
+    )
+    p.add_argument(
+        "--acquisition",
+        choices=list(ACQUISITIONS),
+        default="fixed",
+        help="flex: the phantoms' acquisition: the modality's fixed noise, bias and contrast, or drawn per "
+        "seed (noise model and SNR 8-40, bias 0-20 %%, gain, a contrast between T1-like and CT-like; "
+        "validation.phantoms.generate.draw_acquisition). The voxel spacing stays the case's",
+    )
+    p.add_argument(
+        "--no-vbd-starts",
+        action="store_true",
+        help="flex: leave out the VBD starts (distance and harmonic weights) measured beside the polyrigid one",
+    )
     p.add_argument("--size", choices=["test", "paper"], default="test")
-    p.add_argument("--weights", choices=["distance", "harmonic"], default="distance",
-                   help="skinning weights for the VBD initialisation. Default: distance (fast)")
+    p.add_argument(
+        "--weights",
+        choices=["distance", "harmonic"],
+        default="distance",
+        help="skinning weights for the VBD initialisation. Default: distance (fast)",
+    )
     p.add_argument("--paper-preset", action="store_true", help="also run Rhee's settings (levels 3-5, NM)")
-    p.add_argument("--unfold-init", action="store_true",
-                   help="repair the folds of the VBD initialisation (deformation.fields.unfold) before every method")
-    p.add_argument("--from-truth", action="store_true",
-                   help="start every method from the ground-truth field instead (the 'initialised' row is then "
-                        "the truth): each method's MED is how far intensity alone pulls it off the exact answer, "
-                        "the floor below which no start can be improved")
+    p.add_argument(
+        "--unfold-init",
+        action="store_true",
+        help="repair the folds of the VBD initialisation (deformation.fields.unfold) before every method",
+    )
+    p.add_argument(
+        "--from-truth",
+        action="store_true",
+        help="start every method from the ground-truth field instead (the 'initialised' row is then "
+        "the truth): each method's MED is how far intensity alone pulls it off the exact answer, "
+        "the floor below which no start can be improved",
+    )
     p.add_argument("--no-elastix", action="store_true")
-    p.add_argument("--no-elastix-rigidity", action="store_true",
-                   help="flex: leave out elastix with the rigidity penalty on the bones (the slowest peer)")
+    p.add_argument(
+        "--no-elastix-rigidity",
+        action="store_true",
+        help="flex: leave out elastix with the rigidity penalty on the bones (the slowest peer)",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--dense-settings", metavar="JSON", default="{}",
-                   help="flex: the dense registration's settings (registration.dense.DenseSettings fields as a JSON "
-                        "object, e.g. '{\"interpolation_noise\": true}'; default: its defaults).  The external set "
-                        "runs the workbench's own chain, which does not take them")
+    p.add_argument(
+        "--dense-settings",
+        metavar="JSON",
+        default="{}",
+        help="flex: the dense registration's settings (registration.dense.DenseSettings fields as a JSON "
+        "object, e.g. '{\"interpolation_noise\": true}'; default: its defaults).  The external set "
+        "runs the workbench's own chain, which does not take them",
+    )
     args = p.parse_args(argv)
     try:
         from registration.dense import DenseSettings
@@ -886,26 +1098,34 @@ def main(argv=None) -> int:
     except (ValueError, TypeError) as e:
         p.error(f"--dense-settings {args.dense_settings!r}: {e}")
     if kw and any(c in args.cases for c in ("external", "suite", "table2", "knee", "hand")):
-        p.error("--dense-settings applies to --cases flex only (the external set runs the workbench's own chain, "
-                "the others the defaults): run the flex cases with it")
+        p.error(
+            "--dense-settings applies to --cases flex only (the external set runs the workbench's own chain, "
+            "the others the defaults): run the flex cases with it"
+        )
     if args.knee_only and args.hand_only:
         p.error("--knee-only and --hand-only leave nothing to run: give one of them")
     if args.from_truth and args.unfold_init:
         p.error("--from-truth starts from the ground truth, --unfold-init repairs the VBD start: give one of them")
-    elx = 'available' if elastix_available() else 'not installed (pip install -e .[bench])'
+    elx = "available" if elastix_available() else "not installed (pip install -e .[bench])"
     if args.cases == ["flex"]:  # its own seeds and start (run_flex prints them per case)
-        print(f"registration benchmark, issue I's flex cases ({args.split} seeds), start: "
-              f"{START_ROWS[args.start].removeprefix('initialised ')}; elastix {elx}"
-              + (f"; ours with the dense settings {args.dense_settings}" if kw else ""))
+        print(
+            f"registration benchmark, issue I's flex cases ({args.split} seeds), start: "
+            f"{START_ROWS[args.start].removeprefix('initialised ')}; elastix {elx}"
+            + (f"; ours with the dense settings {args.dense_settings}" if kw else "")
+        )
     elif args.cases == ["suite"]:
-        print(f"registration benchmark, the three sets: tuning and held-out draws ({args.acquisition} acquisition, "
-              f"{START_ROWS[args.start].removeprefix('initialised ')}) and the external set; elastix {elx}")
+        print(
+            f"registration benchmark, the three sets: tuning and held-out draws ({args.acquisition} acquisition, "
+            f"{START_ROWS[args.start].removeprefix('initialised ')}) and the external set; elastix {elx}"
+        )
     elif args.cases == ["external"]:  # the workbench's own chain and start (run_external prints them per study)
         print(f"registration benchmark, the external set (held out), the workbench's start; elastix {elx}")
     else:
-        print(f"registration benchmark, {args.size} size, seed {args.seed}, "
-              f"{'ground-truth' if args.from_truth else 'unfolded VBD' if args.unfold_init else 'raw VBD'} "
-              f"initialisation; elastix {elx}")
+        print(
+            f"registration benchmark, {args.size} size, seed {args.seed}, "
+            f"{'ground-truth' if args.from_truth else 'unfolded VBD' if args.unfold_init else 'raw VBD'} "
+            f"initialisation; elastix {elx}"
+        )
     if "suite" in args.cases:  # issue M part 5: the tuning draws, the held-out draws and the external set
         import copy
 
@@ -919,8 +1139,10 @@ def main(argv=None) -> int:
         print("\n# The three sets, one table each\n")
         for name, summary in sets:
             set_table(name, summary)
-        print("\n(ratios > 1: ours is worse; CC ratio < 1: ours is worse; bone: ours' and elastix's bone MED; folded: "
-              "ours' folded voxels of the body (the start's); times on a shared machine in one run: compare ratios)")
+        print(
+            "\n(ratios > 1: ours is worse; CC ratio < 1: ours is worse; bone: ours' and elastix's bone MED; folded: "
+            "ours' folded voxels of the body (the start's); times on a shared machine in one run: compare ratios)"
+        )
         return 1 if failed else 0
     if "flex" in args.cases:
         run_flex(args)

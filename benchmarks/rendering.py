@@ -32,12 +32,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from validation.phantoms import make_phantom  # noqa: E402
-from workbench.viz.animate import animate_study  # noqa: E402
 from workbench.stages.model import ModelSettings  # noqa: E402
 from workbench.stages.run import run_stages  # noqa: E402
 from workbench.stages.weights import WeightsSettings  # noqa: E402
-from workbench.viz.render import Camera, VolumeRenderer, opengl_backend  # noqa: E402
 from workbench.study import write_phantom_study  # noqa: E402
+from workbench.viz.animate import animate_study  # noqa: E402
+from workbench.viz.render import Camera, VolumeRenderer, opengl_backend  # noqa: E402
 
 
 def _time_mapper(vol, mapper, repeats, size):
@@ -55,10 +55,18 @@ def main(argv=None):
     ap.add_argument("--cases", nargs="+", default=["hand", "knee"], choices=["hand", "knee"])
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=5, help="renders per mapper for the per-frame time")
-    ap.add_argument("--weights", choices=["distance", "harmonic"], default="distance",
-                    help="skinning weights of the animated study (the per-frame cost does not depend on it)")
-    ap.add_argument("--method", choices=["evd", "vbd"], default="evd",
-                    help="deformation per frame: EVD (a model is built from the phantom's truth first) or VBD")
+    ap.add_argument(
+        "--weights",
+        choices=["distance", "harmonic"],
+        default="distance",
+        help="skinning weights of the animated study (the per-frame cost does not depend on it)",
+    )
+    ap.add_argument(
+        "--method",
+        choices=["evd", "vbd"],
+        default="evd",
+        help="deformation per frame: EVD (a model is built from the phantom's truth first) or VBD",
+    )
     args = ap.parse_args(argv)
     size = (640, 480)
     print(f"OpenGL: {opengl_backend().describe()}")
@@ -70,26 +78,39 @@ def main(argv=None):
         t_fixed, a = _time_mapper(template, "fixed", args.repeats, size)
         t_gpu, b = _time_mapper(template, "gpu", args.repeats, size)
         diff = float(np.abs(a.astype(int) - b).mean())
-        print(f"{case}: render {size[0]}x{size[1]} of {template.geometry.size} voxels: fixed-point CPU ray cast "
-              f"{t_fixed:.3f} s/frame, GPU ray cast on this OpenGL {t_gpu:.3f} s/frame; ratio gpu/fixed "
-              f"{t_gpu / t_fixed:.1f}x; mean |pixel difference| {diff:.1f} of 255", flush=True)
+        print(
+            f"{case}: render {size[0]}x{size[1]} of {template.geometry.size} voxels: fixed-point CPU ray cast "
+            f"{t_fixed:.3f} s/frame, GPU ray cast on this OpenGL {t_gpu:.3f} s/frame; ratio gpu/fixed "
+            f"{t_gpu / t_fixed:.1f}x; mean |pixel difference| {diff:.1f} of 255",
+            flush=True,
+        )
         study = write_phantom_study(ph, tmp / case)
         root = study.root
-        run_stages(study, ["weights"] + (["model"] if args.method == "evd" else []),
-                   settings={"weights": WeightsSettings(method=args.weights), "model": ModelSettings(source="truth")})
+        run_stages(
+            study,
+            ["weights"] + (["model"] if args.method == "evd" else []),
+            settings={"weights": WeightsSettings(method=args.weights), "model": ModelSettings(source="truth")},
+        )
         s = animate_study(root, tmp / f"{case}.mp4", size=size, n_frames=args.frames, method=args.method)
         rows.append((case, s, t_fixed, t_gpu))
-        print(f"{case}: {s['frames']} frames {size[0]}x{size[1]} ({s['method'].upper()}, {s['mapper']} mapper): "
-              f"deformation {s['deform_seconds']:.1f} s ({s['deform_seconds_per_frame']:.3f} s/frame), rendering "
-              f"{s['render_seconds']:.1f} s ({s['render_seconds_per_frame']:.3f} s/frame), encoding "
-              f"{s['encode_seconds']:.1f} s; total {s['total_seconds']:.1f} s", flush=True)
-    print("\n| case | frames | deformation s | rendering s | encoding s | total s | render s/frame | "
-          "GPU mapper / ours (per frame) |")
+        print(
+            f"{case}: {s['frames']} frames {size[0]}x{size[1]} ({s['method'].upper()}, {s['mapper']} mapper): "
+            f"deformation {s['deform_seconds']:.1f} s ({s['deform_seconds_per_frame']:.3f} s/frame), rendering "
+            f"{s['render_seconds']:.1f} s ({s['render_seconds_per_frame']:.3f} s/frame), encoding "
+            f"{s['encode_seconds']:.1f} s; total {s['total_seconds']:.1f} s",
+            flush=True,
+        )
+    print(
+        "\n| case | frames | deformation s | rendering s | encoding s | total s | render s/frame | "
+        "GPU mapper / ours (per frame) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for case, s, tf, tg in rows:
-        print(f"| {case} | {s['frames']} | {s['deform_seconds']:.1f} | {s['render_seconds']:.1f} | "
-              f"{s['encode_seconds']:.1f} | {s['total_seconds']:.1f} | {s['render_seconds_per_frame']:.3f} | "
-              f"{tg / tf:.1f}x |")
+        print(
+            f"| {case} | {s['frames']} | {s['deform_seconds']:.1f} | {s['render_seconds']:.1f} | "
+            f"{s['encode_seconds']:.1f} | {s['total_seconds']:.1f} | {s['render_seconds_per_frame']:.3f} | "
+            f"{tg / tf:.1f}x |"
+        )
     print(f"videos in {tmp}")
     return 0
 

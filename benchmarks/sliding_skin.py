@@ -52,16 +52,20 @@ def main(argv=None):
     inner = np.zeros(body.shape, bool)
     inner[:, :, 4:-4] = True  # away from the ends along x, where the slide leaves the grid
     skin, deep = body & (depth < 2.0) & inner, body & (depth > 8.0) & inner
-    print(f"slab in air, slide {args.slide_mm} mm at the skin; start error at the skin "
-          f"{np.linalg.norm(u[skin], axis=-1).mean():.3f} mm")
+    print(
+        f"slab in air, slide {args.slide_mm} mm at the skin; start error at the skin "
+        f"{np.linalg.norm(u[skin], axis=-1).mean():.3f} mm"
+    )
     print("| tissue_only | skin mm | deep mm | body mm | signed error along the slide by depth (mm below the skin) |")
     print("|---|---|---|---|---|")
     for on in (False, True):
         r = register_dense(scan, Volume(img, g), settings=DenseSettings(tissue_only=on))
         e = np.linalg.norm(r.correspondence.data - u, axis=-1)
         ex = (r.correspondence.data - u) @ rot[:, 0]
-        by = ", ".join(f"{lo}–{hi}: {ex[inner & (depth >= lo) & (depth < hi)].mean():+.2f}"
-                       for lo, hi in ((-2, 0), (0, 2), (2, 4), (4, 8), (8, 12)))
+        by = ", ".join(
+            f"{lo}–{hi}: {ex[inner & (depth >= lo) & (depth < hi)].mean():+.2f}"
+            for lo, hi in ((-2, 0), (0, 2), (2, 4), (4, 8), (8, 12))
+        )
         print(f"| {on} | {e[skin].mean():.3f} | {e[deep].mean():.3f} | {e[body & inner].mean():.3f} | {by} |")
 
 

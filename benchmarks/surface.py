@@ -40,8 +40,9 @@ PAPER = {"rbf": 1.0, "nearest": 9.0, "psd": 0.062, "wpsd": 0.157}  # seconds per
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--triangles", type=int, default=100_000, help="triangles of S0 and each pose's skin")
     ap.add_argument("--repeat", type=int, default=5, help="best of this many timed calls (after a warm-up)")
     ap.add_argument("--seed", type=int, default=0)
@@ -54,8 +55,15 @@ def main(argv=None):
     from deformation.skinning import distance_weights, lbs
     from deformation.splines import KURIHARA_D_MM, RBFDeformation
     from deformation.surface_model import SurfaceModel
-    from registration.surface_fit import (_confident_targets, _scene, farthest_points, fit_nearest,
-                                          fit_regularised, triangle_normals, vertex_normals)
+    from registration.surface_fit import (
+        _confident_targets,
+        _scene,
+        farthest_points,
+        fit_nearest,
+        fit_regularised,
+        triangle_normals,
+        vertex_normals,
+    )
     from validation.phantoms import Phantom, PhantomSpec
     from validation.protocols.kurihara import PHANTOM
     from validation.surface_measures import posed_truth, true_skin
@@ -67,21 +75,31 @@ def main(argv=None):
     fine = true_skin(ph, refine=2.0)
     base = decimate(fine, a.triangles)
     bones = tuple(sk.bone_names)
-    d = ph.anatomy.distances_fast(base.vertices)[:, :len(bones)]
+    d = ph.anatomy.distances_fast(base.vertices)[:, : len(bones)]
     weights = distance_weights(d, bones)
-    targets = {pid: decimate(SurfaceMesh(posed_truth(ph, ang, fine.vertices), fine.triangles), a.triangles)
-               for pid, ang in ph.poses}
+    targets = {
+        pid: decimate(SurfaceMesh(posed_truth(ph, ang, fine.vertices), fine.triangles), a.triangles)
+        for pid, ang in ph.poses
+    }
     poses = {pid: ph.pose_of(ang) for pid, ang in ph.poses}
-    print(f"CT hand phantom skin: S0 {base.n_triangles} triangles, {base.n_vertices} vertices; {len(poses)} poses; "
-          f"set-up {time.perf_counter() - t0:.0f} s; {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}")
+    print(
+        f"CT hand phantom skin: S0 {base.n_triangles} triangles, {base.n_vertices} vertices; {len(poses)} poses; "
+        f"set-up {time.perf_counter() - t0:.0f} s; {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}"
+    )
 
     rows = {k: [] for k in ("rbf", "nearest", "regularised")}
     fitted = {}
     for pid, target in targets.items():
         ssd = SurfaceMesh(lbs(base.vertices, weights, poses[pid].transforms), base.triangles)
-        tgt, has = _confident_targets(ssd.vertices, vertex_normals(ssd.vertices, ssd.triangles), target,
-                                      _scene(target), triangle_normals(target.vertices, target.triangles), 5.0,
-                                      np.cos(np.deg2rad(60.0)))
+        tgt, has = _confident_targets(
+            ssd.vertices,
+            vertex_normals(ssd.vertices, ssd.triangles),
+            target,
+            _scene(target),
+            triangle_normals(target.vertices, target.triangles),
+            5.0,
+            np.cos(np.deg2rad(60.0)),
+        )
         idx = farthest_points(base.vertices, 150, candidates=has)
 
         def rbf_fit():  # Kurihara Eq. 4–5: solve for the 150 points' coefficients, evaluate at every vertex
@@ -95,28 +113,37 @@ def main(argv=None):
         rows["rbf"].append(t_rbf)
         rows["nearest"].append(t_near)
         rows["regularised"].append(t_reg)
-        print(f"  {pid:9s} RBF {t_rbf:7.3f} s   nearest {t_near:7.3f} s   regularised {t_reg:7.3f} s "
-              f"({res.info.get('cg_iterations')} CG iterations)")
+        print(
+            f"  {pid:9s} RBF {t_rbf:7.3f} s   nearest {t_near:7.3f} s   regularised {t_reg:7.3f} s "
+            f"({res.info.get('cg_iterations')} CG iterations)"
+        )
 
     model = SurfaceModel.from_meshes(base, weights, sk, list(poses.values()), list(fitted.values()))
     deform = {m: [] for m in ("ssd", "psd", "wpsd")}
-    for pid, pose in poses.items():
+    for _pid, pose in poses.items():
         for m in deform:
             model.deform(pose, m)  # warm-up: numba compilation, WPSD's per-vertex Φ⁻¹
             deform[m].append(best_of(lambda: model.deform(pose, m), a.repeat)[0])
     ssd_t, psd_t, wpsd_t = (float(np.mean(deform[m])) for m in ("ssd", "psd", "wpsd"))
-    print(f"\nper pose (mean of {len(poses)} poses; best of {a.repeat}), {base.n_triangles} triangles, "
-          f"{model.n_examples} examples:")
+    print(
+        f"\nper pose (mean of {len(poses)} poses; best of {a.repeat}), {base.n_triangles} triangles, "
+        f"{model.n_examples} examples:"
+    )
     print(f"{'':22s}{'ours':>10s}{'paper':>10s}{'ours / paper':>14s}")
-    for label, key, ours in (("RBF fit (Eq. 4-5)", "rbf", np.mean(rows["rbf"])),
-                             ("nearest-point fit", "nearest", np.mean(rows["nearest"])),
-                             ("regularised fit", None, np.mean(rows["regularised"])),
-                             ("SSD (Eq. 2)", None, ssd_t), ("PSD (Eq. 7-8)", "psd", psd_t),
-                             ("WPSD (Eq. 16)", "wpsd", wpsd_t)):
+    for label, key, ours in (
+        ("RBF fit (Eq. 4-5)", "rbf", np.mean(rows["rbf"])),
+        ("nearest-point fit", "nearest", np.mean(rows["nearest"])),
+        ("regularised fit", None, np.mean(rows["regularised"])),
+        ("SSD (Eq. 2)", None, ssd_t),
+        ("PSD (Eq. 7-8)", "psd", psd_t),
+        ("WPSD (Eq. 16)", "wpsd", wpsd_t),
+    ):
         p = PAPER.get(key)
         print(f"{label:22s}{ours * 1e3:8.1f}ms" + (f"{p * 1e3:8.0f}ms{ours / p:14.3f}" if p else ""))
-    print(f"\nWPSD / PSD = {wpsd_t / psd_t:.2f} (paper {PAPER['wpsd'] / PAPER['psd']:.2f}); "
-          f"PSD / SSD = {psd_t / ssd_t:.2f}")
+    print(
+        f"\nWPSD / PSD = {wpsd_t / psd_t:.2f} (paper {PAPER['wpsd'] / PAPER['psd']:.2f}); "
+        f"PSD / SSD = {psd_t / ssd_t:.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -42,15 +42,22 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry
-from .posespace import (PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones,
-                        per_bone_sq)
+from .posespace import PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones, per_bone_sq
 from .skinning import SkinningWeights, _as_stack, blend_point
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["vbd_forward", "fill_unmatched", "ExampleVolumeDeformation", "EVD_WEIGHTINGS", "template_pose",
-           "wants_template_example", "with_template_example", "TEMPLATE_EXAMPLE_SEPARATION"]
+__all__ = [
+    "vbd_forward",
+    "fill_unmatched",
+    "ExampleVolumeDeformation",
+    "EVD_WEIGHTINGS",
+    "template_pose",
+    "wants_template_example",
+    "with_template_example",
+    "TEMPLATE_EXAMPLE_SEPARATION",
+]
 
 EVD_WEIGHTINGS = ("psd", "wpsd")
 
@@ -163,8 +170,10 @@ def with_template_example(skeleton, vectors, template_example="auto") -> tuple[l
 
 def _check_grid_weights(geometry: GridGeometry, weights: SkinningWeights) -> None:
     if weights.n_points != geometry.n_voxels:
-        raise ValueError(f"voxel weights cover {weights.n_points} points but the grid {geometry.describe()} has "
-                         f"{geometry.n_voxels} voxels: compute the weights on this grid")
+        raise ValueError(
+            f"voxel weights cover {weights.n_points} points but the grid {geometry.describe()} has "
+            f"{geometry.n_voxels} voxels: compute the weights on this grid"
+        )
 
 
 def vbd_forward(geometry: GridGeometry, weights: SkinningWeights, transforms) -> np.ndarray:
@@ -179,8 +188,18 @@ def vbd_forward(geometry: GridGeometry, weights: SkinningWeights, transforms) ->
     out = np.empty(geometry.array_shape + (3,), dtype=np.float32)
     nx, ny, nz = geometry.size
     disp = np.zeros((weights.n_points, 0, 3), dtype=np.float32)
-    _forward_kernel(np.ascontiguousarray(geometry.index_to_world_matrix[:3]), nx, ny, nz, weights.index,
-                    weights.value, t, disp, np.zeros(0), out)
+    _forward_kernel(
+        np.ascontiguousarray(geometry.index_to_world_matrix[:3]),
+        nx,
+        ny,
+        nz,
+        weights.index,
+        weights.value,
+        t,
+        disp,
+        np.zeros(0),
+        out,
+    )
     return out
 
 
@@ -215,13 +234,21 @@ class ExampleVolumeDeformation:
         counts the others.
     """
 
-    def __init__(self, geometry: GridGeometry, weights: SkinningWeights, space: PoseSpace, displacements, *,
-                 template_example: bool = False):
+    def __init__(
+        self,
+        geometry: GridGeometry,
+        weights: SkinningWeights,
+        space: PoseSpace,
+        displacements,
+        *,
+        template_example: bool = False,
+    ):
         _check_grid_weights(geometry, weights)
         d = np.ascontiguousarray(displacements, dtype=np.float32)
         if d.shape != (geometry.n_voxels, space.n_poses, 3):
-            raise ValueError(f"displacements must be (n_voxels, n_poses, 3) = "
-                             f"{(geometry.n_voxels, space.n_poses, 3)}, got {d.shape}")
+            raise ValueError(
+                f"displacements must be (n_voxels, n_poses, 3) = {(geometry.n_voxels, space.n_poses, 3)}, got {d.shape}"
+            )
         self.geometry = geometry
         self.weights = weights
         self.space = space
@@ -237,8 +264,16 @@ class ExampleVolumeDeformation:
         return self.space.n_poses - int(self.template_example)
 
     @classmethod
-    def from_examples(cls, geometry: GridGeometry, weights: SkinningWeights, skeleton, vectors, displacements, *,
-                      template_example="auto") -> "ExampleVolumeDeformation":
+    def from_examples(
+        cls,
+        geometry: GridGeometry,
+        weights: SkinningWeights,
+        skeleton,
+        vectors,
+        displacements,
+        *,
+        template_example="auto",
+    ) -> ExampleVolumeDeformation:
         """The model from the training scans' pose vectors ``(P, n_dof)`` and displacements ``(n_voxels, P, 3)``
         (Rhee Eq. 7), the template's rest pose with ``d = 0`` added as an example when ``template_example``
         is True, or "auto" and :func:`wants_template_example`."""
@@ -249,9 +284,17 @@ class ExampleVolumeDeformation:
         return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=template_example)
 
     @classmethod
-    def from_correspondences(cls, geometry: GridGeometry, weights: SkinningWeights, skeleton, poses,
-                             template_to_scan, *, template_example="auto",
-                             progress=None) -> "ExampleVolumeDeformation":
+    def from_correspondences(
+        cls,
+        geometry: GridGeometry,
+        weights: SkinningWeights,
+        skeleton,
+        poses,
+        template_to_scan,
+        *,
+        template_example="auto",
+        progress=None,
+    ) -> ExampleVolumeDeformation:
         """Build the model from each training scan's pose and template → scan positions (Rhee Eq. 7).
 
         ``poses`` are :class:`~deformation.skeleton.Pose` objects (bone
@@ -287,9 +330,11 @@ class ExampleVolumeDeformation:
                     d[lo:hi, k] = np.linalg.solve(m[:, :, :3], rhs[:, :, None])[:, :, 0] - grid[lo:hi]
                 except np.linalg.LinAlgError:
                     n_sing = int(np.sum(np.abs(np.linalg.det(m[:, :, :3])) < 1e-12))
-                    raise ValueError(f"correspondence {k}: the blended matrix (Σ w T) of {n_sing} voxel(s) is "
-                                     "singular, so VBD cannot be undone there (Rhee Eq. 7); the pose's "
-                                     "transforms or the weights are degenerate") from None
+                    raise ValueError(
+                        f"correspondence {k}: the blended matrix (Σ w T) of {n_sing} voxel(s) is "
+                        "singular, so VBD cannot be undone there (Rhee Eq. 7); the pose's "
+                        "transforms or the weights are degenerate"
+                    ) from None
             if progress is not None:
                 progress(k + 1, len(poses))
         return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=with_template)
@@ -324,6 +369,7 @@ class ExampleVolumeDeformation:
             train = self.space.train
             bone_pair = per_bone_sq(train[:, None, :] - train[None, :, :], self._dof_bone, self.weights.n_bones)
             bone_q = per_bone_sq(vec[None, :] - train, self._dof_bone, self.weights.n_bones)
-            _forward_kernel_wpsd(a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements,
-                                 bone_pair, bone_q, out)
+            _forward_kernel_wpsd(
+                a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, bone_pair, bone_q, out
+            )
         return out

@@ -96,10 +96,12 @@ def _invert_step(f, nx, ny, nz, w2i_u, i2w_y, v, v_new, resid, done, tol):
                 vn[row, 1] = v1
                 vn[row, 2] = v2
                 continue
-            ci, cj, ck = _to_index(w2i_u,
-                                   i2w_y[0, 0] * i + i2w_y[0, 1] * j + i2w_y[0, 2] * k + i2w_y[0, 3] + v0,
-                                   i2w_y[1, 0] * i + i2w_y[1, 1] * j + i2w_y[1, 2] * k + i2w_y[1, 3] + v1,
-                                   i2w_y[2, 0] * i + i2w_y[2, 1] * j + i2w_y[2, 2] * k + i2w_y[2, 3] + v2)
+            ci, cj, ck = _to_index(
+                w2i_u,
+                i2w_y[0, 0] * i + i2w_y[0, 1] * j + i2w_y[0, 2] * k + i2w_y[0, 3] + v0,
+                i2w_y[1, 0] * i + i2w_y[1, 1] * j + i2w_y[1, 2] * k + i2w_y[1, 3] + v1,
+                i2w_y[2, 0] * i + i2w_y[2, 1] * j + i2w_y[2, 2] * k + i2w_y[2, 3] + v2,
+            )
             _interp_vector(f, nx, ny, nz, ci, cj, ck, 1, 0.0, vn, row)  # vn[row] = s (scratch)
             s0 = vn[row, 0]
             s1 = vn[row, 1]
@@ -164,7 +166,7 @@ def _det_at(u, m, k, j, i):
             j10, j11, j12 = r0, r1 + 1.0, r2
         else:
             j20, j21, j22 = r0, r1, r2 + 1.0
-    return (j00 * (j11 * j22 - j12 * j21) - j01 * (j10 * j22 - j12 * j20) + j02 * (j10 * j21 - j11 * j20))
+    return j00 * (j11 * j22 - j12 * j21) - j01 * (j10 * j22 - j12 * j20) + j02 * (j10 * j21 - j11 * j20)
 
 
 @nb.njit(parallel=True, cache=True)
@@ -256,8 +258,7 @@ def _jacobian_det_zyx(u, inv_sp, out):
             g21 = np.float64(_diff_zyx(u, 2, k, j, i, 1, ny)) * inv_sp[1]
             g22 = np.float64(_diff_zyx(u, 2, k, j, i, 2, nx)) * inv_sp[2] + 1.0
             # expanded as _det_at expands the (x, y, z) matrix (its entry [a][b] is g[2-a][2-b]): the same bits
-            out[k, j, i] = (g22 * (g11 * g00 - g10 * g01) - g21 * (g12 * g00 - g10 * g02)
-                            + g20 * (g12 * g01 - g11 * g02))
+            out[k, j, i] = g22 * (g11 * g00 - g10 * g01) - g21 * (g12 * g00 - g10 * g02) + g20 * (g12 * g01 - g11 * g02)
 
 
 # -- helpers --------------------------------------------------------------------------------
@@ -274,8 +275,10 @@ def _update_jacobian_det(u, m, det, box) -> None:
     sub = np.ascontiguousarray(u[crop])
     d = np.empty(sub.shape[:3])
     _jacobian_det_serial(sub, m, d)
-    inner = tuple(slice(0 if c.start == 0 else 1, (c.stop - c.start) if c.stop == n else (c.stop - c.start - 1))
-                  for c, n in zip(crop, shape))
+    inner = tuple(
+        slice(0 if c.start == 0 else 1, (c.stop - c.start) if c.stop == n else (c.stop - c.start - 1))
+        for c, n in zip(crop, shape)
+    )
     det[tuple(slice(c.start + i.start, c.start + i.stop) for c, i in zip(crop, inner))] = d[inner]
 
 
@@ -294,14 +297,16 @@ def _check_field(field: Volume, name: str = "field") -> np.ndarray:
 def _grid_array(values, geometry: GridGeometry, name: str, trailing=(3,)) -> np.ndarray:
     """Array data of ``values`` (a Volume on ``geometry``, or an array of its shape)."""
     if isinstance(values, Volume):
-        values.geometry.check_same(geometry, names=(name, "grid"),
-                                   remedy=f"give {name} on the grid it is used on (resample it first)")
+        values.geometry.check_same(
+            geometry, names=(name, "grid"), remedy=f"give {name} on the grid it is used on (resample it first)"
+        )
         values = values.data
     arr = np.asarray(values)
     if arr.shape != geometry.array_shape + tuple(trailing):
         raise GeometryMismatchError(
             f"{name} shape {arr.shape} does not match the grid {geometry.describe()} "
-            f"(expected {geometry.array_shape + tuple(trailing)})")
+            f"(expected {geometry.array_shape + tuple(trailing)})"
+        )
     return arr
 
 
@@ -360,8 +365,15 @@ def compose(outer: Volume, inner: Volume) -> Volume:
 
 
 # -- inversion --------------------------------------------------------------------------------
-def invert(field: Volume, *, geometry: GridGeometry | None = None, initial=None, max_iter: int = 100,
-           tol_mm: float = 1e-3, stall_iter: int | None = 10) -> tuple[Volume, np.ndarray]:
+def invert(
+    field: Volume,
+    *,
+    geometry: GridGeometry | None = None,
+    initial=None,
+    max_iter: int = 100,
+    tol_mm: float = 1e-3,
+    stall_iter: int | None = 10,
+) -> tuple[Volume, np.ndarray]:
     """Invert the map ``U(x) = x + u(x)``: a field ``v`` on ``geometry`` with ``U(y + v(y)) ≈ y``.
 
     If ``field`` is ``scan_to_template`` (on the scan grid) then, with
@@ -458,7 +470,8 @@ def jacobian_determinant_components(u: np.ndarray, spacing_zyx) -> np.ndarray:
         raise ValueError(f"u must be (3, nz, ny, nx), got {u.shape}")
     out = np.empty(u.shape[1:], dtype=np.float64)
     (_jacobian_det_zyx_serial if out.size < _SERIAL_BELOW else _jacobian_det_zyx)(
-        u, 1.0 / np.asarray(spacing_zyx, dtype=np.float64), out)
+        u, 1.0 / np.asarray(spacing_zyx, dtype=np.float64), out
+    )
     return out
 
 
@@ -483,8 +496,15 @@ def folding_statistics(field: Volume, mask=None) -> dict:
         return dict(n_voxels=0, n_folded=0, fraction_folded=nan, min_det=nan, max_det=nan, p01=nan, p99=nan)
     n_folded = int(np.count_nonzero(det <= 0))
     p01, p99 = np.percentile(det, [1.0, 99.0])
-    return dict(n_voxels=n, n_folded=n_folded, fraction_folded=n_folded / n, min_det=float(det.min()),
-                max_det=float(det.max()), p01=float(p01), p99=float(p99))
+    return dict(
+        n_voxels=n,
+        n_folded=n_folded,
+        fraction_folded=n_folded / n,
+        min_det=float(det.min()),
+        max_det=float(det.max()),
+        p01=float(p01),
+        p99=float(p99),
+    )
 
 
 RESTORE_FRACTIONS = (1.0, 0.75, 0.5, 0.25)  #: how far back towards the input a repaired voxel may go, tried in turn
@@ -492,9 +512,17 @@ UNFOLD_PAD = 8  #: voxels beyond the smoothing's reach that unfold's crop adds a
 RESTORE_PASSES = 10  #: at most this many restoring passes (each pass moves fewer voxels; they stop when none moves)
 
 
-def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: int = 1,
-           max_iterations: int = 200, mask=None, frozen=None,
-           restore: bool = True) -> tuple[Volume, dict]:
+def unfold(
+    field: Volume,
+    *,
+    min_det: float = 0.05,
+    sigma: float = 1.0,
+    margin: int = 1,
+    max_iterations: int = 200,
+    mask=None,
+    frozen=None,
+    restore: bool = True,
+) -> tuple[Volume, dict]:
     """Remove folds from ``field`` by smoothing it locally where ``det ∂U/∂x < min_det``.
 
     Each iteration replaces the displacement on the voxels whose determinant
@@ -564,25 +592,40 @@ def unfold(field: Volume, *, min_det: float = 0.05, sigma: float = 1.0, margin: 
         while True:
             crop = tuple(slice(max(b.start - pad, 0), min(b.stop + pad, n)) for b, n in zip(box, shape))
             inner = np.zeros(tuple(c.stop - c.start for c in crop), dtype=bool)  # the crop less its own faces
-            inner[tuple(slice(0 if c.start == 0 else 1, None if c.stop == n else -1)
-                        for c, n in zip(crop, shape))] = True
-            u, info, touched, changed = _unfold_crop(out[crop], m_inv, inner if m is None else inner & m[crop],
-                                                     None if fz is None else fz[crop], min_det, sigma, margin,
-                                                     max_iterations, restore)
+            inner[tuple(slice(0 if c.start == 0 else 1, None if c.stop == n else -1) for c, n in zip(crop, shape))] = (
+                True
+            )
+            u, info, touched, changed = _unfold_crop(
+                out[crop],
+                m_inv,
+                inner if m is None else inner & m[crop],
+                None if fz is None else fz[crop],
+                min_det,
+                sigma,
+                margin,
+                max_iterations,
+                restore,
+            )
             # nothing low left (an earlier cluster's crop held this one and repaired it), or the repair kept off
             # the crop's faces that are not the grid's: done; else a wider crop
-            if info.pop("n_low") == 0 or all((c.start == 0 or t.start >= 1)
-                                             and (c.stop == n or t.stop <= c.stop - c.start - 1)
-                                             for c, t, n in zip(crop, touched, shape)):
+            if info.pop("n_low") == 0 or all(
+                (c.start == 0 or t.start >= 1) and (c.stop == n or t.stop <= c.stop - c.start - 1)
+                for c, t, n in zip(crop, touched, shape)
+            ):
                 break
             pad *= 2
         out[crop] = u.astype(out.dtype, copy=False)
         smoothed[crop] |= changed
         iterations = max(iterations, info["iterations"])
     n_after, n_changed, max_change = _unfold_summary(out, u0, m_inv, m)
-    return Volume(out, g), dict(iterations=iterations, n_folded_before=n_before, n_folded_after=n_after,
-                                n_changed=n_changed, n_restored=int(np.count_nonzero(smoothed)) - n_changed,
-                                max_change_mm=max_change)
+    return Volume(out, g), dict(
+        iterations=iterations,
+        n_folded_before=n_before,
+        n_folded_after=n_after,
+        n_changed=n_changed,
+        n_restored=int(np.count_nonzero(smoothed)) - n_changed,
+        max_change_mm=max_change,
+    )
 
 
 def _slab_dets(u, m_inv):
@@ -593,7 +636,7 @@ def _slab_dets(u, m_inv):
         a0, a1 = max(k0 - 1, 0), min(k1 + 1, nz)
         det = np.empty((a1 - a0,) + u.shape[1:3])
         _jacobian_det(np.asarray(u[a0:a1], dtype=np.float64), m_inv, det)
-        yield k0, k1, det[k0 - a0:k1 - a0]
+        yield k0, k1, det[k0 - a0 : k1 - a0]
 
 
 def _low_dets(u, m_inv, min_det, mask):
@@ -707,8 +750,9 @@ def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, resto
         rb = tuple(slice(r.start + o.start, r.stop + o.start) for r, o in zip(rb, rbox))
         box = grow_box(rb, reach)
         sub = u[box]
-        sm = np.stack([ndi.gaussian_filter(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)],
-                      axis=-1)
+        sm = np.stack(
+            [ndi.gaussian_filter(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)], axis=-1
+        )
         full = np.zeros(sub.shape[:3], dtype=bool)  # the region, on the smoothing box
         full[rel(rb, box)] = region[rel(rb, rbox)]
         sub[full] = sm[full]
@@ -737,16 +781,23 @@ def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, resto
             if not len(cand):
                 break
             order = np.argsort(-change[tuple(cand.T)], kind="stable")  # the largest change first
-            if not _restore_towards(u, u_in, np.ascontiguousarray(cand[order]), check, m_inv, float(min_det),
-                                    fractions):
+            if not _restore_towards(
+                u, u_in, np.ascontiguousarray(cand[order]), check, m_inv, float(min_det), fractions
+            ):
                 break
         _jacobian_det(u, m_inv, det)
     n_after = int(np.count_nonzero((det <= 0) if m is None else (det <= 0) & m))
     diff = np.linalg.norm(u - u0, axis=-1)
     n_changed = int(np.count_nonzero(diff > 0))
-    info = dict(iterations=it, n_folded_before=n_before, n_folded_after=n_after, n_changed=n_changed,
-                n_restored=n_smoothed - n_changed, max_change_mm=float(diff.max()) if diff.size else 0.0,
-                n_low=n_low)
+    info = dict(
+        iterations=it,
+        n_folded_before=n_before,
+        n_folded_after=n_after,
+        n_changed=n_changed,
+        n_restored=n_smoothed - n_changed,
+        max_change_mm=float(diff.max()) if diff.size else 0.0,
+        n_low=n_low,
+    )
     return u, info, touched, changed
 
 
@@ -773,9 +824,14 @@ def from_transform(transform: sitk.Transform, geometry: GridGeometry) -> Volume:
     ``template_to_scan`` field on the template grid.  Uses
     ``sitk.TransformToDisplacementField`` (float64).
     """
-    img = sitk.TransformToDisplacementField(transform, sitk.sitkVectorFloat64, list(geometry.size),
-                                            list(geometry.origin), list(geometry.spacing),
-                                            list(geometry.direction))
+    img = sitk.TransformToDisplacementField(
+        transform,
+        sitk.sitkVectorFloat64,
+        list(geometry.size),
+        list(geometry.origin),
+        list(geometry.spacing),
+        list(geometry.direction),
+    )
     return Volume(sitk.GetArrayFromImage(img), geometry)
 
 
@@ -789,7 +845,9 @@ def from_sitk_transform(transform: sitk.Transform, geometry: GridGeometry | None
     """
     if geometry is None:
         if not isinstance(transform, sitk.DisplacementFieldTransform):
-            raise TypeError("from_sitk_transform without a geometry needs a sitk.DisplacementFieldTransform "
-                            f"(got {type(transform).__name__}); pass the grid to sample it on")
+            raise TypeError(
+                "from_sitk_transform without a geometry needs a sitk.DisplacementFieldTransform "
+                f"(got {type(transform).__name__}); pass the grid to sample it on"
+            )
         return Volume.from_sitk(transform.GetDisplacementField())
     return from_transform(transform, geometry)

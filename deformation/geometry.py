@@ -173,7 +173,7 @@ class GridGeometry:
         return np.all((ijk >= lo - 1e-9) & (ijk <= hi + 1e-9), axis=-1)
 
     # -- comparison ---------------------------------------------------------
-    def is_close(self, other: "GridGeometry", *, rtol: float = 1e-6, atol_mm: float = 1e-4) -> bool:
+    def is_close(self, other: GridGeometry, *, rtol: float = 1e-6, atol_mm: float = 1e-4) -> bool:
         return (
             self.size == other.size
             and np.allclose(self.spacing, other.spacing, rtol=rtol, atol=0)
@@ -181,7 +181,7 @@ class GridGeometry:
             and np.allclose(self.direction, other.direction, rtol=0, atol=1e-6)
         )
 
-    def check_same(self, other: "GridGeometry", *, names=("first", "second"), remedy: str | None = None) -> None:
+    def check_same(self, other: GridGeometry, *, names=("first", "second"), remedy: str | None = None) -> None:
         """Raise :class:`GeometryMismatchError` unless ``other`` is the same grid.
 
         The message prints both geometries and the remedy; the mismatch is never
@@ -199,14 +199,15 @@ class GridGeometry:
             f"Remedy: {remedy}."
         )
 
-    def every(self, factor: int) -> "GridGeometry":
+    def every(self, factor: int) -> GridGeometry:
         """The grid of every ``factor``-th voxel along each axis: voxel ``I`` of it is voxel ``factor·I`` of
         this one (same origin and direction, spacing × factor)."""
         f = int(factor)
         if f < 1:
             raise ValueError(f"factor must be a positive integer, got {factor!r}")
-        return GridGeometry(tuple((n - 1) // f + 1 for n in self.size), tuple(s * f for s in self.spacing),
-                            self.origin, self.direction)
+        return GridGeometry(
+            tuple((n - 1) // f + 1 for n in self.size), tuple(s * f for s in self.spacing), self.origin, self.direction
+        )
 
     def factor_within(self, max_voxels: int) -> int:
         """The smallest ``f`` whose :meth:`every` ``(f)`` grid has at most ``max_voxels`` voxels."""
@@ -215,20 +216,22 @@ class GridGeometry:
             f += 1
         return f
 
-    def factor_of(self, grid: "GridGeometry") -> int | None:
+    def factor_of(self, grid: GridGeometry) -> int | None:
         """``f`` when ``grid`` is :meth:`every` ``(f)`` of this grid (1: the grid itself), else None."""
         f = max(1, int(round(grid.spacing[0] / self.spacing[0])))
         return f if grid.is_close(self.every(f)) else None
 
-    def crop(self, lo, hi) -> "GridGeometry":
+    def crop(self, lo, hi) -> GridGeometry:
         """The sub-grid of voxel indices ``lo ≤ (i, j, k) < hi`` (in range, non-empty): voxel ``lo`` is its
         origin, spacing and direction are kept, so every voxel stays where it was in world mm."""
         lo, hi = np.asarray(lo, dtype=int), np.asarray(hi, dtype=int)
         if np.any(lo < 0) or np.any(hi > np.asarray(self.size)) or np.any(hi <= lo):
-            raise ValueError(f"crop index range {lo.tolist()}..{hi.tolist()} is empty or outside a grid of size "
-                             f"{list(self.size)}")
-        return GridGeometry(tuple(int(v) for v in hi - lo), self.spacing, tuple(self.index_to_world(lo.astype(float))),
-                            self.direction)
+            raise ValueError(
+                f"crop index range {lo.tolist()}..{hi.tolist()} is empty or outside a grid of size {list(self.size)}"
+            )
+        return GridGeometry(
+            tuple(int(v) for v in hi - lo), self.spacing, tuple(self.index_to_world(lo.astype(float))), self.direction
+        )
 
     def describe(self) -> str:
         d = np.round(self.direction_matrix, 6).tolist()
@@ -247,16 +250,21 @@ class GridGeometry:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "GridGeometry":
-        return cls(size=d["size"], spacing=d["spacing"], origin=d.get("origin", (0, 0, 0)),
-                   direction=d.get("direction", np.eye(3).reshape(-1)))
+    def from_dict(cls, d: dict) -> GridGeometry:
+        return cls(
+            size=d["size"],
+            spacing=d["spacing"],
+            origin=d.get("origin", (0, 0, 0)),
+            direction=d.get("direction", np.eye(3).reshape(-1)),
+        )
 
     @classmethod
-    def from_sitk(cls, image) -> "GridGeometry":
+    def from_sitk(cls, image) -> GridGeometry:
         if image.GetDimension() != 3:
             raise ValueError(f"expected a 3-D image, got {image.GetDimension()}-D")
-        return cls(size=image.GetSize(), spacing=image.GetSpacing(), origin=image.GetOrigin(),
-                   direction=image.GetDirection())
+        return cls(
+            size=image.GetSize(), spacing=image.GetSpacing(), origin=image.GetOrigin(), direction=image.GetDirection()
+        )
 
     def apply_to_sitk(self, image) -> None:
         """Set origin, spacing and direction of a SimpleITK image (size must match)."""
@@ -296,7 +304,7 @@ class Volume:
     def n_components(self) -> int:
         return 1 if self.data.ndim == 3 else int(self.data.shape[3])
 
-    def crop(self, lo, hi) -> "Volume":
+    def crop(self, lo, hi) -> Volume:
         """The sub-volume of voxel indices ``lo ≤ (i, j, k) < hi`` (clipped to the grid), with its geometry.
 
         Indices are in (i, j, k) = (x, y, z) order; the new origin is the world
@@ -309,10 +317,10 @@ class Volume:
         if np.any(hi <= lo):
             raise ValueError(f"empty crop: index range {lo.tolist()}..{hi.tolist()} of a grid of size {size.tolist()}")
         geo = self.geometry.crop(lo, hi)
-        data = self.data[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]  # array order [z, y, x]
+        data = self.data[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]]  # array order [z, y, x]
         return Volume(np.array(data, copy=True, order="C"), geo)
 
-    def every(self, factor: int, *, smooth: bool = False) -> "Volume":
+    def every(self, factor: int, *, smooth: bool = False) -> Volume:
         """The volume on :meth:`GridGeometry.every` ``(factor)``: every ``factor``-th voxel along each axis.
 
         The voxels are taken as they are (labels, masks: nearest neighbour); with
@@ -344,7 +352,7 @@ class Volume:
         return img
 
     @classmethod
-    def from_sitk(cls, image) -> "Volume":
+    def from_sitk(cls, image) -> Volume:
         import SimpleITK as sitk
 
         return cls(sitk.GetArrayFromImage(image), GridGeometry.from_sitk(image))

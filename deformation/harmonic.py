@@ -73,8 +73,16 @@ from .geometry import GridGeometry, Volume
 from .skinning import MAX_INFLUENCES, SkinningWeights
 from .tetmesh import MAX_LATTICE_VERTICES, TIE_DIRECTION, TetMesh, locate, rasterize
 
-__all__ = ["stiffness_matrix", "constrained_vertices", "harmonic_weights", "bbw_weights", "weights_on_grid",
-           "weights_at_points", "harmonic_voxel_weights", "VoxelWeights"]
+__all__ = [
+    "stiffness_matrix",
+    "constrained_vertices",
+    "harmonic_weights",
+    "bbw_weights",
+    "weights_on_grid",
+    "weights_at_points",
+    "harmonic_voxel_weights",
+    "VoxelWeights",
+]
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -83,6 +91,7 @@ if nb.config.THREADING_LAYER == "default":
 # ---------------------------------------------------------------------------------------------
 # The P1 stiffness matrix
 # ---------------------------------------------------------------------------------------------
+
 
 def stiffness_matrix(mesh: TetMesh, *, drop_tol: float = 1e-12) -> sp.csr_matrix:
     """P1 finite-element stiffness matrix ``L (n, n)`` of a tet mesh (the cotangent Laplacian).
@@ -108,10 +117,11 @@ def stiffness_matrix(mesh: TetMesh, *, drop_tol: float = 1e-12) -> sp.csr_matrix
     d = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)  # columns b-a, c-a, d-a
     det = np.linalg.det(d)
     scale = np.abs(mesh.vertices).max() + 1.0
-    tiny = np.abs(det) <= 1e-14 * scale ** 3
+    tiny = np.abs(det) <= 1e-14 * scale**3
     if np.any(tiny):
-        raise ValueError(f"stiffness_matrix: {int(tiny.sum())} degenerate tetrahedra (zero volume), "
-                         f"e.g. tet {int(np.argmax(tiny))}")
+        raise ValueError(
+            f"stiffness_matrix: {int(tiny.sum())} degenerate tetrahedra (zero volume), e.g. tet {int(np.argmax(tiny))}"
+        )
     inv = np.linalg.inv(d)  # rows: gradients of barycentric coordinates 1..3
     grads = np.concatenate([-inv.sum(axis=1, keepdims=True), inv], axis=1)  # (m, 4, 3)
     ke = (np.abs(det) / 6.0)[:, None, None] * np.einsum("mik,mjk->mij", grads, grads)
@@ -170,6 +180,7 @@ def _dissection_order(points: np.ndarray, graph: sp.csr_matrix, leaf: int = 64) 
 # ---------------------------------------------------------------------------------------------
 # Dirichlet vertices
 # ---------------------------------------------------------------------------------------------
+
 
 def _bone_lut(bone_labels: dict, labels: Volume) -> tuple[tuple, np.ndarray]:
     """Bone names and a label → bone-index lookup table (−1: not a bone)."""
@@ -247,18 +258,22 @@ def constrained_vertices(mesh: TetMesh, labels: Volume, bone_labels: dict, *, sn
         voxel_counts = {k: int(np.count_nonzero(data == bone_labels[bones[k]])) for k in missing}
         empty = [bones[k] for k in missing if voxel_counts[k] == 0]
         if empty:
-            raise ValueError(f"bones {empty} have no voxels in the label map; check bone_labels "
-                             f"{dict(bone_labels)} against the label map's ids")
+            raise ValueError(
+                f"bones {empty} have no voxels in the label map; check bone_labels "
+                f"{dict(bone_labels)} against the label map's ids"
+            )
         if not snap_missing:
             med = float(np.median(mesh.edge_lengths())) if mesh.n_tets else float("nan")
             g = labels.geometry
             details = ", ".join(
                 f"{bones[k]!r} ({voxel_counts[k]} voxels ≈ {voxel_counts[k] * float(np.prod(g.spacing)):.0f} mm³)"
-                for k in missing)
+                for k in missing
+            )
             raise ValueError(
                 f"no tet-mesh vertex lies inside bone(s) {details}; the mesh's median edge is {med:.2f} mm. "
                 "Mesh with a smaller lattice step (lattice_tetmesh(..., step=...)), "
-                "or pass snap_missing=True to fix the vertex nearest to each such bone.")
+                "or pass snap_missing=True to fix the vertex nearest to each such bone."
+            )
         from scipy.spatial import cKDTree
 
         free = np.flatnonzero(bone_of_vertex < 0)
@@ -273,8 +288,10 @@ def constrained_vertices(mesh: TetMesh, labels: Volume, bone_labels: dict, *, sn
             order = np.lexsort((idx, dist))  # nearest first; ties to the lower vertex
             pick = next((int(idx[o]) for o in order if bone_of_vertex[free[idx[o]]] < 0), None)
             if pick is None:
-                raise ValueError(f"bone {bones[k]!r} has no mesh vertex and every free vertex near it is taken by "
-                                 "another snapped bone; mesh with a smaller lattice step")
+                raise ValueError(
+                    f"bone {bones[k]!r} has no mesh vertex and every free vertex near it is taken by "
+                    "another snapped bone; mesh with a smaller lattice step"
+                )
             bone_of_vertex[free[pick]] = k
             snapped.append(bones[k])
     return bone_of_vertex, snapped
@@ -283,6 +300,7 @@ def constrained_vertices(mesh: TetMesh, labels: Volume, bone_labels: dict, *, sn
 # ---------------------------------------------------------------------------------------------
 # Harmonic weights
 # ---------------------------------------------------------------------------------------------
+
 
 def _check_domain(mesh: TetMesh, bone_of_vertex: np.ndarray) -> None:
     """Every vertex in a tetrahedron and every connected piece of the mesh holding a bone, or the weights
@@ -296,13 +314,21 @@ def _check_domain(mesh: TetMesh, bone_of_vertex: np.ndarray) -> None:
     has_bone[comp[bone_of_vertex >= 0]] = True
     if not np.all(has_bone):
         bad = np.flatnonzero(~has_bone)
-        raise ValueError(f"{bad.size} connected component(s) of the mesh ({int(np.isin(comp, bad).sum())} vertices) "
-                         "contain no bone vertex, so their weights are undetermined; keep only the body's main "
-                         "component (lattice_tetmesh(..., keep_largest_component=True))")
+        raise ValueError(
+            f"{bad.size} connected component(s) of the mesh ({int(np.isin(comp, bad).sum())} vertices) "
+            "contain no bone vertex, so their weights are undetermined; keep only the body's main "
+            "component (lattice_tetmesh(..., keep_largest_component=True))"
+        )
 
 
-def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
-                     max_influences: int = MAX_INFLUENCES, snap_missing: bool = False):
+def harmonic_weights(
+    mesh: TetMesh,
+    labels: Volume,
+    bone_labels: dict,
+    *,
+    max_influences: int = MAX_INFLUENCES,
+    snap_missing: bool = False,
+):
     """Harmonic skinning weights of every tet-mesh vertex, each bone a Dirichlet boundary.
 
     Parameters
@@ -362,8 +388,9 @@ def harmonic_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *,
         # L_ii is symmetric positive definite: diagonal pivots in a symmetric nested-dissection order
         # (SuperLU keeps it: "NATURAL" on the permuted matrix).
         order = _dissection_order(mesh.vertices[free], lii)
-        lu = splu(lii[order][:, order].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
+        lu = splu(
+            lii[order][:, order].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
         t2 = time.perf_counter()
         wi = np.empty_like(rhs)
         wi[order] = lu.solve(np.asfortranarray(rhs[order]))
@@ -420,20 +447,30 @@ def bbw_weights(mesh: TetMesh, labels: Volume, bone_labels: dict, *, snap_missin
     fixed = np.flatnonzero(bone_of_vertex >= 0)
     bc = np.zeros((fixed.size, len(bones)))
     bc[np.arange(fixed.size), bone_of_vertex[fixed]] = 1.0
-    raw = igl.bbw(np.ascontiguousarray(mesh.vertices, dtype=np.float64),
-                  np.ascontiguousarray(mesh.tets, dtype=np.int64), fixed.astype(np.int64), bc,
-                  partition_unity=False, max_iter=100)
+    raw = igl.bbw(
+        np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+        np.ascontiguousarray(mesh.tets, dtype=np.int64),
+        fixed.astype(np.int64),
+        bc,
+        partition_unity=False,
+        max_iter=100,
+    )
     w = np.clip(raw, 0.0, 1.0)
     w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    info = {"bones": bones, "n_free": int(np.count_nonzero(bone_of_vertex < 0)), "raw": raw,
-            "sum_error_raw": float(np.abs(raw.sum(axis=1) - 1.0).max()),
-            "seconds": time.perf_counter() - t0}
+    info = {
+        "bones": bones,
+        "n_free": int(np.count_nonzero(bone_of_vertex < 0)),
+        "raw": raw,
+        "sum_error_raw": float(np.abs(raw.sum(axis=1) - 1.0).max()),
+        "seconds": time.perf_counter() - t0,
+    }
     return w, info
 
 
 # ---------------------------------------------------------------------------------------------
 # Weights on a voxel grid
 # ---------------------------------------------------------------------------------------------
+
 
 @nb.njit(cache=True, inline="always")
 def _top_k(acc, k_max, idx_row, val_row, used):
@@ -468,8 +505,7 @@ def _top_k(acc, k_max, idx_row, val_row, used):
 
 
 @nb.njit(cache=True, parallel=True)
-def _grid_weights_kernel(bone_of_voxel, tet_index, bary, nearest_vertex, tets, W, k_max, out_idx, out_val,
-                         n_bad):
+def _grid_weights_kernel(bone_of_voxel, tet_index, bary, nearest_vertex, tets, W, k_max, out_idx, out_val, n_bad):
     n = bone_of_voxel.shape[0]
     n_b = W.shape[1]
     chunk = 4096
@@ -519,15 +555,25 @@ def _check_dense(mesh: TetMesh, vertex_dense, bones) -> tuple[tuple, np.ndarray]
     bones = tuple(str(b) for b in bones)
     w = np.ascontiguousarray(vertex_dense, dtype=np.float64)
     if w.shape != (mesh.n_vertices, len(bones)):
-        raise ValueError(f"vertex_dense must be (n_vertices, n_bones) = ({mesh.n_vertices}, {len(bones)}), "
-                         f"got {w.shape}")
+        raise ValueError(
+            f"vertex_dense must be (n_vertices, n_bones) = ({mesh.n_vertices}, {len(bones)}), got {w.shape}"
+        )
     if not np.all(np.isfinite(w)) or w.min() < -1e-9:
         raise ValueError("vertex_dense must be finite and non-negative")
     return bones, w
 
 
-def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, labels: Volume, bone_labels: dict,
-                    *, max_influences: int = MAX_INFLUENCES, outside: str = "nearest") -> SkinningWeights:
+def weights_on_grid(
+    mesh: TetMesh,
+    vertex_dense,
+    bones,
+    geometry: GridGeometry,
+    labels: Volume,
+    bone_labels: dict,
+    *,
+    max_influences: int = MAX_INFLUENCES,
+    outside: str = "nearest",
+) -> SkinningWeights:
     """Skinning weights of every voxel of a grid, in array order (``[z, y, x]`` flattened).
 
     Parameters
@@ -568,8 +614,11 @@ def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, 
     bones, w = _check_dense(mesh, vertex_dense, bones)
     if outside not in ("nearest", "raise"):
         raise ValueError(f"outside must be 'nearest' or 'raise', got {outside!r}")
-    geometry.check_same(labels.geometry, names=("grid", "label map"),
-                        remedy="resample the label map onto the grid with nearest-neighbour interpolation")
+    geometry.check_same(
+        labels.geometry,
+        names=("grid", "label map"),
+        remedy="resample the label map onto the grid with nearest-neighbour interpolation",
+    )
     unknown = [b for b in bone_labels if b not in bones]
     if unknown:
         raise ValueError(f"bones {unknown} of bone_labels have no weight column; the weights are over {bones}")
@@ -588,8 +637,10 @@ def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, 
     need = np.flatnonzero((tet_index < 0) & (bone_of_voxel < 0))
     if need.size:
         if outside == "raise":
-            raise ValueError(f"{need.size} voxels (not in a bone) lie outside the tet mesh; "
-                             "use outside='nearest' or mesh a larger body region")
+            raise ValueError(
+                f"{need.size} voxels (not in a bone) lie outside the tet mesh; "
+                "use outside='nearest' or mesh a larger body region"
+            )
         bverts = mesh.boundary_vertices()
         # An unbalanced tree queries these grid points ~2x faster here (same exact answer).
         tree = cKDTree(mesh.vertices[bverts], balanced_tree=False, compact_nodes=False)
@@ -598,7 +649,7 @@ def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, 
         nx, ny, _ = geometry.size
         step = 1 << 20
         for s in range(0, need.size, step):
-            flat = need[s:s + step]
+            flat = need[s : s + step]
             i = flat % nx
             j = (flat // nx) % ny
             k = flat // (nx * ny)
@@ -615,8 +666,9 @@ def weights_on_grid(mesh: TetMesh, vertex_dense, bones, geometry: GridGeometry, 
     return SkinningWeights(bones, out_idx, out_val)
 
 
-def weights_at_points(mesh: TetMesh, vertex_dense, bones, points, *,
-                      max_influences: int = MAX_INFLUENCES) -> SkinningWeights:
+def weights_at_points(
+    mesh: TetMesh, vertex_dense, bones, points, *, max_influences: int = MAX_INFLUENCES
+) -> SkinningWeights:
     """Skinning weights at arbitrary points (e.g. skin-mesh vertices) by barycentric interpolation.
 
     Points outside the tet mesh (a skin mesh's vertices may lie slightly
@@ -641,9 +693,18 @@ class VoxelWeights:
     info: dict  #: solver statistics and the lattice step (JSON values)
 
 
-def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, mesh: TetMesh | None = None,
-                           edge_length_mm: float | None = None, max_vertices: int | None = MAX_LATTICE_VERTICES,
-                           progress=None, kind: str = "harmonic", snap_missing: bool = False) -> VoxelWeights:
+def harmonic_voxel_weights(
+    labels: Volume,
+    bone_labels: dict,
+    body: Volume,
+    *,
+    mesh: TetMesh | None = None,
+    edge_length_mm: float | None = None,
+    max_vertices: int | None = MAX_LATTICE_VERTICES,
+    progress=None,
+    kind: str = "harmonic",
+    snap_missing: bool = False,
+) -> VoxelWeights:
     """Harmonic (or bounded biharmonic, ``kind="bbw"``) skinning weights (Kurihara Eq. 3's w) of every voxel.
 
     The body (``body``, a mask on the same grid) is meshed with the Kuhn
@@ -680,13 +741,19 @@ def harmonic_voxel_weights(labels: Volume, bone_labels: dict, body: Volume, *, m
     else:
         dense, hinfo = bbw_weights(mesh, labels, bone_labels)
     if hinfo.get("snapped"):
-        say(f"no mesh vertex inside {', '.join(hinfo['snapped'])} (smaller than the lattice step): the nearest "
-            "vertex of each was fixed to it")
+        say(
+            f"no mesh vertex inside {', '.join(hinfo['snapped'])} (smaller than the lattice step): the nearest "
+            "vertex of each was fixed to it"
+        )
     say("weights of every voxel (barycentric; one-hot in bones) ...")
     bones = tuple(bone_labels)
     weights = weights_on_grid(mesh, dense, bones, labels.geometry, labels, bone_labels)
     info = {k: v for k, v in hinfo.items() if isinstance(v, (int, float, str, bool))}
     info["snapped"] = ", ".join(hinfo.get("snapped") or [])
-    info.update(n_vertices=int(mesh.n_vertices), n_tets=int(mesh.n_tets), kind=kind,
-                lattice_step=list(step) if step is not None else None)
+    info.update(
+        n_vertices=int(mesh.n_vertices),
+        n_tets=int(mesh.n_tets),
+        kind=kind,
+        lattice_step=list(step) if step is not None else None,
+    )
     return VoxelWeights(weights, mesh, dense, bones, info)

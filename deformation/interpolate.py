@@ -58,9 +58,11 @@ if nb.config.THREADING_LAYER == "default":
 @nb.njit(cache=True)
 def _to_index(m, x, y, z):
     """Continuous index (i, j, k) of world point (x, y, z) through the 4x4 (or 3x4) matrix ``m``."""
-    return (m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3],
-            m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3],
-            m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3])
+    return (
+        m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3],
+        m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3],
+        m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3],
+    )
 
 
 @nb.njit(cache=True)
@@ -147,9 +149,11 @@ def _lerp_xyz(f, b, di, dj, dk, ti, tj, tk):
     e0 = si * np.float64(f[p, 0]) + ti * np.float64(f[o, 0])
     e1 = si * np.float64(f[p, 1]) + ti * np.float64(f[o, 1])
     e2 = si * np.float64(f[p, 2]) + ti * np.float64(f[o, 2])
-    return (sk * (sj * a0 + tj * c0) + tk * (sj * d0 + tj * e0),
-            sk * (sj * a1 + tj * c1) + tk * (sj * d1 + tj * e1),
-            sk * (sj * a2 + tj * c2) + tk * (sj * d2 + tj * e2))
+    return (
+        sk * (sj * a0 + tj * c0) + tk * (sj * d0 + tj * e0),
+        sk * (sj * a1 + tj * c1) + tk * (sj * d1 + tj * e1),
+        sk * (sj * a2 + tj * c2) + tk * (sj * d2 + tj * e2),
+    )
 
 
 @nb.njit(cache=True)
@@ -232,9 +236,11 @@ _sample_points_vector_serial = serial_twin(_sample_points_vector)
 @nb.njit(cache=True)
 def _displaced_point(i2w, disp, k, j, i):
     """World point x(i, j, k) + disp[k, j, i] of a target voxel."""
-    return (i2w[0, 0] * i + i2w[0, 1] * j + i2w[0, 2] * k + i2w[0, 3] + np.float64(disp[k, j, i, 0]),
-            i2w[1, 0] * i + i2w[1, 1] * j + i2w[1, 2] * k + i2w[1, 3] + np.float64(disp[k, j, i, 1]),
-            i2w[2, 0] * i + i2w[2, 1] * j + i2w[2, 2] * k + i2w[2, 3] + np.float64(disp[k, j, i, 2]))
+    return (
+        i2w[0, 0] * i + i2w[0, 1] * j + i2w[0, 2] * k + i2w[0, 3] + np.float64(disp[k, j, i, 0]),
+        i2w[1, 0] * i + i2w[1, 1] * j + i2w[1, 2] * k + i2w[1, 3] + np.float64(disp[k, j, i, 1]),
+        i2w[2, 0] * i + i2w[2, 1] * j + i2w[2, 2] * k + i2w[2, 3] + np.float64(disp[k, j, i, 2]),
+    )
 
 
 @nb.njit(cache=True, parallel=True)
@@ -400,8 +406,9 @@ def sample(volume: Volume, points, *, order: int = 1, fill: float = 0.0) -> np.n
     return sample_array(volume.data, volume.geometry.world_to_index_matrix, points, order, fill)
 
 
-def sample_displaced_array(data, world_to_index, target_geometry: GridGeometry, displacement,
-                           order: int = 1, fill: float = 0.0) -> np.ndarray:
+def sample_displaced_array(
+    data, world_to_index, target_geometry: GridGeometry, displacement, order: int = 1, fill: float = 0.0
+) -> np.ndarray:
     """Sample ``data`` at ``x + displacement[x]`` for every voxel centre ``x`` of ``target_geometry``.
 
     ``displacement`` is ``(nz, ny, nx, 3)`` mm on the target grid.  Fused: the
@@ -416,14 +423,25 @@ def sample_displaced_array(data, world_to_index, target_geometry: GridGeometry, 
     if disp.shape != target_geometry.array_shape + (3,):
         raise GeometryMismatchError(
             f"displacement shape {disp.shape} does not match the target grid {target_geometry.describe()} "
-            f"(expected {target_geometry.array_shape + (3,)})")
+            f"(expected {target_geometry.array_shape + (3,)})"
+        )
     if disp.dtype.newbyteorder("=") not in (np.float32, np.float64):
         disp = disp.astype(np.float64)
     disp = _native(np.ascontiguousarray(disp))
     out = _output(target_geometry.n_voxels, 1 if scalar else f.shape[1], scalar, odt)
     kernel = _sample_displaced_scalar if scalar else _sample_displaced_vector
-    kernel(f, nx, ny, nz, w2i, np.ascontiguousarray(target_geometry.index_to_world_matrix), disp, order,
-           _fill_value(fill, odt), out)
+    kernel(
+        f,
+        nx,
+        ny,
+        nz,
+        w2i,
+        np.ascontiguousarray(target_geometry.index_to_world_matrix),
+        disp,
+        order,
+        _fill_value(fill, odt),
+        out,
+    )
     if odt == np.bool_:
         out = out.view(np.bool_)
     shape = target_geometry.array_shape
@@ -467,8 +485,7 @@ def sample_shifted(data, shift, scale=(1.0, 1.0, 1.0), order: int = 1) -> np.nda
     return out[0] if scalar else out
 
 
-def warp(volume: Volume, positions, target_geometry: GridGeometry, *, order: int = 1,
-         fill: float = 0.0) -> Volume:
+def warp(volume: Volume, positions, target_geometry: GridGeometry, *, order: int = 1, fill: float = 0.0) -> Volume:
     """Pull-resample ``volume`` onto ``target_geometry``.
 
     ``positions`` ``(nz, ny, nx, 3)`` gives, for each target voxel, the world
@@ -484,5 +501,6 @@ def warp(volume: Volume, positions, target_geometry: GridGeometry, *, order: int
     if pos.shape != target_geometry.array_shape + (3,):
         raise GeometryMismatchError(
             f"positions shape {pos.shape} does not match the target grid {target_geometry.describe()} "
-            f"(expected {target_geometry.array_shape + (3,)})")
+            f"(expected {target_geometry.array_shape + (3,)})"
+        )
     return Volume(sample(volume, pos, order=order, fill=fill), target_geometry)

@@ -37,8 +37,17 @@ import numpy as np
 from .geometry import Volume
 from .mesh import SurfaceMesh, connected_components, submesh
 
-__all__ = ["vtk_image", "poly_arrays", "vtk_polydata", "flying_edges", "isosurface", "label_surfaces", "largest_components",
-           "decimate", "signed_volume"]
+__all__ = [
+    "vtk_image",
+    "poly_arrays",
+    "vtk_polydata",
+    "flying_edges",
+    "isosurface",
+    "label_surfaces",
+    "largest_components",
+    "decimate",
+    "signed_volume",
+]
 
 
 def vtk_image(array_zyx: np.ndarray):
@@ -83,16 +92,18 @@ def vtk_polydata(vertices: np.ndarray, triangles: np.ndarray, point_data: dict |
     points = vtkPoints()
     points.SetData(numpy_to_vtk(v, deep=True))
     cells = vtkCellArray()
-    cells.SetData(numpy_to_vtk(np.arange(0, 3 * len(t) + 1, 3, dtype=np.int64), deep=True),
-                  numpy_to_vtk(t.ravel(), deep=True))
+    cells.SetData(
+        numpy_to_vtk(np.arange(0, 3 * len(t) + 1, 3, dtype=np.int64), deep=True), numpy_to_vtk(t.ravel(), deep=True)
+    )
     poly = vtkPolyData()
     poly.SetPoints(points)
     poly.SetPolys(cells)
     for name, values in (point_data or {}).items():
         a = np.ascontiguousarray(values, dtype=np.float64)
         if a.shape[0] != len(v) or a.ndim > 2:
-            raise ValueError(f"point-data array {name!r} has shape {a.shape}; one value (or vector) per vertex "
-                             f"({len(v)}) needed")
+            raise ValueError(
+                f"point-data array {name!r} has shape {a.shape}; one value (or vector) per vertex ({len(v)}) needed"
+            )
         arr = numpy_to_vtk(a, deep=True)
         arr.SetName(str(name))
         poly.GetPointData().AddArray(arr)
@@ -194,8 +205,10 @@ def decimate(mesh: SurfaceMesh, target_triangles: int) -> SurfaceMesh:
         raise ValueError(f"target_triangles must be at least 4, got {target_triangles}")
     if mesh.n_triangles <= target_triangles:
         return mesh
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.array(mesh.vertices, np.float64)),
-                                  o3d.utility.Vector3iVector(np.array(mesh.triangles, np.int32)))
+    m = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.array(mesh.vertices, np.float64)),
+        o3d.utility.Vector3iVector(np.array(mesh.triangles, np.int32)),
+    )
     d = m.simplify_quadric_decimation(int(target_triangles))
     d.remove_unreferenced_vertices()
     return SurfaceMesh(np.asarray(d.vertices, np.float64), np.asarray(d.triangles, np.int64))

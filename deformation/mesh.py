@@ -144,8 +144,7 @@ def submesh(mesh: SurfaceMesh, triangle_mask) -> tuple[SurfaceMesh, np.ndarray]:
     mask = np.asarray(triangle_mask)
     if mask.dtype != np.bool_ or mask.shape != (mesh.n_triangles,):
         raise ValueError(
-            f"triangle_mask must be a boolean array of shape ({mesh.n_triangles},), "
-            f"got {mask.dtype} {mask.shape}"
+            f"triangle_mask must be a boolean array of shape ({mesh.n_triangles},), got {mask.dtype} {mask.shape}"
         )
     kept = mesh.triangles[mask]
     vertex_ids = np.unique(kept)

@@ -103,8 +103,10 @@ class PolyrigidFlow:
         t = np.asarray(self.transforms, float)
         n = len(t)
         if t.shape != (n, 4, 4) or len(self.parents) != n or self.distance_maps.shape[0] != n:
-            raise ValueError(f"transforms {t.shape}, parents ({len(self.parents)}) and distance maps "
-                             f"({self.distance_maps.shape[0]}) must agree on the number of bones")
+            raise ValueError(
+                f"transforms {t.shape}, parents ({len(self.parents)}) and distance maps "
+                f"({self.distance_maps.shape[0]}) must agree on the number of bones"
+            )
         self.transforms = t
         rel = []
         for k, p in enumerate(self.parents):
@@ -114,7 +116,7 @@ class PolyrigidFlow:
             rel.append(_real_logm(r))  # ℓ_k
         self._rel = np.stack(rel)
         if self.steps is None:
-            angle = max(np.linalg.norm([l[2, 1], l[0, 2], l[1, 0]]) for l in self._rel)
+            angle = max(np.linalg.norm([m[2, 1], m[0, 2], m[1, 0]]) for m in self._rel)
             self.steps = int(max(8, math.ceil(np.rad2deg(angle) / 2.0)))
 
     def _paths(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,8 +146,17 @@ class PolyrigidFlow:
         maps = np.ascontiguousarray(self.distance_maps, dtype=np.float32)
         w2i = np.ascontiguousarray(self.geometry.world_to_index_matrix, dtype=np.float64)
         power, falloff = float(self.power), float(self.falloff_mm)
-        return lambda points: _flow(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), minv, vel, maps,
-                                    w2i, n, backward, power, falloff)
+        return lambda points: _flow(
+            np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
+            minv,
+            vel,
+            maps,
+            w2i,
+            n,
+            backward,
+            power,
+            falloff,
+        )
 
     def _integrate(self, points: np.ndarray, backward: bool) -> np.ndarray:
         return self._integrator(backward)(points)
@@ -195,8 +206,10 @@ class PolyrigidFlow:
         if f < 1:
             raise ValueError(f"the map factor must be a whole number ≥ 1, got {factor!r}")
         if f > 1 and min(grid.every(f).size) < 2:
-            raise ValueError(f"a map factor of {f} leaves {grid.every(f).size} voxels of this "
-                             f"{grid.size}-voxel grid: at most {max_map_factor(grid)} here")
+            raise ValueError(
+                f"a map factor of {f} leaves {grid.every(f).size} voxels of this "
+                f"{grid.size}-voxel grid: at most {max_map_factor(grid)} here"
+            )
         run = self._integrator(backward)
         out = np.empty(grid.array_shape + (3,), dtype=np.float32)
 
@@ -221,8 +234,14 @@ class PolyrigidFlow:
         done = integrate(coarse, img, 0, total, False)
         idx = frame.world_to_index(img).astype(np.float32)
         del img
-        bm = CoarseBackwardMap(BackwardMap(frame, coarse, idx, np.zeros(coarse.array_shape, np.float32),
-                                           np.full(coarse.array_shape, OK, np.uint8)), f, self.geometry, grid)
+        bm = CoarseBackwardMap(
+            BackwardMap(
+                frame, coarse, idx, np.zeros(coarse.array_shape, np.float32), np.full(coarse.array_shape, OK, np.uint8)
+            ),
+            f,
+            self.geometry,
+            grid,
+        )
         del idx
 
         def exact_here(k0, k1):
@@ -338,12 +357,39 @@ def _flow(points, minv, vel, maps, w2i, n_steps, backward, power, falloff):
                 sg = h
                 sm, s1 = s0 + 1, s0 + 2
             _velocity(x, y, z, s0, minv, vel, maps, w2i, power, falloff, d, w, k1)
-            _velocity(x + 0.5 * sg * k1[0], y + 0.5 * sg * k1[1], z + 0.5 * sg * k1[2], sm, minv, vel, maps, w2i,
-                      power, falloff, d, w, k2)
-            _velocity(x + 0.5 * sg * k2[0], y + 0.5 * sg * k2[1], z + 0.5 * sg * k2[2], sm, minv, vel, maps, w2i,
-                      power, falloff, d, w, k3)
-            _velocity(x + sg * k3[0], y + sg * k3[1], z + sg * k3[2], s1, minv, vel, maps, w2i, power, falloff,
-                      d, w, k4)
+            _velocity(
+                x + 0.5 * sg * k1[0],
+                y + 0.5 * sg * k1[1],
+                z + 0.5 * sg * k1[2],
+                sm,
+                minv,
+                vel,
+                maps,
+                w2i,
+                power,
+                falloff,
+                d,
+                w,
+                k2,
+            )
+            _velocity(
+                x + 0.5 * sg * k2[0],
+                y + 0.5 * sg * k2[1],
+                z + 0.5 * sg * k2[2],
+                sm,
+                minv,
+                vel,
+                maps,
+                w2i,
+                power,
+                falloff,
+                d,
+                w,
+                k3,
+            )
+            _velocity(
+                x + sg * k3[0], y + sg * k3[1], z + sg * k3[2], s1, minv, vel, maps, w2i, power, falloff, d, w, k4
+            )
             x += sg / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
             y += sg / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
             z += sg / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])

@@ -54,16 +54,27 @@ class TemplatePoser:
     weighting : "psd" (one set of pose weights, Rhee) or "wpsd" (per voxel, Kurihara Eq. 16); EVD only
     """
 
-    def __init__(self, template: Volume, weights, body: Volume, *, labels: Volume | None = None, model=None,
-                 weighting: str = "psd", progress=None):
+    def __init__(
+        self,
+        template: Volume,
+        weights,
+        body: Volume,
+        *,
+        labels: Volume | None = None,
+        model=None,
+        weighting: str = "psd",
+        progress=None,
+    ):
         if weighting not in WEIGHTINGS:
             raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
         self.template, self.weights, self.body, self.template_labels = template, weights, body, labels
         self.model = model
         self.weights_factor = _grid_factor(template.geometry, body.geometry)
         if self.weights_factor > 1 and model is not None:
-            raise ValueError("an EVD model needs skinning weights on the template's grid (these are on "
-                             f"{every_nth(self.weights_factor)} voxel)")
+            raise ValueError(
+                "an EVD model needs skinning weights on the template's grid (these are on "
+                f"{every_nth(self.weights_factor)} voxel)"
+            )
         self.method = "evd" if model is not None else "vbd"
         self.weighting = weighting
         f = self.weights_factor
@@ -95,8 +106,10 @@ class TemplatePoser:
             from .skinning import SkinningWeights
 
             if self.weights_factor != 1:
-                raise ValueError(f"the skinning weights are on {every_nth(self.weights_factor)} template voxel: the "
-                                 f"maps are solved there (map factor {self.weights_factor}, not {factor})")
+                raise ValueError(
+                    f"the skinning weights are on {every_nth(self.weights_factor)} template voxel: the "
+                    f"maps are solved there (map factor {self.weights_factor}, not {factor})"
+                )
 
             shape = self.template.geometry.array_shape  # weights and displacements are rows in array order
             flat = np.arange(int(np.prod(shape))).reshape(shape)[::factor, ::factor, ::factor].ravel()
@@ -104,8 +117,9 @@ class TemplatePoser:
             w = SkinningWeights(self.weights.bones, self.weights.index[flat], self.weights.value[flat])
             model = None
             if self.model is not None:
-                model = type(self.model)(g, w, self.model.space, self.model.displacements[flat],
-                                         template_example=self.model.template_example)
+                model = type(self.model)(
+                    g, w, self.model.space, self.model.displacements[flat], template_example=self.model.template_example
+                )
             cache[key] = (g, w, model)
         return cache[key]
 
@@ -114,26 +128,33 @@ class TemplatePoser:
 
         ``map_factor`` f > 1: the forward and backward maps are solved on every f-th voxel of the grids
         (f³ fewer voxels), and the template is pulled at full resolution through the blend of that map
-        (:class:`deformation.resample.CoarseBackwardMap`, which never makes the fine map).  With weights on a coarse grid, ``map_factor`` 1 means theirs.
+        (:class:`deformation.resample.CoarseBackwardMap`, which never makes the fine map).  With weights on a
+        coarse grid, ``map_factor`` 1 means theirs.
         """
         f = int(map_factor)
         if f < 1:
             raise ValueError(f"map_factor must be a positive integer, got {map_factor!r}")
         if self.weights_factor > 1:
             if f not in (1, self.weights_factor):
-                raise ValueError(f"map_factor {f} (--map-factor): the study's skinning weights are on "
-                                 f"{every_nth(self.weights_factor)} template voxel (workbench weights --grid-factor), so the "
-                                 f"maps are solved there; leave --map-factor out or give {self.weights_factor}")
+                raise ValueError(
+                    f"map_factor {f} (--map-factor): the study's skinning weights are on "
+                    f"{every_nth(self.weights_factor)} template voxel (workbench weights --grid-factor), so the "
+                    f"maps are solved there; leave --map-factor out or give {self.weights_factor}"
+                )
             f = self.weights_factor
         g = self.template.geometry
         tgt = g if target is None else target
         if f > 1 and min(min(g.every(f).size), min(tgt.every(f).size)) < 2:
-            raise ValueError(f"map_factor {f} (--map-factor) leaves fewer than 2 voxels along an axis of the "
-                             f"template {g.size} or target {tgt.size} grid: use a smaller factor")
+            raise ValueError(
+                f"map_factor {f} (--map-factor) leaves fewer than 2 voxels along an axis of the "
+                f"template {g.size} or target {tgt.size} grid: use a smaller factor"
+            )
         t = stack_transforms(pose.transforms, self.weights.bones)
         t0 = time.perf_counter()
-        self._say(f"forward map ({self.method.upper()}) of {g.every(f).n_voxels:,} "
-                  f"template voxels{f' ({every_nth(f)} along each axis)' if f > 1 else ''} ...")
+        self._say(
+            f"forward map ({self.method.upper()}) of {g.every(f).n_voxels:,} "
+            f"template voxels{f' ({every_nth(f)} along each axis)' if f > 1 else ''} ..."
+        )
         fwd = self.forward(pose, f)
         t1 = time.perf_counter()
         self._say("backward map and resampling ...")
@@ -147,13 +168,15 @@ class TemplatePoser:
             del fwd
             bm = CoarseBackwardMap(coarse, f, g, tgt)
             vol = bm.pull(self.template, fill=self.fill)
-            lab = (bm.pull(self.template_labels, labels=True)
-                   if labels and self.template_labels is not None else None)
+            lab = bm.pull(self.template_labels, labels=True) if labels and self.template_labels is not None else None
         else:
             bm = backward_map(fwd, g, target, transforms=t, prefer=prefer)
             vol = resample_forward(bm, self.template, fill=self.fill)
-            lab = (resample_forward(bm, self.template_labels, labels=True)
-                   if labels and self.template_labels is not None else None)
+            lab = (
+                resample_forward(bm, self.template_labels, labels=True)
+                if labels and self.template_labels is not None
+                else None
+            )
         t2 = time.perf_counter()
         return PosedTemplate(vol, lab, bm, t1 - t0, t2 - t1)
 
@@ -162,6 +185,9 @@ def _grid_factor(template, grid) -> int:
     """``f`` when ``grid`` is ``template.every(f)`` (1: the template's own grid), else a ValueError."""
     f = template.factor_of(grid)
     if f is None:
-        template.check_same(grid, names=("template", "skinning weights / body mask"),
-                            remedy="recompute the weights: workbench weights --force")
+        template.check_same(
+            grid,
+            names=("template", "skinning weights / body mask"),
+            remedy="recompute the weights: workbench weights --force",
+        )
     return f

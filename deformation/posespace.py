@@ -42,8 +42,19 @@ from .skinning import SkinningWeights, _as_stack, blend_point, inverse_lbs, lbs
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["PoseSpace", "pose_vector", "pose_weights", "U_FLOOR", "psd_training", "psd_deform",
-           "PointPoseSpace", "wpsd_deform", "skin", "dof_bones", "per_bone_sq"]
+__all__ = [
+    "PoseSpace",
+    "pose_vector",
+    "pose_weights",
+    "U_FLOOR",
+    "psd_training",
+    "psd_deform",
+    "PointPoseSpace",
+    "wpsd_deform",
+    "skin",
+    "dof_bones",
+    "per_bone_sq",
+]
 
 #: Floor on the WPSD DOF weights ``u_jk`` (see the module docstring).
 U_FLOOR = 1e-6
@@ -74,8 +85,10 @@ def dof_bones(skeleton, bones) -> np.ndarray:
     out = []
     for j in skeleton.joints:
         if j.child not in bones:
-            raise ValueError(f"joint {j.name!r} moves bone {j.child!r}, which the skinning weights do not have "
-                             f"(they cover {list(bones)})")
+            raise ValueError(
+                f"joint {j.name!r} moves bone {j.child!r}, which the skinning weights do not have "
+                f"(they cover {list(bones)})"
+            )
         out += [bones.index(j.child)] * j.dof
     return np.asarray(out, dtype=np.int64)
 
@@ -118,8 +131,7 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
     q = np.atleast_2d(q)
     u = np.ones(train.shape[1]) if dof_weights is None else np.asarray(dof_weights, dtype=float)
     if q.shape[1] != train.shape[1] or u.shape != (train.shape[1],):
-        raise ValueError(f"query has {q.shape[1]} DOF, the training poses {train.shape[1]}, "
-                         f"dof_weights {u.shape}")
+        raise ValueError(f"query has {q.shape[1]} DOF, the training poses {train.shape[1]}, dof_weights {u.shape}")
     if train.shape[0] == 1:
         s = np.ones((q.shape[0], 1))
         return s[0] if single else s
@@ -127,16 +139,17 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
     sigma = _nn_width(pair)
     if sigma <= 0:
         raise ValueError("two training poses coincide (zero pose distance): Φ of Kurihara Eq. 13 is singular")
-    phi = np.exp(-pair / sigma ** 2)
+    phi = np.exp(-pair / sigma**2)
     dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
     try:
         # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹; φ scaled by exp(min dq / σ²), which Eq. 14's normalisation cancels:
         # far from every example, the φ themselves underflow to 0 and s would be 0 / 0
         dq = dq - dq.min(axis=1, keepdims=True)
-        f = np.linalg.solve(phi, np.exp(-dq / sigma ** 2).T).T
+        f = np.linalg.solve(phi, np.exp(-dq / sigma**2).T).T
     except np.linalg.LinAlgError:
-        raise ValueError("Φ of Kurihara Eq. 13 is singular: two training poses coincide in this pose distance "
-                         "(drop one)") from None
+        raise ValueError(
+            "Φ of Kurihara Eq. 13 is singular: two training poses coincide in this pose distance (drop one)"
+        ) from None
     s = f / f.sum(axis=1, keepdims=True)
     return s[0] if single else s
 
@@ -153,8 +166,9 @@ class PoseSpace:
         d = np.sqrt(((self.train[:, None] - self.train[None]) ** 2).sum(-1)) + np.eye(len(self.train))
         if len(self.train) > 1 and d.min() < 1e-9:
             i, j = np.unravel_index(np.argmin(d), d.shape)
-            raise ValueError(f"training poses {i} and {j} are identical: pose space interpolation needs "
-                             "distinct poses (drop one)")
+            raise ValueError(
+                f"training poses {i} and {j} are identical: pose space interpolation needs distinct poses (drop one)"
+            )
 
     @property
     def n_poses(self) -> int:
@@ -167,7 +181,7 @@ class PoseSpace:
         """``s(a)`` over the training poses (Eq. 14)."""
         return pose_weights(self.train, self.vector(pose))
 
-    def point_space(self, weights: SkinningWeights) -> "PointPoseSpace":
+    def point_space(self, weights: SkinningWeights) -> PointPoseSpace:
         """Per-point WPSD coefficients for points with these skinning weights (Eq. 16)."""
         return PointPoseSpace(self, weights)
 
@@ -301,8 +315,10 @@ class PointPoseSpace:
         _wpsd_coefficients(weights.index, weights.value, self.bone_pair, self.coef, self.inv_sigma2)
         bad = ~np.isfinite(self.coef).all(axis=(1, 2))
         if bad.any():
-            raise ValueError(f"{int(bad.sum())} points have a singular WPSD kernel matrix (Eq. 16): two training "
-                             "poses coincide in those points' weighted pose distance")
+            raise ValueError(
+                f"{int(bad.sum())} points have a singular WPSD kernel matrix (Eq. 16): two training "
+                "poses coincide in those points' weighted pose distance"
+            )
 
     def _per_bone(self, diff: np.ndarray) -> np.ndarray:
         return per_bone_sq(diff, self.dof_bone, self.weights_.n_bones)
@@ -315,8 +331,9 @@ class PointPoseSpace:
         base = np.asarray(base_samples_per_point, dtype=np.float64)
         P = self.space.n_poses
         if base.shape != (self.weights_.n_points, P, 3):
-            raise ValueError(f"base samples must be (n_points, n_poses, 3) = {(self.weights_.n_points, P, 3)}, "
-                             f"got {base.shape}")
+            raise ValueError(
+                f"base samples must be (n_points, n_poses, 3) = {(self.weights_.n_points, P, 3)}, got {base.shape}"
+            )
         out = np.empty((base.shape[0], P, 4))
         out[..., :3] = np.einsum("jil,jic->jlc", self.coef, base)
         out[..., 3] = self.coef.sum(axis=1)
@@ -415,8 +432,9 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
     if s.ndim != 2 or s.shape[0] not in (1, base.shape[0]):
         raise ValueError(f"pose weights must be (P,) or (n_points, P), got {s.shape}")
     if base.shape[0] != weights.n_points or s.shape[-1] != base.shape[1]:
-        raise ValueError(f"base points {base.shape}, pose weights {s.shape} and {weights.n_points} weighted "
-                         "points do not agree")
+        raise ValueError(
+            f"base points {base.shape}, pose weights {s.shape} and {weights.n_points} weighted points do not agree"
+        )
     out = np.empty((base.shape[0], 3))
     _skin_kernel(base, s, s.shape[0] == base.shape[0] and s.shape[0] > 1, weights.index, weights.value, t, out)
     return out
@@ -469,8 +487,15 @@ def _wpsd_skin_kernel(folded, idx, val, t, phi, out):
         out[j, 2] = o2
 
 
-def wpsd_deform(base_samples_per_point: np.ndarray, weights: SkinningWeights, point_space: PointPoseSpace,
-                pose, transforms, *, folded: np.ndarray | None = None) -> np.ndarray:
+def wpsd_deform(
+    base_samples_per_point: np.ndarray,
+    weights: SkinningWeights,
+    point_space: PointPoseSpace,
+    pose,
+    transforms,
+    *,
+    folded: np.ndarray | None = None,
+) -> np.ndarray:
     """WPSD (Kurihara §5.2): per-vertex pose weights (Eq. 16), morph (Eq. 7), SSD (Eq. 8).
 
     ``base_samples_per_point`` is ``(n, P, 3)``: each vertex's base-pose position in every sample
@@ -481,14 +506,18 @@ def wpsd_deform(base_samples_per_point: np.ndarray, weights: SkinningWeights, po
     loop on this machine; they were two thirds of WPSD's cost beyond LBS).
     """
     if point_space.weights_ is not weights:
-        raise ValueError("the point pose space was built for other skinning weights: build it with "
-                         "PoseSpace.point_space(weights) for these")
+        raise ValueError(
+            "the point pose space was built for other skinning weights: build it with "
+            "PoseSpace.point_space(weights) for these"
+        )
     P = point_space.space.n_poses
     if folded is None:
         folded = point_space.fold(base_samples_per_point)
     elif folded.shape != (weights.n_points, P, 4):
-        raise ValueError(f"folded samples must be (n_points, n_poses, 4) = {(weights.n_points, P, 4)} "
-                         f"(PointPoseSpace.fold), got {folded.shape}")
+        raise ValueError(
+            f"folded samples must be (n_points, n_poses, 4) = {(weights.n_points, P, 4)} "
+            f"(PointPoseSpace.fold), got {folded.shape}"
+        )
     a = point_space.space.vector(pose)
     bone_q = np.ascontiguousarray(point_space._per_bone((a[None, :] - point_space.space.train)[None])[:, 0])
     t = _as_stack(transforms, weights)[:, :3, :]

@@ -55,8 +55,20 @@ from .interpolate import _fill_value, _flat_data, _interp_scalar, _output_dtype,
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["BackwardMap", "backward_map", "backward_points", "upsample_backward_map", "CoarseBackwardMap",
-           "resample_forward", "invert_scan_to_template", "OK", "FOLDED", "NOT_CONVERGED", "OUTSIDE", "STATUS_NAMES"]
+__all__ = [
+    "BackwardMap",
+    "backward_map",
+    "backward_points",
+    "upsample_backward_map",
+    "CoarseBackwardMap",
+    "resample_forward",
+    "invert_scan_to_template",
+    "OK",
+    "FOLDED",
+    "NOT_CONVERGED",
+    "OUTSIDE",
+    "STATUS_NAMES",
+]
 
 OK, FOLDED, NOT_CONVERGED, OUTSIDE = 0, 1, 2, 3
 STATUS_NAMES = {OK: "ok", FOLDED: "folded", NOT_CONVERGED: "not_converged", OUTSIDE: "outside"}
@@ -104,9 +116,11 @@ def _eval(fwd, x0, x1, x2, out, jac):
 
 @nb.njit(cache=True, inline="always")
 def _det3(m):
-    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
-            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
-            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+    return (
+        m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+        - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+        + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
+    )
 
 
 @nb.njit(cache=True, inline="always")
@@ -138,15 +152,21 @@ def _newton(fwd, y, x, tol, max_iter, max_step, f, jac):
             pinned = 0
         inv = 1.0 / det
         # δ = J⁻¹ r by the adjugate
-        d0 = inv * ((jac[1, 1] * jac[2, 2] - jac[1, 2] * jac[2, 1]) * r0
-                    - (jac[0, 1] * jac[2, 2] - jac[0, 2] * jac[2, 1]) * r1
-                    + (jac[0, 1] * jac[1, 2] - jac[0, 2] * jac[1, 1]) * r2)
-        d1 = inv * (-(jac[1, 0] * jac[2, 2] - jac[1, 2] * jac[2, 0]) * r0
-                    + (jac[0, 0] * jac[2, 2] - jac[0, 2] * jac[2, 0]) * r1
-                    - (jac[0, 0] * jac[1, 2] - jac[0, 2] * jac[1, 0]) * r2)
-        d2 = inv * ((jac[1, 0] * jac[2, 1] - jac[1, 1] * jac[2, 0]) * r0
-                    - (jac[0, 0] * jac[2, 1] - jac[0, 1] * jac[2, 0]) * r1
-                    + (jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]) * r2)
+        d0 = inv * (
+            (jac[1, 1] * jac[2, 2] - jac[1, 2] * jac[2, 1]) * r0
+            - (jac[0, 1] * jac[2, 2] - jac[0, 2] * jac[2, 1]) * r1
+            + (jac[0, 1] * jac[1, 2] - jac[0, 2] * jac[1, 1]) * r2
+        )
+        d1 = inv * (
+            -(jac[1, 0] * jac[2, 2] - jac[1, 2] * jac[2, 0]) * r0
+            + (jac[0, 0] * jac[2, 2] - jac[0, 2] * jac[2, 0]) * r1
+            - (jac[0, 0] * jac[1, 2] - jac[0, 2] * jac[1, 0]) * r2
+        )
+        d2 = inv * (
+            (jac[1, 0] * jac[2, 1] - jac[1, 1] * jac[2, 0]) * r0
+            - (jac[0, 0] * jac[2, 1] - jac[0, 1] * jac[2, 0]) * r1
+            + (jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]) * r2
+        )
         m = max(abs(d0), abs(d1), abs(d2))
         if m > max_step:
             sc = max_step / m
@@ -162,8 +182,7 @@ def _newton(fwd, y, x, tol, max_iter, max_step, f, jac):
 @nb.njit(cache=True, inline="always")
 def _on_border(x, nx, ny, nz):
     e = 1e-6
-    return (x[0] <= e or x[1] <= e or x[2] <= e or x[0] >= nx - 1 - e or x[1] >= ny - 1 - e
-            or x[2] >= nz - 1 - e)
+    return x[0] <= e or x[1] <= e or x[2] <= e or x[0] >= nx - 1 - e or x[1] >= ny - 1 - e or x[2] >= nz - 1 - e
 
 
 @nb.njit(cache=True, inline="always")
@@ -309,7 +328,7 @@ def _restart(fwd, cands, u0, u1, u2, y, tol, max_iter, max_step, n_try, prio, ne
         cres[c] = (f[0] - y[0]) ** 2 + (f[1] - y[1]) ** 2 + (f[2] - y[2]) ** 2
     best = np.inf
     bdet = 0.0
-    for r in range(min(n_try, nc)):
+    for _ in range(min(n_try, nc)):
         c = 0
         for q in range(1, nc):
             if cres[q] < cres[c]:
@@ -338,8 +357,9 @@ def _restart(fwd, cands, u0, u1, u2, y, tol, max_iter, max_step, n_try, prio, ne
 
 
 @nb.njit(cache=True, parallel=True)
-def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, cover, guess, out_x,
-                     out_res, out_status):
+def _backward_kernel(
+    fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, cover, guess, out_x, out_res, out_status
+):
     """For every target voxel (rows in parallel) solve F(x) = y; x in template continuous index (i, j, k).
 
     Each solve starts from the previous voxel's answer in the row, moved by the local inverse
@@ -391,15 +411,21 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
                     r0 = tgt_a[0, 0]
                     r1 = tgt_a[1, 0]
                     r2 = tgt_a[2, 0]
-                    x[0] += inv * ((jl[1, 1] * jl[2, 2] - jl[1, 2] * jl[2, 1]) * r0
-                                   - (jl[0, 1] * jl[2, 2] - jl[0, 2] * jl[2, 1]) * r1
-                                   + (jl[0, 1] * jl[1, 2] - jl[0, 2] * jl[1, 1]) * r2)
-                    x[1] += inv * (-(jl[1, 0] * jl[2, 2] - jl[1, 2] * jl[2, 0]) * r0
-                                   + (jl[0, 0] * jl[2, 2] - jl[0, 2] * jl[2, 0]) * r1
-                                   - (jl[0, 0] * jl[1, 2] - jl[0, 2] * jl[1, 0]) * r2)
-                    x[2] += inv * ((jl[1, 0] * jl[2, 1] - jl[1, 1] * jl[2, 0]) * r0
-                                   - (jl[0, 0] * jl[2, 1] - jl[0, 1] * jl[2, 0]) * r1
-                                   + (jl[0, 0] * jl[1, 1] - jl[0, 1] * jl[1, 0]) * r2)
+                    x[0] += inv * (
+                        (jl[1, 1] * jl[2, 2] - jl[1, 2] * jl[2, 1]) * r0
+                        - (jl[0, 1] * jl[2, 2] - jl[0, 2] * jl[2, 1]) * r1
+                        + (jl[0, 1] * jl[1, 2] - jl[0, 2] * jl[1, 1]) * r2
+                    )
+                    x[1] += inv * (
+                        -(jl[1, 0] * jl[2, 2] - jl[1, 2] * jl[2, 0]) * r0
+                        + (jl[0, 0] * jl[2, 2] - jl[0, 2] * jl[2, 0]) * r1
+                        - (jl[0, 0] * jl[1, 2] - jl[0, 2] * jl[1, 0]) * r2
+                    )
+                    x[2] += inv * (
+                        (jl[1, 0] * jl[2, 1] - jl[1, 1] * jl[2, 0]) * r0
+                        - (jl[0, 0] * jl[2, 1] - jl[0, 1] * jl[2, 0]) * r1
+                        + (jl[0, 0] * jl[1, 1] - jl[0, 1] * jl[1, 0]) * r2
+                    )
                     x[0] = min(max(x[0], 0.0), nx - 1.0)
                     x[1] = min(max(x[1], 0.0), ny - 1.0)
                     x[2] = min(max(x[2], 0.0), nz - 1.0)
@@ -418,8 +444,25 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
                     det = d2
             if res > tol:
                 # far from the posed body one restart is enough: whatever is found there is air
-                r2, d2 = _restart(fwd, cands, ii, jj, kk, y, tol, max_iter, max_step,
-                                  n_restarts if occupied else 1, prio, False, xr, f, jac, xb, cres)
+                r2, d2 = _restart(
+                    fwd,
+                    cands,
+                    ii,
+                    jj,
+                    kk,
+                    y,
+                    tol,
+                    max_iter,
+                    max_step,
+                    n_restarts if occupied else 1,
+                    prio,
+                    False,
+                    xr,
+                    f,
+                    jac,
+                    xb,
+                    cres,
+                )
                 if r2 < res:
                     x[0] = xr[0]
                     x[1] = xr[1]
@@ -427,8 +470,9 @@ def _backward_kernel(fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, pri
                     res = r2
                     det = d2
             if use_prio and occ[kk, jj, ii] != 0 and res <= tol and _prio_at(prio, x) == 0:
-                r2, d2 = _restart(fwd, cands, ii, jj, kk, y, tol, max_iter, max_step, n_restarts, prio, True, x,
-                                  f, jac, xb, cres)
+                r2, d2 = _restart(
+                    fwd, cands, ii, jj, kk, y, tol, max_iter, max_step, n_restarts, prio, True, x, f, jac, xb, cres
+                )
                 if r2 <= tol:
                     res = r2
                     det = d2
@@ -465,8 +509,9 @@ def _points_kernel(fwd, pts, cands, tol, max_iter, max_step, n_restarts, out_x, 
         cres = np.empty(nc)
         for c in range(3):
             y[c] = pts[n, c]
-        best, bdet = _restart(fwd, cands, y[0], y[1], y[2], y, tol, max_iter, max_step, n_restarts, no_prio,
-                              False, x, f, jac, xb, cres)
+        best, bdet = _restart(
+            fwd, cands, y[0], y[1], y[2], y, tol, max_iter, max_step, n_restarts, no_prio, False, x, f, jac, xb, cres
+        )
         for q in range(3):
             out_x[n, q] = x[q]
         out_res[n] = best
@@ -546,9 +591,17 @@ def _candidates(template: GridGeometry, target: GridGeometry, transforms) -> np.
     return np.ascontiguousarray(out[np.sort(keep)])
 
 
-def backward_map(forward_positions, template_geometry: GridGeometry, target_geometry: GridGeometry | None = None,
-                 *, transforms=None, prefer=None, tol_voxels: float = 1e-2, max_iter: int = 12,
-                 n_restarts: int = 4) -> BackwardMap:
+def backward_map(
+    forward_positions,
+    template_geometry: GridGeometry,
+    target_geometry: GridGeometry | None = None,
+    *,
+    transforms=None,
+    prefer=None,
+    tol_voxels: float = 1e-2,
+    max_iter: int = 12,
+    n_restarts: int = 4,
+) -> BackwardMap:
     """Invert a forward map given by the posed positions of every template voxel.
 
     Parameters
@@ -576,8 +629,10 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
     """
     fwd = np.ascontiguousarray(forward_positions, dtype=np.float32)
     if fwd.shape != template_geometry.array_shape + (3,):
-        raise ValueError(f"forward_positions must be {template_geometry.array_shape + (3,)} (the template grid "
-                         f"{template_geometry.describe()}, components x, y, z), got {fwd.shape}")
+        raise ValueError(
+            f"forward_positions must be {template_geometry.array_shape + (3,)} (the template grid "
+            f"{template_geometry.describe()}, components x, y, z), got {fwd.shape}"
+        )
     if min(template_geometry.size) < 2:
         raise ValueError("the template grid needs at least 2 voxels along each axis")
     _check_solver_args(max_iter, n_restarts, tol_voxels)
@@ -595,8 +650,9 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
     if prefer is not None:
         prio = np.ascontiguousarray(prefer, dtype=np.uint8)
         if prio.shape != template_geometry.array_shape:
-            raise ValueError(f"prefer must be a mask on the template grid {template_geometry.array_shape}, "
-                             f"got {prio.shape}")
+            raise ValueError(
+                f"prefer must be a mask on the template grid {template_geometry.array_shape}, got {prio.shape}"
+            )
         occ = np.zeros(shape, dtype=np.uint8)
         _splat(tidx, prio, True, occ)
     else:
@@ -611,8 +667,9 @@ def backward_map(forward_positions, template_geometry: GridGeometry, target_geom
     guess = np.full(shape, -1, dtype=np.int64)
     _scatter_guess(tidx, prio, prefer is not None, guess)
     del tidx
-    _backward_kernel(fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, guess, out_x,
-                     out_res, out_status)
+    _backward_kernel(
+        fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, guess, out_x, out_res, out_status
+    )
     _orient_status(out_status, template_geometry)
     return BackwardMap(template_geometry, target, out_x, out_res, out_status)
 
@@ -648,8 +705,7 @@ def _guess_kernel(fwd, pts, guesses, tol, max_iter, max_step, out_x, out_res, ou
                 out_status[n] = 0 if bdet > 0.0 else 1
 
 
-def _nearest_restarts(fwd, geometry: GridGeometry, x, res, status, pts_world, tol, max_iter, k: int = 8,
-                      prefer=None):
+def _nearest_restarts(fwd, geometry: GridGeometry, x, res, status, pts_world, tol, max_iter, k: int = 8, prefer=None):
     """Retry NOT_CONVERGED points from the template voxels whose forward positions are nearest (cKDTree).
 
     With ``prefer`` only the preferred template voxels' positions are searched (a smaller tree).
@@ -676,8 +732,16 @@ def _nearest_restarts(fwd, geometry: GridGeometry, x, res, status, pts_world, to
     x[bad], res[bad], status[bad] = bx, br, bs
 
 
-def backward_points(forward_positions, template_geometry: GridGeometry, points, *, transforms=None,
-                    tol_voxels: float = 1e-2, max_iter: int = 12, n_restarts: int = 4):
+def backward_points(
+    forward_positions,
+    template_geometry: GridGeometry,
+    points,
+    *,
+    transforms=None,
+    tol_voxels: float = 1e-2,
+    max_iter: int = 12,
+    n_restarts: int = 4,
+):
     """Invert the forward map at arbitrary world points ``(n, 3)``.
 
     Returns ``(template world positions (n, 3), residual_mm (n,), status (n,))``;
@@ -820,8 +884,9 @@ def _pull_kernel(cx, cst, ok, f, src, nx, ny, nz, order, fill, out):
                     a = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 0)
                     b = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 1)
                     c = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 2)
-                    out[k, j, i] = _interp_scalar(src, nx, ny, nz, np.float64(a), np.float64(b), np.float64(c),
-                                                  order, fill)
+                    out[k, j, i] = _interp_scalar(
+                        src, nx, ny, nz, np.float64(a), np.float64(b), np.float64(c), order, fill
+                    )
 
 
 class CoarseBackwardMap:
@@ -842,12 +907,19 @@ class CoarseBackwardMap:
     voxels) is posed without its 3.3 GiB.
     """
 
-    def __init__(self, coarse: BackwardMap, factor: int, template_geometry: GridGeometry,
-                 target_geometry: GridGeometry | None = None):
+    def __init__(
+        self,
+        coarse: BackwardMap,
+        factor: int,
+        template_geometry: GridGeometry,
+        target_geometry: GridGeometry | None = None,
+    ):
         f = int(factor)
         target = template_geometry if target_geometry is None else target_geometry
-        if not (coarse.template_geometry.is_close(template_geometry.every(f))
-                and coarse.target_geometry.is_close(target.every(f))):
+        if not (
+            coarse.template_geometry.is_close(template_geometry.every(f))
+            and coarse.target_geometry.is_close(target.every(f))
+        ):
             raise ValueError(f"the coarse map's grids are not {every_nth(f)} voxel of the template and target grids")
         self.coarse, self.factor = coarse, f
         self.template_geometry, self.target_geometry = template_geometry, target
@@ -856,8 +928,9 @@ class CoarseBackwardMap:
         self._ok = np.empty(tuple(max(n - 1, 1) for n in coarse.status.shape), dtype=np.bool_)
         # the spread limit in mm: MAX_SPREAD of the coarse target's largest voxel side
         limit_mm = MAX_SPREAD * float(max(coarse.target_geometry.spacing))
-        _blendable_cells(self._cx, coarse.status, np.asarray(coarse.template_geometry.spacing, dtype=np.float64),
-                         limit_mm, self._ok)
+        _blendable_cells(
+            self._cx, coarse.status, np.asarray(coarse.template_geometry.spacing, dtype=np.float64), limit_mm, self._ok
+        )
 
     def rows(self, k0: int, k1: int) -> BackwardMap:
         """The fine backward map of the target's slices ``k0 ≤ k < k1`` (a slab of the target grid)."""
@@ -912,13 +985,15 @@ class CoarseBackwardMap:
         odt = _output_dtype(src.dtype, order)
         flat, (nx, ny, nz), _ = _flat_data(src)
         out = np.empty(self.target_geometry.array_shape, dtype=np.uint8 if odt == np.bool_ else odt)
-        _pull_kernel(self._cx, self.coarse.status, self._ok, self.factor, flat, nx, ny, nz, order,
-                     _fill_value(fill, odt), out)
+        _pull_kernel(
+            self._cx, self.coarse.status, self._ok, self.factor, flat, nx, ny, nz, order, _fill_value(fill, odt), out
+        )
         return Volume(out.view(np.bool_) if odt == np.bool_ else out, self.target_geometry)
 
 
-def upsample_backward_map(coarse: BackwardMap, factor: int, template_geometry: GridGeometry,
-                          target_geometry: GridGeometry | None = None) -> BackwardMap:
+def upsample_backward_map(
+    coarse: BackwardMap, factor: int, template_geometry: GridGeometry, target_geometry: GridGeometry | None = None
+) -> BackwardMap:
     """The fine backward map of a coarse one, all at once (:class:`CoarseBackwardMap` says how)."""
     return CoarseBackwardMap(coarse, factor, template_geometry, target_geometry).full()
 
@@ -945,8 +1020,15 @@ def resample_forward(bmap: BackwardMap, volume: Volume, *, labels: bool = False,
     return Volume(_pull(_source(bmap, volume, labels), bmap, labels, fill), bmap.target_geometry)
 
 
-def invert_scan_to_template(field: Volume, template_geometry: GridGeometry, *, transforms=None, prefer=None,
-                            forward=None, tol_mm: float | None = None) -> BackwardMap:
+def invert_scan_to_template(
+    field: Volume,
+    template_geometry: GridGeometry,
+    *,
+    transforms=None,
+    prefer=None,
+    forward=None,
+    tol_mm: float | None = None,
+) -> BackwardMap:
     """Invert a ``scan_to_template`` field: where every *template* voxel lies in the scan (the one inversion).
 
     ``field`` on the scan grid maps each scan voxel ``x`` to ``φ(x) = x +
@@ -987,15 +1069,18 @@ def invert_scan_to_template(field: Volume, template_geometry: GridGeometry, *, t
     if forward is None:
         fwd = (np.asarray(field.data, np.float64) + g.world_coordinates()).astype(np.float32)
         inv = None if transforms is None else np.stack([np.linalg.inv(t) for t in np.asarray(transforms, float)])
-        return backward_map(fwd, g, template_geometry, transforms=inv,
-                            prefer=None if prefer is None else np.asarray(prefer, bool))
+        return backward_map(
+            fwd, g, template_geometry, transforms=inv, prefer=None if prefer is None else np.asarray(prefer, bool)
+        )
     from .fields import invert
     from .interpolate import sample, sample_displaced_array
 
     f = np.asarray(forward, np.float64)
     if f.shape != template_geometry.array_shape + (3,):
-        raise ValueError(f"forward must be (nz, ny, nx, 3) = {template_geometry.array_shape + (3,)} on the template "
-                         f"grid, got {f.shape}")
+        raise ValueError(
+            f"forward must be (nz, ny, nx, 3) = {template_geometry.array_shape + (3,)} on the template "
+            f"grid, got {f.shape}"
+        )
     phi = np.asarray(field.data, np.float64)
     # U = F ∘ φ on the scan grid (F trilinear between template voxels; undefined where φ leaves the template grid)
     ux = sample_displaced_array(f, template_geometry.world_to_index_matrix, g, phi, 1, np.nan)

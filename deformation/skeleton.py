@@ -73,8 +73,10 @@ def _check_version(d: dict, what: str) -> None:
     # Exactly the integer 1: int() would let 1.5, "1", true and null through (or crash on null).
     version = d.get("version")
     if isinstance(version, bool) or not isinstance(version, int) or version != 1:
-        raise SkeletonError(f"unsupported {what} version {version!r}: this workbench reads version 1 "
-                            f"(the integer 1 in the 'version' key)")
+        raise SkeletonError(
+            f"unsupported {what} version {version!r}: this workbench reads version 1 "
+            f"(the integer 1 in the 'version' key)"
+        )
 
 
 @dataclass(frozen=True)
@@ -123,8 +125,10 @@ class Joint:
             except (TypeError, ValueError):
                 lim = np.zeros((0,))
             if lim.shape != (self.dof, 2) or not np.all(np.isfinite(lim)) or np.any(lim[:, 0] > lim[:, 1]):
-                raise SkeletonError(f"joint {self.name!r}: limits must be {self.dof} [low, high] pairs (degrees, "
-                                    f"then mm), low ≤ high, got {self.limits!r}")
+                raise SkeletonError(
+                    f"joint {self.name!r}: limits must be {self.dof} [low, high] pairs (degrees, "
+                    f"then mm), low ≤ high, got {self.limits!r}"
+                )
             object.__setattr__(self, "limits", tuple((float(lo), float(hi)) for lo, hi in lim))
 
     def outside_limits(self, angles) -> list[str]:
@@ -135,9 +139,12 @@ class Joint:
         radians × 100); its translations are not checked."""
         a = np.asarray(angles, dtype=float).reshape(-1)
         if self.limits is None:
-            return [f"{self.name}[{k}] = {v:g}° is more than half a turn (the joint has no 'limits' in the skeleton; "
-                    f"its rotations are taken within ±{HALF_TURN_DEG:g}°)"
-                    for k, v in enumerate(a[:3]) if not -HALF_TURN_DEG <= v <= HALF_TURN_DEG]
+            return [
+                f"{self.name}[{k}] = {v:g}° is more than half a turn (the joint has no 'limits' in the skeleton; "
+                f"its rotations are taken within ±{HALF_TURN_DEG:g}°)"
+                for k, v in enumerate(a[:3])
+                if not -HALF_TURN_DEG <= v <= HALF_TURN_DEG
+            ]
         out = []
         for k, (v, (lo, hi)) in enumerate(zip(a, self.limits)):
             if not lo <= v <= hi:
@@ -148,11 +155,13 @@ class Joint:
     def __eq__(self, other):
         if not isinstance(other, Joint):
             return NotImplemented
-        return (
-            (self.name, self.parent, self.child, self.dof, self.center)
-            == (other.name, other.parent, other.child, other.dof, other.center)
-            and np.array_equal(self.axes, other.axes)
-        )
+        return (self.name, self.parent, self.child, self.dof, self.center) == (
+            other.name,
+            other.parent,
+            other.child,
+            other.dof,
+            other.center,
+        ) and np.array_equal(self.axes, other.axes)
 
     __hash__ = None  # mutable-looking array field: not hashable
 
@@ -218,12 +227,19 @@ class Joint:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Joint":
+    def from_dict(cls, d: dict) -> Joint:
         try:
             ax = d.get("axes")
             axes = np.eye(3) if ax is None else np.column_stack([ax["x"], ax["y"], ax["z"]])
-            return cls(name=d["name"], parent=d["parent"], child=d["child"], dof=int(d["dof"]),
-                       center=d["center"], axes=axes, limits=d.get("limits"))
+            return cls(
+                name=d["name"],
+                parent=d["parent"],
+                child=d["child"],
+                dof=int(d["dof"]),
+                center=d["center"],
+                axes=axes,
+                limits=d.get("limits"),
+            )
         except KeyError as e:
             raise SkeletonError(f"joint entry {d!r} lacks the key {e}") from e
 
@@ -270,8 +286,9 @@ class Skeleton:
                 )
         for b in self.bones:
             if b.parent is not None and children.count(b.name) != 1:
-                raise SkeletonError(f"bone {b.name!r} must hang from its parent by exactly one joint, "
-                                    f"found {children.count(b.name)}")
+                raise SkeletonError(
+                    f"bone {b.name!r} must hang from its parent by exactly one joint, found {children.count(b.name)}"
+                )
 
     def _topological_order(self) -> tuple[str, ...]:
         order, seen = [], set()
@@ -334,8 +351,7 @@ class Skeleton:
     def limit_problems(self, angles: dict) -> list[str]:
         """Every joint value of ``angles`` outside its joint's limits (for a joint without limits: a rotation beyond
         ±180°, :meth:`Joint.outside_limits`)."""
-        return [p for name, v in angles.items() if name in self._joint
-                for p in self._joint[name].outside_limits(v)]
+        return [p for name, v in angles.items() if name in self._joint for p in self._joint[name].outside_limits(v)]
 
     def forward_kinematics(self, angles: dict | None = None, *, root_transform=None) -> dict[str, np.ndarray]:
         """World transform (template → scan) of every bone for the given joint angles.
@@ -367,7 +383,7 @@ class Skeleton:
         j = self.joint(joint_name)
         return compose(invert(transforms[j.parent]), transforms[j.child])
 
-    def pose(self, angles: dict | None = None, *, root_transform=None) -> "Pose":
+    def pose(self, angles: dict | None = None, *, root_transform=None) -> Pose:
         """Forward kinematics packaged as a :class:`Pose` (transforms, angles and scan-space centres)."""
         transforms = self.forward_kinematics(angles, root_transform=root_transform)
         full = self.zero_angles()
@@ -389,10 +405,11 @@ class Skeleton:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Skeleton":
+    def from_dict(cls, d: dict) -> Skeleton:
         if d.get("format") != SKELETON_FORMAT:
-            raise SkeletonError(f"not a skeleton description: 'format' is {d.get('format')!r}, "
-                                f"expected {SKELETON_FORMAT!r}")
+            raise SkeletonError(
+                f"not a skeleton description: 'format' is {d.get('format')!r}, expected {SKELETON_FORMAT!r}"
+            )
         _check_version(d, "skeleton")
         try:
             bones = [Bone(b["name"], int(b["label"]), b.get("parent")) for b in d["bones"]]
@@ -456,7 +473,7 @@ class Pose:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Pose":
+    def from_dict(cls, d: dict) -> Pose:
         if d.get("format") != POSE_FORMAT:
             raise SkeletonError(f"not a pose: 'format' is {d.get('format')!r}, expected {POSE_FORMAT!r}")
         _check_version(d, "pose")
@@ -468,5 +485,9 @@ class Pose:
             # An attribute that no joint entry carries was not recorded (None), as before writing.
             angles = {k: v["angles_deg"] for k, v in joints.items() if "angles_deg" in v} or None
             centers = {k: v["center_scan"] for k, v in joints.items() if "center_scan" in v} or None
-        return cls({k: np.asarray(v, dtype=float) for k, v in d["bones"].items()},
-                   joint_angles=angles, joint_centers=centers, skeleton=d.get("skeleton"))
+        return cls(
+            {k: np.asarray(v, dtype=float) for k, v in d["bones"].items()},
+            joint_angles=angles,
+            joint_centers=centers,
+            skeleton=d.get("skeleton"),
+        )

@@ -27,8 +27,17 @@ import numpy as np
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-__all__ = ["SkinningWeights", "MAX_INFLUENCES", "blend_matrices", "lbs", "vbd_points", "inverse_lbs",
-           "stack_transforms", "distance_weights", "distance_voxel_weights"]
+__all__ = [
+    "SkinningWeights",
+    "MAX_INFLUENCES",
+    "blend_matrices",
+    "lbs",
+    "vbd_points",
+    "inverse_lbs",
+    "stack_transforms",
+    "distance_weights",
+    "distance_voxel_weights",
+]
 
 #: Influences kept per point (Kurihara's meshes and GPU skinning use four).
 MAX_INFLUENCES = 4
@@ -70,8 +79,7 @@ class SkinningWeights:
         if not np.issubdtype(index.dtype, np.integer):
             raise ValueError(f"index must be integers, got {index.dtype}")
         if index.size and (index.min() < 0 or index.max() >= len(self.bones)):
-            raise ValueError(f"bone index out of range 0..{len(self.bones) - 1}: "
-                             f"found {index.min()}..{index.max()}")
+            raise ValueError(f"bone index out of range 0..{len(self.bones) - 1}: found {index.min()}..{index.max()}")
         if not np.all(np.isfinite(value)):
             raise ValueError("weights must be finite")
         if value.size and value.min() < -1e-6:
@@ -79,8 +87,9 @@ class SkinningWeights:
         sums = value.sum(axis=1, dtype=np.float64) if value.shape[1] <= 8 else value.sum(axis=1)
         if value.size and np.max(np.abs(sums - 1.0)) > 1e-5:
             worst = int(np.argmax(np.abs(sums - 1.0)))
-            raise ValueError(f"weights must sum to one per point (Kurihara Eq. 3); point {worst} sums to "
-                             f"{sums[worst]:.6f}")
+            raise ValueError(
+                f"weights must sum to one per point (Kurihara Eq. 3); point {worst} sums to {sums[worst]:.6f}"
+            )
         self.index = np.ascontiguousarray(index, dtype=np.int16 if len(self.bones) > 255 else np.uint8)
         value = np.ascontiguousarray(value, dtype=np.float32)
         if value.size and value.min() < 0:
@@ -103,7 +112,7 @@ class SkinningWeights:
         return f"SkinningWeights({self.n_points} points, {self.n_bones} bones, ≤{self.max_influences} influences)"
 
     @classmethod
-    def from_dense(cls, dense, bones, *, max_influences: int = MAX_INFLUENCES) -> "SkinningWeights":
+    def from_dense(cls, dense, bones, *, max_influences: int = MAX_INFLUENCES) -> SkinningWeights:
         """Keep the ``max_influences`` largest weights of each row of ``dense (n, n_bones)`` and renormalise.
 
         Negative entries (a harmonic solve's round-off) are clipped to zero
@@ -122,15 +131,15 @@ class SkinningWeights:
         # rows in chunks: the sort's temporaries are (rows, n_bones) float64 and int64, several of them (a
         # paper-size hand grid's 5.9 M voxels x 20 bones held 5 GB at once); every row is independent
         for lo in range(0, n, DENSE_CHUNK):
-            d = np.clip(np.asarray(dense[lo:lo + DENSE_CHUNK], dtype=np.float64), 0.0, None)
+            d = np.clip(np.asarray(dense[lo : lo + DENSE_CHUNK], dtype=np.float64), 0.0, None)
             if k < len(bones):
                 idx = np.argpartition(-d, k - 1, axis=1)[:, :k]
             else:
                 idx = np.broadcast_to(np.arange(len(bones)), d.shape).copy()
             val = np.take_along_axis(d, idx, axis=1)
             order = np.argsort(-val, axis=1, kind="stable")
-            idx_out[lo:lo + DENSE_CHUNK] = np.take_along_axis(idx, order, axis=1)
-            val_out[lo:lo + DENSE_CHUNK] = np.take_along_axis(val, order, axis=1)
+            idx_out[lo : lo + DENSE_CHUNK] = np.take_along_axis(idx, order, axis=1)
+            val_out[lo : lo + DENSE_CHUNK] = np.take_along_axis(val, order, axis=1)
         s = val_out.sum(axis=1)
         if np.any(s <= 0):
             raise ValueError(f"{int(np.sum(s <= 0))} point(s) have no positive weight on any bone")
@@ -139,7 +148,7 @@ class SkinningWeights:
         return cls(bones, idx_out, val_out)
 
     @classmethod
-    def one_hot(cls, bone_index, bones, *, max_influences: int = MAX_INFLUENCES) -> "SkinningWeights":
+    def one_hot(cls, bone_index, bones, *, max_influences: int = MAX_INFLUENCES) -> SkinningWeights:
         """Every point wholly on one bone (``bone_index (n,)``)."""
         bone_index = np.asarray(bone_index, dtype=np.int64).reshape(-1)
         k = int(min(max_influences, len(bones)))
@@ -164,11 +173,11 @@ class SkinningWeights:
         np.add.at(out, (np.arange(self.n_points)[:, None], self.index.astype(np.int64)), self.value)
         return out
 
-    def take(self, rows) -> "SkinningWeights":
+    def take(self, rows) -> SkinningWeights:
         """The weights of a subset of the points (an index array or boolean mask)."""
         return SkinningWeights(self.bones, self.index[rows], self.value[rows])
 
-    def reorder(self, bones) -> "SkinningWeights":
+    def reorder(self, bones) -> SkinningWeights:
         """The same weights expressed over another ordering (a superset) of bone names."""
         bones = tuple(bones)
         missing = [b for b in self.bones if b not in bones]
@@ -203,8 +212,10 @@ def stack_transforms(transforms, bones) -> np.ndarray:
     try:
         return np.stack([np.asarray(transforms[b], dtype=np.float64) for b in bones])
     except KeyError as e:
-        raise ValueError(f"no transform for bone {e.args[0]!r}; the pose names "
-                         f"{sorted(getattr(transforms, 'transforms', transforms))}") from None
+        raise ValueError(
+            f"no transform for bone {e.args[0]!r}; the pose names "
+            f"{sorted(getattr(transforms, 'transforms', transforms))}"
+        ) from None
 
 
 def _as_stack(transforms, weights: SkinningWeights) -> np.ndarray:
@@ -262,8 +273,9 @@ def inverse_lbs(posed_points, weights: SkinningWeights, transforms) -> np.ndarra
     return np.linalg.solve(m[:, :, :3], (q - m[:, :, 3])[:, :, None])[:, :, 0]
 
 
-def distance_weights(bone_distances, bones, *, power: float = 4.0, falloff_mm: float = 20.0,
-                     max_influences: int = MAX_INFLUENCES) -> SkinningWeights:
+def distance_weights(
+    bone_distances, bones, *, power: float = 4.0, falloff_mm: float = 20.0, max_influences: int = MAX_INFLUENCES
+) -> SkinningWeights:
     """A simple distance-based weighting, the fallback to harmonic weights and a comparison for them.
 
     ``w_k ∝ d_k^-p · exp(−d_k / λ)`` on the distances ``d_k ≥ 0`` (mm) from
@@ -280,7 +292,7 @@ def distance_weights(bone_distances, bones, *, power: float = 4.0, falloff_mm: f
         raise ValueError("power and falloff_mm must be positive")
     parts = []
     for lo in range(0, dist.shape[0], DENSE_CHUNK):  # rows in chunks: each step's temporaries are (rows, n_bones)
-        d = np.asarray(dist[lo:lo + DENSE_CHUNK], dtype=np.float64)
+        d = np.asarray(dist[lo : lo + DENSE_CHUNK], dtype=np.float64)
         dmin = d.min(axis=1, keepdims=True)
         inside = dmin[:, 0] <= 0.0
         dpos = np.maximum(d, 1e-9)
@@ -290,10 +302,14 @@ def distance_weights(bone_distances, bones, *, power: float = 4.0, falloff_mm: f
             w[inside] = (d[inside] <= dmin[inside]).astype(np.float64)
         parts.append(SkinningWeights.from_dense(w, bones, max_influences=max_influences))
     if len(parts) <= 1:
-        return parts[0] if parts else SkinningWeights.from_dense(np.zeros((0, len(bones))), bones,
-                                                                 max_influences=max_influences)
-    return SkinningWeights(tuple(bones), np.concatenate([p.index for p in parts]),
-                           np.concatenate([p.value for p in parts]))
+        return (
+            parts[0]
+            if parts
+            else SkinningWeights.from_dense(np.zeros((0, len(bones))), bones, max_influences=max_influences)
+        )
+    return SkinningWeights(
+        tuple(bones), np.concatenate([p.index for p in parts]), np.concatenate([p.value for p in parts])
+    )
 
 
 def distance_voxel_weights(labels, bone_labels: dict, **kwargs) -> SkinningWeights:

@@ -44,8 +44,7 @@ def _as_points(value, name: str, *, n: int | None = None) -> np.ndarray:
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must be an array of points (m, 3) in (x, y, z) order, got shape {arr.shape}")
     if n is not None and arr.shape[0] != n:
-        raise ValueError(f"{name} must have one row per control/feature point, i.e. shape ({n}, 3); "
-                         f"got {arr.shape}")
+        raise ValueError(f"{name} must have one row per control/feature point, i.e. shape ({n}, 3); got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         bad = int(np.argmax(~np.all(np.isfinite(arr), axis=1)))
         raise ValueError(f"{name} must be finite; row {bad} is {arr[bad].tolist()}")
@@ -60,8 +59,10 @@ def _as_point_cloud(value, name: str) -> tuple[np.ndarray, tuple[int, ...]]:
     lead = arr.shape[:-1]
     flat = arr.reshape(-1, 3)
     if not np.all(np.isfinite(flat)):
-        raise ValueError(f"{name} must be finite; {int(np.sum(~np.all(np.isfinite(flat), axis=1)))} "
-                         "point(s) have NaN or infinite coordinates")
+        raise ValueError(
+            f"{name} must be finite; {int(np.sum(~np.all(np.isfinite(flat), axis=1)))} "
+            "point(s) have NaN or infinite coordinates"
+        )
     return flat, lead
 
 
@@ -267,13 +268,15 @@ class ClampedPlateSpline:
             raise ValueError(
                 f"control point {k} at {pts[k].tolist()} mm lies on or outside the ball "
                 f"(|p − center| / radius = {norm[k]:.6g} ≥ 1; center {c.tolist()} mm, radius {radius:g} mm): "
-                "the clamped plate spline is zero there. Enlarge the radius or move the point inside.")
+                "the clamped plate spline is zero there. Enlarge the radius or move the point inside."
+            )
         if pts.shape[0] > 1:
             dmin, i, j = _nearest_pair(self.control_points_unit)
             if dmin <= self.COINCIDENT_TOL:
                 raise ValueError(
                     f"control points {i} and {j} coincide ({pts[i].tolist()} mm and {pts[j].tolist()} mm, "
-                    f"{dmin * radius:.3g} mm apart): the system G w = d is singular. Merge or remove duplicates.")
+                    f"{dmin * radius:.3g} mm apart): the system G w = d is singular. Merge or remove duplicates."
+                )
         self.gram = cps_green(self.control_points_unit, self.control_points_unit)
         try:
             self._cho = scipy.linalg.cho_factor(self.gram, lower=True, check_finite=False)
@@ -281,7 +284,8 @@ class ClampedPlateSpline:
             raise ValueError(
                 f"the clamped plate spline matrix G of the {pts.shape[0]} control points is numerically singular "
                 f"(nearly coincident control points, or points very close to the sphere): {exc}. "
-                "Space the control points further apart or move them away from the boundary.") from None
+                "Space the control points further apart or move them away from the boundary."
+            ) from None
 
     # -- properties -------------------------------------------------------------------------------
     @property
@@ -295,8 +299,10 @@ class ClampedPlateSpline:
         return float(ev[-1] / ev[0])
 
     def __repr__(self) -> str:
-        return (f"ClampedPlateSpline({self.n_controls} control points, center={self.center.tolist()} mm, "
-                f"radius={self.radius:g} mm)")
+        return (
+            f"ClampedPlateSpline({self.n_controls} control points, center={self.center.tolist()} mm, "
+            f"radius={self.radius:g} mm)"
+        )
 
     # -- maps -------------------------------------------------------------------------------------
     def to_unit(self, points) -> np.ndarray:
@@ -306,8 +312,10 @@ class ClampedPlateSpline:
     def _check_values(self, values, name: str) -> np.ndarray:
         v = np.asarray(values, dtype=np.float64)
         if v.shape != (self.n_controls, 3):
-            raise ValueError(f"{name} must have shape ({self.n_controls}, 3) — one (dx, dy, dz) row per control "
-                             f"point — got {v.shape}")
+            raise ValueError(
+                f"{name} must have shape ({self.n_controls}, 3) — one (dx, dy, dz) row per control "
+                f"point — got {v.shape}"
+            )
         if not np.all(np.isfinite(v)):
             raise ValueError(f"{name} must be finite")
         return v
@@ -437,7 +445,8 @@ class RBFDeformation:
             if dmin <= self.COINCIDENT_TOL * D:
                 raise ValueError(
                     f"feature points {i} and {j} coincide ({q[i].tolist()} mm, {dmin:.3g} mm apart): "
-                    "Φ is singular. Merge or remove duplicate feature points.")
+                    "Φ is singular. Merge or remove duplicate feature points."
+                )
         self.D = D
         self.source_points = q
         self.target_points = r
@@ -458,7 +467,8 @@ class RBFDeformation:
             raise ValueError(
                 f"the RBF system is too ill-conditioned to move the feature points onto their targets: residual "
                 f"{self.fit_residual_mm:.3g} mm > max_residual_mm={max_residual_mm:g} ({self.method} solve, "
-                f"D = {D:g} mm). Use a smaller D or remove near-duplicate feature points.")
+                f"D = {D:g} mm). Use a smaller D or remove near-duplicate feature points."
+            )
 
     @property
     def n_features(self) -> int:

@@ -41,14 +41,22 @@ class SurfaceModel:
     template's, when included, last: ``S_0``'s own vertices); ``space`` the examples' pose vectors.
     """
 
-    def __init__(self, base: SurfaceMesh, weights: SkinningWeights, space: PoseSpace, base_samples, *,
-                 template_example: bool = False):
+    def __init__(
+        self,
+        base: SurfaceMesh,
+        weights: SkinningWeights,
+        space: PoseSpace,
+        base_samples,
+        *,
+        template_example: bool = False,
+    ):
         b = np.ascontiguousarray(base_samples, dtype=np.float64)
         if weights.n_points != base.n_vertices:
             raise ValueError(f"{weights.n_points} skinning weights for a base mesh of {base.n_vertices} vertices")
         if b.shape != (base.n_vertices, space.n_poses, 3):
-            raise ValueError(f"base samples must be (n_vertices, n_poses, 3) = {(base.n_vertices, space.n_poses, 3)}, "
-                             f"got {b.shape}")
+            raise ValueError(
+                f"base samples must be (n_vertices, n_poses, 3) = {(base.n_vertices, space.n_poses, 3)}, got {b.shape}"
+            )
         self.base = base
         self.weights = weights
         self.space = space
@@ -61,8 +69,9 @@ class SurfaceModel:
         return self.space.n_poses
 
     @classmethod
-    def from_meshes(cls, base: SurfaceMesh, weights: SkinningWeights, skeleton, poses, meshes, *,
-                    template_example="auto") -> "SurfaceModel":
+    def from_meshes(
+        cls, base: SurfaceMesh, weights: SkinningWeights, skeleton, poses, meshes, *, template_example="auto"
+    ) -> SurfaceModel:
         """The model from the measured poses (:class:`~deformation.skeleton.Pose`, template → scan) and their
         consistent meshes (``S_0``'s connectivity), Kurihara Eq. 6."""
         poses, meshes = list(poses), list(meshes)
@@ -70,11 +79,12 @@ class SurfaceModel:
             raise ValueError(f"{len(poses)} poses and {len(meshes)} meshes: one consistent mesh per pose needed")
         for k, m in enumerate(meshes):
             if m.n_vertices != base.n_vertices or not np.array_equal(m.triangles, base.triangles):
-                raise ValueError(f"mesh {k} does not have the base mesh's connectivity ({m.n_vertices} vertices "
-                                 f"against {base.n_vertices}): fit it from the base mesh")
+                raise ValueError(
+                    f"mesh {k} does not have the base mesh's connectivity ({m.n_vertices} vertices "
+                    f"against {base.n_vertices}): fit it from the base mesh"
+                )
         samples = psd_training([m.vertices for m in meshes], weights, [p.transforms for p in poses])
-        vectors, template_example = with_template_example(skeleton, PoseSpace(skeleton, poses).train,
-                                                          template_example)
+        vectors, template_example = with_template_example(skeleton, PoseSpace(skeleton, poses).train, template_example)
         samples = np.moveaxis(samples, 0, 1)  # (n, P, 3): per vertex, as the kernels read them
         if template_example:  # S0 at rest: the identity transforms take it to itself (Eq. 6 gives S0)
             samples = np.concatenate([samples, np.asarray(base.vertices, float)[:, None]], axis=1)

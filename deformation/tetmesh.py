@@ -63,8 +63,17 @@ from scipy.sparse.csgraph import connected_components as _graph_components
 from .geometry import GridGeometry, Volume
 from .mesh import SurfaceMesh, checked_cells
 
-__all__ = ["TetMesh", "TIE_DIRECTION", "MAX_LATTICE_VERTICES", "lattice_nodes", "lattice_cubes", "lattice_step",
-           "lattice_tetmesh", "rasterize", "locate"]
+__all__ = [
+    "TetMesh",
+    "TIE_DIRECTION",
+    "MAX_LATTICE_VERTICES",
+    "lattice_nodes",
+    "lattice_cubes",
+    "lattice_step",
+    "lattice_tetmesh",
+    "rasterize",
+    "locate",
+]
 
 # Open3D ships an older TBB; once it is loaded, numba's default threading layer
 # tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
@@ -130,7 +139,7 @@ class TetMesh:
         p = self.vertices[self.tets]
         return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
 
-    def oriented(self) -> "TetMesh":
+    def oriented(self) -> TetMesh:
         """The same mesh with every negatively oriented tetrahedron flipped (vertices 2 and 3 swapped)."""
         neg = self.signed_volumes() < 0
         if not np.any(neg):
@@ -139,7 +148,7 @@ class TetMesh:
         t[neg, 2], t[neg, 3] = self.tets[neg, 3], self.tets[neg, 2]
         return TetMesh(self.vertices, t)
 
-    def with_vertices(self, vertices) -> "TetMesh":
+    def with_vertices(self, vertices) -> TetMesh:
         """The same connectivity on new vertex positions (e.g. a deformed mesh)."""
         v = np.asarray(vertices, dtype=np.float64)
         if v.shape != self.vertices.shape:
@@ -162,6 +171,7 @@ class TetMesh:
 
     def edges(self) -> np.ndarray:
         """Unique edges ``(e, 2)`` int64, each with the lower vertex index first, sorted (read-only)."""
+
         def compute():
             t = self.tets
             pairs = np.concatenate([t[:, [a, b]] for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))])
@@ -191,6 +201,7 @@ class TetMesh:
         owner : (f,) int64
             The tetrahedron each face belongs to.
         """
+
         def compute():
             faces = self.tets[:, _TET_FACES].reshape(-1, 3)  # (4m, 3) in tet-major order
             key = np.sort(faces, axis=1)
@@ -227,8 +238,7 @@ MAX_LATTICE_VERTICES = 150_000
 # The 6 tetrahedra of a cube whose corners are numbered by bits (x + 2y + 4z): the paths 0 → a → a+b → 7
 # along the cube's edges, for the 6 orders of the unit steps a, b, c ∈ {1 (x), 2 (y), 4 (z)}.  All six share
 # the main diagonal 0–7.
-_KUHN_TETS = np.array([[0, a, a + b, 7] for a, b in ((1, 2), (1, 4), (2, 1), (2, 4), (4, 1), (4, 2))],
-                      dtype=np.int64)
+_KUHN_TETS = np.array([[0, a, a + b, 7] for a, b in ((1, 2), (1, 4), (2, 1), (2, 4), (4, 1), (4, 2))], dtype=np.int64)
 
 
 def _checked_step(step) -> tuple[int, int, int]:
@@ -300,12 +310,13 @@ def _used_nodes(cubes: np.ndarray) -> np.ndarray:
     for dz in (0, 1):
         for dy in (0, 1):
             for dx in (0, 1):
-                used[dz:dz + nz, dy:dy + ny, dx:dx + nx] |= cubes
+                used[dz : dz + nz, dy : dy + ny, dx : dx + nx] |= cubes
     return used
 
 
-def lattice_step(mask: Volume, *, edge_length_mm: float | None = None,
-                 max_vertices: int | None = MAX_LATTICE_VERTICES) -> tuple[int, int, int]:
+def lattice_step(
+    mask: Volume, *, edge_length_mm: float | None = None, max_vertices: int | None = MAX_LATTICE_VERTICES
+) -> tuple[int, int, int]:
     """The lattice step ``(sx, sy, sz)`` in voxels for :func:`lattice_tetmesh`.
 
     Parameters
@@ -397,8 +408,10 @@ def lattice_tetmesh(mask: Volume, *, step=1, keep_largest_component: bool = True
     cubes, (ndx, ndy, ndz) = lattice_cubes(mask, step)
     g = mask.geometry
     if not cubes.any():
-        raise ValueError(f"no lattice cube (step {_checked_step(step)} voxels) is mostly body in the mask on "
-                         f"{g.describe()}: is the mask empty or thinner than two steps? Use a smaller step")
+        raise ValueError(
+            f"no lattice cube (step {_checked_step(step)} voxels) is mostly body in the mask on "
+            f"{g.describe()}: is the mask empty or thinner than two steps? Use a smaller step"
+        )
     nx, ny = len(ndx), len(ndy)
     cz, cy, cx = np.nonzero(cubes)  # C order: the cubes in [z, y, x] array order
     base = (cz * ny + cy) * nx + cx  # node id of each cube's corner 0
@@ -432,6 +445,7 @@ def _largest_component(tets: np.ndarray, n_vertices: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Compiled kernels: barycentric coordinates and containment
 # ---------------------------------------------------------------------------------------------
+
 
 @nb.njit(cache=True)
 def _tet_inverse(V, tets, t, minv):
@@ -632,8 +646,9 @@ def rasterize(mesh: TetMesh, geometry: GridGeometry, *, dtype=np.float32, return
     bary = np.zeros((nz, ny, nx, 4), dtype=dtype)
     count = np.zeros((nz, ny, nx), dtype=np.int32)
     if mesh.n_tets:
-        _rasterize_kernel(mesh.vertices, vidx, mesh.tets, a_mat, nx, ny, nz, TIE_DIRECTION, _BAND,
-                          tet_index, bary, count)
+        _rasterize_kernel(
+            mesh.vertices, vidx, mesh.tets, a_mat, nx, ny, nz, TIE_DIRECTION, _BAND, tet_index, bary, count
+        )
     if return_count:
         return tet_index, bary, count
     return tet_index, bary
@@ -642,6 +657,7 @@ def rasterize(mesh: TetMesh, geometry: GridGeometry, *, dtype=np.float32, return
 # ---------------------------------------------------------------------------------------------
 # Point location
 # ---------------------------------------------------------------------------------------------
+
 
 @nb.njit(cache=True)
 def _bucket_tets(V, tets, lo, h, dims):
@@ -788,8 +804,21 @@ def _nearest_face_kernel(V, tets, faces, owner, points, cand, out_tet, out_bary,
             a = faces[f, 0]
             b = faces[f, 1]
             c = faces[f, 2]
-            d2 = _closest_on_triangle(points[p, 0], points[p, 1], points[p, 2], V[a, 0], V[a, 1], V[a, 2],
-                                      V[b, 0], V[b, 1], V[b, 2], V[c, 0], V[c, 1], V[c, 2], q)
+            d2 = _closest_on_triangle(
+                points[p, 0],
+                points[p, 1],
+                points[p, 2],
+                V[a, 0],
+                V[a, 1],
+                V[a, 2],
+                V[b, 0],
+                V[b, 1],
+                V[b, 2],
+                V[c, 0],
+                V[c, 1],
+                V[c, 2],
+                q,
+            )
             if d2 < best or (d2 == best and f < best_f):
                 best = d2
                 best_f = f

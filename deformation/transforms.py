@@ -40,9 +40,7 @@ def check_rigid(t, *, name: str = "transform", atol: float = 1e-6) -> np.ndarray
     if not np.all(np.isfinite(t)):
         raise ValueError(f"{name} contains NaN or inf:\n{t}")
     if not is_rigid(t, atol=atol):
-        raise ValueError(
-            f"{name} is not rigid (rotation part must be orthonormal with det +1, last row 0 0 0 1):\n{t}"
-        )
+        raise ValueError(f"{name} is not rigid (rotation part must be orthonormal with det +1, last row 0 0 0 1):\n{t}")
     return t
 
 

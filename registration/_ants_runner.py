@@ -14,7 +14,13 @@ import sys
 import ants
 
 fixed, moving, out, seed = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
-reg = ants.registration(ants.image_read(fixed), ants.image_read(moving), type_of_transform="SyNOnly",
-                        random_seed=seed, aff_metric="mattes", syn_metric="mattes")
+reg = ants.registration(
+    ants.image_read(fixed),
+    ants.image_read(moving),
+    type_of_transform="SyNOnly",
+    random_seed=seed,
+    aff_metric="mattes",
+    syn_metric="mattes",
+)
 warps = [t for t in reg["fwdtransforms"] if t.endswith((".nii.gz", ".nii"))]
 shutil.copyfile(warps[0], out)

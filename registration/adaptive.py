@@ -78,14 +78,29 @@ from deformation.splines import cps_green, cps_green_gradient
 
 from .metrics import MI_BINS, HistogramBins, _entropies, _joint_hist, air_level, block_statistics, similarity
 
-__all__ = ["AdaptiveSettings", "AdaptiveResult", "StepRecord", "LevelRecord", "register_adaptive", "register_block",
-           "block_layout", "step_control_points", "control_points_from_log", "local_step_basis", "OPTIMIZERS"]
+__all__ = [
+    "AdaptiveSettings",
+    "AdaptiveResult",
+    "StepRecord",
+    "LevelRecord",
+    "register_adaptive",
+    "register_block",
+    "block_layout",
+    "step_control_points",
+    "control_points_from_log",
+    "local_step_basis",
+    "OPTIMIZERS",
+]
 
 numba.config.THREADING_LAYER = "omp"
 
 #: NLopt derivative-free algorithms a step may use (the paper: Nelder–Mead).
-OPTIMIZERS = {"neldermead": nlopt.LN_NELDERMEAD, "sbplx": nlopt.LN_SBPLX, "bobyqa": nlopt.LN_BOBYQA,
-              "cobyla": nlopt.LN_COBYLA}
+OPTIMIZERS = {
+    "neldermead": nlopt.LN_NELDERMEAD,
+    "sbplx": nlopt.LN_SBPLX,
+    "bobyqa": nlopt.LN_BOBYQA,
+    "cobyla": nlopt.LN_COBYLA,
+}
 METRICS = ("auto", "ssd", "mi")
 
 
@@ -144,15 +159,22 @@ class AdaptiveSettings:
             raise ValueError(f"max_steps_per_level must be ≥ 0 or None, got {self.max_steps_per_level}")
 
     @classmethod
-    def paper(cls, **overrides) -> "AdaptiveSettings":
+    def paper(cls, **overrides) -> AdaptiveSettings:
         """Rhee et al. 2011 as published: levels 3–5, Nelder–Mead, tolerance 1.5 × base, no regulariser."""
-        d = dict(levels=(3, 5), optimizer="neldermead", tolerance_factor=1.5, regularization=0.0,
-                 max_visits=3, min_improvement=0.005, eval_voxels=10)
+        d = dict(
+            levels=(3, 5),
+            optimizer="neldermead",
+            tolerance_factor=1.5,
+            regularization=0.0,
+            max_visits=3,
+            min_improvement=0.005,
+            eval_voxels=10,
+        )
         d.update(overrides)
         return cls(**d)
 
     @classmethod
-    def initialised(cls, **overrides) -> "AdaptiveSettings":
+    def initialised(cls, **overrides) -> AdaptiveSettings:
         """Ours after an articulated (VBD) initialisation: the large motion is done, so only small, sure
         steps are wanted:
 
@@ -259,11 +281,17 @@ class AdaptiveResult:
         return sum(lv.evaluations for lv in self.levels)
 
     def log(self) -> dict:
-        return {"settings": self.settings.to_dict(), "seconds": round(self.seconds, 3),
-                "control_points": self.control_points, "evaluations": self.evaluations,
-                "similarity_before": self.similarity_before, "similarity_after": self.similarity_after,
-                "folding": self.folding, "levels": [lv.to_dict() for lv in self.levels],
-                "steps": [s.to_dict() for s in self.steps]}
+        return {
+            "settings": self.settings.to_dict(),
+            "seconds": round(self.seconds, 3),
+            "control_points": self.control_points,
+            "evaluations": self.evaluations,
+            "similarity_before": self.similarity_before,
+            "similarity_after": self.similarity_after,
+            "folding": self.folding,
+            "levels": [lv.to_dict() for lv in self.levels],
+            "steps": [s.to_dict() for s in self.steps],
+        }
 
 
 # -- geometry of the hierarchy ------------------------------------------------------------------------
@@ -275,13 +303,12 @@ def block_layout(shape_zyx, level: int, min_block_voxels: int = 4) -> list[np.nd
     """
     out = []
     for n in (shape_zyx[2], shape_zyx[1], shape_zyx[0]):
-        nb = max(1, min(2 ** level, n // max(1, min_block_voxels)))
+        nb = max(1, min(2**level, n // max(1, min_block_voxels)))
         out.append(np.round(np.linspace(0, n, nb + 1)).astype(np.int64))
     return out
 
 
-def step_control_points(shape_zyx, level: int, block, *, inset: float = 0.25,
-                        min_block_voxels: int = 4) -> np.ndarray:
+def step_control_points(shape_zyx, level: int, block, *, inset: float = 0.25, min_block_voxels: int = 4) -> np.ndarray:
     """The 8 moving control points of a step on ``block`` (i, j, k) at ``level``: index coordinates (x, y, z).
 
     Rhee §4.3: a 2×2×2 pattern ``inset`` of the half-block inside the
@@ -312,8 +339,9 @@ def control_points_from_log(log: dict, geometry) -> list[tuple[int, np.ndarray]]
     out = []
     for step in log["steps"]:
         if step["accepted"]:
-            ijk = step_control_points(shape, step["level"], step["block"], inset=st["inset"],
-                                      min_block_voxels=st["min_block_voxels"])
+            ijk = step_control_points(
+                shape, step["level"], step["block"], inset=st["inset"], min_block_voxels=st["min_block_voxels"]
+            )
             out.append((int(step["level"]), np.asarray(geometry.index_to_world(ijk))))
     return out
 
@@ -333,8 +361,15 @@ def _control_points_unit(inset: float) -> np.ndarray:
     return np.array([[x, y, z] for z in (-a, a) for y in (-a, a) for x in (-a, a)], float)
 
 
-def local_step_basis(samples_unit, controls_unit, n_moving: int = 8, *, gradient: bool = False,
-                     h: float | None = None, values: bool = True):
+def local_step_basis(
+    samples_unit,
+    controls_unit,
+    n_moving: int = 8,
+    *,
+    gradient: bool = False,
+    h: float | None = None,
+    values: bool = True,
+):
     """Clamped-plate-spline basis of one local step (Rhee §4.2) in region-unit coordinates.
 
     Returns ``B (m, n_moving)`` with the displacement at sample ``p`` equal to
@@ -469,7 +504,7 @@ def _neg_mi_cost(e, B, base, box, fixed_bin, lo, scale, bins, buf, hist):
 class _Level:
     """Per-level images and block bookkeeping."""
 
-    def __init__(self, reg: "_Registration", level: int):
+    def __init__(self, reg: _Registration, level: int):
         s = reg.settings
         self.level = level
         self.metric = s.metric_at(level)
@@ -483,8 +518,7 @@ class _Level:
         self.stride = tuple(max(1, int(math.ceil(b / s.eval_voxels))) for b in bsize)
         if max(self.stride) > 1:  # multi-resolution: smooth to the sampling (σ = ½ stride, in mm)
             sig_f = [0.5 * st * sp if st > 1 else 0.0 for st, sp in zip(self.stride, reg.fixed.geometry.spacing)]
-            sig_m = [0.5 * st * sp if st > 1 else 0.0
-                     for st, sp in zip(self.stride, reg.moving.geometry.spacing)]
+            sig_m = [0.5 * st * sp if st > 1 else 0.0 for st, sp in zip(self.stride, reg.moving.geometry.spacing)]
             self.fixed = _smooth(reg.fixed, sig_f)
             self.moving = _smooth(reg.moving, sig_m)
         else:
@@ -506,8 +540,15 @@ _STEP_CHECK_MAX = 200_000
 
 
 class _Registration:
-    def __init__(self, fixed: Volume, moving: Volume, initial: Volume | None, rigid: Volume | None,
-                 settings: AdaptiveSettings, progress):
+    def __init__(
+        self,
+        fixed: Volume,
+        moving: Volume,
+        initial: Volume | None,
+        rigid: Volume | None,
+        settings: AdaptiveSettings,
+        progress,
+    ):
         self.fixed, self.moving, self.settings = fixed, moving, settings
         self.progress = progress or (lambda info: None)
         g = fixed.geometry
@@ -517,8 +558,11 @@ class _Registration:
         if initial is None:
             self.disp = np.zeros(self.shape + (3,))
         else:
-            g.check_same(initial.geometry, names=("fixed image", "initial correspondence"),
-                         remedy="give the initial scan → template field on the scan's grid")
+            g.check_same(
+                initial.geometry,
+                names=("fixed image", "initial correspondence"),
+                remedy="give the initial scan → template field on the scan's grid",
+            )
             self.disp = np.asarray(initial.data, np.float64).copy()
         self.x = x
         self.w2i_m = moving.geometry.world_to_index_matrix
@@ -569,8 +613,9 @@ class _Registration:
         box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
         local = np.full(lv.n_blocks, -1, np.int64)
         local[blocks] = np.arange(blocks.size)
-        st = block_statistics(self.fixed.data[box], self.warped[box], local[lv.ids[box]], blocks.size,
-                              self.bins, self.bins)
+        st = block_statistics(
+            self.fixed.data[box], self.warped[box], local[lv.ids[box]], blocks.size, self.bins, self.bins
+        )
         out = {}
         for key, v in st.items():
             full = np.full(lv.n_blocks, 0 if key == "count" else np.nan, dtype=v.dtype)
@@ -581,8 +626,7 @@ class _Registration:
     def _whole(self, metric: str) -> float:
         if metric == "ssd":
             return float(np.mean((self.warped.astype(np.float64) - self.fixed.data) ** 2))
-        st = block_statistics(self.fixed.data, self.warped, np.zeros(self.shape, np.int32), 1, self.bins,
-                              self.bins)
+        st = block_statistics(self.fixed.data, self.warped, np.zeros(self.shape, np.int32), 1, self.bins, self.bins)
         return float(st["nmi"][0])
 
     # -- one local step --
@@ -609,8 +653,11 @@ class _Registration:
                 cache.append(self._ball_voxels(centre, half, rlo, rhi))
             return cache[0]
 
-        fixed_pts = self._fixed_points(controls, ball()) if (
-            self.rigid is not None and s.fix_bones and s.max_fixed_points > 0) else np.zeros((0, 3))
+        fixed_pts = (
+            self._fixed_points(controls, ball())
+            if (self.rigid is not None and s.fix_bones and s.max_fixed_points > 0)
+            else np.zeros((0, 3))
+        )
         all_controls = np.vstack([controls, fixed_pts])
         b = local_step_basis(q, all_controls, 8)
         b[~inball] = 0.0
@@ -642,15 +689,17 @@ class _Registration:
             def data_cost(e):
                 return _neg_mi_cost(e, b, base, box, fbin, lo_v, sc, nbins, buf, hist)
         else:
+
             def data_cost(e):
                 return _ssd_cost(e, b, base, box, fz, buf)
+
         zero = np.zeros((8, 3))
         c0 = data_cost(zero)
         norm = abs(c0) if c0 != 0 else 1.0
         # Bending energy of the clamped plate spline through the control points, Σ_c d_cᵀ (G⁻¹)_mm d_c
         # (G in region-unit coordinates; fixed points have d = 0), made dimensionless by the block size.
         ginv = np.linalg.inv(cps_green(all_controls, all_controls))[:8, :8]
-        lam = s.regularization / (block_mm ** 2)
+        lam = s.regularization / (block_mm**2)
         counter = [0]
 
         def cost(xv, grad):
@@ -672,18 +721,29 @@ class _Registration:
             if fr < best_f:
                 best_x, best_f = xr, fr
         # verify on every voxel of the ball (full resolution) and accept
-        accepted, d, mj_full = self._accept(best_x.reshape(8, 3), best_f * norm, c0, data_cost, lin, ball,
-                                            all_controls, half)
+        accepted, d, mj_full = self._accept(
+            best_x.reshape(8, 3), best_f * norm, c0, data_cost, lin, ball, all_controls, half
+        )
         region_after = data_cost(d @ lin.T) if accepted else c0
         if accepted:
             accepted, mj_full = self._compose(d, all_controls, ball(), mj_full)
             if not accepted:
                 region_after = c0
-        rec = StepRecord(level=lv.level, block=tuple(int(v) for v in bi), metric=metric, block_before=math.nan,
-                         block_after=math.nan, region_before=float(c0), region_after=float(region_after),
-                         evaluations=counter[0], accepted=bool(accepted), fixed_points=int(fixed_pts.shape[0]),
-                         max_displacement_mm=float(np.linalg.norm(d, axis=1).max()) if accepted else 0.0,
-                         min_jacobian=float(mj_full), seconds=time.perf_counter() - t0)
+        rec = StepRecord(
+            level=lv.level,
+            block=tuple(int(v) for v in bi),
+            metric=metric,
+            block_before=math.nan,
+            block_after=math.nan,
+            region_before=float(c0),
+            region_after=float(region_after),
+            evaluations=counter[0],
+            accepted=bool(accepted),
+            fixed_points=int(fixed_pts.shape[0]),
+            max_displacement_mm=float(np.linalg.norm(d, axis=1).max()) if accepted else 0.0,
+            min_jacobian=float(mj_full),
+            seconds=time.perf_counter() - t0,
+        )
         return rec
 
     def _accept(self, d, best_f, c0, data_cost, lin, ball, controls, half):
@@ -695,7 +755,7 @@ class _Registration:
         if q.shape[0] > _STEP_CHECK_MAX:
             # a paper-size level-1 ball holds millions of voxels: check the smooth step on an even subset;
             # the composed field is still checked on every voxel (_compose), so no fold can slip through
-            q = q[::int(math.ceil(q.shape[0] / _STEP_CHECK_MAX))]
+            q = q[:: int(math.ceil(q.shape[0] / _STEP_CHECK_MAX))]
         _, db = local_step_basis(q, controls, 8, gradient=True, values=False)
         db = db / half[None, :, None]
         for _ in range(4):
@@ -759,8 +819,12 @@ class _Registration:
         from deformation.fields import jacobian_determinant
 
         sub = self.disp[crop]
-        geo = GridGeometry(tuple(int(v) for v in (sub.shape[2], sub.shape[1], sub.shape[0])), self.g.spacing,
-                           tuple(self.g.index_to_world(np.asarray(lo, float))), self.g.direction)
+        geo = GridGeometry(
+            tuple(int(v) for v in (sub.shape[2], sub.shape[1], sub.shape[0])),
+            self.g.spacing,
+            tuple(self.g.index_to_world(np.asarray(lo, float))),
+            self.g.direction,
+        )
         return jacobian_determinant(Volume(np.ascontiguousarray(sub), geo))
 
     def _fixed_points(self, controls, ball) -> np.ndarray:
@@ -796,9 +860,10 @@ class _Registration:
             metric = lv.metric
             tol = base["mi"] * s.tolerance_factor if metric == "mi" else base["ssd"] / s.tolerance_factor
             st = self._block_measures(lv)
-            warped_tissue = np.bincount(lv.ids.reshape(-1), weights=(self.warped > self.tissue_level).reshape(-1),
-                                        minlength=lv.n_blocks)
-            active = (np.maximum(lv.tissue_fixed, warped_tissue) >= s.active_fraction * np.maximum(lv.count, 1))
+            warped_tissue = np.bincount(
+                lv.ids.reshape(-1), weights=(self.warped > self.tissue_level).reshape(-1), minlength=lv.n_blocks
+            )
+            active = np.maximum(lv.tissue_fixed, warped_tissue) >= s.active_fraction * np.maximum(lv.count, 1)
             value = st["nmi"] if metric == "mi" else st["ssd"]
             if metric == "mi":
                 active &= np.isfinite(value)
@@ -845,25 +910,56 @@ class _Registration:
                 remaining = int((mismatched(value) & ~retired).sum())
                 if s.max_steps_per_level is not None:
                     remaining = min(remaining, s.max_steps_per_level - n_steps)
-                self.progress({"level": level, "step": n_steps, "block": rec.block, "metric": metric,
-                               "block_before": rec.block_before, "block_after": rec.block_after,
-                               "accepted": rec.accepted, "elapsed": time.perf_counter() - self.t0,
-                               "remaining_steps": remaining,
-                               "eta": remaining * float(np.mean(self.step_seconds[-20:]))})
-            self.levels.append(LevelRecord(
-                level=level, blocks=lv.nb, block_voxels=lv.block_voxels, stride=lv.stride, metric=metric,
-                tolerance=float(tol), active_blocks=int(active.sum()), mismatched_before=mis0,
-                mismatched_after=int(mismatched(value).sum()), blocks_visited=len(visited), steps=n_steps,
-                accepted=n_acc, control_points=8 * n_acc, metric_before=metric_before,
-                metric_after=self._whole(metric), evaluations=evals, seconds=time.perf_counter() - t_level,
-                stopped=stopped))
+                self.progress(
+                    {
+                        "level": level,
+                        "step": n_steps,
+                        "block": rec.block,
+                        "metric": metric,
+                        "block_before": rec.block_before,
+                        "block_after": rec.block_after,
+                        "accepted": rec.accepted,
+                        "elapsed": time.perf_counter() - self.t0,
+                        "remaining_steps": remaining,
+                        "eta": remaining * float(np.mean(self.step_seconds[-20:])),
+                    }
+                )
+            self.levels.append(
+                LevelRecord(
+                    level=level,
+                    blocks=lv.nb,
+                    block_voxels=lv.block_voxels,
+                    stride=lv.stride,
+                    metric=metric,
+                    tolerance=float(tol),
+                    active_blocks=int(active.sum()),
+                    mismatched_before=mis0,
+                    mismatched_after=int(mismatched(value).sum()),
+                    blocks_visited=len(visited),
+                    steps=n_steps,
+                    accepted=n_acc,
+                    control_points=8 * n_acc,
+                    metric_before=metric_before,
+                    metric_after=self._whole(metric),
+                    evaluations=evals,
+                    seconds=time.perf_counter() - t_level,
+                    stopped=stopped,
+                )
+            )
             self.progress({"level_done": self.levels[-1]})
         after = similarity(self.fixed.data, self.warped, bins=s.bins)
         corr = Volume(self.disp.astype(np.float32), self.g)
-        return AdaptiveResult(correspondence=corr, registered=Volume(self.warped.copy(), self.g),
-                              levels=self.levels, steps=self.steps, settings=s,
-                              seconds=time.perf_counter() - self.t0, similarity_before=before,
-                              similarity_after=after, folding=folding_statistics(corr))
+        return AdaptiveResult(
+            correspondence=corr,
+            registered=Volume(self.warped.copy(), self.g),
+            levels=self.levels,
+            steps=self.steps,
+            settings=s,
+            seconds=time.perf_counter() - self.t0,
+            similarity_before=before,
+            similarity_after=after,
+            folding=folding_statistics(corr),
+        )
 
     def _neighbours(self, lv: _Level, block: int) -> list[int]:
         nx, ny, nz = lv.nb
@@ -902,8 +998,16 @@ def _run_simplex(name, cost, x0, bound, step, max_evals, xtol, ftol_rel=1e-6):
     return best[0], best[1]
 
 
-def register_block(fixed: Volume, moving: Volume, level: int, block, *, initial: Volume | None = None,
-                   rigid_mask: Volume | None = None, settings: AdaptiveSettings | None = None):
+def register_block(
+    fixed: Volume,
+    moving: Volume,
+    level: int,
+    block,
+    *,
+    initial: Volume | None = None,
+    rigid_mask: Volume | None = None,
+    settings: AdaptiveSettings | None = None,
+):
     """One local step (Algorithm 1, lines 6–10) on block ``(i, j, k)`` of ``level``, whatever its mismatch.
 
     Returns ``(StepRecord, correspondence)``: the step's record and the
@@ -921,9 +1025,15 @@ def register_block(fixed: Volume, moving: Volume, level: int, block, *, initial:
     return rec, Volume(reg.disp.astype(np.float32), reg.g)
 
 
-def register_adaptive(fixed: Volume, moving: Volume, *, initial: Volume | None = None,
-                      rigid_mask: Volume | None = None, settings: AdaptiveSettings | None = None,
-                      progress=None) -> AdaptiveResult:
+def register_adaptive(
+    fixed: Volume,
+    moving: Volume,
+    *,
+    initial: Volume | None = None,
+    rigid_mask: Volume | None = None,
+    settings: AdaptiveSettings | None = None,
+    progress=None,
+) -> AdaptiveResult:
     """Register ``moving`` (template) to ``fixed`` (scan) by Rhee's Algorithm 1 (see the module docstring).
 
     Parameters

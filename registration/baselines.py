@@ -35,8 +35,15 @@ from deformation.interpolate import sample_displaced_array
 
 from .metrics import air_level
 
-__all__ = ["BaselineResult", "sitk_bspline", "elastix_bspline", "elastix_available", "ants_syn", "ants_available",
-           "warp_template"]
+__all__ = [
+    "BaselineResult",
+    "sitk_bspline",
+    "elastix_bspline",
+    "elastix_available",
+    "ants_syn",
+    "ants_available",
+    "warp_template",
+]
 
 
 @dataclass
@@ -51,7 +58,9 @@ class BaselineResult:
 def warp_template(moving: Volume, field: Volume) -> Volume:
     """The template pulled onto ``field``'s grid through a ``scan_to_template`` field (trilinear, air outside)."""
     g = field.geometry
-    out = sample_displaced_array(moving.data, moving.geometry.world_to_index_matrix, g, field.data, 1, air_level(moving))
+    out = sample_displaced_array(
+        moving.data, moving.geometry.world_to_index_matrix, g, field.data, 1, air_level(moving)
+    )
     return Volume(out.astype(np.float32), g)
 
 
@@ -70,9 +79,20 @@ def _finish(name, fixed, moving, initial, t_field: Volume, seconds, params) -> B
     return BaselineResult(name, corr, warp_template(moving, corr), seconds, params)
 
 
-def sitk_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = None, metric: str = "mi",
-                 grid_spacing_mm: float = 40.0, shrink=(4, 2, 1), smoothing_voxels=(2.0, 1.0, 0.0),
-                 iterations: int = 100, sampling: float = 0.25, bins: int = 32, seed: int = 0) -> BaselineResult:
+def sitk_bspline(
+    fixed: Volume,
+    moving: Volume,
+    *,
+    initial: Volume | None = None,
+    metric: str = "mi",
+    grid_spacing_mm: float = 40.0,
+    shrink=(4, 2, 1),
+    smoothing_voxels=(2.0, 1.0, 0.0),
+    iterations: int = 100,
+    sampling: float = 0.25,
+    bins: int = 32,
+    seed: int = 0,
+) -> BaselineResult:
     """SimpleITK multi-resolution B-spline registration of the template to a scan.
 
     ``grid_spacing_mm`` is the control-point spacing at the finest level (the
@@ -103,19 +123,29 @@ def sitk_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = None
     r.SetInterpolator(sitk.sitkLinear)
     # Gradient descent with line search and physical-shift scales (SimpleITK's multi-resolution B-spline
     # example): L-BFGS-B keeps the scales of the first mesh and fails once the mesh is refined.
-    r.SetOptimizerAsGradientDescentLineSearch(learningRate=5.0, numberOfIterations=iterations,
-                                              convergenceMinimumValue=1e-5, convergenceWindowSize=5)
+    r.SetOptimizerAsGradientDescentLineSearch(
+        learningRate=5.0, numberOfIterations=iterations, convergenceMinimumValue=1e-5, convergenceWindowSize=5
+    )
     r.SetOptimizerScalesFromPhysicalShift()
     r.SetShrinkFactorsPerLevel(list(shrink))
     r.SetSmoothingSigmasPerLevel(list(smoothing_voxels))
     r.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
-    r.SetInitialTransformAsBSpline(tx, inPlace=True, scaleFactors=[2 ** k for k in range(levels)])
+    r.SetInitialTransformAsBSpline(tx, inPlace=True, scaleFactors=[2**k for k in range(levels)])
     out = r.Execute(f, m)
     field = from_transform(out, fixed.geometry)
-    params = {"metric": metric, "grid_spacing_mm": grid_spacing_mm, "shrink": list(shrink),
-              "smoothing_voxels": list(smoothing_voxels), "iterations": iterations, "sampling": sampling,
-              "bins": bins, "seed": seed, "initial_mesh": mesh, "final_metric": float(r.GetMetricValue()),
-              "stop": r.GetOptimizerStopConditionDescription()}
+    params = {
+        "metric": metric,
+        "grid_spacing_mm": grid_spacing_mm,
+        "shrink": list(shrink),
+        "smoothing_voxels": list(smoothing_voxels),
+        "iterations": iterations,
+        "sampling": sampling,
+        "bins": bins,
+        "seed": seed,
+        "initial_mesh": mesh,
+        "final_metric": float(r.GetMetricValue()),
+        "stop": r.GetOptimizerStopConditionDescription(),
+    }
     return _finish("sitk-bspline", fixed, moving, initial, field, time.perf_counter() - t0, params)
 
 
@@ -152,10 +182,19 @@ def _to_itk(vol: Volume):
     return img
 
 
-def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = None, metric: str = "mi",
-                    grid_spacing_mm: float = 20.0, resolutions: int = 3, iterations: int = 500,
-                    seed: int = 0, rigidity_labels: Volume | None = None,
-                    rigidity_weight: float = 0.1) -> BaselineResult:
+def elastix_bspline(
+    fixed: Volume,
+    moving: Volume,
+    *,
+    initial: Volume | None = None,
+    metric: str = "mi",
+    grid_spacing_mm: float = 20.0,
+    resolutions: int = 3,
+    iterations: int = 500,
+    seed: int = 0,
+    rigidity_labels: Volume | None = None,
+    rigidity_weight: float = 0.1,
+) -> BaselineResult:
     """elastix B-spline registration (itk-elastix), its default B-spline map with the given grid and metric.
 
     ``rigidity_labels`` (the template's bone label map) adds elastix's
@@ -191,8 +230,12 @@ def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = N
 
             g = fixed.geometry
             u = initial.data if initial is not None else np.zeros(g.array_shape + (3,), np.float32)
-            bones = sample_displaced_array(np.asarray(rigidity_labels.data), rigidity_labels.geometry.world_to_index_matrix,
-                                           g, u, 0, 0) > 0
+            bones = (
+                sample_displaced_array(
+                    np.asarray(rigidity_labels.data), rigidity_labels.geometry.world_to_index_matrix, g, u, 0, 0
+                )
+                > 0
+            )
             bones = ndimage.binary_dilation(bones)
             path = os.path.join(tmp, "rigidity.mha")
             itk.imwrite(_to_itk(Volume(bones.astype(np.float32), g)), path)
@@ -208,25 +251,35 @@ def elastix_bspline(fixed: Volume, moving: Volume, *, initial: Volume | None = N
         cwd = os.getcwd()
         os.chdir(tmp)  # elastix may drop log files into the working folder
         try:
-            _, result = itk.elastix_registration_method(f, m, parameter_object=po, log_to_console=False,
-                                                        output_directory=tmp)
+            _, result = itk.elastix_registration_method(
+                f, m, parameter_object=po, log_to_console=False, output_directory=tmp
+            )
             field = itk.transformix_deformation_field(m, result)
         finally:
             os.chdir(cwd)
     u = np.asarray(itk.array_from_image(field), dtype=np.float64)  # (nz, ny, nx, 3): fixed x → x + u in moving
     t_field = Volume(u, fixed.geometry)
-    params = {"metric": metric, "grid_spacing_mm": grid_spacing_mm, "resolutions": resolutions,
-              "iterations": iterations, "seed": seed, "parameter_map": "elastix default 'bspline'",
-              "rigidity_weight": rigidity_weight if rigidity_labels is not None else None}
+    params = {
+        "metric": metric,
+        "grid_spacing_mm": grid_spacing_mm,
+        "resolutions": resolutions,
+        "iterations": iterations,
+        "seed": seed,
+        "parameter_map": "elastix default 'bspline'",
+        "rigidity_weight": rigidity_weight if rigidity_labels is not None else None,
+    }
     name = "elastix-bspline" if rigidity_labels is None else "elastix-bspline-rigidity"
     return _finish(name, fixed, moving, initial, t_field, time.perf_counter() - t0, params)
 
 
 def _ants_python() -> str | None:
-    """The interpreter with antspyx: ``$AVW_ANTS_PYTHON``, else ``.venv-ants`` at the project root (``make bench-ants``)."""
+    """The interpreter with antspyx: ``$AVW_ANTS_PYTHON``, else ``.venv-ants`` at the project root
+    (``make bench-ants``)."""
     from pathlib import Path
 
-    exe = os.environ.get("AVW_ANTS_PYTHON") or str(Path(__file__).resolve().parents[1] / ".venv-ants" / "bin" / "python")
+    exe = os.environ.get("AVW_ANTS_PYTHON") or str(
+        Path(__file__).resolve().parents[1] / ".venv-ants" / "bin" / "python"
+    )
     return exe if os.path.exists(exe) else None
 
 
@@ -234,8 +287,9 @@ def ants_available() -> bool:
     return _ants_python() is not None
 
 
-def ants_syn(fixed: Volume, moving: Volume, *, initial: Volume | None = None, seed: int = 0,
-             threads: int | None = None) -> BaselineResult:
+def ants_syn(
+    fixed: Volume, moving: Volume, *, initial: Volume | None = None, seed: int = 0, threads: int | None = None
+) -> BaselineResult:
     """ANTs SyN (antspyx's ``SyNOnly``, Mattes MI) of the template to a scan, in antspyx's own interpreter.
 
     antspyx pins older NumPy/SciPy than this project, so it runs in
@@ -247,8 +301,10 @@ def ants_syn(fixed: Volume, moving: Volume, *, initial: Volume | None = None, se
 
     exe = _ants_python()
     if exe is None:
-        raise RuntimeError("the ANTs baseline needs antspyx in its own environment: run `make bench-ants`, "
-                           "or set AVW_ANTS_PYTHON to a Python that has antspyx")
+        raise RuntimeError(
+            "the ANTs baseline needs antspyx in its own environment: run `make bench-ants`, "
+            "or set AVW_ANTS_PYTHON to a Python that has antspyx"
+        )
     t0 = time.perf_counter()
     m = _initialised(fixed, moving, initial)
     env = dict(os.environ, ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS=str(threads or os.cpu_count() or 1))
@@ -256,10 +312,17 @@ def ants_syn(fixed: Volume, moving: Volume, *, initial: Volume | None = None, se
         fp, mp, wp = (os.path.join(tmp, n) for n in ("fixed.nii.gz", "moving.nii.gz", "warp.nii.gz"))
         sitk.WriteImage(sitk.Cast(fixed.to_sitk(), sitk.sitkFloat32), fp)
         sitk.WriteImage(sitk.Cast(m.to_sitk(), sitk.sitkFloat32), mp)
-        run = subprocess.run([exe, str(Path(__file__).with_name("_ants_runner.py")), fp, mp, wp, str(int(seed))],
-                             capture_output=True, text=True, env=env, cwd=tmp)
+        run = subprocess.run(
+            [exe, str(Path(__file__).with_name("_ants_runner.py")), fp, mp, wp, str(int(seed))],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=tmp,
+        )
         if run.returncode != 0:
-            raise RuntimeError(f"ANTs SyN failed: {run.stderr.strip().splitlines()[-1] if run.stderr.strip() else run.returncode}")
+            raise RuntimeError(
+                f"ANTs SyN failed: {run.stderr.strip().splitlines()[-1] if run.stderr.strip() else run.returncode}"
+            )
         warp = sitk.ReadImage(wp, sitk.sitkVectorFloat64)
     t_field = Volume(sitk.GetArrayFromImage(warp), fixed.geometry)
     params = {"transform": "SyNOnly", "metric": "mattes", "seed": seed}

@@ -48,8 +48,10 @@ def bone_frames(labels: Volume, skeleton) -> dict[str, BoneFrame]:
     for b in skeleton.bones:
         idx = np.flatnonzero(flat == b.label)
         if idx.size < 4:
-            raise ValueError(f"bone {b.name!r} (label {b.label}) has {idx.size} voxels in the label map; "
-                             "check the label ids in skeleton.json against the label map")
+            raise ValueError(
+                f"bone {b.name!r} (label {b.label}) has {idx.size} voxels in the label map; "
+                "check the label ids in skeleton.json against the label map"
+            )
         k, j, i = np.unravel_index(idx, g.array_shape)  # array order [z, y, x] → index (i, j, k)
         pts = g.index_to_world(np.column_stack([i, j, k]).astype(float))
         c = pts.mean(axis=0)

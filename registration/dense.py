@@ -161,7 +161,9 @@ class DenseSettings:
     radius_growth: float = 1.25  #: the trust radius grows by this factor after a taken step (up to step_mm)
     max_halvings: int = 5  #: a level stops when a step of radius step_mm·2⁻ᵏ does not raise its objective
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
-    bones: str = "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
+    bones: str = (
+        "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
+    )
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
     #: with bones="fixed": each held bone's pose refined as a rigid body on the level's objective (the soft tissue
     #: held; see the module docstring), within refine_deg (rotation vector, each component) and refine_mm (each
@@ -246,30 +248,47 @@ class DenseSettings:
         if self.window_mm <= 0 or self.fluid_mm < 0 or self.step_mm <= 0 or not 0 <= self.min_jacobian < 1:
             raise ValueError("window_mm > 0, fluid_mm ≥ 0, step_mm > 0 and 0 ≤ min_jacobian < 1 are required")
         if any(v is not None and not v >= 0 for v in (self.fluid_voxels, self.elastic_voxels)):
-            raise ValueError(f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, "
-                             f"{self.elastic_voxels}")
+            raise ValueError(
+                f"fluid_voxels and elastic_voxels must be ≥ 0 or None, got {self.fluid_voxels}, {self.elastic_voxels}"
+            )
         for name in ("skin_weight", "stiffness"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)}")
         if not self.radius_growth >= 1 or not isinstance(self.max_halvings, int) or self.max_halvings < 0:
-            raise ValueError(f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, "
-                             f"{self.max_halvings}")
+            raise ValueError(
+                f"radius_growth must be ≥ 1 and max_halvings ≥ 0, got {self.radius_growth}, {self.max_halvings}"
+            )
         whole = [isinstance(v, int) and not isinstance(v, bool) for v in (self.refine_evaluations, self.refine_rounds)]
-        if not (self.refine_deg > 0 and self.refine_mm > 0 and all(whole) and self.refine_evaluations >= 13
-                and self.refine_rounds >= 1):
-            raise ValueError(f"refine_deg and refine_mm must be > 0, refine_evaluations a whole number ≥ 13 "
-                             f"(BOBYQA's first model needs 2·6 + 1) and refine_rounds ≥ 1, got {self.refine_deg}, "
-                             f"{self.refine_mm}, {self.refine_evaluations}, {self.refine_rounds}")
-        if not (self.refine_min_move_voxels >= 0 and self.refine_min_voxels >= 1 and self.bone_margin_mm > 0
-                and self.refine_significance >= 0
-                and (self.refine_margin_voxels is None or self.refine_margin_voxels > 0)):
-            raise ValueError(f"refine_min_move_voxels ≥ 0, refine_min_voxels ≥ 1, bone_margin_mm > 0, "
-                             f"refine_significance ≥ 0 (got {self.refine_significance}) and "
-                             f"refine_margin_voxels > 0 (or None) are required, got {self.refine_min_move_voxels}, "
-                             f"{self.refine_min_voxels}, {self.bone_margin_mm}, {self.refine_margin_voxels}")
+        if not (
+            self.refine_deg > 0
+            and self.refine_mm > 0
+            and all(whole)
+            and self.refine_evaluations >= 13
+            and self.refine_rounds >= 1
+        ):
+            raise ValueError(
+                f"refine_deg and refine_mm must be > 0, refine_evaluations a whole number ≥ 13 "
+                f"(BOBYQA's first model needs 2·6 + 1) and refine_rounds ≥ 1, got {self.refine_deg}, "
+                f"{self.refine_mm}, {self.refine_evaluations}, {self.refine_rounds}"
+            )
+        if not (
+            self.refine_min_move_voxels >= 0
+            and self.refine_min_voxels >= 1
+            and self.bone_margin_mm > 0
+            and self.refine_significance >= 0
+            and (self.refine_margin_voxels is None or self.refine_margin_voxels > 0)
+        ):
+            raise ValueError(
+                f"refine_min_move_voxels ≥ 0, refine_min_voxels ≥ 1, bone_margin_mm > 0, "
+                f"refine_significance ≥ 0 (got {self.refine_significance}) and "
+                f"refine_margin_voxels > 0 (or None) are required, got {self.refine_min_move_voxels}, "
+                f"{self.refine_min_voxels}, {self.bone_margin_mm}, {self.refine_margin_voxels}"
+            )
         if not (self.holdout_share > 0 and isinstance(self.holdout_patience, int) and self.holdout_patience >= 1):
-            raise ValueError(f"holdout_share must be > 0 and holdout_patience a whole number ≥ 1, got "
-                             f"{self.holdout_share}, {self.holdout_patience}")
+            raise ValueError(
+                f"holdout_share must be > 0 and holdout_patience a whole number ≥ 1, got "
+                f"{self.holdout_share}, {self.holdout_patience}"
+            )
         if not 0 < self.air_weight <= 1:
             raise ValueError(f"air_weight must be in (0, 1], got {self.air_weight}")
 
@@ -299,7 +318,9 @@ TEST_SMOOTH_VOXELS = 1.0
 
 
 def _smooth(a, sigma_vox):
-    return ndimage.gaussian_filter(a, sigma_vox, mode="nearest", truncate=3.0) if np.any(np.asarray(sigma_vox) > 0) else a
+    return (
+        ndimage.gaussian_filter(a, sigma_vox, mode="nearest", truncate=3.0) if np.any(np.asarray(sigma_vox) > 0) else a
+    )
 
 
 #: arrays smaller than this (voxels) are smoothed serially: handing a bone's box to the threads costs more than
@@ -384,8 +405,9 @@ def _lncc_force(f, w, sig, f_stats, region=None, v=None):
     about a voxel or less feels: there the term over-corrects (docs/measurements/dense-registration.md)."""
     mf, sff, masked = f_stats
     if v is not None:
-        v = v * np.float32(1.0 - np.prod([_kernel_noise(float(x))[0]
-                                          for x in np.broadcast_to(np.asarray(sig, float), (3,))]))
+        v = v * np.float32(
+            1.0 - np.prod([_kernel_noise(float(x))[0] for x in np.broadcast_to(np.asarray(sig, float), (3,))])
+        )
     if masked is None:
         mw, sww, sfw = _smooth_all([w, w * w if v is None else w * w + v, f * w], sig)
     else:
@@ -459,8 +481,12 @@ def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[fl
             var = _pseudo_residual_variance(d, air)
             if var > 0 and x.size >= AIR_NOISE_VOXELS:
                 sd = float(x.std())
-                rayleigh = (x.min() >= 0 and sd > 0 and 1.6 <= x.mean() / sd <= 2.3
-                            and abs(float(np.median(x)) / x.mean() - np.sqrt(np.log(4.0) / (np.pi / 2.0))) < 0.03)
+                rayleigh = (
+                    x.min() >= 0
+                    and sd > 0
+                    and 1.6 <= x.mean() / sd <= 2.3
+                    and abs(float(np.median(x)) / x.mean() - np.sqrt(np.log(4.0) / (np.pi / 2.0))) < 0.03
+                )
                 if rayleigh:
                     return var / (2.0 - np.pi / 2.0), var
                 return var, var
@@ -659,8 +685,11 @@ def _rigid_project(f, mask, grid_mm, weight):
     t, om = p[:3], p[3:]
     near = weight > 0
     xr = [g[near] - c[a_] for a_, g in enumerate(grid_mm)]
-    rig = [t[0] + om[1] * xr[2] - om[2] * xr[1], t[1] + om[2] * xr[0] - om[0] * xr[2],
-           t[2] + om[0] * xr[1] - om[1] * xr[0]]
+    rig = [
+        t[0] + om[1] * xr[2] - om[2] * xr[1],
+        t[1] + om[2] * xr[0] - om[0] * xr[2],
+        t[2] + om[0] * xr[1] - om[1] * xr[0],
+    ]
     wn = weight[near]
     for a_ in range(3):
         f[a_][near] = (1.0 - wn) * f[a_][near] + wn * rig[a_]
@@ -674,8 +703,9 @@ def _rigid_displacement(p, centre, grid_mm, box) -> np.ndarray:
 
     r = Rotation.from_rotvec(np.deg2rad(np.asarray(p[:3], float))).as_matrix()
     x = [g[box] - np.float32(c) for g, c in zip(grid_mm, centre)]
-    return np.stack([r[a, 0] * x[0] + r[a, 1] * x[1] + r[a, 2] * x[2] - x[a] + p[3 + a]
-                     for a in range(3)]).astype(np.float32)
+    return np.stack([r[a, 0] * x[0] + r[a, 1] * x[1] + r[a, 2] * x[2] - x[a] + p[3 + a] for a in range(3)]).astype(
+        np.float32
+    )
 
 
 class _TemplateSampler:
@@ -695,8 +725,9 @@ class _TemplateSampler:
     scan voxels along each scan axis, its variance projected onto the template's axes).  Beyond the template's
     grid ``w`` is the template's air (or ``outside``); ``φ₀`` continues by its edge values beyond the scan's box."""
 
-    def __init__(self, moving: Volume, initial: Volume, scale: float, crop: tuple, noise_body=False,
-                 outside: float | None = None):
+    def __init__(
+        self, moving: Volume, initial: Volume, scale: float, crop: tuple, noise_body=False, outside: float | None = None
+    ):
         self.geometry = moving.geometry
         self.data = np.asarray(moving.data, np.float32) / np.float32(scale)
         # the template's voxel noise variance (settings.interpolation_noise) in its tissue and its air, measured
@@ -735,8 +766,12 @@ class _TemplateSampler:
             noise_map = (_smooth(self.noise_map, sigma[::-1]) if sig_pre > 0 else self.noise_map) * np.float32(kappa)
         rho = [k[1] for k in kn]
         phi = np.ascontiguousarray(self.phi[:, ::s, ::s, ::s])
-        lg = GridGeometry(size=tuple(int(v) for v in shape[::-1]), spacing=tuple(float(v) * s for v in g.spacing),
-                          origin=tuple(float(v) for v in g.index_to_world(self.corner)), direction=g.direction)
+        lg = GridGeometry(
+            size=tuple(int(v) for v in shape[::-1]),
+            spacing=tuple(float(v) * s for v in g.spacing),
+            origin=tuple(float(v) for v in g.index_to_world(self.corner)),
+            direction=g.direction,
+        )
         d = g.direction_matrix
         inv_sp = 1.0 / (np.asarray(g.spacing, float)[::-1] * s)
         w2i, i2w = tg.world_to_index_matrix, lg.index_to_world_matrix
@@ -752,24 +787,33 @@ class _TemplateSampler:
             if noise_var is None or order == 0:
                 return w, None
             pos = xw + disp
-            p = np.stack([w2i[r, 0] * pos[..., 0] + w2i[r, 1] * pos[..., 1] + w2i[r, 2] * pos[..., 2] + w2i[r, 3]
-                          for r in range(3)]).astype(np.float32)
+            p = np.stack(
+                [
+                    w2i[r, 0] * pos[..., 0] + w2i[r, 1] * pos[..., 1] + w2i[r, 2] * pos[..., 2] + w2i[r, 3]
+                    for r in range(3)
+                ]
+            ).astype(np.float32)
             v = _interpolation_noise(p, noise_var, rho)
             if noise_map is not None:  # the variance at the sampled place over the body's (the map's there)
                 v *= sample_displaced_array(noise_map, w2i, lg, disp, 1, self.noise_air * kappa).astype(
-                    np.float32) / np.float32(noise_var)
+                    np.float32
+                ) / np.float32(noise_var)
             return w, v
 
         phi_last = np.ascontiguousarray(np.moveaxis(phi, 0, -1))  # (nz, ny, nx, 3) for sample_array
         lw2i = lg.world_to_index_matrix
 
         def world(ijk):  # level index (i, j, k arrays) → world mm (N, 3), written out as warp's
-            return np.stack([i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3]
-                             for r in range(3)], axis=-1)
+            return np.stack(
+                [i2w[r, 0] * ijk[0] + i2w[r, 1] * ijk[1] + i2w[r, 2] * ijk[2] + i2w[r, 3] for r in range(3)], axis=-1
+            )
 
         # the level's world positions (nz, ny, nx, 3), for the template positions of warp's noise
-        xw = None if noise_var is None else world(np.indices(shape[::-1], dtype=np.float32).transpose(0, 3, 2, 1)
-                                                  ).astype(np.float32)
+        xw = (
+            None
+            if noise_var is None
+            else world(np.indices(shape[::-1], dtype=np.float32).transpose(0, 3, 2, 1)).astype(np.float32)
+        )
 
         def sample(coords):
             ijk = [np.ravel(coords[2 - r]) for r in range(3)]  # array axes (z, y, x) → index axes (i, j, k)
@@ -799,7 +843,7 @@ def _noise_correlation_factor(f, w, air, shape_voxels: float, w_fill: float | No
     about ρ² of its noise's correlation, so this then errs towards more samples).  An image whose air is
     constant, or with fewer than 1000 air voxels: white noise smoothed by a Gaussian of ``shape_voxels`` level
     voxels, ``ρ₁ = exp(−1 / (4 σ²))``.  At least 1."""
-    model = float(np.exp(-1.0 / (4.0 * shape_voxels ** 2))) if shape_voxels > 0 else 0.0
+    model = float(np.exp(-1.0 / (4.0 * shape_voxels**2))) if shape_voxels > 0 else 0.0
     factor = 1.0
     k = np.arange(-12, 13, dtype=float) ** 2
     for a in range(3):
@@ -821,7 +865,7 @@ def _noise_correlation_factor(f, w, air, shape_voxels: float, w_fill: float | No
                         r = float((x * y).sum() / den)
             rho.append(float(np.clip(r, 0.0, 0.99)))
         r = rho[0] * rho[1]
-        factor *= float((r ** k).sum()) if r > 0 else 1.0
+        factor *= float((r**k).sum()) if r > 0 else 1.0
     return max(factor, 1.0)
 
 
@@ -852,8 +896,15 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
     if n <= 3.0:  # too few independent samples to tell anything
         return False
     z = (np.arctanh(min(r[1], 0.999999)) - np.arctanh(min(r[0], 0.999999))) * np.sqrt((n - 3.0) / 2.0)
-    log.debug("bone %d first move: own NCC %.4f -> %.4f over %d voxels (%.0f independent), z %.2f", b, r[0], r[1],
-              int(mask.sum()), n, z)
+    log.debug(
+        "bone %d first move: own NCC %.4f -> %.4f over %d voxels (%.0f independent), z %.2f",
+        b,
+        r[0],
+        r[1],
+        int(mask.sum()),
+        n,
+        z,
+    )
     return z > st.refine_significance
 
 
@@ -982,9 +1033,15 @@ def _penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffn
     return (membrane_penalty, skin_penalty), skin, membrane
 
 
-def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = None,
-                   moving_labels: Volume | None = None, settings: DenseSettings | None = None,
-                   progress=None) -> DenseResult:
+def register_dense(
+    fixed: Volume,
+    moving: Volume,
+    *,
+    initial: Volume | None = None,
+    moving_labels: Volume | None = None,
+    settings: DenseSettings | None = None,
+    progress=None,
+) -> DenseResult:
     """Register the template ``moving`` to the scan ``fixed`` from ``initial`` (see the module docstring).
 
     ``moving_labels`` (the template's bone label map) makes every bone move
@@ -1002,8 +1059,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     f0 = np.array(fixed.data, np.float32, copy=True)  # normalised in place below: never the caller's array
     lab0 = None
     if st.bones != "free" and moving_labels is not None:
-        lab0 = sample_displaced_array(np.asarray(moving_labels.data), moving_labels.geometry.world_to_index_matrix,
-                                      g, initial.data, 0, 0).astype(np.int32)
+        lab0 = sample_displaced_array(
+            np.asarray(moving_labels.data), moving_labels.geometry.world_to_index_matrix, g, initial.data, 0, 0
+        ).astype(np.int32)
     # Normalise intensities so that step sizes do not depend on the scanner's units.
     scale = float(np.percentile(np.abs(f0), 99.5)) or 1.0
     f0 /= scale
@@ -1016,9 +1074,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     # as the whole grid would.  Near the box's edge, in the air, the result is not the whole grid's: U's
     # smoothing and composition there see U continued flat (on the whole grid it decays), and the levels'
     # pre-smoothing sees the edge continued (the MED it changes: the docs' "Measurements behind the settings").
-    crop = _crop_box(region, g.array_shape,
-                     np.ceil((3.0 * st.window_mm + max(st.shrink) * sp_full.max()) / sp_full),
-                     int(np.lcm.reduce([int(v) for v in st.shrink])))
+    crop = _crop_box(
+        region,
+        g.array_shape,
+        np.ceil((3.0 * st.window_mm + max(st.shrink) * sp_full.max()) / sp_full),
+        int(np.lcm.reduce([int(v) for v in st.shrink])),
+    )
     del m0  # the steps sample the template itself (_TemplateSampler), not this resampled copy
     # the template's body, where its noise is measured (settings.interpolation_noise, settings.holdout): a mask on
     # its grid, None where none is found (every voxel then); False: not needed
@@ -1057,9 +1118,16 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         if template_body is not None:
             t_sig = st.window_mm / np.asarray(moving.geometry.spacing, float)[::-1]
             # beyond the template's grid its body is unknown: read as far below 0, which score() leaves out
-            skin = (_TemplateSampler(Volume(_smooth(template_body.astype(np.float32), t_sig), moving.geometry),
-                                     initial, 1.0, crop, outside=-1e4),
-                    _smooth(tissue0, st.window_mm / sp_full))
+            skin = (
+                _TemplateSampler(
+                    Volume(_smooth(template_body.astype(np.float32), t_sig), moving.geometry),
+                    initial,
+                    1.0,
+                    crop,
+                    outside=-1e4,
+                ),
+                _smooth(tissue0, st.window_mm / sp_full),
+            )
     lab_full = lab0  # the fold repair below works on the whole grid
     if lab0 is not None:
         lab0 = lab0[crop]
@@ -1071,8 +1139,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     if lab0 is not None and st.bones == "fixed" and st.refine_bones:
         for b, sl in enumerate(ndimage.find_objects(lab0), start=1):
             if sl is not None:
-                centres[b] = np.array([(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a]
-                                       for a in range(3)])
+                centres[b] = np.array(
+                    [(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a] for a in range(3)]
+                )
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
     prev_s = None  # the previous level's shrink factor
     levels = []
@@ -1126,6 +1195,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
 
             def held_score(u_now):
                 return _lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl)[0]
+
         fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
         elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
         if tissue is not None:  # the normalised convolutions' denominators (settings.tissue_only)
@@ -1149,8 +1219,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 if held is not None:  # where this bone is the nearest: its rigid displacement, or 0 if not refined
                     take = kb < keep[box]
                     hb = held[(slice(None),) + box]
-                    hb[:, take] = (_rigid_displacement(params[b], centres[b], grid_mm, box)[:, take] if b in params
-                                   else 0.0)
+                    hb[:, take] = (
+                        _rigid_displacement(params[b], centres[b], grid_mm, box)[:, take] if b in params else 0.0
+                    )
                 keep[box] = np.minimum(keep[box], kb)
             return keep, held
 
@@ -1177,8 +1248,21 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                     tested.add(b)
                 lb = lab_now[box]
                 wgt = np.where((lb == 0) | (lb == b), wgt, np.float32(0.0))  # a bone's move moves no other bone
-                p, gain, n = _refine_bone(params.get(b, np.zeros(6)), centres[b], box, wgt, u_now, fl, sample_w, win,
-                                          tissue, regl, grid_mm, sp, st)
+                p, gain, n = _refine_bone(
+                    params.get(b, np.zeros(6)),
+                    centres[b],
+                    box,
+                    wgt,
+                    u_now,
+                    fl,
+                    sample_w,
+                    win,
+                    tissue,
+                    regl,
+                    grid_mm,
+                    sp,
+                    st,
+                )
                 evaluations += n
                 if gain > 0 and b not in params:  # the start's pose stands unless the image shows it off
                     with np.errstate(invalid="ignore"):
@@ -1196,17 +1280,22 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                             warp_t = warp_w
                         # the air: beyond the bodies grown by two windows, where air surrounds the scan's body
                         air = regl == 0 if (regl is not None and air_around) else None
-                        test = (fl_t, sample_t, _noise_correlation_factor(fl_t, warp_t(u_now)[0], air, sig_t / s,
-                                                                          template.air))
-                    if not _bone_fit_improves(p, b, box, m, wgt, u_now, test[0], test[1], centres[b], grid_mm, sp,
-                                              st, test[2]):
+                        test = (
+                            fl_t,
+                            sample_t,
+                            _noise_correlation_factor(fl_t, warp_t(u_now)[0], air, sig_t / s, template.air),
+                        )
+                    if not _bone_fit_improves(
+                        p, b, box, m, wgt, u_now, test[0], test[1], centres[b], grid_mm, sp, st, test[2]
+                    ):
                         unseen += 1
                         continue
                 if gain > 0:
                     # the move must keep U one-to-one as every step does: det(I + ∇u) on the box (grown by a
                     # voxel) above min_jacobian, or not below its value before where it already was
-                    grown = (slice(None),) + tuple(slice(max(c.start - 1, 0), min(c.stop + 1, n))
-                                                   for c, n in zip(box, shape))
+                    grown = (slice(None),) + tuple(
+                        slice(max(c.start - 1, 0), min(c.stop + 1, n)) for c, n in zip(box, shape)
+                    )
                     det_before = _jacobian_min(u_now[grown], sp)
                     sub = u_now[(slice(None),) + box]  # a view
                     kept_sub = sub.copy()
@@ -1217,8 +1306,12 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                         continue
                     params[b] = p
                     moved[b] = p
-            return u_now, {"evaluations": evaluations, "bones_moved": len(moved), "refused_folding": folded,
-                           "refused_not_significant": unseen}
+            return u_now, {
+                "evaluations": evaluations,
+                "bones_moved": len(moved),
+                "refused_folding": folded,
+                "refused_not_significant": unseen,
+            }
 
         def score(u_now):
             """``(w, objective, (dcc, skin, membrane))`` at ``u_now``: the template through the map, the level's
@@ -1234,8 +1327,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 # trilinear share of it reads far below 0) the template's body is taken as the scan's: no cost
                 b = skin_warp(u_now)[0]
                 b = np.where(b >= 0.0, b, skin_l)
-            penalty, skin_d, membrane = _penalties(b, skin_l, skin_band, regl, st.skin_weight, u_now, membrane_w, sp,
-                                                   st.stiffness, n_region)
+            penalty, skin_d, membrane = _penalties(
+                b, skin_l, skin_band, regl, st.skin_weight, u_now, membrane_w, sp, st.stiffness, n_region
+            )
             return w_now, cc_now - penalty[0] - penalty[1], (dcc_now, None if b is None else (b, skin_d), membrane)
 
         def direction(u_now, dcc, w, refresh_bones):
@@ -1268,7 +1362,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
                 bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
                 hold = bone_hold() if st.bones == "fixed" else (None, None)
-            return force, float(np.sqrt((force ** 2).sum(axis=0)).max())
+            return force, float(np.sqrt((force**2).sum(axis=0)).max())
 
         def candidate(u_now, force, fmax, radius):
             """``u_now`` after one step of at most ``radius`` mm per voxel along ``force`` (composed, smoothed,
@@ -1332,8 +1426,9 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 bone_w = []  # refine() made them with its own margin: recomputed at the next step
                 return False
             w_b, cc_b, dcc_b = score(u_b)
-            rec_b.update(lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc),
-                         seconds=round(time.perf_counter() - t_b, 2))
+            rec_b.update(
+                lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc), seconds=round(time.perf_counter() - t_b, 2)
+            )
             if not rec_b["taken"]:
                 rec_b["bones_moved"] = 0
             if cc_b > cc:
@@ -1343,8 +1438,10 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 params.update(kept)
             bone_w = []  # recomputed (with the hold) from the map at the next step
             # each bone's rotation (°) and shift (mm) from the start's pose, so far
-            rec_b["poses"] = {str(b): [round(float(np.linalg.norm(p[:3])), 3), round(float(np.linalg.norm(p[3:])), 3)]
-                              for b, p in sorted(params.items())}
+            rec_b["poses"] = {
+                str(b): [round(float(np.linalg.norm(p[:3])), 3), round(float(np.linalg.norm(p[3:])), 3)]
+                for b, p in sorted(params.items())
+            }
             rounds.append(rec_b)
             return rec_b["taken"]
 
@@ -1394,7 +1491,7 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
             else:
                 rejected += 1
                 radius *= 0.5
-                if radius < step * 0.5 ** st.max_halvings:
+                if radius < step * 0.5**st.max_halvings:
                     stopped = "no better step"
             if stopped:
                 stop = stopped
@@ -1416,34 +1513,52 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 params.update(held_best[6])
                 tested.clear()  # a bone first tested after the best map may be tested again
                 tested.update(held_best[7])
-                for r in rounds[held_best[8]:]:  # the bones' rounds after it are undone with it
+                for r in rounds[held_best[8] :]:  # the bones' rounds after it are undone with it
                     r["discarded"] = True
-            held_rec = {"lncc": [round(float(h), 6) for h in held], "best_step": held_best[1] - 1,
-                        "noise_sd": [round(held_out[2][0] * scale, 6), round(held_out[2][1], 6)]}
+            held_rec = {
+                "lncc": [round(float(h), 6) for h in held],
+                "best_step": held_best[1] - 1,
+                "noise_sd": [round(held_out[2][0] * scale, 6), round(held_out[2][1], 6)],
+            }
         before = rounds[0]["lncc_before"] if rounds else history[0]
-        rec = {"level": lv, "shrink": s, "shape": list(shape), "iterations": len(history) - 1,
-               "lncc_before": before, "lncc_after": cc,
-               "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
-               "rejected": rejected, "stop": stop, "halvings": halvings,
-               # the level's objective (the LNCC, less the skin's term when "skin_term" and the membrane energy when
-               # "noise_share") per taken step (and bones' round): never falls; lncc_before / lncc_after are its
-               "lncc": [round(float(h), 6) for h in history],
-               "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
-               "skin_term": skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
-               # settings.stiffness: the membrane energy's mean weight over the region (the noise's share of the
-               # scan's local variance), None when off
-               "noise_share": None if membrane_w is None else round(float(membrane_w.sum(dtype=np.float64) / n_region),
-                                                                     4),
-               # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
-               "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
-               "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
-               # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
-               # its first bones' round) and the two images' noise SDs (their units), None when off
-               "held_out": held_rec,
-               "seconds": round(time.perf_counter() - t_level, 2)}
+        rec = {
+            "level": lv,
+            "shrink": s,
+            "shape": list(shape),
+            "iterations": len(history) - 1,
+            "lncc_before": before,
+            "lncc_after": cc,
+            "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
+            "rejected": rejected,
+            "stop": stop,
+            "halvings": halvings,
+            # the level's objective (the LNCC, less the skin's term when "skin_term" and the membrane energy when
+            # "noise_share") per taken step (and bones' round): never falls; lncc_before / lncc_after are its
+            "lncc": [round(float(h), 6) for h in history],
+            "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
+            "skin_term": skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
+            # settings.stiffness: the membrane energy's mean weight over the region (the noise's share of the
+            # scan's local variance), None when off
+            "noise_share": None if membrane_w is None else round(float(membrane_w.sum(dtype=np.float64) / n_region), 4),
+            # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
+            "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
+            "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
+            # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
+            # its first bones' round) and the two images' noise SDs (their units), None when off
+            "held_out": held_rec,
+            "seconds": round(time.perf_counter() - t_level, 2),
+        }
         levels.append(rec)
-        log.info("dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; objective %.4f -> %.4f", lv, s,
-                 rec["iterations"], rejected, stop, rec["lncc_before"] or 0, rec["lncc_after"] or 0)
+        log.info(
+            "dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; objective %.4f -> %.4f",
+            lv,
+            s,
+            rec["iterations"],
+            rejected,
+            stop,
+            rec["lncc_before"] or 0,
+            rec["lncc_after"] or 0,
+        )
         if progress is not None:
             progress(rec)
         prev_s = s
@@ -1459,12 +1574,14 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
     u_ijk = (u[2], u[1], u[0])  # along index axes i, j, k
     d = np.asarray(g.direction_matrix)
     # written out, not a matrix product: BLAS kernels may round differently with the arrays' alignment
-    u_world = np.stack([d[r, 0] * u_ijk[0] + d[r, 1] * u_ijk[1] + d[r, 2] * u_ijk[2] for r in range(3)],
-                       axis=-1).astype(np.float32)
+    u_world = np.stack(
+        [d[r, 0] * u_ijk[0] + d[r, 1] * u_ijk[1] + d[r, 2] * u_ijk[2] for r in range(3)], axis=-1
+    ).astype(np.float32)
     # φ = φ₀ ∘ U: φ₀ sampled at x + u(x), extended by its edge values beyond the grid as the images were
     # in every step (deformation.fields.compose takes φ₀ as zero there, which tears a limb cut by the edge)
-    phi0 = np.moveaxis(sample_shifted(np.moveaxis(np.asarray(initial.data, np.float32), -1, 0), u, 1.0 / sp_full),
-                       0, -1)
+    phi0 = np.moveaxis(
+        sample_shifted(np.moveaxis(np.asarray(initial.data, np.float32), -1, 0), u, 1.0 / sp_full), 0, -1
+    )
     corr = Volume((u_world + phi0).astype(np.float32), g)
     u_folds = folding_statistics(Volume(u_world, g), scan_body)["n_folded"]
     repair = None
@@ -1475,8 +1592,11 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
         # fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are smoothed
         # locally, inside the body only (air carries no anatomy).
         mask = scan_body
-        lab_now = None if lab0 is None else sample_shifted(lab0.astype(np.float32), u, 1.0 / sp_full,
-                                                           order=0).astype(np.int32)
+        lab_now = (
+            None
+            if lab0 is None
+            else sample_shifted(lab0.astype(np.float32), u, 1.0 / sp_full, order=0).astype(np.int32)
+        )
         n_folded = folding_statistics(corr, mask)["n_folded"]
         if n_folded:
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
@@ -1531,10 +1651,18 @@ def register_dense(fixed: Volume, moving: Volume, *, initial: Volume | None = No
                 corr = Volume(best[0].data.astype(np.float32), g)
     registered = warp_template(moving, corr)
     seconds = time.perf_counter() - t0
-    return DenseResult(corr, registered, seconds, levels, st.to_dict(),
-                       similarity_before=similarity(fixed.data, warp_template(moving, initial).data),
-                       similarity_after=similarity(fixed.data, registered.data),
-                       folding={**folding_statistics(corr, scan_body),
-                                "over": "all voxels" if scan_body is None else "the scan's body",
-                                "n_folded_u": u_folds},
-                       unfold=repair)
+    return DenseResult(
+        corr,
+        registered,
+        seconds,
+        levels,
+        st.to_dict(),
+        similarity_before=similarity(fixed.data, warp_template(moving, initial).data),
+        similarity_after=similarity(fixed.data, registered.data),
+        folding={
+            **folding_statistics(corr, scan_body),
+            "over": "all voxels" if scan_body is None else "the scan's body",
+            "n_folded_u": u_folds,
+        },
+        unfold=repair,
+    )

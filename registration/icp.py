@@ -40,9 +40,16 @@ def _cloud(points, *, normals_radius: float | None = None):
     return pc
 
 
-def icp_point_to_plane(source_points, target_points, *, init=None, distances_mm=(8.0, 4.0, 2.0, 1.0),
-                       max_iterations: int = 60, normals_radius_mm: float = 3.0,
-                       min_fitness: float = 0.5) -> IcpResult:
+def icp_point_to_plane(
+    source_points,
+    target_points,
+    *,
+    init=None,
+    distances_mm=(8.0, 4.0, 2.0, 1.0),
+    max_iterations: int = 60,
+    normals_radius_mm: float = 3.0,
+    min_fitness: float = 0.5,
+) -> IcpResult:
     """Align ``source_points`` (n, 3) to ``target_points`` (m, 3), both world mm.
 
     Parameters
@@ -66,8 +73,9 @@ def icp_point_to_plane(source_points, target_points, *, init=None, distances_mm=
     target = _cloud(tgt, normals_radius=normals_radius_mm)
     plane = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     point = o3d.pipelines.registration.TransformationEstimationPointToPoint()
-    crit = o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
-                                                             max_iteration=max_iterations)
+    crit = o3d.pipelines.registration.ICPConvergenceCriteria(
+        relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=max_iterations
+    )
     stages = []
     res = None
     for k, d in enumerate(distances_mm):
@@ -77,8 +85,16 @@ def icp_point_to_plane(source_points, target_points, *, init=None, distances_mm=
         est = point if k == 0 and len(distances_mm) > 1 else plane
         res = o3d.pipelines.registration.registration_icp(source, target, float(d), t, est, crit)
         t = np.asarray(res.transformation).copy()
-        stages.append({"distance_mm": float(d), "fitness": float(res.fitness), "inlier_rmse_mm": float(res.inlier_rmse)})
+        stages.append(
+            {"distance_mm": float(d), "fitness": float(res.fitness), "inlier_rmse_mm": float(res.inlier_rmse)}
+        )
     converged = bool(res.fitness >= min_fitness)
-    msg = "converged" if converged else (f"final fitness {res.fitness:.2f} < {min_fitness}: the initialisation is "
-                                         "probably too far off; start from the parent bone's transform")
+    msg = (
+        "converged"
+        if converged
+        else (
+            f"final fitness {res.fitness:.2f} < {min_fitness}: the initialisation is "
+            "probably too far off; start from the parent bone's transform"
+        )
+    )
     return IcpResult(t, float(res.fitness), float(res.inlier_rmse), converged, stages, msg)

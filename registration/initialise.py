@@ -30,9 +30,18 @@ if TYPE_CHECKING:
 __all__ = ["vbd_initial_field", "polyrigid_initial_field"]
 
 
-def polyrigid_initial_field(template_labels: Volume, bone_labels: dict, parents: dict, transforms: dict,
-                            scan_geometry: GridGeometry, *, power: float = 4.0, falloff_mm: float = 20.0,
-                            factor: int = 1, progress=None) -> tuple[Volume, "PolyrigidFlow"]:
+def polyrigid_initial_field(
+    template_labels: Volume,
+    bone_labels: dict,
+    parents: dict,
+    transforms: dict,
+    scan_geometry: GridGeometry,
+    *,
+    power: float = 4.0,
+    falloff_mm: float = 20.0,
+    factor: int = 1,
+    progress=None,
+) -> tuple[Volume, PolyrigidFlow]:
     """``scan_to_template`` field of the polyrigid flow on the scan grid, and the flow (for its forward map).
 
     ``bone_labels`` ``{bone: label id}`` and ``parents`` ``{bone: parent bone or None}`` describe the
@@ -61,13 +70,27 @@ def polyrigid_initial_field(template_labels: Volume, bone_labels: dict, parents:
             raise ValueError(f"the skeleton's parents form a cycle or name unknown bones: {parents}")
     maps = bone_distance_maps(template_labels, {b: bone_labels[b] for b in ranked})
     par = tuple(-1 if parents.get(b) is None else ranked.index(parents[b]) for b in ranked)
-    flow = PolyrigidFlow(np.stack([np.asarray(transforms[b], float) for b in ranked]), par, maps,
-                         template_labels.geometry, power=power, falloff_mm=falloff_mm)
+    flow = PolyrigidFlow(
+        np.stack([np.asarray(transforms[b], float) for b in ranked]),
+        par,
+        maps,
+        template_labels.geometry,
+        power=power,
+        falloff_mm=falloff_mm,
+    )
     return flow.scan_to_template(scan_geometry, factor=factor, progress=progress), flow
 
 
-def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeometry, weights, transforms,
-                      *, body=None, unfold: bool = False, factor: int = 1) -> tuple[Volume, dict]:
+def vbd_initial_field(
+    template_geometry: GridGeometry,
+    scan_geometry: GridGeometry,
+    weights,
+    transforms,
+    *,
+    body=None,
+    unfold: bool = False,
+    factor: int = 1,
+) -> tuple[Volume, dict]:
     """``scan_to_template`` field of VBD (Rhee Eq. 2) on the scan grid, and the backward map's summary.
 
     ``transforms`` ``(n_bones, 4, 4)`` template → scan, in ``weights.bones``
@@ -93,8 +116,13 @@ def vbd_initial_field(template_geometry: GridGeometry, scan_geometry: GridGeomet
     f = int(factor)
     t = np.asarray(transforms, float)
     fwd = vbd_forward(template_geometry.every(f), weights, t)
-    bm = backward_map(fwd, template_geometry.every(f), scan_geometry.every(f), transforms=t,
-                      prefer=None if body is None else np.asarray(body, bool))
+    bm = backward_map(
+        fwd,
+        template_geometry.every(f),
+        scan_geometry.every(f),
+        transforms=t,
+        prefer=None if body is None else np.asarray(body, bool),
+    )
     del fwd
     coarse = bm
     if f > 1:

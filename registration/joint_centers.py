@@ -72,8 +72,14 @@ def eq1_energy(center, motions) -> float:
     return float(sum(np.sum((m[:3, :3] @ c + m[:3, 3] - c) ** 2) for m in motions))
 
 
-def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
-                          hinge_sd_mm: float | None = HINGE_SD_MM, cross_check: bool = True) -> JointCenterResult:
+def estimate_joint_center(
+    motions,
+    *,
+    reference=None,
+    hinge_ratio: float = 0.05,
+    hinge_sd_mm: float | None = HINGE_SD_MM,
+    cross_check: bool = True,
+) -> JointCenterResult:
     """Closed-form joint centre from relative motions (Eq. 1), with hinge handling.
 
     Parameters
@@ -105,8 +111,9 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
     axis = vt[-1]
     dof = a.shape[0] - 3
     c_full = vt.T @ ((u.T @ b) / s) if s[-1] > 0 else None  # the unconstrained least-squares centre
-    axis_sd = (float(np.linalg.norm(a @ c_full - b) / np.sqrt(dof) / s[-1]) if dof > 0 and c_full is not None
-               else float("nan"))
+    axis_sd = (
+        float(np.linalg.norm(a @ c_full - b) / np.sqrt(dof) / s[-1]) if dof > 0 and c_full is not None else float("nan")
+    )
     is_hinge = bool(s[-1] < hinge_ratio * s[0]) or (hinge_sd_mm is not None and axis_sd > hinge_sd_mm)
     if is_hinge:
         # Solve in the well-determined 2-D subspace, then slide along the axis to the reference.
@@ -114,10 +121,15 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
         if reference is not None:
             r = np.asarray(reference, float)
             c = c + axis * float(axis @ (r - c))
-        msg = (f"near-hinge joint (singular-value ratio {s[-1] / s[0]:.3f}, centre sd along the axis "
-               f"{axis_sd:.2f} mm): the centre is fixed only up to the axis; "
-               + ("placed at the point of the axis closest to the reference" if reference is not None
-                  else "minimum-norm point of the axis (pass reference= to place it at the bones' contact)"))
+        msg = (
+            f"near-hinge joint (singular-value ratio {s[-1] / s[0]:.3f}, centre sd along the axis "
+            f"{axis_sd:.2f} mm): the centre is fixed only up to the axis; "
+            + (
+                "placed at the point of the axis closest to the reference"
+                if reference is not None
+                else "minimum-norm point of the axis (pass reference= to place it at the bones' contact)"
+            )
+        )
     else:
         c = c_full
         msg = "well-conditioned"
@@ -130,11 +142,21 @@ def estimate_joint_center(motions, *, reference=None, hinge_ratio: float = 0.05,
             # flat along the axis, so an unconstrained descent stops anywhere along it.
             basis = vt[:2].T
             p0 = x0 if reference is not None else c
-            y = minimize(lambda y: eq1_energy(p0 + basis @ y, moving), np.zeros(2), method="BFGS",
-                         options={"gtol": 1e-10}).x
+            y = minimize(
+                lambda y: eq1_energy(p0 + basis @ y, moving), np.zeros(2), method="BFGS", options={"gtol": 1e-10}
+            ).x
             it = p0 + basis @ y
         else:
             it = minimize(eq1_energy, x0, args=(moving,), method="BFGS", options={"gtol": 1e-10}).x
-    return JointCenterResult(center=c, rms_mm=float(np.sqrt(np.mean(per**2))), per_motion_mm=per,
-                             singular_values=s, is_hinge=is_hinge, axis=axis, n_motions=len(moving), axis_sd_mm=axis_sd,
-                             iterative_center=it, message=msg)
+    return JointCenterResult(
+        center=c,
+        rms_mm=float(np.sqrt(np.mean(per**2))),
+        per_motion_mm=per,
+        singular_values=s,
+        is_hinge=is_hinge,
+        axis=axis,
+        n_motions=len(moving),
+        axis_sd_mm=axis_sd,
+        iterative_center=it,
+        message=msg,
+    )

@@ -40,8 +40,21 @@ import SimpleITK as sitk
 
 from deformation.geometry import Volume
 
-__all__ = ["HistogramBins", "ssd", "cc", "entropy", "mutual_information", "normalized_mi", "joint_histogram",
-           "similarity", "sitk_metric", "block_statistics", "air_level", "MI_BINS", "LOG_BASE"]
+__all__ = [
+    "HistogramBins",
+    "ssd",
+    "cc",
+    "entropy",
+    "mutual_information",
+    "normalized_mi",
+    "joint_histogram",
+    "similarity",
+    "sitk_metric",
+    "block_statistics",
+    "air_level",
+    "MI_BINS",
+    "LOG_BASE",
+]
 
 numba.config.THREADING_LAYER = "omp"
 
@@ -69,7 +82,7 @@ class HistogramBins:
         self.scale = self.bins / (hi - lo)
 
     @classmethod
-    def of(cls, data, bins: int = MI_BINS, *, percentiles=(0.0, 100.0)) -> "HistogramBins":
+    def of(cls, data, bins: int = MI_BINS, *, percentiles=(0.0, 100.0)) -> HistogramBins:
         a = np.asarray(data)
         lo, hi = np.percentile(a, percentiles) if tuple(percentiles) != (0.0, 100.0) else (a.min(), a.max())
         return cls(float(lo), float(hi), bins)
@@ -79,8 +92,9 @@ class HistogramBins:
         return np.clip((np.asarray(values, np.float64) - self.lo) * self.scale - 0.5, 0.0, self.bins - 1.0)
 
     def index(self, values) -> np.ndarray:
-        return np.clip(np.floor((np.asarray(values, np.float64) - self.lo) * self.scale), 0,
-                       self.bins - 1).astype(np.int32)
+        return np.clip(np.floor((np.asarray(values, np.float64) - self.lo) * self.scale), 0, self.bins - 1).astype(
+            np.int32
+        )
 
     def __repr__(self) -> str:
         return f"HistogramBins({self.bins} bins over [{self.lo:g}, {self.hi:g}])"
@@ -168,8 +182,9 @@ def _entropies(h):
     return ha, hb, hab
 
 
-def joint_histogram(a, b, *, bins_a: HistogramBins | None = None, bins_b: HistogramBins | None = None,
-                    bins: int = MI_BINS, mask=None) -> np.ndarray:
+def joint_histogram(
+    a, b, *, bins_a: HistogramBins | None = None, bins_b: HistogramBins | None = None, bins: int = MI_BINS, mask=None
+) -> np.ndarray:
     """Joint histogram ``(bins, bins)`` of counts: A triangular-binned (rows), B hard-binned (columns)."""
     x, y = _pair(a, b, mask)
     bins_a = bins_a or HistogramBins.of(x, bins)
@@ -194,15 +209,17 @@ def _mi_parts(a, b, *, bins_a=None, bins_b=None, bins=MI_BINS, mask=None):
     return _entropies(joint_histogram(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask))
 
 
-def mutual_information(a, b, *, bins_a: HistogramBins | None = None, bins_b: HistogramBins | None = None,
-                       bins: int = MI_BINS, mask=None) -> float:
+def mutual_information(
+    a, b, *, bins_a: HistogramBins | None = None, bins_b: HistogramBins | None = None, bins: int = MI_BINS, mask=None
+) -> float:
     """MI (Rhee Eq. 5), nats, of the joint histogram (see the module docstring for the binning)."""
     ha, hb, hab = _mi_parts(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask)
     return ha + hb - hab
 
 
-def normalized_mi(a, b, *, bins_a: HistogramBins | None = None, bins_b: HistogramBins | None = None,
-                  bins: int = MI_BINS, mask=None) -> float:
+def normalized_mi(
+    a, b, *, bins_a: HistogramBins | None = None, bins_b: HistogramBins | None = None, bins: int = MI_BINS, mask=None
+) -> float:
     """Rhee's mismatch ratio ``MI / min(H(A), H(B))`` (§4.1, after Park et al.); NaN if an image is flat."""
     ha, hb, hab = _mi_parts(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask)
     m = min(ha, hb)
@@ -219,15 +236,20 @@ def similarity(fixed, moving, *, mask=None, bins: int = MI_BINS) -> dict:
         fixed.geometry.check_same(moving.geometry, names=("fixed", "moving"))
     ha, hb, hab = _mi_parts(moving, fixed, bins=bins, mask=mask)
     mi = ha + hb - hab
-    return {"ssd": ssd(fixed, moving, mask), "cc": cc(fixed, moving, mask), "mi": mi,
-            "nmi": mi / min(ha, hb) if min(ha, hb) > 0 else float("nan")}
+    return {
+        "ssd": ssd(fixed, moving, mask),
+        "cc": cc(fixed, moving, mask),
+        "mi": mi,
+        "nmi": mi / min(ha, hb) if min(ha, hb) > 0 else float("nan"),
+    }
 
 
 _SITK_METRICS = ("meansquares", "correlation", "mattes", "jointhistogram")
 
 
-def sitk_metric(fixed: Volume, moving: Volume, metric: str = "meansquares", *, bins: int = MI_BINS,
-                smoothing_variance: float = 1.5) -> float:
+def sitk_metric(
+    fixed: Volume, moving: Volume, metric: str = "meansquares", *, bins: int = MI_BINS, smoothing_variance: float = 1.5
+) -> float:
     """A SimpleITK image-to-image metric at the identity transform (whole volumes).
 
     ``metric``: ``"meansquares"`` (= :func:`ssd`), ``"correlation"``
@@ -249,16 +271,23 @@ def sitk_metric(fixed: Volume, moving: Volume, metric: str = "meansquares", *, b
     elif metric == "mattes":
         r.SetMetricAsMattesMutualInformation(numberOfHistogramBins=bins)
     else:
-        r.SetMetricAsJointHistogramMutualInformation(numberOfHistogramBins=bins,
-                                                     varianceForJointPDFSmoothing=smoothing_variance)
+        r.SetMetricAsJointHistogramMutualInformation(
+            numberOfHistogramBins=bins, varianceForJointPDFSmoothing=smoothing_variance
+        )
     r.SetInterpolator(sitk.sitkLinear)
     r.SetMetricSamplingStrategy(r.NONE)
     r.SetInitialTransform(sitk.TranslationTransform(3))
     return float(r.MetricEvaluate(f, m))
 
 
-def block_statistics(fixed: np.ndarray, moving: np.ndarray, block_ids: np.ndarray, n_blocks: int,
-                     bins_fixed: HistogramBins, bins_moving: HistogramBins) -> dict:
+def block_statistics(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    block_ids: np.ndarray,
+    n_blocks: int,
+    bins_fixed: HistogramBins,
+    bins_moving: HistogramBins,
+) -> dict:
     """Per-block SSD, NMI, entropies and voxel counts, from one pass over labelled voxels.
 
     ``block_ids`` gives each voxel's block (``-1`` for none).  Returns arrays

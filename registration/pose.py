@@ -39,11 +39,31 @@ from deformation.skeleton import Joint, Pose, Skeleton
 from deformation.transforms import apply, compose, invert, rotation_angle_deg
 
 from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
-from .rigid import (PRIOR_MM, BoneFit, BoneRegion, Sampler, bone_regions, coarse_rotation_search, refine_intensity,
-                    refine_surface, smooth)
+from .rigid import (
+    PRIOR_MM,
+    BoneFit,
+    BoneRegion,
+    Sampler,
+    bone_regions,
+    coarse_rotation_search,
+    refine_intensity,
+    refine_surface,
+    smooth,
+)
 
-__all__ = ["correct_bias", "METHODS", "ScanPose", "PoseResult", "register_scan", "estimate_poses", "pose_scans", "contact_point",
-           "compare_poses", "moments_init", "flag_joint_outliers"]
+__all__ = [
+    "correct_bias",
+    "METHODS",
+    "ScanPose",
+    "PoseResult",
+    "register_scan",
+    "estimate_poses",
+    "pose_scans",
+    "contact_point",
+    "compare_poses",
+    "moments_init",
+    "flag_joint_outliers",
+]
 
 METHODS = ("intensity", "surface")
 MOVING_DEG = 5.0  # a joint whose largest rotation over the scans is below this has no identifiable centre
@@ -79,24 +99,45 @@ class PoseResult:
     contacts: dict[str, np.ndarray] = field(default_factory=dict)
 
     def failures(self) -> list[dict]:
-        return [{"scan": s.scan_id, "bone": f.bone, "status": f.status, "ncc": f.ncc, "ssd": f.ssd_after,
-                 "stop": f.stop} for s in self.scans for f in s.failures]
+        return [
+            {"scan": s.scan_id, "bone": f.bone, "status": f.status, "ncc": f.ncc, "ssd": f.ssd_after, "stop": f.stop}
+            for s in self.scans
+            for f in s.failures
+        ]
 
     def joints_dict(self) -> dict:
         out = {}
         for name, r in self.joints.items():
             j = self.skeleton.joint(name)
-            out[name] = {"parent": j.parent, "child": j.child, "dof": j.dof, "center": r.center.tolist(),
-                         "rms_mm": r.rms_mm, "per_scan_mm": r.per_motion_mm.tolist(), "n_motions": r.n_motions,
-                         "estimated": r.estimated, "is_hinge": r.is_hinge, "axis": r.axis.tolist(),
-                         "singular_values": r.singular_values.tolist(), "axis_sd_mm": r.axis_sd_mm,
-                         "iterative_center": None if r.iterative_center is None else r.iterative_center.tolist(),
-                         "closed_form_vs_iterative_mm": (None if r.iterative_center is None else
-                                                         float(np.linalg.norm(r.iterative_center - r.center))),
-                         "contact_point": self.contacts[name].tolist() if name in self.contacts else None,
-                         "max_rotation_deg": float(max((rotation_angle_deg(self.skeleton.relative_motion(
-                             s.pose.transforms, name)) for s in self.scans), default=0.0)),
-                         "note": r.message}
+            out[name] = {
+                "parent": j.parent,
+                "child": j.child,
+                "dof": j.dof,
+                "center": r.center.tolist(),
+                "rms_mm": r.rms_mm,
+                "per_scan_mm": r.per_motion_mm.tolist(),
+                "n_motions": r.n_motions,
+                "estimated": r.estimated,
+                "is_hinge": r.is_hinge,
+                "axis": r.axis.tolist(),
+                "singular_values": r.singular_values.tolist(),
+                "axis_sd_mm": r.axis_sd_mm,
+                "iterative_center": None if r.iterative_center is None else r.iterative_center.tolist(),
+                "closed_form_vs_iterative_mm": (
+                    None if r.iterative_center is None else float(np.linalg.norm(r.iterative_center - r.center))
+                ),
+                "contact_point": self.contacts[name].tolist() if name in self.contacts else None,
+                "max_rotation_deg": float(
+                    max(
+                        (
+                            rotation_angle_deg(self.skeleton.relative_motion(s.pose.transforms, name))
+                            for s in self.scans
+                        ),
+                        default=0.0,
+                    )
+                ),
+                "note": r.message,
+            }
         return out
 
     def overall_rms_mm(self) -> float:
@@ -113,8 +154,9 @@ def moments_init(template: Volume, scan: Volume) -> np.ndarray:
     m = scan.to_sitk()
     f = sitk.Cast(f, sitk.sitkFloat32) - float(np.min(template.data))  # moments of non-negative mass
     m = sitk.Cast(m, sitk.sitkFloat32) - float(np.min(scan.data))
-    tx = sitk.CenteredTransformInitializer(f, m, sitk.Euler3DTransform(),
-                                           sitk.CenteredTransformInitializerFilter.MOMENTS)
+    tx = sitk.CenteredTransformInitializer(
+        f, m, sitk.Euler3DTransform(), sitk.CenteredTransformInitializerFilter.MOMENTS
+    )
     t = np.eye(4)
     t[:3, 3] = tx.GetTranslation()
     return t
@@ -144,10 +186,23 @@ def correct_bias(image: Volume) -> Volume:
     return Volume(out.astype(np.float32), image.geometry)
 
 
-def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skeleton, *, method: str = "intensity",
-                  root_init=None, coarse: bool = True, min_ncc: float = 0.5, interpolation: int = 3,
-                  prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc", coarse_regions=None,
-                  max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, progress=None) -> dict[str, BoneFit]:
+def register_scan(
+    regions: dict[str, BoneRegion],
+    scan: Volume,
+    skeleton: Skeleton,
+    *,
+    method: str = "intensity",
+    root_init=None,
+    coarse: bool = True,
+    min_ncc: float = 0.5,
+    interpolation: int = 3,
+    prior_deg: float | None = 2.0,
+    smooth_voxels: float = 0.6,
+    metric: str = "ncc",
+    coarse_regions=None,
+    max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM,
+    progress=None,
+) -> dict[str, BoneFit]:
     """Every bone's template → scan transform, root first, then down the hierarchy.
 
     ``regions`` come from :func:`bone_regions` on the template smoothed by
@@ -188,12 +243,25 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             parent_t = fits[joint.parent].transform
             if coarse:
                 if coarse_sampler is None:  # the scan blurred like the template regions of the search
-                    coarse_sampler = Sampler(scan, order=3, smooth_voxels=(
-                        max(COARSE_SMOOTH, smooth_voxels) if coarse_regions is not None else smooth_voxels))
-                init, _, n, ang = coarse_rotation_search((coarse_regions or regions)[name], coarse_sampler, parent_t,
-                                                         joint, metric=metric, runners_up=runners_up)
-                how = (f"parent + grid search about the joint ({n} evaluations): flexion {ang[0]:.1f}°, "
-                       f"abduction {ang[1]:.1f}°, twist {ang[2]:.1f}°")
+                    coarse_sampler = Sampler(
+                        scan,
+                        order=3,
+                        smooth_voxels=(
+                            max(COARSE_SMOOTH, smooth_voxels) if coarse_regions is not None else smooth_voxels
+                        ),
+                    )
+                init, _, n, ang = coarse_rotation_search(
+                    (coarse_regions or regions)[name],
+                    coarse_sampler,
+                    parent_t,
+                    joint,
+                    metric=metric,
+                    runners_up=runners_up,
+                )
+                how = (
+                    f"parent + grid search about the joint ({n} evaluations): flexion {ang[0]:.1f}°, "
+                    f"abduction {ang[1]:.1f}°, twist {ang[2]:.1f}°"
+                )
                 prior_center = compose(parent_t, joint.motion(np.r_[ang[0], np.zeros(joint.dof - 1)]))
             else:
                 init, how = parent_t.copy(), "parent"
@@ -201,9 +269,18 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             # ``prior_deg`` None is Eq. 1 through SimpleITK alone; otherwise the polish follows, with the prior
             # for a child bone and without one for the root (no parent to tie it to).
             def refine(start, centre):
-                return refine_intensity(region, sampler, start, min_ncc=min_ncc, metric=metric, multires=joint is None,
-                                        polish=prior_deg is not None, prior_deg=None if joint is None else prior_deg,
-                                        prior_mm=None if joint is None else PRIOR_MM, prior_center=centre)
+                return refine_intensity(
+                    region,
+                    sampler,
+                    start,
+                    min_ncc=min_ncc,
+                    metric=metric,
+                    multires=joint is None,
+                    polish=prior_deg is not None,
+                    prior_deg=None if joint is None else prior_deg,
+                    prior_mm=None if joint is None else PRIOR_MM,
+                    prior_center=centre,
+                )
 
             fit = refine(init, prior_center)
             # A flagged fit gets second chances from the grid search's runners-up, refined at the fine scale: the
@@ -216,13 +293,22 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
                     alt = refine(t_k, compose(parent_t, joint.motion(np.r_[ang_k[0], np.zeros(joint.dof - 1)])))
                     if alt.ok and (not fit.ok or alt.ncc > fit.ncc):
                         fit = alt
-                        how = f"{how}; refined from its candidate {rank} (flexion {ang_k[0]:.1f}°): the first was flagged"
+                        how = (
+                            f"{how}; refined from its candidate {rank} (flexion {ang_k[0]:.1f}°): the first was flagged"
+                        )
         else:
             # Kurihara §3's ICP, with the intensity method's prior on what the bone's shape leaves open
-            fit = refine_surface(region, sampler, init, min_ncc=min_ncc,
-                                 prior=None if joint is None or prior_deg is None else
-                                 (prior_center if prior_center is not None else init),
-                                 prior_deg=prior_deg, prior_mm=PRIOR_MM)
+            fit = refine_surface(
+                region,
+                sampler,
+                init,
+                min_ncc=min_ncc,
+                prior=None
+                if joint is None or prior_deg is None
+                else (prior_center if prior_center is not None else init),
+                prior_deg=prior_deg,
+                prior_mm=PRIOR_MM,
+            )
         fit.init = how
         if joint is not None:
             c = np.asarray(joint.center, float)
@@ -231,12 +317,16 @@ def register_scan(regions: dict[str, BoneRegion], scan: Volume, skeleton: Skelet
             parent = fits[joint.parent]
             if fit.ok and not parent.ok:
                 fit.status = "parent_flagged"
-                fit.stop = (f"{fit.stop}; its parent '{joint.parent}' was flagged ({parent.status}) and this bone "
-                            f"was fitted from it, so it is not trusted either (joint gap {gap:.1f} mm)")
+                fit.stop = (
+                    f"{fit.stop}; its parent '{joint.parent}' was flagged ({parent.status}) and this bone "
+                    f"was fitted from it, so it is not trusted either (joint gap {gap:.1f} mm)"
+                )
             elif fit.ok and max_joint_gap_mm is not None and gap > max_joint_gap_mm:
                 fit.status = "joint_detached"
-                fit.stop = (f"{fit.stop}; the bone left joint '{joint.name}': its centre lands {gap:.1f} mm from "
-                            f"where the parent puts it (limit {max_joint_gap_mm:g} mm)")
+                fit.stop = (
+                    f"{fit.stop}; the bone left joint '{joint.name}': its centre lands {gap:.1f} mm from "
+                    f"where the parent puts it (limit {max_joint_gap_mm:g} mm)"
+                )
         fit.seconds = time.perf_counter() - t0
         fits[name] = fit
         if progress is not None:
@@ -271,12 +361,29 @@ def contact_point(labels: Volume, a: int, b: int, *, tolerance_mm: float | None 
     return mids.mean(axis=0)
 
 
-def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *,
-                   method: str = "intensity", root_init=None, coarse: bool = True, min_ncc: float = 0.5,
-                   interpolation: int = 3, prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
-                   hinge_ratio: float = 0.05, hinge_sd_mm: float | None = HINGE_SD_MM, bias_correction: bool | None = None, margin_mm: float | None = None,
-                   max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, outlier_factor: float | None = OUTLIER_FACTOR,
-                   progress=None, scan_poses: list[ScanPose] | None = None) -> PoseResult:
+def estimate_poses(
+    template: Volume,
+    labels: Volume,
+    scans: dict,
+    skeleton: Skeleton,
+    *,
+    method: str = "intensity",
+    root_init=None,
+    coarse: bool = True,
+    min_ncc: float = 0.5,
+    interpolation: int = 3,
+    prior_deg: float | None = 2.0,
+    smooth_voxels: float = 0.6,
+    metric: str = "ncc",
+    hinge_ratio: float = 0.05,
+    hinge_sd_mm: float | None = HINGE_SD_MM,
+    bias_correction: bool | None = None,
+    margin_mm: float | None = None,
+    max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM,
+    outlier_factor: float | None = OUTLIER_FACTOR,
+    progress=None,
+    scan_poses: list[ScanPose] | None = None,
+) -> PoseResult:
     """Register every bone in every scan (:func:`pose_scans`), then estimate joint centres and angles.
 
     Parameters
@@ -299,23 +406,56 @@ def estimate_poses(template: Volume, labels: Volume, scans: dict, skeleton: Skel
     scan_poses : the scans' bone fits already made by :func:`pose_scans` with the same arguments (e.g. one scan
         per Dask task, :mod:`workbench.scale`); then only the pooling (Eq. 1, outliers, angles) runs here
     """
-    results = scan_poses if scan_poses is not None else pose_scans(
-        template, labels, scans, skeleton, method=method, root_init=root_init, coarse=coarse, min_ncc=min_ncc,
-        interpolation=interpolation, prior_deg=prior_deg, smooth_voxels=smooth_voxels, metric=metric,
-        bias_correction=bias_correction, margin_mm=margin_mm, max_joint_gap_mm=max_joint_gap_mm, progress=progress)
+    results = (
+        scan_poses
+        if scan_poses is not None
+        else pose_scans(
+            template,
+            labels,
+            scans,
+            skeleton,
+            method=method,
+            root_init=root_init,
+            coarse=coarse,
+            min_ncc=min_ncc,
+            interpolation=interpolation,
+            prior_deg=prior_deg,
+            smooth_voxels=smooth_voxels,
+            metric=metric,
+            bias_correction=bias_correction,
+            margin_mm=margin_mm,
+            max_joint_gap_mm=max_joint_gap_mm,
+            progress=progress,
+        )
+    )
     voxel_mm = {s.scan_id: s.voxel_mm for s in results}
     bad = [sid for sid, v in voxel_mm.items() if not (np.isfinite(v) and v > 0)]
     if bad:  # a NaN spacing would switch Eq. 1's outlier test off without a word
-        raise ValueError(f"scan_poses of scans {bad} carry no voxel size (ScanPose.voxel_mm): make them with "
-                         "pose_scans")
+        raise ValueError(
+            f"scan_poses of scans {bad} carry no voxel size (ScanPose.voxel_mm): make them with pose_scans"
+        )
     return _pool(results, voxel_mm, labels, skeleton, method, hinge_ratio, hinge_sd_mm, outlier_factor)
 
 
-def pose_scans(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton, *, method: str = "intensity",
-               root_init=None, coarse: bool = True, min_ncc: float = 0.5, interpolation: int = 3,
-               prior_deg: float | None = 2.0, smooth_voxels: float = 0.6, metric: str = "ncc",
-               bias_correction: bool | None = None, margin_mm: float | None = None,
-               max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM, progress=None) -> list[ScanPose]:
+def pose_scans(
+    template: Volume,
+    labels: Volume,
+    scans: dict,
+    skeleton: Skeleton,
+    *,
+    method: str = "intensity",
+    root_init=None,
+    coarse: bool = True,
+    min_ncc: float = 0.5,
+    interpolation: int = 3,
+    prior_deg: float | None = 2.0,
+    smooth_voxels: float = 0.6,
+    metric: str = "ncc",
+    bias_correction: bool | None = None,
+    margin_mm: float | None = None,
+    max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM,
+    progress=None,
+) -> list[ScanPose]:
     """Every bone of every scan in ``scans`` (the first half of :func:`estimate_poses`, whose arguments these
     are): one :class:`ScanPose` per scan, each independent of the others."""
     from .segmentation import guess_modality
@@ -325,9 +465,11 @@ def pose_scans(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton
     if bias_correction:
         template = correct_bias(template)
     regions = bone_regions(smooth(template, smooth_voxels), labels, skeleton, margin_mm=margin_mm)
-    coarse_regions = (bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton,
-                                   margin_mm=margin_mm)
-                      if coarse else None)
+    coarse_regions = (
+        bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton, margin_mm=margin_mm)
+        if coarse
+        else None
+    )
     results = []
     ids = list(scans)
     voxel_mm = {}
@@ -344,46 +486,86 @@ def pose_scans(template: Volume, labels: Volume, scans: dict, skeleton: Skeleton
         else:
             r0 = None
         cb = None if progress is None else (lambda b, d, n, f, sid=sid, si=si: progress(sid, si, len(ids), b, d, n, f))
-        fits = register_scan(regions, scan, skeleton, method=method, root_init=r0, coarse=coarse, min_ncc=min_ncc,
-                             interpolation=interpolation, prior_deg=prior_deg, smooth_voxels=smooth_voxels,
-                             coarse_regions=coarse_regions, metric=metric, max_joint_gap_mm=max_joint_gap_mm,
-                             progress=cb)
+        fits = register_scan(
+            regions,
+            scan,
+            skeleton,
+            method=method,
+            root_init=r0,
+            coarse=coarse,
+            min_ncc=min_ncc,
+            interpolation=interpolation,
+            prior_deg=prior_deg,
+            smooth_voxels=smooth_voxels,
+            coarse_regions=coarse_regions,
+            metric=metric,
+            max_joint_gap_mm=max_joint_gap_mm,
+            progress=cb,
+        )
         transforms = {b: fits[b].transform for b in skeleton.order}
-        results.append(ScanPose(sid, Pose(transforms, skeleton=skeleton.name), fits, time.perf_counter() - t0,
-                                voxel_mm[sid]))
+        results.append(
+            ScanPose(sid, Pose(transforms, skeleton=skeleton.name), fits, time.perf_counter() - t0, voxel_mm[sid])
+        )
     return results
 
 
-def _pool(results: list[ScanPose], voxel_mm: dict, labels: Volume, skeleton: Skeleton, method: str,
-          hinge_ratio: float, hinge_sd_mm, outlier_factor) -> PoseResult:
+def _pool(
+    results: list[ScanPose],
+    voxel_mm: dict,
+    labels: Volume,
+    skeleton: Skeleton,
+    method: str,
+    hinge_ratio: float,
+    hinge_sd_mm,
+    outlier_factor,
+) -> PoseResult:
     """Kurihara Eq. 1 over the scans' fits: outliers flagged, joint centres, each scan's angles."""
+
     def usable(s, j):  # flagged fits are reported, not used
         return s.fits[j.parent].ok and s.fits[j.child].ok
 
-    contacts = {j.name: contact_point(labels, skeleton.label_of(j.parent), skeleton.label_of(j.child))
-                for j in skeleton.joints}
+    contacts = {
+        j.name: contact_point(labels, skeleton.label_of(j.parent), skeleton.label_of(j.child)) for j in skeleton.joints
+    }
     if outlier_factor is not None:
-        flag_joint_outliers(results, skeleton, contacts, voxel_mm, factor=outlier_factor, hinge_ratio=hinge_ratio,
-                            hinge_sd_mm=hinge_sd_mm)
+        flag_joint_outliers(
+            results,
+            skeleton,
+            contacts,
+            voxel_mm,
+            factor=outlier_factor,
+            hinge_ratio=hinge_ratio,
+            hinge_sd_mm=hinge_sd_mm,
+        )
     joints, new_joints = {}, []
     for j in skeleton.joints:
         motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in results if usable(s, j)]
         if not motions:
             new_joints.append(j)  # no scan where both bones were found: the skeleton's centre stays
             continue
-        r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio,
-                                  hinge_sd_mm=hinge_sd_mm) \
-            if max(rotation_angle_deg(m) for m in motions) >= MOVING_DEG else None
+        r = (
+            estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio, hinge_sd_mm=hinge_sd_mm)
+            if max(rotation_angle_deg(m) for m in motions) >= MOVING_DEG
+            else None
+        )
         if r is None:
             # The joint barely turns: Eq. 1's centre would be translation noise over a tiny angle (millimetres
             # off for 0.3° of noise), so the skeleton's centre stays, with its residual reported.
             c = np.asarray(j.center, float)
             per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in motions])
-            r = JointCenterResult(center=c, rms_mm=float(np.sqrt(np.mean(per**2))), per_motion_mm=per,
-                                  singular_values=np.zeros(3), is_hinge=False, axis=np.zeros(3),
-                                  n_motions=len(motions), iterative_center=c.copy(), estimated=False,
-                                  message=f"moves less than {MOVING_DEG:.0f}° in every scan: the skeleton's centre "
-                                          "is kept (Eq. 1 cannot place it)")
+            r = JointCenterResult(
+                center=c,
+                rms_mm=float(np.sqrt(np.mean(per**2))),
+                per_motion_mm=per,
+                singular_values=np.zeros(3),
+                is_hinge=False,
+                axis=np.zeros(3),
+                n_motions=len(motions),
+                iterative_center=c.copy(),
+                estimated=False,
+                message=f"moves less than {MOVING_DEG:.0f}° in every scan: the skeleton's centre "
+                "is kept (Eq. 1 cannot place it)",
+            )
         joints[j.name] = r
         new_joints.append(Joint(j.name, j.parent, j.child, j.dof, tuple(r.center), j.axes, j.limits))
     est = Skeleton(skeleton.bones, new_joints, name=skeleton.name)
@@ -394,8 +576,9 @@ def _pool(results: list[ScanPose], voxel_mm: dict, labels: Volume, skeleton: Ske
                 centres[j.name] = apply(s.pose.transforms[j.parent], j.center)
             if usable(s, j):  # a joint with a flagged bone gets no angles (it is listed in the failures)
                 angles[j.name] = j.angles_from_motion(est.relative_motion(s.pose.transforms, j.name))
-        s.pose = Pose(placed_transforms(s.fits, skeleton), joint_angles=angles, joint_centers=centres,
-                      skeleton=skeleton.name)
+        s.pose = Pose(
+            placed_transforms(s.fits, skeleton), joint_angles=angles, joint_centers=centres, skeleton=skeleton.name
+        )
     return PoseResult(method, results, joints, est, contacts)
 
 
@@ -419,13 +602,21 @@ def released_labels(labels: Volume, skeleton: Skeleton, flagged) -> Volume:
     ids = [skeleton.label_of(b) for b in flagged]
     if not ids:
         return labels
-    return Volume(np.where(np.isin(labels.data, ids), 0, labels.data).astype(labels.data.dtype, copy=False),
-                  labels.geometry)
+    return Volume(
+        np.where(np.isin(labels.data, ids), 0, labels.data).astype(labels.data.dtype, copy=False), labels.geometry
+    )
 
 
-def flag_joint_outliers(results: list[ScanPose], skeleton: Skeleton, contacts: dict, voxel_mm: dict, *,
-                        factor: float = OUTLIER_FACTOR, hinge_ratio: float = 0.05,
-                        hinge_sd_mm: float | None = HINGE_SD_MM) -> list[tuple[str, str]]:
+def flag_joint_outliers(
+    results: list[ScanPose],
+    skeleton: Skeleton,
+    contacts: dict,
+    voxel_mm: dict,
+    *,
+    factor: float = OUTLIER_FACTOR,
+    hinge_ratio: float = 0.05,
+    hinge_sd_mm: float | None = HINGE_SD_MM,
+) -> list[tuple[str, str]]:
     """Flag child bones whose motion is inconsistent with their joint's Eq. 1 centre (see :func:`estimate_poses`).
 
     Returns the ``(scan id, bone)`` pairs flagged ``joint_outlier``; their
@@ -444,8 +635,9 @@ def flag_joint_outliers(results: list[ScanPose], skeleton: Skeleton, contacts: d
             motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in used]
             if max(rotation_angle_deg(m) for m in motions) < MOVING_DEG:
                 continue
-            r = estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio,
-                                      hinge_sd_mm=hinge_sd_mm, cross_check=False)
+            r = estimate_joint_center(
+                motions, reference=contacts[j.name], hinge_ratio=hinge_ratio, hinge_sd_mm=hinge_sd_mm, cross_check=False
+            )
             miss = r.per_motion_mm
             med = float(np.median(miss))
             for s, d in zip(used, miss):
@@ -459,16 +651,20 @@ def flag_joint_outliers(results: list[ScanPose], skeleton: Skeleton, contacts: d
         f = s.fits[j.child]
         f.status = "joint_outlier"
         f.extra["eq1_miss_mm"] = d
-        f.stop = (f"{f.stop}; its motion misses joint '{j.name}''s centre, estimated by Eq. 1 from all scans, by "
-                  f"{d:.1f} mm (limit {limit:.1f} mm: {factor:g}x the joint's median, at least "
-                  f"{OUTLIER_VOXELS:g} voxel)")
+        f.stop = (
+            f"{f.stop}; its motion misses joint '{j.name}''s centre, estimated by Eq. 1 from all scans, by "
+            f"{d:.1f} mm (limit {limit:.1f} mm: {factor:g}x the joint's median, at least "
+            f"{OUTLIER_VOXELS:g} voxel)"
+        )
         flagged.append((sid, j.child))
         for name in skeleton.order:  # bones below a flagged bone were fitted from it
             jj = skeleton.joint_of(name)
             if jj is not None and s.fits[name].ok and not s.fits[jj.parent].ok:
                 s.fits[name].status = "parent_flagged"
-                s.fits[name].stop = (f"{s.fits[name].stop}; its parent '{jj.parent}' was flagged "
-                                     f"({s.fits[jj.parent].status}) and this bone was fitted from it")
+                s.fits[name].stop = (
+                    f"{s.fits[name].stop}; its parent '{jj.parent}' was flagged "
+                    f"({s.fits[jj.parent].status}) and this bone was fitted from it"
+                )
 
 
 # -- accuracy against ground truth ---------------------------------------------------------------------
@@ -485,6 +681,8 @@ def compare_poses(estimate: Pose, truth: Pose, centroids: dict[str, np.ndarray])
             continue
         t_est = estimate.transforms[b]
         c = np.asarray(centroids[b], float)
-        out[b] = {"rotation_deg": rotation_angle_deg(compose(invert(t_true), t_est)),
-                  "translation_mm": float(np.linalg.norm(apply(t_est, c) - apply(t_true, c)))}
+        out[b] = {
+            "rotation_deg": rotation_angle_deg(compose(invert(t_true), t_est)),
+            "translation_mm": float(np.linalg.norm(apply(t_est, c) - apply(t_true, c))),
+        }
     return out

@@ -52,8 +52,22 @@ from deformation.geometry import Volume
 from deformation.isosurface import isosurface
 from deformation.transforms import apply, compose, rotation_angle_deg
 
-__all__ = ["BoneRegion", "BoneFit", "Sampler", "smooth", "bone_regions", "polish_with_prior", "surface_prior", "ssd", "ncc", "PRIOR_MM",
-           "coarse_rotation_search", "refine_intensity", "refine_surface", "auto_iso_level"]
+__all__ = [
+    "BoneRegion",
+    "BoneFit",
+    "Sampler",
+    "smooth",
+    "bone_regions",
+    "polish_with_prior",
+    "surface_prior",
+    "ssd",
+    "ncc",
+    "PRIOR_MM",
+    "coarse_rotation_search",
+    "refine_intensity",
+    "refine_surface",
+    "auto_iso_level",
+]
 
 
 # Voxels per independent sample of the residual in the polish's data term.  The smoothing (σ 0.6 voxel), the
@@ -113,17 +127,33 @@ class BoneFit:
         return self.status == "ok"
 
     def to_dict(self) -> dict:
-        return {"bone": self.bone, "method": self.method, "status": self.status,
-                "transform": np.asarray(self.transform).tolist(),
-                "ssd_before": float(self.ssd_before), "ssd_after": float(self.ssd_after),
-                "ncc": float(self.ncc), "inside_fraction": float(self.inside_fraction),
-                "iterations": int(self.iterations), "stop": self.stop, "seconds": round(float(self.seconds), 4),
-                "init": self.init, **self.extra}
+        return {
+            "bone": self.bone,
+            "method": self.method,
+            "status": self.status,
+            "transform": np.asarray(self.transform).tolist(),
+            "ssd_before": float(self.ssd_before),
+            "ssd_after": float(self.ssd_after),
+            "ncc": float(self.ncc),
+            "inside_fraction": float(self.inside_fraction),
+            "iterations": int(self.iterations),
+            "stop": self.stop,
+            "seconds": round(float(self.seconds), 4),
+            "init": self.init,
+            **self.extra,
+        }
 
 
 # -- regions ------------------------------------------------------------------------------------------
-def bone_regions(template: Volume, labels: Volume, skeleton, *, margin_mm: float | None = None,
-                 crop_margin_mm: float | None = None, exclusion_mm: float | None = None) -> dict[str, BoneRegion]:
+def bone_regions(
+    template: Volume,
+    labels: Volume,
+    skeleton,
+    *,
+    margin_mm: float | None = None,
+    crop_margin_mm: float | None = None,
+    exclusion_mm: float | None = None,
+) -> dict[str, BoneRegion]:
     """Every skeleton bone's region in the template.
 
     Parameters
@@ -139,8 +169,9 @@ def bone_regions(template: Volume, labels: Volume, skeleton, *, margin_mm: float
         them in a posed scan, and its cortex would pull on this bone.
     """
     g = labels.geometry
-    template.geometry.check_same(g, names=("template", "template labels"),
-                                 remedy="the label map must be on the template's grid")
+    template.geometry.check_same(
+        g, names=("template", "template labels"), remedy="the label map must be on the template's grid"
+    )
     spacing = np.asarray(g.spacing, float)
     if margin_mm is None:
         margin_mm = max(2.0, float(spacing.max()))
@@ -158,9 +189,11 @@ def bone_regions(template: Volume, labels: Volume, skeleton, *, margin_mm: float
         own = lab == b.label
         n = int(own.sum())
         if n < 4:
-            raise ValueError(f"bone {b.name!r} (label {b.label}) has {n} voxels in the template label map (at least "
-                             "4 needed); check the label ids in skeleton.json against the label map, or, for a "
-                             "segmented template, move or add seeds for this bone")
+            raise ValueError(
+                f"bone {b.name!r} (label {b.label}) has {n} voxels in the template label map (at least "
+                "4 needed); check the label ids in skeleton.json against the label map, or, for a "
+                "segmented template, move or add seeds for this bone"
+            )
         region = (nearest == b.label) & (dist <= margin_mm)
         others = bone_voxels & ~own
         if others.any():
@@ -177,8 +210,9 @@ def bone_regions(template: Volume, labels: Volume, skeleton, *, margin_mm: float
         pts = crop.geometry.index_to_world(np.column_stack([i, j, k]).astype(float))
         bk, bj, bi = np.nonzero(own)
         centroid = g.index_to_world(np.column_stack([bi, bj, bk]).astype(float)).mean(axis=0)
-        out[b.name] = BoneRegion(b.name, b.label, crop, m, Volume(own, g).crop(lo, hi).data, pts,
-                                 crop.data[m].astype(np.float64), centroid)
+        out[b.name] = BoneRegion(
+            b.name, b.label, crop, m, Volume(own, g).crop(lo, hi).data, pts, crop.data[m].astype(np.float64), centroid
+        )
     return out
 
 
@@ -223,8 +257,9 @@ def smooth(image: Volume, sigma_voxels: float) -> Volume:
     """
     if not sigma_voxels:
         return image
-    return Volume(ndimage.gaussian_filter(np.asarray(image.data, dtype=np.float32), float(sigma_voxels)),
-                  image.geometry)
+    return Volume(
+        ndimage.gaussian_filter(np.asarray(image.data, dtype=np.float32), float(sigma_voxels)), image.geometry
+    )
 
 
 def ssd(a: np.ndarray, b: np.ndarray) -> float:
@@ -253,8 +288,15 @@ def _evaluate(region: BoneRegion, sampler: Sampler, t: np.ndarray, *, min_inside
 
 
 # -- coarse initialisation -----------------------------------------------------------------------------
-def _batch_ssd(region_pts, region_vals, sampler: Sampler, transforms: np.ndarray, min_inside: float = 0.5,
-               metric: str = "ssd", outside_unmatched: bool = False):
+def _batch_ssd(
+    region_pts,
+    region_vals,
+    sampler: Sampler,
+    transforms: np.ndarray,
+    min_inside: float = 0.5,
+    metric: str = "ssd",
+    outside_unmatched: bool = False,
+):
     """Cost of the region under each of ``transforms`` (k, 4, 4), one interpolation call per batch.
 
     ``metric="ssd"``: mean squared difference (Eq. 1).  ``metric="ncc"``: the
@@ -277,8 +319,8 @@ def _batch_ssd(region_pts, region_vals, sampler: Sampler, transforms: np.ndarray
         t = np.broadcast_to(region_vals, v.shape)
         vz = np.where(ok, v, 0.0)
         mv, mt = vz.sum(1) / m, (t * w).sum(1) / m
-        cv = ((vz - mv[:, None]) * w)
-        ct = ((t - mt[:, None]) * w)
+        cv = (vz - mv[:, None]) * w
+        ct = (t - mt[:, None]) * w
         sxy, sxx, syy = (cv * ct).sum(1), (cv * cv).sum(1), (ct * ct).sum(1)
         rho2 = np.where(sxx * syy > 0, sxy**2 / np.maximum(sxx * syy, 1e-300), 0.0)
         out = syy / m * (1.0 - rho2)
@@ -292,11 +334,23 @@ def _batch_ssd(region_pts, region_vals, sampler: Sampler, transforms: np.ndarray
     return out
 
 
-def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transform: np.ndarray, joint, *,
-                           flex_range=(-120.0, 120.0), abd_range=(-20.0, 20.0), twist_range=(-20.0, 20.0),
-                           max_points: int = 400, top: int = 12, metric: str = "ncc", center=None,
-                           seed: int = 0, runners_up: list | None = None,
-                           outside_unmatched: bool = True) -> tuple[np.ndarray, float, int, np.ndarray]:
+def coarse_rotation_search(
+    region: BoneRegion,
+    sampler: Sampler,
+    parent_transform: np.ndarray,
+    joint,
+    *,
+    flex_range=(-120.0, 120.0),
+    abd_range=(-20.0, 20.0),
+    twist_range=(-20.0, 20.0),
+    max_points: int = 400,
+    top: int = 12,
+    metric: str = "ncc",
+    center=None,
+    seed: int = 0,
+    runners_up: list | None = None,
+    outside_unmatched: bool = True,
+) -> tuple[np.ndarray, float, int, np.ndarray]:
     """Best child transform among rotations about the joint centre (our initialisation step).
 
     The cost is ``metric`` (see :func:`_batch_ssd`): SSD, or by default the
@@ -356,11 +410,24 @@ def coarse_rotation_search(region: BoneRegion, sampler: Sampler, parent_transfor
 
     # Stage 1: a grid at twice the geometric step; keep the best ``top`` candidates.
     coarse_step = min(2.0 * step, 15.0)
-    grid = np.array(np.meshgrid(axis_values(*flex_range, coarse_step), axis_values(*abd_range, coarse_step),
-                                axis_values(*twist_range, coarse_step), indexing="ij")).reshape(3, -1).T
-    e = np.concatenate([_batch_ssd(pts, vals, sampler, transforms(chunk), metric=metric,
-                                   outside_unmatched=outside_unmatched)
-                        for chunk in np.array_split(grid, max(1, len(grid) // 256))])
+    grid = (
+        np.array(
+            np.meshgrid(
+                axis_values(*flex_range, coarse_step),
+                axis_values(*abd_range, coarse_step),
+                axis_values(*twist_range, coarse_step),
+                indexing="ij",
+            )
+        )
+        .reshape(3, -1)
+        .T
+    )
+    e = np.concatenate(
+        [
+            _batch_ssd(pts, vals, sampler, transforms(chunk), metric=metric, outside_unmatched=outside_unmatched)
+            for chunk in np.array_split(grid, max(1, len(grid) // 256))
+        ]
+    )
     n = len(grid)
     order = np.argsort(e)[:top]
     if not np.isfinite(e[order[0]]):
@@ -448,11 +515,24 @@ def _levels(region: BoneRegion, multires: bool) -> tuple[list[int], list[float]]
     return [1, 1], [1.0, 0.0]
 
 
-def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, iterations: int = 300,
-                     polish: bool = True, prior_deg: float | None = 2.0, prior_mm: float | None = PRIOR_MM,
-                     multires: bool = False, metric: str = "ncc", prior_center: np.ndarray | None = None,
-                     noise_correlation: float = NOISE_CORRELATION, loss: str = ROBUST_LOSS,
-                     loss_scale: float = ROBUST_SCALE, min_ncc: float = 0.5, min_inside: float = 0.5) -> BoneFit:
+def refine_intensity(
+    region: BoneRegion,
+    sampler: Sampler,
+    init: np.ndarray,
+    *,
+    iterations: int = 300,
+    polish: bool = True,
+    prior_deg: float | None = 2.0,
+    prior_mm: float | None = PRIOR_MM,
+    multires: bool = False,
+    metric: str = "ncc",
+    prior_center: np.ndarray | None = None,
+    noise_correlation: float = NOISE_CORRELATION,
+    loss: str = ROBUST_LOSS,
+    loss_scale: float = ROBUST_SCALE,
+    min_ncc: float = 0.5,
+    min_inside: float = 0.5,
+) -> BoneFit:
     """Rhee Eq. 1: minimise the SSD over the bone region with SimpleITK, from ``init``.
 
     SimpleITK's ``ImageRegistrationMethod`` minimises mean squares over the
@@ -472,16 +552,27 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
     t0 = time.perf_counter()
     before, inside0 = _evaluate(region, sampler, init, min_inside=0.0)
     if inside0 < min_inside:
-        return BoneFit(region.name, init, "intensity", "outside_field_of_view", before, math.nan, math.nan, inside0,
-                       stop=f"only {inside0:.0%} of the bone region maps inside the scan at the initialisation",
-                       seconds=time.perf_counter() - t0)
+        return BoneFit(
+            region.name,
+            init,
+            "intensity",
+            "outside_field_of_view",
+            before,
+            math.nan,
+            math.nan,
+            inside0,
+            stop=f"only {inside0:.0%} of the bone region maps inside the scan at the initialisation",
+            seconds=time.perf_counter() - t0,
+        )
     fixed = region.crop.to_sitk()
     mask = Volume(region.mask.astype(np.uint8), region.crop.geometry).to_sitk()
     moving = sampler.sitk_image()
     shrink, sigma = _levels(region, multires)
     reg = sitk.ImageRegistrationMethod()
     if metric not in ("ssd", "ncc"):
-        raise ValueError(f"metric must be 'ssd' (Rhee Eq. 1) or 'ncc' (Eq. 1 after a linear intensity fit), got {metric!r}")
+        raise ValueError(
+            f"metric must be 'ssd' (Rhee Eq. 1) or 'ncc' (Eq. 1 after a linear intensity fit), got {metric!r}"
+        )
     # Eq. 1 as printed.  (ITK's correlation metric with the same optimiser ran into the iteration cap on every
     # bone and took 25x longer; the intensity-invariant variant lives in the polish below.)
     reg.SetMetricAsMeanSquares()
@@ -491,8 +582,13 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
     # ITK's regular-step descent (learning rate 1, physical-shift scales): of ITK's optimisers it got closest and
     # fastest from a few degrees off (docs/measurements/pose-and-initialisation.md); none reaches the SSD minimum
     # in rotation, which is why polish_with_prior follows.
-    reg.SetOptimizerAsRegularStepGradientDescent(learningRate=1.0, minStep=1e-4, numberOfIterations=iterations,
-                                                 relaxationFactor=0.7, gradientMagnitudeTolerance=1e-12)
+    reg.SetOptimizerAsRegularStepGradientDescent(
+        learningRate=1.0,
+        minStep=1e-4,
+        numberOfIterations=iterations,
+        relaxationFactor=0.7,
+        gradientMagnitudeTolerance=1e-12,
+    )
     reg.SetOptimizerScalesFromPhysicalShift()
     reg.SetShrinkFactorsPerLevel(shrink)
     reg.SetSmoothingSigmasPerLevel(sigma)
@@ -507,14 +603,27 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
     try:
         out = reg.Execute(fixed, moving)
     except RuntimeError as e:  # e.g. "All samples map outside moving image buffer"
-        return BoneFit(region.name, init, "intensity", "not_converged", before, math.nan, math.nan, inside0,
-                       stop=f"SimpleITK failed: {str(e).strip().splitlines()[-1]}", seconds=time.perf_counter() - t0)
+        return BoneFit(
+            region.name,
+            init,
+            "intensity",
+            "not_converged",
+            before,
+            math.nan,
+            math.nan,
+            inside0,
+            stop=f"SimpleITK failed: {str(e).strip().splitlines()[-1]}",
+            seconds=time.perf_counter() - t0,
+        )
     finally:
         sitk.ProcessObject.SetGlobalWarningDisplay(shown)
     t = _matrix_from_sitk(out.GetNthTransform(0) if hasattr(out, "GetNthTransform") else out)
     stop = reg.GetOptimizerStopConditionDescription()
-    extra = {"ssd_eq1": _evaluate(region, sampler, t, min_inside=0.0)[0], "sitk_iterations": iters[0],
-             "sitk_stop": stop}
+    extra = {
+        "ssd_eq1": _evaluate(region, sampler, t, min_inside=0.0)[0],
+        "sitk_iterations": iters[0],
+        "sitk_stop": stop,
+    }
     not_converged = iters[0] >= iterations * len(shrink)
     if polish:
         centre = init if prior_center is None else np.asarray(prior_center, float)
@@ -523,8 +632,14 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
         rms, mad = _data_sigma(region, sampler, t, metric)
         sigma = rms * math.sqrt(noise_correlation)
         robust = mad / rms if np.isfinite(rms) else 1.0  # NaN when the fit left the scan: polish re-measures σ
-        opts = dict(prior_deg=prior_deg, prior_mm=prior_mm, metric=metric, sigma=sigma, loss=loss,
-                    loss_scale=loss_scale * robust)
+        opts = dict(
+            prior_deg=prior_deg,
+            prior_mm=prior_mm,
+            metric=metric,
+            sigma=sigma,
+            loss=loss,
+            loss_scale=loss_scale * robust,
+        )
         runs = [polish_with_prior(region, sampler, centre, t, **opts)]
         if prior_center is not None:  # also from the prior's centre: the grid search may have taken a wrong basin
             runs.append(polish_with_prior(region, sampler, centre, centre, **opts))
@@ -533,8 +648,20 @@ def refine_intensity(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, 
         extra.update(info)
         not_converged = not info.get("converged", True)
         stop = info.get("message", stop)
-    return _finish(region, sampler, t, "intensity", before, iters[0], stop, t0, min_ncc=min_ncc,
-                   min_inside=min_inside, not_converged=not_converged, extra=extra)
+    return _finish(
+        region,
+        sampler,
+        t,
+        "intensity",
+        before,
+        iters[0],
+        stop,
+        t0,
+        min_ncc=min_ncc,
+        min_inside=min_inside,
+        not_converged=not_converged,
+        extra=extra,
+    )
 
 
 def _increment(x: np.ndarray, reference: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -564,15 +691,24 @@ def _data_sigma(region: BoneRegion, sampler: Sampler, t: np.ndarray, metric: str
     if ok.sum() < 12:
         return math.nan, math.nan
     r = _data_residuals(v[ok], region.values[ok], metric)
-    rms = math.sqrt(max(float(np.mean(r ** 2)), 1e-12))
+    rms = math.sqrt(max(float(np.mean(r**2)), 1e-12))
     mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
     return rms, min(max(mad, 0.01 * rms), rms)
 
 
-def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, start: np.ndarray, *,
-                      prior_deg: float | None = 2.0, prior_mm: float | None = PRIOR_MM, metric: str = "ncc",
-                      sigma: float | None = None, loss: str = ROBUST_LOSS,
-                      loss_scale: float = ROBUST_SCALE) -> tuple[np.ndarray, dict]:
+def polish_with_prior(
+    region: BoneRegion,
+    sampler: Sampler,
+    init: np.ndarray,
+    start: np.ndarray,
+    *,
+    prior_deg: float | None = 2.0,
+    prior_mm: float | None = PRIOR_MM,
+    metric: str = "ncc",
+    sigma: float | None = None,
+    loss: str = ROBUST_LOSS,
+    loss_scale: float = ROBUST_SCALE,
+) -> tuple[np.ndarray, dict]:
     """Eq. 1 plus a weak Gaussian prior tying the bone to its hierarchical initialisation.
 
     A bone that is nearly symmetric about an axis (a phalanx two voxels
@@ -639,21 +775,39 @@ def polish_with_prior(region: BoneRegion, sampler: Sampler, init: np.ndarray, st
         h = 1e-2
         return np.column_stack([(residuals(x + h * e) - f0) / h for e in np.eye(6)])
 
-    res = least_squares(residuals, np.zeros(6), jac=jacobian, method="trf", x_scale=1.0, xtol=1e-8, ftol=1e-10,
-                        loss=loss, f_scale=float(loss_scale))
+    res = least_squares(
+        residuals,
+        np.zeros(6),
+        jac=jacobian,
+        method="trf",
+        x_scale=1.0,
+        xtol=1e-8,
+        ftol=1e-10,
+        loss=loss,
+        f_scale=float(loss_scale),
+    )
     j = res.jac
     cov = np.linalg.pinv(j.T @ j)
     sd = np.sqrt(np.clip(np.linalg.eigvalsh(cov[:3, :3]), 0, None))
     sd_t = np.sqrt(np.clip(np.linalg.eigvalsh(cov[3:, 3:]), 0, None))
     image_sd = _image_rotation_sd(j[:-6])
     t = _increment(x0 + res.x, init, c)
-    return t, {"prior_deg": prior_deg, "prior_mm": prior_mm, "residual_sigma": sigma, "metric": metric,
-               "loss": loss, "loss_scale": float(loss_scale),
-               "cost": float(2 * res.cost),
-               "converged": bool(res.status > 0), "message": f"polish: {res.message}", "polish_evaluations": int(res.nfev),
-               "rotation_sd_deg": float(sd.max()), "translation_sd_mm": float(sd_t.max()),
-               "image_rotation_sd_deg": image_sd,
-               "change_from_eq1_deg": rotation_angle_deg(compose(t, np.linalg.inv(start)))}
+    return t, {
+        "prior_deg": prior_deg,
+        "prior_mm": prior_mm,
+        "residual_sigma": sigma,
+        "metric": metric,
+        "loss": loss,
+        "loss_scale": float(loss_scale),
+        "cost": float(2 * res.cost),
+        "converged": bool(res.status > 0),
+        "message": f"polish: {res.message}",
+        "polish_evaluations": int(res.nfev),
+        "rotation_sd_deg": float(sd.max()),
+        "translation_sd_mm": float(sd_t.max()),
+        "image_rotation_sd_deg": image_sd,
+        "change_from_eq1_deg": rotation_angle_deg(compose(t, np.linalg.inv(start))),
+    }
 
 
 def _image_rotation_sd(j_data: np.ndarray) -> float | None:
@@ -670,8 +824,9 @@ def _image_rotation_sd(j_data: np.ndarray) -> float | None:
     return float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)))
 
 
-def _finish(region, sampler, t, method, before, iterations, stop, t0, *, min_ncc, min_inside, not_converged=False,
-            extra=None) -> BoneFit:
+def _finish(
+    region, sampler, t, method, before, iterations, stop, t0, *, min_ncc, min_inside, not_converged=False, extra=None
+) -> BoneFit:
     import time
 
     vals = sampler(apply(t, region.points))
@@ -686,8 +841,20 @@ def _finish(region, sampler, t, method, before, iterations, stop, t0, *, min_ncc
         status = "poor_match"
     else:
         status = "ok"
-    return BoneFit(region.name, t, method, status, before, after, c, inside, iterations=iterations, stop=stop,
-                   seconds=time.perf_counter() - t0, extra=extra or {})
+    return BoneFit(
+        region.name,
+        t,
+        method,
+        status,
+        before,
+        after,
+        c,
+        inside,
+        iterations=iterations,
+        stop=stop,
+        seconds=time.perf_counter() - t0,
+        extra=extra or {},
+    )
 
 
 # -- Kurihara §3: isosurfaces and ICP ------------------------------------------------------------------
@@ -712,9 +879,17 @@ def _crop_around(scan: Volume, points: np.ndarray, margin_mm: float) -> Volume |
     return crop if min(crop.geometry.size) >= 2 else None
 
 
-def surface_prior(points: np.ndarray, normals: np.ndarray, fitted: np.ndarray, prior: np.ndarray,
-                  centroid: np.ndarray, sigma_mm: float, *, prior_deg: float | None = 2.0,
-                  prior_mm: float | None = PRIOR_MM) -> tuple[np.ndarray, dict]:
+def surface_prior(
+    points: np.ndarray,
+    normals: np.ndarray,
+    fitted: np.ndarray,
+    prior: np.ndarray,
+    centroid: np.ndarray,
+    sigma_mm: float,
+    *,
+    prior_deg: float | None = 2.0,
+    prior_mm: float | None = PRIOR_MM,
+) -> tuple[np.ndarray, dict]:
     """ICP's result combined with :func:`polish_with_prior`'s Gaussian prior (MAP).
 
     A bone nearly symmetric about its length (a phalanx) leaves point-to-plane ICP flat along that rotation:
@@ -725,7 +900,8 @@ def surface_prior(points: np.ndarray, normals: np.ndarray, fitted: np.ndarray, p
     vector in degrees about the fitted centroid ``c``, translation mm, applied after the fit;
     ``J_i = [(q_i − c) × m_i · π/180, m_i]`` at the fitted points ``q_i`` and normals ``m_i``; ``sigma_mm`` the
     residual scale per point, :func:`refine_surface` gives ICP's RMS distance).  The prior
-    ``N(prior, diag(τ_θ², τ_t²))`` is the intensity method's (the parent turned by the joint's flexion).  We minimise ``xᵀHx + |Λ^½ log(D(x) ∘ fitted ∘ prior⁻¹)|²`` (the
+    ``N(prior, diag(τ_θ², τ_t²))`` is the intensity method's (the parent turned by the joint's flexion).  We
+    minimise ``xᵀHx + |Λ^½ log(D(x) ∘ fitted ∘ prior⁻¹)|²`` (the
     prior's residual exact in the rotation, so that a large roll is removed about the *fitted* axis, along
     which ``H`` is exactly flat): directions the surface fixes keep ICP's value (their information is orders
     of magnitude above ``1/τ²``), undetermined ones go to the prior.  Returns the transform and the
@@ -747,19 +923,33 @@ def surface_prior(points: np.ndarray, normals: np.ndarray, fitted: np.ndarray, p
         d = compose(_increment(x, fitted, c), np.linalg.inv(prior))
         return np.concatenate([np.degrees(Rotation.from_matrix(d[:3, :3]).as_rotvec()), apply(d, cp) - cp])
 
-    res = least_squares(lambda x: np.concatenate([root.T @ x, w * from_prior(x)]), np.zeros(6), method="lm",
-                        xtol=1e-12, ftol=1e-12)
+    res = least_squares(
+        lambda x: np.concatenate([root.T @ x, w * from_prior(x)]), np.zeros(6), method="lm", xtol=1e-12, ftol=1e-12
+    )
     t = _increment(res.x, fitted, c)
-    cov = np.linalg.inv(h + np.diag(w ** 2))
-    return t, {"prior_deg": prior_deg, "prior_mm": prior_mm, "residual_sigma_mm": float(sigma_mm),
-               "rotation_sd_deg": float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))),
-               "change_from_icp_deg": rotation_angle_deg(compose(t, np.linalg.inv(fitted)))}
+    cov = np.linalg.inv(h + np.diag(w**2))
+    return t, {
+        "prior_deg": prior_deg,
+        "prior_mm": prior_mm,
+        "residual_sigma_mm": float(sigma_mm),
+        "rotation_sd_deg": float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))),
+        "change_from_icp_deg": rotation_angle_deg(compose(t, np.linalg.inv(fitted))),
+    }
 
 
-def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, level: float | None = None,
-                   min_ncc: float = 0.5, min_inside: float = 0.5, min_fitness: float = 0.5,
-                   prior: np.ndarray | None = None, prior_deg: float | None = 2.0,
-                   prior_mm: float | None = PRIOR_MM) -> BoneFit:
+def refine_surface(
+    region: BoneRegion,
+    sampler: Sampler,
+    init: np.ndarray,
+    *,
+    level: float | None = None,
+    min_ncc: float = 0.5,
+    min_inside: float = 0.5,
+    min_fitness: float = 0.5,
+    prior: np.ndarray | None = None,
+    prior_deg: float | None = 2.0,
+    prior_mm: float | None = PRIOR_MM,
+) -> BoneFit:
     """Kurihara §3: ICP of the bone's isosurface (template) onto the scan's isosurface near it.
 
     Source: the template's ``level`` isosurface inside the bone's region;
@@ -777,9 +967,18 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
     scan = sampler.image
     before, inside0 = _evaluate(region, sampler, init, min_inside=0.0)
     if inside0 < min_inside:
-        return BoneFit(region.name, init, "surface", "outside_field_of_view", before, math.nan, math.nan, inside0,
-                       stop=f"only {inside0:.0%} of the bone region maps inside the scan at the initialisation",
-                       seconds=time.perf_counter() - t0)
+        return BoneFit(
+            region.name,
+            init,
+            "surface",
+            "outside_field_of_view",
+            before,
+            math.nan,
+            math.nan,
+            inside0,
+            stop=f"only {inside0:.0%} of the bone region maps inside the scan at the initialisation",
+            seconds=time.perf_counter() - t0,
+        )
     lvl = auto_iso_level(region) if level is None else float(level)
     mesh = isosurface(region.crop, lvl)
     src, src_n = mesh.vertices, vertex_normals(mesh.vertices, mesh.triangles)
@@ -793,12 +992,23 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
     tgt = isosurface(sub, lvl).vertices if sub is not None else np.zeros((0, 3))  # also the prior's matches
     extra = {"iso_level": lvl, "source_points": int(len(src)), "target_points": int(len(tgt))}
     if len(src) < 10 or len(tgt) < 10:
-        return BoneFit(region.name, init, "surface", "poor_match", before, math.nan, math.nan, inside0,
-                       stop=f"isosurface at level {lvl:.1f} has {len(src)} template / {len(tgt)} scan points near "
-                            "the bone", seconds=time.perf_counter() - t0, extra=extra)
+        return BoneFit(
+            region.name,
+            init,
+            "surface",
+            "poor_match",
+            before,
+            math.nan,
+            math.nan,
+            inside0,
+            stop=f"isosurface at level {lvl:.1f} has {len(src)} template / {len(tgt)} scan points near the bone",
+            seconds=time.perf_counter() - t0,
+            extra=extra,
+        )
     d = spacing
-    res = icp_point_to_plane(src, tgt, init=init, distances_mm=(3 * d, 2 * d, d, 0.5 * d),
-                             normals_radius_mm=2.5 * d, min_fitness=min_fitness)
+    res = icp_point_to_plane(
+        src, tgt, init=init, distances_mm=(3 * d, 2 * d, d, 0.5 * d), normals_radius_mm=2.5 * d, min_fitness=min_fitness
+    )
     extra.update({"fitness": res.fitness, "inlier_rmse_mm": res.inlier_rmse_mm})
     t = res.transform
     if prior is not None and res.converged:
@@ -814,8 +1024,28 @@ def refine_surface(region: BoneRegion, sampler: Sampler, init: np.ndarray, *, le
         dist, _ = cKDTree(tgt).query(apply(t, src), distance_upper_bound=0.5 * d)
         hit = np.isfinite(dist)
         if hit.sum() >= 6:
-            t, info = surface_prior(src[hit], src_n[hit], t, np.asarray(prior, float), region.centroid,
-                                    max(res.inlier_rmse_mm, 0.05 * spacing), prior_deg=prior_deg, prior_mm=prior_mm)
+            t, info = surface_prior(
+                src[hit],
+                src_n[hit],
+                t,
+                np.asarray(prior, float),
+                region.centroid,
+                max(res.inlier_rmse_mm, 0.05 * spacing),
+                prior_deg=prior_deg,
+                prior_mm=prior_mm,
+            )
             extra.update(info, matched_points=int(hit.sum()))
-    return _finish(region, sampler, t, "surface", before, sum(1 for _ in res.stages), res.message, t0,
-                   min_ncc=min_ncc, min_inside=min_inside, not_converged=not res.converged, extra=extra)
+    return _finish(
+        region,
+        sampler,
+        t,
+        "surface",
+        before,
+        sum(1 for _ in res.stages),
+        res.message,
+        t0,
+        min_ncc=min_ncc,
+        min_inside=min_inside,
+        not_converged=not res.converged,
+        extra=extra,
+    )

@@ -45,8 +45,17 @@ from scipy import ndimage
 
 from deformation.geometry import Volume
 
-__all__ = ["SEEDS_FORMAT", "seeds_from_labels", "segment_ct", "segment_mri", "segment_bones",
-           "SegmentationReport", "guess_modality", "segment_body", "skin_surface"]
+__all__ = [
+    "SEEDS_FORMAT",
+    "seeds_from_labels",
+    "segment_ct",
+    "segment_mri",
+    "segment_bones",
+    "SegmentationReport",
+    "guess_modality",
+    "segment_body",
+    "skin_surface",
+]
 
 SEEDS_FORMAT = "avw-seeds"
 
@@ -59,8 +68,7 @@ class SegmentationReport:
     parameters: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"method": self.method, "voxels": self.voxels, "warnings": self.warnings,
-                "parameters": self.parameters}
+        return {"method": self.method, "voxels": self.voxels, "warnings": self.warnings, "parameters": self.parameters}
 
 
 def seeds_from_labels(labels: Volume, skeleton) -> dict[str, np.ndarray]:
@@ -90,8 +98,10 @@ def _seed_indices(image: Volume, seeds: dict[str, np.ndarray]) -> dict[str, np.n
         ijk = np.rint(g.world_to_index(pts)).astype(int)
         inside = np.all((ijk >= 0) & (ijk < np.asarray(g.size)), axis=1)
         if not inside.all():
-            raise ValueError(f"seed(s) of bone {b!r} at {pts[~inside].tolist()} mm lie outside the image "
-                             f"({g.describe()}); seeds are world coordinates in mm")
+            raise ValueError(
+                f"seed(s) of bone {b!r} at {pts[~inside].tolist()} mm lie outside the image "
+                f"({g.describe()}); seeds are world coordinates in mm"
+            )
         out[b] = ijk
     return out
 
@@ -107,13 +117,16 @@ def _fill_cavities(mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def segment_ct(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, threshold: float = 400.0,
-               smoothing_voxels: float = 1.0) -> tuple[Volume, SegmentationReport]:
+def segment_ct(
+    image: Volume, skeleton, seeds: dict[str, np.ndarray], *, threshold: float = 400.0, smoothing_voxels: float = 1.0
+) -> tuple[Volume, SegmentationReport]:
     """Threshold, fill, connected components, split shared components by watershed (see module doc)."""
     import SimpleITK as sitk
 
-    rep = SegmentationReport("ct threshold + components + watershed",
-                             parameters={"threshold": threshold, "smoothing_voxels": smoothing_voxels})
+    rep = SegmentationReport(
+        "ct threshold + components + watershed",
+        parameters={"threshold": threshold, "smoothing_voxels": smoothing_voxels},
+    )
     idx = _seed_indices(image, seeds)
     data = np.asarray(image.data, dtype=np.float32)
     mask = _fill_cavities(data > threshold)
@@ -142,21 +155,33 @@ def segment_ct(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, thresho
         mk[~ndimage.binary_dilation(inside[bb], iterations=1)] = 0
         bg = np.uint16(max(present) + 1)
         mk[~inside[bb]] = bg  # everything outside the component is its own basin
-        ws = sitk.GetArrayFromImage(sitk.MorphologicalWatershedFromMarkers(
-            sitk.GetImageFromArray(g), sitk.GetImageFromArray(mk), markWatershedLine=False, fullyConnected=True))
+        ws = sitk.GetArrayFromImage(
+            sitk.MorphologicalWatershedFromMarkers(
+                sitk.GetImageFromArray(g), sitk.GetImageFromArray(mk), markWatershedLine=False, fullyConnected=True
+            )
+        )
         sub = out[bb]
         sel = inside[bb] & (ws != bg)
         sub[sel] = ws[sel]
     for b in skeleton.bones:
         rep.voxels[b.name] = int((out == b.label).sum())
         if rep.voxels[b.name] == 0:
-            rep.warnings.append(f"bone {b.name!r}: its seed is not above the threshold {threshold}; "
-                                "move the seed into the bone or lower --threshold")
+            rep.warnings.append(
+                f"bone {b.name!r}: its seed is not above the threshold {threshold}; "
+                "move the seed into the bone or lower --threshold"
+            )
     return Volume(out, image.geometry), rep
 
 
-def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_volume_ml: float = 1500.0,
-                cortex_mm: float = 2.5, tolerance: float = 0.01) -> tuple[Volume, SegmentationReport]:
+def segment_mri(
+    image: Volume,
+    skeleton,
+    seeds: dict[str, np.ndarray],
+    *,
+    max_volume_ml: float = 1500.0,
+    cortex_mm: float = 2.5,
+    tolerance: float = 0.01,
+) -> tuple[Volume, SegmentationReport]:
     """Each bone's bright marrow inside its dark cortex, flooded from its seeds, then the cortex (module doc).
 
     For a threshold ``t`` the flood (SimpleITK ``ConnectedThreshold``) from a seed takes every voxel at
@@ -170,9 +195,10 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
     """
     import SimpleITK as sitk
 
-    rep = SegmentationReport("mri marrow flood inside the cortex (ConnectedThreshold, bisected threshold)",
-                             parameters={"max_volume_ml": max_volume_ml, "cortex_mm": cortex_mm,
-                                         "tolerance": tolerance})
+    rep = SegmentationReport(
+        "mri marrow flood inside the cortex (ConnectedThreshold, bisected threshold)",
+        parameters={"max_volume_ml": max_volume_ml, "cortex_mm": cortex_mm, "tolerance": tolerance},
+    )
     idx = _seed_indices(image, seeds)
     img = sitk.Cast(image.to_sitk(), sitk.sitkFloat32)
     img = sitk.CurvatureFlow(img, timeStep=0.0625, numberOfIterations=5)  # edge-preserving denoising
@@ -189,8 +215,9 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
     rep.parameters["thresholds"] = {}
 
     def flood(seed_list, t):
-        return sitk.GetArrayFromImage(sitk.ConnectedThreshold(img, seedList=seed_list, lower=float(t),
-                                                              upper=float(np.inf), replaceValue=1)).astype(bool)
+        return sitk.GetArrayFromImage(
+            sitk.ConnectedThreshold(img, seedList=seed_list, lower=float(t), upper=float(np.inf), replaceValue=1)
+        ).astype(bool)
 
     def contained(r):
         return bool(r.any()) and r.sum() * voxel_ml <= limit_ml and not (r & near_air).any()
@@ -210,8 +237,10 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
             xyz = np.round(g.index_to_world(np.asarray(p, float)), 1).tolist()
             r = flood([p], v)
             if not contained(r):
-                rep.warnings.append(f"bone {b.name!r}: the seed at {xyz} mm floods out of the bone even at its "
-                                    f"own intensity ({v:.0f}): it is not in the marrow, and was left out")
+                rep.warnings.append(
+                    f"bone {b.name!r}: the seed at {xyz} mm floods out of the bone even at its "
+                    f"own intensity ({v:.0f}): it is not in the marrow, and was left out"
+                )
                 continue
             hi, lo = float(v), air_level
             while hi - lo > tolerance * (float(v) - air_level):
@@ -223,9 +252,11 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
                     lo = t
             regions.append((p, xyz, hi, r))
         if not regions:
-            rep.warnings.append(f"bone {b.name!r}: every seed floods out of the bone (into the air, or past the "
-                                "volume limit); its voxels are dropped — move the seeds into the marrow, or give "
-                                "a label map")
+            rep.warnings.append(
+                f"bone {b.name!r}: every seed floods out of the bone (into the air, or past the "
+                "volume limit); its voxels are dropped — move the seeds into the marrow, or give "
+                "a label map"
+            )
             grown[b.name] = np.zeros(data.shape, bool)
             continue
         # one bone, one marrow: seeds whose regions meet form a group; the bone is the group with the most
@@ -238,20 +269,27 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
             groups = [grp for grp in groups if not any(grp is j for j in joined)] + [merged]
         if len(groups) > 1 and depth is None:  # distance from the air, for the tie-break (once)
             depth = ndimage.distance_transform_edt(~air, sampling=spacing)
-        kept = groups[0] if len(groups) == 1 else \
-            max(groups, key=lambda grp: (len(grp), max(depth[x[0][2], x[0][1], x[0][0]] for x in grp)))
+        kept = (
+            groups[0]
+            if len(groups) == 1
+            else max(groups, key=lambda grp: (len(grp), max(depth[x[0][2], x[0][1], x[0][0]] for x in grp)))
+        )
         for x in regions:
             if not any(x is k for k in kept):
-                rep.warnings.append(f"bone {b.name!r}: the seed at {x[1]} mm lies in a region apart from the "
-                                    "marrow its other seeds reach (fat beside the bone?): it was left out")
+                rep.warnings.append(
+                    f"bone {b.name!r}: the seed at {x[1]} mm lies in a region apart from the "
+                    "marrow its other seeds reach (fat beside the bone?): it was left out"
+                )
         main = min(kept, key=lambda x: x[2])
         used[b.name] = np.asarray([x[0] for x in kept])
         hi = main[2]
         r = np.logical_or.reduce([x[3] for x in kept])
         rep.parameters["thresholds"][b.name] = round(hi, 1)
         if r.sum() < 8:
-            rep.warnings.append(f"bone {b.name!r}: only {int(r.sum())} marrow voxels flooded from its seeds; the "
-                                "marrow may not be resolved at this spacing")
+            rep.warnings.append(
+                f"bone {b.name!r}: only {int(r.sum())} marrow voxels flooded from its seeds; the "
+                "marrow may not be resolved at this spacing"
+            )
         # the cortex: voxels darker than the flood's threshold within cortex_mm of the marrow, and its face
         # neighbours (at least one voxel, however coarse or anisotropic the grid)
         near = (ndimage.distance_transform_edt(~r, sampling=spacing) <= cortex_mm) | ndimage.binary_dilation(r)
@@ -272,8 +310,9 @@ def segment_mri(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, max_vo
     return Volume(out, image.geometry), rep
 
 
-def segment_bones(image: Volume, skeleton, seeds: dict[str, np.ndarray], *, modality: str | None = None,
-                  **kwargs) -> tuple[Volume, SegmentationReport]:
+def segment_bones(
+    image: Volume, skeleton, seeds: dict[str, np.ndarray], *, modality: str | None = None, **kwargs
+) -> tuple[Volume, SegmentationReport]:
     """Segment with the method for the modality (``"ct"``/``"mri"``; guessed from the intensities if None)."""
     modality = modality or guess_modality(image)
     if modality == "ct":
@@ -310,8 +349,9 @@ def _air_tissue_level(img) -> float:
     return 0.5 * (float(np.median(lo)) + float(np.median(hi)))
 
 
-def skin_surface(image: Volume, *, target_triangles: int | None = 100_000, smooth_voxels: float = 1.0,
-                 level: float | None = None):
+def skin_surface(
+    image: Volume, *, target_triangles: int | None = 100_000, smooth_voxels: float = 1.0, level: float | None = None
+):
     """The skin of a scan as a closed triangle mesh in world mm (Kurihara §3–4's skin isosurface).
 
     The air/tissue isosurface (``level``, default :func:`segment_body`'s half-way level) of the image
@@ -341,8 +381,9 @@ def skin_surface(image: Volume, *, target_triangles: int | None = 100_000, smoot
     return decimate(mesh, int(target_triangles)) if target_triangles else mesh
 
 
-def segment_body(image: Volume, *, labels: Volume | None = None, smooth_voxels: float = 1.0,
-                 threshold: float | None = None) -> Volume:
+def segment_body(
+    image: Volume, *, labels: Volume | None = None, smooth_voxels: float = 1.0, threshold: float | None = None
+) -> Volume:
     """The body (everything but the air around it) as a uint8 mask on the image's grid.
 
     Gaussian smoothing (``smooth_voxels``, SimpleITK), a threshold between air

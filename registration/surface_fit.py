@@ -25,7 +25,8 @@ PQP).  Here:
   with ``p_j`` the closest point of the current ``x_j``, ``c_j`` ∈ {0, 1} its
   confidence and ``x₀`` the start; a sparse symmetric positive definite
   system (conjugate gradients, warm-started from the current vertices,
-  for the three coordinates at once), repeated as the closest points move.  Vertices with no confident target are carried by
+  for the three coordinates at once), repeated as the closest points move.  Vertices with no confident target are
+  carried by
   their neighbours (the Laplacian) rather than pulled onto a wrong surface.
 
 References
@@ -43,8 +44,20 @@ import scipy.sparse as sp
 
 from deformation.mesh import SurfaceMesh
 
-__all__ = ["closest_points", "vertex_normals", "fit_nearest", "fit_regularised", "FitResult", "umbrella_laplacian",
-           "farthest_points", "consistent_mesh", "landmark_sites", "on_mesh", "FEATURE_SOURCES", "FITS"]
+__all__ = [
+    "closest_points",
+    "vertex_normals",
+    "fit_nearest",
+    "fit_regularised",
+    "FitResult",
+    "umbrella_laplacian",
+    "farthest_points",
+    "consistent_mesh",
+    "landmark_sites",
+    "on_mesh",
+    "FEATURE_SOURCES",
+    "FITS",
+]
 
 FEATURE_SOURCES = ("registration", "closest", "landmarks")  #: where the RBF feature points' targets come from
 FITS = ("regularised", "nearest")
@@ -54,8 +67,9 @@ def _scene(mesh: SurfaceMesh):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.array(mesh.vertices, np.float32)),
-                        o3d.core.Tensor(np.array(mesh.triangles, np.uint32)))
+    scene.add_triangles(
+        o3d.core.Tensor(np.array(mesh.vertices, np.float32)), o3d.core.Tensor(np.array(mesh.triangles, np.uint32))
+    )
     return scene
 
 
@@ -132,8 +146,9 @@ def _cg(a, b, x0, inv_diag, *, rtol: float = 1e-10, maxiter: int = 5000):
     return x, maxiter, bool(np.all(np.sqrt(np.sum(r * r, axis=0)) <= stop))
 
 
-def _confident_targets(x, normals, target: SurfaceMesh, scene, target_normals, max_distance_mm: float,
-                       cos_max: float) -> tuple[np.ndarray, np.ndarray]:
+def _confident_targets(
+    x, normals, target: SurfaceMesh, scene, target_normals, max_distance_mm: float, cos_max: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Closest points of ``x`` on ``target`` and which count: near, facing the same way, and found along the
     vertex's normal (a hidden vertex's nearest point lies sideways, on the seam where touching surfaces
     merge); within a tenth of a mm the direction means nothing and the point counts."""
@@ -147,8 +162,13 @@ def farthest_points(points, n: int, *, candidates=None) -> np.ndarray:
     """Indices of ``n`` of ``points`` (among ``candidates``, default all) spread by farthest-point sampling,
     starting from the candidate nearest the points' centroid (deterministic: no random choice)."""
     pts = np.asarray(points, float)
-    cand = np.arange(len(pts)) if candidates is None else np.flatnonzero(np.asarray(candidates, bool)) \
-        if np.asarray(candidates).dtype == bool else np.asarray(candidates, np.int64)
+    cand = (
+        np.arange(len(pts))
+        if candidates is None
+        else np.flatnonzero(np.asarray(candidates, bool))
+        if np.asarray(candidates).dtype == bool
+        else np.asarray(candidates, np.int64)
+    )
     if len(cand) == 0:
         return np.zeros(0, np.int64)
     c = pts[cand]
@@ -177,13 +197,19 @@ def fit_nearest(start: SurfaceMesh, target: SurfaceMesh) -> FitResult:
     """Kurihara §4's fit: every vertex of ``start`` moved to its closest point on ``target``."""
     scene = _scene(target)
     p, _, _ = closest_points(target, start.vertices, scene=scene)
-    return FitResult(SurfaceMesh(p, start.triangles), np.zeros(len(p)), np.ones(len(p), bool), 1,
-                     {"method": "nearest"})
+    return FitResult(SurfaceMesh(p, start.triangles), np.zeros(len(p)), np.ones(len(p), bool), 1, {"method": "nearest"})
 
 
-def fit_regularised(start: SurfaceMesh, target: SurfaceMesh, *, stiffness: float = 1.0,
-                    max_distance_mm: float = 5.0, max_angle_deg: float = 60.0,
-                    iterations: int = 10, tolerance_mm: float = 1e-3) -> FitResult:
+def fit_regularised(
+    start: SurfaceMesh,
+    target: SurfaceMesh,
+    *,
+    stiffness: float = 1.0,
+    max_distance_mm: float = 5.0,
+    max_angle_deg: float = 60.0,
+    iterations: int = 10,
+    tolerance_mm: float = 1e-3,
+) -> FitResult:
     """The smoothness-regularised fit of the module docstring.
 
     ``stiffness`` is λ (relative to the data term's unit weight per confident vertex): 1 keeps the
@@ -205,9 +231,8 @@ def fit_regularised(start: SurfaceMesh, target: SurfaceMesh, *, stiffness: float
     conf = np.zeros(n, bool)
     it, cg_iters, cg_ok = 0, 0, True
     moved = np.inf
-    for it in range(1, int(iterations) + 1):
-        p, conf = _confident_targets(x, vertex_normals(x, start.triangles), target, scene, tn, max_distance_mm,
-                                     cos_max)
+    for _ in range(1, int(iterations) + 1):
+        p, conf = _confident_targets(x, vertex_normals(x, start.triangles), target, scene, tn, max_distance_mm, cos_max)
         c = conf.astype(float)
         # a vertex with no confident target in a component that has none either would leave A singular:
         # a tiny pull towards where it is now keeps it there
@@ -222,11 +247,22 @@ def fit_regularised(start: SurfaceMesh, target: SurfaceMesh, *, stiffness: float
         if moved < tolerance_mm:
             break
     _, d, _ = closest_points(target, x, scene=scene)
-    return FitResult(SurfaceMesh(x, start.triangles), d, conf, it,
-                     {"method": "regularised", "stiffness": stiffness, "max_distance_mm": max_distance_mm,
-                      "max_angle_deg": max_angle_deg, "last_move_mm": moved,
-                      "confident_fraction": float(conf.mean()), "cg_iterations": cg_iters,
-                      "cg_converged": cg_ok})
+    return FitResult(
+        SurfaceMesh(x, start.triangles),
+        d,
+        conf,
+        it,
+        {
+            "method": "regularised",
+            "stiffness": stiffness,
+            "max_distance_mm": max_distance_mm,
+            "max_angle_deg": max_angle_deg,
+            "last_move_mm": moved,
+            "confident_fraction": float(conf.mean()),
+            "cg_iterations": cg_iters,
+            "cg_converged": cg_ok,
+        },
+    )
 
 
 def landmark_sites(base: SurfaceMesh, template_points, *, max_snap_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -241,17 +277,21 @@ def landmark_sites(base: SurfaceMesh, template_points, *, max_snap_mm: float) ->
     p, d, tri = closest_points(base, tp)
     far = np.flatnonzero(d > max_snap_mm)
     if len(far):
-        raise ValueError(f"landmark {int(far[0])} lies {d[far[0]]:.1f} mm from the template's skin mesh (more than "
-                         f"{max_snap_mm:g} mm): pick it on the skin")
+        raise ValueError(
+            f"landmark {int(far[0])} lies {d[far[0]]:.1f} mm from the template's skin mesh (more than "
+            f"{max_snap_mm:g} mm): pick it on the skin"
+        )
     pairs = cKDTree(p).query_pairs(0.1, output_type="ndarray")
     if len(pairs):
-        raise ValueError(f"landmarks {int(pairs[0][0])} and {int(pairs[0][1])} are within 0.1 mm of each other on "
-                         "the skin: drop one of them")
+        raise ValueError(
+            f"landmarks {int(pairs[0][0])} and {int(pairs[0][1])} are within 0.1 mm of each other on "
+            "the skin: drop one of them"
+        )
     v = base.vertices[base.triangles[tri]]  # (k, 3 corners, 3)
     e0, e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], p - v[:, 0]
     d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
     d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
-    den = np.where(np.abs(d00 * d11 - d01 ** 2) > 0, d00 * d11 - d01 ** 2, 1.0)
+    den = np.where(np.abs(d00 * d11 - d01**2) > 0, d00 * d11 - d01**2, 1.0)
     b1 = (d11 * d20 - d01 * d21) / den
     b2 = (d00 * d21 - d01 * d20) / den
     return tri.astype(np.int64), np.stack([1.0 - b1 - b2, b1, b2], axis=1)
@@ -263,10 +303,21 @@ def on_mesh(mesh_vertices: np.ndarray, triangles: np.ndarray, sites: tuple[np.nd
     return np.einsum("kc,kcd->kd", bary, np.asarray(mesh_vertices, float)[triangles[tri]])
 
 
-def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh, *, feature_targets=None,
-                    landmarks=None, n_features: int = 150, fit: str = "regularised",
-                    rbf_length_mm: float | None = None, max_distance_mm: float = 5.0, max_angle_deg: float = 60.0,
-                    stiffness: float = 1.0) -> dict:
+def consistent_mesh(
+    base: SurfaceMesh,
+    weights,
+    transforms,
+    target: SurfaceMesh,
+    *,
+    feature_targets=None,
+    landmarks=None,
+    n_features: int = 150,
+    fit: str = "regularised",
+    rbf_length_mm: float | None = None,
+    max_distance_mm: float = 5.0,
+    max_angle_deg: float = 60.0,
+    stiffness: float = 1.0,
+) -> dict:
     """Kurihara §4 for one scan: ``S_0`` (``base``, its vertices' skinning ``weights``) → SSD with the scan's
     bone ``transforms`` (Eq. 2–3) → RBF feature-point deformation (Eq. 4–5) → fit to the scan's surface
     ``target`` (:func:`fit_regularised` or the paper's :func:`fit_nearest`).
@@ -305,23 +356,43 @@ def consistent_mesh(base: SurfaceMesh, weights, transforms, target: SurfaceMesh,
             source = "given targets"
         else:
             scene = _scene(target)
-            tgt, has = _confident_targets(ssd.vertices, vertex_normals(ssd.vertices, ssd.triangles), target, scene,
-                                          triangle_normals(target.vertices, target.triangles), max_distance_mm,
-                                          np.cos(np.deg2rad(max_angle_deg)))
+            tgt, has = _confident_targets(
+                ssd.vertices,
+                vertex_normals(ssd.vertices, ssd.triangles),
+                target,
+                scene,
+                triangle_normals(target.vertices, target.triangles),
+                max_distance_mm,
+                np.cos(np.deg2rad(max_angle_deg)),
+            )
             source = "confident closest points"
         idx = farthest_points(base.vertices, n_features, candidates=has)
         if len(idx) < 4:
-            raise ValueError(f"only {len(idx)} vertices have a feature target ({source}); at least 4 are needed "
-                             "(try the other --features source)")
+            raise ValueError(
+                f"only {len(idx)} vertices have a feature target ({source}); at least 4 are needed "
+                "(try the other --features source)"
+            )
         centres, tgt = ssd.vertices[idx], tgt[idx]
     rbf = RBFDeformation(centres, tgt, D=KURIHARA_D_MM if rbf_length_mm is None else rbf_length_mm)
     rbf_mesh = SurfaceMesh(rbf(ssd.vertices), base.triangles)
     if fit == "nearest":
         res = fit_nearest(rbf_mesh, target)
     else:
-        res = fit_regularised(rbf_mesh, target, stiffness=stiffness, max_distance_mm=max_distance_mm,
-                              max_angle_deg=max_angle_deg)
-    return {"ssd": ssd, "rbf": rbf_mesh, "fitted": res.mesh, "fit": res, "features": idx,
-            "feature_targets": tgt, "info": {"features": int(len(idx)), "feature_source": source,
-                                                  "fit": fit, "rbf_residual_mm": float(rbf.fit_residual_mm),
-                                                  **{k: v for k, v in res.info.items() if k != "method"}}}
+        res = fit_regularised(
+            rbf_mesh, target, stiffness=stiffness, max_distance_mm=max_distance_mm, max_angle_deg=max_angle_deg
+        )
+    return {
+        "ssd": ssd,
+        "rbf": rbf_mesh,
+        "fitted": res.mesh,
+        "fit": res,
+        "features": idx,
+        "feature_targets": tgt,
+        "info": {
+            "features": int(len(idx)),
+            "feature_source": source,
+            "fit": fit,
+            "rbf_residual_mm": float(rbf.fit_residual_mm),
+            **{k: v for k, v in res.info.items() if k != "method"},
+        },
+    }

@@ -80,8 +80,14 @@ def rigid_information(points: np.ndarray, gradients: np.ndarray, center, sigma: 
     return g.T @ g / float(sigma) ** 2
 
 
-def rigid_bound(information: np.ndarray, *, bone: str = "", n_voxels: int = 0, prior_deg: float | None = None,
-                prior_mm: float | None = None) -> RigidBound:
+def rigid_bound(
+    information: np.ndarray,
+    *,
+    bone: str = "",
+    n_voxels: int = 0,
+    prior_deg: float | None = None,
+    prior_mm: float | None = None,
+) -> RigidBound:
     """Covariance bound from a 6x6 information matrix, optionally with an isotropic Gaussian prior.
 
     Without a prior the bound is ``F⁻¹`` (Cramér–Rao; directions the data do
@@ -108,7 +114,7 @@ def rigid_bound(information: np.ndarray, *, bone: str = "", n_voxels: int = 0, p
         unseen = v[:, ~finite]
         cov = cov + np.where(np.abs(unseen @ unseen.T) > 1e-9, np.inf, 0.0)
     deg = np.rad2deg(1.0)
-    rot = cov[:3, :3] * deg ** 2
+    rot = cov[:3, :3] * deg**2
     # The weakest rotation: the rotation block's largest-variance direction.
     if np.all(np.isfinite(rot)):
         rw, rv = np.linalg.eigh(rot)
@@ -148,9 +154,16 @@ def _template_gradient(phantom, p: np.ndarray, h: float) -> np.ndarray:
     return g
 
 
-def phantom_pose_bounds(phantom, angles: dict, regions: dict, *, sigma: float | None = None,
-                        prior_deg: float | None = None, prior_mm: float | None = None,
-                        step_mm: float = GRADIENT_STEP_MM) -> dict[str, RigidBound]:
+def phantom_pose_bounds(
+    phantom,
+    angles: dict,
+    regions: dict,
+    *,
+    sigma: float | None = None,
+    prior_deg: float | None = None,
+    prior_mm: float | None = None,
+    step_mm: float = GRADIENT_STEP_MM,
+) -> dict[str, RigidBound]:
     """Every bone's bound in the phantom posed by ``angles``.
 
     ``regions`` are the template's bone regions
@@ -169,8 +182,11 @@ def phantom_pose_bounds(phantom, angles: dict, regions: dict, *, sigma: float | 
         r, tr = t[:3, :3], t[:3, 3]
         g = region.crop.geometry
         # Scan voxels whose template position lies in the region (nearest crop voxel).
-        corners = g.index_to_world(np.array([[i, j, k] for i in (0, g.size[0] - 1) for j in (0, g.size[1] - 1)
-                                             for k in (0, g.size[2] - 1)], float))
+        corners = g.index_to_world(
+            np.array(
+                [[i, j, k] for i in (0, g.size[0] - 1) for j in (0, g.size[1] - 1) for k in (0, g.size[2] - 1)], float
+            )
+        )
         posed = corners @ r.T + tr
         near = np.all((x_all >= posed.min(0) - 1e-6) & (x_all <= posed.max(0) + 1e-6), axis=1)
         x = x_all[near]

@@ -38,8 +38,15 @@ class LeaveOneOut:
         return dict(self.__dict__)
 
 
-def leave_one_out(phantom, weights: SkinningWeights, *, weighting: str = "psd", scan_side: bool = False,
-                  pose_indices=None, progress=None) -> list[LeaveOneOut]:
+def leave_one_out(
+    phantom,
+    weights: SkinningWeights,
+    *,
+    weighting: str = "psd",
+    scan_side: bool = False,
+    pose_indices=None,
+    progress=None,
+) -> list[LeaveOneOut]:
     """Run the leave-one-out comparison on a :class:`~validation.phantoms.Phantom` (see the module docstring).
 
     ``scan_side`` adds the correspondence MED on the posed grid (one backward
@@ -62,14 +69,17 @@ def leave_one_out(phantom, weights: SkinningWeights, *, weighting: str = "psd", 
     out = []
     for k in indices:
         rest = [i for i in range(n) if i != k]
-        model = ExampleVolumeDeformation.from_correspondences(g, weights, phantom.skeleton,
-                                                              [poses[i] for i in rest], [fields[i] for i in rest])
+        model = ExampleVolumeDeformation.from_correspondences(
+            g, weights, phantom.skeleton, [poses[i] for i in rest], [fields[i] for i in rest]
+        )
         truth = fields[k].reshape(-1, 3)
         f_evd = model.forward(poses[k], weighting=weighting)
         f_vbd = vbd_forward(g, weights, poses[k].transforms)
-        r = LeaveOneOut(angles[k][0],
-                        float(np.linalg.norm(f_vbd.reshape(-1, 3)[body_t] - truth[body_t], axis=1).mean()),
-                        float(np.linalg.norm(f_evd.reshape(-1, 3)[body_t] - truth[body_t], axis=1).mean()))
+        r = LeaveOneOut(
+            angles[k][0],
+            float(np.linalg.norm(f_vbd.reshape(-1, 3)[body_t] - truth[body_t], axis=1).mean()),
+            float(np.linalg.norm(f_evd.reshape(-1, 3)[body_t] - truth[body_t], axis=1).mean()),
+        )
         if scan_side:
             phi, _ = phantom.correspondence(phantom.posing_model(angles[k][1]))
             phi = phi.reshape(-1, 3)
@@ -79,8 +89,9 @@ def leave_one_out(phantom, weights: SkinningWeights, *, weighting: str = "psd", 
             meds = []
             for fwd in (f_vbd, f_evd):
                 bm = backward_map(fwd, g, transforms=t, prefer=prefer)
-                meds.append(float(np.linalg.norm(bm.template_positions().reshape(-1, 3)[sel] - phi[sel],
-                                                 axis=1).mean()))
+                meds.append(
+                    float(np.linalg.norm(bm.template_positions().reshape(-1, 3)[sel] - phi[sel], axis=1).mean())
+                )
             r.med_scan_vbd, r.med_scan_evd = meds
         out.append(r)
         if progress is not None:
@@ -103,9 +114,20 @@ class HeldOut:
         return dict(self.__dict__)
 
 
-def leave_one_out_correspondences(template, weights: SkinningWeights, body, skeleton, poses: dict, positions: dict,
-                                  truth_positions: dict, *, images: dict | None = None, held_out=None,
-                                  weighting: str = "psd", progress=None) -> list[HeldOut]:
+def leave_one_out_correspondences(
+    template,
+    weights: SkinningWeights,
+    body,
+    skeleton,
+    poses: dict,
+    positions: dict,
+    truth_positions: dict,
+    *,
+    images: dict | None = None,
+    held_out=None,
+    weighting: str = "psd",
+    progress=None,
+) -> list[HeldOut]:
     """Leave each scan out of an EVD model built from the others' correspondences, predict it, compare with truth.
 
     Rhee Figs. 11–12 made quantitative, with the model built the way a user
@@ -129,23 +151,31 @@ def leave_one_out_correspondences(template, weights: SkinningWeights, body, skel
     body = np.asarray(body.data if hasattr(body, "data") else body, bool)
     mask = body.reshape(-1)
     out = []
-    for k in (held_out or ids):
+    for k in held_out or ids:
         rest = tuple(s for s in ids if s != k)
-        model = ExampleVolumeDeformation.from_correspondences(g, weights, skeleton, [poses[s] for s in rest],
-                                                              [positions[s] for s in rest])
+        model = ExampleVolumeDeformation.from_correspondences(
+            g, weights, skeleton, [poses[s] for s in rest], [positions[s] for s in rest]
+        )
         truth = np.asarray(truth_positions[k], np.float64).reshape(-1, 3)[mask]
         f_evd = model.forward(poses[k], weighting=weighting).reshape(-1, 3)[mask]
         f_vbd = vbd_forward(g, weights, poses[k].transforms).reshape(-1, 3)[mask]
-        r = HeldOut(k, rest, float(np.linalg.norm(f_vbd - truth, axis=1).mean()),
-                    float(np.linalg.norm(f_evd - truth, axis=1).mean()))
+        r = HeldOut(
+            k,
+            rest,
+            float(np.linalg.norm(f_vbd - truth, axis=1).mean()),
+            float(np.linalg.norm(f_evd - truth, axis=1).mean()),
+        )
         if images is not None and k in images:
             from deformation.geometry import Volume
 
             bvol = Volume(body.astype(np.uint8), g)
             ccs = []
             for m in (None, model):
-                posed = TemplatePoser(template, weights, bvol, model=m, weighting=weighting).pose(
-                    poses[k], labels=False, target=images[k].geometry).volume
+                posed = (
+                    TemplatePoser(template, weights, bvol, model=m, weighting=weighting)
+                    .pose(poses[k], labels=False, target=images[k].geometry)
+                    .volume
+                )
                 ccs.append(float(similarity(images[k], posed)["cc"]))
             r.cc_vbd, r.cc_evd = ccs
         out.append(r)

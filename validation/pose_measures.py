@@ -35,8 +35,11 @@ def pose_errors(estimate, truth, centroids: dict) -> dict:
         joints[name] = e
     rot = [v["rotation_deg"] for v in bones.values()]
     tr = [v["translation_mm"] for v in bones.values()]
-    return {"bones": bones, "joints": joints,
-            "mean_rotation_deg": float(np.mean(rot)) if rot else None,
-            "max_rotation_deg": float(np.max(rot)) if rot else None,
-            "mean_translation_mm": float(np.mean(tr)) if tr else None,
-            "max_translation_mm": float(np.max(tr)) if tr else None}
+    return {
+        "bones": bones,
+        "joints": joints,
+        "mean_rotation_deg": float(np.mean(rot)) if rot else None,
+        "max_rotation_deg": float(np.max(rot)) if rot else None,
+        "mean_translation_mm": float(np.mean(tr)) if tr else None,
+        "max_translation_mm": float(np.max(tr)) if tr else None,
+    }

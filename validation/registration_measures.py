@@ -26,15 +26,30 @@ from deformation.geometry import Volume
 from deformation.interpolate import sample, sample_displaced_array
 from registration.metrics import similarity
 
-__all__ = ["body_on_scan", "med", "marker_med", "marker_errors", "error_map", "registration_measures", "validation_rows", "MEASURE_KEYS"]
+__all__ = [
+    "body_on_scan",
+    "med",
+    "marker_med",
+    "marker_errors",
+    "error_map",
+    "registration_measures",
+    "validation_rows",
+    "MEASURE_KEYS",
+]
 
 MEASURE_KEYS = ("med_mm", "marker_med_mm", "ssd", "cc", "mi", "folded_fraction")
 
 
 def body_on_scan(truth: Volume, template_body: Volume) -> np.ndarray:
     """Scan voxels whose true template position lies in the template's body mask (nearest voxel)."""
-    inside = sample_displaced_array(template_body.data.astype(np.uint8), template_body.geometry.world_to_index_matrix,
-                                    truth.geometry, truth.data, 0, 0)
+    inside = sample_displaced_array(
+        template_body.data.astype(np.uint8),
+        template_body.geometry.world_to_index_matrix,
+        truth.geometry,
+        truth.data,
+        0,
+        0,
+    )
     return np.asarray(inside, bool)
 
 
@@ -70,12 +85,25 @@ def marker_med(field: Volume, markers: list) -> float:
     return float(marker_errors(field, markers).mean()) if markers else float("nan")
 
 
-def registration_measures(scan: Volume, registered: Volume, field: Volume, *, truth: Volume | None = None,
-                          body: np.ndarray | None = None, markers: list | None = None) -> dict:
+def registration_measures(
+    scan: Volume,
+    registered: Volume,
+    field: Volume,
+    *,
+    truth: Volume | None = None,
+    body: np.ndarray | None = None,
+    markers: list | None = None,
+) -> dict:
     """The measures of the module docstring for one registration (truth-dependent ones NaN without truth)."""
     sim = similarity(scan, registered)
-    out = {"ssd": sim["ssd"], "cc": sim["cc"], "mi": sim["mi"], "med_mm": float("nan"),
-           "marker_med_mm": float("nan"), "folded_fraction": float("nan")}
+    out = {
+        "ssd": sim["ssd"],
+        "cc": sim["cc"],
+        "mi": sim["mi"],
+        "med_mm": float("nan"),
+        "marker_med_mm": float("nan"),
+        "folded_fraction": float("nan"),
+    }
     if truth is not None and body is not None:
         out["med_mm"] = med(field, truth, body)
         out["folded_fraction"] = folding_statistics(field, body)["fraction_folded"]
@@ -84,18 +112,31 @@ def registration_measures(scan: Volume, registered: Volume, field: Volume, *, tr
     return out
 
 
-def validation_rows(scan: Volume, template: Volume, *, truth: Volume, template_body: Volume, markers: list,
-                    registered: Volume, field: Volume, initial: Volume | None = None) -> dict:
+def validation_rows(
+    scan: Volume,
+    template: Volume,
+    *,
+    truth: Volume,
+    template_body: Volume,
+    markers: list,
+    registered: Volume,
+    field: Volume,
+    initial: Volume | None = None,
+) -> dict:
     """Rhee's Tables 2–4 rows for one scan: ``source`` (no deformation), ``initialised`` (when ``initial``
     is given) and ``registered``, each with the measures of the module docstring over the same body voxels."""
     from registration.baselines import warp_template
 
     body = body_on_scan(truth, template_body)
     zero = Volume(np.zeros(truth.data.shape, np.float32), truth.geometry)
-    rows = {"source": registration_measures(scan, warp_template(template, zero), zero, truth=truth, body=body,
-                                            markers=markers)}
+    rows = {
+        "source": registration_measures(
+            scan, warp_template(template, zero), zero, truth=truth, body=body, markers=markers
+        )
+    }
     if initial is not None:
-        rows["initialised"] = registration_measures(scan, warp_template(template, initial), initial, truth=truth,
-                                                    body=body, markers=markers)
+        rows["initialised"] = registration_measures(
+            scan, warp_template(template, initial), initial, truth=truth, body=body, markers=markers
+        )
     rows["registered"] = registration_measures(scan, registered, field, truth=truth, body=body, markers=markers)
     return rows

@@ -66,8 +66,12 @@ def skin_distance(mesh_vertices, skin: SurfaceMesh, keep=None) -> dict:
     if keep is not None:
         v = v[np.asarray(keep, bool)]
     _, d, _ = closest_points(skin, v)
-    return {"mean_mm": float(d.mean()), "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max()),
-            "n_vertices": int(len(d))}
+    return {
+        "mean_mm": float(d.mean()),
+        "p95_mm": float(np.percentile(d, 95)),
+        "max_mm": float(d.max()),
+        "n_vertices": int(len(d)),
+    }
 
 
 def vertex_errors(mesh_vertices, true_vertices, keep=None) -> dict:
@@ -75,5 +79,9 @@ def vertex_errors(mesh_vertices, true_vertices, keep=None) -> dict:
     e = np.linalg.norm(np.asarray(mesh_vertices, float) - np.asarray(true_vertices, float), axis=1)
     if keep is not None:
         e = e[np.asarray(keep, bool)]
-    return {"mean_mm": float(e.mean()), "p95_mm": float(np.percentile(e, 95)), "max_mm": float(e.max()),
-            "n_vertices": int(len(e))}
+    return {
+        "mean_mm": float(e.mean()),
+        "p95_mm": float(np.percentile(e, 95)),
+        "max_mm": float(e.max()),
+        "n_vertices": int(len(e)),
+    }

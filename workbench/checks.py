@@ -39,8 +39,10 @@ def check_study_images(study) -> list[str]:
             problems.append(str(e))
             continue
         if rel == m.get("template_labels") and grid is not None and not v.geometry.is_close(grid):
-            problems.append(f"{study.path(rel)}: the label map is not on the template's grid "
-                            f"({v.geometry.describe()} against {grid.describe()}); resample it (nearest neighbour)")
+            problems.append(
+                f"{study.path(rel)}: the label map is not on the template's grid "
+                f"({v.geometry.describe()} against {grid.describe()}); resample it (nearest neighbour)"
+            )
         if rel == m["template"]:
             grid = v.geometry
     return problems
@@ -55,25 +57,33 @@ def study_warnings(study) -> list[str]:
     sk = study.skeleton()
     out = []
     root = study.root.resolve()
-    named = [m["template"], m["skeleton"]] + ([m["template_labels"]] if m.get("template_labels") else []) + \
-        [s["image"] for s in m["scans"]]
+    named = (
+        [m["template"], m["skeleton"]]
+        + ([m["template_labels"]] if m.get("template_labels") else [])
+        + [s["image"] for s in m["scans"]]
+    )
     for rel in named:
         p = study.path(rel)
         if p.is_symlink() and root not in p.resolve().parents:
-            out.append(f"{p}: a symbolic link to {p.resolve()}, outside the study folder: it is read, and copying "
-                       "the folder copies the link, not the file (cp -rL copies the file)")
+            out.append(
+                f"{p}: a symbolic link to {p.resolve()}, outside the study folder: it is read, and copying "
+                "the folder copies the link, not the file (cp -rL copies the file)"
+            )
     if study.has_template_labels:
         try:
             labels = study.template_labels()
         except (WorkbenchError, ValueError, OSError):
             labels = None  # said by check_study_images
         if labels is not None:
-            counts = np.bincount(np.asarray(labels.data).ravel().astype(np.int64),
-                                 minlength=max(b.label for b in sk.bones) + 1)
+            counts = np.bincount(
+                np.asarray(labels.data).ravel().astype(np.int64), minlength=max(b.label for b in sk.bones) + 1
+            )
             unknown = unknown_labels(counts, sk)
             if unknown:
-                out.append(f"{study.template_labels_path()}: {unknown_labels_text(unknown)} no bone of "
-                           f"{m['skeleton']}; those voxels are taken as soft tissue")
+                out.append(
+                    f"{study.template_labels_path()}: {unknown_labels_text(unknown)} no bone of "
+                    f"{m['skeleton']}; those voxels are taken as soft tissue"
+                )
             from registration.bone_frames import bone_frames
 
             try:
@@ -86,11 +96,15 @@ def study_warnings(study) -> list[str]:
                 except (WorkbenchError, ValueError, OSError):
                     continue  # said by check_study_images
                 if len(centres) and not g.contains_world(centres).any():
-                    out.append(f"{study.path(s['image'])}: no bone of the template lies in this scan's field of "
-                               "view: the pose stage will refuse it unless the root bone is given a start "
-                               "(--init moments or an initial-pose file); check the scan's origin and direction")
+                    out.append(
+                        f"{study.path(s['image'])}: no bone of the template lies in this scan's field of "
+                        "view: the pose stage will refuse it unless the root bone is given a start "
+                        "(--init moments or an initial-pose file); check the scan's origin and direction"
+                    )
     loose = [j.name for j in sk.joints if j.limits is None]
     if loose:
-        out.append(f"{study.path(m['skeleton'])}: joint(s) {', '.join(loose)} have no 'limits': poses are checked "
-                   "only to keep their rotations within ±180°")
+        out.append(
+            f"{study.path(m['skeleton'])}: joint(s) {', '.join(loose)} have no 'limits': poses are checked "
+            "only to keep their rotations within ±180°"
+        )
     return out

@@ -21,8 +21,19 @@ __all__ = ["study_poser", "deform_study", "say_if_compiling", "METHODS"]
 
 METHODS = ("auto", "vbd", "evd")
 # Folders of a study that `deform` never writes into (its inputs and the stages' outputs).
-PROTECTED_FOLDERS = ("scans", "truth", "bones", "poses", "skinning", "init", "registration", "model", "surface",
-                     "validation", "report")
+PROTECTED_FOLDERS = (
+    "scans",
+    "truth",
+    "bones",
+    "poses",
+    "skinning",
+    "init",
+    "registration",
+    "model",
+    "surface",
+    "validation",
+    "report",
+)
 
 
 def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", progress=None) -> TemplatePoser:
@@ -40,30 +51,46 @@ def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", p
     grid = f"{every_nth(template.geometry.factor_of(body.geometry))} template voxel"
     on_template = body.geometry.is_close(template.geometry)
     if method == "evd" and not on_template:
-        raise InputFileError(f"{study.output('weights', 'weights.json')}: the skinning weights are on {grid} "
-                             "(workbench weights --grid-factor); EVD needs them on the template's grid: use "
-                             "--method vbd, or recompute them with --grid-factor 1.", study.manifest_path)
+        raise InputFileError(
+            f"{study.output('weights', 'weights.json')}: the skinning weights are on {grid} "
+            "(workbench weights --grid-factor); EVD needs them on the template's grid: use "
+            "--method vbd, or recompute them with --grid-factor 1.",
+            study.manifest_path,
+        )
     if not on_template:
-        say(f"skinning weights on {grid}: posing by VBD (Rhee Eq. 2), the maps solved there and the template "
-            "pulled at full resolution")
+        say(
+            f"skinning weights on {grid}: posing by VBD (Rhee Eq. 2), the maps solved there and the template "
+            "pulled at full resolution"
+        )
     if method in ("auto", "evd") and on_template:
         model = study.model(weights)
         if model is None and method == "evd":
-            raise InputFileError(f"{study.manifest_path}: the study has no EVD model; build one with `workbench "
-                                 f"model {study.root}` (after `workbench register`, or --source truth for a "
-                                 "phantom) or use --method vbd.", study.manifest_path)
+            raise InputFileError(
+                f"{study.manifest_path}: the study has no EVD model; build one with `workbench "
+                f"model {study.root}` (after `workbench register`, or --source truth for a "
+                "phantom) or use --method vbd.",
+                study.manifest_path,
+            )
         if model is None:
             say(f"no EVD model in the study (`workbench model {study.root}` builds one): posing by VBD (Rhee Eq. 2)")
     if model is not None:
         e = study.stage_entry("model") or {}
-        say(f"posing by EVD (Rhee Eq. 6), model from {(e.get('settings') or {}).get('source', '?')} "
+        say(
+            f"posing by EVD (Rhee Eq. 6), model from {(e.get('settings') or {}).get('source', '?')} "
             f"correspondences of {model.n_scans} scans"
-            f"{' and the template at rest' if model.template_example else ''}")
+            f"{' and the template at rest' if model.template_example else ''}"
+        )
     if weighting != "psd" and model is None:
         say("note: --weighting applies to EVD only; this is VBD")
-    return TemplatePoser(template, weights, body,
-                         labels=study.template_labels() if study.has_template_labels else None, model=model,
-                         weighting=weighting, progress=say)
+    return TemplatePoser(
+        template,
+        weights,
+        body,
+        labels=study.template_labels() if study.has_template_labels else None,
+        model=model,
+        weighting=weighting,
+        progress=say,
+    )
 
 
 def _refuse_study_files(study, paths, what: str) -> None:
@@ -76,8 +103,10 @@ def _refuse_study_files(study, paths, what: str) -> None:
     for p in paths:
         inside = root in p.parents
         if p in protected or (inside and p.relative_to(root).parts[0] in PROTECTED_FOLDERS):
-            raise ValueError(f"{p}: would overwrite one of the study's own files; write {what} elsewhere (or in a "
-                             "new subfolder of the study)")
+            raise ValueError(
+                f"{p}: would overwrite one of the study's own files; write {what} elsewhere (or in a "
+                "new subfolder of the study)"
+            )
 
 
 def say_if_compiling(say) -> None:
@@ -91,9 +120,20 @@ def say_if_compiling(say) -> None:
         say(note)
 
 
-def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str = "psd", labels_out=None,
-                 field_out=None, grow: bool = False, overwrite: bool = False, map_factor: int = 1,
-                 progress=None) -> dict:
+def deform_study(
+    folder,
+    pose_path,
+    out,
+    *,
+    method: str = "auto",
+    weighting: str = "psd",
+    labels_out=None,
+    field_out=None,
+    grow: bool = False,
+    overwrite: bool = False,
+    map_factor: int = 1,
+    progress=None,
+) -> dict:
     """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Eq. 6) and write the posed volume and labels.
 
     The posed volume lies on the template's grid (same geometry), or with
@@ -126,8 +166,11 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
     _refuse_study_files(study, resolved, "the posed volume")
     pose = read_target_pose(pose_path, study.skeleton())  # a bad pose file is reported before any loading
     if not study.has_template_labels:
-        raise InputFileError(f"{study.root / MANIFEST}: the study has no template label map; `workbench deform` "
-                             "writes the posed labels beside the posed volume and needs one.", study.root / MANIFEST)
+        raise InputFileError(
+            f"{study.root / MANIFEST}: the study has no template label map; `workbench deform` "
+            "writes the posed labels beside the posed volume and needs one.",
+            study.root / MANIFEST,
+        )
     say_if_compiling(say)
     poser = study_poser(study, method=method, weighting=weighting, progress=say)
     used = poser.method
@@ -150,9 +193,16 @@ def deform_study(folder, pose_path, out, *, method: str = "auto", weighting: str
         # poser's template are let go first (at Kurihara's 197 M voxels 9.1 GiB held them all, 6.8 GiB does not)
         del posed, poser
         write_displacement(bm.scan_to_template(), field_out, overwrite=overwrite)
-    summary = {"method": used, "weighting": weighting if used == "evd" else None, "out": str(out),
-               "labels": str(labels_out), "field": str(field_out) if field_out else None,
-               "forward_seconds": forward_seconds, "backward_seconds": backward_seconds, **bm.summary()}
+    summary = {
+        "method": used,
+        "weighting": weighting if used == "evd" else None,
+        "out": str(out),
+        "labels": str(labels_out),
+        "field": str(field_out) if field_out else None,
+        "forward_seconds": forward_seconds,
+        "backward_seconds": backward_seconds,
+        **bm.summary(),
+    }
     return summary
 
 

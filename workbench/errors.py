@@ -161,16 +161,19 @@ class OutputWriteError(WorkbenchError, OSError):
     def __init__(self, path: str | os.PathLike, reason: str):
         self.path = Path(path)
         self.reason = reason
-        WorkbenchError.__init__(self, f"{self.path}: the file could not be written completely ({reason}); nothing "
-                                      "was left under that name. Free disk space (or raise the file-size limit) and "
-                                      "run the command again.")
+        WorkbenchError.__init__(
+            self,
+            f"{self.path}: the file could not be written completely ({reason}); nothing "
+            "was left under that name. Free disk space (or raise the file-size limit) and "
+            "run the command again.",
+        )
         self.filename = str(self.path)
 
     def __str__(self) -> str:
         return self.args[0]
 
     @classmethod
-    def of(cls, path: str | os.PathLike, error: BaseException) -> "OutputWriteError":
+    def of(cls, path: str | os.PathLike, error: BaseException) -> OutputWriteError:
         """The error ``error`` (raised while writing) as a write error naming ``path``."""
         if isinstance(error, OutputWriteError):
             return cls(path, error.reason)

@@ -38,8 +38,7 @@ def compile_note(*kernels) -> str | None:
             missing.append(getattr(k, "__name__", "kernel"))
     if not missing:
         return None
-    return (f"compiling {len(missing)} numba kernel(s) on first use (about 30 s, once; they are cached for "
-            "later runs)")
+    return f"compiling {len(missing)} numba kernel(s) on first use (about 30 s, once; they are cached for later runs)"
 
 
 def tolerate_kernel_cache_failures() -> None:
@@ -51,6 +50,7 @@ def tolerate_kernel_cache_failures() -> None:
     compiles again."""
     try:
         from numba.core import caching
+
         original = caching.Cache.save_overload
     except (ImportError, AttributeError):  # numba's internals moved: its own behaviour stands
         return
@@ -65,8 +65,12 @@ def tolerate_kernel_cache_failures() -> None:
             if not warned:
                 warned.append(True)
                 where = getattr(self, "_cache_path", "numba's cache folder")
-                print(f"warning: could not save compiled numba kernels in {where} ({e.strerror or e}); going on "
-                      "without the cache (the next run compiles them again)", file=sys.stderr, flush=True)
+                print(
+                    f"warning: could not save compiled numba kernels in {where} ({e.strerror or e}); going on "
+                    "without the cache (the next run compiles them again)",
+                    file=sys.stderr,
+                    flush=True,
+                )
 
     save_overload._workbench = True
     caching.Cache.save_overload = save_overload
@@ -124,8 +128,12 @@ class ProgressPrinter:
                 from tqdm import tqdm
 
                 self._close()
-                self._bar = tqdm(total=event.total, desc=f"{event.stage}" + (f" {event.scan}" if event.scan else ""),
-                                 file=self.stream, leave=False)
+                self._bar = tqdm(
+                    total=event.total,
+                    desc=f"{event.stage}" + (f" {event.scan}" if event.scan else ""),
+                    file=self.stream,
+                    leave=False,
+                )
                 self._bar_key = key
             self._bar.n = min(event.done, event.total)
             self._bar.set_postfix_str(event.message[-60:], refresh=True)

@@ -34,8 +34,9 @@ NAMES = tuple(PROTOCOLS)
 class StudyRunner:
     """Writes and runs the protocols' phantom studies under ``out / "studies"`` (see the module docstring)."""
 
-    def __init__(self, out: Path, *, size: str = "test", seed: int = 0, with_peers: bool = False, progress=None,
-                 say=None):
+    def __init__(
+        self, out: Path, *, size: str = "test", seed: int = 0, with_peers: bool = False, progress=None, say=None
+    ):
         self.out = Path(out)
         self.size = size
         self.seed = seed
@@ -62,11 +63,13 @@ class StudyRunner:
             if spec.poses is not None and not _same_poses(got.get("poses"), spec.poses):
                 differ.append("poses")
             if differ:
-                raise WorkbenchError(f"{folder}: a study of another phantom is in the way (its "
-                                     f"{', '.join(f'{k}={got.get(k)!r}' if k != 'poses' else 'poses' for k in differ)}"
-                                     f"; wanted {', '.join(f'{k}={want[k]!r}' for k in differ if k != 'poses')}"
-                                     f"{' other poses' if 'poses' in differ else ''}); remove the folder or give "
-                                     f"another --out")
+                raise WorkbenchError(
+                    f"{folder}: a study of another phantom is in the way (its "
+                    f"{', '.join(f'{k}={got.get(k)!r}' if k != 'poses' else 'poses' for k in differ)}"
+                    f"; wanted {', '.join(f'{k}={want[k]!r}' for k in differ if k != 'poses')}"
+                    f"{' other poses' if 'poses' in differ else ''}); remove the folder or give "
+                    f"another --out"
+                )
         else:
             self.say(f"{name}: writing the {spec.region} phantom study ({self.size} size) to {folder}")
             t0 = time.perf_counter()
@@ -90,8 +93,9 @@ class StudyRunner:
         s = RegisterSettings(**{**settings, "method": "adaptive"})
         t0 = time.perf_counter()
         result = adaptive_registration(study, scan_id, s)
-        self.say(f"{study.root.name} {scan_id}: Rhee's Algorithm 1 (--method adaptive) in "
-                 f"{time.perf_counter() - t0:.0f} s")
+        self.say(
+            f"{study.root.name} {scan_id}: Rhee's Algorithm 1 (--method adaptive) in {time.perf_counter() - t0:.0f} s"
+        )
         return result
 
 
@@ -112,8 +116,11 @@ def _same_poses(recorded, poses) -> bool:
             got = np.ravel(np.asarray(r.get(k, []), float))
             # the phantom records every DOF (complete_angles): a wanted joint given with fewer values is
             # compared on those and the rest must be 0
-            if got.size < want.size or not np.allclose(got[:want.size], want, atol=1e-9) \
-                    or not np.allclose(got[want.size:], 0.0, atol=1e-9):
+            if (
+                got.size < want.size
+                or not np.allclose(got[: want.size], want, atol=1e-9)
+                or not np.allclose(got[want.size :], 0.0, atol=1e-9)
+            ):
                 return False
     return True
 
@@ -133,8 +140,7 @@ def format_markdown(table: Table) -> str:
     head = ["", *[f"{c.label} ({c.unit})" if c.unit else c.label for c in table.columns]]
     lines = [f"## {table.title}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in table.rows:
-        lines.append("| " + " | ".join([r["label"], *[_cell(r.get(c.key), c.decimals) for c in table.columns]])
-                     + " |")
+        lines.append("| " + " | ".join([r["label"], *[_cell(r.get(c.key), c.decimals) for c in table.columns]]) + " |")
     if table.definitions:
         lines += ["", "Definitions:", ""] + [f"- **{k}**: {v}" for k, v in table.definitions.items()]
     if table.notes:
@@ -148,8 +154,16 @@ def format_csv(table: Table) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["label", "kind", *[c.key for c in table.columns]])
     for r in table.rows:
-        w.writerow([r["label"], r["kind"], *["" if r.get(c.key) is None else repr(r[c.key]) if isinstance(
-            r[c.key], float) else r[c.key] for c in table.columns]])
+        w.writerow(
+            [
+                r["label"],
+                r["kind"],
+                *[
+                    "" if r.get(c.key) is None else repr(r[c.key]) if isinstance(r[c.key], float) else r[c.key]
+                    for c in table.columns
+                ],
+            ]
+        )
     return buf.getvalue()
 
 
@@ -163,8 +177,10 @@ def write_table(table: Table, out: Path) -> list[Path]:
     doc = to_jsonable(table.to_dict(), where=f"{table.id}")
     texts = {"csv": format_csv(table), "md": format_markdown(table)}
     out.mkdir(parents=True, exist_ok=True)
-    return [write_json(doc, out / f"{table.id}.json", overwrite=True),
-            *(write_text_atomic(out / f"{table.id}.{ext}", text, overwrite=True) for ext, text in texts.items())]
+    return [
+        write_json(doc, out / f"{table.id}.json", overwrite=True),
+        *(write_text_atomic(out / f"{table.id}.{ext}", text, overwrite=True) for ext, text in texts.items()),
+    ]
 
 
 #: protocols that reuse other protocols' studies (loo: table3's and table4's registrations): with several
@@ -176,8 +192,9 @@ def _protocol_task(job: tuple) -> tuple[dict, float]:
     return _protocol_in_worker(*job)
 
 
-def _protocol_in_worker(name: str, out: str, size: str, seed: int, with_peers: bool,
-                        quiet: bool = False) -> tuple[dict, float]:
+def _protocol_in_worker(
+    name: str, out: str, size: str, seed: int, with_peers: bool, quiet: bool = False
+) -> tuple[dict, float]:
     """One protocol in a worker process (``reproduce(..., workers > 1)``): its table as a dict, its seconds.
     Progress goes to the worker's stderr, a line per event, prefixed with the protocol's name (none when
     ``quiet``)."""
@@ -193,8 +210,19 @@ def _protocol_in_worker(name: str, out: str, size: str, seed: int, with_peers: b
     return t.to_dict(), time.perf_counter() - t0
 
 
-def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers: bool = False, progress=None,
-              say=None, emit=None, workers: int = 1, scheduler: str | None = None) -> dict[str, Table]:
+def reproduce(
+    names,
+    out: Path,
+    *,
+    size: str = "test",
+    seed: int = 0,
+    with_peers: bool = False,
+    progress=None,
+    say=None,
+    emit=None,
+    workers: int = 1,
+    scheduler: str | None = None,
+) -> dict[str, Table]:
     """Run the protocols ``names`` (``"all"`` = every one) into ``out``; each table is written as soon as it is
     done and passed to ``emit(table, seconds)``.  Returns ``{name: Table}``.
 
@@ -228,8 +256,14 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
 
         # the longest first (at test size: table4 ~6 min, kurihara ~5, table3 ~2, table2 ~1): the workers take
         # the tasks in the order they were given
-        order = sorted(side, key=lambda n: ("table4", "kurihara", "table3", "table2").index(n)
-                       if n in ("table4", "kurihara", "table3", "table2") else 9)
+        order = sorted(
+            side,
+            key=lambda n: (
+                ("table4", "kurihara", "table3", "table2").index(n)
+                if n in ("table4", "kurihara", "table3", "table2")
+                else 9
+            ),
+        )
 
         def arrived(k, result):  # written and shown as each arrives
             d, sec = result
@@ -239,8 +273,12 @@ def reproduce(names, out: Path, *, size: str = "test", seed: int = 0, with_peers
         with open_runner(None if scheduler else min(int(workers), len(order)), scheduler) as pool:
             if say is not None:
                 say(f"{', '.join(order)} side by side on {pool.description}")
-            pool.map(_protocol_task, [(n, str(Path(out).resolve()), size, seed, with_peers, say is None)
-                                      for n in order], name="reproduce", on_result=arrived)
+            pool.map(
+                _protocol_task,
+                [(n, str(Path(out).resolve()), size, seed, with_peers, say is None) for n in order],
+                name="reproduce",
+                on_result=arrived,
+            )
     for n in names:
         if n in done:
             continue

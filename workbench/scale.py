@@ -136,8 +136,7 @@ class Runner:
         finally:
             self.client.unsubscribe_topic(topic)
 
-    def map(self, fn: Callable, items, *, shared=None, name: str = "task",
-            on_result: Callable | None = None) -> list:
+    def map(self, fn: Callable, items, *, shared=None, name: str = "task", on_result: Callable | None = None) -> list:
         """``[fn(item)]`` (``fn(shared, item)`` when ``shared`` is given), in the items' order.
 
         ``fn`` must be a module-level function (it is pickled to the
@@ -160,8 +159,9 @@ class Runner:
         client = self.client
         args = () if shared is None else (client.scatter(shared, broadcast=True),)
         token = uuid.uuid4().hex[:8]
-        futures = [client.submit(_task, fn, *args, it, key=f"{name}-{i}-{token}", pure=False)
-                   for i, it in enumerate(items)]
+        futures = [
+            client.submit(_task, fn, *args, it, key=f"{name}-{i}-{token}", pure=False) for i, it in enumerate(items)
+        ]
         index = {f.key: i for i, f in enumerate(futures)}
         results: dict = {}
         try:
@@ -210,8 +210,10 @@ def _threads_per_worker(workers: int) -> int:
 def check_cluster_options(workers: int | None, scheduler: str | None) -> None:
     """One clear error for ``--workers N`` (N > 1) together with ``--scheduler``."""
     if scheduler and workers not in (None, 1):
-        raise SchedulerError("--workers starts a cluster on this machine and --scheduler uses an existing one: give "
-                             "one of them (the existing cluster's size is set where its workers start)")
+        raise SchedulerError(
+            "--workers starts a cluster on this machine and --scheduler uses an existing one: give "
+            "one of them (the existing cluster's size is set where its workers start)"
+        )
 
 
 @contextlib.contextmanager
@@ -226,26 +228,41 @@ def open_runner(workers: int | None = None, scheduler: str | None = None):
     from distributed import Client, LocalCluster
 
     cluster = None
-    with dask.config.set({"distributed.worker.daemon": False,  # a task may start processes (ffmpeg)
-                          "logging.distributed": "error"}):
+    with dask.config.set(
+        {
+            "distributed.worker.daemon": False,  # a task may start processes (ffmpeg)
+            "logging.distributed": "error",
+        }
+    ):
         if scheduler:
             try:
                 client = Client(scheduler, timeout=CONNECT_TIMEOUT)
             except (OSError, TimeoutError, ValueError) as e:
-                raise SchedulerError(f"--scheduler {scheduler}: no Dask scheduler answers there ({e}); start one "
-                                     "with `dask scheduler` and workers with `dask worker ADDRESS` (README, "
-                                     "'Many scans, big machines'), or leave --scheduler out") from None
+                raise SchedulerError(
+                    f"--scheduler {scheduler}: no Dask scheduler answers there ({e}); start one "
+                    "with `dask scheduler` and workers with `dask worker ADDRESS` (README, "
+                    "'Many scans, big machines'), or leave --scheduler out"
+                ) from None
             n = len(client.scheduler_info().get("workers", {}))
             desc = f"the Dask cluster at {scheduler} ({n} worker{'s' if n != 1 else ''} now)"
         else:
             threads = _threads_per_worker(workers)
             # one thread per task and the cores shared out between the workers' numba / BLAS threads
-            env = {k: str(threads) for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                                             "MKL_NUM_THREADS")}
+            env = {
+                k: str(threads)
+                for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+            }
             # memory_limit 0: no per-worker cap (Dask's default, the machine's memory / N, would pause or kill
             # a worker whose paper-size study outgrows its share while the others need little)
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.ERROR, env=env, memory_limit=0)
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+                env=env,
+                memory_limit=0,
+            )
             client = Client(cluster)
             desc = f"a local Dask cluster of {workers} worker processes ({threads} thread(s) each)"
         try:

@@ -29,7 +29,8 @@ whose vector at scan voxel ``x`` is ``template_position − x`` in mm, so
 ``sitk.DisplacementFieldTransform`` resamples the template onto the scan
 directly.  The optional ``template_to_scan`` field is the exact forward map
 on the template grid (scan position − template voxel position, mm); it
-differs from the inverse of ``correspondence`` where the posing folds.  Markers are ``{"markers": [{"name", "template": [x,y,z],
+differs from the inverse of ``correspondence`` where the posing folds.  Markers are ``{"markers": [{"name",
+"template": [x,y,z],
 "scan": [x,y,z]}]}``.  The pipeline's stages record their outputs under
 ``stages`` (see :class:`Study`, and :mod:`workbench.stages.mechanism`); the
 estimated pose of a scan is the pose stage's ``poses/<id>_pose.json``, in the
@@ -59,10 +60,27 @@ from workbench import __version__
 from workbench.errors import InputFileError, MissingFileError, OutputExistsError
 from workbench.io.atomic import naming_staged, replace_dir
 from workbench.io.jsonio import read_json, write_json
-from workbench.io.volumes import read_displacement, read_image_geometry, read_labels, read_vector_image, \
-    read_volume, write_displacement, write_labels, write_volume
+from workbench.io.volumes import (
+    read_displacement,
+    read_image_geometry,
+    read_labels,
+    read_vector_image,
+    read_volume,
+    write_displacement,
+    write_labels,
+    write_volume,
+)
 
-__all__ = ["Study", "StudyError", "StageOutputMissing", "STAGE_COMMANDS", "read_study", "write_phantom_study", "STUDY_FORMAT", "MANIFEST"]
+__all__ = [
+    "Study",
+    "StudyError",
+    "StageOutputMissing",
+    "STAGE_COMMANDS",
+    "read_study",
+    "write_phantom_study",
+    "STUDY_FORMAT",
+    "MANIFEST",
+]
 
 STUDY_FORMAT = "avw-study"
 MANIFEST = "study.json"
@@ -75,10 +93,17 @@ class StudyError(InputFileError):
 
 
 # The command that produces each stage's outputs, for "run X first" messages.
-STAGE_COMMANDS = {"bones": "workbench bones", "pose": "workbench pose", "weights": "workbench weights",
-                  "init": "workbench register", "register": "workbench register", "model": "workbench model",
-                  "surface": "workbench surface",
-                  "validate": "workbench validate", "report": "workbench report"}
+STAGE_COMMANDS = {
+    "bones": "workbench bones",
+    "pose": "workbench pose",
+    "weights": "workbench weights",
+    "init": "workbench register",
+    "register": "workbench register",
+    "model": "workbench model",
+    "surface": "workbench surface",
+    "validate": "workbench validate",
+    "report": "workbench report",
+}
 LOCK_NAME = ".study.json.lock"
 
 
@@ -126,8 +151,10 @@ class Study:
         ids = list(ids) if ids else self.scan_ids
         unknown = [sid for sid in ids if sid not in self.scan_ids]
         if unknown:
-            raise StudyError(f"{self.manifest_path}: no scan {unknown} in this study (--scan); its scans are "
-                             f"{self.scan_ids}.", self.manifest_path)
+            raise StudyError(
+                f"{self.manifest_path}: no scan {unknown} in this study (--scan); its scans are {self.scan_ids}.",
+                self.manifest_path,
+            )
         return ids
 
     def _scan_entry(self, scan_id: str) -> dict:
@@ -177,11 +204,14 @@ class Study:
                 pass
         except OSError as e:
             what = self.manifest_path if e.filename == str(self.manifest_path) else self.root
-            raise StudyError(f"{what}: cannot write there ({e.strerror or e}); the stages write their outputs and "
-                             f"{MANIFEST} into the study folder {self.root}. Make it writable (chmod -R u+w "
-                             f"{self.root}) or run on a copy (cp -r {self.root} COPY).", what) from None
+            raise StudyError(
+                f"{what}: cannot write there ({e.strerror or e}); the stages write their outputs and "
+                f"{MANIFEST} into the study folder {self.root}. Make it writable (chmod -R u+w "
+                f"{self.root}) or run on a copy (cp -r {self.root} COPY).",
+                what,
+            ) from None
 
-    def reload(self) -> "Study":
+    def reload(self) -> Study:
         self.manifest = read_json(self.manifest_path)
         return self
 
@@ -208,6 +238,7 @@ class Study:
 
     def record(self, stage: str, entry: dict, scan_id: str | None = None, *, stage_info: dict | None = None) -> None:
         """Record a stage's entry (one scan's, for per-scan stages) in ``study.json``."""
+
         def change(m):
             stages = m.setdefault("stages", {})
             if scan_id is None:
@@ -219,16 +250,19 @@ class Study:
                 s.update(stage_info or {})
                 s["scans"][scan_id] = entry
                 stages[stage] = s
+
         self.update(change)
 
     def forget(self, stage: str, scan_id: str | None = None) -> None:
         """Remove a stage's entry (one scan's) from the manifest (its files are left to the caller)."""
+
         def change(m):
             stages = m.get("stages") or {}
             if scan_id is None:
                 stages.pop(stage, None)
             elif isinstance(stages.get(stage), dict):
                 (stages[stage].get("scans") or {}).pop(scan_id, None)
+
         self.update(change)
 
     def output(self, stage: str, name: str, scan_id: str | None = None) -> Path:
@@ -236,13 +270,15 @@ class Study:
         e = self.stage_entry(stage, scan_id)
         what = f"{stage} stage" + (f" of scan {scan_id!r}" if scan_id else "")
         run = f"run `{STAGE_COMMANDS.get(stage, 'workbench run')} {self.root}`" + (
-            f" (or `workbench run {self.root}`)" if stage in STAGE_COMMANDS else "")
+            f" (or `workbench run {self.root}`)" if stage in STAGE_COMMANDS else ""
+        )
         if e is None:
             raise StageOutputMissing(f"{self.manifest_path}: no {what} yet; {run} first.", self.manifest_path)
         rel = (e.get("outputs") or {}).get(name)
         if rel is None:
-            raise StageOutputMissing(f"{self.manifest_path}: the {what} has no output {name!r}; {run} again.",
-                                     self.manifest_path)
+            raise StageOutputMissing(
+                f"{self.manifest_path}: the {what} has no output {name!r}; {run} again.", self.manifest_path
+            )
         p = self.path(rel)
         if not p.exists():
             raise MissingFileError(f"{p}: named in {self.manifest_path} but missing; {run} again (with --force).", p)
@@ -282,9 +318,12 @@ class Study:
     def template_labels(self) -> Volume:
         p = self.template_labels_path()
         if p is None:
-            raise StudyError(f"{self.manifest_path}: the study has no bone label map ('template_labels'); give "
-                             "one, or segment the bones with `workbench bones STUDY --seeds FILE` (or `workbench "
-                             "pose STUDY --seeds FILE`).", self.manifest_path)
+            raise StudyError(
+                f"{self.manifest_path}: the study has no bone label map ('template_labels'); give "
+                "one, or segment the bones with `workbench bones STUDY --seeds FILE` (or `workbench "
+                "pose STUDY --seeds FILE`).",
+                self.manifest_path,
+            )
         return read_labels(p, reference=self.path(self.manifest["template"]))
 
     # -- ground truth (read by the validate stage and explicit protocols only) ---------------------
@@ -344,12 +383,17 @@ class Study:
         f = tg.factor_of(geometry)
         if f is not None and f > 1:
             if not coarse:
-                raise InputFileError(f"{path}: the skinning weights are on {every_nth(f)} template voxel (workbench "
-                                     f"weights --grid-factor {f}); only deform, animate and the VBD start use them there. "
-                                     f"Recompute them on the template's grid: `workbench weights {self.root} "
-                                     "--grid-factor 1 --force`.", path)
+                raise InputFileError(
+                    f"{path}: the skinning weights are on {every_nth(f)} template voxel (workbench "
+                    f"weights --grid-factor {f}); only deform, animate and the VBD start use them there. "
+                    f"Recompute them on the template's grid: `workbench weights {self.root} "
+                    "--grid-factor 1 --force`.",
+                    path,
+                )
         else:
-            tg.check_same(geometry, names=("template", str(path)), remedy="recompute the weights: workbench weights --force")
+            tg.check_same(
+                geometry, names=("template", str(path)), remedy="recompute the weights: workbench weights --force"
+            )
         weights, _, _ = read_voxel_weights(path)
         return weights, read_labels(self.output("weights", "body_mask.nii.gz"))
 
@@ -379,8 +423,10 @@ class Study:
     def registration_inverse(self, scan_id: str) -> tuple[Volume, Volume]:
         """``(template_to_scan field, status labels)`` on the template grid (status 0 ok, 1 folded, 2 not
         converged, 3 outside the scan: :data:`deformation.resample.STATUS_NAMES`)."""
-        return (read_displacement(self.output("register", "template_to_scan.mha", scan_id)),
-                read_labels(self.output("register", "inverse_status.nii.gz", scan_id)))
+        return (
+            read_displacement(self.output("register", "template_to_scan.mha", scan_id)),
+            read_labels(self.output("register", "inverse_status.nii.gz", scan_id)),
+        )
 
     def registration_positions(self, scan_id: str):
         """``(positions (nz, ny, nx, 3), found)``: where each template voxel lies in the scan by the registration
@@ -389,8 +435,10 @@ class Study:
 
         inv, status = self.registration_inverse(scan_id)
         read_image_geometry(self.path(self.manifest["template"])).check_same(
-            inv.geometry, names=("template", f"{scan_id} template_to_scan"),
-            remedy=f"register again: workbench register {self.root} --scan {scan_id} --force")
+            inv.geometry,
+            names=("template", f"{scan_id} template_to_scan"),
+            remedy=f"register again: workbench register {self.root} --scan {scan_id} --force",
+        )
         return inv.data + inv.geometry.world_coordinates(), np.asarray(status.data) <= FOLDED
 
     def registered(self, scan_id: str) -> Volume:
@@ -416,28 +464,43 @@ class Study:
             raise InputFileError(f"{path}: not an EVD model ('format' is {doc.get('format')!r}).", path)
         missing = [k for k in ("scans", "pose_vectors", "displacements", "joint_order") if k not in doc]
         if missing or any(s not in doc["pose_vectors"] for s in doc.get("scans", [])):
-            raise InputFileError(f"{path}: the model lacks {missing or 'a pose vector of a training scan'}; "
-                                 f"rebuild it with `workbench model {self.root} --force`.", path)
+            raise InputFileError(
+                f"{path}: the model lacks {missing or 'a pose vector of a training scan'}; "
+                f"rebuild it with `workbench model {self.root} --force`.",
+                path,
+            )
         if weights is None:
             weights, _ = self.weights()
         stale = f"rebuild the model with `workbench model {self.root} --force`"
         if doc.get("weights_sha256") != weights.digest():
-            raise InputFileError(f"{path}: the model was built with other skinning weights than the study's "
-                                 f"(recomputed since?); {stale}.", path)
+            raise InputFileError(
+                f"{path}: the model was built with other skinning weights than the study's "
+                f"(recomputed since?); {stale}.",
+                path,
+            )
         sk = self.skeleton()
         if doc["joint_order"] != [j.name for j in sk.joints]:
-            raise InputFileError(f"{path}: the model's joints {doc['joint_order']} are not the skeleton's "
-                                 f"{[j.name for j in sk.joints]}; {stale}.", path)
+            raise InputFileError(
+                f"{path}: the model's joints {doc['joint_order']} are not the skeleton's "
+                f"{[j.name for j in sk.joints]}; {stale}.",
+                path,
+            )
         dpath = path.parent / doc["displacements"]
         vol = read_vector_image(dpath)
         read_image_geometry(self.path(self.manifest["template"])).check_same(
-            vol.geometry, names=("template", str(dpath)), remedy=stale)
+            vol.geometry, names=("template", str(dpath)), remedy=stale
+        )
         n = len(doc["scans"])
         if vol.n_components != 3 * n:
             raise InputFileError(f"{dpath}: {vol.n_components} components, expected 3 × {n} training scans.", dpath)
         return ExampleVolumeDeformation.from_examples(
-            vol.geometry, weights, sk, [np.asarray(doc["pose_vectors"][s], dtype=float) for s in doc["scans"]],
-            vol.data.reshape(-1, n, 3), template_example=bool(doc.get("template_example", False)))
+            vol.geometry,
+            weights,
+            sk,
+            [np.asarray(doc["pose_vectors"][s], dtype=float) for s in doc["scans"]],
+            vol.data.reshape(-1, n, 3),
+            template_example=bool(doc.get("template_example", False)),
+        )
 
     # -- surface stage -----------------------------------------------------------------------------
     @property
@@ -462,21 +525,26 @@ class Study:
         from workbench.io.tetmeshes import weights_from_point_data
 
         if not self.has_surface:
-            raise StageOutputMissing(f"{self.root}: no surface model yet; run `workbench surface {self.root}`.",
-                                     self.manifest_path)
+            raise StageOutputMissing(
+                f"{self.root}: no surface model yet; run `workbench surface {self.root}`.", self.manifest_path
+            )
         path = self.output("surface", "surface.json")
         doc = read_json(path)
         stale = f"rebuild it with `workbench surface {self.root} --force`"
-        if doc.get("format") != "avw-surface" or not isinstance(doc.get("per_scan"), dict) or \
-                any("pose" not in doc["per_scan"].get(s, {}) for s in doc.get("scans", [])):
-            raise InputFileError(f"{path}: not a surface model of this version (no pose per fitted scan); {stale}.",
-                                 path)
+        if (
+            doc.get("format") != "avw-surface"
+            or not isinstance(doc.get("per_scan"), dict)
+            or any("pose" not in doc["per_scan"].get(s, {}) for s in doc.get("scans", []))
+        ):
+            raise InputFileError(
+                f"{path}: not a surface model of this version (no pose per fitted scan); {stale}.", path
+            )
         skin = self.output("surface", "template_skin.vtp")
         base = read_mesh(skin)
         try:
             bones, dense = weights_from_point_data(read_mesh_point_data(skin))
         except ValueError as e:
-            raise InputFileError(f"{skin}: {e}; {stale}.", skin)
+            raise InputFileError(f"{skin}: {e}; {stale}.", skin) from e
         weights = SkinningWeights.from_dense(dense, bones)
         ids = list(doc["scans"])
         meshes = [read_mesh(self.output("surface", f"{sid}_fitted.ply")) for sid in ids]
@@ -491,8 +559,10 @@ class Study:
     def validation_maps(self, scan_id: str) -> tuple[Volume, Volume]:
         """``(error_mm, body)`` on the scan grid: the registration's correspondence error at every body voxel
         (mm, 0 elsewhere) and the body voxels the validate stage measured over."""
-        return (read_volume(self.output("validate", "error_mm.nii.gz", scan_id)),
-                read_labels(self.output("validate", "body.nii.gz", scan_id)))
+        return (
+            read_volume(self.output("validate", "error_mm.nii.gz", scan_id)),
+            read_labels(self.output("validate", "body.nii.gz", scan_id)),
+        )
 
 
 def read_study(folder: str | os.PathLike) -> Study:
@@ -500,26 +570,38 @@ def read_study(folder: str | os.PathLike) -> Study:
     root = Path(folder)
     manifest_path = root / MANIFEST
     if not root.is_dir():
-        raise MissingFileError(f"{root}: no such study folder. Create one with `workbench phantom` or give "
-                               f"the folder that holds {MANIFEST}.", root)
+        raise MissingFileError(
+            f"{root}: no such study folder. Create one with `workbench phantom` or give "
+            f"the folder that holds {MANIFEST}.",
+            root,
+        )
     if not manifest_path.is_file():
         raise MissingFileError(f"{root}: not a study folder ({MANIFEST} is missing).", manifest_path)
     m = read_json(manifest_path)
     if not isinstance(m, dict):
-        raise StudyError(f"{manifest_path}: a study manifest is a JSON object {{\"format\": \"{STUDY_FORMAT}\", "
-                         "\"template\": ..., \"skeleton\": ..., \"scans\": [...]}} (README, 'Study folders').",
-                         manifest_path)
+        raise StudyError(
+            f'{manifest_path}: a study manifest is a JSON object {{"format": "{STUDY_FORMAT}", '
+            '"template": ..., "skeleton": ..., "scans": [...]}} (README, \'Study folders\').',
+            manifest_path,
+        )
     if "format" not in m:
-        raise StudyError(f"{manifest_path}: no 'format' key; add \"format\": \"{STUDY_FORMAT}\", \"version\": 1 "
-                         "at the top of the manifest (README, 'Study folders', has a minimal one).", manifest_path)
+        raise StudyError(
+            f'{manifest_path}: no \'format\' key; add "format": "{STUDY_FORMAT}", "version": 1 '
+            "at the top of the manifest (README, 'Study folders', has a minimal one).",
+            manifest_path,
+        )
     if m.get("format") != STUDY_FORMAT:
-        raise StudyError(f"{manifest_path}: 'format' is {m.get('format')!r}, not a study manifest; a study's is "
-                         f"{STUDY_FORMAT!r}.", manifest_path)
+        raise StudyError(
+            f"{manifest_path}: 'format' is {m.get('format')!r}, not a study manifest; a study's is {STUDY_FORMAT!r}.",
+            manifest_path,
+        )
     version = m.get("version", MANIFEST_VERSION)  # a hand-written manifest may leave it out
     if type(version) is not int or version != MANIFEST_VERSION:
-        raise StudyError(f"{manifest_path}: unsupported manifest version {json.dumps(version)} (this workbench reads "
-                         f"{MANIFEST_VERSION}); a newer workbench wrote it, or set \"version\": {MANIFEST_VERSION}.",
-                         manifest_path)
+        raise StudyError(
+            f"{manifest_path}: unsupported manifest version {json.dumps(version)} (this workbench reads "
+            f'{MANIFEST_VERSION}); a newer workbench wrote it, or set "version": {MANIFEST_VERSION}.',
+            manifest_path,
+        )
     for key in ("template", "skeleton", "scans"):
         if key not in m:
             raise StudyError(f"{manifest_path}: the manifest lacks the key {key!r}.", manifest_path)
@@ -538,8 +620,10 @@ def read_study(folder: str | os.PathLike) -> Study:
         truth = s.get("truth")
         if truth is not None:
             if not isinstance(truth, dict) or not {"correspondence", "pose", "markers"} <= set(truth):
-                raise StudyError(f"{manifest_path}: scans[{i}]['truth'] must name 'correspondence', 'pose' "
-                                 "and 'markers' files.", manifest_path)
+                raise StudyError(
+                    f"{manifest_path}: scans[{i}]['truth'] must name 'correspondence', 'pose' and 'markers' files.",
+                    manifest_path,
+                )
             files.extend(truth[k] for k in ("correspondence", "pose", "markers", "template_to_scan") if k in truth)
         # A scan's "pose" (written by `workbench pose`) is not required to exist: a study whose poses/ folder
         # was deleted must still open, so that `workbench pose --force` can write it again.
@@ -547,10 +631,13 @@ def read_study(folder: str | os.PathLike) -> Study:
         if not isinstance(f, str):
             raise StudyError(f"{manifest_path}: file entries must be strings (paths), got {f!r}.", manifest_path)
         if Path(f).is_absolute() or ".." in Path(f).parts:
-            raise StudyError(f"{manifest_path}: {f!r} must be a path inside the study folder (no '..', not "
-                             "absolute), so that the manifest names the same files wherever the folder is moved; "
-                             "to use a file kept elsewhere, put a symbolic link to it in the folder "
-                             "(ln -s /data/scan.nii.gz scans/scan.nii.gz) and name the link.", manifest_path)
+            raise StudyError(
+                f"{manifest_path}: {f!r} must be a path inside the study folder (no '..', not "
+                "absolute), so that the manifest names the same files wherever the folder is moved; "
+                "to use a file kept elsewhere, put a symbolic link to it in the folder "
+                "(ln -s /data/scan.nii.gz scans/scan.nii.gz) and name the link.",
+                manifest_path,
+            )
         if not (root / f).exists():
             raise MissingFileError(f"{root / f}: named in {manifest_path} but missing.", root / f)
     return Study(root, m)
@@ -561,8 +648,9 @@ def _staging_dir(out: Path) -> Path:
     return out.parent / f".{out.name}.partial-{secrets.token_hex(4)}"
 
 
-def write_phantom_study(phantom, out: str | os.PathLike, *, overwrite: bool = False, progress=None,
-                        name: str | None = None) -> Study:
+def write_phantom_study(
+    phantom, out: str | os.PathLike, *, overwrite: bool = False, progress=None, name: str | None = None
+) -> Study:
     """Generate a phantom's template and posed scans and write them as a study folder.
 
     Parameters
@@ -614,19 +702,22 @@ def _write_phantom_files(phantom, stage: Path, report, name: str | None) -> None
     for i, scan in enumerate(phantom.scans()):
         t1 = time.perf_counter()
         sid = scan.id
-        truth = {"correspondence": f"truth/{sid}_correspondence.mha", "pose": f"truth/{sid}_pose.json",
-                 "markers": f"truth/{sid}_markers.json"}
+        truth = {
+            "correspondence": f"truth/{sid}_correspondence.mha",
+            "pose": f"truth/{sid}_pose.json",
+            "markers": f"truth/{sid}_markers.json",
+        }
         write_volume(scan.image, stage / f"scans/{sid}.nii.gz")
         write_displacement(scan.correspondence, stage / truth["correspondence"])
         if scan.template_to_scan is not None:
             truth["template_to_scan"] = f"truth/{sid}_template_to_scan.mha"
             write_displacement(scan.template_to_scan, stage / truth["template_to_scan"])
         write_json(scan.pose.to_dict(), stage / truth["pose"])
-        write_json({"format": "avw-markers", "version": 1, "units": "mm", "markers": scan.markers},
-                   stage / truth["markers"])
+        write_json(
+            {"format": "avw-markers", "version": 1, "units": "mm", "markers": scan.markers}, stage / truth["markers"]
+        )
         entries.append({"id": sid, "image": f"scans/{sid}.nii.gz", "truth": truth})
-        log["scans"].append({"id": sid, **scan.stats,
-                             "write_seconds": round(time.perf_counter() - t1, 3)})
+        log["scans"].append({"id": sid, **scan.stats, "write_seconds": round(time.perf_counter() - t1, 3)})
         report("scan", i + 1, n)
     spec = phantom.spec.to_dict()
     manifest = {
@@ -638,13 +729,17 @@ def _write_phantom_files(phantom, stage: Path, report, name: str | None) -> None
         "template_labels": "template_labels.nii.gz",
         "skeleton": "skeleton.json",
         "scans": entries,
-        "phantom": {**spec, "poses": [{"id": pid, "angles_deg": {k: np.asarray(v).tolist() for k, v in a.items()}}
-                                      for pid, a in phantom.poses],
-                    "generator": "validation.phantoms", "workbench_version": __version__,
-                    "correspondence": "scan_to_template: template position minus scan voxel position, mm",
-                    # acquisition="random": what was drawn (validation.phantoms.draw_acquisition)
-                    **({"acquisition_drawn": phantom.acquisition}
-                       if getattr(phantom, "acquisition", None) is not None else {})},
+        "phantom": {
+            **spec,
+            "poses": [
+                {"id": pid, "angles_deg": {k: np.asarray(v).tolist() for k, v in a.items()}} for pid, a in phantom.poses
+            ],
+            "generator": "validation.phantoms",
+            "workbench_version": __version__,
+            "correspondence": "scan_to_template: template position minus scan voxel position, mm",
+            # acquisition="random": what was drawn (validation.phantoms.draw_acquisition)
+            **({"acquisition_drawn": phantom.acquisition} if getattr(phantom, "acquisition", None) is not None else {}),
+        },
         "stages": {},
     }
     log["total_seconds"] = round(time.perf_counter() - t0, 3)

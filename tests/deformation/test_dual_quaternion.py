@@ -45,8 +45,9 @@ def test_quat_multiply_composes_rotations():
     assert min(np.abs(prod - expected).max(), np.abs(prod + expected).max()) < 1e-15
     # Broadcasts over leading axes.
     qs = np.stack([_wxyz(r) for r in Rotation.random(5, random_state=rng)])
-    np.testing.assert_allclose(quat_multiply(qs, qs[::-1]), [quat_multiply(p, q) for p, q in zip(qs, qs[::-1])],
-                               rtol=0, atol=0)
+    np.testing.assert_allclose(
+        quat_multiply(qs, qs[::-1]), [quat_multiply(p, q) for p, q in zip(qs, qs[::-1])], rtol=0, atol=0
+    )
 
 
 def test_from_transforms_gives_unit_dual_quaternions():
@@ -89,8 +90,12 @@ def test_equal_transforms_blend_to_that_transform():
 
 
 def test_pure_translations_blend_linearly():
-    t = np.stack([from_rotation_translation(np.eye(3), (10.0, 0.0, -4.0)),
-                  from_rotation_translation(np.eye(3), (0.0, 20.0, 6.0))])
+    t = np.stack(
+        [
+            from_rotation_translation(np.eye(3), (10.0, 0.0, -4.0)),
+            from_rotation_translation(np.eye(3), (0.0, 20.0, 6.0)),
+        ]
+    )
     a = np.linspace(0.0, 1.0, 7)
     pts = np.tile([[1.0, 2.0, 3.0]], (7, 1))
     moved, rot = blend_apply(np.column_stack([1 - a, a]), from_transforms(t), pts)
@@ -166,7 +171,8 @@ def test_blended_rotations_are_orthonormal():
     w = rng.dirichlet(np.full(5, 0.5), size=200)
     moved, rot = blend_apply(w, from_transforms(t), pts)
     assert moved.shape == (200, 3) and rot.shape == (200, 3, 3)
-    np.testing.assert_allclose(np.einsum("nji,njk->nik", rot, rot), np.broadcast_to(np.eye(3), rot.shape),
-                               rtol=0, atol=1e-14)
+    np.testing.assert_allclose(
+        np.einsum("nji,njk->nik", rot, rot), np.broadcast_to(np.eye(3), rot.shape), rtol=0, atol=1e-14
+    )
     np.testing.assert_allclose(np.linalg.det(rot), 1.0, rtol=0, atol=1e-14)
     assert np.all(np.isfinite(moved))

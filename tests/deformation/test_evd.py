@@ -6,8 +6,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deformation.evd import (TEMPLATE_EXAMPLE_SEPARATION, ExampleVolumeDeformation, template_pose, vbd_forward,
-                             wants_template_example)
+from deformation.evd import (
+    TEMPLATE_EXAMPLE_SEPARATION,
+    ExampleVolumeDeformation,
+    template_pose,
+    vbd_forward,
+    wants_template_example,
+)
 from deformation.resample import FOLDED, OK, OUTSIDE, backward_map, backward_points, resample_forward
 from deformation.skinning import SkinningWeights, distance_weights, stack_transforms
 from validation.phantoms import make_phantom
@@ -23,8 +28,9 @@ def _weights(ph) -> SkinningWeights:
 def knee():
     """A noise-free knee on an anisotropic grid with a rotated direction (3 poses: 0°, 35°, 70°)."""
     rot = Rotation.from_euler("xyz", [8.0, -5.0, 12.0], degrees=True).as_matrix()
-    ph = make_phantom("knee", noise=False, n_poses=3, seed=3, modality="ct",
-                      direction=tuple(rot.ravel()), spacing=(6.0, 5.0, 4.5))
+    ph = make_phantom(
+        "knee", noise=False, n_poses=3, seed=3, modality="ct", direction=tuple(rot.ravel()), spacing=(6.0, 5.0, 4.5)
+    )
     return ph, _weights(ph)
 
 
@@ -122,8 +128,9 @@ def _cc(a, b):
 def test_evd_with_ground_truth_reproduces_every_training_pose(knee, knee_examples):
     ph, w = knee
     g = ph.geometry
-    model = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in knee_examples],
-                                                          [e[1] for e in knee_examples])
+    model = ExampleVolumeDeformation.from_correspondences(
+        g, w, ph.skeleton, [e[0] for e in knee_examples], [e[1] for e in knee_examples]
+    )
     template, _ = ph.template()
     x = g.world_coordinates().reshape(-1, 3)
     template_body = (ph.anatomy.distances_fast(x)[:, -1] < 0).reshape(g.array_shape)
@@ -155,8 +162,9 @@ def test_evd_between_poses_beats_vbd(knee, knee_examples):
     g = ph.geometry
     train = [knee_examples[0], knee_examples[2]]
     held = knee_examples[1]
-    model = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in train],
-                                                          [e[1] for e in train])
+    model = ExampleVolumeDeformation.from_correspondences(
+        g, w, ph.skeleton, [e[0] for e in train], [e[1] for e in train]
+    )
     x = g.world_coordinates().reshape(-1, 3)
     body = ph.anatomy.distances_fast(x)[:, -1] < 0
     truth = held[1].reshape(-1, 3)[body]
@@ -177,8 +185,9 @@ def test_template_example_anchors_the_rest_pose(knee, knee_examples):
     truth = knee_examples[0][1].reshape(-1, 3)[body]  # the true 0° map
     med = {}
     for flag in (True, False):
-        model = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in train],
-                                                              [e[1] for e in train], template_example=flag)
+        model = ExampleVolumeDeformation.from_correspondences(
+            g, w, ph.skeleton, [e[0] for e in train], [e[1] for e in train], template_example=flag
+        )
         assert model.template_example is flag and model.n_scans == 2
         for pose, fwd, _, _ in train:  # the training poses are still reproduced (float32 round-off)
             np.testing.assert_allclose(model.forward(pose), fwd, atol=2e-4)
@@ -187,12 +196,14 @@ def test_template_example_anchors_the_rest_pose(knee, knee_examples):
         med[flag] = np.linalg.norm(model.forward(knee_examples[0][0]).reshape(-1, 3)[body] - truth, axis=1).mean()
     assert med[True] < med[False], med
     # "auto" takes the template here (both training poses are far from rest) ...
-    auto = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in train],
-                                                         [e[1] for e in train])
+    auto = ExampleVolumeDeformation.from_correspondences(
+        g, w, ph.skeleton, [e[0] for e in train], [e[1] for e in train]
+    )
     assert auto.template_example
     # ... and leaves it out when a training scan is at rest (the 0° example: Φ would be singular)
-    with_rest = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, [e[0] for e in knee_examples],
-                                                              [e[1] for e in knee_examples])
+    with_rest = ExampleVolumeDeformation.from_correspondences(
+        g, w, ph.skeleton, [e[0] for e in knee_examples], [e[1] for e in knee_examples]
+    )
     assert not with_rest.template_example and with_rest.n_scans == 3
 
 
@@ -352,8 +363,9 @@ def test_unblended_names_the_voxels_the_coarse_map_gives_their_nearest_coarse_vo
         ijk = np.stack(np.meshgrid(np.arange(cx), np.arange(cy), np.arange(cz), indexing="ij"), -1)
         idx = np.ascontiguousarray(ijk.transpose(2, 1, 0, 3), dtype=np.float32) * 1.1 + 0.3  # an affine map
         idx[1, 2, 1] += 9.0  # a jump: the cells around this coarse voxel cannot blend
-        cb = CoarseBackwardMap(BackwardMap(c, c, idx, np.zeros(c.array_shape, np.float32),
-                                           np.full(c.array_shape, OK, np.uint8)), f, g)
+        cb = CoarseBackwardMap(
+            BackwardMap(c, c, idx, np.zeros(c.array_shape, np.float32), np.full(c.array_shape, OK, np.uint8)), f, g
+        )
         nz, ny, nx = g.array_shape
         got = cb.rows(0, nz).template_index
         flag = cb.unblended(0, nz)
@@ -367,13 +379,20 @@ def test_unblended_names_the_voxels_the_coarse_map_gives_their_nearest_coarse_vo
         for k in range(nz):
             for j in range(ny):
                 for i in range(nx):
-                    (k0, wz), (j0, wy), (i0, wx) = ((min(a // f, n - 2), a / f - min(a // f, n - 2))
-                                                    for a, n in ((k, cz), (j, cy), (i, cx)))
+                    (k0, wz), (j0, wy), (i0, wx) = (
+                        (min(a // f, n - 2), a / f - min(a // f, n - 2)) for a, n in ((k, cz), (j, cy), (i, cx))
+                    )
                     if flag[k, j, i]:
-                        want[k, j, i] = f * idx[min(int(k / f + 0.5), cz - 1), min(int(j / f + 0.5), cy - 1),
-                                                min(int(i / f + 0.5), cx - 1)]
+                        want[k, j, i] = (
+                            f
+                            * idx[
+                                min(int(k / f + 0.5), cz - 1),
+                                min(int(j / f + 0.5), cy - 1),
+                                min(int(i / f + 0.5), cx - 1),
+                            ]
+                        )
                         continue
-                    v = idx[k0:k0 + 2, j0:j0 + 2, i0:i0 + 2].astype(np.float64)
+                    v = idx[k0 : k0 + 2, j0 : j0 + 2, i0 : i0 + 2].astype(np.float64)
                     v = v[0] * (1 - wz) + v[1] * wz
                     v = v[0] * (1 - wy) + v[1] * wy
                     want[k, j, i] = f * (v[0] * (1 - wx) + v[1] * wx)
@@ -390,8 +409,11 @@ def test_pulling_through_a_coarse_map_gives_the_full_maps_voxels(knee):
     ph, w = knee
     tmpl, lab = ph.template()
     g = tmpl.geometry
-    fwd = vbd_forward(g.every(2), w.take(np.arange(g.n_voxels).reshape(g.array_shape)[::2, ::2, ::2].ravel()),
-                      stack_transforms(ph.pose_of(ph.poses[2][1]).transforms, w.bones))
+    fwd = vbd_forward(
+        g.every(2),
+        w.take(np.arange(g.n_voxels).reshape(g.array_shape)[::2, ::2, ::2].ravel()),
+        stack_transforms(ph.pose_of(ph.poses[2][1]).transforms, w.bones),
+    )
     cmap = rs.CoarseBackwardMap(backward_map(fwd, g.every(2), g.every(2)), 2, g)
     full = cmap.full()
     assert (full.status == OUTSIDE).any() and (full.status == OK).any()  # both branches of the kernel
@@ -404,8 +426,9 @@ def test_pulling_through_a_coarse_map_gives_the_full_maps_voxels(knee):
     one = cmap.rows(3, 5)
     np.testing.assert_array_equal(one.template_index, full.template_index[3:5])
     np.testing.assert_array_equal(one.status, full.status[3:5])
-    np.testing.assert_allclose(one.target_geometry.index_to_world([[1.0, 2.0, 0.0]]),
-                               g.index_to_world([[1.0, 2.0, 3.0]]), atol=1e-9)
+    np.testing.assert_allclose(
+        one.target_geometry.index_to_world([[1.0, 2.0, 0.0]]), g.index_to_world([[1.0, 2.0, 3.0]]), atol=1e-9
+    )
 
 
 def test_a_poser_with_weights_on_every_other_voxel_solves_its_maps_there(knee):
@@ -458,13 +481,15 @@ def test_a_vbd_start_from_weights_on_every_other_voxel(knee, monkeypatch):
     full, s_full = vbd_initial_field(g, g, w, ts)
     coarse, s_coarse = vbd_initial_field(g, g, w.take(sub), ts, factor=2)
     assert coarse.geometry.is_close(g) and s_coarse["map_factor"] == 2 and "map_factor" not in s_full
-    cmap = rs.CoarseBackwardMap(backward_map(vbd_forward(g.every(2), w.take(sub), ts), g.every(2), g.every(2),
-                                             transforms=ts), 2, g)
+    cmap = rs.CoarseBackwardMap(
+        backward_map(vbd_forward(g.every(2), w.take(sub), ts), g.every(2), g.every(2), transforms=ts), 2, g
+    )
     np.testing.assert_array_equal(cmap.scan_to_template().data, cmap.full().scan_to_template().data)
     # where the blend's 8 coarse neighbours were all solved (on the rim a voxel takes its nearest coarse
     # voxel's preimage instead, up to f voxels off: tested above), and the exact map solved the voxel
-    both = (_all_neighbours_solved(cmap.coarse, g.array_shape, 2)
-            & (backward_map(vbd_forward(g, w, ts), g, transforms=ts).status <= FOLDED))
+    both = _all_neighbours_solved(cmap.coarse, g.array_shape, 2) & (
+        backward_map(vbd_forward(g, w, ts), g, transforms=ts).status <= FOLDED
+    )
     assert both.mean() > 0.3
     # 0.03 voxel (both solves' tolerance) of this 6 mm grid, with float32 storage
     assert np.abs(coarse.data - full.data)[both].max() < 0.03 * 6.0 + 1e-3

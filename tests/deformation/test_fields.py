@@ -155,8 +155,9 @@ def test_nearest_matches_sitk_and_preserves_labels(geom, dtype):
     out_geom = _other_geom(geom)
     tx, mct = _affine_sitk()
     pts = _apply_affine(out_geom.world_coordinates(), mct)
-    ref = sitk.GetArrayFromImage(sitk.Resample(vol.to_sitk(), _sitk_reference(out_geom), tx,
-                                               sitk.sitkNearestNeighbor, 99))
+    ref = sitk.GetArrayFromImage(
+        sitk.Resample(vol.to_sitk(), _sitk_reference(out_geom), tx, sitk.sitkNearestNeighbor, 99)
+    )
     ours = sample(vol, pts, order=0, fill=99)
     assert ours.dtype == dtype
     np.testing.assert_array_equal(ours, ref)  # nearest neighbour copies values: exact
@@ -178,8 +179,12 @@ def test_half_voxel_border_is_edge_clamped_and_beyond_is_fill_like_sitk(geom, or
     nx = geom.size[0]
     # a line of points along the i axis through voxel row (j, k) = (3, 2), index -1.05 ... nx + 0.05
     m = int(round((nx + 1.1) / 0.1)) + 1
-    line = GridGeometry((m, 1, 1), (0.1 * SPACING[0], SPACING[1], SPACING[2]),
-                        tuple(geom.index_to_world([-1.05, 3.0, 2.0])), geom.direction)
+    line = GridGeometry(
+        (m, 1, 1),
+        (0.1 * SPACING[0], SPACING[1], SPACING[2]),
+        tuple(geom.index_to_world([-1.05, 3.0, 2.0])),
+        geom.direction,
+    )
     i = -1.05 + 0.1 * np.arange(m)
     ref = sitk.GetArrayFromImage(sitk.Resample(vol.to_sitk(), _sitk_reference(line), sitk.Transform(), interp, 0.0))
     ours = sample(vol, line.world_coordinates(), order=order, fill=0.0)
@@ -328,8 +333,10 @@ def test_invert_matches_the_closed_form_inverse(geom):
 
 
 def test_invert_matches_a_numerical_analytic_inverse_of_a_general_field(geom):
-    modes = [(np.array([0.9, -0.5, 0.7]), np.array([0.18, 0.11, -0.14]), 0.3),
-             (np.array([-0.4, 0.6, 0.3]), np.array([-0.07, 0.15, 0.12]), 1.9)]
+    modes = [
+        (np.array([0.9, -0.5, 0.7]), np.array([0.18, 0.11, -0.14]), 0.3),
+        (np.array([-0.4, 0.6, 0.3]), np.array([-0.07, 0.15, 0.12]), 1.9),
+    ]
     lip = _lipschitz(modes)
     assert lip < 0.5
     u = _field(geom, lambda p: p + _sinusoid(p, modes))
@@ -613,8 +620,9 @@ def test_small_inputs_take_the_serial_kernels_with_the_same_result(geom):
     pts = rng.uniform(np.minimum(lo, hi) - 2, np.maximum(lo, hi) + 2, (_SERIAL_BELOW + 1000, 3))
     for arr in (data, vec):
         big = sample_array(arr, geom.world_to_index_matrix, pts)
-        chunks = np.concatenate([sample_array(arr, geom.world_to_index_matrix, pts[i:i + 5000])
-                                 for i in range(0, pts.shape[0], 5000)])
+        chunks = np.concatenate(
+            [sample_array(arr, geom.world_to_index_matrix, pts[i : i + 5000]) for i in range(0, pts.shape[0], 5000)]
+        )
         assert np.array_equal(big, chunks)
     field = Volume(0.3 * vec, geom)
     det = F.jacobian_determinant(field)  # geom has fewer voxels than _SERIAL_BELOW: the serial kernel
@@ -674,8 +682,13 @@ def test_unfold_fold_by_fold_on_crops_equals_the_repair_of_the_whole_grid(monkey
     left = np.broadcast_to(np.arange(90) < 65, g2.array_shape)
     for pad in (F.UNFOLD_PAD, -8):  # -8: a first pad of 2·4σ + margin - 8 = 1 voxel
         monkeypatch.setattr(F, "UNFOLD_PAD", pad)
-        for field, kw in ((one, {}), (one, {"frozen": (r > 3.0) & (r < 3.6)}), (close, {}),
-                          (close, {"mask": r < 25.0}), (close, {"restore": False, "max_iterations": 3})):
+        for field, kw in (
+            (one, {}),
+            (one, {"frozen": (r > 3.0) & (r < 3.6)}),
+            (close, {}),
+            (close, {"mask": r < 25.0}),
+            (close, {"restore": False, "max_iterations": 3}),
+        ):
             out, info = F.unfold(field, **kw)
             u, ref = whole(field, **kw)
             assert info["n_folded_before"] > 0
@@ -700,8 +713,12 @@ def test_unfold_crops_stay_local_around_nested_clusters_and_frozen_blocks(monkey
     e = np.array([0.6, -0.3, 0.74]) / np.linalg.norm([0.6, -0.3, 0.74])
     g = GridGeometry((100, 100, 24), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3).reshape(-1))
     p = g.world_coordinates()
-    centres = ([(10, y, 12) for y in range(10, 90, 8)] + [(x, 10, 12) for x in range(18, 80, 8)]
-               + [(76, y, 12) for y in range(18, 90, 8)] + [(42, 50, 12)])
+    centres = (
+        [(10, y, 12) for y in range(10, 90, 8)]
+        + [(x, 10, 12) for x in range(18, 80, 8)]
+        + [(76, y, 12) for y in range(18, 90, 8)]
+        + [(42, 50, 12)]
+    )
     u = sum(np.exp(-np.sum((p - np.asarray(c, float)) ** 2, axis=-1) / 8.0)[..., None] for c in centres) * 5.0 * e
     nested = Volume(u.astype(np.float32), g)
     low, _ = F._low_dets(nested.data, np.eye(3), 0.05, None)
@@ -760,9 +777,13 @@ def test_the_cropped_determinant_update_matches_a_full_recomputation():
     rng = np.random.default_rng(5)
     u = rng.normal(size=g.array_shape + (3,))
     m = np.ascontiguousarray(np.linalg.inv(g.index_to_world_matrix[:3, :3]))
-    for box in ((slice(3, 6), slice(4, 7), slice(5, 9)), (slice(0, 2), slice(0, 3), slice(0, 4)),
-                (slice(1, 3), slice(2, 4), slice(1, 2)),  # crops clipped at 0 that must refresh det[0]
-                (slice(7, 10), slice(9, 12), slice(11, 14)), (slice(0, 10), slice(5, 6), slice(13, 14))):
+    for box in (
+        (slice(3, 6), slice(4, 7), slice(5, 9)),
+        (slice(0, 2), slice(0, 3), slice(0, 4)),
+        (slice(1, 3), slice(2, 4), slice(1, 2)),  # crops clipped at 0 that must refresh det[0]
+        (slice(7, 10), slice(9, 12), slice(11, 14)),
+        (slice(0, 10), slice(5, 6), slice(13, 14)),
+    ):
         det = np.empty(g.array_shape)
         _jacobian_det(u, m, det)
         v = u.copy()
@@ -781,8 +802,11 @@ def test_serial_twins_have_cache_entries_of_their_own():
     from deformation import fields as F
     from deformation import interpolate as I
 
-    for kernel, twin in ((F._jacobian_det, F._jacobian_det_serial), (F._jacobian_det_zyx, F._jacobian_det_zyx_serial),
-                         (I._sample_points_scalar, I._sample_points_scalar_serial),
-                         (I._sample_points_vector, I._sample_points_vector_serial)):
+    for kernel, twin in (
+        (F._jacobian_det, F._jacobian_det_serial),
+        (F._jacobian_det_zyx, F._jacobian_det_zyx_serial),
+        (I._sample_points_scalar, I._sample_points_scalar_serial),
+        (I._sample_points_vector, I._sample_points_vector_serial),
+    ):
         assert kernel.targetoptions.get("parallel") and not twin.targetoptions.get("parallel")
         assert twin.py_func.__qualname__ != kernel.py_func.__qualname__  # what numba names the cache entry by

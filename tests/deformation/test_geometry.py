@@ -50,10 +50,12 @@ def test_index_to_world_is_origin_plus_direction_times_scaled_index(geom):
     expected = np.array(ORIGIN) + (DIRECTION @ (np.array(SPACING) * ijk).T).T
     np.testing.assert_allclose(geom.index_to_world(ijk), expected, rtol=0, atol=ATOL_MM)
     # Explicit: index (1, 0, 0) sits one x-spacing along the first direction column.
-    np.testing.assert_allclose(geom.index_to_world([1, 0, 0]), np.array(ORIGIN) + 0.7 * DIRECTION[:, 0],
-                               rtol=0, atol=ATOL_MM)
-    np.testing.assert_allclose(geom.index_to_world([0, 0, 1]), np.array(ORIGIN) + 2.1 * DIRECTION[:, 2],
-                               rtol=0, atol=ATOL_MM)
+    np.testing.assert_allclose(
+        geom.index_to_world([1, 0, 0]), np.array(ORIGIN) + 0.7 * DIRECTION[:, 0], rtol=0, atol=ATOL_MM
+    )
+    np.testing.assert_allclose(
+        geom.index_to_world([0, 0, 1]), np.array(ORIGIN) + 2.1 * DIRECTION[:, 2], rtol=0, atol=ATOL_MM
+    )
     np.testing.assert_array_equal(geom.index_to_world([0, 0, 0]), ORIGIN)
 
 
@@ -77,8 +79,9 @@ def test_agrees_with_simpleitk(geom):
         itk_index = img.TransformPhysicalPointToContinuousIndex(itk_point)
         np.testing.assert_allclose(geom.world_to_index(itk_point), itk_index, rtol=0, atol=1e-12)
     for idx in [(0, 0, 0), (6, 4, 3), (3, 1, 2)]:
-        np.testing.assert_allclose(geom.index_to_world(idx), img.TransformIndexToPhysicalPoint(idx),
-                                   rtol=0, atol=ATOL_MM)
+        np.testing.assert_allclose(
+            geom.index_to_world(idx), img.TransformIndexToPhysicalPoint(idx), rtol=0, atol=ATOL_MM
+        )
     assert GridGeometry.from_sitk(img) == geom
 
 
@@ -160,8 +163,9 @@ def test_dict_round_trip(geom):
 def test_check_same_passes_for_equal_grids(geom):
     geom.check_same(GridGeometry(SIZE, SPACING, ORIGIN, DIRECTION.reshape(-1)))
     # Below the tolerances (1e-6 relative spacing, 1e-4 mm origin): still the same grid.
-    geom.check_same(GridGeometry(SIZE, (0.7 * (1 + 1e-9), 1.3, 2.1), (ORIGIN[0] + 1e-6, *ORIGIN[1:]),
-                                 DIRECTION.reshape(-1)))
+    geom.check_same(
+        GridGeometry(SIZE, (0.7 * (1 + 1e-9), 1.3, 2.1), (ORIGIN[0] + 1e-6, *ORIGIN[1:]), DIRECTION.reshape(-1))
+    )
 
 
 def test_check_same_prints_both_geometries(geom):

@@ -19,10 +19,16 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.harmonic import (constrained_vertices, harmonic_voxel_weights, harmonic_weights, stiffness_matrix,
-                                  weights_at_points, weights_on_grid)
-from deformation.skinning import SkinningWeights, distance_weights
+from deformation.harmonic import (
+    constrained_vertices,
+    harmonic_voxel_weights,
+    harmonic_weights,
+    stiffness_matrix,
+    weights_at_points,
+    weights_on_grid,
+)
 from deformation.isosurface import isosurface
+from deformation.skinning import SkinningWeights, distance_weights
 from deformation.tetmesh import TIE_DIRECTION, TetMesh, lattice_cubes, lattice_tetmesh, locate, rasterize
 from registration.segmentation import segment_body
 from workbench.io.tetmeshes import read_tetmesh, weight_arrays, write_tetmesh
@@ -33,6 +39,7 @@ KNEE_STEP = 2  # lattice step (voxels): the test knee's grid is 4.98×4.98×3.69
 # ---------------------------------------------------------------------------------------------
 # Fixtures: the test-size knee, meshed once
 # ---------------------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def knee(tmp_path_factory):
@@ -48,8 +55,16 @@ def knee(tmp_path_factory):
     bone_labels = {b: ph.skeleton.label_of(b) for b in ph.skeleton.bone_names}
     # the skin: the 0.5 isosurface of the mask (voxel staircase and all), closed at the field of view
     surface = isosurface(Volume(mask.data.astype(np.float32), mask.geometry), 0.5, pad_value=0.0)
-    return {"phantom": ph, "template": template, "labels": labels, "mask": mask, "surface": surface,
-            "path": path, "bone_labels": bone_labels, "seconds": {"mesh": t1 - t0}}
+    return {
+        "phantom": ph,
+        "template": template,
+        "labels": labels,
+        "mask": mask,
+        "surface": surface,
+        "path": path,
+        "bone_labels": bone_labels,
+        "seconds": {"mesh": t1 - t0},
+    }
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +85,7 @@ def knee_weights(knee, knee_mesh):
 def knee_grid_weights(knee, knee_mesh, knee_weights):
     w, info = knee_weights
     t0 = time.perf_counter()
-    sw = weights_on_grid(knee_mesh, w, info["bones"], knee["template"].geometry, knee["labels"],
-                         knee["bone_labels"])
+    sw = weights_on_grid(knee_mesh, w, info["bones"], knee["template"].geometry, knee["labels"], knee["bone_labels"])
     return sw, time.perf_counter() - t0
 
 
@@ -83,6 +97,7 @@ def _rotated_grid(size=(13, 11, 9), spacing=(0.7, 1.3, 0.9), origin=(3.0, -2.0, 
 # ---------------------------------------------------------------------------------------------
 # TetMesh and the knee's lattice mesh
 # ---------------------------------------------------------------------------------------------
+
 
 def test_tetmesh_validation_and_orientation():
     v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
@@ -129,13 +144,18 @@ def test_knee_mesh_is_positive_conforming_and_fills_its_cubes(knee, knee_mesh, r
     for dz in range(3):
         for dy in range(3):
             for dx in range(3):
-                near[np.minimum(nz_[cz] + dz, nz_[cz + 1]), np.minimum(ny_[cy] + dy, ny_[cy + 1]),
-                     np.minimum(nx_[cx] + dx, nx_[cx + 1])] = True  # the cubes' closed blocks
+                near[
+                    np.minimum(nz_[cz] + dz, nz_[cz + 1]),
+                    np.minimum(ny_[cy] + dy, ny_[cy + 1]),
+                    np.minimum(nx_[cx] + dx, nx_[cx + 1]),
+                ] = True  # the cubes' closed blocks
     assert not np.any(tet[~near] >= 0)
     body = mask.data.astype(bool)
-    print(f"\nknee lattice mesh (step {KNEE_STEP}): {mesh.n_vertices} vertices, {mesh.n_tets} tets in "
-          f"{knee['seconds']['mesh']:.2f} s; body voxel centres in the mesh {100 * np.mean(tet[body] >= 0):.1f} %, "
-          f"air voxel centres {100 * np.mean(tet[~body] >= 0):.1f} %")
+    print(
+        f"\nknee lattice mesh (step {KNEE_STEP}): {mesh.n_vertices} vertices, {mesh.n_tets} tets in "
+        f"{knee['seconds']['mesh']:.2f} s; body voxel centres in the mesh {100 * np.mean(tet[body] >= 0):.1f} %, "
+        f"air voxel centres {100 * np.mean(tet[~body] >= 0):.1f} %"
+    )
     record_property("knee_tet_vertices", mesh.n_vertices)
     record_property("knee_tets", mesh.n_tets)
 
@@ -143,6 +163,7 @@ def test_knee_mesh_is_positive_conforming_and_fills_its_cubes(knee, knee_mesh, r
 # ---------------------------------------------------------------------------------------------
 # Rasterisation and point location
 # ---------------------------------------------------------------------------------------------
+
 
 def _kuhn_tets(corners: np.ndarray) -> np.ndarray:
     """The 6 tets of a (deformed) cube whose 8 corners are indexed by bits (x + 2y + 4z)."""
@@ -275,6 +296,7 @@ def test_locate_outside_points_take_the_nearest_boundary_point(knee_mesh):
 # Harmonic weights on the knee
 # ---------------------------------------------------------------------------------------------
 
+
 def test_harmonic_weights_are_a_partition_of_unity_fixed_on_bones(knee_mesh, knee_weights, record_property):
     w, info = knee_weights
     assert w.shape == (knee_mesh.n_vertices, 4) and info["bones"] == ("femur", "tibia", "fibula", "patella")
@@ -286,10 +308,12 @@ def test_harmonic_weights_are_a_partition_of_unity_fixed_on_bones(knee_mesh, kne
         np.testing.assert_array_equal(w[bov == k, k], 1.0)
         np.testing.assert_array_equal(np.delete(w[bov == k], k, axis=1), 0.0)
     assert info["sum_error_raw"] < 1e-9
-    print(f"\nharmonic solve: {info['n_free']} free vertices, constrained {info['n_constrained']}, "
-          f"raw range [{info['raw_min']:.3g}, {info['raw_max']:.6f}], clipped ≤ {info['clipped_max']:.2g} "
-          f"({100 * info['clipped_fraction']:.2f} % of free entries), {info['seconds_total']:.2f} s "
-          f"({', '.join(f'{k} {v:.2f}' for k, v in info['seconds'].items())})")
+    print(
+        f"\nharmonic solve: {info['n_free']} free vertices, constrained {info['n_constrained']}, "
+        f"raw range [{info['raw_min']:.3g}, {info['raw_max']:.6f}], clipped ≤ {info['clipped_max']:.2g} "
+        f"({100 * info['clipped_fraction']:.2f} % of free entries), {info['seconds_total']:.2f} s "
+        f"({', '.join(f'{k} {v:.2f}' for k, v in info['seconds'].items())})"
+    )
     record_property("harmonic_seconds", info["seconds_total"])
     record_property("harmonic_clipped_max", info["clipped_max"])
 
@@ -346,7 +370,8 @@ def test_bone_without_vertices_is_an_error_or_snapped(knee, knee_mesh):
     v = int(np.flatnonzero(info["bone_of_vertex"] == 4)[0])
     # the nearest free vertex: within a lattice cube's diagonal of the voxel (the cube around it has 8 nodes)
     assert np.linalg.norm(knee_mesh.vertices[v] - g.index_to_world([i, j, k])) < np.linalg.norm(
-        KNEE_STEP * np.asarray(g.spacing))
+        KNEE_STEP * np.asarray(g.spacing)
+    )
     np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-6)
     with pytest.raises(ValueError, match="no voxels"):
         harmonic_weights(knee_mesh, labels, dict(knee["bone_labels"], ghost=42))
@@ -367,6 +392,7 @@ def test_bone_without_vertices_is_an_error_or_snapped(knee, knee_mesh):
 # ---------------------------------------------------------------------------------------------
 # Weights of voxels and points
 # ---------------------------------------------------------------------------------------------
+
 
 def _reference_grid_dense(mesh, w, geometry, labels, lut):
     """NumPy reference of weights_on_grid before truncation: dense (n_voxels, n_bones)."""
@@ -419,18 +445,21 @@ def test_compare_with_distance_weights(knee, knee_grid_weights, record_property)
     dist = np.empty((g.n_voxels, sw.n_bones))
     for k, b in enumerate(sw.bones):
         in_bone = labels.data == knee["bone_labels"][b]
-        d = (ndimage.distance_transform_edt(~in_bone, sampling=spacing_zyx)
-             - ndimage.distance_transform_edt(in_bone, sampling=spacing_zyx))
+        d = ndimage.distance_transform_edt(~in_bone, sampling=spacing_zyx) - ndimage.distance_transform_edt(
+            in_bone, sampling=spacing_zyx
+        )
         dist[:, k] = d.reshape(-1)
     dw = distance_weights(dist, sw.bones)
     soft = (body & (labels.data == 0)).reshape(-1)
     h, d = sw.dense()[soft], dw.dense()[soft]
     tv = 0.5 * np.abs(h - d).sum(axis=1)  # total-variation distance per voxel, in [0, 1]
     same = np.mean(h.argmax(axis=1) == d.argmax(axis=1))
-    print(f"\nharmonic vs distance weights over {soft.sum()} soft-tissue voxels: mean TV distance "
-          f"{tv.mean():.3f} (median {np.median(tv):.3f}, 95th pct {np.percentile(tv, 95):.3f}); "
-          f"same dominant bone {100 * same:.1f} %; mean influences > 1 %: harmonic "
-          f"{(h > 0.01).sum(axis=1).mean():.2f}, distance {(d > 0.01).sum(axis=1).mean():.2f}")
+    print(
+        f"\nharmonic vs distance weights over {soft.sum()} soft-tissue voxels: mean TV distance "
+        f"{tv.mean():.3f} (median {np.median(tv):.3f}, 95th pct {np.percentile(tv, 95):.3f}); "
+        f"same dominant bone {100 * same:.1f} %; mean influences > 1 %: harmonic "
+        f"{(h > 0.01).sum(axis=1).mean():.2f}, distance {(d > 0.01).sum(axis=1).mean():.2f}"
+    )
     record_property("harmonic_vs_distance_mean_tv", float(tv.mean()))
     record_property("harmonic_vs_distance_same_dominant", float(same))
     assert 0 <= tv.mean() < 1 and same > 0.5

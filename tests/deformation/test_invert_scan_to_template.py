@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from deformation.geometry import GridGeometry, Volume
 from deformation.resample import OK, invert_scan_to_template
 
+
 def _centred(size, spacing, euler, centre) -> GridGeometry:
     d = Rotation.from_euler("ZYX", euler, degrees=True).as_matrix()
     origin = np.asarray(centre) - d @ (np.asarray(spacing) * (np.asarray(size) - 1) / 2.0)
@@ -69,8 +70,10 @@ def test_both_routes_recover_the_analytic_inverse():
     forward = _a(G_T.world_coordinates())  # the start's forward map on the template grid
     # Tolerance: three chained trilinear interpolations of fields whose second derivatives are
     # ≤ Σ|a||k|² ≈ 0.02 /mm, at spacings ≤ 1.8 mm: each ≤ h²/8 · 0.02 ≈ 0.01 mm; 0.05 mm covers the chain.
-    for bm in (invert_scan_to_template(_phi(), G_T, forward=forward),
-               invert_scan_to_template(_phi(), G_T, transforms=np.stack([np.vstack([np.c_[ROT, SHIFT], [0, 0, 0, 1]])]))):
+    for bm in (
+        invert_scan_to_template(_phi(), G_T, forward=forward),
+        invert_scan_to_template(_phi(), G_T, transforms=np.stack([np.vstack([np.c_[ROT, SHIFT], [0, 0, 0, 1]])])),
+    ):
         got = bm.scan_to_template().data.reshape(-1, 3) + v
         status = bm.status.reshape(-1)
         assert np.all(status[inside] == OK)

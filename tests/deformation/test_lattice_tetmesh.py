@@ -72,7 +72,7 @@ def test_lattice_mesh_geometry_volume_and_conformity(direction, step):
     want = np.zeros_like(cubes)
     for c in np.ndindex(cubes.shape):
         (z0, z1), (y0, y1), (x0, x1) = ((nodes[2 - a][c[a]], nodes[2 - a][c[a] + 1]) for a in range(3))
-        block = mask.data[z0:z1 + 1, y0:y1 + 1, x0:x1 + 1]
+        block = mask.data[z0 : z1 + 1, y0 : y1 + 1, x0 : x1 + 1]
         want[c] = 2 * block.sum() > block.size
     np.testing.assert_array_equal(cubes, want)
     assert 0 < cubes.sum() < cubes.size
@@ -92,8 +92,11 @@ def test_lattice_mesh_geometry_volume_and_conformity(direction, step):
     p = mesh.vertices[bf]
     area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
     want_area = 0.0
-    for axis, face_mm2 in ((2, np.multiply.outer(hz, hy)[:, :, None]), (1, np.multiply.outer(hz, hx)[:, None, :]),
-                           (0, np.multiply.outer(hy, hx)[None, :, :])):
+    for axis, face_mm2 in (
+        (2, np.multiply.outer(hz, hy)[:, :, None]),
+        (1, np.multiply.outer(hz, hx)[:, None, :]),
+        (0, np.multiply.outer(hy, hx)[None, :, :]),
+    ):
         padded = np.pad(cubes, [(1, 1) if a == axis else (0, 0) for a in range(3)])
         exposed = np.diff(padded.astype(np.int8), axis=axis) != 0  # between a cube and a non-cube
         want_area += (exposed * face_mm2).sum()
@@ -127,8 +130,8 @@ def test_stiffness_of_a_lattice_is_the_seven_point_stencil():
         assert interior.sum() > 10
         want_off = {a: -np.prod(np.delete(H, a)) / H[a] for a in range(3)}
         for v in np.flatnonzero(interior):
-            cols = L.indices[L.indptr[v]:L.indptr[v + 1]]
-            vals = L.data[L.indptr[v]:L.indptr[v + 1]]
+            cols = L.indices[L.indptr[v] : L.indptr[v + 1]]
+            vals = L.data[L.indptr[v] : L.indptr[v + 1]]
             assert cols.size == 7, cols.size  # itself and 6 axis neighbours
             for c, x in zip(cols, vals):
                 d = ijk[c] - ijk[v]
@@ -171,8 +174,9 @@ def test_weights_on_an_irregular_body_stay_in_0_1_without_clipping(step):
     labels[body.data & (np.abs(i - 3) <= 1) & (np.abs(j - 6) <= 1) & (np.abs(k - 5) <= 1)] = 1
     labels[body.data & (i >= 12) & (i <= 13)] = 2  # the arm's end
     labels[body.data & (np.abs(i - 6) <= 1) & (j >= 9) & (np.abs(k - 5) <= 1)] = 3
-    r = harmonic_voxel_weights(Volume(labels, g), {"a": 1, "b": 2, "c": 3}, body,
-                               mesh=lattice_tetmesh(body, step=step), snap_missing=True)
+    r = harmonic_voxel_weights(
+        Volume(labels, g), {"a": 1, "b": 2, "c": 3}, body, mesh=lattice_tetmesh(body, step=step), snap_missing=True
+    )
     info = r.info
     # exact arithmetic keeps [0, 1]; the LU solve's round-off (a few ulp, e.g. 1 + 7e-16 at a free vertex whose
     # neighbours are all one bone's) is all that clipping may remove
@@ -199,8 +203,12 @@ def test_a_one_voxel_gap_is_not_bridged():
     x = np.rint(g.world_to_index(kept.vertices)[:, 0])
     assert x.min() == 1 and x.max() == 6 and kept.n_tets == 6 * 4 * 4 * 5
     # at a step of 2 voxels the cube across the gap is mostly body: a gap narrower than the step is bridged
-    assert connected_components(lattice_tetmesh(Volume(m, g), step=2, keep_largest_component=False)
-                                .edge_graph(), directed=False)[0] == 1
+    assert (
+        connected_components(
+            lattice_tetmesh(Volume(m, g), step=2, keep_largest_component=False).edge_graph(), directed=False
+        )[0]
+        == 1
+    )
 
 
 def test_lattice_step_and_input_checks():

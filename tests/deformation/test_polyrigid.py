@@ -95,14 +95,14 @@ def test_initial_field_from_a_skeleton_description(two_bones):
     from registration.initialise import polyrigid_initial_field
 
     g, labels, flow, t = two_bones
-    field, fl = polyrigid_initial_field(labels, {"lower": 2, "upper": 1}, {"lower": "upper", "upper": None},
-                                        {"upper": t[0], "lower": t[1]}, g)
+    field, fl = polyrigid_initial_field(
+        labels, {"lower": 2, "upper": 1}, {"lower": "upper", "upper": None}, {"upper": t[0], "lower": t[1]}, g
+    )
     # the same bones, transforms and weights in parents-first order: the same flow, to the bit
     assert fl.parents == (-1, 0) and fl.steps == flow.steps
     assert np.array_equal(field.data, flow.scan_to_template(g).data)
     with pytest.raises(ValueError, match="no transform"):
-        polyrigid_initial_field(labels, {"lower": 2, "upper": 1}, {"lower": "upper", "upper": None},
-                                {"upper": t[0]}, g)
+        polyrigid_initial_field(labels, {"lower": 2, "upper": 1}, {"lower": "upper", "upper": None}, {"upper": t[0]}, g)
 
 
 def test_fields_made_a_slab_at_a_time_are_the_pointwise_maps(two_bones, monkeypatch):
@@ -141,8 +141,12 @@ def test_a_map_factor_blends_where_the_map_is_smooth_and_integrates_where_it_jum
     g, labels, flow, t = _two_bones((44, 60, 30), (1.5, 1.2, 1.8), half=10.0)  # bones wide enough for whole cells
     rot = _rotation(-15.0, (0.0, 1.0, 1.0))
     size, spacing = (41, 52, 27), (1.7, 1.4, 2.0)
-    g_s = GridGeometry(size, spacing, tuple(-(rot @ ((np.asarray(size) - 1) * np.asarray(spacing) / 2.0))
-                                            + np.array([3.0, -2.0, 1.0])), tuple(rot.reshape(-1)))
+    g_s = GridGeometry(
+        size,
+        spacing,
+        tuple(-(rot @ ((np.asarray(size) - 1) * np.asarray(spacing) / 2.0)) + np.array([3.0, -2.0, 1.0])),
+        tuple(rot.reshape(-1)),
+    )
     monkeypatch.setattr(geometry_module, "SLAB_VOXELS", 5 * 44 * 60)  # several slabs
     for grid, backward in ((g_s, True), (g, False)):
         make = (lambda **k: flow.scan_to_template(g_s, **k)) if backward else flow.template_to_scan
@@ -154,15 +158,19 @@ def test_a_map_factor_blends_where_the_map_is_smooth_and_integrates_where_it_jum
         xc = c.world_coordinates()
         img = (flow.backward if backward else flow.forward)(xc.reshape(-1, 3)).reshape(xc.shape)
         idx = g.every(2).world_to_index(img).astype(np.float32)
-        bm = CoarseBackwardMap(BackwardMap(g.every(2), c, idx, np.zeros(c.array_shape, np.float32),
-                                           np.full(c.array_shape, OK, np.uint8)), 2, g, grid)
+        bm = CoarseBackwardMap(
+            BackwardMap(g.every(2), c, idx, np.zeros(c.array_shape, np.float32), np.full(c.array_shape, OK, np.uint8)),
+            2,
+            g,
+            grid,
+        )
         nz, ny, nx = grid.array_shape
         jump = bm.unblended(0, nz)
         assert jump.any() and jump.mean() < 0.5  # the crease's cells, not the grid
         past = np.zeros_like(jump)
-        past[2 * (c.array_shape[0] - 1) + 1:] = True
-        past[:, 2 * (c.array_shape[1] - 1) + 1:] = True
-        past[:, :, 2 * (c.array_shape[2] - 1) + 1:] = True
+        past[2 * (c.array_shape[0] - 1) + 1 :] = True
+        past[:, 2 * (c.array_shape[1] - 1) + 1 :] = True
+        past[:, :, 2 * (c.array_shape[2] - 1) + 1 :] = True
         assert past.any()  # y of the scan grid (52), every axis of the template's (44, 60, 30): a last plane
         assert np.array_equal(field.data[jump | past], exact[jump | past])
         y = grid.world_coordinates()
@@ -174,7 +182,7 @@ def test_a_map_factor_blends_where_the_map_is_smooth_and_integrates_where_it_jum
             for dz in (0, 1):
                 for dy in (0, 1):
                     for dx in (0, 1):
-                        whole &= inside[dz:dz + whole.shape[0], dy:dy + whole.shape[1], dx:dx + whole.shape[2]]
+                        whole &= inside[dz : dz + whole.shape[0], dy : dy + whole.shape[1], dx : dx + whole.shape[2]]
             deep = whole[cells] & ~jump & ~past
             assert deep.sum() > 50
             yh = np.c_[y[deep], np.ones(deep.sum())]

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deformation.posespace import (PoseSpace, pose_vector, pose_weights, psd_deform, psd_training, skin,
-                                   wpsd_deform)
+from deformation.posespace import PoseSpace, pose_vector, pose_weights, psd_deform, psd_training, skin, wpsd_deform
 from deformation.skinning import SkinningWeights, lbs, stack_transforms
 from validation.phantoms import hand
 
@@ -22,7 +21,7 @@ def hand_setup():
     origins = np.stack([np.asarray(sk.joint_of(b).center) if sk.joint_of(b) else np.zeros(3) for b in bones])
     p = origins[rng.integers(0, len(bones), 3000)] + rng.normal(scale=8.0, size=(3000, 3))
     d = np.linalg.norm(p[:, None] - origins[None], axis=2)
-    w = SkinningWeights.from_dense(np.exp(-(d / 15.0) ** 2) + 1e-12, bones)
+    w = SkinningWeights.from_dense(np.exp(-((d / 15.0) ** 2)) + 1e-12, bones)
     return sk, poses, bones, p, w, rng
 
 
@@ -36,8 +35,7 @@ def test_pose_weights_interpolate_the_training_poses_and_sum_to_one():
     # the width is the nearest-neighbour distance: scaling every distance leaves the weights unchanged
     np.testing.assert_allclose(pose_weights(train, q), pose_weights(3.0 * train, 3.0 * q), atol=1e-9)
     # per-point DOF weights (Eq. 16) that are uniform give the PSD weights
-    np.testing.assert_allclose(pose_weights(train, q, dof_weights=np.full(5, 0.2)), pose_weights(train, q),
-                               atol=1e-9)
+    np.testing.assert_allclose(pose_weights(train, q, dof_weights=np.full(5, 0.2)), pose_weights(train, q), atol=1e-9)
 
 
 def test_pose_weights_are_continuous():
@@ -92,8 +90,9 @@ def test_psd_and_wpsd_reproduce_every_training_example(hand_setup):
     # the coefficients folded with the samples once by the caller (PointPoseSpace.fold: Σ φ Cᵀbase / Σ φ Cᵀ1
     # rearranges Eq. 14 and 7) give the two-step surface too (round-off only)
     folded = pts.fold(per_point)
-    np.testing.assert_allclose(wpsd_deform(per_point, w, pts, q, poses[0].transforms, folded=folded), two_step,
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        wpsd_deform(per_point, w, pts, q, poses[0].transforms, folded=folded), two_step, atol=1e-9
+    )
     with pytest.raises(ValueError, match="PointPoseSpace.fold"):
         wpsd_deform(per_point, w, pts, q, poses[0].transforms, folded=folded[:, :, :3])
 
@@ -111,7 +110,7 @@ def test_wpsd_follows_only_the_dofs_that_move_the_points_bone(hand_setup):
     moved = set()
     for j in finger:
         i = names.index(j.name)
-        vec[offs[i]:offs[i + 1]] = space.train[4, offs[i]:offs[i + 1]]
+        vec[offs[i] : offs[i + 1]] = space.train[4, offs[i] : offs[i + 1]]
         moved.add(bones.index(j.child))
     sw = pts.weights(vec)
     # points off the moved finger (and mostly off the root bone, which no DOF moves, so that its

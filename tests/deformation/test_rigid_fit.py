@@ -22,8 +22,12 @@ def _apply(t, p):
 
 @pytest.mark.parametrize(
     "rotvec_deg, translation",
-    [([0, 0, 0], [0, 0, 0]), ([10, -20, 30], [5.0, -3.0, 12.0]), ([0, 179.0, 0], [-40, 2, 1]),
-     ([90, 0, 0], [0.001, 0, 0])],
+    [
+        ([0, 0, 0], [0, 0, 0]),
+        ([10, -20, 30], [5.0, -3.0, 12.0]),
+        ([0, 179.0, 0], [-40, 2, 1]),
+        ([90, 0, 0], [0.001, 0, 0]),
+    ],
 )
 def test_recovers_known_transform(rotvec_deg, translation):
     rng = np.random.default_rng(0)

@@ -116,8 +116,9 @@ def test_intrinsic_xyz_equals_rx_ry_rz_composed_by_hand():
         np.testing.assert_allclose(j3.local_rotation([fx, ab, tw]), r, rtol=0, atol=1e-14)
         np.testing.assert_allclose(j3.motion([fx, ab, tw]), rotation_about_point(a @ r @ a.T, c), rtol=0, atol=ATOL)
         j2 = Joint("j", "p", "c", 2, c, a)
-        np.testing.assert_allclose(j2.motion([fx, ab]), rotation_about_point(a @ _rx(fx) @ _ry(ab) @ a.T, c),
-                                   rtol=0, atol=ATOL)
+        np.testing.assert_allclose(
+            j2.motion([fx, ab]), rotation_about_point(a @ _rx(fx) @ _ry(ab) @ a.T, c), rtol=0, atol=ATOL
+        )
 
 
 def test_intrinsic_order_on_an_explicit_case():
@@ -144,8 +145,9 @@ def test_six_dof_translation_moves_the_centre_by_a_t():
         expected = c + ((p - c) @ a @ r.T + t) @ a.T
         np.testing.assert_allclose(apply(m, p), expected, rtol=0, atol=ATOL)
         # Pure translation: every point moves by A t.
-        np.testing.assert_allclose(j.motion(np.r_[0.0, 0.0, 0.0, t]), from_rotation_translation(np.eye(3), a @ t),
-                                   rtol=0, atol=ATOL)
+        np.testing.assert_allclose(
+            j.motion(np.r_[0.0, 0.0, 0.0, t]), from_rotation_translation(np.eye(3), a @ t), rtol=0, atol=ATOL
+        )
 
 
 @pytest.mark.parametrize("dof", [1, 2, 3, 6])
@@ -302,8 +304,9 @@ def test_pose_joint_centres(hand_skeleton):
         if j.dof == 6:
             # The child's copy of the centre is displaced by the joint translation A t.
             t = angles[j.name][3:]
-            np.testing.assert_allclose(apply(pose[j.child], j.center), apply(pose[j.parent], j.center + j.axes @ t),
-                                       rtol=0, atol=ATOL)
+            np.testing.assert_allclose(
+                apply(pose[j.child], j.center), apply(pose[j.parent], j.center + j.axes @ t), rtol=0, atol=ATOL
+            )
         else:
             np.testing.assert_allclose(centre, apply(pose[j.child], j.center), rtol=0, atol=ATOL)
         np.testing.assert_array_equal(pose.joint_angles[j.name], angles[j.name])
@@ -351,23 +354,34 @@ def test_a_valid_chain():
         (_chain_bones() + [Bone("b", 4, "a")], _chain_joints(), "bone names must be unique"),
         ([Bone("a", 1, None), Bone("b", 1, "a"), Bone("c", 3, "b")], _chain_joints(), "labels must be unique"),
         ([Bone("a", 0, None), Bone("b", 2, "a"), Bone("c", 3, "b")], _chain_joints(), "positive integers"),
-        ([Bone("a", 1, None), Bone("b", 2, None), Bone("c", 3, "b")], _chain_joints()[1:],
-         r"exactly one root bone .* got \['a', 'b'\]"),
+        (
+            [Bone("a", 1, None), Bone("b", 2, None), Bone("c", 3, "b")],
+            _chain_joints()[1:],
+            r"exactly one root bone .* got \['a', 'b'\]",
+        ),
         ([Bone("a", 1, "c"), Bone("b", 2, "a"), Bone("c", 3, "b")], _chain_joints(), r"exactly one root .* got \[\]"),
         ([], [], "exactly one root"),
-        ([Bone("a", 1, None), Bone("b", 2, "a"), Bone("c", 3, "x")], _chain_joints(),
-         r"bone 'c': parent 'x' is not a bone"),
-        (_chain_bones(), [Joint("ab", "a", "b", 1, (0, 0, 0)), Joint("bc", "a", "c", 3, (0, 0, 0))],
-         r"joint 'bc' links 'a' → 'c', but bone 'c' has parent 'b'"),
+        (
+            [Bone("a", 1, None), Bone("b", 2, "a"), Bone("c", 3, "x")],
+            _chain_joints(),
+            r"bone 'c': parent 'x' is not a bone",
+        ),
+        (
+            _chain_bones(),
+            [Joint("ab", "a", "b", 1, (0, 0, 0)), Joint("bc", "a", "c", 3, (0, 0, 0))],
+            r"joint 'bc' links 'a' → 'c', but bone 'c' has parent 'b'",
+        ),
         (_chain_bones(), _chain_joints()[:1], r"bone 'c' must hang from its parent by exactly one joint, found 0"),
         (_chain_bones(), _chain_joints() + [Joint("bc2", "b", "c", 1, (0, 0, 0))], "exactly one joint, found 2"),
         (_chain_bones(), _chain_joints() + [Joint("ab", "a", "b", 1, (0, 0, 0))], "joint names must be unique"),
         (_chain_bones(), _chain_joints() + [Joint("xd", "a", "d", 1, (0, 0, 0))], r"child 'd' is not a bone"),
         (_chain_bones(), _chain_joints() + [Joint("ba", "b", "a", 1, (0, 0, 0))], r"bone 'a' has parent None"),
         # b and c hang from each other: a cycle not connected to the root a.
-        ([Bone("a", 1, None), Bone("b", 2, "c"), Bone("c", 3, "b")],
-         [Joint("cb", "c", "b", 1, (0, 0, 0)), Joint("bc", "b", "c", 1, (0, 0, 0))],
-         r"bones \['b', 'c'\] are not connected to the root \(cycle\?\)"),
+        (
+            [Bone("a", 1, None), Bone("b", 2, "c"), Bone("c", 3, "b")],
+            [Joint("cb", "c", "b", 1, (0, 0, 0)), Joint("bc", "b", "c", 1, (0, 0, 0))],
+            r"bones \['b', 'c'\] are not connected to the root \(cycle\?\)",
+        ),
         ([Bone("a", 1, None), Bone("b", 2, "b")], [Joint("bb", "b", "b", 1, (0, 0, 0))], "cycle"),
     ],
 )
@@ -506,23 +520,32 @@ def test_joint_limits_round_trip_and_name_what_is_outside():
     again = Skeleton.from_dict(sk.to_dict())
     assert again.joint("knee").limits == ((-10.0, 150.0), (-15.0, 15.0), (-30.0, 30.0))
     assert sk.limit_problems({"knee": [20, 0, 0]}) == []
-    assert sk.limit_problems({"knee": [200, -20, 0]}) == ["knee[0] = 200° outside [-10, 150]",
-                                                          "knee[1] = -20° outside [-15, 15]"]
+    assert sk.limit_problems({"knee": [200, -20, 0]}) == [
+        "knee[0] = 200° outside [-10, 150]",
+        "knee[1] = -20° outside [-15, 15]",
+    ]
     six = Joint("w", "femur", "tibia", 6, (0.0, 0.0, 0.0), limits=((-5, 5),) * 3 + ((-10, 10),) * 3)
     assert six.outside_limits([0, 0, 0, 0, 12, 0]) == ["w[4] = 12 mm outside [-10, 10]"]
-    for bad in (((-10, 150), (-15, 15)), ((10, -10), (0, 1), (0, 1)), ((0, np.inf), (0, 1), (0, 1)),
-                ((0, "x"), (0, 1), (0, 1)), ((0, 1), (0,), (0, 1))):
+    for bad in (
+        ((-10, 150), (-15, 15)),
+        ((10, -10), (0, 1), (0, 1)),
+        ((0, np.inf), (0, 1), (0, 1)),
+        ((0, "x"), (0, 1), (0, 1)),
+        ((0, 1), (0,), (0, 1)),
+    ):
         with pytest.raises(SkeletonError, match="limits must be 3"):
             Joint("knee", "femur", "tibia", 3, (0.0, 0.0, 0.0), limits=bad)
-    no_limits = Skeleton.from_dict({**sk.to_dict(), "joints": [{k: v for k, v in j.to_dict().items()
-                                                               if k != "limits"}]})
+    no_limits = Skeleton.from_dict(
+        {**sk.to_dict(), "joints": [{k: v for k, v in j.to_dict().items() if k != "limits"}]}
+    )
     # a joint without limits (an older skeleton.json) takes rotations within ±180°: more is a slip (issue Q)
     assert no_limits.limit_problems({"knee": [170, -180, 180]}) == []
     assert no_limits.limit_problems({"knee": [1000, 0, -181]}) == [
         "knee[0] = 1000° is more than half a turn (the joint has no 'limits' in the skeleton; its rotations are "
         "taken within ±180°)",
         "knee[2] = -181° is more than half a turn (the joint has no 'limits' in the skeleton; its rotations are "
-        "taken within ±180°)"]
+        "taken within ±180°)",
+    ]
     six_free = Joint("w", "femur", "tibia", 6, (0.0, 0.0, 0.0))
     assert six_free.outside_limits([0, 0, 0, 500, 0, 0]) == []  # translations (mm) are not checked
 

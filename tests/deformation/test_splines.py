@@ -195,8 +195,9 @@ def test_cps_world_to_unit_ball_mapping():
     world = ClampedPlateSpline(CENTER + RADIUS * unit, center=CENTER, radius=RADIUS)
     plain = ClampedPlateSpline(unit)
     # The same spline in the unit ball: only the affine map's rounding (~1e-15 relative) differs.
-    np.testing.assert_allclose(world.displacement(CENTER + RADIUS * pts_unit, d), plain.displacement(pts_unit, d),
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        world.displacement(CENTER + RADIUS * pts_unit, d), plain.displacement(pts_unit, d), rtol=0, atol=1e-12
+    )
     np.testing.assert_allclose(world.gram, cps_green(unit, unit), rtol=1e-13, atol=1e-15)
 
 
@@ -421,8 +422,9 @@ def test_rbf_call_keeps_shape_and_adds_displacement():
     out = rbf(pts)
     assert out.shape == (2, 5, 3)
     np.testing.assert_array_equal(out, pts + rbf.displacement(pts))
-    np.testing.assert_allclose(rbf.displacement(pts).reshape(-1, 3), rbf.basis(pts.reshape(-1, 3)) @ rbf.coefficients,
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        rbf.displacement(pts).reshape(-1, 3), rbf.basis(pts.reshape(-1, 3)) @ rbf.coefficients, rtol=0, atol=1e-12
+    )
 
 
 def test_rbf_rejects_bad_input():

@@ -23,10 +23,11 @@ def setup():
     origins = np.stack([np.asarray(sk.joint_of(b).center) if sk.joint_of(b) else np.zeros(3) for b in bones])
     p = origins[rng.integers(0, len(bones), 1200)] + rng.normal(scale=8.0, size=(1200, 3))
     d = np.linalg.norm(p[:, None] - origins[None], axis=2)
-    w = SkinningWeights.from_dense(np.exp(-(d / 15.0) ** 2) + 1e-12, bones)
+    w = SkinningWeights.from_dense(np.exp(-((d / 15.0) ** 2)) + 1e-12, bones)
     base = SurfaceMesh(p, np.arange(1200).reshape(-1, 3))  # connectivity only has to be shared
-    meshes = [SurfaceMesh(lbs(p + 1.5 * np.sin(p / 13.0 + k), w, q.transforms), base.triangles)
-              for k, q in enumerate(poses)]
+    meshes = [
+        SurfaceMesh(lbs(p + 1.5 * np.sin(p / 13.0 + k), w, q.transforms), base.triangles) for k, q in enumerate(poses)
+    ]
     return sk, poses, w, base, meshes
 
 

@@ -148,7 +148,8 @@ def test_rotation_angle_deg(deg):
     # arccos of the trace loses precision near 0° (~1e-6°); that bounds the tolerance.
     assert rotation_angle_deg(t) == pytest.approx(deg, abs=1e-5)
     assert rotation_angle_deg(from_rotation_translation(axis_angle_matrix((0, 1, 0), -deg))) == pytest.approx(
-        deg, abs=1e-5)
+        deg, abs=1e-5
+    )
 
 
 # -- interpolation -------------------------------------------------------------------------------
@@ -179,8 +180,9 @@ def test_interpolate_midpoint_turns_half_the_relative_angle():
             # Geodesic: t0⁻¹ ta turns by alpha·θ about the same axis.
             assert rotation_angle_deg(invert(t0) @ ta) == pytest.approx(alpha * theta, abs=1e-9)
             assert rotation_angle_deg(invert(ta) @ t1) == pytest.approx((1 - alpha) * theta, abs=1e-9)
-            np.testing.assert_allclose(ta[:3, :3], t0[:3, :3] @ axis_angle_matrix(axis, alpha * theta),
-                                       rtol=0, atol=1e-12)
+            np.testing.assert_allclose(
+                ta[:3, :3], t0[:3, :3] @ axis_angle_matrix(axis, alpha * theta), rtol=0, atol=1e-12
+            )
 
 
 def test_interpolate_moves_the_chosen_centre_on_a_straight_line():

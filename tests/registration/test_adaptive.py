@@ -5,8 +5,14 @@ import pytest
 
 from deformation.fields import folding_statistics
 from deformation.geometry import GridGeometry, Volume
-from registration.adaptive import (AdaptiveSettings, _control_points_unit, block_layout, local_step_basis,
-                                   register_adaptive, register_block)
+from registration.adaptive import (
+    AdaptiveSettings,
+    _control_points_unit,
+    block_layout,
+    local_step_basis,
+    register_adaptive,
+    register_block,
+)
 from registration.baselines import warp_template
 
 G = GridGeometry((24, 24, 18), (1.0, 1.2, 1.5), (0.0, 0.0, 0.0))  # anisotropic
@@ -133,9 +139,16 @@ def test_initial_field_is_the_starting_point():
     assert err < 0.1  # mm; it may polish noise-free interpolation error, must not wander off
 
 
-@pytest.mark.parametrize("bad, match", [({"levels": (3, 2)}, "levels"), ({"optimizer": "x"}, "optimizer"),
-                                        ({"metric": "ncc"}, "metric"), ({"min_jacobian": 1.0}, "min_jacobian"),
-                                        ({"ftol_rel": 0.0}, "ftol_rel")])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ({"levels": (3, 2)}, "levels"),
+        ({"optimizer": "x"}, "optimizer"),
+        ({"metric": "ncc"}, "metric"),
+        ({"min_jacobian": 1.0}, "min_jacobian"),
+        ({"ftol_rel": 0.0}, "ftol_rel"),
+    ],
+)
 def test_settings_are_checked(bad, match):
     with pytest.raises(ValueError, match=match):
         AdaptiveSettings(**bad)
@@ -219,10 +232,14 @@ def test_step_control_points_lie_inset_inside_their_block_and_come_back_from_the
     assert np.allclose(np.abs(p - centre), 0.375 * (hi - lo))
     assert np.all(p >= lo - 0.5) and np.all(p <= hi - 0.5)  # inside the block's voxels
     g = GridGeometry((32, 24, 20), (1.5, 1.0, 2.0), (-3.0, 4.0, 5.0))
-    log = {"settings": {"inset": 0.25, "min_block_voxels": 4},
-           "steps": [{"level": 2, "block": list(block), "accepted": True},
-                     {"level": 2, "block": [0, 0, 0], "accepted": False},
-                     {"level": 3, "block": [2, 1, 1], "accepted": True}]}
+    log = {
+        "settings": {"inset": 0.25, "min_block_voxels": 4},
+        "steps": [
+            {"level": 2, "block": list(block), "accepted": True},
+            {"level": 2, "block": [0, 0, 0], "accepted": False},
+            {"level": 3, "block": [2, 1, 1], "accepted": True},
+        ],
+    }
     cps = control_points_from_log(log, g)
     assert [lv for lv, _ in cps] == [2, 3]  # rejected steps allocate nothing
     assert np.allclose(cps[0][1], g.index_to_world(p))

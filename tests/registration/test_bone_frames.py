@@ -18,8 +18,7 @@ def test_box_of_a_known_block_with_anisotropic_rotated_grid():
     data = np.zeros(g.array_shape, np.uint8)
     data[2:5, 3:7, 4:24] = 2  # k 2..4, j 3..6, i 4..23
     data[2:5, 3:7, 1:3] = 1  # the parent, at lower i
-    sk = Skeleton([Bone("a", 1), Bone("b", 2, "a")], [Joint(
-        "j", "a", "b", 3, (0.0, 0.0, 0.0))])
+    sk = Skeleton([Bone("a", 1), Bone("b", 2, "a")], [Joint("j", "a", "b", 3, (0.0, 0.0, 0.0))])
     f = bone_frames(Volume(data, g), sk)["b"]
     # Longest extent: 20 voxels × 0.5 mm along i, whose world direction is rot[:, 0] = +y.
     np.testing.assert_allclose(np.sort(2 * f.half_extents), np.sort([20 * 0.5, 4 * 1.5, 3 * 2.0]), atol=1e-9)
@@ -48,7 +47,6 @@ def test_missing_label_names_the_bone():
     g = GridGeometry((8, 8, 8), (1.0, 1.0, 1.0))
     data = np.zeros(g.array_shape, np.uint8)
     data[1:4, 1:4, 1:4] = 1
-    sk = Skeleton([Bone("a", 1), Bone("b", 7, "a")], [Joint(
-        "j", "a", "b", 1, (0.0, 0.0, 0.0))])
+    sk = Skeleton([Bone("a", 1), Bone("b", 7, "a")], [Joint("j", "a", "b", 1, (0.0, 0.0, 0.0))])
     with pytest.raises(ValueError, match="'b' \\(label 7\\)"):
         bone_frames(Volume(data, g), sk)

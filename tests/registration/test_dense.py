@@ -67,15 +67,22 @@ def make_case(air: bool = False, bone_texture: bool = False):
     w2i = g.world_to_index_matrix
     y = x + u
     ijk = [w2i[r, 0] * y[..., 0] + w2i[r, 1] * y[..., 1] + w2i[r, 2] * y[..., 2] + w2i[r, 3] for r in range(3)]
-    scan = Volume(ndimage.map_coordinates(tex, [ijk[2], ijk[1], ijk[0]], order=3, mode="nearest")
-                  .astype(np.float32), g)
+    scan = Volume(ndimage.map_coordinates(tex, [ijk[2], ijk[1], ijk[0]], order=3, mode="nearest").astype(np.float32), g)
     return template, labels, scan, truth, bone
 
 
 def test_recovers_soft_tissue_warp_and_keeps_bone_fixed(case):
     template, labels, scan, truth, bone = case
-    st = DenseSettings(shrink=(2, 1), iterations=(40, 30), window_mm=4.0, fluid_mm=4.0, elastic_mm=1.5,
-                       fluid_voxels=None, elastic_voxels=None, refine_bones=False)
+    st = DenseSettings(
+        shrink=(2, 1),
+        iterations=(40, 30),
+        window_mm=4.0,
+        fluid_mm=4.0,
+        elastic_mm=1.5,
+        fluid_voxels=None,
+        elastic_voxels=None,
+        refine_bones=False,
+    )
     before = [v.data.copy() for v in (scan, template, labels)]
     res = register_dense(scan, template, moving_labels=labels, settings=st)
     assert all(np.array_equal(b, v.data) for b, v in zip(before, (scan, template, labels)))  # inputs untouched
@@ -119,8 +126,13 @@ def test_held_bone_with_an_erred_pose_is_refined_rigidly(case):
     fade = np.clip(1.0 - ndimage.distance_transform_edt(~bone, sampling=g.spacing[::-1]) / 6.0, 0, 1)[..., None]
     start = Volume((truth.data + fade * err).astype(np.float32), g)
     st = DenseSettings(shrink=(2, 1), iterations=(40, 30), window_mm=4.0)
-    off = register_dense(scan, template, initial=start, moving_labels=labels,
-                         settings=DenseSettings(**{**st.to_dict(), "refine_bones": False}))
+    off = register_dense(
+        scan,
+        template,
+        initial=start,
+        moving_labels=labels,
+        settings=DenseSettings(**{**st.to_dict(), "refine_bones": False}),
+    )
     on = register_dense(scan, template, initial=start, moving_labels=labels, settings=st)
     e_start = np.linalg.norm(start.data - truth.data, axis=-1)[bone].mean()
     e_off = np.linalg.norm(off.correspondence.data - truth.data, axis=-1)[bone].mean()
@@ -142,15 +154,15 @@ def test_held_bone_with_an_erred_pose_is_refined_rigidly(case):
     # from the truth the gate keeps the bone: the same bits as without refinement
     kw = dict(initial=truth, moving_labels=labels)
     right_on = register_dense(scan, template, settings=st, **kw)
-    right_off = register_dense(scan, template, settings=DenseSettings(**{**st.to_dict(), "refine_bones": False}),
-                               **kw)
+    right_off = register_dense(scan, template, settings=DenseSettings(**{**st.to_dict(), "refine_bones": False}), **kw)
     assert np.array_equal(right_on.correspondence.data, right_off.correspondence.data)
     assert not any(rd["taken"] for lv in right_on.levels for rd in lv["bone_refinement"] or [])
 
 
 def test_refining_one_bone_leaves_its_neighbour_held_and_keeps_u_one_to_one():
     """Two bones (the block cut in two, 4 mm apart: a joint space), only the first off in the start (3°, 1.5 mm,
-    fading over 3 mm); the second is right.  The first is refined; the second, in the first's margin, keeps its own (rigid)
+    fading over 3 mm); the second is right.  The first is refined; the second, in the first's margin, keeps its
+    own (rigid)
     start and never takes the first's motion; every bone round keeps det(I + ∇u) above min_jacobian, so the
     result's U has no fold.  Tolerance on the second bone's rigid fit: 0.02 mm, as the one-bone test's; the
     first bone's share of the margin is at most 0.5 of its motion, so a leak would show as ~1 mm.  The bones
@@ -176,9 +188,13 @@ def test_refining_one_bone_leaves_its_neighbour_held_and_keeps_u_one_to_one():
     # the significance gate off: this test is about the neighbour and the one-to-one floor.  With it (default 2)
     # the first bone (300 voxels, smoothed by a voxel for the test: 19 independent samples) is not moved: own
     # NCC 0.915 -> 0.974, z 1.7 (test_a_bone_first_moves_only_when_its_own_fit_rises_significantly tests the gate)
-    res = register_dense(scan, template, initial=start, moving_labels=Volume(lab, g),
-                         settings=DenseSettings(shrink=(2, 1), iterations=(40, 30), window_mm=4.0,
-                                                refine_significance=0.0))
+    res = register_dense(
+        scan,
+        template,
+        initial=start,
+        moving_labels=Volume(lab, g),
+        settings=DenseSettings(shrink=(2, 1), iterations=(40, 30), window_mm=4.0, refine_significance=0.0),
+    )
     moved = [set(rd["poses"]) for lv in res.levels for rd in lv["bone_refinement"] or [] if rd["taken"]]
     assert moved and all(m == {"1"} for m in moved), moved  # the first bone refined (by label), the second never
     # ... towards the scan's pose: less than half the start's error on it, as the one-bone test (measured 1.53 →
@@ -210,12 +226,22 @@ def test_settings_are_checked():
     for bad in ({"radius_growth": 0.5}, {"max_halvings": -1}, {"max_halvings": 2.5}, {"max_halvings": None}):
         with pytest.raises(ValueError, match="radius_growth must be ≥ 1 and max_halvings ≥ 0"):
             DenseSettings(**bad)
-    for bad in ({"refine_deg": -1.0}, {"refine_deg": 0.0}, {"refine_mm": float("nan")}, {"refine_evaluations": 12},
-                {"refine_evaluations": 50.0}, {"refine_rounds": True}):
+    for bad in (
+        {"refine_deg": -1.0},
+        {"refine_deg": 0.0},
+        {"refine_mm": float("nan")},
+        {"refine_evaluations": 12},
+        {"refine_evaluations": 50.0},
+        {"refine_rounds": True},
+    ):
         with pytest.raises(ValueError, match="refine_deg and refine_mm"):
             DenseSettings(**bad)
-    for bad in ({"refine_min_move_voxels": -0.5}, {"refine_min_voxels": 0.5}, {"refine_margin_voxels": 0.0},
-                {"bone_margin_mm": 0.0}):
+    for bad in (
+        {"refine_min_move_voxels": -0.5},
+        {"refine_min_voxels": 0.5},
+        {"refine_margin_voxels": 0.0},
+        {"bone_margin_mm": 0.0},
+    ):
         with pytest.raises(ValueError, match="refine_min_move_voxels"):
             DenseSettings(**bad)
 
@@ -270,10 +296,23 @@ def test_same_bits_with_one_and_two_threads():
     root = str(Path(__file__).resolve().parents[2])
     digests = []
     for n in ("1", "2"):
-        env = dict(os.environ, NUMBA_NUM_THREADS=n, OMP_NUM_THREADS=n, OPENBLAS_NUM_THREADS=n, MKL_NUM_THREADS=n,
-                   PYTHONPATH=root)
-        out = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT, here], env=env, capture_output=True, text=True, encoding="utf-8",
-                             check=True, timeout=600)
+        env = dict(
+            os.environ,
+            NUMBA_NUM_THREADS=n,
+            OMP_NUM_THREADS=n,
+            OPENBLAS_NUM_THREADS=n,
+            MKL_NUM_THREADS=n,
+            PYTHONPATH=root,
+        )
+        out = subprocess.run(
+            [sys.executable, "-c", _THREADS_SCRIPT, here],
+            env=env,
+            capture_output=True,
+            text=True,
+            encoding="utf-8",
+            check=True,
+            timeout=600,
+        )
         digests.append(out.stdout.strip().splitlines()[-3:])  # without air, with it, from an erred bone
     assert digests[0] == digests[1] and all(len(d.split()[0]) == 64 for d in digests[0])
     # without air the plain path ran, with air the tissue-only one; from the erred start a bone round was taken
@@ -322,8 +361,12 @@ def test_rhee_table2_protocol_without_initialisation():
     ph = make_phantom("knee", size="test", posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),), seed=3)
     template, _ = ph.template()
     sc = list(ph.scans())[-1]
-    body_t = Volume((ph.anatomy.distances_fast(ph.geometry.world_coordinates().reshape(-1, 3))[:, -1] < 0)
-                    .reshape(ph.geometry.array_shape).astype(np.uint8), ph.geometry)
+    body_t = Volume(
+        (ph.anatomy.distances_fast(ph.geometry.world_coordinates().reshape(-1, 3))[:, -1] < 0)
+        .reshape(ph.geometry.array_shape)
+        .astype(np.uint8),
+        ph.geometry,
+    )
     body = body_on_scan(sc.correspondence, body_t)
     zero = Volume(np.zeros(sc.correspondence.data.shape, np.float32), sc.correspondence.geometry)
     res = register_dense(sc.image, template)
@@ -414,8 +457,12 @@ def test_smoothing_of_u_over_the_tissue():
     skin[:, 10] = True
     assert np.abs(dense._smooth(u[0], sig)[skin] - 1.0).min() > 0.5  # the plain Gaussian: the air drags it
     one = np.ones(shape, np.float32)
-    np.testing.assert_allclose(dense._weighted_smooth(u, one, 1.0 / dense._smooth(one, sig), sig)[1],
-                               dense._smooth(u[1], sig), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(
+        dense._weighted_smooth(u, one, 1.0 / dense._smooth(one, sig), sig)[1],
+        dense._smooth(u[1], sig),
+        rtol=1e-6,
+        atol=1e-6,
+    )
 
 
 def test_tissue_only_applies_when_air_surrounds_the_body(case):
@@ -446,8 +493,9 @@ def test_each_level_objective_never_falls_at_a_taken_step(air):
     halves), and a level stops on convergence (10 taken steps gaining < tolerance, or no step of the smallest
     radius raising it) rather than on its trial cap.  The cap here (200) is far above what the case needs."""
     template, labels, scan, truth, bone = make_case(air=air)
-    res = register_dense(scan, template, moving_labels=labels,
-                         settings=DenseSettings(shrink=(2, 1), iterations=(200, 200)))
+    res = register_dense(
+        scan, template, moving_labels=labels, settings=DenseSettings(shrink=(2, 1), iterations=(200, 200))
+    )
     for lv in res.levels:
         h = np.asarray(lv["lncc"])
         # strictly: an equal objective is not a taken step (fails if a refused candidate were ever recorded)
@@ -465,16 +513,20 @@ def test_interpolation_noise_on_a_noisy_pair_keeps_the_trust_region_and_register
     option off 0.44 too; with SD 100, 0.59 against 0.54 off).  Same bits twice."""
     template, labels, scan, truth, bone = make_case(air=True)
     rng = np.random.default_rng(21)
-    noisy = [Volume((v.data + 50.0 * rng.normal(size=v.data.shape)).astype(np.float32), v.geometry)
-             for v in (template, scan)]
+    noisy = [
+        Volume((v.data + 50.0 * rng.normal(size=v.data.shape)).astype(np.float32), v.geometry) for v in (template, scan)
+    ]
     # the skin's term and the membrane energy off: the figures above are the LNCC's alone
-    st = DenseSettings(shrink=(2, 1), iterations=(200, 200), interpolation_noise=True, skin_weight=0.0,
-                       stiffness=0.0)
+    st = DenseSettings(shrink=(2, 1), iterations=(200, 200), interpolation_noise=True, skin_weight=0.0, stiffness=0.0)
     res = register_dense(noisy[1], noisy[0], moving_labels=labels, settings=st)
     again = register_dense(noisy[1], noisy[0], moving_labels=labels, settings=st)
     assert np.array_equal(res.correspondence.data, again.correspondence.data)
-    off = register_dense(noisy[1], noisy[0], moving_labels=labels,
-                         settings=DenseSettings(**{**st.to_dict(), "interpolation_noise": False}))
+    off = register_dense(
+        noisy[1],
+        noisy[0],
+        moving_labels=labels,
+        settings=DenseSettings(**{**st.to_dict(), "interpolation_noise": False}),
+    )
     # the term is in the objective: the fine level's LNCC at its start differs from the plain one's
     assert res.levels[-1]["lncc"][0] != off.levels[-1]["lncc"][0] and off.levels[-1]["template_noise_sd"] is None
     for lv in res.levels:
@@ -503,8 +555,9 @@ def _bone_in_a_box():
     rng = np.random.default_rng(5)
     tex = ndimage.gaussian_filter(rng.normal(size=shape), 1.5).astype(np.float32)
     moved = ndimage.shift(tex, (0.0, 0.0, 1.5), order=3, mode="nearest")  # template(x) = scan(x - s)
-    sample_w = _TemplateSampler(Volume(moved, g), Volume(np.zeros(shape + (3,), np.float32), g), 1.0,
-                                tuple(slice(0, n) for n in shape)).level(1, 0.0, shape)[1]
+    sample_w = _TemplateSampler(
+        Volume(moved, g), Volume(np.zeros(shape + (3,), np.float32), g), 1.0, tuple(slice(0, n) for n in shape)
+    ).level(1, 0.0, shape)[1]
     return shape, sp, g, grid, grid_mm, box, m, np.full(3, 11.5), tex, sample_w
 
 
@@ -527,19 +580,23 @@ def test_a_bone_first_moves_only_when_its_own_fit_rises_significantly():
     # the same gain over 100 times fewer independent samples (the noise correlated over ~4.6 voxels along each
     # axis): z 1.4 (measured), not significant; over 3 or fewer, never
     assert not _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st, 100.0)
-    assert not _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp,
-                                  DenseSettings(refine_significance=0.0), 1700.0)
+    assert not _bone_fit_improves(
+        fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, DenseSettings(refine_significance=0.0), 1700.0
+    )
     # the same bone under independent noise in scan and template, its template off by 0.1 mm only: the correcting
     # shift raises its own NCC by less than the noise can (measured 0.728 → 0.737, z 0.6): it passes a test that
     # accepts any rise, not the default's two standard errors
     noisy = tex + 0.5 * float(tex.std()) * rng.normal(size=shape).astype(np.float32)
-    templ = (ndimage.shift(tex, (0.0, 0.0, 0.1), order=3, mode="nearest")
-             + 0.5 * float(tex.std()) * rng.normal(size=shape).astype(np.float32))
-    sample_w = _TemplateSampler(Volume(templ, g), Volume(np.zeros(shape + (3,), np.float32), g), 1.0,
-                                tuple(slice(0, n) for n in shape)).level(1, 0.0, shape)[1]
+    templ = ndimage.shift(tex, (0.0, 0.0, 0.1), order=3, mode="nearest") + 0.5 * float(tex.std()) * rng.normal(
+        size=shape
+    ).astype(np.float32)
+    sample_w = _TemplateSampler(
+        Volume(templ, g), Volume(np.zeros(shape + (3,), np.float32), g), 1.0, tuple(slice(0, n) for n in shape)
+    ).level(1, 0.0, shape)[1]
     small = np.array([0, 0, 0, 0.0, 0.0, 0.1])
-    assert _bone_fit_improves(small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp,
-                              DenseSettings(refine_significance=0.0))
+    assert _bone_fit_improves(
+        small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp, DenseSettings(refine_significance=0.0)
+    )
     assert not _bone_fit_improves(small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp, st)
 
 
@@ -601,7 +658,7 @@ def test_noise_correlation_factor_counts_the_samples_smoothing_leaves():
     white_f, white_w = rng.normal(size=shape), rng.normal(size=shape)
     assert _noise_correlation_factor(white_f, white_w, air, 0.0) == pytest.approx(1.0, abs=0.1)
     sm_f, sm_w = (ndimage.gaussian_filter(x, 1.5) for x in (white_f, white_w))
-    expected = float(np.exp(-np.arange(-12, 13) ** 2 / (2 * 1.5 ** 2)).sum()) ** 3
+    expected = float(np.exp(-(np.arange(-12, 13) ** 2) / (2 * 1.5**2)).sum()) ** 3
     assert _noise_correlation_factor(sm_f, sm_w, air, 0.0) == pytest.approx(expected, rel=0.2)
     # one image white: no shared correlation, one sample per voxel whatever the other's smoothing
     assert _noise_correlation_factor(white_f, sm_w, air, 0.0) == pytest.approx(1.0, abs=0.1)
@@ -629,8 +686,9 @@ def test_bone_refinement_runs_where_u_already_sits_under_the_jacobian_floor():
     assert wgt[1, 1, 1] == 0.0  # the corner (5, 5, 5) is beyond the bone's fade
     det_corner = _jacobian_min(u[:, 3:8, 3:8, 3:8], sp)
     assert det_corner < DenseSettings().min_jacobian
-    p, gain, _ = _refine_bone(np.zeros(6), centre, box, wgt, u, tex, sample_w, np.full(3, 1.5), None, None,
-                              grid_mm, sp, DenseSettings())
+    p, gain, _ = _refine_bone(
+        np.zeros(6), centre, box, wgt, u, tex, sample_w, np.full(3, 1.5), None, None, grid_mm, sp, DenseSettings()
+    )
     assert gain > 0, gain
     assert abs(p[5] - 1.5) < 0.5 and np.all(np.abs(p[3:5]) < 0.5), p
 
@@ -735,7 +793,7 @@ def test_the_template_noise_is_measured_in_its_air(air):
     shape, sigma = (40, 40, 40), 20.0
     zz, yy, xx = np.indices(shape)
     r2 = (zz - 19.5) ** 2 + (yy - 19.5) ** 2 + (xx - 19.5) ** 2
-    body = r2 < 12 ** 2 if air != "none" else np.ones(shape, bool)
+    body = r2 < 12**2 if air != "none" else np.ones(shape, bool)
     tex = 500.0 + 30.0 * ndimage.gaussian_filter(rng.normal(size=shape), 3.0) / 0.04
     img = tex + sigma * rng.normal(size=shape)
     out = ~body
@@ -750,11 +808,11 @@ def test_the_template_noise_is_measured_in_its_air(air):
         img[out] = np.maximum(40.0 + sigma * rng.normal(size=int(out.sum())), 0.0)
     tissue, in_air = _voxel_noise_variance(img.astype(np.float32), body)
     if air == "none":
-        assert tissue == in_air and tissue == pytest.approx(sigma ** 2, rel=0.25)
+        assert tissue == in_air and tissue == pytest.approx(sigma**2, rel=0.25)
         return
-    assert tissue == pytest.approx(sigma ** 2, rel=0.1)
+    assert tissue == pytest.approx(sigma**2, rel=0.1)
     if air == "rayleigh":
-        assert in_air == pytest.approx((2.0 - np.pi / 2.0) * sigma ** 2, rel=0.1)
+        assert in_air == pytest.approx((2.0 - np.pi / 2.0) * sigma**2, rel=0.1)
     elif air != "clipped gaussian":
         assert in_air == tissue
 
@@ -772,9 +830,13 @@ def test_interpolation_noise_follows_each_template_axis():
     perm = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # template axis i along world y, ...
     gt = GridGeometry((30, 28, 26), (0.8, 1.1, 1.4), (-6.0, -5.0, -7.0), tuple(perm.ravel()))
     rng = np.random.default_rng(4)
-    sampler = dense._TemplateSampler(Volume(rng.normal(size=gt.array_shape).astype(np.float32), gt),
-                                     Volume(np.zeros(gs.array_shape + (3,), np.float32), gs), 1.0,
-                                     tuple(slice(0, n) for n in gs.array_shape), None)
+    sampler = dense._TemplateSampler(
+        Volume(rng.normal(size=gt.array_shape).astype(np.float32), gt),
+        Volume(np.zeros(gs.array_shape + (3,), np.float32), gs),
+        1.0,
+        tuple(slice(0, n) for n in gs.array_shape),
+        None,
+    )
     sampler.noise_var = 1.0
     s, sig_pre = 2, 0.5
     shape = tuple(len(range(0, n, s)) for n in gs.array_shape)
@@ -787,7 +849,7 @@ def test_interpolation_noise_follows_each_template_axis():
     p = gt.world_to_index(x.reshape(-1, 3)).reshape(x.shape)
     sig_scan_mm = sig_pre * np.asarray(gs.spacing)  # along world x, y, z (identity direction)
     dt = np.asarray(gt.direction_matrix)
-    sigma_t = np.sqrt((dt ** 2).T @ sig_scan_mm ** 2) / np.asarray(gt.spacing)  # per template axis i, j, k
+    sigma_t = np.sqrt((dt**2).T @ sig_scan_mm**2) / np.asarray(gt.spacing)  # per template axis i, j, k
     kern = [dense._kernel_noise(float(v_)) for v_ in sigma_t]
     assert len({round(k[1], 3) for k in kern}) == 3  # three different correlations: the test can tell the axes
     kappa = np.prod([k[0] for k in kern])
@@ -812,7 +874,7 @@ def test_data_fission_splits_the_noise_into_independent_copies():
     rng = np.random.default_rng(5)
     shape, sigma, a = (40, 40, 40), 20.0, 0.5
     zz, yy, xx = np.indices(shape)
-    body = (zz - 19.5) ** 2 + (yy - 19.5) ** 2 + (xx - 19.5) ** 2 < 12 ** 2
+    body = (zz - 19.5) ** 2 + (yy - 19.5) ** 2 + (xx - 19.5) ** 2 < 12**2
     signal = np.where(body, 500.0 + 30.0 * ndimage.gaussian_filter(rng.normal(size=shape), 3.0) / 0.04, -1000.0)
     noise = [sigma * rng.normal(size=shape) for _ in range(2)]
     f = (signal + noise[0]).astype(np.float32)
@@ -823,11 +885,11 @@ def test_data_fission_splits_the_noise_into_independent_copies():
     (f_held, m_held, sds), f_steps, m_steps = _fission(f, body, moving, body, st)
     assert np.array_equal(f, f_in) and np.array_equal(moving.data, m_in)
     assert sds[0] == pytest.approx(sigma, rel=0.03) and sds[1] == pytest.approx(sigma, rel=0.03)
-    for steps, held, n in ((f_steps, f_held, noise[0]), (m_steps.data, m_held.data, noise[1])):
+    for steps, held, _n in ((f_steps, f_held, noise[0]), (m_steps.data, m_held.data, noise[1])):
         e1, e2 = (steps - signal).ravel(), (held - signal).ravel()
         assert abs(np.corrcoef(e1, e2)[0, 1]) < 0.04
-        assert e1.var() == pytest.approx((1 + a * a) * sigma ** 2, rel=0.05)
-        assert e2.var() == pytest.approx((1 + 1 / (a * a)) * sigma ** 2, rel=0.07)
+        assert e1.var() == pytest.approx((1 + a * a) * sigma**2, rel=0.05)
+        assert e2.var() == pytest.approx((1 + 1 / (a * a)) * sigma**2, rel=0.07)
     again = _fission(f, body, moving, body, st)
     assert np.array_equal(again[1], f_steps) and np.array_equal(again[0][1].data, m_held.data)
     other = _fission(f, body, moving, body, DenseSettings(holdout=True, holdout_share=a, holdout_seed=1))
@@ -844,16 +906,21 @@ def test_holdout_returns_the_map_its_held_out_copy_scores_highest():
     motion to recover).  Same bits twice."""
     template, labels, scan, truth, bone = make_case(air=True)
     rng = np.random.default_rng(21)
-    noisy = [Volume((v.data + 50.0 * rng.normal(size=v.data.shape)).astype(np.float32), v.geometry)
-             for v in (template, scan)]
+    noisy = [
+        Volume((v.data + 50.0 * rng.normal(size=v.data.shape)).astype(np.float32), v.geometry) for v in (template, scan)
+    ]
     # the skin's term and the membrane energy off: the paths measured below are the LNCC's alone
     st = DenseSettings(shrink=(2, 1), iterations=(200, 200), holdout=True, skin_weight=0.0, stiffness=0.0)
     res = register_dense(noisy[1], noisy[0], initial=truth, moving_labels=labels, settings=st)
     again = register_dense(noisy[1], noisy[0], initial=truth, moving_labels=labels, settings=st)
     assert np.array_equal(res.correspondence.data, again.correspondence.data)
-    plain = register_dense(noisy[1], noisy[0], initial=truth, moving_labels=labels,
-                           settings=DenseSettings(shrink=(2, 1), iterations=(200, 200), skin_weight=0.0,
-                                                  stiffness=0.0))
+    plain = register_dense(
+        noisy[1],
+        noisy[0],
+        initial=truth,
+        moving_labels=labels,
+        settings=DenseSettings(shrink=(2, 1), iterations=(200, 200), skin_weight=0.0, stiffness=0.0),
+    )
     assert plain.levels[-1]["held_out"] is None
     for lv in res.levels:
         held = np.asarray(lv["held_out"]["lncc"])
@@ -875,15 +942,23 @@ def test_holdout_returns_the_map_its_held_out_copy_scores_highest():
     assert fine["iterations"] - fine["held_out"]["best_step"] == st.holdout_patience
 
 
-@pytest.mark.parametrize("outcome, calls_frozen, taken, attempts", [
-    ("all fail", [True, True, False, False], None, [[1, 9], [None, 9]]),
-    ("1 layer succeeds", [True], 1, [[1, 0]]),
-    ("nothing frozen and 2 layers succeed", [True, True, False, True], 2, [[1, 9], [None, 0], [2, 0]]),
-    ("nothing frozen alone succeeds", [True, True, False, True, True, True, True], None, [[1, 9], [None, 0], [2, 9],
-                                                                                           [3, 9]]),
-])
-def test_fold_repair_skips_the_freezing_attempts_when_nothing_frozen_fails(monkeypatch, outcome, calls_frozen,
-                                                                           taken, attempts):
+@pytest.mark.parametrize(
+    "outcome, calls_frozen, taken, attempts",
+    [
+        ("all fail", [True, True, False, False], None, [[1, 9], [None, 9]]),
+        ("1 layer succeeds", [True], 1, [[1, 0]]),
+        ("nothing frozen and 2 layers succeed", [True, True, False, True], 2, [[1, 9], [None, 0], [2, 0]]),
+        (
+            "nothing frozen alone succeeds",
+            [True, True, False, True, True, True, True],
+            None,
+            [[1, 9], [None, 0], [2, 9], [3, 9]],
+        ),
+    ],
+)
+def test_fold_repair_skips_the_freezing_attempts_when_nothing_frozen_fails(
+    monkeypatch, outcome, calls_frozen, taken, attempts
+):
     """The final repair's attempts (register_dense, settings.unfold): 1 bone layer released first, then nothing
     frozen; the attempts that freeze more (2, 3 layers) run only when nothing frozen removed every fold (freezing
     takes freedom from the smoothing: they would fail too, each spending unfold's whole budget), and the first
@@ -903,16 +978,30 @@ def test_fold_repair_skips_the_freezing_attempts_when_nothing_frozen_fails(monke
         calls.append(frozen is not None)
         kind = "frozen" if frozen is not None else "none"
         layer = {1: 1, 2: 1, 3: None, 4: 2, 5: 2, 6: 3, 7: 3}.get(len(calls)) if outcome != "1 layer succeeds" else 1
-        ok = {"all fail": False, "1 layer succeeds": True,
-              "nothing frozen and 2 layers succeed": kind == "none" or layer == 2,
-              "nothing frozen alone succeeds": kind == "none"}[outcome]
+        ok = {
+            "all fail": False,
+            "1 layer succeeds": True,
+            "nothing frozen and 2 layers succeed": kind == "none" or layer == 2,
+            "nothing frozen alone succeeds": kind == "none",
+        }[outcome]
         tagged = Volume(np.full(field.data.shape, 1000.0 * len(calls), np.float32), field.geometry)
-        return tagged, {"iterations": 200, "n_folded_before": 9, "n_folded_after": 0 if ok else 9, "n_changed": 0,
-                        "n_restored": 0, "max_change_mm": 0.0}
+        return tagged, {
+            "iterations": 200,
+            "n_folded_before": 9,
+            "n_folded_after": 0 if ok else 9,
+            "n_changed": 0,
+            "n_restored": 0,
+            "max_change_mm": 0.0,
+        }
 
     monkeypatch.setattr(dense, "unfold", fake_unfold)
-    res = register_dense(scan, template, initial=Volume(start, scan.geometry), moving_labels=labels,
-                         settings=DenseSettings(shrink=(2,), iterations=(3,)))
+    res = register_dense(
+        scan,
+        template,
+        initial=Volume(start, scan.geometry),
+        moving_labels=labels,
+        settings=DenseSettings(shrink=(2,), iterations=(3,)),
+    )
     rep = res.unfold
     assert calls == calls_frozen and rep["attempts"] == attempts
     assert rep["taken"] == (outcome != "all fail")
@@ -986,7 +1075,9 @@ def test_membrane_energy_and_its_derivative():
         up, dn = u.copy(), u.copy()
         up[idx] += h
         dn[idx] -= h
-        assert g[idx] == pytest.approx((_membrane(up, m, sp)[0] - _membrane(dn, m, sp)[0]) / (2 * h), rel=1e-6, abs=1e-9)
+        assert g[idx] == pytest.approx(
+            (_membrane(up, m, sp)[0] - _membrane(dn, m, sp)[0]) / (2 * h), rel=1e-6, abs=1e-9
+        )
 
 
 def test_stiffness_keeps_the_start_where_the_scan_shows_only_noise():
@@ -1003,8 +1094,10 @@ def test_stiffness_keeps_the_start_where_the_scan_shows_only_noise():
     inside = scan.data > 500.0
     st = dict(shrink=(2, 1), iterations=(200, 200), bones="free")
     moved = []
-    for res in (register_dense(scan, template, settings=DenseSettings(**st, stiffness=0.0)),
-                register_dense(scan, template, settings=DenseSettings(**st))):
+    for res in (
+        register_dense(scan, template, settings=DenseSettings(**st, stiffness=0.0)),
+        register_dense(scan, template, settings=DenseSettings(**st)),
+    ):
         moved.append(float(np.linalg.norm(res.correspondence.data, axis=-1)[inside].mean()))
         for lv in res.levels:
             assert np.all(np.diff(np.asarray(lv["lncc"])) > 0), lv["lncc"]

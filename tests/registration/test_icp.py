@@ -33,7 +33,9 @@ def test_icp_recovers_true_bone_motion(wrist):
         tgt = bone.positions[pose][::2] + rng.normal(0, 0.05, size=bone.positions[pose][::2].shape)
         # Start 5° and 3 mm off the truth about the bone's centroid.
         c = src.mean(axis=0)
-        off = from_rotation_translation(Rotation.from_rotvec(np.deg2rad(5) * rng.normal(size=3) / np.sqrt(3)).as_matrix())
+        off = from_rotation_translation(
+            Rotation.from_rotvec(np.deg2rad(5) * rng.normal(size=3) / np.sqrt(3)).as_matrix()
+        )
         off[:3, 3] = c - off[:3, :3] @ c + rng.normal(0, 3 / np.sqrt(3), size=3)
         r = icp_point_to_plane(src, tgt, init=compose(truth, off))
         assert r.converged, r.message

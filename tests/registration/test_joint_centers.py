@@ -81,8 +81,12 @@ def test_knee_like_joint_is_a_hinge_when_noise_hides_the_centre_along_the_axis()
 def test_phantom_hand_joint_centres_from_forward_kinematics():
     sk = hand.skeleton()
     rng = np.random.default_rng(3)
-    poses = [sk.forward_kinematics({j.name: rng.normal(0, 15, size=j.dof) * (
-        [1, 1, 1, 0.1, 0.1, 0.1][:j.dof]) for j in sk.joints}) for _ in range(5)]
+    poses = [
+        sk.forward_kinematics(
+            {j.name: rng.normal(0, 15, size=j.dof) * ([1, 1, 1, 0.1, 0.1, 0.1][: j.dof]) for j in sk.joints}
+        )
+        for _ in range(5)
+    ]
     # 3-DOF joints only: a 6-DOF joint's translation moves its centre, so Eq. 1 has no exact zero
     # there (Kurihara leaves the thumb CMC out of his 0.91 mm for that reason).
     for name in ("index_mcp", "little_pip", "thumb_ip"):

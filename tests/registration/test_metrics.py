@@ -8,16 +8,20 @@ from registration import metrics as M
 from registration.adaptive import _neg_mi_cost, _ssd_cost
 
 # anisotropic spacing and a rotated grid: the measures must not care
-G = GridGeometry((30, 26, 14), (1.1, 0.9, 2.3), (-5.0, 3.0, 1.0),
-                 tuple(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).reshape(-1)))
+G = GridGeometry(
+    (30, 26, 14),
+    (1.1, 0.9, 2.3),
+    (-5.0, 3.0, 1.0),
+    tuple(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).reshape(-1)),
+)
 
 
 def _pair(seed=0):
     rng = np.random.default_rng(seed)
     z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in G.array_shape], indexing="ij")
-    body = (x ** 2 + y ** 2 + 0.5 * z ** 2 < 0.6).astype(float)
+    body = (x**2 + y**2 + 0.5 * z**2 < 0.6).astype(float)
     a = 100 * body + 40 * np.sin(7 * x) * body + rng.normal(0, 5, body.shape)
-    shifted = (((x - 0.1) ** 2 + y ** 2 + 0.5 * z ** 2) < 0.6).astype(float)
+    shifted = (((x - 0.1) ** 2 + y**2 + 0.5 * z**2) < 0.6).astype(float)
     b = 100 * shifted + 40 * np.sin(7 * (x - 0.1)) * shifted + rng.normal(0, 5, body.shape)
     return Volume(a.astype(np.float32), G), Volume(b.astype(np.float32), G)
 
@@ -77,8 +81,7 @@ def test_block_statistics_match_per_block_reference():
 def test_inner_loop_costs_equal_whole_volume_definitions_at_zero_displacement():
     a, b = _pair(3)
     n = a.data.size
-    base = np.stack(np.meshgrid(np.arange(G.size[0]), np.arange(G.size[1]), np.arange(G.size[2]),
-                                indexing="ij"), -1)
+    base = np.stack(np.meshgrid(np.arange(G.size[0]), np.arange(G.size[1]), np.arange(G.size[2]), indexing="ij"), -1)
     base = np.moveaxis(base, [0, 1, 2], [2, 1, 0]).reshape(-1, 3).astype(float)  # (i, j, k) of a[z, y, x]
     B = np.zeros((n, 8))
     e = np.zeros((8, 3))

@@ -24,16 +24,18 @@ def knee_fits(knee_ct_study):
     """Every bone of every scan (the first half of estimate_poses), for the tests to reuse; copy before use
     (estimate_poses places each scan's pose on its ScanPose)."""
     st = knee_ct_study
-    return pose_scans(st.template(), st.template_labels(), {s: (lambda s=s: st.scan(s)) for s in st.scan_ids},
-                      st.skeleton())
+    return pose_scans(
+        st.template(), st.template_labels(), {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, st.skeleton()
+    )
 
 
 @pytest.fixture(scope="module")
 def knee_result(knee_ct_study, knee_fits):
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
-    res = estimate_poses(tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk,
-                         scan_poses=copy.deepcopy(knee_fits))
+    res = estimate_poses(
+        tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk, scan_poses=copy.deepcopy(knee_fits)
+    )
     centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
     acc = accuracy(res, {s: st.truth_pose(s) for s in st.scan_ids}, sk, centroids)
     return res, acc
@@ -45,7 +47,8 @@ def test_bone_transforms_match_the_truth(knee_result):
     s = acc["summary"]
     # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion: the issue's bounds (median ≤ 0.5° / 0.5 mm, worst
     # bone ≤ 2° / 2 mm).  Measured: median 0.08° / 0.05 mm, worst 1.15° (the patella, whose Cramér–Rao bound
-    # on the benchmark's 4-scan CT knee is 0.46° rms) and 0.24 mm.  Before the phantom rendered bone edges rigidly and the polish became
+    # on the benchmark's 4-scan CT knee is 0.46° rms) and 0.24 mm.  Before the phantom rendered bone edges rigidly
+    # and the polish became
     # robust, the worst was 2.4° (the tibia) and the patella 2.2°.
     assert s["rotation_deg"]["median"] <= 0.5 and s["translation_mm"]["median"] <= 0.5, s
     assert s["rotation_deg"]["max"] <= 2.0 and s["translation_mm"]["max"] <= 2.0, s
@@ -77,9 +80,10 @@ def test_angles_and_centres_are_recorded_per_scan(knee_result, knee_ct_study):
         assert abs(s.pose.joint_angles["knee"][0] - truth.joint_angles["knee"][0]) < 2.5
         # The joint centre in the scan is the estimated centre carried by the parent (the femur).
         j = res.skeleton.joint("knee")
-        np.testing.assert_allclose(s.pose.joint_centers["knee"],
-                                   s.pose.transforms["femur"][:3, :3] @ np.asarray(j.center)
-                                   + s.pose.transforms["femur"][:3, 3])
+        np.testing.assert_allclose(
+            s.pose.joint_centers["knee"],
+            s.pose.transforms["femur"][:3, :3] @ np.asarray(j.center) + s.pose.transforms["femur"][:3, 3],
+        )
 
 
 @pytest.mark.slow  # ~12 s; the CLI's bone-out-of-view test stays in the default suite (`make test-slow`)
@@ -273,8 +277,11 @@ def _chain_results(rng, n_scans, outlier=None, offset_mm=3.0):
     from registration.rigid import BoneFit
 
     c1, c2 = np.array([0.0, 30.0, 0.0]), np.array([0.0, 60.0, 0.0])
-    sk = Skeleton([Bone("a", 1, None), Bone("b", 2, "a"), Bone("c", 3, "b")],
-                  [Joint("j1", "a", "b", 3, tuple(c1)), Joint("j2", "b", "c", 3, tuple(c2))], name="chain")
+    sk = Skeleton(
+        [Bone("a", 1, None), Bone("b", 2, "a"), Bone("c", 3, "b")],
+        [Joint("j1", "a", "b", 3, tuple(c1)), Joint("j2", "b", "c", 3, tuple(c2))],
+        name="chain",
+    )
     results = []
     for i in range(n_scans):
         r1 = Rotation.from_rotvec(np.deg2rad(rng.uniform(-30, 30, 3))).as_matrix()

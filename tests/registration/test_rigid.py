@@ -9,8 +9,15 @@ from scipy.spatial.transform import Rotation
 from deformation.geometry import GridGeometry, Volume
 from deformation.skeleton import Bone, Joint, Skeleton
 from deformation.transforms import apply, compose, invert, rotation_about_point, rotation_angle_deg
-from registration.rigid import (Sampler, bone_regions, coarse_rotation_search, polish_with_prior,
-                                refine_intensity, refine_surface, surface_prior)
+from registration.rigid import (
+    Sampler,
+    bone_regions,
+    coarse_rotation_search,
+    polish_with_prior,
+    refine_intensity,
+    refine_surface,
+    surface_prior,
+)
 
 # Anisotropic, rotated grids (world mm), as real scans have.
 DIRECTION = Rotation.from_euler("xyz", [8, -5, 12], degrees=True).as_matrix()
@@ -53,7 +60,9 @@ def motion(rotvec_deg, t, center=(0.0, 0.0, 0.0)):
 
 
 def errors(t_est, t_true, point):
-    return rotation_angle_deg(compose(invert(t_true), t_est)), float(np.linalg.norm(apply(t_est, point) - apply(t_true, point)))
+    return rotation_angle_deg(compose(invert(t_true), t_est)), float(
+        np.linalg.norm(apply(t_est, point) - apply(t_true, point))
+    )
 
 
 def test_regions_are_world_points_of_the_dilated_bone(template):
@@ -186,8 +195,7 @@ def _hinged_child(background: float):
     """A parent stub and a child bone of three blobs above a joint at the origin, on an anisotropic grid: the
     grid, the skeleton, the child's intensity at world points (``background`` added) and the label map."""
     g = GridGeometry((48, 48, 24), (1.5, 1.5, 2.0), (-36.0, -20.0, -23.0))
-    sk = Skeleton([Bone("p", 1, None), Bone("c", 2, "p")],
-                  [Joint("j", "p", "c", 3, (0.0, 0.0, 0.0), np.eye(3))])
+    sk = Skeleton([Bone("p", 1, None), Bone("c", 2, "p")], [Joint("j", "p", "c", 3, (0.0, 0.0, 0.0), np.eye(3))])
     blobs = np.array([[0.0, 14.0, 0.0], [0.0, 26.0, 0.0], [4.0, 20.0, 3.0]])
 
     def child(p):
@@ -229,10 +237,13 @@ def test_coarse_search_reports_the_other_local_winners():
     g, sk, child, lab = _hinged_child(0.0)
     x = g.world_coordinates().reshape(-1, 3)
     tpl = Volume((50.0 + child(x)).reshape(g.array_shape).astype(np.float32), g)
-    poses = {65.0: sk.forward_kinematics({"j": [65.0, 0.0, 0.0]})["c"],
-             -40.0: sk.forward_kinematics({"j": [-40.0, 0.0, 0.0]})["c"]}
-    scan = Volume((50.0 + sum(child(apply(invert(t), x)) for t in poses.values()))
-                  .reshape(g.array_shape).astype(np.float32), g)
+    poses = {
+        65.0: sk.forward_kinematics({"j": [65.0, 0.0, 0.0]})["c"],
+        -40.0: sk.forward_kinematics({"j": [-40.0, 0.0, 0.0]})["c"],
+    }
+    scan = Volume(
+        (50.0 + sum(child(apply(invert(t), x)) for t in poses.values())).reshape(g.array_shape).astype(np.float32), g
+    )
     region = bone_regions(tpl, lab, sk)["c"]
     others = []
     _, _, _, angles = coarse_rotation_search(region, Sampler(scan), np.eye(4), sk.joint("j"), runners_up=others)
@@ -246,7 +257,7 @@ def test_coarse_search_reports_the_other_local_winners():
     assert any(np.abs(a - [-40.0, 0.0, 0.0]).max() < 8.0 for a in found), found
     step = 2.0  # the grid step's lower bound: distinct winners are more than two steps apart
     for i, a in enumerate(found):
-        for b in found[i + 1:]:
+        for b in found[i + 1 :]:
             assert np.linalg.norm(a - b) > 2.0 * step
     for _, a, t in others:
         np.testing.assert_allclose(t, sk.forward_kinematics({"j": list(a)})["c"], atol=1e-9)
@@ -301,6 +312,7 @@ def test_surface_prior_keeps_what_icp_fixes_and_takes_the_prior_where_it_cannot(
     ax_t, ax_f = t[:3, :3] @ a0, fitted[:3, :3] @ a0
     assert np.degrees(np.arccos(min(1.0, ax_t @ ax_f))) < 0.01
     assert np.allclose(apply(t, c0), apply(fitted, c0), atol=0.01)
+
     # the roll about that axis is the one closest to the prior: turning either way moves away from it
     def from_prior(m):
         return rotation_angle_deg(compose(m, invert(prior)))

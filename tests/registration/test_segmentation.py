@@ -129,8 +129,9 @@ def test_mri_a_bright_seed_in_the_fat_is_left_out_not_the_bone(knee_templates):
     rim = body & ~ndimage.binary_erosion(body) & (lab.data == 0)
     kji = np.argwhere(rim)
     fat = kji[np.argmax(img.data[rim])]  # the rim's brightest voxel: fat, brighter than the femur's seed
-    assert img.data[tuple(fat)] > img.data[tuple(np.rint(img.geometry.world_to_index(good["femur"])[0, ::-1])
-                                                 .astype(int))]
+    assert (
+        img.data[tuple(fat)] > img.data[tuple(np.rint(img.geometry.world_to_index(good["femur"])[0, ::-1]).astype(int))]
+    )
     bad = {**good, "femur": np.vstack([good["femur"], img.geometry.index_to_world(fat[::-1][None].astype(float))])}
     seg_good, _ = segment_bones(img, sk, good)
     seg_bad, rep = segment_bones(img, sk, bad)

@@ -12,8 +12,15 @@ import pytest
 from deformation.geometry import GridGeometry, Volume
 from deformation.isosurface import decimate, isosurface
 from deformation.mesh import SurfaceMesh
-from registration.surface_fit import (closest_points, consistent_mesh, fit_nearest, fit_regularised, landmark_sites,
-                                      on_mesh, umbrella_laplacian)
+from registration.surface_fit import (
+    closest_points,
+    consistent_mesh,
+    fit_nearest,
+    fit_regularised,
+    landmark_sites,
+    on_mesh,
+    umbrella_laplacian,
+)
 
 G = GridGeometry((48, 40, 36), (1.0, 1.1, 1.2), (-24.0, -22.0, -21.0))
 
@@ -77,8 +84,9 @@ def fingers():
     start = SurfaceMesh(true_v + shift, tri)
     target = isosurface(_field([ca, cb], 10.0), 0.0, pad_value=-100.0)
     # the facing skin the scan does not show: each sphere's vertices inside the other one
-    contact = np.concatenate([np.linalg.norm(a.vertices - cb, axis=1) < 10.0,
-                              np.linalg.norm(b.vertices - ca, axis=1) < 10.0])
+    contact = np.concatenate(
+        [np.linalg.norm(a.vertices - cb, axis=1) < 10.0, np.linalg.norm(b.vertices - ca, axis=1) < 10.0]
+    )
     return start, target, true_v, contact
 
 
@@ -116,8 +124,10 @@ def test_consistent_mesh_takes_the_base_through_ssd_rbf_and_fit():
 
     t = rotation_about_point(Rotation.from_euler("z", 20.0, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
     t[:3, 3] += [1.0, -0.5, 0.5]
-    target = SurfaceMesh(apply(t, _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).vertices),
-                         _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).triangles)
+    target = SurfaceMesh(
+        apply(t, _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).vertices),
+        _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).triangles,
+    )
     truth = apply(t, base.vertices * (11.0 / np.linalg.norm(base.vertices, axis=1, keepdims=True)))
     for feats in (truth, None):
         r = consistent_mesh(base, w, {"b": t}, target, feature_targets=feats, n_features=40)
@@ -157,8 +167,10 @@ def test_landmarks_lie_on_s0s_triangles_and_the_rbf_takes_them_to_their_targets(
     np.testing.assert_allclose(on_mesh(moved.vertices, moved.triangles, sites), apply(t, on_s0), atol=1e-5)
     w = SkinningWeights.one_hot(np.zeros(base.n_vertices, np.int64), ("b",))
     targets = apply(t, picked * (11.0 / 9.0))
-    target = SurfaceMesh(apply(t, _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).vertices),
-                         _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).triangles)
+    target = SurfaceMesh(
+        apply(t, _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).vertices),
+        _sphere_mesh((0.0, 0.0, 0.0), 11.0, n_tri=4000).triangles,
+    )
     r = consistent_mesh(base, w, {"b": t}, target, landmarks=(sites, targets))
     assert r["info"]["feature_source"] == "landmarks" and r["info"]["features"] == 30
     # Eq. 5 puts each landmark exactly on its target (the RBF's own residual check is 1e-6 mm); on the mesh it
@@ -179,14 +191,18 @@ def test_the_fits_solver_gives_the_same_bits_for_any_blas_thread_count():
     import subprocess
     import sys
 
-    code = ("import hashlib, numpy as np, scipy.sparse as sp; from registration.surface_fit import _cg; n = 30000; "
-            "a = sp.diags([np.full(n - 1, -1.0), np.full(n, 4.0), np.full(n - 1, -1.0)], [-1, 0, 1]).tocsr(); "
-            "b = np.random.default_rng(0).normal(size=(n, 3)); x, it, ok = _cg(a, b, np.zeros((n, 3)), 1 / a.diagonal()); "
-            "assert ok and np.abs(a @ x - b).max() < 1e-8; print(hashlib.sha256(x.tobytes()).hexdigest())")
+    code = (
+        "import hashlib, numpy as np, scipy.sparse as sp; from registration.surface_fit import _cg; n = 30000; "
+        "a = sp.diags([np.full(n - 1, -1.0), np.full(n, 4.0), np.full(n - 1, -1.0)], [-1, 0, 1]).tocsr(); "
+        "b = np.random.default_rng(0).normal(size=(n, 3)); x, it, ok = _cg(a, b, np.zeros((n, 3)), 1 / a.diagonal()); "
+        "assert ok and np.abs(a @ x - b).max() < 1e-8; print(hashlib.sha256(x.tobytes()).hexdigest())"
+    )
     out = []
     for threads in ("1", "2"):
         env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads}
-        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", env=env, timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", env=env, timeout=120
+        )
         assert proc.returncode == 0, proc.stderr
         out.append(proc.stdout.strip())
     assert out[0] == out[1]

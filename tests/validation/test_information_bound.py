@@ -15,7 +15,7 @@ def blob(widths_mm, spacing_mm, amplitude=1000.0):
     axes = [np.arange(-6 * w, 6 * w + 1e-9, h) for w, h in zip(widths_mm, spacing_mm)]
     x = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     a = 1.0 / np.asarray(widths_mm, float) ** 2
-    i = amplitude * np.exp(-0.5 * (x ** 2 * a).sum(axis=1))
+    i = amplitude * np.exp(-0.5 * (x**2 * a).sum(axis=1))
     return x, -(x * a) * i[:, None]
 
 
@@ -27,10 +27,10 @@ def test_information_of_a_gaussian_blob_matches_the_closed_form():
     x, g = blob(w, h)
     f = rigid_information(x, g, np.zeros(3), SIGMA)
     a, b, c = 1.0 / np.asarray(w) ** 2
-    v, amp2 = np.prod(h), 1000.0 ** 2
-    base = np.pi ** 1.5 / np.sqrt(a * b * c)
-    rot_xx = amp2 * (c - b) ** 2 * base / (4 * b * c) / v / SIGMA ** 2
-    tr_xx = amp2 * a ** 2 * base / (2 * a) / v / SIGMA ** 2
+    v, amp2 = np.prod(h), 1000.0**2
+    base = np.pi**1.5 / np.sqrt(a * b * c)
+    rot_xx = amp2 * (c - b) ** 2 * base / (4 * b * c) / v / SIGMA**2
+    tr_xx = amp2 * a**2 * base / (2 * a) / v / SIGMA**2
     assert f[0, 0] == pytest.approx(rot_xx, rel=1e-3)
     assert f[3, 3] == pytest.approx(tr_xx, rel=1e-3)
     # Symmetric blob about the origin: rotation and translation decouple, axes decouple.
@@ -62,7 +62,7 @@ def test_prior_bound_is_the_inverse_of_information_plus_prior_precision():
     m = rng.normal(size=(6, 6))
     f = m @ m.T * 1e4
     b = rigid_bound(f, prior_deg=2.0, prior_mm=1.5)
-    p = np.diag([1 / np.deg2rad(2.0) ** 2] * 3 + [1 / 1.5 ** 2] * 3)
+    p = np.diag([1 / np.deg2rad(2.0) ** 2] * 3 + [1 / 1.5**2] * 3)
     cov = np.linalg.inv(f + p)
     np.testing.assert_allclose(b.rotation_cov_deg2, cov[:3, :3] * np.rad2deg(1) ** 2, rtol=1e-8)
     np.testing.assert_allclose(b.translation_cov_mm2, cov[3:, 3:], rtol=1e-8)
@@ -91,8 +91,8 @@ def test_phantom_gradient_model_predicts_the_rendered_change():
     voxels and the dilated rim alike).  At 0.5° the tibia's far end moves 1.7 mm, past the linear range of
     a 4 mm edge, and the correlation drops to 0.965; hence the small step."""
     from registration.rigid import bone_regions
-    from validation.phantoms import make_phantom
     from validation.information_bound import _template_gradient
+    from validation.phantoms import make_phantom
 
     ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=3, noise=False)
     tpl, lab = ph.template()
@@ -133,8 +133,9 @@ def test_phantom_bounds_shrink_with_the_voxel():
         ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=3)
         if scale != 1:
             _, sp = ph.region.GRIDS["test"]
-            ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=3,
-                              spacing=tuple(s / scale for s in sp))
+            ph = make_phantom(
+                "knee", size="test", modality="ct", n_poses=2, seed=3, spacing=tuple(s / scale for s in sp)
+            )
         tpl, lab = ph.template()
         regs = bone_regions(tpl, lab, ph.skeleton)
         out[scale] = phantom_pose_bounds(ph, ph.poses[1][1], {"patella": regs["patella"]})["patella"]

@@ -34,8 +34,7 @@ def test_evd_predicts_held_out_hand_poses_better_than_vbd(hand):
     rows = leave_one_out(ph, w)
     vbd = np.array([r.med_template_vbd for r in rows])
     evd = np.array([r.med_template_evd for r in rows])
-    print("\n".join(f"{r.pose_id}: MED VBD {r.med_template_vbd:.3f} mm, EVD {r.med_template_evd:.3f} mm"
-                    for r in rows))
+    print("\n".join(f"{r.pose_id}: MED VBD {r.med_template_vbd:.3f} mm, EVD {r.med_template_evd:.3f} mm" for r in rows))
     # The hand's poses run from open to fist; the first and the last lie outside the others' range, where
     # RBF pose weights extrapolate.  Interior poses must all improve; on average EVD must beat VBD.
     assert np.all(evd[1:-1] < vbd[1:-1]), (evd, vbd)

@@ -30,9 +30,18 @@ import pytest
 
 from validation.phantoms import Phantom, PhantomSpec, make_phantom
 from validation.phantoms.anatomy import CONTRASTS
-from validation.phantoms.generate import (ANISOTROPY_RANGE, BIAS_RANGE, GAIN_RANGE, MIN_AXIS_VOXELS,
-                                          OFFSET_FRACTION, REGIONS, SNR_RANGE, TISSUE_JITTER, TISSUES,
-                                          draw_acquisition)
+from validation.phantoms.generate import (
+    ANISOTROPY_RANGE,
+    BIAS_RANGE,
+    GAIN_RANGE,
+    MIN_AXIS_VOXELS,
+    OFFSET_FRACTION,
+    REGIONS,
+    SNR_RANGE,
+    TISSUE_JITTER,
+    TISSUES,
+    draw_acquisition,
+)
 
 COARSE = (9.0, 9.0, 9.0)  # a knee of 35 x 35 x 16 voxels: the truth in a fraction of a second
 Z = 5.0  # standard errors
@@ -58,8 +67,11 @@ def test_default_spec_records_no_acquisition_and_draws_nothing():
 
 def test_spec_round_trips_through_its_dict_and_json():
     d = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).ravel()
-    for spec in (PhantomSpec(), PhantomSpec(region="hand", modality="ct", n_poses=3, seed=7, acquisition="random"),
-                 PhantomSpec(spacing=(6.0, 5.0, 4.5), direction=tuple(d), noise=False, posing="vbd")):
+    for spec in (
+        PhantomSpec(),
+        PhantomSpec(region="hand", modality="ct", n_poses=3, seed=7, acquisition="random"),
+        PhantomSpec(spacing=(6.0, 5.0, 4.5), direction=tuple(d), noise=False, posing="vbd"),
+    ):
         assert PhantomSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
 
 
@@ -98,7 +110,7 @@ def test_drawn_parameters_are_within_their_ranges_over_20_seeds(region):
             k = "xyz".index(st["slice_axis"])
             assert np.all(np.round(extent / sp) >= MIN_AXIS_VOXELS)
             assert np.prod(sp) <= np.prod(base_sp) * (1 + 1e-3)
-            factor = (sp / np.asarray(base_sp))
+            factor = sp / np.asarray(base_sp)
             others = np.delete(factor, k)
             np.testing.assert_allclose(others, r ** (-1 / 3), rtol=1e-3)
             assert factor[k] <= r ** (2 / 3) * (1 + 1e-3)
@@ -189,7 +201,7 @@ def test_measured_noise_snr_and_bias_match_the_draws(noise, modality):
         sigma_hat = b.std()
     else:  # Rayleigh: mean σ·sqrt(π/2), standard deviation σ·sqrt((4 − π)/2)
         assert b.mean() == pytest.approx(sigma * np.sqrt(np.pi / 2), abs=Z * sigma * np.sqrt((4 - np.pi) / 2 / n))
-        assert np.sqrt(np.mean(b ** 2) / 2) == pytest.approx(sigma, rel=Z / np.sqrt(n))  # E b² = 2σ²
+        assert np.sqrt(np.mean(b**2) / 2) == pytest.approx(sigma, rel=Z / np.sqrt(n))  # E b² = 2σ²
         sigma_hat = b.mean() / np.sqrt(np.pi / 2)
 
     # everywhere: the image is noise(gain · bias · (clean − air)) + air + offset
@@ -199,11 +211,11 @@ def test_measured_noise_snr_and_bias_match_the_draws(noise, modality):
         assert r.std() == pytest.approx(sigma, rel=Z / np.sqrt(2 * len(r)))
         assert abs(r.mean()) < Z * sigma / np.sqrt(len(r))
     else:
-        q = (v - c.air) ** 2 - a ** 2 - 2 * sigma ** 2
-        assert abs(q.mean()) < Z * np.sqrt(np.mean(4 * a ** 2 * sigma ** 2 + 4 * sigma ** 4) / len(q))
+        q = (v - c.air) ** 2 - a**2 - 2 * sigma**2
+        assert abs(q.mean()) < Z * np.sqrt(np.mean(4 * a**2 * sigma**2 + 4 * sigma**4) / len(q))
 
     # SNR in muscle: deep in the body, away from bone, at about the muscle's level; its texture divided out
-    deep = (dist[:, -1] < -(ph.anatomy.skin_mm + ph.anatomy.fat_mm + 3 * ph.edge_mm))
+    deep = dist[:, -1] < -(ph.anatomy.skin_mm + ph.anatomy.fat_mm + 3 * ph.edge_mm)
     deep &= dist[:, :-1].min(axis=1) > 3 * ph.edge_mm
     rel = (clean - c.air) / span
     muscle = deep & (np.abs(rel - 1) < 0.3)
@@ -214,7 +226,7 @@ def test_measured_noise_snr_and_bias_match_the_draws(noise, modality):
     lowest = d["snr"] * (bias[muscle] * rel[muscle]).min()  # the lowest local SNR in the region
     tol = Z * (1 / np.sqrt(2 * n) + flat.std() / flat.mean() / np.sqrt(m))
     if noise == "rician":
-        tol += 1 / (2 * lowest ** 2)
+        tol += 1 / (2 * lowest**2)
     assert snr == pytest.approx(d["snr"], rel=tol)
 
 
@@ -236,8 +248,9 @@ def test_truth_is_independent_of_the_acquisition(region):
     fixed = make_phantom(region, seed=6, n_poses=n, spacing=spacing)
     drawn = make_phantom(region, seed=6, n_poses=n, spacing=spacing, acquisition="random")
     assert drawn.geometry == fixed.geometry
-    assert [(i, {k: np.asarray(v).tolist() for k, v in a.items()}) for i, a in drawn.poses] \
-        == [(i, {k: np.asarray(v).tolist() for k, v in a.items()}) for i, a in fixed.poses]
+    assert [(i, {k: np.asarray(v).tolist() for k, v in a.items()}) for i, a in drawn.poses] == [
+        (i, {k: np.asarray(v).tolist() for k, v in a.items()}) for i, a in fixed.poses
+    ]
     (tf, lf), (td, ld) = fixed.template(), drawn.template()
     assert np.array_equal(lf.data, ld.data) and not np.array_equal(tf.data, td.data)
     for a, b in zip(fixed.scans(), drawn.scans()):
@@ -257,8 +270,12 @@ def test_study_records_the_draws_and_regenerates_from_its_spec(tmp_path):
     from workbench.study import read_study
 
     out = tmp_path / "knee"
-    assert main(["phantom", "knee", "--out", str(out), "--poses", "1", "--seed", "9", "--acquisition", "random",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            ["phantom", "knee", "--out", str(out), "--poses", "1", "--seed", "9", "--acquisition", "random", "--quiet"]
+        )
+        == 0
+    )
     study = read_study(out)
     rec = study.manifest["phantom"]
     spec = PhantomSpec.from_dict(rec)

@@ -66,8 +66,9 @@ def test_vbd_is_rhee_equation_2(phantom_and_points):
     ph, p = phantom_and_points
     _, angles = ph.poses[-1]
     m = ph.posing_model(angles, mode="vbd")
-    w = blend_weights(ph.anatomy.bone_distances(p), power=ph.anatomy.weight_power,
-                      falloff_mm=ph.anatomy.weight_falloff_mm)
+    w = blend_weights(
+        ph.anatomy.bone_distances(p), power=ph.anatomy.weight_power, falloff_mm=ph.anatomy.weight_falloff_mm
+    )
     t = ph.pose_of(angles).transforms
     expected = sum(w[:, [k]] * apply(t[n], p) for k, n in enumerate(ph.anatomy.bone_names))
     np.testing.assert_allclose(m.forward(p), expected, atol=1e-9)

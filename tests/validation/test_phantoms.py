@@ -36,8 +36,9 @@ def _resample_cc(phantom, template, scan):
     """CC inside the body between the scan and the template resampled through the truth field."""
     field = sitk.Cast(scan.correspondence.to_sitk(), sitk.sitkVectorFloat64)
     tx = sitk.DisplacementFieldTransform(field)
-    res = sitk.GetArrayFromImage(sitk.Resample(template.to_sitk(), scan.image.to_sitk(), tx, sitk.sitkLinear,
-                                               float(phantom.contrast.air)))
+    res = sitk.GetArrayFromImage(
+        sitk.Resample(template.to_sitk(), scan.image.to_sitk(), tx, sitk.sitkLinear, float(phantom.contrast.air))
+    )
     phi = scan.correspondence.data + phantom.geometry.world_coordinates()
     body = phantom.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(res.shape) < 0
     # Tissue imaged in the scan but outside the template's field of view cannot be resampled.
@@ -76,7 +77,7 @@ def test_bones_move_rigidly_with_their_true_transform(which, request):
     ph, _, _, scans = request.getfixturevalue(which)
     x = ph.geometry.world_coordinates().reshape(-1, 3)
     for scan in scans:
-        phi = (scan.correspondence.data.reshape(-1, 3) + x)
+        phi = scan.correspondence.data.reshape(-1, 3) + x
         d = ph.anatomy.distances_fast(phi)
         fx = scan.pose.transforms
         for k, name in enumerate(ph.anatomy.bone_names):
@@ -122,8 +123,9 @@ def test_more_markers_by_the_same_rule_from_a_stream_of_their_own(knee):
     np.testing.assert_array_equal(ph.template_markers(), study)
     assert min(np.linalg.norm(more[:, None] - study[None], axis=-1).ravel()) > 1e-6  # a different draw
     assert np.abs(ph.anatomy.body_distance(more)).max() < 1e-6
-    np.testing.assert_array_equal(make_phantom("knee", size="test", seed=5, noise=False).template_markers(
-        n=30, sample=1), more)
+    np.testing.assert_array_equal(
+        make_phantom("knee", size="test", seed=5, noise=False).template_markers(n=30, sample=1), more
+    )
     scan = scans[-1]
     ms = ph.markers(ph.posing_model(dict(ph.poses)[scan.id]), n=30, sample=1)
     u = scan.correspondence.data
@@ -137,7 +139,7 @@ def test_more_markers_by_the_same_rule_from_a_stream_of_their_own(knee):
 
 def test_truth_pose_matches_forward_kinematics(knee):
     ph, _, _, scans = knee
-    for (pid, angles), scan in zip(ph.poses, scans):
+    for (_pid, angles), scan in zip(ph.poses, scans):
         fk = ph.skeleton.forward_kinematics(angles)
         for name, t in fk.items():
             np.testing.assert_allclose(scan.pose.transforms[name], t, atol=1e-12)

@@ -24,9 +24,11 @@ def test_paper_size_truth_is_exact(region):
     tpl = ph.template()[0]
     scan = ph.make_scan(len(ph.poses) - 1, *ph.poses[-1])
     field = lambda: sitk.DisplacementFieldTransform(  # noqa: E731 - the transform takes the image over
-        sitk.Cast(scan.correspondence.to_sitk(), sitk.sitkVectorFloat64))
-    warped = sitk.GetArrayFromImage(sitk.Resample(tpl.to_sitk(), scan.image.to_sitk(), field(),
-                                                  sitk.sitkLinear, float(ph.contrast.air)))
+        sitk.Cast(scan.correspondence.to_sitk(), sitk.sitkVectorFloat64)
+    )
+    warped = sitk.GetArrayFromImage(
+        sitk.Resample(tpl.to_sitk(), scan.image.to_sitk(), field(), sitk.sitkLinear, float(ph.contrast.air))
+    )
     phi = scan.correspondence.data + ph.geometry.world_coordinates()
     body = ph.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(warped.shape) < 0
     body &= ph.geometry.contains_world(phi)

@@ -84,8 +84,11 @@ def test_eigenpose_table_matches_its_own_definition():
     ours = t.row("ours")
     assert ours["n_poses"] == len(LIBRARY) == len(names)
     assert ours["variance_10"] == pytest.approx(cum[9])
-    assert cum[ours["components_for_90"] - 1] >= 0.90 > (cum[ours["components_for_90"] - 2]
-                                                          if ours["components_for_90"] > 1 else -1)
+    assert (
+        cum[ours["components_for_90"] - 1]
+        >= 0.90
+        > (cum[ours["components_for_90"] - 2] if ours["components_for_90"] > 1 else -1)
+    )
     assert t.row("paper (Rhee §6.2, Poser poses)")["variance_10"] == 0.90
 
 
@@ -107,13 +110,31 @@ def test_joint_centre_measures_against_hand_computed_values():
     sk = _Skeleton({"a": (0.0, 0.0, 0.0), "b": (10.0, 0.0, 0.0), "c": (0.0, 5.0, 0.0)})
     joints = {
         # a hinge along z, its estimate 3 mm along the axis and 0.4 mm off it
-        "a": {"dof": 3, "per_scan_mm": [0.3, 0.4], "center": [0.4, 0.0, 3.0], "is_hinge": True, "axis": [0, 0, 2.0],
-              "estimated": True},
-        "b": {"dof": 3, "per_scan_mm": [1.2], "center": [10.0, 1.0, 0.0], "is_hinge": False, "axis": [0, 0, 0],
-              "estimated": True},
+        "a": {
+            "dof": 3,
+            "per_scan_mm": [0.3, 0.4],
+            "center": [0.4, 0.0, 3.0],
+            "is_hinge": True,
+            "axis": [0, 0, 2.0],
+            "estimated": True,
+        },
+        "b": {
+            "dof": 3,
+            "per_scan_mm": [1.2],
+            "center": [10.0, 1.0, 0.0],
+            "is_hinge": False,
+            "axis": [0, 0, 0],
+            "estimated": True,
+        },
         # a 6-DOF joint: its residual is left out of Kurihara's figure, its centre is not
-        "c": {"dof": 6, "per_scan_mm": [9.0], "center": [0.0, 5.0, 2.0], "is_hinge": False, "axis": [0, 0, 0],
-              "estimated": True},
+        "c": {
+            "dof": 6,
+            "per_scan_mm": [9.0],
+            "center": [0.0, 5.0, 2.0],
+            "is_hinge": False,
+            "axis": [0, 0, 0],
+            "estimated": True,
+        },
         "still": {"dof": 3, "per_scan_mm": [0.0], "center": [0, 0, 0], "estimated": False},
     }
     m = joint_centre_measures(joints, sk)
@@ -138,13 +159,35 @@ class _Study:
 
     def __init__(self):
         self.scan_ids = ["pose00", "pose01", "pose02"]
-        self.rows = {s: {"source": {"med_mm": 10.0 + i, "marker_med_mm": 8.0, "ssd": 100.0 * (i + 1), "cc": 0.5,
-                                    "mi": 0.2, "folded_fraction": 0.0},
-                         "initialised": {"med_mm": 2.0 + i, "marker_med_mm": 3.0, "ssd": 40.0, "cc": 0.8,
-                                         "mi": 0.4, "folded_fraction": 0.01 * i},
-                         "registered": {"med_mm": 1.0 + i, "marker_med_mm": None, "ssd": 20.0, "cc": 0.9,
-                                        "mi": 0.5, "folded_fraction": 0.0}}
-                     for i, s in enumerate(self.scan_ids)}
+        self.rows = {
+            s: {
+                "source": {
+                    "med_mm": 10.0 + i,
+                    "marker_med_mm": 8.0,
+                    "ssd": 100.0 * (i + 1),
+                    "cc": 0.5,
+                    "mi": 0.2,
+                    "folded_fraction": 0.0,
+                },
+                "initialised": {
+                    "med_mm": 2.0 + i,
+                    "marker_med_mm": 3.0,
+                    "ssd": 40.0,
+                    "cc": 0.8,
+                    "mi": 0.4,
+                    "folded_fraction": 0.01 * i,
+                },
+                "registered": {
+                    "med_mm": 1.0 + i,
+                    "marker_med_mm": None,
+                    "ssd": 20.0,
+                    "cc": 0.9,
+                    "mi": 0.5,
+                    "folded_fraction": 0.0,
+                },
+            }
+            for i, s in enumerate(self.scan_ids)
+        }
 
     def validation(self, s):
         return {"rows": self.rows[s]}
@@ -205,8 +248,15 @@ def scored(monkeypatch):
     def measured(study, sid, template, body, *, registered, field, seconds):
         assert registered == field == sid  # the result of this scan, as the runner returned it
         i = int(sid[-1])
-        return {"med_mm": 0.5 + i, "marker_med_mm": 1.0, "ssd": 10.0, "cc": 0.95, "mi": 0.6,
-                "folded_fraction": 0.0, "seconds": seconds}
+        return {
+            "med_mm": 0.5 + i,
+            "marker_med_mm": 1.0,
+            "ssd": 10.0,
+            "cc": 0.95,
+            "mi": 0.6,
+            "folded_fraction": 0.0,
+            "seconds": seconds,
+        }
 
     monkeypatch.setattr(registration, "_measured", measured)
 

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from workbench.viz.animate import Keyframes, animate_study, builtin_keyframes, read_keyframes
 from workbench.cli import main
 from workbench.errors import InputFileError, OutputExistsError
+from workbench.viz.animate import Keyframes, animate_study, builtin_keyframes, read_keyframes
 from workbench.viz.render import offscreen_available
 
 _skip_no_gl = pytest.mark.skipif(not offscreen_available(), reason="no off-screen OpenGL (EGL or OSMesa) here")
@@ -26,8 +26,9 @@ def study(tmp_path_factory):
     from validation.phantoms import make_phantom
     from workbench.study import write_phantom_study
 
-    root = write_phantom_study(make_phantom("knee", size="test", n_poses=2, seed=3, noise=False),
-                               tmp_path_factory.mktemp("animate") / "study").root
+    root = write_phantom_study(
+        make_phantom("knee", size="test", n_poses=2, seed=3, noise=False), tmp_path_factory.mktemp("animate") / "study"
+    ).root
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
     return root
 
@@ -51,10 +52,15 @@ def _read_mp4(path) -> np.ndarray:
     import imageio_ffmpeg
 
     exe = imageio_ffmpeg.get_ffmpeg_exe()
-    info = subprocess.run([exe, "-hide_banner", "-i", str(path)], capture_output=True, text=True, encoding="utf-8").stderr
+    info = subprocess.run(
+        [exe, "-hide_banner", "-i", str(path)], capture_output=True, text=True, encoding="utf-8"
+    ).stderr
     w, h = (int(v) for v in re.search(r"Video: .*?, (\d+)x(\d+)", info).groups())
-    raw = subprocess.run([exe, "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "rgb24", "-"],
-                         capture_output=True, check=True).stdout
+    raw = subprocess.run(
+        [exe, "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "rgb24", "-"],
+        capture_output=True,
+        check=True,
+    ).stdout
     assert len(raw) % (w * h * 3) == 0
     return np.frombuffer(raw, np.uint8).reshape(-1, h, w, 3)
 
@@ -66,10 +72,19 @@ def _keys(tmp_path, doc, name="keys.json"):
 
 
 def _bend(t1=1.0, deg=40.0, interpolation="smooth"):
-    return {"format": "avw-keyframes", "version": 1, "skeleton": "knee", "interpolation": interpolation,
-            "keyframes": [{"time": 0.0, "angles": {"knee": [0, 0, 0]}},
-                          {"time": t1, "angles": {"knee": [deg, 0, 0], "tibiofibular": [deg, 0, 0],
-                                                  "patellofemoral": [0.7 * deg, 0, 0]}}]}  # the phantom's couplings
+    return {
+        "format": "avw-keyframes",
+        "version": 1,
+        "skeleton": "knee",
+        "interpolation": interpolation,
+        "keyframes": [
+            {"time": 0.0, "angles": {"knee": [0, 0, 0]}},
+            {
+                "time": t1,
+                "angles": {"knee": [deg, 0, 0], "tibiofibular": [deg, 0, 0], "patellofemoral": [0.7 * deg, 0, 0]},
+            },
+        ],
+    }  # the phantom's couplings
 
 
 def test_interpolation_is_smoothstep_or_linear_between_keyframes(tmp_path, skeleton):
@@ -115,8 +130,12 @@ def test_bad_keyframe_files_name_the_problem(tmp_path, skeleton):
     bad["keyframes"][1]["angles"]["knee"] = ["x", 0, 0]
     with pytest.raises(InputFileError, match="list of numbers"):
         read_keyframes(_keys(tmp_path, bad), skeleton)
-    for camera, message in (({"zoom": None}, "zoom must be a number"), ({"view": "side"}, "camera view"),
-                            ({"zoom": -1}, "zoom must be > 0"), ({"spin": 1}, "unknown keys")):
+    for camera, message in (
+        ({"zoom": None}, "zoom must be a number"),
+        ({"view": "side"}, "camera view"),
+        ({"zoom": -1}, "zoom must be > 0"),
+        ({"spin": 1}, "unknown keys"),
+    ):
         bad = _bend()
         bad["camera"] = camera
         with pytest.raises(InputFileError, match=message) as e:
@@ -134,16 +153,16 @@ def test_bad_keyframe_files_name_the_problem(tmp_path, skeleton):
 
 def test_ready_keyframes_fit_the_phantom_skeletons():
     from validation.phantoms.hand import skeleton as hand_skeleton
-    from validation.phantoms.knee import skeleton as knee_skeleton
-
     from validation.phantoms.knee import complete_angles
+    from validation.phantoms.knee import skeleton as knee_skeleton
 
     knee = builtin_keyframes(knee_skeleton())
     assert knee.angles[0]["knee"][0] == 0 and max(a["knee"][0] for a in knee.angles) == 60  # bend, straighten
     for a in knee.angles:  # the phantom's couplings: fibula with the tibia, patella 70 % of the flexion
         want = complete_angles({"knee": a["knee"]})
-        assert np.allclose(a["tibiofibular"], want["tibiofibular"]) and np.allclose(a["patellofemoral"],
-                                                                                   want["patellofemoral"])
+        assert np.allclose(a["tibiofibular"], want["tibiofibular"]) and np.allclose(
+            a["patellofemoral"], want["patellofemoral"]
+        )
     hand = builtin_keyframes(hand_skeleton())
     names = hand.names
     assert names[0] == "open" and "fist" in names and "point" in names
@@ -195,16 +214,34 @@ def test_cli_render_and_animate(tmp_path, study, capsys):
     import imageio.v3 as iio
 
     png = tmp_path / "t.png"
-    assert main(["render", str(study), "--out", str(png), "--size", "160x120", "--clip", "z:0.5", "--bones",
-                 "--quiet"]) == 0
+    assert (
+        main(["render", str(study), "--out", str(png), "--size", "160x120", "--clip", "z:0.5", "--bones", "--quiet"])
+        == 0
+    )
     img = iio.imread(png)
     assert img.shape == (120, 160, 3) and (img.max(axis=2) > 12).mean() > 0.02
     assert main(["render", str(study), "--out", str(png), "--quiet"]) == 1  # exists, no --force
     assert "--force" in capsys.readouterr().err
     assert main(["render", str(study), "--out", str(tmp_path / "o.png"), "--size", "161x120"]) == 1
     assert "even" in capsys.readouterr().err
-    assert main(["render", str(study), "--scan", "pose01", "--overlay", "pose00", "--out",
-                 str(tmp_path / "ov.png"), "--size", "160x120", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(study),
+                "--scan",
+                "pose01",
+                "--overlay",
+                "pose00",
+                "--out",
+                str(tmp_path / "ov.png"),
+                "--size",
+                "160x120",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert main(["render", str(study), "--scan", "nope", "--out", str(tmp_path / "x.png"), "--quiet"]) == 1
     assert "no scan 'nope'" in capsys.readouterr().err
     assert main(["render", str(study), "--overlay", "pose01", "--bones", "--out", str(tmp_path / "y.png")]) == 1
@@ -213,14 +250,33 @@ def test_cli_render_and_animate(tmp_path, study, capsys):
     assert "pass --registered ID" in capsys.readouterr().err
     plain, marked = tmp_path / "p.png", tmp_path / "m.png"
     assert main(["render", str(study), "--scan", "pose01", "--out", str(plain), "--size", "160x120", "--quiet"]) == 0
-    assert main(["render", str(study), "--scan", "pose01", "--markers", "--out", str(marked), "--size", "160x120",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(study),
+                "--scan",
+                "pose01",
+                "--markers",
+                "--out",
+                str(marked),
+                "--size",
+                "160x120",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     a, b = iio.imread(plain).astype(int), iio.imread(marked).astype(int)
     white = (b.min(axis=2) > 150) & (np.abs(b - a).sum(axis=2) > 60)  # the markers are white spheres
     assert white.sum() > 3
     mp4 = tmp_path / "a.mp4"
-    assert main(["animate", str(study), "--out", str(mp4), "--frames", "4", "--size", "96x72", "--quiet",
-                 "--mapper", "gpu"]) == 0
+    assert (
+        main(
+            ["animate", str(study), "--out", str(mp4), "--frames", "4", "--size", "96x72", "--quiet", "--mapper", "gpu"]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "4 frames 96x72" in out and "gpu mapper" in out  # --mapper reaches the renderer
     assert _read_mp4(mp4).shape == (4, 72, 96, 3)
@@ -258,7 +314,9 @@ def test_covering_grid_extends_the_grid_by_whole_voxels():
     from deformation.geometry import GridGeometry
     from workbench.viz.animate import covering_grid
 
-    g = GridGeometry((10, 8, 6), (2.0, 1.5, 3.0), (-9.0, -5.25, 0.0), ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)))
+    g = GridGeometry(
+        (10, 8, 6), (2.0, 1.5, 3.0), (-9.0, -5.25, 0.0), ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    )
     w = g.index_to_world(np.array([[0, 0, 0], [9, 7, 5]], float))
     lo, hi = w.min(axis=0), w.max(axis=0)
     # a box 4 mm beyond the grid in -z and 2.9 mm beyond in +y (world), inside elsewhere

@@ -8,8 +8,8 @@ import pytest
 
 from deformation.geometry import GeometryMismatchError as GeometryMismatchFromGeometry
 from workbench import errors
-from workbench.io.atomic import atomic_file_group, atomic_path, split_suffix, write_text_atomic
 from workbench.errors import OutputExistsError
+from workbench.io.atomic import atomic_file_group, atomic_path, split_suffix, write_text_atomic
 
 
 @pytest.mark.parametrize(
@@ -126,9 +126,15 @@ def test_error_hierarchy():
     assert isinstance(e, errors.InputFileError) and isinstance(e, FileNotFoundError)
     assert isinstance(e, ValueError) and isinstance(e, errors.WorkbenchError)
     assert str(e) == "x.nii: no such file. Check the path." and str(e.path) == "x.nii"
-    for cls in (errors.UnknownFormatError, errors.UnreadableFileError, errors.DimensionError,
-                errors.NonFiniteError, errors.AmbiguousSeriesError, errors.PixelTypeError,
-                errors.SeriesNotFoundError):
+    for cls in (
+        errors.UnknownFormatError,
+        errors.UnreadableFileError,
+        errors.DimensionError,
+        errors.NonFiniteError,
+        errors.AmbiguousSeriesError,
+        errors.PixelTypeError,
+        errors.SeriesNotFoundError,
+    ):
         assert issubclass(cls, errors.InputFileError) and issubclass(cls, ValueError)
     out = OutputExistsError("out/scan.nii.gz")
     assert isinstance(out, FileExistsError) and isinstance(out, errors.WorkbenchError)

@@ -15,14 +15,17 @@ import SimpleITK as sitk
 from deformation.transforms import apply
 from workbench import __version__
 from workbench.cli import main
-from workbench.study import read_study
 from workbench.io.volumes import read_image_geometry
+from workbench.study import read_study
 
 
 def _digest(folder: Path) -> dict:
     """SHA-256 of every file except the (timing) log."""
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() and "logs" not in p.parts}
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and "logs" not in p.parts
+    }
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +46,9 @@ def test_version_and_help(capsys):
 
 
 def test_python_dash_m_runs():
-    r = subprocess.run([sys.executable, "-m", "workbench", "--version"], capture_output=True, text=True, encoding="utf-8", check=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "workbench", "--version"], capture_output=True, text=True, encoding="utf-8", check=True
+    )
     assert __version__ in r.stdout
 
 
@@ -73,8 +78,9 @@ def test_written_truth_resamples_template_onto_scan(tmp_path):
     field = sitk.ReadImage(str(out / study.manifest["scans"][-1]["truth"]["correspondence"]))
     assert field.GetPixelID() == sitk.sitkVectorFloat64  # usable by DisplacementFieldTransform as is
     outside = -1e6  # marks scan voxels whose template position lies outside the template's grid
-    warped = sitk.GetArrayFromImage(sitk.Resample(template, scan, sitk.DisplacementFieldTransform(field),
-                                                  sitk.sitkLinear, outside))
+    warped = sitk.GetArrayFromImage(
+        sitk.Resample(template, scan, sitk.DisplacementFieldTransform(field), sitk.sitkLinear, outside)
+    )
     a = sitk.GetArrayFromImage(scan)
     body = (a > 200) & (warped > outside / 2)  # soft tissue and marrow (MRI air is 0 without noise)
     # Linear interpolation of the template on the 5 mm test grid is the only error source.
@@ -219,8 +225,10 @@ def test_info_check_reads_every_image_and_clean_image_repairs_a_nan_scan(knee_st
 
 
 def test_poses_file_outside_the_range_of_motion_or_with_strings(tmp_path, capsys):
-    for angles, expect in (({"knee": [1000, 0, 0]}, "knee[0] = 1000° outside [-10, 150]"),
-                           ({"knee": ["30", 0, 0]}, "list of numbers")):
+    for angles, expect in (
+        ({"knee": [1000, 0, 0]}, "knee[0] = 1000° outside [-10, 150]"),
+        ({"knee": ["30", 0, 0]}, "list of numbers"),
+    ):
         pf = tmp_path / "poses.json"
         pf.write_text(json.dumps({"poses": [{"id": "x", "angles": angles}]}))
         capsys.readouterr()

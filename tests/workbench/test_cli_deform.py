@@ -14,9 +14,9 @@ from deformation.geometry import GridGeometry
 from deformation.skinning import SkinningWeights
 from workbench.cli import main
 from workbench.errors import InputFileError, OutputExistsError
-from workbench.study import read_study
 from workbench.io.volumes import read_labels, read_volume
 from workbench.io.weights import read_voxel_weights, write_voxel_weights
+from workbench.study import read_study
 
 
 @pytest.fixture(scope="module")
@@ -25,16 +25,21 @@ def study(tmp_path_factory):
     from validation.phantoms import make_phantom
     from workbench.study import write_phantom_study
 
-    root = write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=3, seed=2, noise=False),
-                               tmp_path_factory.mktemp("cli-deform") / "study").root
+    root = write_phantom_study(
+        make_phantom("knee", size="test", modality="ct", n_poses=3, seed=2, noise=False),
+        tmp_path_factory.mktemp("cli-deform") / "study",
+    ).root
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
     assert main(["model", str(root), "--source", "truth", "--quiet"]) == 0
     return root
 
 
 def _hashes(root):
-    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_weight_map_round_trip_is_exact(tmp_path):
@@ -75,8 +80,22 @@ def _cc(a, b):
 def test_deform_at_a_training_pose_reproduces_the_scan(study, tmp_path):
     s = read_study(study)
     out = tmp_path / "p2.nii.gz"
-    assert main(["deform", str(study), "--pose", str(study / "truth" / "pose02_pose.json"), "--out", str(out),
-                 "--field-out", str(tmp_path / "p2_field.mha"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "deform",
+                str(study),
+                "--pose",
+                str(study / "truth" / "pose02_pose.json"),
+                "--out",
+                str(out),
+                "--field-out",
+                str(tmp_path / "p2_field.mha"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     posed = read_volume(out)
     assert posed.geometry.is_close(s.template().geometry)
     labels = read_labels(tmp_path / "p2_labels.nii.gz")
@@ -91,20 +110,30 @@ def test_deform_at_a_training_pose_reproduces_the_scan(study, tmp_path):
     assert cc >= 0.98, cc
     # the posed label map puts each bone where the truth does (nearest-neighbour labels)
     t_lab = s.template_labels()
-    sampled = sitk.GetArrayFromImage(sitk.Resample(
-        t_lab.to_sitk(), scan.to_sitk(),
-        sitk.DisplacementFieldTransform(sitk.Cast(truth.to_sitk(), sitk.sitkVectorFloat64)),
-        sitk.sitkNearestNeighbor, 0))
+    sampled = sitk.GetArrayFromImage(
+        sitk.Resample(
+            t_lab.to_sitk(),
+            scan.to_sitk(),
+            sitk.DisplacementFieldTransform(sitk.Cast(truth.to_sitk(), sitk.sitkVectorFloat64)),
+            sitk.sitkNearestNeighbor,
+            0,
+        )
+    )
     bone = sampled.reshape(-1)[m] > 0
     agree = np.mean(labels.data.reshape(-1)[m][bone] == sampled.reshape(-1)[m][bone])
     assert agree > 0.97, agree  # bone voxels: the boundary layer (one voxel) may differ
     # the field written maps the posed grid to the template: resampling the template through it
     # with SimpleITK gives the posed volume back (the same trilinear interpolation)
     field = sitk.ReadImage(str(tmp_path / "p2_field.mha"))
-    again = sitk.GetArrayFromImage(sitk.Resample(s.template().to_sitk(), scan.to_sitk(),
-                                                 sitk.DisplacementFieldTransform(
-                                                     sitk.Cast(field, sitk.sitkVectorFloat64)),
-                                                 sitk.sitkLinear, 0.0))
+    again = sitk.GetArrayFromImage(
+        sitk.Resample(
+            s.template().to_sitk(),
+            scan.to_sitk(),
+            sitk.DisplacementFieldTransform(sitk.Cast(field, sitk.sitkVectorFloat64)),
+            sitk.sitkLinear,
+            0.0,
+        )
+    )
     assert _cc(again.reshape(-1)[m], posed.data.reshape(-1)[m]) > 0.999
 
 
@@ -126,8 +155,24 @@ def test_deform_with_joint_angles_and_vbd(study, tmp_path):
     # the test knee's 5 mm grid gives a 10 mm map, so only the grid and the bulk agreement are checked here (the
     # accuracy is measured in tests/deformation/test_evd.py and benchmarks/deformation.py)
     coarse = tmp_path / "bend2.mha"
-    assert main(["deform", str(study), "--pose", str(pose), "--out", str(coarse), "--method", "vbd",
-                 "--map-factor", "2", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "deform",
+                str(study),
+                "--pose",
+                str(pose),
+                "--out",
+                str(coarse),
+                "--method",
+                "vbd",
+                "--map-factor",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     c = read_volume(coarse)
     assert c.geometry.is_close(v.geometry)
     assert not np.array_equal(c.data, v.data)  # the option took effect: a blended map, not the exact one
@@ -145,20 +190,63 @@ def test_deform_reports_bad_input(study, tmp_path, capsys):
     assert not (tmp_path / "x.nii.gz").exists()
     good = study / "truth" / "pose01_pose.json"
     # outputs are checked before any work: a clash with the study's own files, or with each other
-    assert main(["deform", str(study), "--pose", str(good), "--out", str(study / "template.nii.gz"), "--force",
-                 "--quiet"]) == 1
+    assert (
+        main(["deform", str(study), "--pose", str(good), "--out", str(study / "template.nii.gz"), "--force", "--quiet"])
+        == 1
+    )
     assert "study's own files" in capsys.readouterr().err
-    assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "a.nii.gz"), "--labels-out",
-                 str(tmp_path / "a.nii.gz"), "--quiet"]) == 1
-    assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "a.nii.gz"), "--field-out",
-                 str(tmp_path / "f.xyz"), "--quiet"]) == 1
+    assert (
+        main(
+            [
+                "deform",
+                str(study),
+                "--pose",
+                str(good),
+                "--out",
+                str(tmp_path / "a.nii.gz"),
+                "--labels-out",
+                str(tmp_path / "a.nii.gz"),
+                "--quiet",
+            ]
+        )
+        == 1
+    )
+    assert (
+        main(
+            [
+                "deform",
+                str(study),
+                "--pose",
+                str(good),
+                "--out",
+                str(tmp_path / "a.nii.gz"),
+                "--field-out",
+                str(tmp_path / "f.xyz"),
+                "--quiet",
+            ]
+        )
+        == 1
+    )
     assert not (tmp_path / "a.nii.gz").exists()
     # an output into a missing folder: one line naming the option and the fix, before any work, nothing
     # written (the posed volume used to be written first and a rerun then hit "exists")
     for opt in ("--field-out", "--labels-out"):
         capsys.readouterr()
-        assert main(["deform", str(study), "--pose", str(good), "--out", str(tmp_path / "b.nii.gz"), opt,
-                     str(tmp_path / "missing" / "f.nii.gz")]) == 1
+        assert (
+            main(
+                [
+                    "deform",
+                    str(study),
+                    "--pose",
+                    str(good),
+                    "--out",
+                    str(tmp_path / "b.nii.gz"),
+                    opt,
+                    str(tmp_path / "missing" / "f.nii.gz"),
+                ]
+            )
+            == 1
+        )
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and opt in err[0] and "does not exist" in err[0] and "mkdir -p" in err[0], err
         assert not (tmp_path / "b.nii.gz").exists() and not (tmp_path / "b_labels.nii.gz").exists()
@@ -175,8 +263,9 @@ def test_harmonic_weights_are_the_same_bytes_when_rerun(tmp_path):
     from validation.phantoms import make_phantom
     from workbench.study import write_phantom_study
 
-    root = write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=1, seed=5),
-                               tmp_path / "study").root
+    root = write_phantom_study(
+        make_phantom("knee", size="test", modality="ct", n_poses=1, seed=5), tmp_path / "study"
+    ).root
     assert main(["weights", str(root), "--edge-length-mm", "14", "--quiet"]) == 0
     files = ("tetmesh.vtu", "weights_index.mha", "weights_value.mha")
     first = {f: hashlib.sha256((root / "skinning" / f).read_bytes()).hexdigest() for f in files}
@@ -212,9 +301,11 @@ def test_harmonic_weights_are_the_same_bytes_when_rerun(tmp_path):
 def test_angles_outside_the_range_of_motion_or_as_strings_are_refused(study, tmp_path, capsys):
     """A 1000° knee used to be posed into a mangled volume; an angle given as a string was read silently.
     Both are one line naming the file, the joint and the fix, and nothing is written."""
-    for angles, expect in (({"knee": [1000, 0, 0]}, "knee[0] = 1000° outside [-10, 150]"),
-                           ({"knee": [20, 40, 0]}, "knee[1] = 40° outside [-15, 15]"),
-                           ({"knee": ["30", 0, 0]}, "needs a list of numbers")):
+    for angles, expect in (
+        ({"knee": [1000, 0, 0]}, "knee[0] = 1000° outside [-10, 150]"),
+        ({"knee": [20, 40, 0]}, "knee[1] = 40° outside [-15, 15]"),
+        ({"knee": ["30", 0, 0]}, "needs a list of numbers"),
+    ):
         pose = tmp_path / "p.json"
         pose.write_text(json.dumps({"angles": angles}))
         capsys.readouterr()
@@ -231,8 +322,11 @@ def test_a_one_dof_joint_takes_a_number_alone(tmp_path):
     from deformation.skeleton import Bone, Joint, Skeleton
     from workbench.io.inputs import read_target_pose
 
-    sk = Skeleton([Bone("upper", 1, None), Bone("fore", 2, "upper")],
-                  [Joint("elbow", "upper", "fore", 1, (0.0, 0.0, 0.0), limits=((0, 150),))], name="arm")
+    sk = Skeleton(
+        [Bone("upper", 1, None), Bone("fore", 2, "upper")],
+        [Joint("elbow", "upper", "fore", 1, (0.0, 0.0, 0.0), limits=((0, 150),))],
+        name="arm",
+    )
     p = tmp_path / "p.json"
     p.write_text(json.dumps({"angles": {"elbow": 30}}))
     assert read_target_pose(p, sk).joint_angles["elbow"].tolist() == [30.0]
@@ -250,8 +344,9 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path
     from validation.phantoms import make_phantom
     from workbench.study import write_phantom_study
 
-    root = write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=2, seed=4, noise=False),
-                               tmp_path / "study").root
+    root = write_phantom_study(
+        make_phantom("knee", size="test", modality="ct", n_poses=2, seed=4, noise=False), tmp_path / "study"
+    ).root
     pose = tmp_path / "bend.json"
     pose.write_text(json.dumps({"angles": {"knee": [40, 0, 0]}}))
     t = read_study(root).template()
@@ -276,14 +371,20 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(tmp_path
     lv, le = read_labels(tmp_path / "coarse_labels.nii.gz"), read_labels(tmp_path / "exact_labels.nii.gz")
     bone = (lv.data > 0) | (le.data > 0)
     assert (lv.data == le.data)[bone].mean() > 0.85
-    for argv, match in ((["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "m.nii.gz"),
-                          "--map-factor", "3"], "--map-factor"),
-                        (["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "e.nii.gz"),
-                          "--method", "evd"], "--method vbd"),
-                        (["register", str(root), "--init", "vbd", "--force"], "--grid-factor 1"),
-                        # every 6th voxel of this 5 mm knee (30 mm) holds none of the fibula's
-                        (["weights", str(root), "--method", "distance", "--grid-factor", "6"], "fibula"), (["model", str(root), "--source", "truth"],
-                                                                    "--grid-factor 1")):
+    for argv, match in (
+        (
+            ["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "m.nii.gz"), "--map-factor", "3"],
+            "--map-factor",
+        ),
+        (
+            ["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "e.nii.gz"), "--method", "evd"],
+            "--method vbd",
+        ),
+        (["register", str(root), "--init", "vbd", "--force"], "--grid-factor 1"),
+        # every 6th voxel of this 5 mm knee (30 mm) holds none of the fibula's
+        (["weights", str(root), "--method", "distance", "--grid-factor", "6"], "fibula"),
+        (["model", str(root), "--source", "truth"], "--grid-factor 1"),
+    ):
         assert main(argv + ["--quiet"]) == 1, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], (argv, err)

@@ -19,8 +19,10 @@ def small_ct_study(tmp_path_factory):
     from validation.phantoms import make_phantom
     from workbench.study import write_phantom_study
 
-    return write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=2, seed=7),
-                               tmp_path_factory.mktemp("cli-pose") / "study").root
+    return write_phantom_study(
+        make_phantom("knee", size="test", modality="ct", n_poses=2, seed=7),
+        tmp_path_factory.mktemp("cli-pose") / "study",
+    ).root
 
 
 def _write_seeds(study, path):
@@ -28,15 +30,22 @@ def _write_seeds(study, path):
     from registration.segmentation import seeds_from_labels
 
     seeds = seeds_from_labels(study.template_labels(), study.skeleton())
-    path.write_text(json.dumps({"format": "avw-seeds", "version": 1, "units": "mm",
-                                "seeds": {b: p.tolist() for b, p in seeds.items()}}))
+    path.write_text(
+        json.dumps(
+            {"format": "avw-seeds", "version": 1, "units": "mm", "seeds": {b: p.tolist() for b, p in seeds.items()}}
+        )
+    )
     return path
 
 
 def _hashes(root):
-    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and p.relative_to(root).parts[0] not in ("poses", "bones", ".locks")
-            and p.name not in ("study.json", ".study.json.lock")}
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+        and p.relative_to(root).parts[0] not in ("poses", "bones", ".locks")
+        and p.name not in ("study.json", ".study.json.lock")
+    }
 
 
 def test_pose_writes_into_the_study(tmp_path, small_ct_study, capsys):
@@ -206,7 +215,9 @@ def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, sma
     (root / "template_labels.nii.gz").unlink()
     assert main(["pose", str(root), "--seeds", str(sf), "--quiet"]) == 0
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
-    assert main(["register", str(root), "--method", "adaptive", "--levels", "3", "3", "--max-steps", "4", "--quiet"]) == 0
+    assert (
+        main(["register", str(root), "--method", "adaptive", "--levels", "3", "3", "--max-steps", "4", "--quiet"]) == 0
+    )
     assert main(["model", str(root), "--quiet"]) == 0
     assert "registration correspondences of 2 scans" in capsys.readouterr().out
     st = read_study(root)
@@ -215,8 +226,10 @@ def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, sma
     pose.write_text(json.dumps({"angles": {"knee": [20, 0, 0]}}))
     assert main(["deform", str(root), "--pose", str(pose), "--out", str(tmp_path / "bent.nii.gz")]) == 0
     assert "posing by EVD" in capsys.readouterr().err
-    assert main(["render", str(root), "--bones", "--out", str(tmp_path / "b.png"), "--size", "64x48",
-                 "--quiet"]) in (0, 1)  # 1 only where no OpenGL context exists; it must not ask for --seeds
+    assert main(["render", str(root), "--bones", "--out", str(tmp_path / "b.png"), "--size", "64x48", "--quiet"]) in (
+        0,
+        1,
+    )  # 1 only where no OpenGL context exists; it must not ask for --seeds
     assert "--seeds" not in capsys.readouterr().err
 
 

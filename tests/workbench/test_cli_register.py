@@ -12,8 +12,8 @@ import pytest
 
 from deformation.interpolate import sample_displaced_array
 from workbench.cli import main
-from workbench.study import read_study
 from workbench.io.volumes import read_displacement, read_volume
+from workbench.study import read_study
 
 FAST = ["--method", "adaptive", "--levels", "3", "3", "--max-steps", "4", "--pose", "truth"]
 VBD = ["--init", "vbd"]
@@ -44,11 +44,21 @@ def test_register_writes_fields_in_the_truth_convention(study, capsys):
     st = read_study(study)
     entry = st.stage_entry("register", "pose01")
     assert entry["settings"]["max_steps_per_level"] == 4 and entry["settings"]["levels"] == [3, 3]
-    assert st.stage_entry("init", "pose01")["settings"] == {"method": "vbd", "pose": "truth", "unfold": False,
-                                                             "map_factor": None}
-    entry = {k: f"registration/pose01/{n}" for k, n in (("correspondence", "correspondence.mha"),
-                                                        ("template_to_scan", "template_to_scan.mha"),
-                                                        ("registered", "registered.nii.gz"), ("log", "log.json"))}
+    assert st.stage_entry("init", "pose01")["settings"] == {
+        "method": "vbd",
+        "pose": "truth",
+        "unfold": False,
+        "map_factor": None,
+    }
+    entry = {
+        k: f"registration/pose01/{n}"
+        for k, n in (
+            ("correspondence", "correspondence.mha"),
+            ("template_to_scan", "template_to_scan.mha"),
+            ("registered", "registered.nii.gz"),
+            ("log", "log.json"),
+        )
+    }
     assert all(st.stage_entry("register", "pose01")["outputs"][p.split("/")[-1]] == p for p in entry.values())
     assert st.registration_log("pose01")["summary"]["control_points"] % 8 == 0
     corr = read_displacement(study / entry["correspondence"])
@@ -71,14 +81,12 @@ def test_register_writes_fields_in_the_truth_convention(study, capsys):
 
     body = body_on_scan(st.truth_correspondence("pose01"), read_labels(study / "skinning" / "body_mask.nii.gz"))
     # the written float32 field against the in-memory one the log used: float32 rounding only
-    assert med(corr, st.truth_correspondence("pose01"), body) == pytest.approx(rows["registered"]["med_mm"],
-                                                                                abs=1e-4)
+    assert med(corr, st.truth_correspondence("pose01"), body) == pytest.approx(rows["registered"]["med_mm"], abs=1e-4)
     assert rows["registered"]["med_mm"] < rows["source"]["med_mm"]  # VBD + registration beats nothing
     # the inverse undoes the field where both are defined (body voxels): |F(G(y)) − y| small
     y = t.geometry.world_coordinates()
     fwd = y + inv.data  # template voxel → scan position
-    back = fwd + sample_displaced_array(corr.data, corr.geometry.world_to_index_matrix, t.geometry, inv.data, 1,
-                                        0.0)
+    back = fwd + sample_displaced_array(corr.data, corr.geometry.world_to_index_matrix, t.geometry, inv.data, 1, 0.0)
     tbody = t.data > 0.1 * float(t.data.max())
     resid = np.linalg.norm(back - y, axis=-1)[tbody]
     assert np.median(resid) < 0.5  # mm, a tenth of a voxel (5 mm); folds of VBD leave a few outliers
@@ -129,8 +137,13 @@ def test_register_init_none_is_deterministic(tmp_path, study):
     for d in (a, b):
         shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration"))
     assert main([args[0], str(a), *args[1:]]) == 0
-    proc = subprocess.run([sys.executable, "-m", "workbench", args[0], str(b), *args[1:]], capture_output=True,
-                          text=True, encoding="utf-8", timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "workbench", args[0], str(b), *args[1:]],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     fa = read_displacement(a / "registration" / "pose01" / "correspondence.mha").data
     fb = read_displacement(b / "registration" / "pose01" / "correspondence.mha").data
@@ -170,16 +183,19 @@ def test_register_unfold_init_repairs_the_folds_of_the_map(tmp_path, study, caps
     weights, body_t = st.weights()
     g_s = read_image_geometry(st.scan_path("pose01"))
     t = stack_transforms(st.truth_pose("pose01").transforms, weights.bones)
-    bm = backward_map(vbd_forward(body_t.geometry, weights, t), body_t.geometry, g_s, transforms=t,
-                      prefer=body_t.data.astype(bool))
+    bm = backward_map(
+        vbd_forward(body_t.geometry, weights, t), body_t.geometry, g_s, transforms=t, prefer=body_t.data.astype(bool)
+    )
     mapped = _mapped(bm, 1, g_s)
     raw = jacobian_determinant(bm.scan_to_template()) <= 0  # the VBD start before the repair
     assert repair["n_folded_before"] == np.count_nonzero(raw & mapped) < np.count_nonzero(raw)
     body = body_on_scan(read_displacement(d / "truth" / "pose01_correspondence.mha"), body_t)
     det = jacobian_determinant(corr)
     assert np.count_nonzero((det <= 0) & body & mapped) == 0 < np.count_nonzero(body & mapped)
-    assert main(["register", str(d), "--scan", "pose01", *FAST, "--init", "none", "--unfold-init", "--force",
-                 "--quiet"]) == 1
+    assert (
+        main(["register", str(d), "--scan", "pose01", *FAST, "--init", "none", "--unfold-init", "--force", "--quiet"])
+        == 1
+    )
     assert "--init vbd" in capsys.readouterr().err
 
 
@@ -222,16 +238,18 @@ def test_default_registration_is_the_polyrigid_start_and_dense_steps(tmp_path, s
     inv, status = st.registration_inverse("pose01")
     t = st.template()
     y = t.geometry.world_coordinates()
-    back = y + inv.data + sample_displaced_array(corr.data, corr.geometry.world_to_index_matrix, t.geometry,
-                                                 inv.data, 1, 0.0)
+    back = (
+        y
+        + inv.data
+        + sample_displaced_array(corr.data, corr.geometry.world_to_index_matrix, t.geometry, inv.data, 1, 0.0)
+    )
     tbody = read_labels(d / "skinning" / "body_mask.nii.gz").data > 0
     ok = tbody & (status.data == 0)
     assert ok.mean() > 0.9 * tbody.mean()  # found for the body (the rest leaves the scan's field of view)
     assert np.median(np.linalg.norm(back - y, axis=-1)[ok]) < 0.1  # mm, 1/50 of the 5 mm voxel
     assert (d / "init" / "pose01" / "forward.mha").exists()
     body = body_on_scan(st.truth_correspondence("pose01"), read_labels(d / "skinning" / "body_mask.nii.gz"))
-    assert med(corr, st.truth_correspondence("pose01"), body) == pytest.approx(rows["registered"]["med_mm"],
-                                                                                abs=1e-4)
+    assert med(corr, st.truth_correspondence("pose01"), body) == pytest.approx(rows["registered"]["med_mm"], abs=1e-4)
 
 
 def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
@@ -245,9 +263,11 @@ def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
 
     d = tmp_path / "mf"
     _unregistered_copy(study, d)
-    for argv, match in ((["--init", "vbd", "--map-factor", "2"], "--init polyrigid"),
-                        (["--map-factor", "0"], "--map-factor must be a whole number"),
-                        (["--map-factor", "99"], "--map-factor 99 leaves the scan's")):
+    for argv, match in (
+        (["--init", "vbd", "--map-factor", "2"], "--init polyrigid"),
+        (["--map-factor", "0"], "--map-factor must be a whole number"),
+        (["--map-factor", "99"], "--map-factor 99 leaves the scan's"),
+    ):
         assert main(["register", str(d), "--scan", "pose01", *FAST, *argv, "--quiet"]) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], err
@@ -261,9 +281,13 @@ def test_polyrigid_start_on_every_other_voxel(tmp_path, study, capsys):
     field.geometry.check_same(scan.geometry)
     st.init_forward("pose01").geometry.check_same(st.template().geometry)
     sk, labels = st.skeleton(), st.template_labels()
-    exact, _ = polyrigid_initial_field(labels, {b: sk.label_of(b) for b in sk.bone_names},
-                                       {b: sk.bone(b).parent for b in sk.bone_names},
-                                       st.truth_pose("pose01").transforms, scan.geometry)
+    exact, _ = polyrigid_initial_field(
+        labels,
+        {b: sk.label_of(b) for b in sk.bone_names},
+        {b: sk.bone(b).parent for b in sk.bone_names},
+        st.truth_pose("pose01").transforms,
+        scan.geometry,
+    )
     body = scan.data > 0.1 * float(scan.data.max())
     dev = np.linalg.norm(field.data - exact.data, axis=-1)[body]
     assert dev.mean() < 0.25 * min(scan.geometry.spacing)  # a quarter voxel: the blend's second-order error
@@ -307,8 +331,10 @@ def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path
     m = json.loads((d / "study.json").read_text())
     m.setdefault("stages", {})
     m["stages"]["init"] = {"digest": "recorded", "settings": {"method": "vbd", "pose": "truth", "unfold": True}}
-    m["stages"]["register"] = {"digest": "recorded",
-                               "settings": {"method": "auto", "preset": "paper", "levels": [3, 4], "optimizer": "sbplx"}}
+    m["stages"]["register"] = {
+        "digest": "recorded",
+        "settings": {"method": "auto", "preset": "paper", "levels": [3, 4], "optimizer": "sbplx"},
+    }
     (d / "study.json").write_text(json.dumps(m))
     args = build_parser().parse_args(["register", str(d), "--init", "none", "--method", "dense"])
     s = _register_settings(args)
@@ -325,17 +351,19 @@ def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tm
     one line naming the option, before anything is written."""
     d = tmp_path / "ds"
     _unregistered_copy(study, d)
-    bad = [(["--dense", "window=4"], "no setting 'window'"),
-           (["--dense", "window_mm=four"], "--dense window_mm: the setting is a number (float), got the text 'four'"),
-           (["--dense", "window_mm=-1"], "window_mm > 0"),
-           (["--dense", "bones=free"], "--no-fix-bones"),
-           (["--dense", "window_mm"], "expected NAME=VALUE"),
-           (["--dense", "tolerance=1e-3", "--dense", "tolerance=1e-2"], "given twice"),
-           (["--dense", "holdout=true", "--method", "adaptive"], "do not apply to Rhee's Algorithm 1"),
-           (["--dense", "shrink=[null, 1, 1]"], "--dense shrink: the setting is a list of whole numbers ≥ 1"),
-           (["--dense", "iterations=[2.5, 2, 2]"], "--dense iterations: the setting is a list of whole numbers"),
-           (["--dense", "window_mm=NaN"], "--dense window_mm: the setting must be a finite number"),
-           (["--dense", "iterations=[200, 200]"], "--dense: shrink and iterations need one entry per level")]
+    bad = [
+        (["--dense", "window=4"], "no setting 'window'"),
+        (["--dense", "window_mm=four"], "--dense window_mm: the setting is a number (float), got the text 'four'"),
+        (["--dense", "window_mm=-1"], "window_mm > 0"),
+        (["--dense", "bones=free"], "--no-fix-bones"),
+        (["--dense", "window_mm"], "expected NAME=VALUE"),
+        (["--dense", "tolerance=1e-3", "--dense", "tolerance=1e-2"], "given twice"),
+        (["--dense", "holdout=true", "--method", "adaptive"], "do not apply to Rhee's Algorithm 1"),
+        (["--dense", "shrink=[null, 1, 1]"], "--dense shrink: the setting is a list of whole numbers ≥ 1"),
+        (["--dense", "iterations=[2.5, 2, 2]"], "--dense iterations: the setting is a list of whole numbers"),
+        (["--dense", "window_mm=NaN"], "--dense window_mm: the setting must be a finite number"),
+        (["--dense", "iterations=[200, 200]"], "--dense: shrink and iterations need one entry per level"),
+    ]
     for extra, words in bad:
         assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", *extra, "--quiet"]) == 1, extra
         err = capsys.readouterr().err
@@ -356,11 +384,16 @@ def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tm
     assert st.stage_entry("register", "pose01")["digest"] == digest  # up to date: not run again
     assert (d / "registration" / "pose01" / "log.json").stat().st_mtime_ns == log_time
     assert st.stage_entry("register", "pose01")["settings"]["dense_settings"] == [  # sorted: one digest
-        ["iterations", [2, 2, 2]], ["refine_bones", False], ["window_mm", 4.0]]
+        ["iterations", [2, 2, 2]],
+        ["refine_bones", False],
+        ["window_mm", 4.0],
+    ]
     from workbench.stages.register import RegisterSettings
 
     assert RegisterSettings(dense_settings=(("window_mm", 4), ("iterations", [2.0, 2, 2]))).dense_settings == (
-        ("iterations", (2, 2, 2)), ("window_mm", 4.0))
+        ("iterations", (2, 2, 2)),
+        ("window_mm", 4.0),
+    )
     from workbench.cli import _register_settings, build_parser
 
     args = build_parser().parse_args(["register", str(d), "--dense", "default"])

@@ -27,18 +27,28 @@ EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 def _workbench(*args, limit_bytes: int | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
     """``workbench ARGS`` in a child process, its written files capped at ``limit_bytes``."""
+
     def cap():
         if limit_bytes is not None:
             resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
-    return subprocess.run([sys.executable, "-m", "workbench", *map(str, args)], capture_output=True, text=True, encoding="utf-8",
-                          timeout=timeout, preexec_fn=cap)
+
+    return subprocess.run(
+        [sys.executable, "-m", "workbench", *map(str, args)],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=timeout,
+        preexec_fn=cap,
+    )
 
 
 def _tree(root: Path) -> dict:
     """Every file under ``root`` (hidden ones too) with its SHA-256: what a failed command must leave as it was."""
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and ".locks" not in p.parts
-            and p.name != ".study.json.lock"}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and ".locks" not in p.parts and p.name != ".study.json.lock"
+    }
 
 
 def _one_error_line(err: str, command: str) -> str:
@@ -54,8 +64,10 @@ def study(tmp_path_factory):
     from validation.phantoms import make_phantom
     from workbench.study import write_phantom_study
 
-    root = write_phantom_study(make_phantom("knee", size="test", modality="ct", n_poses=2, seed=2, noise=False),
-                               tmp_path_factory.mktemp("faults") / "study").root
+    root = write_phantom_study(
+        make_phantom("knee", size="test", modality="ct", n_poses=2, seed=2, noise=False),
+        tmp_path_factory.mktemp("faults") / "study",
+    ).root
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
     assert main(["model", str(root), "--source", "truth", "--quiet"]) == 0
     return root
@@ -64,18 +76,21 @@ def study(tmp_path_factory):
 # -- 1. a full disk (a file-size limit) is an error naming the file, never a success ---------------------------
 # 20 KiB: the headers fit, the data of a 64x64x40 volume (655 kB; 100-200 kB gzipped), a 640x480 PNG and a video
 # of 6 frames do not; 5 KiB for the video and 2 KiB for a 320x240 frame (both compress the dark background well)
-@pytest.mark.parametrize("command, out, limit", [
-    (["deform", "{study}", "--pose", str(EXAMPLES / "knee_bend45.json")], "bent.nii.gz", 20_480),
-    (["deform", "{study}", "--pose", str(EXAMPLES / "knee_bend45.json")], "bent.nii", 20_480),
-    (["deform", "{study}", "--pose", str(EXAMPLES / "knee_bend45.json")], "bent.mha", 20_480),
-    (["clean-image", "{study}/template.nii.gz"], "clean.nii.gz", 20_480),
-    (["render", "{study}/template.nii.gz"], "picture.png", 20_480),
-    (["animate", "{study}", "--frames", "6", "--size", "320x240"], "knee.gif", 20_480),
-    (["animate", "{study}", "--frames", "6", "--size", "320x240"], "knee.mp4", 5_120),
-    (["animate", "{study}", "--frames", "6", "--size", "320x240"], "frames.png", 2_048),
-    # named by its place in the study, not the staging folder; slow (~14 s: a whole phantom study), `make test-slow`
-    pytest.param(["phantom", "knee", "--quiet"], "new-study", 20_480, marks=pytest.mark.slow),
-])
+@pytest.mark.parametrize(
+    "command, out, limit",
+    [
+        (["deform", "{study}", "--pose", str(EXAMPLES / "knee_bend45.json")], "bent.nii.gz", 20_480),
+        (["deform", "{study}", "--pose", str(EXAMPLES / "knee_bend45.json")], "bent.nii", 20_480),
+        (["deform", "{study}", "--pose", str(EXAMPLES / "knee_bend45.json")], "bent.mha", 20_480),
+        (["clean-image", "{study}/template.nii.gz"], "clean.nii.gz", 20_480),
+        (["render", "{study}/template.nii.gz"], "picture.png", 20_480),
+        (["animate", "{study}", "--frames", "6", "--size", "320x240"], "knee.gif", 20_480),
+        (["animate", "{study}", "--frames", "6", "--size", "320x240"], "knee.mp4", 5_120),
+        (["animate", "{study}", "--frames", "6", "--size", "320x240"], "frames.png", 2_048),
+        # named by its place in the study, not the staging folder; slow (~14 s: a whole phantom study), `make test-slow`
+        pytest.param(["phantom", "knee", "--quiet"], "new-study", 20_480, marks=pytest.mark.slow),
+    ],
+)
 def test_a_write_cut_short_is_an_error_naming_the_file(study, tmp_path, command, out, limit):
     before = _tree(study)
     target = tmp_path / out
@@ -111,11 +126,17 @@ def test_the_manifest_write_cut_short_names_study_json(study, tmp_path):
     names it and the old manifest stays."""
     copy = shutil.copytree(study, tmp_path / "study")
     size = (copy / "study.json").stat().st_size
-    code = ("from workbench.study import read_study\n"
-            f"read_study({str(copy)!r}).update(lambda m: m.setdefault('notes', []).append('x' * 10))\n")
+    code = (
+        "from workbench.study import read_study\n"
+        f"read_study({str(copy)!r}).update(lambda m: m.setdefault('notes', []).append('x' * 10))\n"
+    )
+
     def cap():
         resource.setrlimit(resource.RLIMIT_FSIZE, (size // 2, size // 2))
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", preexec_fn=cap, timeout=120)
+
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", preexec_fn=cap, timeout=120
+    )
     assert r.returncode != 0
     assert f"{copy / 'study.json'}: the file could not be written completely" in r.stderr, r.stderr
     assert (copy / "study.json").read_bytes() == (study / "study.json").read_bytes()
@@ -135,11 +156,11 @@ v = rng.random((4000, 3)) * 100
 resource.setrlimit(resource.RLIMIT_FSIZE, (20_480, 20_480))
 if {suffix!r} == ".vtu":
     t = np.array([[i, i + 1, i + 2, i + 3] for i in range(0, 3996, 4)])
-    write_tetmesh(TetMesh(v, t).oriented(), {str(tmp_path / ('m' + suffix))!r},
+    write_tetmesh(TetMesh(v, t).oriented(), {str(tmp_path / ("m" + suffix))!r},
                   point_data={{"w": rng.random(4000)}})
 else:
     t = np.array([[i, i + 1, i + 2] for i in range(0, 3998)])
-    write_mesh(SurfaceMesh(v, t), {str(tmp_path / ('m' + suffix))!r})
+    write_mesh(SurfaceMesh(v, t), {str(tmp_path / ("m" + suffix))!r})
 """
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", timeout=120)
     assert r.returncode == 1, (r.returncode, r.stderr)  # 1: a Python exception, not a crash (-11)
@@ -209,11 +230,14 @@ def test_a_scan_with_1000_mm_voxels_is_refused_before_the_work(study, tmp_path):
     assert not (root / "poses").exists()  # refused as the pose stage loads its scans, before any bone is fitted
 
 
-@pytest.mark.parametrize("spacing, size, message", [
-    ((1000.0, 1.0, 1.0), (8, 8, 8), "voxel spacing x 1000 mm is outside 0.001–20 mm"),
-    ((0.5, 0.5, 1e-4), (8, 8, 8), "voxel spacing z 0.0001 mm is outside"),
-    ((19.0, 1.0, 1.0), (300, 8, 8), "a field of view of 5700 x 8 x 8 mm is longer than 4000 mm"),
-])
+@pytest.mark.parametrize(
+    "spacing, size, message",
+    [
+        ((1000.0, 1.0, 1.0), (8, 8, 8), "voxel spacing x 1000 mm is outside 0.001–20 mm"),
+        ((0.5, 0.5, 1e-4), (8, 8, 8), "voxel spacing z 0.0001 mm is outside"),
+        ((19.0, 1.0, 1.0), (300, 8, 8), "a field of view of 5700 x 8 x 8 mm is longer than 4000 mm"),
+    ],
+)
 def test_readers_refuse_implausible_geometry(tmp_path, spacing, size, message):
     from workbench.errors import ImplausibleGeometryError
     from workbench.io.volumes import read_image_geometry, read_labels, read_volume
@@ -253,16 +277,26 @@ def test_an_unsupported_manifest_version_is_refused(study, tmp_path, version):
 
 
 # -- 6. --set values are checked against their declared types -------------------------------------------------
-@pytest.mark.parametrize("item, message", [
-    ('register.seed="abc"', "--set register.seed: the setting is a whole number (int), got the text 'abc'"),
-    ('register.fix_bones="yes"', "--set register.fix_bones: the setting is true or false (bool), got the text"),
-    ("register.max_steps_per_level=1.5", "--set register.max_steps_per_level: the setting is a whole number (int) "
-                                         "(null for the default), got 1.5"),
-    ("register.levels=abc", "--set register.levels: the setting is a JSON list (tuple), e.g. [3, 5] (null for the "
-                            "default), got the text 'abc'"),
-    ("weights.edge_length_mm=true", "--set weights.edge_length_mm: the setting is a number (float) (null for the "
-                                    "default), got true"),
-])
+@pytest.mark.parametrize(
+    "item, message",
+    [
+        ('register.seed="abc"', "--set register.seed: the setting is a whole number (int), got the text 'abc'"),
+        ('register.fix_bones="yes"', "--set register.fix_bones: the setting is true or false (bool), got the text"),
+        (
+            "register.max_steps_per_level=1.5",
+            "--set register.max_steps_per_level: the setting is a whole number (int) (null for the default), got 1.5",
+        ),
+        (
+            "register.levels=abc",
+            "--set register.levels: the setting is a JSON list (tuple), e.g. [3, 5] (null for the "
+            "default), got the text 'abc'",
+        ),
+        (
+            "weights.edge_length_mm=true",
+            "--set weights.edge_length_mm: the setting is a number (float) (null for the default), got true",
+        ),
+    ],
+)
 def test_a_set_value_of_the_wrong_type_is_refused_and_nothing_stored(study, tmp_path, item, message):
     root = shutil.copytree(study, tmp_path / "study")
     before = _tree(root)
@@ -275,21 +309,35 @@ def test_a_set_value_of_the_wrong_type_is_refused_and_nothing_stored(study, tmp_
 def test_set_values_of_the_declared_types_are_taken():
     from workbench.stages.run import parse_set
 
-    assert parse_set(["register.seed=3", "register.levels=[3, 5]", "register.fix_bones=false",
-                      "weights.edge_length_mm=4", "weights.grid_factor=null", "register.max_steps_per_level=20.0",
-                      "register.method=adaptive"]) == \
-        {"register": {"seed": 3, "levels": [3, 5], "fix_bones": False, "max_steps_per_level": 20,
-                      "method": "adaptive"},
-         "weights": {"edge_length_mm": 4.0, "grid_factor": None}}
+    assert parse_set(
+        [
+            "register.seed=3",
+            "register.levels=[3, 5]",
+            "register.fix_bones=false",
+            "weights.edge_length_mm=4",
+            "weights.grid_factor=null",
+            "register.max_steps_per_level=20.0",
+            "register.method=adaptive",
+        ]
+    ) == {
+        "register": {"seed": 3, "levels": [3, 5], "fix_bones": False, "max_steps_per_level": 20, "method": "adaptive"},
+        "weights": {"edge_length_mm": 4.0, "grid_factor": None},
+    }
     assert isinstance(parse_set(["weights.edge_length_mm=4"])["weights"]["edge_length_mm"], float)
 
 
 # -- 7. the phantom's spacing is refused up front ----------------------------------------------------------------
-@pytest.mark.parametrize("spacing, message", [
-    ("1000", "leaves the knee's field of view (319 x 319 x 148 mm) only 1 x 1 x 1 voxels; a phantom needs at least "
-             "16 along each axis: give a spacing of at most 19.92, 19.92, 9.22 mm"),
-    ("0.001", "more than 250,000,000"),
-])
+@pytest.mark.parametrize(
+    "spacing, message",
+    [
+        (
+            "1000",
+            "leaves the knee's field of view (319 x 319 x 148 mm) only 1 x 1 x 1 voxels; a phantom needs at least "
+            "16 along each axis: give a spacing of at most 19.92, 19.92, 9.22 mm",
+        ),
+        ("0.001", "more than 250,000,000"),
+    ],
+)
 def test_a_phantom_spacing_that_cannot_work_is_refused_up_front(tmp_path, spacing, message):
     r = _workbench("phantom", "knee", "--out", tmp_path / "p", "--spacing", spacing, "--quiet")
     assert r.returncode == 1
@@ -375,8 +423,10 @@ def test_a_joint_without_limits_takes_rotations_within_half_a_turn(study, tmp_pa
 
 
 def _chattr(flag: str, path: Path) -> bool:
-    return shutil.which("chattr") is not None and \
-        subprocess.run(["chattr", flag, str(path)], capture_output=True).returncode == 0
+    return (
+        shutil.which("chattr") is not None
+        and subprocess.run(["chattr", flag, str(path)], capture_output=True).returncode == 0
+    )
 
 
 @pytest.mark.parametrize("what", ["folder", "manifest"])
@@ -417,9 +467,14 @@ def test_ctrl_c_during_register_after_a_real_weights_stage_is_clean(study, tmp_p
     # SIGINT at its default in the child: a background job of a non-interactive shell ignores it, and a child
     # inherits that (see tests/workbench/test_run.py)
     # the start on every other voxel: a faster init stage (the signal is sent in register)
-    proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(root), "--set", "init.map_factor=2"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, encoding="utf-8",
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "workbench", "run", str(root), "--set", "init.map_factor=2"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        encoding="utf-8",
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     lines = []
     watchdog = threading.Timer(600, proc.kill)
     watchdog.start()
@@ -438,8 +493,9 @@ def test_ctrl_c_during_register_after_a_real_weights_stage_is_clean(study, tmp_p
         rc = proc.wait(timeout=120)
     finally:
         watchdog.cancel()
-    assert "weights: done" in err and "harmonic" in json.dumps(json.loads((root / "study.json").read_text())
-                                                               ["stages"]["weights"]["settings"])
+    assert "weights: done" in err and "harmonic" in json.dumps(
+        json.loads((root / "study.json").read_text())["stages"]["weights"]["settings"]
+    )
     assert staged, err  # the signal came while the registration's outputs were being made
     assert rc == 130, err
     assert "workbench run: interrupted; nothing was left half-written" in err

@@ -10,13 +10,25 @@ import pytest
 from workbench.errors import InputFileError
 from workbench.io.inputs import read_landmarks
 
-PAIRS = {"pose01": [([1.0, 2.0, 3.0], [1.5, 2.0, 3.25]), ([4.0, 5.0, 6.0], [4.0, 5.5, 6.0]),
-                    ([7.0, 8.0, 9.5], [7.0, 8.0, 10.0]), ([-1.0, 0.0, 2.0], [-1.0, 0.5, 2.0])]}
+PAIRS = {
+    "pose01": [
+        ([1.0, 2.0, 3.0], [1.5, 2.0, 3.25]),
+        ([4.0, 5.0, 6.0], [4.0, 5.5, 6.0]),
+        ([7.0, 8.0, 9.5], [7.0, 8.0, 10.0]),
+        ([-1.0, 0.0, 2.0], [-1.0, 0.5, 2.0]),
+    ]
+}
 
 
 def _json(path, scans):
-    path.write_text(json.dumps({"format": "avw-landmarks", "scans": {
-        s: [{"template": a, "scan": b} for a, b in v] for s, v in scans.items()}}))
+    path.write_text(
+        json.dumps(
+            {
+                "format": "avw-landmarks",
+                "scans": {s: [{"template": a, "scan": b} for a, b in v] for s, v in scans.items()},
+            }
+        )
+    )
     return path
 
 
@@ -35,11 +47,14 @@ def test_json_and_csv_give_the_same_pairs(tmp_path, writer, name):
     np.testing.assert_array_equal(got["pose01"][1], [b for _, b in PAIRS["pose01"]])
 
 
-@pytest.mark.parametrize("scans, ids, match", [
-    (PAIRS, ["pose01", "pose02"], "fewer than 4 landmarks"),  # a scan of the study without landmarks
-    ({**PAIRS, "pose09": PAIRS["pose01"]}, ["pose01"], "unknown scans"),
-    ({"pose01": PAIRS["pose01"][:3]}, ["pose01"], "fewer than 4"),
-])
+@pytest.mark.parametrize(
+    "scans, ids, match",
+    [
+        (PAIRS, ["pose01", "pose02"], "fewer than 4 landmarks"),  # a scan of the study without landmarks
+        ({**PAIRS, "pose09": PAIRS["pose01"]}, ["pose01"], "unknown scans"),
+        ({"pose01": PAIRS["pose01"][:3]}, ["pose01"], "fewer than 4"),
+    ],
+)
 def test_bad_landmark_sets_are_refused_naming_the_file(tmp_path, scans, ids, match):
     p = _json(tmp_path / "m.json", scans)
     with pytest.raises(InputFileError, match=match) as e:

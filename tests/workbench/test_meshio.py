@@ -46,8 +46,9 @@ def test_stl_merges_corners_and_rounds_to_float32(tmp_path):
     # Equal as sets (STL keeps no vertex order) after float32 rounding.
     assert sorted(map(tuple, back.vertices)) == sorted(map(tuple, expected))
     # Same triangles, in terms of coordinates.
-    np.testing.assert_array_equal(back.vertices[back.triangles],
-                                  mesh.vertices[mesh.triangles].astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(
+        back.vertices[back.triangles], mesh.vertices[mesh.triangles].astype(np.float32).astype(np.float64)
+    )
     assert connected_components(back)[0] == 2
 
 

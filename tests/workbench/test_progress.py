@@ -11,7 +11,8 @@ from workbench.progress import compile_note
 
 def test_compile_note_until_the_kernel_is_cached(tmp_path, monkeypatch):
     (tmp_path / "fresh_kernel.py").write_text(
-        "import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
+        "import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n"
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
     mod = importlib.import_module("fresh_kernel")
     try:
@@ -43,15 +44,30 @@ def test_a_kernel_cache_that_cannot_be_written_does_not_fail_the_command(tmp_pat
     import subprocess
 
     (tmp_path / "big_kernel.py").write_text(
-        "import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
+        "import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n"
+    )
 
     def run(guard: bool, cache: str) -> subprocess.CompletedProcess:
-        code = ("import workbench.progress as p\n" + ("p.tolerate_kernel_cache_failures()\n" if guard else "")
-                + "import big_kernel\nprint(big_kernel.twice(21))\n")
-        env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / cache),  # numba's first choice: fresh per run
-               "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[2])]), "PYTHONDONTWRITEBYTECODE": "1"}
-        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", env=env, timeout=300,
-                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048)))
+        code = (
+            "import workbench.progress as p\n"
+            + ("p.tolerate_kernel_cache_failures()\n" if guard else "")
+            + "import big_kernel\nprint(big_kernel.twice(21))\n"
+        )
+        env = {
+            **os.environ,
+            "NUMBA_CACHE_DIR": str(tmp_path / cache),  # numba's first choice: fresh per run
+            "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[2])]),
+            "PYTHONDONTWRITEBYTECODE": "1",
+        }
+        return subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            encoding="utf-8",
+            env=env,
+            timeout=300,
+            preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048)),
+        )
 
     bare = run(False, "bare")
     guarded = run(True, "guarded")

@@ -8,9 +8,20 @@ import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from workbench.viz.render import (Camera, ClipPlane, TransferFunction, VolumeRenderer, content_bounds, label_colour,
-                              offscreen_available, parse_size, render_difference, render_overlay, render_volume,
-                              write_png)
+from workbench.viz.render import (
+    Camera,
+    ClipPlane,
+    TransferFunction,
+    VolumeRenderer,
+    content_bounds,
+    label_colour,
+    offscreen_available,
+    parse_size,
+    render_difference,
+    render_overlay,
+    render_volume,
+    write_png,
+)
 
 _skip_no_gl = pytest.mark.skipif(not offscreen_available(), reason="no off-screen OpenGL (EGL or OSMesa) here")
 
@@ -23,8 +34,14 @@ def needs_gl(test):
 SIZE = (160, 120)  # small renders: tens of milliseconds each on software OpenGL
 
 
-def _blob(shape_zyx=(20, 28, 32), spacing=(1.5, 1.0, 2.0), centre_mm=(0.0, 0.0, 0.0), radii_mm=(14.0, 9.0, 12.0),
-          origin=None, value=900.0):
+def _blob(
+    shape_zyx=(20, 28, 32),
+    spacing=(1.5, 1.0, 2.0),
+    centre_mm=(0.0, 0.0, 0.0),
+    radii_mm=(14.0, 9.0, 12.0),
+    origin=None,
+    value=900.0,
+):
     """An ellipsoid of 'tissue' (smooth edge) in air, on an anisotropic grid with identity direction."""
     nz, ny, nx = shape_zyx
     if origin is None:
@@ -57,8 +74,9 @@ def test_parse_size_clip_camera_and_transfer_function_check_their_input(tmp_path
     with pytest.raises(ValueError, match="must increase"):
         TransferFunction("bad", color=((1, 0, 0, 0), (0, 1, 1, 1)), opacity=((0, 0), (1, 1)))
     # a user's JSON transfer function round-trips
-    tf = TransferFunction("mine", color=((0, 0, 0, 0), (500, 1, 0.5, 0.2)), opacity=((0, 0), (500, 0.3)),
-                          relative=False, unit_mm=2.0)
+    tf = TransferFunction(
+        "mine", color=((0, 0, 0, 0), (500, 1, 0.5, 0.2)), opacity=((0, 0), (500, 0.3)), relative=False, unit_mm=2.0
+    )
     p = tmp_path / "tf.json"
     p.write_text(json.dumps(tf.to_dict()))
     assert TransferFunction.from_json(p) == tf
@@ -126,8 +144,12 @@ def test_the_direction_matrix_is_honoured():
     nx = ga.size[0]
     data_b = np.ascontiguousarray(a.data[:, :, ::-1].transpose(0, 2, 1))  # B[k, j, i] = A[k, i, nx-1-j]
     ox, oy, oz = ga.origin
-    gb = GridGeometry((ga.size[1], ga.size[0], ga.size[2]), (ga.spacing[1], ga.spacing[0], ga.spacing[2]),
-                      (ox + (nx - 1) * ga.spacing[0], oy, oz), ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)))
+    gb = GridGeometry(
+        (ga.size[1], ga.size[0], ga.size[2]),
+        (ga.spacing[1], ga.spacing[0], ga.spacing[2]),
+        (ox + (nx - 1) * ga.spacing[0], oy, oz),
+        ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+    )
     b = Volume(data_b, gb)
     # self-check of the construction: the same voxel centres hold the same values
     for i, j, k in ((3, 5, 7), (10, 2, 4), (0, 0, 0)):
@@ -162,7 +184,7 @@ def test_overlay_shows_each_volume_in_its_colour_and_difference_is_empty_for_equ
     # the second in the upper half, magenta (R, B ≫ G)
     fg = _foreground(img)
     top, bottom = fg.copy(), fg.copy()
-    top[SIZE[1] // 2:] = False
+    top[SIZE[1] // 2 :] = False
     bottom[: SIZE[1] // 2] = False
     assert top.sum() > 50 and bottom.sum() > 50
     t = img[top].astype(float).mean(axis=0)
@@ -235,7 +257,7 @@ def test_points_are_drawn_where_they_are_in_the_world():
         assert r.add_points([front], colour=(1.0, 0.0, 0.0), radius_mm=3.0) == 1
         img = r.render(vol)
     h, w = SIZE[1] // 2, SIZE[0] // 2
-    px = img[h - 1:h + 2, w - 1:w + 2].reshape(-1, 3).astype(float).mean(axis=0)
+    px = img[h - 1 : h + 2, w - 1 : w + 2].reshape(-1, 3).astype(float).mean(axis=0)
     assert px[0] > 150 and px[1] < 60 and px[2] < 60  # the point's colour, lit by the headlight
     changed = np.abs(img.astype(int) - plain).sum(axis=2) > 30
     rows, cols = np.nonzero(changed)
@@ -271,9 +293,14 @@ def test_a_mesh_alone_is_framed_where_it_is_and_a_mesh_over_a_volume_in_its_colo
     vol = _blob()
     box = VolumeRenderer.grid_bounds(vol.geometry)
     centre = np.asarray(box, float).reshape(3, 2).mean(axis=1)
-    img = render_volume(vol, meshes=[(_sphere(centre + [0.0, 0.0, 20.0], 3.0), (0.0, 1.0, 0.0), 1.0)], size=SIZE,
-                        camera=Camera("+z"), bounds=box)
-    px = img[SIZE[1] // 2 - 1:SIZE[1] // 2 + 2, SIZE[0] // 2 - 1:SIZE[0] // 2 + 2].reshape(-1, 3).mean(axis=0)
+    img = render_volume(
+        vol,
+        meshes=[(_sphere(centre + [0.0, 0.0, 20.0], 3.0), (0.0, 1.0, 0.0), 1.0)],
+        size=SIZE,
+        camera=Camera("+z"),
+        bounds=box,
+    )
+    px = img[SIZE[1] // 2 - 1 : SIZE[1] // 2 + 2, SIZE[0] // 2 - 1 : SIZE[0] // 2 + 2].reshape(-1, 3).mean(axis=0)
     assert px[1] > 150 and px[0] < 60 and px[2] < 60
     with pytest.raises(ValueError, match="nothing to render"):
         with VolumeRenderer(None, size=SIZE) as r:

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from report_checks import decode, parse
+
 from workbench.cli import main
 
 
@@ -26,8 +26,10 @@ def test_overlay_uses_the_papers_colours():
     img = np.asarray(F.overlay(target, template, (2.0, 1.0), ((0.0, 1.0), (0.0, 1.0))), float)
     assert img.shape[0] == img.shape[1]  # 10 rows of 2 mm, 20 columns of 1 mm: a square picture
     h, w = img.shape[:2]
+
     def at(r, c):  # the picture's pixel at array row r, column c (cell centres)
         return img[int((r + 0.5) * h / 10), int((c + 0.5) * w / 20)]
+
     assert at(3, 4) == pytest.approx([255, 0, 255], abs=2)  # target only: magenta
     assert at(3, 15) == pytest.approx([0, 255, 0], abs=2)  # template only: green
     assert at(7, 10) == pytest.approx([255, 255, 255], abs=2)  # both: white/grey
@@ -71,10 +73,17 @@ def test_control_point_map_of_rhee_algorithm_1():
     data = np.zeros(g.array_shape, np.float32)
     data[4:16, 4:20, 6:26] = 100.0  # a body in air
     scan = Volume(data, g)
-    log = {"summary": {}, "log": {"settings": {"inset": 0.25, "min_block_voxels": 4},
-                                  "steps": [{"level": 2, "block": [1, 2, 0], "accepted": True},
-                                            {"level": 2, "block": [0, 0, 0], "accepted": False},
-                                            {"level": 3, "block": [2, 1, 1], "accepted": True}]}}
+    log = {
+        "summary": {},
+        "log": {
+            "settings": {"inset": 0.25, "min_block_voxels": 4},
+            "steps": [
+                {"level": 2, "block": [1, 2, 0], "accepted": True},
+                {"level": 2, "block": [0, 0, 0], "accepted": False},
+                {"level": 3, "block": [2, 1, 1], "accepted": True},
+            ],
+        },
+    }
 
     class Study:
         def registration_log(self, sid):

@@ -14,9 +14,13 @@ from workbench.reproduce import format_csv, format_markdown, write_table
 
 
 def _table():
-    t = Table("demo", "A demo table", [Column("med_mm", "MED", "mm"), Column("cc", "CC", "", 3),
-                                       Column("n", "scans", "", 0)],
-              definitions={"med_mm": "mean distance"}, notes=["a note"])
+    t = Table(
+        "demo",
+        "A demo table",
+        [Column("med_mm", "MED", "mm"), Column("cc", "CC", "", 3), Column("n", "scans", "", 0)],
+        definitions={"med_mm": "mean distance"},
+        notes=["a note"],
+    )
     t.add("ours", "ours", {"med_mm": 1.0 / 3.0, "cc": 0.91234, "n": 3})
     t.add("paper", "paper", {"med_mm": 3.5, "cc": None, "n": None})
     return t

@@ -19,7 +19,7 @@ import shutil
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
@@ -42,8 +42,11 @@ ALLOWED = ("study.json", "logs/")
 
 def _files(root: Path) -> dict[str, str]:
     """``{path relative to the study: sha256}`` of every file of a study folder."""
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def _keys(obj) -> set:
@@ -60,8 +63,16 @@ def runs(tmp_path_factory):
     base = tmp_path_factory.mktemp("repro")
     phantom = base / "phantom"
     poses = base / "poses.json"
-    poses.write_text(json.dumps({"poses": [{"id": "pose00", "angles": {"knee": [0, 0, 0]}},
-                                           {"id": "pose01", "angles": {"knee": [40, 0, 0]}}]}))
+    poses.write_text(
+        json.dumps(
+            {
+                "poses": [
+                    {"id": "pose00", "angles": {"knee": [0, 0, 0]}},
+                    {"id": "pose01", "angles": {"knee": [40, 0, 0]}},
+                ]
+            }
+        )
+    )
     assert main(["phantom", "knee", "--poses-file", str(poses), "--out", str(phantom), "--quiet"]) == 0
     roots = [base / k / "knee" for k in ("a", "b")]
     for root in roots:
@@ -69,8 +80,15 @@ def runs(tmp_path_factory):
     t0 = time.perf_counter()
     procs = []
     for root in roots:
-        procs.append(subprocess.Popen([sys.executable, "-m", "workbench", "run", str(root), *SETTINGS, "--quiet"],
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8"))
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "-m", "workbench", "run", str(root), *SETTINGS, "--quiet"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                encoding="utf-8",
+            )
+        )
         time.sleep(1.5)  # the runs' clocks apart: a time in a file differs
     for p in procs:
         out, err = p.communicate(timeout=900)
@@ -86,7 +104,9 @@ def test_the_pose_stage_files_hold_no_time_and_are_the_same_bytes_in_two_process
     for name in names:
         assert (a / "poses" / name).read_bytes() == (b / "poses" / name).read_bytes(), name
         if name.endswith(".json"):
-            assert not [k for k in _keys(json.loads((a / "poses" / name).read_text(encoding="utf-8"))) if "seconds" in k], name
+            assert not [
+                k for k in _keys(json.loads((a / "poses" / name).read_text(encoding="utf-8"))) if "seconds" in k
+            ], name
     assert "seconds" not in (a / "poses" / "report.txt").read_text(encoding="utf-8")
     fits = json.loads((a / "poses" / "fits.json").read_text(encoding="utf-8"))["scans"]
     # the times are the manifest's: the stage's, each scan's and each bone's fit
@@ -119,8 +139,11 @@ def test_every_file_under_every_stage_folder_is_the_same_bytes_in_two_processes(
     for root in (a, b):  # every stage ran and wrote its folder: the comparison covers them all
         st = read_study(root)
         assert set(st.manifest["stages"]) == set(STAGES)
-        assert not [n for n, e in st.manifest["stages"].items() if "scans" in e and
-                    any(u.get("skipped") for u in e["scans"].values())]
+        assert not [
+            n
+            for n, e in st.manifest["stages"].items()
+            if "scans" in e and any(u.get("skipped") for u in e["scans"].values())
+        ]
     folders = sorted({s.folder for s in STAGES.values()})
     assert all(any(f.startswith(folder + "/") for f in fa) for folder in folders), folders
     assert sorted(fa) == sorted(fb)
@@ -128,7 +151,7 @@ def test_every_file_under_every_stage_folder_is_the_same_bytes_in_two_processes(
     differ = sorted(f for f in compared if fa[f] != fb[f])
     assert not differ, f"{len(differ)} of {len(compared)} files differ between the two runs: {differ}"
     # nor does a file hold what is the same in both runs but not in a third: today's date, the study's path
-    today = datetime.now(timezone.utc).strftime("%Y-%m-%d").encode()
+    today = datetime.now(UTC).strftime("%Y-%m-%d").encode()
     for f in compared:
         if f.endswith((".json", ".txt", ".html")):
             data = (a / f).read_bytes()

@@ -20,25 +20,37 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from report_checks import MAX_BYTES, chromium, decode, parse
+
 from workbench.cli import main
 from workbench.study import read_study
 
 # A fast configuration of every stage: distance weights, the polyrigid start on every other voxel (its accuracy
 # is tests/workbench/test_cli_register.py's), and Rhee Algorithm 1's budget (the levels and steps: the default
 # dense registration does not read them; a rerun with one of them changed reruns register and what follows).
-SETTINGS = ["--set", "weights.method=\"distance\"", "--set", "init.map_factor=2", "--set", "register.levels=[3,4]",
-            "--set", "register.max_steps_per_level=20"]
+SETTINGS = [
+    "--set",
+    'weights.method="distance"',
+    "--set",
+    "init.map_factor=2",
+    "--set",
+    "register.levels=[3,4]",
+    "--set",
+    "register.max_steps_per_level=20",
+]
 STAGE_FOLDERS = ("bones", "poses", "skinning", "init", "registration", "model", "surface", "validation", "report")
 
 
 def _strip(src: Path, dst: Path, *, truth: bool = True, keep=()) -> Path:
     """A copy of a study without its stage outputs but those of the stages ``keep`` (and without its ground
     truth, if asked)."""
-    drop = [f for s, f in zip(("bones", "pose", "weights", "init", "register", "model", "surface", "validate", "report"),
-                              STAGE_FOLDERS)
-            if s not in keep]
+    drop = [
+        f
+        for s, f in zip(
+            ("bones", "pose", "weights", "init", "register", "model", "surface", "validate", "report"), STAGE_FOLDERS
+        )
+        if s not in keep
+    ]
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns(*drop, ".locks", *(("truth",) if not truth else ())))
     m = json.loads((dst / "study.json").read_text())
     m["stages"] = {k: v for k, v in m.get("stages", {}).items() if k in keep}
@@ -57,8 +69,11 @@ def _started(err: str) -> list[str]:
 def phantom(tmp_path_factory):
     base = tmp_path_factory.mktemp("run")
     root, poses = base / "phantom", base / "poses.json"
-    poses.write_text(json.dumps({"poses": [{"id": f"pose{i:02d}", "angles": {"knee": [a, 0, 0]}}
-                                           for i, a in enumerate((0, 20, 35))]}))
+    poses.write_text(
+        json.dumps(
+            {"poses": [{"id": f"pose{i:02d}", "angles": {"knee": [a, 0, 0]}} for i, a in enumerate((0, 20, 35))]}
+        )
+    )
     assert main(["phantom", "knee", "--poses-file", str(poses), "--out", str(root), "--quiet"]) == 0
     return root
 
@@ -67,8 +82,13 @@ def phantom(tmp_path_factory):
 def done(phantom, tmp_path_factory):
     """The study after one full `workbench run` (stdout, stderr kept)."""
     root = _strip(phantom, tmp_path_factory.mktemp("run-done") / "study")
-    proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(root), *SETTINGS], capture_output=True,
-                          text=True, encoding="utf-8", timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-m", "workbench", "run", str(root), *SETTINGS],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr
     return root, proc.stdout, proc.stderr
 
@@ -99,8 +119,13 @@ def test_run_goes_through_every_stage_with_truth_only_in_validate(done):
 def test_second_run_skips_every_stage(done, tmp_path):
     root, _, _ = done
     manifest = (root / "study.json").read_bytes()
-    proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(root), *SETTINGS], capture_output=True,
-                          text=True, encoding="utf-8", timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "workbench", "run", str(root), *SETTINGS],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     assert _started(proc.stderr) == []
     n_units = 3 + 1 + 1 + 1 + 3 * 3  # bones, pose, weights, model, surface, report; init, register, validate per scan
@@ -116,13 +141,17 @@ def test_changing_one_registration_setting_reruns_register_model_and_validate_on
     root, _, _ = done
     copy = tmp_path / "study"
     shutil.copytree(root, copy)
-    before = {p: (copy / p).read_bytes() for p in ("init/pose01/field.mha", "skinning/weights.json",
-                                                    "poses/pose01_pose.json")}
+    before = {
+        p: (copy / p).read_bytes() for p in ("init/pose01/field.mha", "skinning/weights.json", "poses/pose01_pose.json")
+    }
     assert main(["run", str(copy), *SETTINGS[:-1], "register.max_steps_per_level=10"]) == 0
     st = read_study(copy)
     assert st.stage_entry("register", "pose01")["settings"]["max_steps_per_level"] == 10
-    ran = {n for n in ("bones", "pose", "weights", "init", "register", "model", "surface", "validate", "report")
-           if any(e["finished"] != f for e, f in _finished_pairs(root, copy, n))}
+    ran = {
+        n
+        for n in ("bones", "pose", "weights", "init", "register", "model", "surface", "validate", "report")
+        if any(e["finished"] != f for e, f in _finished_pairs(root, copy, n))
+    }
     assert ran == {"register", "model", "surface", "validate", "report"}  # surface: its features are register's
     assert all((copy / p).read_bytes() == b for p, b in before.items())
 
@@ -173,9 +202,14 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     # SIGINT at its default in the child: a background job of a non-interactive shell (`make test &`, a CI
     # runner's) ignores SIGINT, a child inherits that, and Python then installs no KeyboardInterrupt handler:
     # the run went on to the end through the signal
-    proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, encoding="utf-8",
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        encoding="utf-8",
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     # the signal goes when the run says it starts the second registration (the first is then committed and
     # recorded), read from its progress as it comes (an unread pipe can fill and stall the child)
     lines = []
@@ -198,18 +232,25 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     assert left == []
     st = read_study(bare)
     assert st.has_registration("pose00") and not st.has_registration("pose02")
-    again = subprocess.run([sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS], capture_output=True,
-                           text=True, encoding="utf-8", timeout=900)
+    again = subprocess.run(
+        [sys.executable, "-m", "workbench", "run", str(bare), *SETTINGS],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=900,
+    )
     assert again.returncode == 0, again.stderr
     assert "pose: up to date, skipped" in again.stderr  # the truth's absence changes no digest before validate
     assert "register pose00: up to date, skipped" in again.stderr
     assert "validate pose00: nothing to do (no ground truth)" in again.stderr
     for sid in read_study(root).scan_ids:
         for name in ("correspondence.mha", "template_to_scan.mha", "registered.nii.gz"):
-            assert (bare / "registration" / sid / name).read_bytes() == \
-                (root / "registration" / sid / name).read_bytes(), (sid, name)
-    assert (bare / "model" / "evd_displacements.mha").read_bytes() == \
-        (root / "model" / "evd_displacements.mha").read_bytes()
+            assert (bare / "registration" / sid / name).read_bytes() == (
+                root / "registration" / sid / name
+            ).read_bytes(), (sid, name)
+    assert (bare / "model" / "evd_displacements.mha").read_bytes() == (
+        root / "model" / "evd_displacements.mha"
+    ).read_bytes()
 
 
 def _registered(root: Path, sid: str) -> bool:
@@ -230,9 +271,33 @@ def test_concurrent_register_processes_one_per_scan_leave_a_complete_manifest(do
     (copy / "study.json").write_text(json.dumps(m))
     ids = read_study(copy).scan_ids
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    procs = [subprocess.Popen([sys.executable, "-m", "workbench", "register", str(copy), "--scan", sid,
-                               "--method", "adaptive", "--levels", "3", "3", "--max-steps", "4", "--quiet"], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8") for sid in ids]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "workbench",
+                "register",
+                str(copy),
+                "--scan",
+                sid,
+                "--method",
+                "adaptive",
+                "--levels",
+                "3",
+                "3",
+                "--max-steps",
+                "4",
+                "--quiet",
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            encoding="utf-8",
+        )
+        for sid in ids
+    ]
     for p in procs:
         _, err = p.communicate(timeout=600)
         assert p.returncode == 0, err
@@ -247,8 +312,13 @@ def test_sigterm_in_the_middle_of_a_stage_leaves_nothing_partial(phantom, tmp_pa
     """SIGTERM (a batch system's kill) unwinds like Ctrl-C: the pose stage's staging folder is removed, the
     stages before it stay recorded, and nothing of the pose stage is recorded."""
     root = _strip(phantom, tmp_path / "study")
-    proc = subprocess.Popen([sys.executable, "-m", "workbench", "run", str(root), "--until", "pose"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "workbench", "run", str(root), "--until", "pose"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        encoding="utf-8",
+    )
     deadline = time.monotonic() + 300
     while not list(root.glob(".poses.partial-*")):  # the pose stage is at work
         assert proc.poll() is None, proc.communicate()
@@ -283,16 +353,43 @@ def test_surface_stage_fits_every_scan_with_the_base_mesh_connectivity(done, tmp
     # PSD at a scan's own (estimated) pose gives its fitted mesh back (Kurihara Eq. 10: s = e_k there)
     sid = st.scan_ids[2]
     out = tmp_path / "posed.ply"
-    assert main(["surface-deform", str(root), "--pose", str(root / "poses" / f"{sid}_pose.json"),
-                 "--method", "psd", "--out", str(out), "--quiet"]) == 0
-    np.testing.assert_allclose(read_mesh(out).vertices, read_mesh(root / "surface" / f"{sid}_fitted.ply").vertices,
-                               atol=1e-4)  # inverse blend + Gaussian solve round-off on ~100 mm coordinates
+    assert (
+        main(
+            [
+                "surface-deform",
+                str(root),
+                "--pose",
+                str(root / "poses" / f"{sid}_pose.json"),
+                "--method",
+                "psd",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    np.testing.assert_allclose(
+        read_mesh(out).vertices, read_mesh(root / "surface" / f"{sid}_fitted.ply").vertices, atol=1e-4
+    )  # inverse blend + Gaussian solve round-off on ~100 mm coordinates
     capsys.readouterr()
-    assert main(["surface-deform", str(root), "--pose", str(root / "poses" / f"{sid}_pose.json"),
-                 "--out", str(out)]) == 1
+    assert (
+        main(["surface-deform", str(root), "--pose", str(root / "poses" / f"{sid}_pose.json"), "--out", str(out)]) == 1
+    )
     assert "exists" in capsys.readouterr().err
-    assert main(["surface-deform", str(root), "--pose", str(root / "poses" / f"{sid}_pose.json"),
-                 "--out", str(tmp_path / "posed.nii.gz")]) == 1
+    assert (
+        main(
+            [
+                "surface-deform",
+                str(root),
+                "--pose",
+                str(root / "poses" / f"{sid}_pose.json"),
+                "--out",
+                str(tmp_path / "posed.nii.gz"),
+            ]
+        )
+        == 1
+    )
     assert "a mesh file ending in" in capsys.readouterr().err
 
 
@@ -311,12 +408,12 @@ def test_surface_with_landmarks_from_a_file_and_a_bad_landmarks_file(done, tmp_p
     base = read_mesh(root / "surface" / "template_skin.vtp")
     tri = farthest_points(base.vertices[base.triangles].mean(axis=1), 20)
     picked = base.vertices[base.triangles[tri]].mean(axis=1)  # triangle centres: between S0's vertices
-    g = st.template().geometry
     scans = {}
     for sid in st.scan_ids:
         disp = st.truth_template_to_scan(sid)  # a user's clicks stand-in: the phantom's map of each point
-        scans[sid] = [{"template": p.tolist(), "scan": q.tolist()}
-                      for p, q in zip(picked, picked + sample(disp, picked, order=1))]
+        scans[sid] = [
+            {"template": p.tolist(), "scan": q.tolist()} for p, q in zip(picked, picked + sample(disp, picked, order=1))
+        ]
     marks = tmp_path / "picked.json"
     marks.write_text(json.dumps({"format": "avw-landmarks", "scans": scans}))
     capsys.readouterr()
@@ -331,10 +428,12 @@ def test_surface_with_landmarks_from_a_file_and_a_bad_landmarks_file(done, tmp_p
         # SSD mesh (their triangles' blend), each moved onto its scan point.  PLY keeps float32: 1e-5 relative
         # on ~100 mm coordinates, 1e-3 mm
         ssd = read_mesh(root / "surface" / f"{sid}_ssd.ply")
-        rbf = RBFDeformation(on_mesh(ssd.vertices, base.triangles, sites), [q["scan"] for q in scans[sid]],
-                             D=KURIHARA_D_MM)
-        np.testing.assert_allclose(read_mesh(root / "surface" / f"{sid}_rbf.ply").vertices, rbf(ssd.vertices),
-                                   atol=2e-3)
+        rbf = RBFDeformation(
+            on_mesh(ssd.vertices, base.triangles, sites), [q["scan"] for q in scans[sid]], D=KURIHARA_D_MM
+        )
+        np.testing.assert_allclose(
+            read_mesh(root / "surface" / f"{sid}_rbf.ply").vertices, rbf(ssd.vertices), atol=2e-3
+        )
     # a file for another study: one line naming the file and the scans, nothing rewritten
     before = (root / "study.json").read_bytes(), (root / "surface" / "surface.json").read_bytes()
     scans["pose77"] = scans[st.scan_ids[0]]
@@ -358,17 +457,55 @@ def test_skin_mesh_render_and_animation(done, phantom, tmp_path, capsys):
     assert main(["render", str(mesh), "--out", str(tmp_path / "alone.png"), "--size", "160x120", "--quiet"]) == 0
     img = iio.imread(tmp_path / "alone.png")
     assert 0.05 < (img.max(axis=2) > 12).mean() < 0.9  # the skin, framed, on black
-    assert main(["render", str(root), "--scan", sid, "--mesh", str(mesh), "--out", str(tmp_path / "over.png"),
-                 "--size", "160x120", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(root),
+                "--scan",
+                sid,
+                "--mesh",
+                str(mesh),
+                "--out",
+                str(tmp_path / "over.png"),
+                "--size",
+                "160x120",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     gif = tmp_path / "skin.gif"
-    assert main(["animate", str(root), "--skin", "wpsd", "--frames", "6", "--size", "160x120", "--out", str(gif),
-                 "--quiet"]) == 0
+    assert (
+        main(
+            ["animate", str(root), "--skin", "wpsd", "--frames", "6", "--size", "160x120", "--out", str(gif), "--quiet"]
+        )
+        == 0
+    )
     assert "SURFACE WPSD" in capsys.readouterr().out
     frames = iio.imread(gif)
     assert len(frames) >= 3 and np.abs(frames[0].astype(int) - frames[len(frames) // 2]).mean() > 1.0  # it moves
     # Kurihara Fig. 9: through the example poses (rest, each scan, rest): PSD at a scan's pose is its mesh
-    assert main(["animate", str(root), "--skin", "psd", "--keyframes", "scans", "--frames", "6", "--size", "160x120",
-                 "--out", str(tmp_path / "fig9.gif"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "animate",
+                str(root),
+                "--skin",
+                "psd",
+                "--keyframes",
+                "scans",
+                "--frames",
+                "6",
+                "--size",
+                "160x120",
+                "--out",
+                str(tmp_path / "fig9.gif"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     from workbench.viz.animate import scan_keyframes
 
     kf = scan_keyframes(read_study(root))
@@ -457,13 +594,27 @@ def test_report_refuses_bad_outputs_and_sources_before_any_work(done, report, tm
 def test_report_opens_in_headless_chromium(report, tmp_path):
     exe = chromium()
     if exe is None:
-        pytest.skip("headless Chromium is not installed (make test installs Debian's chromium when run as root; "
-                    "else: sudo apt-get install chromium)")
+        pytest.skip(
+            "headless Chromium is not installed (make test installs Debian's chromium when run as root; "
+            "else: sudo apt-get install chromium)"
+        )
     shot = tmp_path / "shot.png"
-    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           f"--user-data-dir={tmp_path / 'profile'}", "--hide-scrollbars", "--window-size=1280,2400",
-           f"--screenshot={shot}", report.resolve().as_uri()]
+    cmd = [
+        exe,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        f"--user-data-dir={tmp_path / 'profile'}",
+        "--hide-scrollbars",
+        "--window-size=1280,2400",
+        f"--screenshot={shot}",
+        report.resolve().as_uri(),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", timeout=180)
     assert shot.exists(), proc.stderr[-2000:]
     from PIL import Image
@@ -495,8 +646,9 @@ def _assert_same_outputs(a: Path, b: Path):
     assert set(ma) == set(mb)
     for name, e in ma.items():
         units = {k: v["outputs"] for k, v in e["scans"].items()} if "scans" in e else e["outputs"]
-        assert units == ({k: v["outputs"] for k, v in mb[name]["scans"].items()} if "scans" in mb[name]
-                         else mb[name]["outputs"]), name
+        assert units == (
+            {k: v["outputs"] for k, v in mb[name]["scans"].items()} if "scans" in mb[name] else mb[name]["outputs"]
+        ), name
     return compared
 
 
@@ -508,9 +660,22 @@ def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(d
     two = _strip(root, tmp_path / "two", keep=("bones", "pose", "weights", "init"))
     # (SETTINGS' register entries are Rhee's Algorithm 1's, which the dense registration does not read)
     scans = ("pose01", "pose02")
-    proc = subprocess.run([sys.executable, "-m", "workbench", "register", str(two), "--workers", "2",
-                           *[a for sid in scans for a in ("--scan", sid)]],
-                          capture_output=True, text=True, encoding="utf-8", timeout=900)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "workbench",
+            "register",
+            str(two),
+            "--workers",
+            "2",
+            *[a for sid in scans for a in ("--scan", sid)],
+        ],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "2 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
     compared = 0
@@ -518,8 +683,9 @@ def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(d
         for f in sorted((root / "registration" / sid).iterdir()):
             if f.suffix == ".json":  # the log: all but the stage's settings (SETTINGS set Algorithm 1's levels)
                 a_, b_ = (json.loads(p_.read_text()) for p_ in (f, two / "registration" / sid / f.name))
-                assert {k: v for k, v in a_.items() if k != "settings"} == \
-                    {k: v for k, v in b_.items() if k != "settings"}, sid
+                assert {k: v for k, v in a_.items() if k != "settings"} == {
+                    k: v for k, v in b_.items() if k != "settings"
+                }, sid
             else:
                 assert (two / "registration" / sid / f.name).read_bytes() == f.read_bytes(), (sid, f.name)
             compared += 1
@@ -534,8 +700,13 @@ def test_run_on_a_local_dask_cluster_of_two_workers_gives_the_same_files(done, t
     a LocalCluster of 2 processes; every output file is the synchronous run's (the module's fixture)."""
     root, _, _ = done
     two = _strip(root, tmp_path / "two")
-    proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(two), *SETTINGS, "--workers", "2"],
-                          capture_output=True, text=True, encoding="utf-8", timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-m", "workbench", "run", str(two), *SETTINGS, "--workers", "2"],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "register: 3 scan(s) as Dask tasks on a local Dask cluster of 2 worker processes" in proc.stderr
     assert _assert_same_outputs(root, two) > 50
@@ -554,23 +725,57 @@ def test_run_against_a_dask_scheduler_and_two_workers_gives_the_same_files(done,
     study = _strip(root, tmp_path / "sched", keep=("bones", "pose", "weights"))
     dask_cli = Path(sys.executable).with_name("dask")
     info = tmp_path / "scheduler.json"
-    procs = [subprocess.Popen([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(info)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs = [
+        subprocess.Popen(
+            [
+                str(dask_cli),
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(info),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
     try:
         deadline = time.monotonic() + 60
         while not info.exists() or not info.read_text().strip():
             assert procs[0].poll() is None and time.monotonic() < deadline, "dask scheduler did not start"
             time.sleep(0.1)
         address = json.loads(info.read_text())["address"]
-        procs += [subprocess.Popen([str(dask_cli), "worker", address, "--nthreads", "1", "--no-dashboard",
-                                    "--local-directory", str(tmp_path / f"worker{i}")],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for i in range(2)]
+        procs += [
+            subprocess.Popen(
+                [
+                    str(dask_cli),
+                    "worker",
+                    address,
+                    "--nthreads",
+                    "1",
+                    "--no-dashboard",
+                    "--local-directory",
+                    str(tmp_path / f"worker{i}"),
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            for i in range(2)
+        ]
         from distributed import Client
 
         with Client(address, timeout="60s") as client:
             client.wait_for_workers(2, timeout=120)
-        proc = subprocess.run([sys.executable, "-m", "workbench", "run", str(study), *SETTINGS, "--scheduler",
-                               address], capture_output=True, text=True, encoding="utf-8", timeout=900)
+        proc = subprocess.run(
+            [sys.executable, "-m", "workbench", "run", str(study), *SETTINGS, "--scheduler", address],
+            capture_output=True,
+            text=True,
+            encoding="utf-8",
+            timeout=900,
+        )
     finally:
         for p in procs[::-1]:
             p.terminate()

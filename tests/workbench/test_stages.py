@@ -31,12 +31,28 @@ def study(tmp_path):
     write_volume(Volume(rng.random(g.array_shape, dtype=np.float32), g), root / "template.nii.gz")
     for sid in ("a", "b"):
         write_volume(Volume(rng.random(g.array_shape, dtype=np.float32), g), root / "scans" / f"{sid}.nii.gz")
-    write_json({"format": "avw-skeleton", "version": 1, "name": "toy", "bones": [{"name": "r", "label": 1,
-                                                                                  "parent": None}], "joints": []},
-               root / "skeleton.json")
-    write_json({"format": "avw-study", "version": 1, "units": "mm", "template": "template.nii.gz",
-                "skeleton": "skeleton.json", "stages": {},
-                "scans": [{"id": sid, "image": f"scans/{sid}.nii.gz"} for sid in ("a", "b")]}, root / "study.json")
+    write_json(
+        {
+            "format": "avw-skeleton",
+            "version": 1,
+            "name": "toy",
+            "bones": [{"name": "r", "label": 1, "parent": None}],
+            "joints": [],
+        },
+        root / "skeleton.json",
+    )
+    write_json(
+        {
+            "format": "avw-study",
+            "version": 1,
+            "units": "mm",
+            "template": "template.nii.gz",
+            "skeleton": "skeleton.json",
+            "stages": {},
+            "scans": [{"id": sid, "image": f"scans/{sid}.nii.gz"} for sid in ("a", "b")],
+        },
+        root / "study.json",
+    )
     return read_study(root)
 
 
@@ -49,8 +65,10 @@ def _scaled(ctx):
     if ctx.options.get("fail"):
         raise RuntimeError("boom")
     img = ctx.study.scan(ctx.scan)
-    return {"scaled.nii.gz": Image(Volume(img.data * ctx.settings.factor, img.geometry)),
-            "info.json": Json({"factor": ctx.settings.factor})}
+    return {
+        "scaled.nii.gz": Image(Volume(img.data * ctx.settings.factor, img.geometry)),
+        "info.json": Json({"factor": ctx.settings.factor}),
+    }
 
 
 def _mean(ctx):
@@ -58,8 +76,14 @@ def _mean(ctx):
     return {"mean.json": Json({"n": len(vals)})}
 
 
-SCALE = Stage(name="scale", folder="scaled", per_scan=True, settings_type=Gain, run=_scaled,
-              inputs=lambda study, s, scan: {"scan": study.scan_path(scan)})
+SCALE = Stage(
+    name="scale",
+    folder="scaled",
+    per_scan=True,
+    settings_type=Gain,
+    run=_scaled,
+    inputs=lambda study, s, scan: {"scan": study.scan_path(scan)},
+)
 MEAN = Stage(name="mean", folder="mean", per_scan=False, settings_type=Gain, run=_mean, needs=lambda s: ("scale",))
 REG = {"scale": SCALE, "mean": MEAN}
 
@@ -231,13 +255,13 @@ def _held_mean(ctx):
     return {"mean.json": Json({"same": file_digest(Path(ctx.study.output("scale", "info.json", "a"))) == before})}
 
 
-HELD_MEAN = Stage(name="mean", folder="mean", per_scan=False, settings_type=Gain, run=_held_mean,
-                  needs=lambda s: ("scale",))
+HELD_MEAN = Stage(
+    name="mean", folder="mean", per_scan=False, settings_type=Gain, run=_held_mean, needs=lambda s: ("scale",)
+)
 
 
 def _execute_held_mean(root, hold):
-    execute(read_study(root), HELD_MEAN, Gain(), registry={"scale": SCALE, "mean": HELD_MEAN},
-            options={"hold": hold})
+    execute(read_study(root), HELD_MEAN, Gain(), registry={"scale": SCALE, "mean": HELD_MEAN}, options={"hold": hold})
 
 
 def _rerun_scale_a(root, hold):
@@ -282,10 +306,12 @@ CHAIN = {"scale": SCALE, "b": B, "c": C}
 
 
 def _rerun_scale_a_held(root, hold):
-    held = Stage(name="scale", folder="scaled", per_scan=True, settings_type=Gain, run=_held_scaled,
-                 inputs=SCALE.inputs)
-    execute(read_study(root), held, Gain(4.0), registry={"scale": held}, scans=["a"], force=True,
-            options={"hold": hold})
+    held = Stage(
+        name="scale", folder="scaled", per_scan=True, settings_type=Gain, run=_held_scaled, inputs=SCALE.inputs
+    )
+    execute(
+        read_study(root), held, Gain(4.0), registry={"scale": held}, scans=["a"], force=True, options={"hold": hold}
+    )
 
 
 def _execute_c(root, hold):

@@ -99,17 +99,20 @@ def _corrupt_zlib(data: bytes) -> bytes:
     end = b.index(b"<", start)
     text = bytes(b[start:end]).strip()
     mid = start + (end - start) // 2
-    b[mid:mid + 12] = b"QUJDREVGR0hJ"  # valid base64, wrong bytes
+    b[mid : mid + 12] = b"QUJDREVGR0hJ"  # valid base64, wrong bytes
     assert len(text) > 40
     return bytes(b)
 
 
-@pytest.mark.parametrize("damage, detail", [
-    (lambda d: d[: len(d) // 2], "parsing XML"),
-    (lambda d: b"", "empty"),
-    (lambda d: b"hello, not XML at all\n" * 5, "parsing XML"),
-    (_corrupt_zlib, "Zlib"),
-])
+@pytest.mark.parametrize(
+    "damage, detail",
+    [
+        (lambda d: d[: len(d) // 2], "parsing XML"),
+        (lambda d: b"", "empty"),
+        (lambda d: b"hello, not XML at all\n" * 5, "parsing XML"),
+        (_corrupt_zlib, "Zlib"),
+    ],
+)
 def test_bad_files_raise_clear_errors(tmp_path, damage, detail):
     good = write_tetmesh(_mesh(), tmp_path / "good.vtu", point_data={"w": np.arange(8.0)})
     bad = tmp_path / "bad.vtu"
@@ -134,8 +137,10 @@ def test_missing_wrong_suffix_and_non_tet_files(tmp_path):
     pts = vtkPoints()
     pts.SetData(numpy_to_vtk(np.eye(3), deep=True))
     cells = vtkCellArray()
-    cells.SetData(numpy_to_vtk(np.array([0, 3], dtype=np.int64), deep=True),
-                  numpy_to_vtk(np.array([0, 1, 2], dtype=np.int64), deep=True))
+    cells.SetData(
+        numpy_to_vtk(np.array([0, 3], dtype=np.int64), deep=True),
+        numpy_to_vtk(np.array([0, 1, 2], dtype=np.int64), deep=True),
+    )
     grid = vtkUnstructuredGrid()
     grid.SetPoints(pts)
     grid.SetCells(VTK_TRIANGLE, cells)

@@ -15,7 +15,6 @@ import SimpleITK as sitk
 from scipy.spatial.transform import Rotation
 
 from deformation.geometry import GeometryMismatchError, GridGeometry, Volume
-from workbench.io import volumes as volume_io
 from workbench.errors import (
     DimensionError,
     MissingFileError,
@@ -26,6 +25,7 @@ from workbench.errors import (
     UnknownFormatError,
     UnreadableFileError,
 )
+from workbench.io import volumes as volume_io
 from workbench.io.volumes import (
     read_displacement,
     read_image_geometry,
@@ -94,6 +94,7 @@ def _volume(dtype, rng) -> Volume:
 # ---------------------------------------------------------------------------
 # Round trips
 # ---------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("suffix", SUFFIXES)
 @pytest.mark.parametrize("dtype", [np.float32, np.int16])
@@ -213,6 +214,7 @@ def test_float_label_map_with_whole_numbers_becomes_int32(tmp_path):
 # ---------------------------------------------------------------------------
 # Bad inputs: documented error, nothing written
 # ---------------------------------------------------------------------------
+
 
 def _write_raw_sitk(image: sitk.Image, path) -> None:
     sitk.WriteImage(image, str(path))
@@ -382,8 +384,7 @@ def test_non_finite_displacement(tmp_path, suffix):
 
 def test_label_map_with_other_geometry_than_its_volume(tmp_path):
     write_volume(_volume(np.float32, np.random.default_rng(12)), tmp_path / "scan.mha")
-    shifted = GridGeometry(GEOMETRY.size, GEOMETRY.spacing, np.add(GEOMETRY.origin, (0.5, 0, 0)),
-                           GEOMETRY.direction)
+    shifted = GridGeometry(GEOMETRY.size, GEOMETRY.spacing, np.add(GEOMETRY.origin, (0.5, 0, 0)), GEOMETRY.direction)
     write_labels(Volume(np.zeros(GEOMETRY.array_shape, np.uint8), shifted), tmp_path / "labels.mha")
     before = _listing(tmp_path)
     with pytest.raises(GeometryMismatchError) as err:
@@ -410,6 +411,7 @@ def test_fractional_label_map(tmp_path):
 # ---------------------------------------------------------------------------
 # Writers: overwrite refused, failures leave nothing behind
 # ---------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("suffix", [".nii.gz", ".mha", ".mhd"])
 def test_overwrite_refused_and_existing_bytes_unchanged(tmp_path, suffix):
@@ -449,8 +451,11 @@ def test_failing_write_leaves_no_temporary_file(tmp_path, monkeypatch, suffix):
         raise RuntimeError("disk full (simulated)")
 
     monkeypatch.setattr(sitk.ImageFileWriter, "Execute", half_write_then_fail)
-    with pytest.raises(OutputWriteError, match=rf"scan\{suffix}: the file could not be written completely "
-                                               r"\(SimpleITK could not write the file \(disk full \(simulated\)\)"):
+    with pytest.raises(
+        OutputWriteError,
+        match=rf"scan\{suffix}: the file could not be written completely "
+        r"\(SimpleITK could not write the file \(disk full \(simulated\)\)",
+    ):
         write_volume(_volume(np.float32, np.random.default_rng(16)), tmp_path / f"scan{suffix}")
     assert _listing(tmp_path) == ["other.txt"]
 

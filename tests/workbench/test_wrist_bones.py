@@ -70,8 +70,9 @@ def test_each_bone_is_one_manifold_surface_with_small_holes(study):
         mesh = bone.mesh("neutral")
         assert isinstance(mesh, SurfaceMesh)
         assert mesh.n_vertices == bone.vertex_ids.size
-        edges = np.sort(np.vstack([bone.triangles[:, [0, 1]], bone.triangles[:, [1, 2]],
-                                   bone.triangles[:, [2, 0]]]), axis=1)
+        edges = np.sort(
+            np.vstack([bone.triangles[:, [0, 1]], bone.triangles[:, [1, 2]], bone.triangles[:, [2, 0]]]), axis=1
+        )
         _, uses = np.unique(edges, axis=0, return_counts=True)
         assert uses.max() == 2  # no edge shared by three triangles
         boundary.append(int((uses == 1).sum()))

@@ -52,14 +52,38 @@ class Contrast:
 # overlap likewise (Rhee §2: "overlapping intensity ranges between different
 # tissues"). Arbitrary units on a 0..1000 scale.
 # Tendons are dark on T1 (short T2*), slow-flowing vessels intermediate-bright.
-MRI = Contrast("mri", air=0.0, skin=520.0, fat=900.0, muscle=380.0, cortex=60.0, marrow=780.0,
-               noise="rician", noise_sigma=30.0, texture_amplitude=0.08, bias_amplitude=0.12,
-               tendon=90.0, vessel=640.0)
+MRI = Contrast(
+    "mri",
+    air=0.0,
+    skin=520.0,
+    fat=900.0,
+    muscle=380.0,
+    cortex=60.0,
+    marrow=780.0,
+    noise="rician",
+    noise_sigma=30.0,
+    texture_amplitude=0.08,
+    bias_amplitude=0.12,
+    tendon=90.0,
+    vessel=640.0,
+)
 # CT-like: Hounsfield units; bright cortical bone (Kurihara §2), no bias field.
 # CT: tendons a little denser than muscle, vessels contrast-enhanced (an angiographic phase).
-CT = Contrast("ct", air=-1000.0, skin=30.0, fat=-100.0, muscle=45.0, cortex=1300.0, marrow=250.0,
-              noise="gaussian", noise_sigma=20.0, texture_amplitude=0.05, bias_amplitude=0.0,
-              tendon=95.0, vessel=180.0)
+CT = Contrast(
+    "ct",
+    air=-1000.0,
+    skin=30.0,
+    fat=-100.0,
+    muscle=45.0,
+    cortex=1300.0,
+    marrow=250.0,
+    noise="gaussian",
+    noise_sigma=20.0,
+    texture_amplitude=0.05,
+    bias_amplitude=0.0,
+    tendon=95.0,
+    vessel=180.0,
+)
 CONTRASTS = {"mri": MRI, "ct": CT}
 
 
@@ -77,8 +101,14 @@ class Texture:
     amplitudes: np.ndarray  # (K,)
 
     @classmethod
-    def random(cls, rng: np.random.Generator, *, n_waves: int = 24,
-               min_wavelength_mm: float = 12.0, max_wavelength_mm: float = 45.0) -> "Texture":
+    def random(
+        cls,
+        rng: np.random.Generator,
+        *,
+        n_waves: int = 24,
+        min_wavelength_mm: float = 12.0,
+        max_wavelength_mm: float = 45.0,
+    ) -> Texture:
         dirs = rng.normal(size=(n_waves, 3))
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         # Log-uniform wavelengths: as many waves per octave at every scale (multi-scale texture).
@@ -119,9 +149,20 @@ class Anatomy:
     residual_gain: float = 0.05
     residual_wavelength_mm: float = 90.0  #: wavelength of that motion (its Lipschitz constant stays < 0.3)
     # Sizes of the soft-tissue structure (soft_tissue.SoftTissue): cells, septa, tubes (mm; offsets in joint radii).
-    structure: dict = field(default_factory=lambda: dict(
-        muscle_cell_mm=16.0, fat_cell_mm=6.0, muscle_septum_mm=0.8, fat_septum_mm=0.4, cell_amplitude=0.10,
-        lobule_amplitude=0.06, tendon_offset=0.6, tendon_radius_mm=3.5, vessel_offset=0.65, vessel_radius_mm=2.5))
+    structure: dict = field(
+        default_factory=lambda: dict(
+            muscle_cell_mm=16.0,
+            fat_cell_mm=6.0,
+            muscle_septum_mm=0.8,
+            fat_septum_mm=0.4,
+            cell_amplitude=0.10,
+            lobule_amplitude=0.06,
+            tendon_offset=0.6,
+            tendon_radius_mm=3.5,
+            vessel_offset=0.65,
+            vessel_radius_mm=2.5,
+        )
+    )
     bone_names: list = field(init=False)
     _tables: tuple | None = field(init=False, repr=False, default=None)
 
@@ -153,15 +194,30 @@ class Anatomy:
         return self.body(p)
 
     # -- appearance ---------------------------------------------------------------
-    def intensity_fast(self, p: np.ndarray, contrast: Contrast, *, edge_mm: float,
-                       texture: Texture | None = None, bone_frames: tuple | None = None,
-                       tissue=None) -> np.ndarray:
+    def intensity_fast(
+        self,
+        p: np.ndarray,
+        contrast: Contrast,
+        *,
+        edge_mm: float,
+        texture: Texture | None = None,
+        bone_frames: tuple | None = None,
+        tissue=None,
+    ) -> np.ndarray:
         """Compiled, parallel equivalent of :meth:`intensity`."""
         from . import kernels
 
         tex = texture or Texture(np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-        c = (contrast.air, contrast.skin, contrast.fat, contrast.muscle, contrast.cortex, contrast.marrow,
-             contrast.tendon, contrast.vessel)
+        c = (
+            contrast.air,
+            contrast.skin,
+            contrast.fat,
+            contrast.muscle,
+            contrast.cortex,
+            contrast.marrow,
+            contrast.tendon,
+            contrast.vessel,
+        )
         p = np.ascontiguousarray(p, dtype=float)
         scan, frames = self._bone_frames(p, bone_frames)
         if tissue is None:
@@ -172,10 +228,25 @@ class Anatomy:
             tparams, keys = tissue.params(), tissue.keys()
             tubes, info = tissue.tube_table()
             sites = tissue.site_tables(p) if len(p) else tissue.site_tables(np.zeros((1, 3)))
-        return kernels.intensity_map(p, self.tables, len(self.bone_names),
-                                     c, float(edge_mm), (self.skin_mm, self.fat_mm, self.cortex_mm),
-                                     tex.wavevectors, tex.phases, tex.amplitudes, contrast.texture_amplitude,
-                                     scan, frames, tparams, keys, tubes, info, sites)
+        return kernels.intensity_map(
+            p,
+            self.tables,
+            len(self.bone_names),
+            c,
+            float(edge_mm),
+            (self.skin_mm, self.fat_mm, self.cortex_mm),
+            tex.wavevectors,
+            tex.phases,
+            tex.amplitudes,
+            contrast.texture_amplitude,
+            scan,
+            frames,
+            tparams,
+            keys,
+            tubes,
+            info,
+            sites,
+        )
 
     def _bone_frames(self, p: np.ndarray, bone_frames) -> tuple[np.ndarray, np.ndarray]:
         """``(scan points (n, 3), scan → bone template frames (n_bones, 3, 4))``; empty when not given."""
@@ -197,9 +268,16 @@ class Anatomy:
 
         return kernels.distances_map(np.ascontiguousarray(p, dtype=float), self.tables, len(self.bone_names) + 1)
 
-    def intensity(self, p: np.ndarray, contrast: Contrast, *, edge_mm: float,
-                  texture: Texture | None = None, bone_frames: tuple | None = None,
-                  tissue=None) -> np.ndarray:
+    def intensity(
+        self,
+        p: np.ndarray,
+        contrast: Contrast,
+        *,
+        edge_mm: float,
+        texture: Texture | None = None,
+        bone_frames: tuple | None = None,
+        tissue=None,
+    ) -> np.ndarray:
         """Noise-free, bias-free intensity at template points ``p`` (n, 3).
 
         Tissues are layered (air, skin, fat, muscle, cortex, marrow), each edge
@@ -227,8 +305,10 @@ class Anatomy:
         b = self.body_distance(p)
         scan, frames = self._bone_frames(np.ascontiguousarray(p, dtype=float), bone_frames)
         if len(frames):
-            db = np.min(np.column_stack([self.bones[n](scan @ m[:, :3].T + m[:, 3])
-                                         for n, m in zip(self.bone_names, frames)]), axis=1)
+            db = np.min(
+                np.column_stack([self.bones[n](scan @ m[:, :3].T + m[:, 3]) for n, m in zip(self.bone_names, frames)]),
+                axis=1,
+            )
         else:
             db = np.min(self.bone_distances(p), axis=1)
         tex = 0.0 if texture is None else contrast.texture_amplitude * texture(p)

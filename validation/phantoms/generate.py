@@ -25,8 +25,8 @@ same seed without it.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field, fields
-from typing import Iterator
 
 import numpy as np
 
@@ -38,8 +38,17 @@ from .anatomy import CONTRASTS, Anatomy, Contrast, Texture
 from .posing import POSING_MODES, PosingModel, residual_waves
 from .soft_tissue import SoftTissue
 
-__all__ = ["PhantomSpec", "PhantomScan", "Phantom", "REGIONS", "make_phantom", "SIZES", "MODALITIES",
-           "ACQUISITIONS", "draw_acquisition"]
+__all__ = [
+    "PhantomSpec",
+    "PhantomScan",
+    "Phantom",
+    "REGIONS",
+    "make_phantom",
+    "SIZES",
+    "MODALITIES",
+    "ACQUISITIONS",
+    "draw_acquisition",
+]
 
 REGIONS = {"knee": knee, "hand": hand}
 SIZES = ("test", "paper")
@@ -113,7 +122,7 @@ class PhantomSpec:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PhantomSpec":
+    def from_dict(cls, d: dict) -> PhantomSpec:
         """The spec :meth:`to_dict` wrote (e.g. a study manifest's ``phantom`` entry).
 
         Keys :meth:`to_dict` does not write are not read: a manifest's recorded ``poses`` (the poses the
@@ -162,8 +171,7 @@ def _draw_study(spec: PhantomSpec) -> dict:
     rng = np.random.default_rng(_acquisition_seq(spec.seed, 0))
     mri, ct, base = CONTRASTS["mri"], CONTRASTS["ct"], CONTRASTS[spec.modality]
     weight = float(rng.beta(0.5, 0.5))  # 0: the MRI (T1-like) table, 1: the CT table; the ends most likely
-    jitter = {t: (1.0 if t == "muscle" else float(rng.uniform(1 - TISSUE_JITTER, 1 + TISSUE_JITTER)))
-              for t in TISSUES}
+    jitter = {t: (1.0 if t == "muscle" else float(rng.uniform(1 - TISSUE_JITTER, 1 + TISSUE_JITTER))) for t in TISSUES}
 
     def relative(c, t):  # signal above air in units of the muscle's
         return (getattr(c, t) - c.air) / (c.muscle - c.air)
@@ -174,8 +182,14 @@ def _draw_study(spec: PhantomSpec) -> dict:
         rel = (1 - weight) * relative(mri, t) + weight * relative(ct, t)
         table[t] = float(base.air + span * rel * jitter[t])
     table["texture_amplitude"] = float((1 - weight) * mri.texture_amplitude + weight * ct.texture_amplitude)
-    out = {"contrast_weight_ct": weight, "tissue_jitter": jitter, "contrast": table,
-           "spacing": None, "slice_axis": None, "anisotropy": None}
+    out = {
+        "contrast_weight_ct": weight,
+        "tissue_jitter": jitter,
+        "contrast": table,
+        "spacing": None,
+        "slice_axis": None,
+        "anisotropy": None,
+    }
     # The spacing is drawn (the same numbers) whether or not the spec gives one; it is used only when not.
     ratio = float(np.exp(rng.uniform(*np.log(ANISOTROPY_RANGE))))
     axis = int(rng.integers(3))
@@ -201,8 +215,14 @@ def _draw_image(seed: int, index: int, span: float) -> dict:
     gain = float(rng.uniform(*GAIN_RANGE))
     offset = float(rng.uniform(-OFFSET_FRACTION, OFFSET_FRACTION) * span)
     bias = float(rng.uniform(*BIAS_RANGE))
-    return {"noise": noise, "snr": snr, "noise_sigma": gain * span / snr, "gain": gain,
-            "offset": offset if noise == "gaussian" else 0.0, "bias_amplitude": bias}
+    return {
+        "noise": noise,
+        "snr": snr,
+        "noise_sigma": gain * span / snr,
+        "gain": gain,
+        "offset": offset if noise == "gaussian" else 0.0,
+        "bias_amplitude": bias,
+    }
 
 
 def _image_count(spec: PhantomSpec) -> int:
@@ -253,10 +273,14 @@ def describe_acquisition(drawn: dict) -> str:
     images = {i: images[i] for i in sorted(images, key=lambda i: i != "template")}
     c = st.get("contrast", {})
     fat = (c.get("fat", 0.0) - c.get("air", 0.0)) / max(c.get("muscle", 1.0) - c.get("air", 0.0), 1e-9)
-    return (f"acquisition: random, contrast {st.get('contrast_weight_ct', float('nan')):.2f} of the way from the "
-            f"MRI table to the CT one (fat/muscle {fat:.2f} above air)"
-            + "".join(f"; {i}: {a['noise']}, SNR {a['snr']:.0f}, gain {a['gain']:.2f}, bias "
-                      f"{100 * a['bias_amplitude']:.0f}%" for i, a in images.items()))
+    return (
+        f"acquisition: random, contrast {st.get('contrast_weight_ct', float('nan')):.2f} of the way from the "
+        f"MRI table to the CT one (fat/muscle {fat:.2f} above air)"
+        + "".join(
+            f"; {i}: {a['noise']}, SNR {a['snr']:.0f}, gain {a['gain']:.2f}, bias {100 * a['bias_amplitude']:.0f}%"
+            for i, a in images.items()
+        )
+    )
 
 
 def _chunks(n: int, size: int = CHUNK):
@@ -292,10 +316,21 @@ class Phantom:
             base = self.contrast
             # the study's table; its noise fields stay the modality's and are not used (each image's noise,
             # σ and bias amplitude are in self.acquisition["images"])
-            self.contrast = Contrast(f"{base.name}-random", air=t["air"], skin=t["skin"], fat=t["fat"],
-                                     muscle=t["muscle"], cortex=t["cortex"], marrow=t["marrow"], noise=base.noise,
-                                     noise_sigma=base.noise_sigma, texture_amplitude=t["texture_amplitude"],
-                                     bias_amplitude=base.bias_amplitude, tendon=t["tendon"], vessel=t["vessel"])
+            self.contrast = Contrast(
+                f"{base.name}-random",
+                air=t["air"],
+                skin=t["skin"],
+                fat=t["fat"],
+                muscle=t["muscle"],
+                cortex=t["cortex"],
+                marrow=t["marrow"],
+                noise=base.noise,
+                noise_sigma=base.noise_sigma,
+                texture_amplitude=t["texture_amplitude"],
+                bias_amplitude=base.bias_amplitude,
+                tendon=t["tendon"],
+                vessel=t["vessel"],
+            )
             self.acquisition = {"study": study, "images": {}}
             if override is None:
                 override = tuple(study["spacing"])
@@ -305,15 +340,19 @@ class Phantom:
             spacing = tuple(float(v) for v in override)
             coarsest = extent / MIN_AXIS_VOXELS
             if min(size) < MIN_AXIS_VOXELS:
-                raise ValueError(f"spacing {tuple(round(v, 4) for v in spacing)} mm leaves the {spec.region}'s field "
-                                 f"of view ({' x '.join(f'{e:.0f}' for e in extent)} mm) only "
-                                 f"{' x '.join(str(n) for n in size)} voxels; a phantom needs at least "
-                                 f"{MIN_AXIS_VOXELS} along each axis: give a spacing of at most "
-                                 f"{', '.join(f'{c:.2f}' for c in coarsest)} mm (x, y, z)")
+                raise ValueError(
+                    f"spacing {tuple(round(v, 4) for v in spacing)} mm leaves the {spec.region}'s field "
+                    f"of view ({' x '.join(f'{e:.0f}' for e in extent)} mm) only "
+                    f"{' x '.join(str(n) for n in size)} voxels; a phantom needs at least "
+                    f"{MIN_AXIS_VOXELS} along each axis: give a spacing of at most "
+                    f"{', '.join(f'{c:.2f}' for c in coarsest)} mm (x, y, z)"
+                )
             if int(np.prod(size, dtype=np.int64)) > MAX_GRID_VOXELS:
-                raise ValueError(f"spacing {tuple(round(v, 4) for v in spacing)} mm makes a grid of "
-                                 f"{' x '.join(str(n) for n in size)} voxels, more than {MAX_GRID_VOXELS:,}; give a "
-                                 "larger spacing")
+                raise ValueError(
+                    f"spacing {tuple(round(v, 4) for v in spacing)} mm makes a grid of "
+                    f"{' x '.join(str(n) for n in size)} voxels, more than {MAX_GRID_VOXELS:,}; give a "
+                    "larger spacing"
+                )
         direction = np.eye(3) if spec.direction is None else np.asarray(spec.direction, float).reshape(3, 3)
         centre = np.asarray(self.region.GRID_CENTER, float)
         half = direction @ ((np.asarray(size) - 1) * np.asarray(spacing) / 2.0)
@@ -331,8 +370,7 @@ class Phantom:
         # then the structure (septa, lobules, tendons, vessels) from the same stream.
         wl = max(6.0, 4.0 * max(spacing))
         tex_rng = np.random.default_rng(self._tex_seq)
-        self.texture = Texture.random(tex_rng, n_waves=48, min_wavelength_mm=wl,
-                                      max_wavelength_mm=max(45.0, 3.0 * wl))
+        self.texture = Texture.random(tex_rng, n_waves=48, min_wavelength_mm=wl, max_wavelength_mm=max(45.0, 3.0 * wl))
         self.tissue = SoftTissue.random(self.anatomy, tex_rng)
         self.poses = self._make_poses()
         # One independent noise/bias stream per image: [template, scan 0, scan 1, ...].
@@ -351,8 +389,10 @@ class Phantom:
             for pid, angles in self.spec.poses:
                 unknown = set(angles) - known
                 if unknown:
-                    raise ValueError(f"pose {pid!r}: unknown joints {sorted(unknown)}; "
-                                     f"the {self.spec.region} skeleton has {sorted(known)}")
+                    raise ValueError(
+                        f"pose {pid!r}: unknown joints {sorted(unknown)}; "
+                        f"the {self.spec.region} skeleton has {sorted(known)}"
+                    )
                 full = self.region.complete_angles(angles)
                 try:
                     self.skeleton.forward_kinematics(full)
@@ -361,8 +401,10 @@ class Phantom:
                 outside = self.skeleton.limit_problems(full)
                 if outside:
                     more = f" (and {len(outside) - 1} more)" if len(outside) > 1 else ""
-                    raise ValueError(f"pose {pid!r}: {outside[0]}{more}, the {self.spec.region} skeleton's range "
-                                     "of motion; give angles within it")
+                    raise ValueError(
+                        f"pose {pid!r}: {outside[0]}{more}, the {self.spec.region} skeleton's range "
+                        "of motion; give angles within it"
+                    )
                 out.append((str(pid), full))
             return out
         n = self.spec.n_poses or self.region.DEFAULT_POSES
@@ -377,8 +419,9 @@ class Phantom:
             self._x.setflags(write=False)
         return self._x
 
-    def render(self, template_points: np.ndarray, *, scan_points: np.ndarray | None = None,
-               pose: Pose | None = None) -> np.ndarray:
+    def render(
+        self, template_points: np.ndarray, *, scan_points: np.ndarray | None = None, pose: Pose | None = None
+    ) -> np.ndarray:
         """Noise-free intensity at template positions (chunked).
 
         With ``scan_points`` and ``pose`` (a posed scan's voxel positions and
@@ -391,8 +434,14 @@ class Phantom:
         out = np.empty(template_points.shape[0])
         for sl in _chunks(len(out)):
             frames = None if scan_points is None else (scan_points[sl], pose.transforms)
-            out[sl] = self.anatomy.intensity_fast(template_points[sl], self.contrast, edge_mm=self.edge_mm,
-                                                  texture=self.texture, bone_frames=frames, tissue=self.tissue)
+            out[sl] = self.anatomy.intensity_fast(
+                template_points[sl],
+                self.contrast,
+                edge_mm=self.edge_mm,
+                texture=self.texture,
+                bone_frames=frames,
+                tissue=self.tissue,
+            )
         return out
 
     def _bias_field(self, rng: np.random.Generator, amplitude: float | None = None) -> np.ndarray:
@@ -408,9 +457,12 @@ class Phantom:
             f = rng.uniform(0.2, 0.7, size=3)
             ph = rng.uniform(0, 2 * np.pi, size=3)
             w = rng.normal()
-            field_ += (w * np.cos(np.pi * f[0] * axes[0] + ph[0])[:, None, None]
-                       * np.cos(np.pi * f[1] * axes[1] + ph[1])[None, :, None]
-                       * np.cos(np.pi * f[2] * axes[2] + ph[2])[None, None, :])
+            field_ += (
+                w
+                * np.cos(np.pi * f[0] * axes[0] + ph[0])[:, None, None]
+                * np.cos(np.pi * f[1] * axes[1] + ph[1])[None, :, None]
+                * np.cos(np.pi * f[2] * axes[2] + ph[2])[None, None, :]
+            )
         field_ /= max(np.abs(field_).max(), 1e-12)
         return 1.0 + amp * field_
 
@@ -457,8 +509,10 @@ class Phantom:
         the same acquisition draws."""
         g = self.geometry if grid is None else grid
         if g.array_shape != self.geometry.array_shape:
-            raise ValueError(f"grid {g.describe()}: the template's grid has {self.geometry.array_shape} voxels "
-                             "(z, y, x); give a grid of that size")
+            raise ValueError(
+                f"grid {g.describe()}: the template's grid has {self.geometry.array_shape} voxels "
+                "(z, y, x); give a grid of that size"
+            )
         p = self._world_points() if grid is None else g.world_coordinates().reshape(-1, 3)
         clean = self.render(p).reshape(g.array_shape)
         labels = _apply_chunked(self._labels, p, dtype=np.uint8).reshape(g.array_shape)
@@ -484,8 +538,7 @@ class Phantom:
 
     def posing_model(self, angles: dict, *, mode: str | None = None) -> PosingModel:
         pose = self.pose_of(angles)
-        return PosingModel(self.anatomy, pose.transforms, angles, mode=mode or self.spec.posing,
-                           residual=self.residual)
+        return PosingModel(self.anatomy, pose.transforms, angles, mode=mode or self.spec.posing, residual=self.residual)
 
     def correspondence(self, model: PosingModel) -> tuple[np.ndarray, np.ndarray]:
         """Template position of every scan voxel ``(nz, ny, nx, 3)`` and the inversion residual (mm).
@@ -537,8 +590,10 @@ class Phantom:
         estimate without its sampling noise)."""
         pts = self.template_markers(n=n, sample=sample)
         scan_pts = model.forward(pts)
-        return [{"name": f"m{i + 1:02d}", "template": pts[i].tolist(), "scan": scan_pts[i].tolist()}
-                for i in range(len(pts))]
+        return [
+            {"name": f"m{i + 1:02d}", "template": pts[i].tolist(), "scan": scan_pts[i].tolist()}
+            for i in range(len(pts))
+        ]
 
     def template_markers(self, *, n: int = N_MARKERS, sample: int = 0) -> np.ndarray:
         """The study's skin markers in the template, the same for every scan (seeded).
@@ -556,8 +611,9 @@ class Phantom:
         if (n, sample) in drawn:
             return drawn[n, sample]
         seq = self._marker_seq
-        rng = np.random.default_rng(seq if sample == 0 else np.random.SeedSequence(
-            seq.entropy, spawn_key=tuple(seq.spawn_key) + (int(sample),)))
+        rng = np.random.default_rng(
+            seq if sample == 0 else np.random.SeedSequence(seq.entropy, spawn_key=tuple(seq.spawn_key) + (int(sample),))
+        )
         models = [self.posing_model(a) for _, a in self.poses]
         sk = self.skeleton
         joints = list(self.anatomy.joint_radius_mm)
@@ -578,15 +634,21 @@ class Phantom:
             for m in models:
                 q = m.forward(p[None])
                 back, res = m.inverse(q)
-                if (not self.geometry.contains_world(q[0], margin_voxels=-2) or res[0] > 1e-6
-                        or np.linalg.norm(back[0] - p) > 1e-4 or not self._unfolded_around(m, q[0], p)):
+                if (
+                    not self.geometry.contains_world(q[0], margin_voxels=-2)
+                    or res[0] > 1e-6
+                    or np.linalg.norm(back[0] - p) > 1e-4
+                    or not self._unfolded_around(m, q[0], p)
+                ):
                     ok = False
                     break
             if ok:
                 pts.append(p)
         if len(pts) < 8:
-            raise ValueError(f"could only place {len(pts)} skin markers outside folds and inside the field of "
-                             "view in every pose (need 8); use milder joint angles or fewer extreme poses")
+            raise ValueError(
+                f"could only place {len(pts)} skin markers outside folds and inside the field of "
+                "view in every pose (need 8); use milder joint angles or fewer extreme poses"
+            )
         drawn[n, sample] = np.array(pts)
         return drawn[n, sample]
 
@@ -673,7 +735,7 @@ class Phantom:
         rng = np.random.default_rng(self._image_seqs[index + 1])
         img = self._acquire(clean, rng, index + 1)
         x = self._world_points().reshape(phi.shape)
-        disp = (phi - x)
+        disp = phi - x
         body = self.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(residual.shape) < 0
         det = jacobian_determinant(phi, self.geometry)
         rb = residual[body]

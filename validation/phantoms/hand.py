@@ -168,11 +168,14 @@ def digit_bone(a, b, ra, rb, axes) -> SmoothUnion:
     a, b, axes = np.asarray(a, float), np.asarray(b, float), np.asarray(axes, float)
     y = axes[:, 1]
     rot = tuple(axes.reshape(-1))
-    return SmoothUnion((
-        RoundCone(tuple(a), tuple(b), 0.78 * ra, 0.78 * rb),
-        Ellipsoid(tuple(a + 0.12 * ra * y), (1.22 * ra, 0.86 * ra, ra), rot),
-        Ellipsoid(tuple(b - 0.12 * rb * y), (1.18 * rb, 0.86 * rb, rb), rot),
-    ), k=1.5)
+    return SmoothUnion(
+        (
+            RoundCone(tuple(a), tuple(b), 0.78 * ra, 0.78 * rb),
+            Ellipsoid(tuple(a + 0.12 * ra * y), (1.22 * ra, 0.86 * ra, ra), rot),
+            Ellipsoid(tuple(b - 0.12 * rb * y), (1.18 * rb, 0.86 * rb, rb), rot),
+        ),
+        k=1.5,
+    )
 
 
 def anatomy() -> Anatomy:
@@ -181,8 +184,10 @@ def anatomy() -> Anatomy:
     axes_of["radius"] = _frame((0.0, 1.0, 0.0))
     shapes = {n: digit_bone(a, b, ra, rb, axes_of[n]) for n, (a, b, ra, rb) in segs.items()}
     shapes["capitate"] = Ellipsoid((0.0, -59.5, 0.0), (20.0, 6.5, 8.0))
-    palm_parts = [RoundCone((-4.0, -120.0, 0.0), (-2.0, -62.0, 0.0), 19.0, 21.0),
-                  Ellipsoid((0.0, -58.0, -1.0), (32.0, 16.0, 16.0))]
+    palm_parts = [
+        RoundCone((-4.0, -120.0, 0.0), (-2.0, -62.0, 0.0), 19.0, 21.0),
+        Ellipsoid((0.0, -58.0, -1.0), (32.0, 16.0, 16.0)),
+    ]
     digits = []
     for name, (a, b, ra, rb) in segs.items():
         if name == "radius":
@@ -192,11 +197,32 @@ def anatomy() -> Anatomy:
         else:
             digits.append(RoundCone(tuple(a), tuple(b), ra + SOFT["bone"], rb + SOFT["bone"]))
     body = SmoothUnion((SmoothUnion(tuple(palm_parts), k=12.0), *digits), k=5.0)
-    return Anatomy(skeleton(), shapes, body, joint_radius_mm=radius, cortex_mm=1.2, skin_mm=1.5, fat_mm=3.0,
-                   bulge_gain=0.5, slide_gain=0.3, bone_fade_mm=1.5, residual_gain=0.1, residual_wavelength_mm=30.0,
-                   structure=dict(muscle_cell_mm=6.0, fat_cell_mm=3.0, muscle_septum_mm=0.35, fat_septum_mm=0.2,
-                                  cell_amplitude=0.10, lobule_amplitude=0.06, tendon_offset=0.6,
-                                  tendon_radius_mm=1.0, vessel_offset=0.65, vessel_radius_mm=0.6))
+    return Anatomy(
+        skeleton(),
+        shapes,
+        body,
+        joint_radius_mm=radius,
+        cortex_mm=1.2,
+        skin_mm=1.5,
+        fat_mm=3.0,
+        bulge_gain=0.5,
+        slide_gain=0.3,
+        bone_fade_mm=1.5,
+        residual_gain=0.1,
+        residual_wavelength_mm=30.0,
+        structure=dict(
+            muscle_cell_mm=6.0,
+            fat_cell_mm=3.0,
+            muscle_septum_mm=0.35,
+            fat_septum_mm=0.2,
+            cell_amplitude=0.10,
+            lobule_amplitude=0.06,
+            tendon_offset=0.6,
+            tendon_radius_mm=1.0,
+            vessel_offset=0.65,
+            vessel_radius_mm=0.6,
+        ),
+    )
 
 
 def complete_angles(angles: dict) -> dict:
@@ -207,6 +233,7 @@ def default_poses(n: int, rng: np.random.Generator) -> list[dict]:
     """``n`` poses from a wide spread (t = 0) to a fist-like curl (t = 1), with seeded jitter."""
     poses = []
     for t in np.linspace(0.0, 1.0, n):
+
         def jit(k, s=2.0):
             return rng.normal(0.0, s, size=k)
 
@@ -220,8 +247,9 @@ def default_poses(n: int, rng: np.random.Generator) -> list[dict]:
             a[f"{finger}_dip"] = np.array([50.0 * t, 0.0, 0.0]) + jit(3, 1.5)
         # Thumb opposition: adduction towards the palm (+x) and palmar flexion, kept moderate so
         # that the thumb's soft tissue does not sink into the index finger's.
-        a["thumb_cmc"] = np.concatenate([np.array([15.0 * t, -20.0 * t, 20.0 * t]) + jit(3),
-                                         [0.8 * t, -0.5 * t, 0.4 * t]])
+        a["thumb_cmc"] = np.concatenate(
+            [np.array([15.0 * t, -20.0 * t, 20.0 * t]) + jit(3), [0.8 * t, -0.5 * t, 0.4 * t]]
+        )
         a["thumb_mcp"] = np.array([20.0 * t, 0.0, 0.0]) + jit(3, 1.5)
         a["thumb_ip"] = np.array([30.0 * t, 0.0, 0.0]) + jit(3, 1.5)
         poses.append(a)

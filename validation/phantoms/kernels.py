@@ -79,8 +79,13 @@ def compile_shapes(shapes) -> tuple:
             k_out = 0.0
         table.append((g0, len(groups)))
         shape_k.append(k_out)
-    return (np.array(prims, float), np.array(groups, np.int64), np.array(group_k, float),
-            np.array(table, np.int64), np.array(shape_k, float))
+    return (
+        np.array(prims, float),
+        np.array(groups, np.int64),
+        np.array(group_k, float),
+        np.array(table, np.int64),
+        np.array(shape_k, float),
+    )
 
 
 # -- scalar building blocks --------------------------------------------------------------
@@ -281,18 +286,22 @@ def forward_map(points, tabs, params):
 @nb.njit(cache=True)
 def _solve3(a, r, out):
     """out = a⁻¹ r by Cramer's rule; returns False when a is (near) singular."""
-    det = (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
-           - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
-           + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+    det = (
+        a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+        - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+        + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
+    )
     if abs(det) < 1e-12:
         return False
     for c in range(3):
         m = a.copy()
         for i in range(3):
             m[i, c] = r[i]
-        out[c] = (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
-                  - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
-                  + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])) / det
+        out[c] = (
+            m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
+        ) / det
     return True
 
 
@@ -415,9 +424,11 @@ def _uniform(i, j, k, key, channel):
 
 @nb.njit(cache=True)
 def _site(i, j, k, key, cell):
-    return ((i + 0.5 + _JITTER * (_uniform(i, j, k, key, 0) - 0.5)) * cell,
-            (j + 0.5 + _JITTER * (_uniform(i, j, k, key, 1) - 0.5)) * cell,
-            (k + 0.5 + _JITTER * (_uniform(i, j, k, key, 2) - 0.5)) * cell)
+    return (
+        (i + 0.5 + _JITTER * (_uniform(i, j, k, key, 0) - 0.5)) * cell,
+        (j + 0.5 + _JITTER * (_uniform(i, j, k, key, 1) - 0.5)) * cell,
+        (k + 0.5 + _JITTER * (_uniform(i, j, k, key, 2) - 0.5)) * cell,
+    )
 
 
 @nb.njit(cache=True, inline="always")
@@ -469,8 +480,25 @@ def _box(s, half, edge):
 
 # -- appearance ----------------------------------------------------------------------------------
 @nb.njit(cache=True, parallel=True)
-def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, phases, amplitudes, tex_amp,
-                  scan_points, bone_frames, tissue, keys, tubes, tube_info, sites):
+def intensity_map(
+    points,
+    tabs,
+    nbones,
+    contrast,
+    edge,
+    layers,
+    wavevectors,
+    phases,
+    amplitudes,
+    tex_amp,
+    scan_points,
+    bone_frames,
+    tissue,
+    keys,
+    tubes,
+    tube_info,
+    sites,
+):
     """Noise-free intensity at template points (see :meth:`Anatomy.intensity`).
 
     ``bone_frames`` ``(nbones, 3, 4)``, when not empty, maps ``scan_points``
@@ -506,8 +534,9 @@ def intensity_map(points, tabs, nbones, contrast, edge, layers, wavevectors, pha
                 db = min(db, _shape_sdf(prims, groups, group_k, table, shape_k, k, x, y, z))
         tex = 0.0
         for q in range(phases.shape[0]):
-            tex += amplitudes[q] * math.cos(wavevectors[q, 0] * x + wavevectors[q, 1] * y
-                                            + wavevectors[q, 2] * z + phases[q])
+            tex += amplitudes[q] * math.cos(
+                wavevectors[q, 0] * x + wavevectors[q, 1] * y + wavevectors[q, 2] * z + phases[q]
+            )
         tex *= tex_amp
         val = muscle * (1.0 + tex)
         fat_v = fat * (1.0 + tex)

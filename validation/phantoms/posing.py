@@ -135,8 +135,15 @@ class PosingModel:
         :func:`residual_waves`); ``None``: no random motion.
     """
 
-    def __init__(self, anatomy: Anatomy, transforms: dict, joint_angles: dict, *, mode: str = "soft",
-                 residual: np.ndarray | None = None):
+    def __init__(
+        self,
+        anatomy: Anatomy,
+        transforms: dict,
+        joint_angles: dict,
+        *,
+        mode: str = "soft",
+        residual: np.ndarray | None = None,
+    ):
         if mode not in POSING_MODES:
             raise ValueError(f"posing mode must be one of {POSING_MODES}, got {mode!r}")
         self.anatomy = anatomy
@@ -148,15 +155,19 @@ class PosingModel:
         self._dq = dual_quaternion.from_transforms(self.t)
         self._kparams = None
         n_soft = len(anatomy.joint_radius_mm)
-        self.residual = (np.zeros((n_soft, 0, 8)) if residual is None
-                         else np.ascontiguousarray(residual, dtype=float))
+        self.residual = np.zeros((n_soft, 0, 8)) if residual is None else np.ascontiguousarray(residual, dtype=float)
         if self.residual.shape[0] != n_soft or self.residual.shape[2:] != (8,):
             raise ValueError(f"residual waves must be (n_soft_joints={n_soft}, n_waves, 8), got {self.residual.shape}")
         sk = anatomy.skeleton
         self.soft_joints = [
-            _SoftJoint(np.asarray(sk.joint(j).center), sk.joint(j).axes,
-                       float(np.asarray(joint_angles.get(j, [0.0]))[0]), float(r),
-                       names.index(sk.joint(j).parent), names.index(sk.joint(j).child))
+            _SoftJoint(
+                np.asarray(sk.joint(j).center),
+                sk.joint(j).axes,
+                float(np.asarray(joint_angles.get(j, [0.0]))[0]),
+                float(r),
+                names.index(sk.joint(j).parent),
+                names.index(sk.joint(j).child),
+            )
             for j, r in anatomy.joint_radius_mm.items()
         ]
 
@@ -218,19 +229,41 @@ class PosingModel:
             for i, j in enumerate(self.soft_joints):
                 joints[i, :3] = j.center
                 joints[i, 3:12] = j.axes.reshape(-1)
-                joints[i, 12:18] = (j.flexion_deg, j.radius, j.parent_index, j.child_index,
-                                  self.anatomy.bulge_gain, self.anatomy.slide_gain)
-            self._kparams = (self._t12, self._dq, sign, joints, 0 if self.mode == "vbd" else 1,
-                             float(self.anatomy.weight_power), float(self.anatomy.weight_falloff_mm),
-                             float(self.anatomy.bone_fade_mm), self.residual, float(self.anatomy.residual_gain))
+                joints[i, 12:18] = (
+                    j.flexion_deg,
+                    j.radius,
+                    j.parent_index,
+                    j.child_index,
+                    self.anatomy.bulge_gain,
+                    self.anatomy.slide_gain,
+                )
+            self._kparams = (
+                self._t12,
+                self._dq,
+                sign,
+                joints,
+                0 if self.mode == "vbd" else 1,
+                float(self.anatomy.weight_power),
+                float(self.anatomy.weight_falloff_mm),
+                float(self.anatomy.bone_fade_mm),
+                self.residual,
+                float(self.anatomy.residual_gain),
+            )
         return self._kparams
 
     def forward(self, p: np.ndarray) -> np.ndarray:
         """``F(p)`` for template points ``(n, 3)`` (compiled, parallel)."""
         return kernels.forward_map(np.ascontiguousarray(p, dtype=float), self.anatomy.tables, self._params())
 
-    def inverse(self, x: np.ndarray, *, guess: np.ndarray | None = None, tol_mm: float = 1e-6,
-                max_iter: int = 60, fd_jacobian: bool = False):
+    def inverse(
+        self,
+        x: np.ndarray,
+        *,
+        guess: np.ndarray | None = None,
+        tol_mm: float = 1e-6,
+        max_iter: int = 60,
+        fd_jacobian: bool = False,
+    ):
         """Template positions ``φ(x)`` with ``F(φ(x)) = x``; returns ``(φ, residual_mm)``.
 
         Starts from ``guess`` or, by default, from the inverse blend with
@@ -239,6 +272,14 @@ class PosingModel:
         """
         x = np.ascontiguousarray(x, dtype=float)
         g = np.zeros((1, 3)) if guess is None else np.ascontiguousarray(guess, dtype=float)
-        return kernels.inverse_map(x, g, guess is not None, self.anatomy.tables, self._params(),
-                                   np.ascontiguousarray(self.t_inv[:, :3, :].reshape(-1, 12)),
-                                   tol_mm, max_iter, fd_jacobian)
+        return kernels.inverse_map(
+            x,
+            g,
+            guess is not None,
+            self.anatomy.tables,
+            self._params(),
+            np.ascontiguousarray(self.t_inv[:, :3, :].reshape(-1, 12)),
+            tol_mm,
+            max_iter,
+            fd_jacobian,
+        )

@@ -42,7 +42,7 @@ class RoundCone:
         q = pa - t[:, None] * ba
         return np.sqrt(np.einsum("ij,ij->i", q, q)) - (self.ra + t * (self.rb - self.ra))
 
-    def transformed(self, t4: np.ndarray) -> "RoundCone":
+    def transformed(self, t4: np.ndarray) -> RoundCone:
         r, tr = t4[:3, :3], t4[:3, 3]
         return RoundCone(tuple(r @ self.a + tr), tuple(r @ self.b + tr), self.ra, self.rb)
 
@@ -65,7 +65,7 @@ class Ellipsoid:
             d = k0 * (k0 - 1.0) / k1
         return np.where(k1 > 0, d, -float(np.min(r)))
 
-    def transformed(self, t4: np.ndarray) -> "Ellipsoid":
+    def transformed(self, t4: np.ndarray) -> Ellipsoid:
         r, tr = t4[:3, :3], t4[:3, 3]
         rot = r @ np.asarray(self.rotation, float).reshape(3, 3)
         return Ellipsoid(tuple(r @ self.center + tr), self.radii, tuple(rot.reshape(-1)))
@@ -84,5 +84,5 @@ class SmoothUnion:
             d = smooth_min(d, s(p), self.k)
         return d
 
-    def transformed(self, t4: np.ndarray) -> "SmoothUnion":
+    def transformed(self, t4: np.ndarray) -> SmoothUnion:
         return SmoothUnion(tuple(s.transformed(t4) for s in self.parts), self.k)

@@ -113,7 +113,7 @@ class SoftTissue:
     tube_kind: tuple
 
     @classmethod
-    def random(cls, anatomy, rng: np.random.Generator) -> "SoftTissue":
+    def random(cls, anatomy, rng: np.random.Generator) -> SoftTissue:
         """Cells, septa and tubes for ``anatomy`` (its ``structure`` sizes), drawn from ``rng``."""
         s = anatomy.structure
         keys = rng.integers(0, 2**63 - 1, size=2)
@@ -136,16 +136,30 @@ class SoftTissue:
                     tubes.append(RoundCone(tuple(a), tuple(b), r_t, r_t))
                     kinds.append(0)
             # A vessel on the flexor side, as the popliteal and digital vessels run, wiggling laterally.
-            nodes = [c - s["vessel_offset"] * radius * y + (t * radius) * z
-                     + rng.normal(0.0, 0.12 * radius) * x + rng.normal(0.0, 0.06 * radius) * y
-                     for t in np.linspace(-2.0, 2.0, 5)]
+            nodes = [
+                c
+                - s["vessel_offset"] * radius * y
+                + (t * radius) * z
+                + rng.normal(0.0, 0.12 * radius) * x
+                + rng.normal(0.0, 0.06 * radius) * y
+                for t in np.linspace(-2.0, 2.0, 5)
+            ]
             r_v = s["vessel_radius_mm"]
             for a, b in zip(nodes[:-1], nodes[1:]):
                 tubes.append(RoundCone(tuple(a), tuple(b), r_v, 0.95 * r_v))
                 kinds.append(1)
-        return cls(int(keys[0]), int(keys[1]), float(s["muscle_cell_mm"]), float(s["fat_cell_mm"]),
-                   float(s["muscle_septum_mm"]), float(s["fat_septum_mm"]), float(s["cell_amplitude"]),
-                   float(s["lobule_amplitude"]), tuple(tubes), tuple(kinds))
+        return cls(
+            int(keys[0]),
+            int(keys[1]),
+            float(s["muscle_cell_mm"]),
+            float(s["fat_cell_mm"]),
+            float(s["muscle_septum_mm"]),
+            float(s["fat_septum_mm"]),
+            float(s["cell_amplitude"]),
+            float(s["lobule_amplitude"]),
+            tuple(tubes),
+            tuple(kinds),
+        )
 
     def tube_fraction(self, p: np.ndarray, kind: int, edge_mm: float) -> np.ndarray:
         """How much of each point is tube of ``kind`` (0 tendon, 1 vessel): the largest over the tubes.
@@ -202,5 +216,14 @@ class SoftTissue:
 
     def params(self) -> np.ndarray:
         """The scalar parameters in the order the compiled kernel reads them."""
-        return np.array([self.muscle_cell_mm, self.fat_cell_mm, self.muscle_septum_mm, self.fat_septum_mm,
-                         self.cell_amplitude, self.lobule_amplitude], float)
+        return np.array(
+            [
+                self.muscle_cell_mm,
+                self.fat_cell_mm,
+                self.muscle_septum_mm,
+                self.fat_septum_mm,
+                self.cell_amplitude,
+                self.lobule_amplitude,
+            ],
+            float,
+        )

@@ -44,5 +44,12 @@ from .table import DEFINITIONS, Column, Table
 
 __all__ = ["PROTOCOLS", "Table", "Column", "DEFINITIONS"]
 
-PROTOCOLS = {"table2": table2, "table3": table3, "table4": table4, "loo": loo, "eigenposes": eigenposes,
-             "kurihara": kurihara, "kurihara_skin": kurihara_skin}
+PROTOCOLS = {
+    "table2": table2,
+    "table3": table3,
+    "table4": table4,
+    "loo": loo,
+    "eigenposes": eigenposes,
+    "kurihara": kurihara,
+    "kurihara_skin": kurihara_skin,
+}

@@ -72,25 +72,52 @@ def eigenposes(runner=None, *, skeleton=None) -> Table:
     var = explained_variance(x)
     cum = np.cumsum(var)
     k90 = int(np.searchsorted(cum, 0.90) + 1)
-    t = Table("eigenposes", "Eigenposes of a hand pose library (Rhee §6.2)",
-              [Column("n_poses", "poses", "", 0), Column("n_angles", "joint rotations", "", 0),
-               Column("components_for_90", "eigenposes for 90 %", "", 0),
-               Column("variance_10", "variance in 10 eigenposes", "", 3),
-               Column("loo_rms_deg_10", "left-out pose rebuilt from 10 (RMS)", "deg", 2)],
-              definitions={"variance_10": "Σ of the 10 largest σ_i² over Σ σ² of the centred pose matrix",
-                           "components_for_90": "fewest principal components whose variance share reaches 0.90",
-                           "loo_rms_deg_10": "each pose left out, rebuilt from its projection on the first 10 "
-                                             "components of the others: RMS joint-angle error, degrees",
-                           "library": "71 poses: 33 GRASP-taxonomy grasps (Feix et al. 2016), 26 ASL alphabet "
-                                      "hand shapes, 12 gestures (validation.protocols.hand_poses)"},
-              notes=["Rhee's 60 poses came from the Poser character system, which is not available; this library's "
-                     "joint angles are our reading of the published illustrations, within AAOS normal ranges",
-                     "paper: 'the 10 dominant eigenposes covered more than 90 % of the variation' (a lower bound)"])
-    t.add("ours", "ours", {"n_poses": len(x), "n_angles": int(np.count_nonzero(x.std(axis=0) > 0)),
-                           "components_for_90": k90, "variance_10": float(cum[PAPER_K - 1]),
-                           "loo_rms_deg_10": loo_reconstruction_rms(x, PAPER_K)})
-    t.add("paper (Rhee §6.2, Poser poses)", "paper", {"n_poses": 60, "variance_10": PAPER_VARIANCE},
-          source="Rhee, Lewis, Neumann & Nayak 2011, §6.2")
-    t.meta = {"cumulative_variance": cum.tolist(), "poses": names, "sources": {e[0]: e[1] for e in LIBRARY},
-              "columns": cols, "rms_deg_by_k": {str(k): loo_reconstruction_rms(x, k) for k in (1, 2, 5, 10, 15)}}
+    t = Table(
+        "eigenposes",
+        "Eigenposes of a hand pose library (Rhee §6.2)",
+        [
+            Column("n_poses", "poses", "", 0),
+            Column("n_angles", "joint rotations", "", 0),
+            Column("components_for_90", "eigenposes for 90 %", "", 0),
+            Column("variance_10", "variance in 10 eigenposes", "", 3),
+            Column("loo_rms_deg_10", "left-out pose rebuilt from 10 (RMS)", "deg", 2),
+        ],
+        definitions={
+            "variance_10": "Σ of the 10 largest σ_i² over Σ σ² of the centred pose matrix",
+            "components_for_90": "fewest principal components whose variance share reaches 0.90",
+            "loo_rms_deg_10": "each pose left out, rebuilt from its projection on the first 10 "
+            "components of the others: RMS joint-angle error, degrees",
+            "library": "71 poses: 33 GRASP-taxonomy grasps (Feix et al. 2016), 26 ASL alphabet "
+            "hand shapes, 12 gestures (validation.protocols.hand_poses)",
+        },
+        notes=[
+            "Rhee's 60 poses came from the Poser character system, which is not available; this library's "
+            "joint angles are our reading of the published illustrations, within AAOS normal ranges",
+            "paper: 'the 10 dominant eigenposes covered more than 90 % of the variation' (a lower bound)",
+        ],
+    )
+    t.add(
+        "ours",
+        "ours",
+        {
+            "n_poses": len(x),
+            "n_angles": int(np.count_nonzero(x.std(axis=0) > 0)),
+            "components_for_90": k90,
+            "variance_10": float(cum[PAPER_K - 1]),
+            "loo_rms_deg_10": loo_reconstruction_rms(x, PAPER_K),
+        },
+    )
+    t.add(
+        "paper (Rhee §6.2, Poser poses)",
+        "paper",
+        {"n_poses": 60, "variance_10": PAPER_VARIANCE},
+        source="Rhee, Lewis, Neumann & Nayak 2011, §6.2",
+    )
+    t.meta = {
+        "cumulative_variance": cum.tolist(),
+        "poses": names,
+        "sources": {e[0]: e[1] for e in LIBRARY},
+        "columns": cols,
+        "rms_deg_by_k": {str(k): loo_reconstruction_rms(x, k) for k in (1, 2, 5, 10, 15)},
+    }
     return t

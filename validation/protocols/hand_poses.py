@@ -38,8 +38,17 @@ import numpy as np
 
 from validation.phantoms.hand import RANGE_OF_MOTION, range_key
 
-__all__ = ["FINGER_SHAPES", "THUMB_SHAPES", "SPREADS", "LIBRARY", "RANGE_OF_MOTION", "library_angles", "hand_angles",
-           "check_range", "FINGERS"]
+__all__ = [
+    "FINGER_SHAPES",
+    "THUMB_SHAPES",
+    "SPREADS",
+    "LIBRARY",
+    "RANGE_OF_MOTION",
+    "library_angles",
+    "hand_angles",
+    "check_range",
+    "FINGERS",
+]
 
 FINGERS = ("index", "middle", "ring", "little")
 
@@ -178,8 +187,9 @@ def hand_angles(skeleton, thumb: str, shapes, spread) -> dict:
 
 def library_angles(skeleton) -> list[tuple[str, str, dict]]:
     """Every library pose as ``(name, source, {joint: angles})`` for the hand ``skeleton`` (its joint DOFs)."""
-    return [(name, source, hand_angles(skeleton, thumb, shapes, spread))
-            for name, source, thumb, shapes, spread in LIBRARY]
+    return [
+        (name, source, hand_angles(skeleton, thumb, shapes, spread)) for name, source, thumb, shapes, spread in LIBRARY
+    ]
 
 
 def check_range(angles: dict) -> list[str]:

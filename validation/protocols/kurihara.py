@@ -88,11 +88,13 @@ def joint_centre_measures(joints: dict, skeleton) -> dict:
             off.append(float(np.linalg.norm(d - (d @ a) * a)))
         else:
             off.append(err[-1])
-    return {"eq1_rms_mm": float(np.sqrt(np.mean(np.square(res)))) if res else None,
-            "center_error_mean_mm": float(np.mean(err)) if err else None,
-            "center_error_max_mm": float(np.max(err)) if err else None,
-            "off_axis_mean_mm": float(np.mean(off)) if off else None,
-            "n_joints": len(err)}
+    return {
+        "eq1_rms_mm": float(np.sqrt(np.mean(np.square(res)))) if res else None,
+        "center_error_mean_mm": float(np.mean(err)) if err else None,
+        "center_error_max_mm": float(np.max(err)) if err else None,
+        "off_axis_mean_mm": float(np.mean(off)) if off else None,
+        "n_joints": len(err),
+    }
 
 
 def kurihara(runner) -> Table:
@@ -111,28 +113,41 @@ def kurihara(runner) -> Table:
         e = pose_errors(study.pose(sid), study.truth_pose(sid), centroids)
         rot.extend(v["rotation_deg"] for v in e["bones"].values())
     m["bone_rotation_median_deg"] = float(np.median(rot)) if rot else None
-    cols = [Column("eq1_rms_mm", "Eq. 1 RMS residual", "mm"),
-            Column("center_error_mean_mm", "centre error, mean", "mm"),
-            Column("center_error_max_mm", "centre error, max", "mm"),
-            Column("off_axis_mean_mm", "true centre off the estimated axis, mean", "mm"),
-            Column("bone_rotation_median_deg", "bone rotation error, median", "deg"),
-            Column("n_joints", "joints placed", "", 0)]
-    t = Table("kurihara", "Kurihara Eq. 1: joint centres of the CT hand in 5 poses (ICP of bone surfaces)", cols,
-              definitions={
-                  "eq1_rms_mm": "√(mean |M_i,k c_k − c_k|²) over every joint of at most 3 DOF and every scan in "
-                                "which it moves (Kurihara §3: 'except for the CMC joint of the thumb')",
-                  "center_error_mean_mm": "|estimated − true| joint centre (template frame) over the joints Eq. 1 "
-                                          "placed (the others barely move and keep the skeleton's centre)",
-                  "off_axis_mean_mm": "for a hinge-like joint, the true centre's distance from the estimated "
-                                      "hinge axis (Eq. 1 leaves the position along the axis free); else as above",
-                  "bone_rotation_median_deg": "angle of T_true⁻¹ T_est per bone and scan, median"},
-              notes=["CT-like hand phantom, 5 poses (Kurihara §2 scanned 5 poses of one hand); at --size test the "
-                     "test grid's field of view at 1.6 mm voxels (at 3.1 mm ICP loses the distal phalanges)",
-                     "the skin meshes and SSD / PSD / WPSD (Kurihara §4–5) of the same study: the kurihara_skin "
-                     "table"])
+    cols = [
+        Column("eq1_rms_mm", "Eq. 1 RMS residual", "mm"),
+        Column("center_error_mean_mm", "centre error, mean", "mm"),
+        Column("center_error_max_mm", "centre error, max", "mm"),
+        Column("off_axis_mean_mm", "true centre off the estimated axis, mean", "mm"),
+        Column("bone_rotation_median_deg", "bone rotation error, median", "deg"),
+        Column("n_joints", "joints placed", "", 0),
+    ]
+    t = Table(
+        "kurihara",
+        "Kurihara Eq. 1: joint centres of the CT hand in 5 poses (ICP of bone surfaces)",
+        cols,
+        definitions={
+            "eq1_rms_mm": "√(mean |M_i,k c_k − c_k|²) over every joint of at most 3 DOF and every scan in "
+            "which it moves (Kurihara §3: 'except for the CMC joint of the thumb')",
+            "center_error_mean_mm": "|estimated − true| joint centre (template frame) over the joints Eq. 1 "
+            "placed (the others barely move and keep the skeleton's centre)",
+            "off_axis_mean_mm": "for a hinge-like joint, the true centre's distance from the estimated "
+            "hinge axis (Eq. 1 leaves the position along the axis free); else as above",
+            "bone_rotation_median_deg": "angle of T_true⁻¹ T_est per bone and scan, median",
+        },
+        notes=[
+            "CT-like hand phantom, 5 poses (Kurihara §2 scanned 5 poses of one hand); at --size test the "
+            "test grid's field of view at 1.6 mm voxels (at 3.1 mm ICP loses the distal phalanges)",
+            "the skin meshes and SSD / PSD / WPSD (Kurihara §4–5) of the same study: the kurihara_skin table",
+        ],
+    )
     t.add("ours (ICP, Kurihara §3)", "ours", m)
-    t.add("paper (Kurihara & Miyata 2004, §3)", "paper", {"eq1_rms_mm": PAPER_RMS_MM},
-          source="Kurihara & Miyata 2004, §3")
-    t.meta = {"study": str(study.root), "joints": {k: {"rms_mm": v.get("rms_mm"), "dof": v["dof"],
-                                                       "estimated": v.get("estimated")} for k, v in joints.items()}}
+    t.add(
+        "paper (Kurihara & Miyata 2004, §3)", "paper", {"eq1_rms_mm": PAPER_RMS_MM}, source="Kurihara & Miyata 2004, §3"
+    )
+    t.meta = {
+        "study": str(study.root),
+        "joints": {
+            k: {"rms_mm": v.get("rms_mm"), "dof": v["dof"], "estimated": v.get("estimated")} for k, v in joints.items()
+        },
+    }
     return t

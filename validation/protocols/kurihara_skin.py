@@ -47,10 +47,14 @@ SURFACE = {"features": "landmarks"}
 N_LANDMARKS = 150  # Kurihara §4: 70–150 per pose
 METHODS = ("ssd", "psd", "wpsd")
 HIDDEN_MM = 1.0  # a true skin point whose scan point maps back farther than this is inside another part
-COLUMNS = [Column("skin_mean_mm", "distance to the true skin, mean", "mm"),
-           Column("skin_p95_mm", "distance to the true skin, P95", "mm"),
-           Column("mean_mm", "vertex error, mean", "mm"), Column("p95_mm", "vertex error, P95", "mm"),
-           Column("max_mm", "vertex error, max", "mm"), Column("n_vertices", "vertices", "", 0)]
+COLUMNS = [
+    Column("skin_mean_mm", "distance to the true skin, mean", "mm"),
+    Column("skin_p95_mm", "distance to the true skin, P95", "mm"),
+    Column("mean_mm", "vertex error, mean", "mm"),
+    Column("p95_mm", "vertex error, P95", "mm"),
+    Column("max_mm", "vertex error, max", "mm"),
+    Column("n_vertices", "vertices", "", 0),
+]
 
 
 def _hidden(phantom, angles, points, posed) -> np.ndarray:
@@ -74,8 +78,11 @@ def _measures(vertices, truth, skin, keep) -> dict:
 
 def _mean_rows(rows: list[dict]) -> dict:
     """Means over held-out poses (their maxima for ``max_mm``; the first pose's vertex count)."""
-    return {**{k: float(np.mean([r[k] for r in rows])) for k in ("skin_mean_mm", "skin_p95_mm", "mean_mm", "p95_mm")},
-            "max_mm": float(np.max([r["max_mm"] for r in rows])), "n_vertices": int(rows[0]["n_vertices"])}
+    return {
+        **{k: float(np.mean([r[k] for r in rows])) for k in ("skin_mean_mm", "skin_p95_mm", "mean_mm", "p95_mm")},
+        "max_mm": float(np.max([r["max_mm"] for r in rows])),
+        "n_vertices": int(rows[0]["n_vertices"]),
+    }
 
 
 def phantom_landmarks(phantom, skin, scan_ids, n: int = N_LANDMARKS) -> dict:
@@ -94,8 +101,12 @@ def phantom_landmarks(phantom, skin, scan_ids, n: int = N_LANDMARKS) -> dict:
         shown = on0 & away_from_the_edge(y, phantom.geometry, 2.0) & ~_hidden(phantom, angles[sid], skin.vertices, y)
         idx = farthest_points(skin.vertices, n, candidates=shown)
         scans[sid] = [{"template": skin.vertices[i].tolist(), "scan": y[i].tolist()} for i in idx]
-    return {"format": "avw-landmarks", "units": "mm",
-            "source": "the phantom's posing model at points of its true skin (picking error 0)", "scans": scans}
+    return {
+        "format": "avw-landmarks",
+        "units": "mm",
+        "source": "the phantom's posing model at points of its true skin (picking error 0)",
+        "scans": scans,
+    }
 
 
 def kurihara_skin(runner) -> Table:
@@ -123,8 +134,12 @@ def kurihara_skin(runner) -> Table:
         tmp = marks.with_name(f".{marks.name}.tmp-{os.getpid()}")  # whole or not at all (the stage digests it)
         tmp.write_text(json.dumps(doc), encoding="utf-8")
         os.replace(tmp, marks)
-    study = runner.study("kurihara", phantom, settings={**SETTINGS, "surface": {**SURFACE, "landmarks": str(marks)}},
-                         targets=("surface",))
+    study = runner.study(
+        "kurihara",
+        phantom,
+        settings={**SETTINGS, "surface": {**SURFACE, "landmarks": str(marks)}},
+        targets=("surface",),
+    )
     sk = study.skeleton()
     model = study.surface_model()
     base, weights = model.base, model.weights
@@ -136,48 +151,74 @@ def kurihara_skin(runner) -> Table:
         keep[sid] = on0 & away_from_the_edge(truth[sid], g)
         est[sid] = study.pose(sid)
         skins[sid] = SurfaceMesh(posed_truth(ph, angles[sid], skin0.vertices), skin0.triangles)
-    t = Table("kurihara_skin", "Kurihara §4–5: consistent skin meshes and SSD / PSD / WPSD of the CT hand (5 poses)",
-              COLUMNS, definitions={
-                  "skin_mean_mm": "distance of each vertex from the pose's true skin (the phantom's posing of the "
-                                  "template's true skin; closest point on its triangles)",
-                  "mean_mm": "|S(v) − F_i(S_0(v))| per vertex of the base mesh S_0: where the mesh puts the vertex "
-                             "against where the phantom's posing model F_i puts it (correspondence error)",
-                  "max_mm": "largest vertex error (over the held-out poses, for leave-one-out)"},
-              notes=[f"feature points: {N_LANDMARKS} landmarks per scan from the phantom (Kurihara picked 70–150 by "
-                     "hand; these have no picking error), or 150 confident closest points on the scan's skin",
-                     "vertices on the forearm's cut and those the pose takes out of the field of view not counted",
-                     "leave-one-out and one-finger rows: the model asked for the pose's true joint angles "
-                     "(as `workbench surface-deform` is); the fitted meshes' models use the pose stage's ICP "
-                     "transforms for their examples",
-                     "ceiling: the model built from the truth's meshes F_i(S_0) and the true poses"])
+    t = Table(
+        "kurihara_skin",
+        "Kurihara §4–5: consistent skin meshes and SSD / PSD / WPSD of the CT hand (5 poses)",
+        COLUMNS,
+        definitions={
+            "skin_mean_mm": "distance of each vertex from the pose's true skin (the phantom's posing of the "
+            "template's true skin; closest point on its triangles)",
+            "mean_mm": "|S(v) − F_i(S_0(v))| per vertex of the base mesh S_0: where the mesh puts the vertex "
+            "against where the phantom's posing model F_i puts it (correspondence error)",
+            "max_mm": "largest vertex error (over the held-out poses, for leave-one-out)",
+        },
+        notes=[
+            f"feature points: {N_LANDMARKS} landmarks per scan from the phantom (Kurihara picked 70–150 by "
+            "hand; these have no picking error), or 150 confident closest points on the scan's skin",
+            "vertices on the forearm's cut and those the pose takes out of the field of view not counted",
+            "leave-one-out and one-finger rows: the model asked for the pose's true joint angles "
+            "(as `workbench surface-deform` is); the fitted meshes' models use the pose stage's ICP "
+            "transforms for their examples",
+            "ceiling: the model built from the truth's meshes F_i(S_0) and the true poses",
+        ],
+    )
     s = study.recorded_settings("surface") or {}
-    opts = dict(fit=s.get("fit", "regularised"), max_distance_mm=s.get("max_distance_mm", 5.0),
-                stiffness=s.get("stiffness", 1.0))
+    opts = dict(
+        fit=s.get("fit", "regularised"),
+        max_distance_mm=s.get("max_distance_mm", 5.0),
+        stiffness=s.get("stiffness", 1.0),
+    )
     fitted = {"landmarks": {sid: study.surface_mesh(sid) for sid in ids}, "closest": {}}
     targets = {sid: study.surface_mesh(sid, "skin") for sid in ids}
     for sid in ids:  # the same fit from confident closest points, as `--features closest` makes it
-        fitted["closest"][sid] = consistent_mesh(base, weights, est[sid].transforms, targets[sid], n_features=150,
-                                                 **opts)["fitted"]
+        fitted["closest"][sid] = consistent_mesh(
+            base, weights, est[sid].transforms, targets[sid], n_features=150, **opts
+        )["fitted"]
     for src, meshes in fitted.items():
         for sid in ids:
-            t.add(f"fitted S^f, {sid} ({src})", "ours", _measures(meshes[sid].vertices, truth[sid], skins[sid],
-                                                                 keep[sid]), group="fitted meshes")
+            t.add(
+                f"fitted S^f, {sid} ({src})",
+                "ours",
+                _measures(meshes[sid].vertices, truth[sid], skins[sid], keep[sid]),
+                group="fitted meshes",
+            )
 
     # touching fingers: the same scan, the same landmarks, both fits
     sid = TOUCHING
     hidden = _hidden(ph, angles[sid], base.vertices, truth[sid]) & keep[sid]
     runner.say(f"kurihara_skin: {sid}: {int(hidden.sum())} vertices of S0 hidden where the fingers touch")
     pairs = doc["scans"][sid]
-    marks_on_s0 = (landmark_sites(base, [q["template"] for q in pairs], max_snap_mm=opts["max_distance_mm"]),
-                   [q["scan"] for q in pairs])
+    marks_on_s0 = (
+        landmark_sites(base, [q["template"] for q in pairs], max_snap_mm=opts["max_distance_mm"]),
+        [q["scan"] for q in pairs],
+    )
     for fit in ("nearest", "regularised"):
-        v = consistent_mesh(base, weights, est[sid].transforms, targets[sid], landmarks=marks_on_s0,
-                            **{**opts, "fit": fit})["fitted"].vertices
-        t.add(f"{sid}: {fit} fit, all vertices", "ours", _measures(v, truth[sid], skins[sid], keep[sid]),
-              group="touching fingers (Kurihara's Pose 4)")
+        v = consistent_mesh(
+            base, weights, est[sid].transforms, targets[sid], landmarks=marks_on_s0, **{**opts, "fit": fit}
+        )["fitted"].vertices
+        t.add(
+            f"{sid}: {fit} fit, all vertices",
+            "ours",
+            _measures(v, truth[sid], skins[sid], keep[sid]),
+            group="touching fingers (Kurihara's Pose 4)",
+        )
         if hidden.any():  # (a pose whose fingers do not meet at this grid hides nothing)
-            t.add(f"{sid}: {fit} fit, hidden skin", "ours", _measures(v, truth[sid], skins[sid], hidden),
-                  group="touching fingers (Kurihara's Pose 4)")
+            t.add(
+                f"{sid}: {fit} fit, hidden skin",
+                "ours",
+                _measures(v, truth[sid], skins[sid], hidden),
+                group="touching fingers (Kurihara's Pose 4)",
+            )
 
     # leave one pose out, and the finger alone: the models of both fitted sets, and the truth's
     true_pose = {sid: ph.pose_of(angles[sid]) for sid in ids}
@@ -193,19 +234,32 @@ def kurihara_skin(runner) -> Table:
         per = {m: [] for m in METHODS}
         for k in ids:
             others = [s_ for s_ in ids if s_ != k]
-            m_k = SurfaceModel.from_meshes(base, weights, sk, [poses[s_] for s_ in others],
-                                           [meshes[s_] for s_ in others])
+            m_k = SurfaceModel.from_meshes(
+                base, weights, sk, [poses[s_] for s_ in others], [meshes[s_] for s_ in others]
+            )
             for m in METHODS:
                 per[m].append(_measures(m_k.deform(true_pose[k], m).vertices, truth[k], skins[k], keep[k]))
         for m in METHODS:
-            t.add(f"leave one out, {m.upper()} ({src})", "ours", _mean_rows(per[m]),
-                  group="leave one pose out (Kurihara Fig. 11)",
-                  per_pose={k: r["mean_mm"] for k, r in zip(ids, per[m])})
+            t.add(
+                f"leave one out, {m.upper()} ({src})",
+                "ours",
+                _mean_rows(per[m]),
+                group="leave one pose out (Kurihara Fig. 11)",
+                per_pose={k: r["mean_mm"] for k, r in zip(ids, per[m])},
+            )
         full = SurfaceModel.from_meshes(base, weights, sk, [poses[s_] for s_ in ids], [meshes[s_] for s_ in ids])
         for m in METHODS:
-            t.add(f"{alone_id}: {m.upper()} ({src})", "ours",
-                  _measures(full.deform(alone_pose, m).vertices, alone_truth, alone_skin, alone_keep),
-                  group="one finger alone (index straight, the others hooked)")
-    t.meta = {"study": str(study.root), "landmarks": str(marks), "base_triangles": base.n_triangles, "scans": ids,
-              "hidden_vertices": int(hidden.sum())}
+            t.add(
+                f"{alone_id}: {m.upper()} ({src})",
+                "ours",
+                _measures(full.deform(alone_pose, m).vertices, alone_truth, alone_skin, alone_keep),
+                group="one finger alone (index straight, the others hooked)",
+            )
+    t.meta = {
+        "study": str(study.root),
+        "landmarks": str(marks),
+        "base_triangles": base.n_triangles,
+        "scans": ids,
+        "hidden_vertices": int(hidden.sum()),
+    }
     return t

@@ -32,9 +32,13 @@ from .table import Column, Table
 
 __all__ = ["loo", "COLUMNS"]
 
-COLUMNS = [Column("med_mm", "MED", "mm"), Column("cc", "CC", "", 3),
-           Column("evd_better_med", "EVD better on MED", "scans", 0),
-           Column("evd_better_cc", "EVD better on CC", "scans", 0), Column("n_held_out", "held-out scans", "", 0)]
+COLUMNS = [
+    Column("med_mm", "MED", "mm"),
+    Column("cc", "CC", "", 3),
+    Column("evd_better_med", "EVD better on MED", "scans", 0),
+    Column("evd_better_cc", "EVD better on CC", "scans", 0),
+    Column("n_held_out", "held-out scans", "", 0),
+]
 REGIONS = (("knee", "table3"), ("hand", "table4"))
 
 
@@ -42,9 +46,12 @@ def _region_rows(runner, region: str, protocol: str) -> tuple[dict, dict]:
     from deformation.evd import fill_unmatched
     from validation.leave_one_out import leave_one_out_correspondences
 
-    study = runner.study(protocol, PHANTOMS[protocol], settings={"init": {"method": "vbd"}, "weights": {},
-                                                                  "register": {}},
-                         targets=("validate",))
+    study = runner.study(
+        protocol,
+        PHANTOMS[protocol],
+        settings={"init": {"method": "vbd"}, "weights": {}, "register": {}},
+        targets=("validate",),
+    )
     template = study.template()
     g = template.geometry
     weights, body = study.weights()
@@ -66,34 +73,49 @@ def _region_rows(runner, region: str, protocol: str) -> tuple[dict, dict]:
 
 def loo(runner) -> Table:
     """The leave-one-out table (module docstring), knee and hand."""
-    t = Table("loo", "Leave one scan out: VBD vs EVD from the other scans' registrations (Rhee Figs. 11–12)",
-              list(COLUMNS),
-              definitions={"med_mm": "mean |predicted − true| template → scan position over the template's body "
-                                     "voxels (mm), the truth the phantom's exact map",
-                           "cc": "Pearson correlation of the scan with the template posed by the predictor and "
-                                 "resampled onto the scan's grid (whole grid)",
-                           "evd_better_med": "held-out scans on which EVD's MED is below VBD's",
-                           "evd_better_cc": "held-out scans on which EVD's CC is above VBD's",
-                           "VBD": "volume blend deformation (Rhee Eq. 2) at the held-out scan's estimated pose",
-                           "EVD": "example-based volume deformation (Rhee Eq. 6–7), normalised-RBF pose-space "
-                                  "interpolation of the training scans' displacements, weighted per voxel as "
-                                  "Kurihara's WPSD (Eq. 16)"},
-              notes=["the paper shows these comparisons as pictures only (Figs. 11–12): no published numbers",
-                     "poses are the pose stage's estimates for training and held-out scans alike; the rest-pose "
-                     "scan is held out too"])
+    t = Table(
+        "loo",
+        "Leave one scan out: VBD vs EVD from the other scans' registrations (Rhee Figs. 11–12)",
+        list(COLUMNS),
+        definitions={
+            "med_mm": "mean |predicted − true| template → scan position over the template's body "
+            "voxels (mm), the truth the phantom's exact map",
+            "cc": "Pearson correlation of the scan with the template posed by the predictor and "
+            "resampled onto the scan's grid (whole grid)",
+            "evd_better_med": "held-out scans on which EVD's MED is below VBD's",
+            "evd_better_cc": "held-out scans on which EVD's CC is above VBD's",
+            "VBD": "volume blend deformation (Rhee Eq. 2) at the held-out scan's estimated pose",
+            "EVD": "example-based volume deformation (Rhee Eq. 6–7), normalised-RBF pose-space "
+            "interpolation of the training scans' displacements, weighted per voxel as "
+            "Kurihara's WPSD (Eq. 16)",
+        },
+        notes=[
+            "the paper shows these comparisons as pictures only (Figs. 11–12): no published numbers",
+            "poses are the pose stage's estimates for training and held-out scans alike; the rest-pose "
+            "scan is held out too",
+        ],
+    )
     meta = {}
     for region, protocol in REGIONS:
         reg, tru = _region_rows(runner, region, protocol)
         ids = list(reg)
-        vbd = {"med_mm": float(np.mean([reg[s].med_vbd for s in ids])),
-               "cc": float(np.mean([reg[s].cc_vbd for s in ids]))}
+        vbd = {
+            "med_mm": float(np.mean([reg[s].med_vbd for s in ids])),
+            "cc": float(np.mean([reg[s].cc_vbd for s in ids])),
+        }
         t.add(f"{region}: VBD", "ours", {**vbd, "n_held_out": len(ids)})
         for name, res in (("EVD from the registrations", reg), ("EVD from the true correspondences", tru)):
-            t.add(f"{region}: {name}", "ours",
-                  {"med_mm": float(np.mean([res[s].med_evd for s in ids])),
-                   "cc": float(np.mean([res[s].cc_evd for s in ids])),
-                   "evd_better_med": sum(res[s].med_evd < res[s].med_vbd for s in ids),
-                   "evd_better_cc": sum(res[s].cc_evd > res[s].cc_vbd for s in ids), "n_held_out": len(ids)})
+            t.add(
+                f"{region}: {name}",
+                "ours",
+                {
+                    "med_mm": float(np.mean([res[s].med_evd for s in ids])),
+                    "cc": float(np.mean([res[s].cc_evd for s in ids])),
+                    "evd_better_med": sum(res[s].med_evd < res[s].med_vbd for s in ids),
+                    "evd_better_cc": sum(res[s].cc_evd > res[s].cc_vbd for s in ids),
+                    "n_held_out": len(ids),
+                },
+            )
         meta[region] = {"per_scan": {s: {"registrations": reg[s].to_dict(), "truth": tru[s].to_dict()} for s in ids}}
     t.meta = meta
     return t

@@ -24,20 +24,20 @@ ROW_KINDS = ("ours", "paper", "peer")
 # validation.registration_measures, registration.metrics and validation.leave_one_out).
 DEFINITIONS = {
     "med_mm": "MED: mean Euclidean distance (mm) between recovered and true template positions over the scan's body "
-              "voxels (scan voxels whose true template position lies in the template's body mask)",
+    "voxels (scan voxels whose true template position lies in the template's body mask)",
     "marker_med_mm": "marker MED: the same distance (mm) at the phantom's skin markers (12 per scan, drawn near the "
-                     "joints; Rhee Table 3 used eight MR markers), the recovered field sampled trilinearly at each "
-                     "marker's scan position",
+    "joints; Rhee Table 3 used eight MR markers), the recovered field sampled trilinearly at each "
+    "marker's scan position",
     "ssd": "SSD: mean squared intensity difference (Rhee Eq. 4 divided by the voxel count) between the scan and the "
-           "template resampled through the field, over the whole scan grid, after both images are scaled by the "
-           "one factor that maps the template's 0.5–99.5th percentile range onto 0–255 (the papers' 8-bit scale; "
-           "the offset does not change a difference)",
+    "template resampled through the field, over the whole scan grid, after both images are scaled by the "
+    "one factor that maps the template's 0.5–99.5th percentile range onto 0–255 (the papers' 8-bit scale; "
+    "the offset does not change a difference)",
     "cc": "CC: Pearson correlation of the scan and the resampled template over the whole scan grid",
     "mi": "MI: mutual information (Rhee Eq. 5) of the scan and the resampled template over the whole scan grid, "
-          "32 × 32 equal-width bins over each image's range, natural logarithm (nats); the papers do not state "
-          "their bins or base, so only the trend compares",
+    "32 × 32 equal-width bins over each image's range, natural logarithm (nats); the papers do not state "
+    "their bins or base, so only the trend compares",
     "folded_fraction": "folded: fraction of the scan's body voxels whose Jacobian determinant (central differences) "
-                       "is ≤ 0",
+    "is ≤ 0",
     "seconds": "wall-clock seconds of the registration on this machine (2 cores)",
 }
 
@@ -88,13 +88,28 @@ class Table:
         return self.row(label).get(key)
 
     def to_dict(self) -> dict:
-        return {"format": "avw-table", "version": 1, "id": self.id, "title": self.title,
-                "columns": [c.to_dict() for c in self.columns], "rows": self.rows,
-                "definitions": self.definitions, "notes": self.notes, "meta": self.meta}
+        return {
+            "format": "avw-table",
+            "version": 1,
+            "id": self.id,
+            "title": self.title,
+            "columns": [c.to_dict() for c in self.columns],
+            "rows": self.rows,
+            "definitions": self.definitions,
+            "notes": self.notes,
+            "meta": self.meta,
+        }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Table":
+    def from_dict(cls, d: dict) -> Table:
         if d.get("format") != "avw-table":
             raise ValueError(f"not a protocol table (format {d.get('format')!r}, expected 'avw-table')")
-        return cls(d["id"], d["title"], [Column(**c) for c in d["columns"]], list(d["rows"]),
-                   dict(d.get("definitions", {})), list(d.get("notes", [])), dict(d.get("meta", {})))
+        return cls(
+            d["id"],
+            d["title"],
+            [Column(**c) for c in d["columns"]],
+            list(d["rows"]),
+            dict(d.get("definitions", {})),
+            list(d.get("notes", [])),
+            dict(d.get("meta", {})),
+        )

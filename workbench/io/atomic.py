@@ -28,8 +28,17 @@ from pathlib import Path
 
 from workbench.errors import OutputExistsError, OutputWriteError, WorkbenchError
 
-__all__ = ["atomic_path", "atomic_file_group", "write_text_atomic", "split_suffix", "replace_dir", "commit_file",
-           "check_output_folder", "naming_failures", "naming_staged"]
+__all__ = [
+    "atomic_path",
+    "atomic_file_group",
+    "write_text_atomic",
+    "split_suffix",
+    "replace_dir",
+    "commit_file",
+    "check_output_folder",
+    "naming_failures",
+    "naming_staged",
+]
 
 # Suffixes that only make sense together with the one before them.
 _COMPRESSION_SUFFIXES = {".gz", ".bz2", ".xz", ".zst"}
@@ -63,18 +72,21 @@ def check_output_folder(path: str | os.PathLike, option: str) -> Path:
     p = Path(path)
     folder = p.parent if str(p.parent) else Path(".")
     if folder.exists() and not folder.is_dir():
-        raise OutputFolderError(f"{option} {p}: {folder} is a file, not a folder; give {option} a path in a "
-                                "folder.")
+        raise OutputFolderError(f"{option} {p}: {folder} is a file, not a folder; give {option} a path in a folder.")
     if not folder.is_dir():
-        raise OutputFolderError(f"{option} {p}: the folder {folder} does not exist; create it (mkdir -p {folder}) "
-                                f"or give {option} a path in an existing folder.")
+        raise OutputFolderError(
+            f"{option} {p}: the folder {folder} does not exist; create it (mkdir -p {folder}) "
+            f"or give {option} a path in an existing folder."
+        )
     import tempfile
 
     try:  # a real write, not os.access: a read-only file system refuses root too
         fd, probe = tempfile.mkstemp(prefix=".avw-write-test-", dir=folder)
     except OSError as e:
-        raise OutputFolderError(f"{option} {p}: cannot write in the folder {folder} ({e.strerror or e}); give "
-                                f"{option} a path in a folder you can write to.") from None
+        raise OutputFolderError(
+            f"{option} {p}: cannot write in the folder {folder} ({e.strerror or e}); give "
+            f"{option} a path in a folder you can write to."
+        ) from None
     os.close(fd)
     os.unlink(probe)
     return p
@@ -86,9 +98,7 @@ def _check_target(final: Path, overwrite: bool) -> None:
     if final.exists() and not overwrite:
         raise OutputExistsError(final)
     if not final.parent.is_dir():
-        raise FileNotFoundError(
-            f"{final}: the output folder {final.parent} does not exist; create it first."
-        )
+        raise FileNotFoundError(f"{final}: the output folder {final.parent} does not exist; create it first.")
 
 
 def _fsync_file(path: Path) -> None:
@@ -277,9 +287,7 @@ def atomic_file_group(final_path: str | os.PathLike, *, overwrite: bool = False)
         shutil.rmtree(tmpdir, ignore_errors=True)
 
 
-def write_text_atomic(
-    path: str | os.PathLike, text: str, *, overwrite: bool = False, encoding: str = "utf-8"
-) -> Path:
+def write_text_atomic(path: str | os.PathLike, text: str, *, overwrite: bool = False, encoding: str = "utf-8") -> Path:
     """Write ``text`` to ``path`` atomically.
 
     Parameters

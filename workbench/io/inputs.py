@@ -17,8 +17,16 @@ from registration.segmentation import SEEDS_FORMAT
 from workbench.errors import InputFileError
 from workbench.io.jsonio import read_json
 
-__all__ = ["read_target_pose", "read_seeds", "read_initial_poses", "read_poses_file", "read_landmarks", "check_limits",
-           "SEEDS_FORMAT", "LANDMARKS_FORMAT"]
+__all__ = [
+    "read_target_pose",
+    "read_seeds",
+    "read_initial_poses",
+    "read_poses_file",
+    "read_landmarks",
+    "check_limits",
+    "SEEDS_FORMAT",
+    "LANDMARKS_FORMAT",
+]
 
 LANDMARKS_FORMAT = "avw-landmarks"
 LANDMARKS_CSV_HEADER = ("scan", "template_x", "template_y", "template_z", "scan_x", "scan_y", "scan_z")
@@ -44,16 +52,20 @@ def read_target_pose(path, skeleton) -> Pose:
     if isinstance(d, dict) and isinstance(d.get("angles"), dict):
         for joint, v in d["angles"].items():
             if not (_is_number(v) or isinstance(v, list) and all(_is_number(x) for x in v)):
-                raise InputFileError(f"{path}: joint {joint!r} needs a list of numbers (degrees, then mm for a "
-                                     f"6-DOF joint; a number alone for a 1-DOF joint), got {v!r}.", path)
+                raise InputFileError(
+                    f"{path}: joint {joint!r} needs a list of numbers (degrees, then mm for a "
+                    f"6-DOF joint; a number alone for a 1-DOF joint), got {v!r}.",
+                    path,
+                )
         try:
             pose = skeleton.pose({k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in d["angles"].items()})
         except (SkeletonError, ValueError) as e:
             raise InputFileError(f"{path}: {e}", path) from e
         check_limits(skeleton, d["angles"], path)
         return pose
-    raise InputFileError(f"{path}: expected an avw-pose file (bone transforms) or {{\"angles\": {{joint: "
-                         "[degrees, ...]}}}}.", path)
+    raise InputFileError(
+        f'{path}: expected an avw-pose file (bone transforms) or {{"angles": {{joint: [degrees, ...]}}}}}}}}.', path
+    )
 
 
 def _is_number(v) -> bool:
@@ -67,8 +79,9 @@ def check_limits(skeleton, angles: dict, where, what: str = "") -> None:
     bad = skeleton.limit_problems({k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in angles.items()})
     if bad:
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
-        where_from = "" if "half a turn" in bad[0] else ", the range of motion of the study's skeleton " \
-                                                         "(skeleton.json, 'limits')"
+        where_from = (
+            "" if "half a turn" in bad[0] else ", the range of motion of the study's skeleton (skeleton.json, 'limits')"
+        )
         raise InputFileError(f"{where}: {what}{bad[0]}{more}{where_from}; give angles within it.", where)
 
 
@@ -76,8 +89,11 @@ def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
     """Read a seeds file; every skeleton bone needs at least one point."""
     d = read_json(path)
     if d.get("format") != SEEDS_FORMAT:
-        raise InputFileError(f"{path}: not a seeds file ('format' is {d.get('format')!r}, expected "
-                             f"{SEEDS_FORMAT!r}); see `workbench pose --help` for the schema.", path)
+        raise InputFileError(
+            f"{path}: not a seeds file ('format' is {d.get('format')!r}, expected "
+            f"{SEEDS_FORMAT!r}); see `workbench pose --help` for the schema.",
+            path,
+        )
     seeds = d.get("seeds")
     if not isinstance(seeds, dict):
         raise InputFileError(f"{path}: 'seeds' must map bone names to lists of [x, y, z] points (mm).", path)
@@ -93,8 +109,7 @@ def read_seeds(path, skeleton) -> dict[str, np.ndarray]:
         if a.ndim == 1:
             a = a[None]
         if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0 or not np.all(np.isfinite(a)):
-            raise InputFileError(f"{path}: seeds of {b!r} must be a list of [x, y, z] points in mm, got {pts!r}.",
-                                 path)
+            raise InputFileError(f"{path}: seeds of {b!r} must be a list of [x, y, z] points in mm, got {pts!r}.", path)
         out[b] = a
     return out
 
@@ -120,8 +135,11 @@ def read_initial_poses(path, scan_ids, skeleton) -> dict[str, np.ndarray]:
             return {sid: check_rigid(np.asarray(t, float), name=f"initial pose of {sid}") for sid, t in scans.items()}
     except ValueError as e:
         raise InputFileError(f"{path}: {e}", path) from e
-    raise InputFileError(f"{path}: expected an 'avw-pose' file or {{'format': 'avw-initial-poses', 'version': 1, "
-                         "'scans': {scan id: 4x4 root transform}}.", path)
+    raise InputFileError(
+        f"{path}: expected an 'avw-pose' file or {{'format': 'avw-initial-poses', 'version': 1, "
+        "'scans': {scan id: 4x4 root transform}}.",
+        path,
+    )
 
 
 def read_poses_file(path) -> tuple:
@@ -129,8 +147,9 @@ def read_poses_file(path) -> tuple:
     d = read_json(path)
     poses = d.get("poses") if isinstance(d, dict) else None
     if not isinstance(poses, list) or not poses:
-        raise InputFileError(f"{path}: expected {{\"poses\": [{{\"id\": ..., \"angles\": {{joint: [...]}}}}]}} "
-                             "with at least one pose.", path)
+        raise InputFileError(
+            f'{path}: expected {{"poses": [{{"id": ..., "angles": {{joint: [...]}}}}]}} with at least one pose.', path
+        )
     out, seen = [], set()
     for i, entry in enumerate(poses):
         if not isinstance(entry, dict) or not isinstance(entry.get("angles"), dict):
@@ -142,8 +161,11 @@ def read_poses_file(path) -> tuple:
         angles = {}
         for joint, values in entry["angles"].items():
             if not isinstance(values, list) or not all(_is_number(v) for v in values):
-                raise InputFileError(f"{path}: poses[{i}] joint {joint!r}: angles must be a list of numbers "
-                                     f"(degrees, then mm for 6-DOF joints), got {values!r}.", path)
+                raise InputFileError(
+                    f"{path}: poses[{i}] joint {joint!r}: angles must be a list of numbers "
+                    f"(degrees, then mm for 6-DOF joints), got {values!r}.",
+                    path,
+                )
             angles[joint] = values
         out.append((pid, angles))
     return tuple(out)
@@ -162,8 +184,7 @@ def read_landmarks(path, scan_ids=None, selected=None) -> dict[str, tuple[np.nda
 
     path = Path(path)
     if not path.is_file():
-        raise InputFileError(f"{path}: no such landmarks file; give --landmarks an existing .json or .csv file.",
-                             path)
+        raise InputFileError(f"{path}: no such landmarks file; give --landmarks an existing .json or .csv file.", path)
     pairs: dict[str, list] = {}
     if path.suffix.lower() == ".csv":
         with open(path, newline="", encoding="utf-8") as f:
@@ -178,15 +199,19 @@ def read_landmarks(path, scan_ids=None, selected=None) -> dict[str, tuple[np.nda
                 if len(r) != 7:
                     raise ValueError
             except ValueError:
-                raise InputFileError(f"{path}: line {n} must be a scan id and 6 numbers (mm), got {r!r}.",
-                                     path) from None
+                raise InputFileError(
+                    f"{path}: line {n} must be a scan id and 6 numbers (mm), got {r!r}.", path
+                ) from None
             pairs.setdefault(r[0].strip(), []).append(v)
     else:
         d = read_json(path)
         if not isinstance(d, dict) or d.get("format") != LANDMARKS_FORMAT or not isinstance(d.get("scans"), dict):
-            raise InputFileError(f"{path}: expected {{\"format\": \"{LANDMARKS_FORMAT}\", \"scans\": {{scan id: "
-                                 "[{\"template\": [x, y, z], \"scan\": [x, y, z]}, ...]}} (mm), or a .csv with the "
-                                 f"header {','.join(LANDMARKS_CSV_HEADER)}.", path)
+            raise InputFileError(
+                f'{path}: expected {{"format": "{LANDMARKS_FORMAT}", "scans": {{scan id: '
+                '[{"template": [x, y, z], "scan": [x, y, z]}, ...]}} (mm), or a .csv with the '
+                f"header {','.join(LANDMARKS_CSV_HEADER)}.",
+                path,
+            )
         for sid, items in d["scans"].items():
             for k, it in enumerate(items if isinstance(items, list) else [None]):
                 try:
@@ -195,8 +220,11 @@ def read_landmarks(path, scan_ids=None, selected=None) -> dict[str, tuple[np.nda
                         raise ValueError
                     v = a + b
                 except (TypeError, KeyError, ValueError):
-                    raise InputFileError(f"{path}: landmark {k} of scan {sid!r} must be {{\"template\": [x, y, z], "
-                                         f"\"scan\": [x, y, z]}} in mm, got {it!r}.", path) from None
+                    raise InputFileError(
+                        f'{path}: landmark {k} of scan {sid!r} must be {{"template": [x, y, z], '
+                        f'"scan": [x, y, z]}} in mm, got {it!r}.',
+                        path,
+                    ) from None
                 pairs.setdefault(str(sid), []).append(v)
     out = {}
     for sid, v in pairs.items():
@@ -212,6 +240,9 @@ def read_landmarks(path, scan_ids=None, selected=None) -> dict[str, tuple[np.nda
         want = ids if selected is None else [str(s) for s in selected]
         few = [s for s in want if len(out.get(s, ((),))[0]) < 4]
         if few:
-            raise InputFileError(f"{path}: scans {few} have fewer than 4 landmarks; give at least 4 per scan "
-                                 "(Kurihara picked 70-150), or fit only the others with --scan ID.", path)
+            raise InputFileError(
+                f"{path}: scans {few} have fewer than 4 landmarks; give at least 4 per scan "
+                "(Kurihara picked 70-150), or fit only the others with --scan ID.",
+                path,
+            )
     return out

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from workbench.io.atomic import write_text_atomic
 from workbench.errors import MissingFileError, UnreadableFileError
+from workbench.io.atomic import write_text_atomic
 
 __all__ = ["read_json", "write_json", "to_jsonable"]
 

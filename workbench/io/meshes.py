@@ -42,8 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from deformation.mesh import SurfaceMesh
-from workbench.io.atomic import atomic_path, split_suffix
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
+from workbench.io.atomic import atomic_path, split_suffix
 
 __all__ = ["MESH_SUFFIXES", "read_mesh", "write_mesh", "read_mesh_point_data"]
 
@@ -82,6 +82,7 @@ def _unreadable(path: Path, fmt: str, detail: str) -> UnreadableFileError:
 # ---------------------------------------------------------------------------
 # Open3D (PLY, STL)
 # ---------------------------------------------------------------------------
+
 
 @contextlib.contextmanager
 def _quiet_open3d() -> Iterator[None]:
@@ -126,7 +127,9 @@ def _check_stl_complete(path: Path) -> None:
     n = int.from_bytes(head[80:84], "little")
     if size < 84 + 50 * n:
         raise _unreadable(
-            path, ".stl", f"truncated: the header declares {n} triangles ({84 + 50 * n} bytes), the file has {size} bytes"
+            path,
+            ".stl",
+            f"truncated: the header declares {n} triangles ({84 + 50 * n} bytes), the file has {size} bytes",
         )
 
 
@@ -149,7 +152,8 @@ def _read_open3d(path: Path, fmt: str) -> SurfaceMesh:
         n_v, n_f = declared.get("vertex", 0), declared.get("face", 0)
         if len(vertices) != n_v or len(triangles) < n_f:
             raise _unreadable(
-                path, fmt,
+                path,
+                fmt,
                 f"truncated: the header declares {n_v} vertices and {n_f} faces, "
                 f"Open3D read {len(vertices)} vertices and {len(triangles)} triangles",
             )
@@ -181,8 +185,13 @@ def _write_open3d(mesh: SurfaceMesh, tmp: Path, fmt: str) -> None:
         m.compute_triangle_normals()  # STL stores a normal per facet; Open3D requires them
     with _quiet_open3d():
         ok = o3d.io.write_triangle_mesh(
-            str(tmp), m, write_ascii=False, compressed=False,
-            write_vertex_normals=False, write_vertex_colors=False, write_triangle_uvs=False,
+            str(tmp),
+            m,
+            write_ascii=False,
+            compressed=False,
+            write_vertex_normals=False,
+            write_vertex_colors=False,
+            write_triangle_uvs=False,
         )
     if not ok or not tmp.is_file():
         raise OSError(f"{tmp}: Open3D could not write the {fmt} file.")
@@ -190,8 +199,24 @@ def _write_open3d(mesh: SurfaceMesh, tmp: Path, fmt: str) -> None:
 
 
 #: bytes of the PLY scalar types Open3D writes
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_PLY_SIZES = {
+    "char": 1,
+    "uchar": 1,
+    "int8": 1,
+    "uint8": 1,
+    "short": 2,
+    "ushort": 2,
+    "int16": 2,
+    "uint16": 2,
+    "int": 4,
+    "uint": 4,
+    "int32": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
 
 
 def _check_binary_written(path: Path, fmt: str, n_vertices: int, n_triangles: int) -> None:
@@ -226,6 +251,7 @@ def _check_binary_written(path: Path, fmt: str, n_vertices: int, n_triangles: in
 # ---------------------------------------------------------------------------
 # OBJ (own reader and writer, exact)
 # ---------------------------------------------------------------------------
+
 
 def _obj_index(token: str, n_vertices: int, path: Path, line_no: int) -> int:
     ref = token.split("/", 1)[0]
@@ -291,6 +317,7 @@ def _write_obj(mesh: SurfaceMesh, tmp: Path) -> None:
 # ---------------------------------------------------------------------------
 # VTP (VTK)
 # ---------------------------------------------------------------------------
+
 
 class _VtkMessages:
     """VTK error and warning text captured during a call."""
@@ -391,8 +418,9 @@ def write_vtk_xml(writer, path: Path) -> None:
     with _capture_vtk_output() as caught:
         ok = writer.Write()
     if ok != 1 or caught.errors:
-        raise OSError(f"{path}: VTK could not write the {path.suffix} file "
-                      f"({'; '.join(caught.errors) or 'unknown error'}).")
+        raise OSError(
+            f"{path}: VTK could not write the {path.suffix} file ({'; '.join(caught.errors) or 'unknown error'})."
+        )
     with open(path, "w", encoding="ascii", newline="") as f:
         f.write(writer.GetOutputString())
 
@@ -400,6 +428,7 @@ def write_vtk_xml(writer, path: Path) -> None:
 # ---------------------------------------------------------------------------
 # Public API
 # ---------------------------------------------------------------------------
+
 
 def read_mesh(path: str | os.PathLike) -> SurfaceMesh:
     """Read a triangle mesh (PLY, OBJ, STL or VTP).
@@ -451,12 +480,12 @@ def read_mesh_point_data(path: str | os.PathLike) -> dict[str, np.ndarray]:
     if caught.errors:
         raise _unreadable(p, ".vtp", caught.errors[0])
     pd = reader.GetOutput().GetPointData()
-    return {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)).astype(np.float64)
-            for i in range(pd.GetNumberOfArrays())}
+    return {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)).astype(np.float64) for i in range(pd.GetNumberOfArrays())}
 
 
-def write_mesh(mesh: SurfaceMesh, path: str | os.PathLike, *, overwrite: bool = False,
-               point_data: dict | None = None) -> Path:
+def write_mesh(
+    mesh: SurfaceMesh, path: str | os.PathLike, *, overwrite: bool = False, point_data: dict | None = None
+) -> Path:
     """Write a triangle mesh atomically (PLY, OBJ, STL or VTP).
 
     Parameters

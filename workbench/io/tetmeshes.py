@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from deformation.tetmesh import TetMesh
-from workbench.io.atomic import atomic_path, split_suffix
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
+from workbench.io.atomic import atomic_path, split_suffix
 from workbench.io.meshes import _capture_vtk_output, write_vtk_xml  # VTK prints errors instead of raising
 
 __all__ = ["WEIGHT_PREFIX", "read_tetmesh", "write_tetmesh", "weight_arrays", "weights_from_point_data"]
@@ -85,11 +85,12 @@ def weights_from_point_data(point_data: dict) -> tuple[tuple[str, ...], np.ndarr
         if a.ndim != 1:
             raise ValueError(f"point-data array {k!r} must hold one value per vertex, got shape {a.shape}")
         cols.append(a)
-    return tuple(k[len(WEIGHT_PREFIX):] for k in names), np.stack(cols, axis=1)
+    return tuple(k[len(WEIGHT_PREFIX) :] for k in names), np.stack(cols, axis=1)
 
 
-def write_tetmesh(mesh: TetMesh, path: str | os.PathLike, *, point_data: dict | None = None,
-                  overwrite: bool = False) -> Path:
+def write_tetmesh(
+    mesh: TetMesh, path: str | os.PathLike, *, point_data: dict | None = None, overwrite: bool = False
+) -> Path:
     """Write a tet mesh (and per-vertex arrays) as a binary VTK XML unstructured grid, atomically.
 
     Parameters
@@ -124,8 +125,10 @@ def write_tetmesh(mesh: TetMesh, path: str | os.PathLike, *, point_data: dict | 
     for name, arr in (point_data or {}).items():
         a = np.asarray(arr)
         if a.shape[:1] != (mesh.n_vertices,) or a.ndim not in (1, 2):
-            raise ValueError(f"{p}: point-data array {name!r} must have {mesh.n_vertices} rows (one per vertex) "
-                             f"and 1 or 2 dimensions, got shape {a.shape}")
+            raise ValueError(
+                f"{p}: point-data array {name!r} must have {mesh.n_vertices} rows (one per vertex) "
+                f"and 1 or 2 dimensions, got shape {a.shape}"
+            )
         if a.dtype.kind not in "fiub":
             raise ValueError(f"{p}: point-data array {name!r} must be numeric, got {a.dtype}")
         if a.dtype.kind == "b":

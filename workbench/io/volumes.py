@@ -75,10 +75,10 @@ import numpy as np
 import SimpleITK as sitk
 
 from deformation.geometry import GridGeometry, Volume, slabs
-from workbench.io.atomic import atomic_file_group, atomic_path, split_suffix
 from workbench.errors import (
     AmbiguousSeriesError,
     DimensionError,
+    ImplausibleGeometryError,
     MissingFileError,
     NonFiniteError,
     PixelTypeError,
@@ -86,7 +86,7 @@ from workbench.errors import (
     UnknownFormatError,
     UnreadableFileError,
 )
-from workbench.errors import ImplausibleGeometryError
+from workbench.io.atomic import atomic_file_group, atomic_path, split_suffix
 
 __all__ = [
     "SUPPORTED_SUFFIXES",
@@ -116,10 +116,21 @@ _IMAGE_IO = {
 # Header formats whose voxels live in a companion file named in the header.
 _DETACHED = {".mhd", ".nhdr"}
 
-_WRITABLE_DTYPES = {np.dtype(t) for t in (
-    np.uint8, np.int8, np.uint16, np.int16, np.uint32, np.int32, np.uint64, np.int64,
-    np.float32, np.float64,
-)}
+_WRITABLE_DTYPES = {
+    np.dtype(t)
+    for t in (
+        np.uint8,
+        np.int8,
+        np.uint16,
+        np.int16,
+        np.uint32,
+        np.int32,
+        np.uint64,
+        np.int64,
+        np.float32,
+        np.float64,
+    )
+}
 
 DICOM = "dicom"
 
@@ -133,6 +144,7 @@ MAX_EXTENT_MM = 4000.0
 # ---------------------------------------------------------------------------
 # Formats and paths
 # ---------------------------------------------------------------------------
+
 
 def _supported_list() -> str:
     return ", ".join(SUPPORTED_SUFFIXES) + ", or a folder holding one DICOM series"
@@ -178,9 +190,7 @@ def image_format(path: str | os.PathLike, *, for_writing: bool = False) -> str:
 def _require_exists(path: Path) -> None:
     if not path.exists():
         where = "" if path.is_absolute() else f" (relative to the working folder {Path.cwd()})"
-        raise MissingFileError(
-            f"{path}: no such file or folder{where}. Check the path and the file name.", path
-        )
+        raise MissingFileError(f"{path}: no such file or folder{where}. Check the path and the file name.", path)
 
 
 def _first_line(e: BaseException) -> str:
@@ -192,6 +202,7 @@ def _first_line(e: BaseException) -> str:
 # ---------------------------------------------------------------------------
 # Pre-read checks: companions of detached headers, complete NIfTI data
 # ---------------------------------------------------------------------------
+
 
 def _detached_data_file(path: Path, fmt: str) -> Path | None:
     """Data file named by a ``.mhd``/``.nhdr`` header, or None if not a single plain file."""
@@ -286,8 +297,13 @@ def _nifti_layout(header: bytes, path: Path) -> _NiftiLayout:
             f"{path}: corrupt NIfTI header (dim[0]={ndim}, bitpix={bitpix}). Re-export the file.", path
         )
     return _NiftiLayout(
-        dims=tuple(int(d) for d in dims[1 : ndim + 1]), datatype=int(datatype), bitpix=int(bitpix),
-        vox_offset=int(vox_offset), endian=endian, scl_slope=float(slope), scl_inter=float(inter),
+        dims=tuple(int(d) for d in dims[1 : ndim + 1]),
+        datatype=int(datatype),
+        bitpix=int(bitpix),
+        vox_offset=int(vox_offset),
+        endian=endian,
+        scl_slope=float(slope),
+        scl_inter=float(inter),
     )
 
 
@@ -330,8 +346,9 @@ def _scan_nifti(path: Path) -> tuple[_NiftiLayout, _NonFinite]:
     return layout, found
 
 
-def _scan_data_section(f, dtype: np.dtype | None, n_bytes: int, *, drain: bool,
-                       chunk: int = 1 << 22) -> tuple[int, _NonFinite]:
+def _scan_data_section(
+    f, dtype: np.dtype | None, n_bytes: int, *, drain: bool, chunk: int = 1 << 22
+) -> tuple[int, _NonFinite]:
     """Read up to ``n_bytes`` of data from ``f``; return the count read and the non-finite floats."""
     item = dtype.itemsize if dtype is not None else 1
     n_read, carry = 0, b""
@@ -386,6 +403,7 @@ def _nifti_read_name(path: Path) -> Iterator[Path]:
 # DICOM series
 # ---------------------------------------------------------------------------
 
+
 def _dicom_tag(reader: sitk.ImageFileReader, tag: str) -> str | None:
     return reader.GetMetaData(tag).strip() if reader.HasMetaDataKey(tag) else None
 
@@ -403,8 +421,9 @@ def _dicom_series_files(folder: Path, series_uid: str | None) -> list[str]:
     try:
         ids = list(sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)))
     except RuntimeError as e:
-        raise UnreadableFileError(f"{folder}: could not scan the folder for DICOM files ({_first_line(e)}).",
-                                  folder) from e
+        raise UnreadableFileError(
+            f"{folder}: could not scan the folder for DICOM files ({_first_line(e)}).", folder
+        ) from e
     if not ids:
         raise UnreadableFileError(
             f"{folder}: no DICOM series found in this folder (sub-folders are not searched). "
@@ -509,13 +528,15 @@ def _dicom_geometry(folder: Path, series_uid: str | None) -> GridGeometry:
     if pos is not None:
         spacing[2] = abs(pos[-1] - pos[0]) / (len(pos) - 1)
     _require_plausible_geometry((nx, ny, len(files)), spacing, folder)
-    return GridGeometry(size=(nx, ny, len(files)), spacing=spacing, origin=first.GetOrigin(),
-                        direction=first.GetDirection())
+    return GridGeometry(
+        size=(nx, ny, len(files)), spacing=spacing, origin=first.GetOrigin(), direction=first.GetDirection()
+    )
 
 
 # ---------------------------------------------------------------------------
 # Reading
 # ---------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class _Loaded:
@@ -568,7 +589,7 @@ def _read_sitk(path: str | os.PathLike, *, series_uid: str | None = None) -> _Lo
     reader = sitk.ImageFileReader()
     reader.SetImageIO(_IMAGE_IO[fmt])
     try:
-        with (_nifti_read_name(p) if nifti is not None else contextlib.nullcontext(p)) as name:
+        with _nifti_read_name(p) if nifti is not None else contextlib.nullcontext(p) as name:
             reader.SetFileName(str(name))
             image = reader.Execute()
     except RuntimeError as e:
@@ -592,12 +613,16 @@ def _require_plausible_geometry(size, spacing, path: Path) -> None:
         raise ImplausibleGeometryError(
             f"{path}: voxel spacing {said} is outside {lo:g}–{hi:g} mm, which no scan of a body has; the header's "
             "spacing is wrong (metres or micrometres for millimetres?). Fix the spacing in the header, e.g. with "
-            "SimpleITK's image.SetSpacing(...) and WriteImage, or 3D Slicer's Volumes module.", path)
+            "SimpleITK's image.SetSpacing(...) and WriteImage, or 3D Slicer's Volumes module.",
+            path,
+        )
     extent = [float(n) * float(v) for n, v in zip(size, spacing)]
     if max(extent) > MAX_EXTENT_MM:
         raise ImplausibleGeometryError(
             f"{path}: a field of view of {' x '.join(f'{e:g}' for e in extent)} mm is longer than {MAX_EXTENT_MM:g} "
-            "mm along an axis, which no scan of a body has; check the header's spacing and size.", path)
+            "mm along an axis, which no scan of a body has; check the header's spacing and size.",
+            path,
+        )
 
 
 def _require_3d(image: sitk.Image, path: Path, what: str) -> None:
@@ -605,8 +630,8 @@ def _require_3d(image: sitk.Image, path: Path, what: str) -> None:
     if dim != 3:
         hint = (
             " If this is one slice of a DICOM series, read the folder that holds all slices."
-            if dim == 2 else
-            " Split the extra dimension (e.g. time points) into separate 3-D files."
+            if dim == 2
+            else " Split the extra dimension (e.g. time points) into separate 3-D files."
         )
         raise DimensionError(
             f"{path}: the image is {dim}-D (size {image.GetSize()}), but a 3-D {what} is needed.{hint}",
@@ -632,16 +657,18 @@ def _check_finite(data: np.ndarray, path: Path, what: str, fix: str) -> None:
     )
 
 
-_FIX_READ = ("Replace these voxels and save the file again: `workbench clean-image FILE --out CLEAN.nii.gz` "
-             "fills them (with --value V, default the image's lowest finite value)")
-_FIX_READ_FIELD = ("Replace these vectors (by zero displacement where nothing is known) and save the file again, "
-                   "or make the field anew")
-_FIX_WRITE = ("Nothing was written. Replace or mask these voxels first (e.g. numpy.nan_to_num)")
+_FIX_READ = (
+    "Replace these voxels and save the file again: `workbench clean-image FILE --out CLEAN.nii.gz` "
+    "fills them (with --value V, default the image's lowest finite value)"
+)
+_FIX_READ_FIELD = (
+    "Replace these vectors (by zero displacement where nothing is known) and save the file again, "
+    "or make the field anew"
+)
+_FIX_WRITE = "Nothing was written. Replace or mask these voxels first (e.g. numpy.nan_to_num)"
 
 
-def read_volume(
-    path: str | os.PathLike, *, series_uid: str | None = None, allow_nonfinite: bool = False
-) -> Volume:
+def read_volume(path: str | os.PathLike, *, series_uid: str | None = None, allow_nonfinite: bool = False) -> Volume:
     """Read a scalar 3-D image (intensities) with its geometry.
 
     Parameters
@@ -687,8 +714,8 @@ def read_volume(
     data = loaded.voxels()
     if np.iscomplexobj(data):
         raise PixelTypeError(
-            f"{p}: complex voxels ({image.GetPixelIDTypeAsString()}); save the magnitude "
-            "image instead.", p)
+            f"{p}: complex voxels ({image.GetPixelIDTypeAsString()}); save the magnitude image instead.", p
+        )
     if not allow_nonfinite and data.dtype.kind == "f":
         _check_finite(data, p, "volume", _FIX_READ + ".")
     return Volume(data, GridGeometry.from_sitk(image))
@@ -868,13 +895,15 @@ def read_image_geometry(path: str | os.PathLike, *, series_uid: str | None = Non
             p,
         )
     _require_plausible_geometry(reader.GetSize(), reader.GetSpacing(), p)
-    return GridGeometry(size=reader.GetSize(), spacing=reader.GetSpacing(),
-                        origin=reader.GetOrigin(), direction=reader.GetDirection())
+    return GridGeometry(
+        size=reader.GetSize(), spacing=reader.GetSpacing(), origin=reader.GetOrigin(), direction=reader.GetDirection()
+    )
 
 
 # ---------------------------------------------------------------------------
 # Writing
 # ---------------------------------------------------------------------------
+
 
 def _output_path(volume, path: str | os.PathLike) -> Path:
     """Check the arguments common to all writers before looking at the data."""
@@ -999,9 +1028,7 @@ def write_volume(
     return _write_sitk(_image_from(volume, data, is_vector=False), p, overwrite=overwrite, compress=compress)
 
 
-def write_labels(
-    volume: Volume, path: str | os.PathLike, *, overwrite: bool = False, compress: bool = True
-) -> Path:
+def write_labels(volume: Volume, path: str | os.PathLike, *, overwrite: bool = False, compress: bool = True) -> Path:
     """Write an integer label map with its geometry, atomically.
 
     Parameters
@@ -1067,9 +1094,7 @@ def write_displacement(
     p = _output_path(volume, path)
     data = volume.data
     if data.ndim != 4 or data.shape[3] != 3:
-        raise ValueError(
-            f"{p}: a displacement field needs data of shape (nz, ny, nx, 3), got {data.shape}."
-        )
+        raise ValueError(f"{p}: a displacement field needs data of shape (nz, ny, nx, 3), got {data.shape}.")
     if data.dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise TypeError(f"{p}: displacement fields are float32 or float64, got {data.dtype}; cast first.")
     data = _writable_array(data, p, "displacement field")
@@ -1078,8 +1103,9 @@ def write_displacement(
     return _write_sitk(_image_from(volume, data, is_vector=True), p, overwrite=overwrite, compress=compress)
 
 
-def write_vector_image(volume: Volume, path: str | os.PathLike, *, overwrite: bool = False,
-                       compress: bool = True) -> Path:
+def write_vector_image(
+    volume: Volume, path: str | os.PathLike, *, overwrite: bool = False, compress: bool = True
+) -> Path:
     """Write a vector image of any number of components per voxel (e.g. skinning weights), atomically.
 
     ``volume.data`` is ``(nz, ny, nx, c)`` of an integer or float type, finite.

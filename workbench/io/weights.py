@@ -34,8 +34,9 @@ __all__ = ["WEIGHTS_FORMAT", "write_voxel_weights", "read_voxel_weights", "read_
 WEIGHTS_FORMAT = "avw-weights"
 
 
-def write_voxel_weights(weights: SkinningWeights, geometry: GridGeometry, path: str | os.PathLike, *,
-                        overwrite: bool = False, **meta) -> Path:
+def write_voxel_weights(
+    weights: SkinningWeights, geometry: GridGeometry, path: str | os.PathLike, *, overwrite: bool = False, **meta
+) -> Path:
     """Write per-voxel weights on ``geometry`` to ``path`` (the ``.json``) and its two images beside it.
 
     Extra keyword arguments (method, parameters, timings) are recorded in the JSON.
@@ -48,13 +49,22 @@ def write_voxel_weights(weights: SkinningWeights, geometry: GridGeometry, path: 
     stem = path.stem
     shape = geometry.array_shape + (weights.max_influences,)
     idx_name, val_name = f"{stem}_index.mha", f"{stem}_value.mha"
-    write_vector_image(Volume(weights.index.astype(np.uint8 if weights.n_bones <= 256 else np.uint16)
-                              .reshape(shape), geometry), path.parent / idx_name, overwrite=overwrite)
+    write_vector_image(
+        Volume(weights.index.astype(np.uint8 if weights.n_bones <= 256 else np.uint16).reshape(shape), geometry),
+        path.parent / idx_name,
+        overwrite=overwrite,
+    )
     write_vector_image(Volume(weights.value.reshape(shape), geometry), path.parent / val_name, overwrite=overwrite)
-    doc = {"format": WEIGHTS_FORMAT, "version": 1, "bones": list(weights.bones),
-           "max_influences": weights.max_influences, "index": idx_name, "value": val_name,
-           "layout": "per voxel, strongest influence first; unused slots have weight 0",
-           "geometry": geometry.to_dict()}
+    doc = {
+        "format": WEIGHTS_FORMAT,
+        "version": 1,
+        "bones": list(weights.bones),
+        "max_influences": weights.max_influences,
+        "index": idx_name,
+        "value": val_name,
+        "layout": "per voxel, strongest influence first; unused slots have weight 0",
+        "geometry": geometry.to_dict(),
+    }
     doc.update(meta)
     return write_json(doc, path, overwrite=overwrite)
 
@@ -62,8 +72,9 @@ def write_voxel_weights(weights: SkinningWeights, geometry: GridGeometry, path: 
 def _manifest(path: Path) -> dict:
     doc = read_json(path)
     if doc.get("format") != WEIGHTS_FORMAT:
-        raise InputFileError(f"{path}: not a weight map ('format' is {doc.get('format')!r}, expected "
-                             f"{WEIGHTS_FORMAT!r}).", path)
+        raise InputFileError(
+            f"{path}: not a weight map ('format' is {doc.get('format')!r}, expected {WEIGHTS_FORMAT!r}).", path
+        )
     for key in ("bones", "index", "value"):
         if key not in doc:
             raise InputFileError(f"{path}: the weight map lacks the key {key!r}.", path)
@@ -83,11 +94,16 @@ def read_voxel_weights(path: str | os.PathLike) -> tuple[SkinningWeights, GridGe
     doc = _manifest(path)
     idx = read_vector_image(path.parent / doc["index"])
     val = read_vector_image(path.parent / doc["value"], components=idx.n_components)
-    idx.geometry.check_same(val.geometry, names=(doc["index"], doc["value"]),
-                            remedy="write the weight map again (workbench weights --force)")
+    idx.geometry.check_same(
+        val.geometry,
+        names=(doc["index"], doc["value"]),
+        remedy="write the weight map again (workbench weights --force)",
+    )
     if idx.data.dtype.kind not in "iu":
-        raise InputFileError(f"{path.parent / doc['index']}: bone indices must be integers, got "
-                             f"{idx.data.dtype}.", path.parent / doc["index"])
+        raise InputFileError(
+            f"{path.parent / doc['index']}: bone indices must be integers, got {idx.data.dtype}.",
+            path.parent / doc["index"],
+        )
     k = idx.n_components
     try:
         w = SkinningWeights(doc["bones"], idx.data.reshape(-1, k), val.data.reshape(-1, k).astype(np.float64))

@@ -285,8 +285,7 @@ def load_wrist_study(
         for p in positions.values():
             p.flags.writeable = False
         bones.append(WristBone(index=index, vertex_ids=vertex_ids, triangles=sub.triangles, positions=positions))
-    return WristBoneStudy(volunteer=volunteer, poses=poses, bones=bones, debris_sizes=debris,
-                          files=files)
+    return WristBoneStudy(volunteer=volunteer, poses=poses, bones=bones, debris_sizes=debris, files=files)
 
 
 def _rotation_angle_deg(rotation: np.ndarray) -> float:

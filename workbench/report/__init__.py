@@ -57,8 +57,7 @@ def software_versions() -> dict:
     from workbench import __version__
 
     out = {"workbench": __version__, "python": platform.python_version()}
-    for pkg in ("numpy", "scipy", "SimpleITK", "vtk", "open3d", "matplotlib", "numba", "nlopt",
-                "itk-elastix"):
+    for pkg in ("numpy", "scipy", "SimpleITK", "vtk", "open3d", "matplotlib", "numba", "nlopt", "itk-elastix"):
         try:
             out[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
@@ -89,12 +88,26 @@ def _pose_section(page: Page, study) -> None:
     rep = study.pose_report()
     rms = rep.get("eq1_rms_mm")
     rms_text = "not estimated (no joint moved enough)" if rms is None else f"{rms:.2f} mm"
-    parts.append(f"<p>Method: {esc(rep.get('method'))}; Kurihara Eq. 1 RMS residual over all joints and moving "
-                 f"scans: <b>{rms_text}</b> (Kurihara's hand: 0.91 mm).</p>")
-    rows = [[n, j["dof"], j.get("rms_mm"), j.get("n_motions"), "yes" if j.get("estimated") else "kept",
-             "hinge" if j.get("is_hinge") else ""] for n, j in joints["joints"].items()]
-    parts.append(table_html(["joint", "DOF", "Eq. 1 RMS (mm)", "scans", "centre estimated", "kind"], rows,
-                            decimals=[0, 0, 2, 0, 0, 0]))
+    parts.append(
+        f"<p>Method: {esc(rep.get('method'))}; Kurihara Eq. 1 RMS residual over all joints and moving "
+        f"scans: <b>{rms_text}</b> (Kurihara's hand: 0.91 mm).</p>"
+    )
+    rows = [
+        [
+            n,
+            j["dof"],
+            j.get("rms_mm"),
+            j.get("n_motions"),
+            "yes" if j.get("estimated") else "kept",
+            "hinge" if j.get("is_hinge") else "",
+        ]
+        for n, j in joints["joints"].items()
+    ]
+    parts.append(
+        table_html(
+            ["joint", "DOF", "Eq. 1 RMS (mm)", "scans", "centre estimated", "kind"], rows, decimals=[0, 0, 2, 0, 0, 0]
+        )
+    )
     ids = [s for s in study.scan_ids if study.has_pose(s)]
     if ids:
         names = [j.name for j in study.skeleton().joints]
@@ -105,33 +118,47 @@ def _pose_section(page: Page, study) -> None:
                 a = (study.pose(s).joint_angles or {}).get(n)
                 row.append("" if a is None else " / ".join(f"{v:.1f}" for v in np.asarray(a, float)[:3]))
             rows.append(row)
-        parts.append("<h3>Joint angles (degrees: flexion / abduction / twist, intrinsic XYZ in the joint "
-                     "frame)</h3>")
+        parts.append("<h3>Joint angles (degrees: flexion / abduction / twist, intrinsic XYZ in the joint frame)</h3>")
         parts.append(table_html(["joint", *ids], rows, decimals=[0] * (len(ids) + 1)))
     failures = rep.get("failures") or []
     if failures:
         parts.append('<p class="bad">Bones the pose stage flagged (not used for joint centres and angles):</p>')
-        parts.append(table_html(["scan", "bone", "status", "why"],
-                                [[f.get("scan"), f.get("bone"), f.get("status"), f.get("stop")] for f in failures],
-                                decimals=[0, 0, 0, 0]))
+        parts.append(
+            table_html(
+                ["scan", "bone", "status", "why"],
+                [[f.get("scan"), f.get("bone"), f.get("status"), f.get("stop")] for f in failures],
+                decimals=[0, 0, 0, 0],
+            )
+        )
 
 
 def _convergence(log: dict) -> bytes | None:
     levels = (log.get("summary") or {}).get("levels")
     if levels and any("lncc" in lv for lv in levels):
-        series = {f"level {lv['level']} (1/{lv['shrink']})": (np.arange(len(lv["lncc"])), lv["lncc"])
-                  for lv in levels if lv.get("lncc")}
+        series = {
+            f"level {lv['level']} (1/{lv['shrink']})": (np.arange(len(lv["lncc"])), lv["lncc"])
+            for lv in levels
+            if lv.get("lncc")
+        }
         less = (["the skin's term"] if any(lv.get("skin_term") for lv in levels) else []) + (
-            ["the membrane energy"] if any(lv.get("noise_share") is not None for lv in levels) else [])
-        return F.line_plot(series, xlabel="taken step",
-                           ylabel=("LNCC" + (" less " + " and ".join(less) if less else "")) + " (higher is better)",
-                           title="dense registration: each level's objective per taken step")
+            ["the membrane energy"] if any(lv.get("noise_share") is not None for lv in levels) else []
+        )
+        return F.line_plot(
+            series,
+            xlabel="taken step",
+            ylabel=("LNCC" + (" less " + " and ".join(less) if less else "")) + " (higher is better)",
+            title="dense registration: each level's objective per taken step",
+        )
     steps = (log.get("log") or {}).get("steps") if isinstance(log.get("log"), dict) else None
     if steps:
         y = [s.get("block_after") for s in steps if s.get("accepted", True)]
         if y:
-            return F.line_plot({"accepted steps": (np.arange(len(y)), y)}, xlabel="accepted step",
-                               ylabel="block metric after", title="Rhee Algorithm 1: block metric per step")
+            return F.line_plot(
+                {"accepted steps": (np.arange(len(y)), y)},
+                xlabel="accepted step",
+                ylabel="block metric after",
+                title="Rhee Algorithm 1: block metric per step",
+            )
     return None
 
 
@@ -158,38 +185,62 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
     for which in F.PLANES:
         ts, px = F.plane(scan.data, sp, which, at)
         rs, _ = F.plane(reg.data, sp, which, at)
-        figs.append(page.image(F.encode_jpeg(F.overlay(ts, rs, px, (lo_hi, win_t))),
-                               f"{sid}, {which} plane: registered template (green) over the scan (magenta)"))
-        figs.append(page.toggle(F.encode_jpeg(F.grey(rs, px, win_t)), F.encode_jpeg(F.grey(ts, px, lo_hi)),
-                                f"{sid}, {which}: toggle or flicker between the registered template and the scan"))
+        figs.append(
+            page.image(
+                F.encode_jpeg(F.overlay(ts, rs, px, (lo_hi, win_t))),
+                f"{sid}, {which} plane: registered template (green) over the scan (magenta)",
+            )
+        )
+        figs.append(
+            page.toggle(
+                F.encode_jpeg(F.grey(rs, px, win_t)),
+                F.encode_jpeg(F.grey(ts, px, lo_hi)),
+                f"{sid}, {which}: toggle or flicker between the registered template and the scan",
+            )
+        )
     if start is not None:
         ts, px = F.plane(scan.data, sp, "yz", at)
         ss, _ = F.plane(start.data, sp, "yz", at)
-        figs.append(page.image(F.encode_jpeg(F.overlay(ts, ss, px, (lo_hi, win_t))),
-                               f"{sid}, yz plane: the start (articulated initialisation, green) over the scan"))
+        figs.append(
+            page.image(
+                F.encode_jpeg(F.overlay(ts, ss, px, (lo_hi, win_t))),
+                f"{sid}, yz plane: the start (articulated initialisation, green) over the scan",
+            )
+        )
     # where the registration moved the start: |correction| (a control-point map for Rhee's method)
     d = corr.data if init is None else corr.data - init.data
     mag = np.linalg.norm(np.asarray(d, np.float64), axis=-1)
     vmax = float(max(np.percentile(mag, 99.5), 1e-3))
     ms, px = F.plane(mag, sp, "yz", at)
-    figs.append(page.image(F.encode_png(F.colour_map(ms, px, 0.0, vmax, cmap="viridis")),
-                           f"{sid}, yz plane: the registration's own displacement beyond its start, 0–{vmax:.1f} mm"))
+    figs.append(
+        page.image(
+            F.encode_png(F.colour_map(ms, px, 0.0, vmax, cmap="viridis")),
+            f"{sid}, yz plane: the registration's own displacement beyond its start, 0–{vmax:.1f} mm",
+        )
+    )
     det = jacobian_determinant(corr)
     folded = det <= 0
     ds, px = F.plane(np.clip(det, 0, 2), sp, "yz", at)
-    figs.append(page.image(F.encode_png(F.colour_map(ds, px, 0.0, 2.0, cmap="coolwarm")),
-                           f"{sid}, yz plane: Jacobian determinant 0–2 (blue compresses, red expands); "
-                           f"{int(folded.sum())} voxels of the grid with det ≤ 0"))
+    figs.append(
+        page.image(
+            F.encode_png(F.colour_map(ds, px, 0.0, 2.0, cmap="coolwarm")),
+            f"{sid}, yz plane: Jacobian determinant 0–2 (blue compresses, red expands); "
+            f"{int(folded.sum())} voxels of the grid with det ≤ 0",
+        )
+    )
     if truth:
         emax = float(max(np.percentile(err[body], 99), 0.5)) if body.any() else 1.0
         for which in ("xy", "yz"):
             es, px = F.plane(err, sp, which, at)
             bs, _ = F.plane(body, sp, which, at)
             ts, _ = F.plane(scan.data, sp, which, at)
-            figs.append(page.image(F.encode_png(F.colour_map(es, px, 0.0, emax, mask=bs, background=ts,
-                                                             window=lo_hi)),
-                                   f"{sid}, {which}: error |recovered − true| template position over the body, "
-                                   f"0–{emax:.1f} mm (magma; grey outside the body)"))
+            figs.append(
+                page.image(
+                    F.encode_png(F.colour_map(es, px, 0.0, emax, mask=bs, background=ts, window=lo_hi)),
+                    f"{sid}, {which}: error |recovered − true| template position over the body, "
+                    f"0–{emax:.1f} mm (magma; grey outside the body)",
+                )
+            )
     parts.append('<div class="figs">' + "".join(figs) + "</div>")
 
 
@@ -203,15 +254,32 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
         s = log.get("summary") or {}
         b, a = s.get("similarity_before") or {}, s.get("similarity_after") or {}
         f = s.get("folding") or {}
-        rows.append([sid, s.get("init"), b.get("ssd"), a.get("ssd"), b.get("cc"), a.get("cc"), b.get("mi"), a.get("mi"),
-                     f.get("n_folded")])
-    parts.append("<p>Similarity of the scan and the template resampled through the start (before) and the result "
-                 "(after), over the whole scan grid: SSD mean squared difference (intensity units²), CC Pearson, MI "
-                 "nats with 32 bins. Folded: voxels with Jacobian determinant ≤ 0 as the registration counted them "
-                 "(over the scan's body for the dense method, the whole grid for Rhee's).</p>")
-    parts.append(table_html(["scan", "start", "SSD before", "SSD after", "CC before", "CC after", "MI before",
-                             "MI after", "folded"], rows,
-                            decimals=[0, 0, 1, 1, 3, 3, 3, 3, 0]))
+        rows.append(
+            [
+                sid,
+                s.get("init"),
+                b.get("ssd"),
+                a.get("ssd"),
+                b.get("cc"),
+                a.get("cc"),
+                b.get("mi"),
+                a.get("mi"),
+                f.get("n_folded"),
+            ]
+        )
+    parts.append(
+        "<p>Similarity of the scan and the template resampled through the start (before) and the result "
+        "(after), over the whole scan grid: SSD mean squared difference (intensity units²), CC Pearson, MI "
+        "nats with 32 bins. Folded: voxels with Jacobian determinant ≤ 0 as the registration counted them "
+        "(over the scan's body for the dense method, the whole grid for Rhee's).</p>"
+    )
+    parts.append(
+        table_html(
+            ["scan", "start", "SSD before", "SSD after", "CC before", "CC after", "MI before", "MI after", "folded"],
+            rows,
+            decimals=[0, 0, 1, 1, 3, 3, 3, 3, 0],
+        )
+    )
     for sid in scans:
         if not study.has_registration(sid):
             continue
@@ -220,12 +288,26 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
         if truth:
             v = study.validation(sid)["rows"]
             names = [k for k in ("source", "initialised", "registered") if k in v]
-            parts.append(table_html(["volume", "MED (mm)", "marker MED (mm)", "SSD", "CC", "MI (nats)", "folded"],
-                                    [[n, v[n].get("med_mm"), v[n].get("marker_med_mm"), v[n].get("ssd"), v[n].get("cc"),
-                                      v[n].get("mi"), v[n].get("folded_fraction")] for n in names],
-                                    decimals=[0, 2, 2, 1, 3, 3, 5],
-                                    caption="against the ground truth (validate stage): MED over the scan's body "
-                                            "voxels; folded = fraction of body voxels with det ≤ 0"))
+            parts.append(
+                table_html(
+                    ["volume", "MED (mm)", "marker MED (mm)", "SSD", "CC", "MI (nats)", "folded"],
+                    [
+                        [
+                            n,
+                            v[n].get("med_mm"),
+                            v[n].get("marker_med_mm"),
+                            v[n].get("ssd"),
+                            v[n].get("cc"),
+                            v[n].get("mi"),
+                            v[n].get("folded_fraction"),
+                        ]
+                        for n in names
+                    ],
+                    decimals=[0, 2, 2, 1, 3, 3, 5],
+                    caption="against the ground truth (validate stage): MED over the scan's body "
+                    "voxels; folded = fraction of body voxels with det ≤ 0",
+                )
+            )
         figs = []
         conv = _convergence(study.registration_log(sid))
         if conv is not None:
@@ -233,10 +315,18 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
         markers = study.validation(sid).get("markers") if truth else None
         if markers:
             e = [m["error_mm"] for m in markers]
-            figs.append(page.image(F.bar_plot([m["name"] for m in markers], e, ylabel="error (mm)",
-                                              reference=float(np.mean(e)),
-                                              title=f"{sid}: marker errors (dashed: their mean)"),
-                                   f"{sid}: each skin marker's |recovered − true| template position"))
+            figs.append(
+                page.image(
+                    F.bar_plot(
+                        [m["name"] for m in markers],
+                        e,
+                        ylabel="error (mm)",
+                        reference=float(np.mean(e)),
+                        title=f"{sid}: marker errors (dashed: their mean)",
+                    ),
+                    f"{sid}: each skin marker's |recovered − true| template position",
+                )
+            )
         if pictures:
             cp = _control_points(study, sid)
             if cp is not None:
@@ -266,10 +356,18 @@ def _control_points(study, sid: str):
     lo_hi = F.robust(scan.data)
     at = F.centre_index(np.asarray(scan.data) > lo_hi[0] + 0.15 * (lo_hi[1] - lo_hi[0]))
     sl, px = F.plane(scan.data, g.spacing, "yz", at)
-    png = F.points_plot(sl, px, F.plane_point_coordinates(ijk, g.spacing, "yz"), levels, lo_hi,
-                        title=f"{sid}: control points of the accepted steps")
-    return png, (f"{sid}: the 8 control points of each accepted step of Rhee's Algorithm 1 ({len(cps)} steps), "
-                 f"by block level, projected on the yz plane over the scan's middle slice (Rhee Fig. 9)")
+    png = F.points_plot(
+        sl,
+        px,
+        F.plane_point_coordinates(ijk, g.spacing, "yz"),
+        levels,
+        lo_hi,
+        title=f"{sid}: control points of the accepted steps",
+    )
+    return png, (
+        f"{sid}: the 8 control points of each accepted step of Rhee's Algorithm 1 ({len(cps)} steps), "
+        f"by block level, projected on the yz plane over the scan's middle slice (Rhee Fig. 9)"
+    )
 
 
 #: what the report embeds from a study's renders/ folder (workbench render / workbench animate outputs)
@@ -291,8 +389,7 @@ def _renders_section(page: Page, study) -> None:
         try:
             figs.append(page.video(data, p.name) if p.suffix.lower() == ".mp4" else page.image(data, p.name))
         except ValueError:  # named .png but not a picture: said in the report, the rest still built
-            parts.append(f'<p class="bad">{esc(p)}: not a PNG, JPEG or GIF picture or an MP4 video; '
-                         f'not embedded</p>')
+            parts.append(f'<p class="bad">{esc(p)}: not a PNG, JPEG or GIF picture or an MP4 video; not embedded</p>')
     parts.append('<div class="figs">' + "".join(figs) + "</div>")
 
 
@@ -305,15 +402,23 @@ def _provenance(page: Page, study=None, extra: dict | None = None) -> None:
         for name, e in (study.manifest.get("stages") or {}).items():
             entries = e.get("scans", {}) if "scans" in e else {None: e}
             settings = next((x.get("settings") for x in entries.values() if x.get("settings") is not None), None)
-            rows.append([name, json.dumps(settings, sort_keys=True) if settings is not None else "",
-                         len(entries) if "scans" in e else ""])
+            rows.append(
+                [
+                    name,
+                    json.dumps(settings, sort_keys=True) if settings is not None else "",
+                    len(entries) if "scans" in e else "",
+                ]
+            )
         parts.append(table_html(["stage", "settings", "scans"], rows, decimals=[0, 0, 0]))
-        parts.append(f"<p>Study digest (SHA-256 over every stage's recorded outputs): <code>{study_digest(study)}"
-                     f"</code></p>")
+        parts.append(
+            f"<p>Study digest (SHA-256 over every stage's recorded outputs): <code>{study_digest(study)}</code></p>"
+        )
     for k, val in (extra or {}).items():
         parts.append(f"<p>{esc(k)}: <code>{esc(val)}</code></p>")
-    page.footer.append(f"Articulated Volume Workbench {esc(v['workbench'])} — Kurihara &amp; Miyata 2004; "
-                       "Rhee, Lewis, Neumann &amp; Nayak 2011.")
+    page.footer.append(
+        f"Articulated Volume Workbench {esc(v['workbench'])} — Kurihara &amp; Miyata 2004; "
+        "Rhee, Lewis, Neumann &amp; Nayak 2011."
+    )
 
 
 def study_report(study, *, scans=None, pictures: bool = True) -> str:
@@ -321,9 +426,10 @@ def study_report(study, *, scans=None, pictures: bool = True) -> str:
     ids = list(scans) if scans is not None else study.scan_ids
     truth = any(study.has_truth(s) for s in ids)
     g = study.template().geometry
-    page = Page(f"Validation report: {study.manifest.get('name') or study.root.name}",
-                f"{len(ids)} scans; template {g.describe()}; "
-                f"{'with' if truth else 'without'} ground truth")
+    page = Page(
+        f"Validation report: {study.manifest.get('name') or study.root.name}",
+        f"{len(ids)} scans; template {g.describe()}; {'with' if truth else 'without'} ground truth",
+    )
     _pose_section(page, study)
     _registration_section(page, study, ids, pictures=pictures)
     _renders_section(page, study)
@@ -337,20 +443,33 @@ def _table_section(page: Page, doc: dict) -> None:
     t = Table.from_dict(doc)
     parts = page.section(t.title)
     classes = [r["kind"] if r["kind"] != "ours" else "" for r in t.rows]
-    parts.append(table_html(["", *[f"{c.label} ({c.unit})" if c.unit else c.label for c in t.columns]],
-                            [[r["label"], *[r.get(c.key) for c in t.columns]] for r in t.rows],
-                            decimals=[0, *[c.decimals for c in t.columns]], classes=classes))
+    parts.append(
+        table_html(
+            ["", *[f"{c.label} ({c.unit})" if c.unit else c.label for c in t.columns]],
+            [[r["label"], *[r.get(c.key) for c in t.columns]] for r in t.rows],
+            decimals=[0, *[c.decimals for c in t.columns]],
+            classes=classes,
+        )
+    )
     if t.definitions:
-        parts.append("<dl>" + "".join(f"<dt>{esc(k)}</dt><dd>{esc(v)}</dd>" for k, v in t.definitions.items())
-                     + "</dl>")
+        parts.append(
+            "<dl>" + "".join(f"<dt>{esc(k)}</dt><dd>{esc(v)}</dd>" for k, v in t.definitions.items()) + "</dl>"
+        )
     if t.notes:
         parts.append("<ul>" + "".join(f'<li class="note">{esc(n)}</li>' for n in t.notes) + "</ul>")
     cum = t.meta.get("cumulative_variance")
     if cum:
-        parts.append(page.image(F.line_plot({"library": (np.arange(1, len(cum) + 1), cum)},
-                                            xlabel="eigenposes", ylabel="share of the variance",
-                                            title="cumulative variance (Rhee: 10 > 0.90)"),
-                                "cumulative variance of the hand pose library's principal components"))
+        parts.append(
+            page.image(
+                F.line_plot(
+                    {"library": (np.arange(1, len(cum) + 1), cum)},
+                    xlabel="eigenposes",
+                    ylabel="share of the variance",
+                    title="cumulative variance (Rhee: 10 > 0.90)",
+                ),
+                "cumulative variance of the hand pose library's principal components",
+            )
+        )
 
 
 def tables_report(folder: Path) -> str:
@@ -374,20 +493,27 @@ def tables_report(folder: Path) -> str:
     page = Page(f"Reproduced tables: {folder.name}", f"{len(docs)} tables from {folder}")
     if unreadable:
         parts = page.section("Files not read")
-        parts.append('<p class="bad">These JSON files of the folder could not be read and are not in the report '
-                     '(rerun <code>workbench reproduce</code> for their tables):</p><ul>'
-                     + "".join(f"<li>{esc(u)}</li>" for u in unreadable) + "</ul>")
+        parts.append(
+            '<p class="bad">These JSON files of the folder could not be read and are not in the report '
+            "(rerun <code>workbench reproduce</code> for their tables):</p><ul>"
+            + "".join(f"<li>{esc(u)}</li>" for u in unreadable)
+            + "</ul>"
+        )
     for d in docs:
         _table_section(page, d)
-    studies = sorted(p.parent for p in (folder / "studies").glob("*/study.json")) \
-        if (folder / "studies").is_dir() else []
+    studies = (
+        sorted(p.parent for p in (folder / "studies").glob("*/study.json")) if (folder / "studies").is_dir() else []
+    )
     for root in studies:
         study = read_study(root)
         done = [s for s in study.scan_ids if study.has_registration(s)]
         if not done:
             continue
         _registration_section(page, study, done[-MAX_SCANS_COMPACT:], heading=f"Study {root.name}")
-        page.sections[-1][2].insert(0, f"<p>{len(done)} registered scans; below, the last ({esc(done[-1])}); the "
-                                       f"whole study's report: <code>workbench report {esc(root)} --out {esc(root.name)}.html</code>.</p>")
+        page.sections[-1][2].insert(
+            0,
+            f"<p>{len(done)} registered scans; below, the last ({esc(done[-1])}); the "
+            f"whole study's report: <code>workbench report {esc(root)} --out {esc(root.name)}.html</code>.</p>",
+        )
     _provenance(page, extra={"folder": str(folder)})
     return page.html()

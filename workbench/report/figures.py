@@ -15,8 +15,18 @@ import io
 
 import numpy as np
 
-__all__ = ["PLANES", "plane", "grey", "overlay", "colour_map", "encode_png", "encode_jpeg", "line_plot", "bar_plot",
-           "centre_index"]
+__all__ = [
+    "PLANES",
+    "plane",
+    "grey",
+    "overlay",
+    "colour_map",
+    "encode_png",
+    "encode_jpeg",
+    "line_plot",
+    "bar_plot",
+    "centre_index",
+]
 
 # Index planes of the array [k, j, i] = [z, y, x]: "xy" at a fixed k, "xz" at a fixed j, "yz" at a fixed i.  Not
 # called axial / coronal / sagittal: which anatomical plane an index plane is depends on the scan's direction.
@@ -33,7 +43,9 @@ def centre_index(mask: np.ndarray) -> tuple[int, int, int]:
     return tuple(int((a.min() + a.max()) // 2) for a in idx)
 
 
-def plane(data: np.ndarray, spacing_xyz, which: str, at: tuple[int, int, int]) -> tuple[np.ndarray, tuple[float, float]]:
+def plane(
+    data: np.ndarray, spacing_xyz, which: str, at: tuple[int, int, int]
+) -> tuple[np.ndarray, tuple[float, float]]:
     """A 2-D index plane of ``data`` ``[k, j, i, ...]`` through voxel ``at``, rows running up the picture,
     with its pixel size in mm ``(row, column)``."""
     sx, sy, sz = (float(v) for v in spacing_xyz)
@@ -49,7 +61,7 @@ def plane(data: np.ndarray, spacing_xyz, which: str, at: tuple[int, int, int]) -
     return np.ascontiguousarray(sl[::-1]), px
 
 
-def _resize(img, px_mm) -> "object":
+def _resize(img, px_mm) -> object:
     from PIL import Image
 
     h, w = img.size[1], img.size[0]
@@ -86,8 +98,17 @@ def overlay(target: np.ndarray, template: np.ndarray, px_mm, windows):
     return _resize(Image.fromarray((255 * rgb).astype(np.uint8), "RGB"), px_mm)
 
 
-def colour_map(sl: np.ndarray, px_mm, vmin: float, vmax: float, *, cmap: str = "magma", mask=None,
-               background: np.ndarray | None = None, window=None):
+def colour_map(
+    sl: np.ndarray,
+    px_mm,
+    vmin: float,
+    vmax: float,
+    *,
+    cmap: str = "magma",
+    mask=None,
+    background: np.ndarray | None = None,
+    window=None,
+):
     """A colour-mapped plane (e.g. an error map in mm), grey ``background`` where ``mask`` is false."""
     from matplotlib import colormaps
     from PIL import Image
@@ -172,20 +193,42 @@ def plane_point_coordinates(ijk: np.ndarray, spacing_xyz, which: str) -> np.ndar
     raise ValueError(f"plane must be one of {PLANES}, got {which!r}")
 
 
-def points_plot(background: np.ndarray, px_mm, points_xy_mm: np.ndarray, groups, window: tuple[float, float], *,
-                title: str = "", label: str = "level") -> bytes:
+def points_plot(
+    background: np.ndarray,
+    px_mm,
+    points_xy_mm: np.ndarray,
+    groups,
+    window: tuple[float, float],
+    *,
+    title: str = "",
+    label: str = "level",
+) -> bytes:
     """Points (column, row mm of :func:`plane_point_coordinates`) over a grey plane, one colour per group
     (PNG bytes): Rhee Fig. 9's control points per block level."""
     plt, fig, ax = _figure(5.2, 4.2)
     h, w = background.shape
-    ax.imshow(_unit(np.asarray(background, float), *window), cmap="gray", vmin=0, vmax=1,
-              extent=(0, w * px_mm[1], 0, h * px_mm[0]), origin="upper", interpolation="bilinear")
+    ax.imshow(
+        _unit(np.asarray(background, float), *window),
+        cmap="gray",
+        vmin=0,
+        vmax=1,
+        extent=(0, w * px_mm[1], 0, h * px_mm[0]),
+        origin="upper",
+        interpolation="bilinear",
+    )
     groups = np.asarray(groups)
     pts = np.asarray(points_xy_mm, float).reshape(-1, 2)
     for n, gname in enumerate(sorted(set(groups.tolist()))):
         sel = groups == gname
-        ax.scatter(pts[sel, 0], pts[sel, 1], s=9, color=f"C{n % 10}", label=f"{label} {gname} ({int(sel.sum())})",
-                   edgecolors="none", alpha=0.85)
+        ax.scatter(
+            pts[sel, 0],
+            pts[sel, 1],
+            s=9,
+            color=f"C{n % 10}",
+            label=f"{label} {gname} ({int(sel.sum())})",
+            edgecolors="none",
+            alpha=0.85,
+        )
     ax.set_xlim(0, w * px_mm[1])
     ax.set_ylim(0, h * px_mm[0])
     ax.set_xlabel("mm")

@@ -15,14 +15,18 @@ import math
 __all__ = ["Page", "esc", "table_html"]
 
 CSS = """
-body{font:14px/1.45 system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:0;color:#1d1d22;background:#fafafa}
+body{font:14px/1.45 system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:0;color:#1d1d22;
+background:#fafafa}
 header{background:#2b2540;color:#fff;padding:18px 28px}header h1{margin:0 0 4px;font-size:22px}
-header p{margin:0;opacity:.85}nav{padding:8px 28px;background:#eee9f5;font-size:13px}nav a{margin-right:14px;color:#40306a}
+header p{margin:0;opacity:.85}nav{padding:8px 28px;background:#eee9f5;font-size:13px}
+nav a{margin-right:14px;color:#40306a}
 main{padding:8px 28px 40px;max-width:1280px}section{margin:26px 0}h2{border-bottom:2px solid #8a4fbf;padding-bottom:3px}
 h3{margin:18px 0 6px}table{border-collapse:collapse;margin:8px 0;font-size:13px;background:#fff}
-th,td{border:1px solid #ccc;padding:3px 8px;text-align:right}th{background:#f0ecf6}td:first-child,th:first-child{text-align:left}
+th,td{border:1px solid #ccc;padding:3px 8px;text-align:right}th{background:#f0ecf6}
+td:first-child,th:first-child{text-align:left}
 tr.paper td{color:#5a5a70;font-style:italic}tr.peer td{color:#33506a}
-.figs{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start}figure{margin:0;background:#fff;padding:6px;border:1px solid #ddd}
+.figs{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start}
+figure{margin:0;background:#fff;padding:6px;border:1px solid #ddd}
 figcaption{font-size:12px;color:#444;max-width:440px}.toggle{position:relative;display:inline-block}
 .toggle img.b{position:absolute;left:0;top:0;visibility:hidden}.toggle.show-b img.b{visibility:visible}
 .toggle.flicker img.b{animation:flick 1s steps(1) infinite}@keyframes flick{50%{visibility:visible}}
@@ -95,31 +99,39 @@ class Page:
         return parts
 
     def image(self, data: bytes, caption: str = "", *, alt: str = "") -> str:
-        return (f'<figure><img src="{data_uri(data, _mime(data))}" alt="{esc(alt or caption)}" loading="lazy">'
-                f"<figcaption>{esc(caption)}</figcaption></figure>")
+        return (
+            f'<figure><img src="{data_uri(data, _mime(data))}" alt="{esc(alt or caption)}" loading="lazy">'
+            f"<figcaption>{esc(caption)}</figcaption></figure>"
+        )
 
     def video(self, data: bytes, caption: str = "") -> str:
         """An MP4 (ISO base media: ``ftyp`` box at byte 4) embedded whole, looping without sound."""
         if data[4:8] != b"ftyp":
             raise ValueError("an embedded video must be MP4")
-        return (f'<figure><video src="{data_uri(data, "video/mp4")}" controls loop muted playsinline '
-                f'preload="metadata"></video><figcaption>{esc(caption)}</figcaption></figure>')
+        return (
+            f'<figure><video src="{data_uri(data, "video/mp4")}" controls loop muted playsinline '
+            f'preload="metadata"></video><figcaption>{esc(caption)}</figcaption></figure>'
+        )
 
     def toggle(self, a: bytes, b: bytes, caption: str, *, names=("registered template", "target scan")) -> str:
         """Two pictures of one size in one frame: ``a`` shown, ``b`` on the button or flickering."""
         self._ids += 1
         i = f"t{self._ids}"
-        return (f'<figure><div class="toggle" id="{i}"><img class="a" src="{data_uri(a, _mime(a))}" '
-                f'alt="{esc(names[0])}"><img class="b" src="{data_uri(b, _mime(b))}" alt="{esc(names[1])}"></div>'
-                f'<br><button onclick="tg(\'{i}\')">{esc(names[0])} / {esc(names[1])}</button>'
-                f'<button onclick="fl(\'{i}\')">flicker</button><figcaption>{esc(caption)}</figcaption></figure>')
+        return (
+            f'<figure><div class="toggle" id="{i}"><img class="a" src="{data_uri(a, _mime(a))}" '
+            f'alt="{esc(names[0])}"><img class="b" src="{data_uri(b, _mime(b))}" alt="{esc(names[1])}"></div>'
+            f"<br><button onclick=\"tg('{i}')\">{esc(names[0])} / {esc(names[1])}</button>"
+            f"<button onclick=\"fl('{i}')\">flicker</button><figcaption>{esc(caption)}</figcaption></figure>"
+        )
 
     def html(self) -> str:
         nav = "".join(f'<a href="#{a}">{esc(h)}</a>' for a, h, _ in self.sections)
         body = "".join(f'<section id="{a}"><h2>{esc(h)}</h2>{"".join(p)}</section>' for a, h, p in self.sections)
         foot = "".join(self.footer)
-        return (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{esc(self.title)}</title>'
-                f'<meta name="viewport" content="width=device-width,initial-scale=1"><style>{CSS}</style>'
-                f"<script>{SCRIPT}</script></head><body><header><h1>{esc(self.title)}</h1>"
-                f"<p>{esc(self.subtitle)}</p></header><nav>{nav}</nav><main>{body}<footer>{foot}</footer></main>"
-                "</body></html>\n")
+        return (
+            f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{esc(self.title)}</title>'
+            f'<meta name="viewport" content="width=device-width,initial-scale=1"><style>{CSS}</style>'
+            f"<script>{SCRIPT}</script></head><body><header><h1>{esc(self.title)}</h1>"
+            f"<p>{esc(self.subtitle)}</p></header><nav>{nav}</nav><main>{body}<footer>{foot}</footer></main>"
+            "</body></html>\n"
+        )

@@ -60,13 +60,18 @@ def _segments(study, s: BonesSettings) -> bool:
 def _inputs(study, s: BonesSettings, scan):
     files = {"template": study.path(study.manifest["template"]), "skeleton": study.path(study.manifest["skeleton"])}
     if s.source == "labels" and not study.manifest.get("template_labels"):
-        raise InputFileError(f"{study.manifest_path}: the study has no bone label map ('template_labels'); pass "
-                             "--seeds FILE to segment the template's bones (see `workbench pose --help`).",
-                             study.manifest_path)
+        raise InputFileError(
+            f"{study.manifest_path}: the study has no bone label map ('template_labels'); pass "
+            "--seeds FILE to segment the template's bones (see `workbench pose --help`).",
+            study.manifest_path,
+        )
     if _segments(study, s):
         if s.seeds is None:
-            raise InputFileError(f"{study.root}: the study has no bone label map; pass --seeds FILE to segment the "
-                                 "template's bones (see `workbench pose --help` for the seeds schema).", study.root)
+            raise InputFileError(
+                f"{study.root}: the study has no bone label map; pass --seeds FILE to segment the "
+                "template's bones (see `workbench pose --help` for the seeds schema).",
+                study.root,
+            )
         files["seeds"] = Path(s.seeds)
     else:
         files["labels"] = study.path(study.manifest["template_labels"])
@@ -82,8 +87,11 @@ def _run(ctx) -> dict:
         seeds = read_seeds(s.seeds, skeleton)
         modality = s.modality or guess_modality(template)
         if s.threshold is not None and modality != "ct":
-            raise InputFileError(f"--threshold applies to CT segmentation, but the template segments as "
-                                 f"{modality.upper()}; pass --modality ct if it is a CT.", study.root)
+            raise InputFileError(
+                f"--threshold applies to CT segmentation, but the template segments as "
+                f"{modality.upper()}; pass --modality ct if it is a CT.",
+                study.root,
+            )
         ctx.say(f"segmenting {len(seeds)} bones ({modality.upper()}) from {s.seeds} ...")
         kw = {} if s.threshold is None else {"threshold": s.threshold}
         labels, rep = segment_bones(template, skeleton, seeds, modality=modality, **kw)
@@ -91,32 +99,58 @@ def _run(ctx) -> dict:
             ctx.say(f"segmentation: {w}")
         empty = [b for b, n in rep.voxels.items() if n == 0]
         if empty:
-            raise InputFileError(f"segmentation found no voxels for bones {empty}: " + " ".join(rep.warnings)
-                                 + " — or give the study a label map.", Path(s.seeds))
+            raise InputFileError(
+                f"segmentation found no voxels for bones {empty}: "
+                + " ".join(rep.warnings)
+                + " — or give the study a label map.",
+                Path(s.seeds),
+            )
         out["template_labels.nii.gz"] = Labels(labels)
         out["segmentation.json"] = Json(rep.to_dict())
         source = f"segmented ({modality})"
     else:
-        labels = read_labels(study.path(study.manifest["template_labels"]),
-                             reference=study.path(study.manifest["template"]))
+        labels = read_labels(
+            study.path(study.manifest["template_labels"]), reference=study.path(study.manifest["template"])
+        )
         source = "given"
-    counts = np.bincount(np.asarray(labels.data).ravel().astype(np.int64),
-                         minlength=max(b.label for b in skeleton.bones) + 1)
+    counts = np.bincount(
+        np.asarray(labels.data).ravel().astype(np.int64), minlength=max(b.label for b in skeleton.bones) + 1
+    )
     unknown = unknown_labels(counts, skeleton)
     if unknown:
-        ctx.say(f"warning: {study.template_labels_path()}: {unknown_labels_text(unknown)} not the label of any bone of "
-                f"{study.manifest['skeleton']}; those voxels are taken as soft tissue (give them a bone in the "
-                "skeleton, or 0 in the label map)")
+        ctx.say(
+            f"warning: {study.template_labels_path()}: {unknown_labels_text(unknown)} not the label of any bone of "
+            f"{study.manifest['skeleton']}; those voxels are taken as soft tissue (give them a bone in the "
+            "skeleton, or 0 in the label map)"
+        )
     frames = bone_frames(labels, skeleton)
-    out["bone_frames.json"] = Json({
-        "format": "avw-bone-frames", "version": 1, "units": "mm",
-        "convention": "Rhee §3.1: principal axes of the bone's voxels; z the longest, pointing away from the "
-                      "parent; origin at the centre of the box's base; frame maps bone coordinates to template world",
-        "bones": {b: {"frame": f.frame.tolist(), "half_extents_mm": f.half_extents.tolist(),
-                      "centroid": f.centroid.tolist(), "voxels": f.n_voxels} for b, f in frames.items()}})
-    out["bones.json"] = Json({"format": "avw-bones", "version": 1, "source": source,
-                              "voxels": {b.name: int(counts[b.label]) for b in skeleton.bones},
-                              "unknown_labels": {str(k): n for k, n in unknown.items()}})
+    out["bone_frames.json"] = Json(
+        {
+            "format": "avw-bone-frames",
+            "version": 1,
+            "units": "mm",
+            "convention": "Rhee §3.1: principal axes of the bone's voxels; z the longest, pointing away from the "
+            "parent; origin at the centre of the box's base; frame maps bone coordinates to template world",
+            "bones": {
+                b: {
+                    "frame": f.frame.tolist(),
+                    "half_extents_mm": f.half_extents.tolist(),
+                    "centroid": f.centroid.tolist(),
+                    "voxels": f.n_voxels,
+                }
+                for b, f in frames.items()
+            },
+        }
+    )
+    out["bones.json"] = Json(
+        {
+            "format": "avw-bones",
+            "version": 1,
+            "source": source,
+            "voxels": {b.name: int(counts[b.label]) for b in skeleton.bones},
+            "unknown_labels": {str(k): n for k, n in unknown.items()},
+        }
+    )
     return out
 
 
@@ -132,5 +166,6 @@ def unknown_labels_text(unknown: dict) -> str:
     return f"label id{'s' if len(unknown) > 1 else ''} {ids} {'are' if len(unknown) > 1 else 'is'}"
 
 
-STAGE = Stage(name="bones", folder="bones", per_scan=False, settings_type=BonesSettings, run=_run, inputs=_inputs,
-              version=2)  # 2: bones.json lists the label ids that are no bone's
+STAGE = Stage(
+    name="bones", folder="bones", per_scan=False, settings_type=BonesSettings, run=_run, inputs=_inputs, version=2
+)  # 2: bones.json lists the label ids that are no bone's

@@ -34,7 +34,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from deformation.geometry import every_nth
-
 from workbench.stages.mechanism import Field, Json, Stage
 
 __all__ = ["InitSettings", "STAGE", "METHODS"]
@@ -54,8 +53,9 @@ class InitSettings:
 
     def __post_init__(self):
         if self.method not in METHODS:
-            raise ValueError(f"the init method must be one of {METHODS} (--init polyrigid|vbd|none), "
-                             f"got {self.method!r}")
+            raise ValueError(
+                f"the init method must be one of {METHODS} (--init polyrigid|vbd|none), got {self.method!r}"
+            )
         if self.pose not in ("estimated", "truth"):
             raise ValueError(f"--pose must be 'estimated' or 'truth', got {self.pose!r}")
         if self.unfold and self.method != "vbd":
@@ -64,8 +64,10 @@ class InitSettings:
             if isinstance(self.map_factor, bool) or not isinstance(self.map_factor, int) or self.map_factor < 1:
                 raise ValueError(f"--map-factor must be a whole number ≥ 1, got {self.map_factor!r}")
             if self.method != "polyrigid":
-                raise ValueError("--map-factor sets the polyrigid start's sampling: it needs --init polyrigid (VBD's "
-                                 "maps follow the weights' --grid-factor; workbench run: --set init.map_factor=null)")
+                raise ValueError(
+                    "--map-factor sets the polyrigid start's sampling: it needs --init polyrigid (VBD's "
+                    "maps follow the weights' --grid-factor; workbench run: --set init.map_factor=null)"
+                )
 
 
 def _needs(s: InitSettings):
@@ -88,14 +90,19 @@ def _inputs(study, s: InitSettings, scan):
             for name, path in (("scan", files["scan"]), ("template", files["template"])):
                 g = read_image_geometry(path)
                 if s.map_factor > max_map_factor(g):
-                    raise ValueError(f"--map-factor {s.map_factor} leaves the {name}'s {g.size}-voxel grid less "
-                                     f"than 2 voxels along an axis: at most {max_map_factor(g)} here")
+                    raise ValueError(
+                        f"--map-factor {s.map_factor} leaves the {name}'s {g.size}-voxel grid less "
+                        f"than 2 voxels along an axis: at most {max_map_factor(g)} here"
+                    )
     if s.method != "identity" and s.pose == "truth":
         if not study.has_truth(scan):
             from workbench.study import StudyError
 
-            raise StudyError(f"{study.manifest_path}: scan {scan!r} has no ground truth for --pose truth; use the "
-                             "estimated pose (`workbench pose`).", study.manifest_path)
+            raise StudyError(
+                f"{study.manifest_path}: scan {scan!r} has no ground truth for --pose truth; use the "
+                "estimated pose (`workbench pose`).",
+                study.manifest_path,
+            )
         files["truth_pose"] = study.truth_files(scan)["pose"]
     return files
 
@@ -118,17 +125,29 @@ def _run(ctx) -> dict:
         return _polyrigid(ctx, pose, g_s, flagged)
     weights, body = study.weights(coarse=True)
     f = g_t.factor_of(body.geometry)  # 1, or the weights' --grid-factor (a big template; checked by weights())
-    ctx.say(f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()}"
-            f"{f' (the maps on {every_nth(f)} voxel, as the weights)' if f > 1 else ''} ...")
+    ctx.say(
+        f"{sid}: VBD ({s.pose} pose) onto {g_s.describe()}"
+        f"{f' (the maps on {every_nth(f)} voxel, as the weights)' if f > 1 else ''} ..."
+    )
     transforms = stack_transforms(pose.transforms, weights.bones)
     field, summary = vbd_initial_field(g_t, g_s, weights, transforms, body=body.data, unfold=s.unfold, factor=f)
-    return {"field.mha": Field(field),
-            "init.json": Json({"format": "avw-init", "version": 1, "method": "vbd", "pose": s.pose,
-                               "flagged_bones": flagged,
-                               "direction": "scan_to_template: template position − scan voxel, mm",
-                               "bones": list(weights.bones), "transforms": transforms,
-                               "transforms_are": "each bone's template → scan 4x4 that VBD blended",
-                               "backward_map": summary})}
+    return {
+        "field.mha": Field(field),
+        "init.json": Json(
+            {
+                "format": "avw-init",
+                "version": 1,
+                "method": "vbd",
+                "pose": s.pose,
+                "flagged_bones": flagged,
+                "direction": "scan_to_template: template position − scan voxel, mm",
+                "bones": list(weights.bones),
+                "transforms": transforms,
+                "transforms_are": "each bone's template → scan 4x4 that VBD blended",
+                "backward_map": summary,
+            }
+        ),
+    }
 
 
 def _polyrigid(ctx, pose, g_s, flagged) -> dict:
@@ -151,23 +170,52 @@ def _polyrigid(ctx, pose, g_s, flagged) -> dict:
         return f" (integrated on {every_nth(f)} voxel, exactly where the map jumps; --map-factor)" if f > 1 else ""
 
     ctx.say(f"{sid}: polyrigid flow ({s.pose} pose) onto {g_s.describe()}{on(f_s)} ...")
-    field, flow = polyrigid_initial_field(labels, bone_labels, parents, pose.transforms, g_s, factor=f_s,
-                                          progress=lambda d, n: ctx.report(d, n, "the start on the scan grid"))
+    field, flow = polyrigid_initial_field(
+        labels,
+        bone_labels,
+        parents,
+        pose.transforms,
+        g_s,
+        factor=f_s,
+        progress=lambda d, n: ctx.report(d, n, "the start on the scan grid"),
+    )
     ctx.say(f"{sid}: its forward map on the template grid{on(f_t)} ...")
     forward = flow.template_to_scan(factor=f_t, progress=lambda d, n: ctx.report(d, n, "its forward map"))
     bones = list(sk.bone_names)
-    return {"field.mha": Field(field), "forward.mha": Field(forward),
-            "init.json": Json({"format": "avw-init", "version": 1, "method": "polyrigid", "pose": s.pose,
-                               "flagged_bones": flagged,
-                               "direction": "field: scan_to_template (template position − scan voxel, mm) on the "
-                                            "scan grid; forward: template_to_scan on the template grid",
-                               "bones": bones, "transforms": stack_transforms(pose.transforms, bones),
-                               "transforms_are": "each bone's template → scan 4x4 that the flow blended",
-                               "weights": {"kind": "distance, moving with the bones", "power": flow.power,
-                                           "falloff_mm": flow.falloff_mm},
-                               "rk4_steps": int(flow.steps),
-                               "map_factor": {"scan": int(f_s), "template": int(f_t)}})}
+    return {
+        "field.mha": Field(field),
+        "forward.mha": Field(forward),
+        "init.json": Json(
+            {
+                "format": "avw-init",
+                "version": 1,
+                "method": "polyrigid",
+                "pose": s.pose,
+                "flagged_bones": flagged,
+                "direction": "field: scan_to_template (template position − scan voxel, mm) on the "
+                "scan grid; forward: template_to_scan on the template grid",
+                "bones": bones,
+                "transforms": stack_transforms(pose.transforms, bones),
+                "transforms_are": "each bone's template → scan 4x4 that the flow blended",
+                "weights": {
+                    "kind": "distance, moving with the bones",
+                    "power": flow.power,
+                    "falloff_mm": flow.falloff_mm,
+                },
+                "rk4_steps": int(flow.steps),
+                "map_factor": {"scan": int(f_s), "template": int(f_t)},
+            }
+        ),
+    }
 
 
-STAGE = Stage(name="init", folder="init", per_scan=True, settings_type=InitSettings, run=_run, needs=_needs,
-              inputs=_inputs, version=5)  # 5: the polyrigid start's map factor (big grids); 4: flagged bones
+STAGE = Stage(
+    name="init",
+    folder="init",
+    per_scan=True,
+    settings_type=InitSettings,
+    run=_run,
+    needs=_needs,
+    inputs=_inputs,
+    version=5,
+)  # 5: the polyrigid start's map factor (big grids); 4: flagged bones

@@ -55,20 +55,40 @@ import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from deformation.geometry import every_nth
-
 from workbench import __version__
 from workbench.errors import WorkbenchError
 from workbench.io.atomic import naming_staged, replace_dir
 from workbench.io.jsonio import to_jsonable, write_json
 from workbench.study import STAGE_COMMANDS, Study, StudyError
 
-__all__ = ["Stage", "Event", "Outcome", "StageNotReady", "execute", "stage_status", "file_digest",
-           "Image", "Labels", "Field", "VectorImage", "Json", "Text", "WeightMap", "TetMeshFile", "MeshFile", "CopyFile",
-           "settings_dict", "WORKING_VOXELS", "working_factor", "working_labels", "recorded_times"]
+__all__ = [
+    "Stage",
+    "Event",
+    "Outcome",
+    "StageNotReady",
+    "execute",
+    "stage_status",
+    "file_digest",
+    "Image",
+    "Labels",
+    "Field",
+    "VectorImage",
+    "Json",
+    "Text",
+    "WeightMap",
+    "TetMeshFile",
+    "MeshFile",
+    "CopyFile",
+    "settings_dict",
+    "WORKING_VOXELS",
+    "working_factor",
+    "working_labels",
+    "recorded_times",
+]
 
 log = logging.getLogger("workbench")
 
@@ -92,12 +112,16 @@ def working_labels(study, labels, f: int):
         return labels
     sk = study.skeleton()
     coarse = labels.every(f)
-    gone = [b for b in sk.bone_names
-            if (labels.data == sk.label_of(b)).any() and not (coarse.data == sk.label_of(b)).any()]
+    gone = [
+        b for b in sk.bone_names if (labels.data == sk.label_of(b)).any() and not (coarse.data == sk.label_of(b)).any()
+    ]
     if gone:
         path = study.template_labels_path()
-        raise StudyError(f"{path}: bone(s) {', '.join(gone)} have no voxel on {every_nth(f)} voxel of the template; "
-                         "give a smaller --grid-factor (1 keeps the full grid)", path)
+        raise StudyError(
+            f"{path}: bone(s) {', '.join(gone)} have no voxel on {every_nth(f)} voxel of the template; "
+            "give a smaller --grid-factor (1 keeps the full grid)",
+            path,
+        )
     return coarse
 
 
@@ -109,42 +133,49 @@ class StageNotReady(StudyError):
 @dataclass(frozen=True)
 class Image:
     """An intensity volume (float32 NIfTI/MHA/NRRD with its geometry)."""
+
     volume: object
 
 
 @dataclass(frozen=True)
 class Labels:
     """A label map (unsigned integers)."""
+
     volume: object
 
 
 @dataclass(frozen=True)
 class Field:
     """A displacement field (ITK vector image, mm), usable by ``sitk.DisplacementFieldTransform``."""
+
     volume: object
 
 
 @dataclass(frozen=True)
 class VectorImage:
     """A multi-component image (any number of components)."""
+
     volume: object
 
 
 @dataclass(frozen=True)
 class Json:
     """A JSON document (keys sorted, floats round-trip exactly)."""
+
     doc: object
 
 
 @dataclass(frozen=True)
 class Text:
     """A UTF-8 text file."""
+
     text: str
 
 
 @dataclass(frozen=True)
 class WeightMap:
     """A voxel weight map (``.json`` + two vector images, :mod:`workbench.io.weights`)."""
+
     weights: object
     geometry: object
     meta: dict = field(default_factory=dict)
@@ -153,6 +184,7 @@ class WeightMap:
 @dataclass(frozen=True)
 class TetMeshFile:
     """A tetrahedral mesh (VTU) with point arrays."""
+
     mesh: object
     point_data: dict = field(default_factory=dict)
 
@@ -160,6 +192,7 @@ class TetMeshFile:
 @dataclass(frozen=True)
 class MeshFile:
     """A triangle mesh in world mm (PLY, VTP — with named per-vertex arrays —, OBJ or STL by the suffix)."""
+
     mesh: object
     point_data: dict = field(default_factory=dict)
 
@@ -167,6 +200,7 @@ class MeshFile:
 @dataclass(frozen=True)
 class CopyFile:
     """A file copied as it is (e.g. a kept mesh, byte for byte)."""
+
     source: Path
 
 
@@ -202,8 +236,10 @@ def _write_output(obj, path: Path) -> list[Path]:
 
         write_mesh(obj.mesh, path, point_data=obj.point_data or None)
     else:
-        raise TypeError(f"{path.name}: a stage output must be Image, Labels, Field, VectorImage, Json, Text, "
-                        f"WeightMap, TetMeshFile, MeshFile or CopyFile, got {type(obj).__name__}")
+        raise TypeError(
+            f"{path.name}: a stage output must be Image, Labels, Field, VectorImage, Json, Text, "
+            f"WeightMap, TetMeshFile, MeshFile or CopyFile, got {type(obj).__name__}"
+        )
     return [path]
 
 
@@ -354,19 +390,30 @@ def _need_digests(study: Study, stage: Stage, settings, scan, scans, registry) -
             if e is not None and e.get("skipped"):
                 continue  # the need had no work for this unit (e.g. validate without truth)
             if e is None:
-                raise StageNotReady(f"{study.manifest_path}: {stage.name} needs {what}; run {cmd} (or `workbench "
-                                    f"run {study.root}`) first.", study.manifest_path)
+                raise StageNotReady(
+                    f"{study.manifest_path}: {stage.name} needs {what}; run {cmd} (or `workbench "
+                    f"run {study.root}`) first.",
+                    study.manifest_path,
+                )
             if stage_status(study, need, unit, registry=registry) != "done":
-                raise StageNotReady(f"{study.manifest_path}: {what} is out of date (its inputs or a stage before "
-                                    f"it changed since it ran); run {cmd} or `workbench run {study.root}` first.",
-                                    study.manifest_path)
+                raise StageNotReady(
+                    f"{study.manifest_path}: {what} is out of date (its inputs or a stage before "
+                    f"it changed since it ran); run {cmd} or `workbench run {study.root}` first.",
+                    study.manifest_path,
+                )
             out[name if unit is None else f"{name}/{unit}"] = e["outputs_digest"]
     return out
 
 
 def _digest(stage: Stage, settings_json, inputs: dict, needs: dict) -> str:
-    doc = {"stage": stage.name, "stage_version": stage.version, "workbench_version": __version__,
-           "settings": settings_json, "inputs": {k: v["sha256"] for k, v in inputs.items()}, "needs": needs}
+    doc = {
+        "stage": stage.name,
+        "stage_version": stage.version,
+        "workbench_version": __version__,
+        "settings": settings_json,
+        "inputs": {k: v["sha256"] for k, v in inputs.items()},
+        "needs": needs,
+    }
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
@@ -449,8 +496,18 @@ def _dir_digest(files: list[Path], base: Path) -> str:
     return h.hexdigest()
 
 
-def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None, force: bool = False,
-            progress: Callable | None = None, options: dict | None = None, runner=None) -> list[Outcome]:
+def execute(
+    study: Study,
+    stage: Stage,
+    settings,
+    *,
+    registry: dict,
+    scans=None,
+    force: bool = False,
+    progress: Callable | None = None,
+    options: dict | None = None,
+    runner=None,
+) -> list[Outcome]:
     """Run ``stage`` on ``study`` with ``settings`` (every scan, or ``scans``); see the module docstring.
 
     ``registry`` maps stage names to :class:`Stage` objects (for ``needs``);
@@ -475,16 +532,31 @@ def execute(study: Study, stage: Stage, settings, *, registry: dict, scans=None,
         folder = root / stage.folder
         _clean_dead_staging(folder if stage.per_scan else root)
         if stage.per_scan and runner is not None and runner.distributed:
-            return _execute_distributed(study, stage, settings, settings_json, units, need_digests, force, emit,
-                                        options, runner)
+            return _execute_distributed(
+                study, stage, settings, settings_json, units, need_digests, force, emit, options, runner
+            )
         outcomes = []
         n = len(units)
         for i, unit in enumerate(units):
             # One process at a time per unit: a second one waits, then finds the work done (and skips it).
             with _unit_lock(root, stage.name, unit):
                 study.reload()
-                outcomes.append(_execute_unit(study, stage, settings, settings_json, unit, i, n, need_digests[unit],
-                                              force, emit, options, runner))
+                outcomes.append(
+                    _execute_unit(
+                        study,
+                        stage,
+                        settings,
+                        settings_json,
+                        unit,
+                        i,
+                        n,
+                        need_digests[unit],
+                        force,
+                        emit,
+                        options,
+                        runner,
+                    )
+                )
         return outcomes
 
 
@@ -502,8 +574,10 @@ def _upstream_units(study: Study, stage: Stage, settings, units, registry) -> li
             out.add((name, unit or ""))
             recorded = (study.stage_entry(name, unit) or {}).get("settings") or {}
             sets = []
-            for make in (lambda: need.settings_type(**_settings_from_json(need.settings_type, recorded)),
-                         need.settings_type):
+            for make in (
+                lambda: need.settings_type(**_settings_from_json(need.settings_type, recorded)),
+                need.settings_type,
+            ):
                 try:
                     sets.append(make())
                 except (TypeError, ValueError):
@@ -547,16 +621,23 @@ def _unit_lock(root: Path, stage: str, unit, *, shared: bool = False):
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
-def _prepare_unit(study: Study, stage: Stage, settings, settings_json, unit, i: int, n: int, need_digests: dict,
-                  force: bool, emit):
+def _prepare_unit(
+    study: Study, stage: Stage, settings, settings_json, unit, i: int, n: int, need_digests: dict, force: bool, emit
+):
     """An :class:`Outcome` when the unit has nothing to do or is up to date (recorded, reported), else
     ``(digest, inputs)`` for the work."""
     label = f"{stage.name}" + (f" {unit}" if unit else "")
     old = study.stage_entry(stage.name, unit)
     reason = stage.applies(study, settings, unit)
     if reason:
-        entry = {"digest": "", "skipped": reason, "outputs": {}, "outputs_digest": "", "settings": settings_json,
-                 "finished": _now()}
+        entry = {
+            "digest": "",
+            "skipped": reason,
+            "outputs": {},
+            "outputs_digest": "",
+            "settings": settings_json,
+            "finished": _now(),
+        }
         if old is None or old.get("skipped") != reason or old.get("settings") != settings_json:
             study.record(stage.name, entry, unit, stage_info={"folder": stage.folder})
         emit(Event(stage.name, unit, i + 1, n, f"{label}: nothing to do ({reason})", "skip"))
@@ -610,8 +691,12 @@ def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    return {"names": list(outputs), "outputs_digest": out_digest, "seconds": time.perf_counter() - t0,
-            "timings": timings}
+    return {
+        "names": list(outputs),
+        "outputs_digest": out_digest,
+        "seconds": time.perf_counter() - t0,
+        "timings": timings,
+    }
 
 
 @contextlib.contextmanager
@@ -633,14 +718,33 @@ def _keeping_sigint():
             signal.signal(signal.SIGINT, handler)
 
 
-def _record_unit(study: Study, stage: Stage, settings_json, unit, i: int, n: int, digest: str, inputs: dict,
-                 need_digests: dict, done: dict, emit) -> Outcome:
+def _record_unit(
+    study: Study,
+    stage: Stage,
+    settings_json,
+    unit,
+    i: int,
+    n: int,
+    digest: str,
+    inputs: dict,
+    need_digests: dict,
+    done: dict,
+    emit,
+) -> Outcome:
     rel = _unit_folder(study, stage, unit).relative_to(study.root)
     seconds = done["seconds"]
-    entry = {"digest": digest, "settings": settings_json, "inputs": inputs, "needs": need_digests,
-             "outputs": {name: str(rel / name) for name in done["names"]}, "outputs_digest": done["outputs_digest"],
-             "seconds": round(seconds, 3), "finished": _now(), "workbench_version": __version__,
-             "stage_version": stage.version}
+    entry = {
+        "digest": digest,
+        "settings": settings_json,
+        "inputs": inputs,
+        "needs": need_digests,
+        "outputs": {name: str(rel / name) for name in done["names"]},
+        "outputs_digest": done["outputs_digest"],
+        "seconds": round(seconds, 3),
+        "finished": _now(),
+        "workbench_version": __version__,
+        "stage_version": stage.version,
+    }
     if done.get("timings"):  # the stage's own per-step seconds (its files hold no time)
         entry["timings"] = done["timings"]
     if "seed" in settings_json:
@@ -652,8 +756,20 @@ def _record_unit(study: Study, stage: Stage, settings_json, unit, i: int, n: int
     return Outcome(stage.name, unit, "ran", seconds, entry)
 
 
-def _execute_unit(study: Study, stage: Stage, settings, settings_json, unit, i: int, n: int, need_digests: dict,
-                  force: bool, emit, options, runner=None) -> Outcome:
+def _execute_unit(
+    study: Study,
+    stage: Stage,
+    settings,
+    settings_json,
+    unit,
+    i: int,
+    n: int,
+    need_digests: dict,
+    force: bool,
+    emit,
+    options,
+    runner=None,
+) -> Outcome:
     prep = _prepare_unit(study, stage, settings, settings_json, unit, i, n, need_digests, force, emit)
     if isinstance(prep, Outcome):
         return prep
@@ -697,8 +813,9 @@ def _file_stats(folder: Path, names) -> dict | None:
         return None
 
 
-def _execute_distributed(study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit,
-                         options, runner) -> list[Outcome]:
+def _execute_distributed(
+    study: Study, stage: Stage, settings, settings_json, units, need_digests, force, emit, options, runner
+) -> list[Outcome]:
     """The scans of a per-scan stage as Dask tasks (:mod:`workbench.scale`); the manifest is written here only.
 
     Each scan's old entry is forgotten before its task is sent (a task swaps its folder itself), so a run
@@ -720,8 +837,16 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
                 study.forget(stage.name, unit)
         jobs.append((i, unit, prep))
     if jobs:
-        emit(Event(stage.name, None, 0, 0, f"{stage.name}: {len(jobs)} scan(s) as Dask tasks on "
-                                           f"{runner.description}", "message"))
+        emit(
+            Event(
+                stage.name,
+                None,
+                0,
+                0,
+                f"{stage.name}: {len(jobs)} scan(s) as Dask tasks on {runner.description}",
+                "message",
+            )
+        )
         for i, unit, _ in jobs:
             emit(Event(stage.name, unit, i, n, f"{stage.name} {unit}: running", "start"))
 
@@ -733,12 +858,21 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
                     # another process ran this scan between our task's swap and now (the lock is not held
                     # across the task): the folder is its run's, and so is the manifest entry it recorded
                     entry = study.stage_entry(stage.name, unit) or {}
-                    emit(Event(stage.name, unit, i + 1, n, f"{stage.name} {unit}: done by another process "
-                                                           "meanwhile; its result kept", "done"))
+                    emit(
+                        Event(
+                            stage.name,
+                            unit,
+                            i + 1,
+                            n,
+                            f"{stage.name} {unit}: done by another process meanwhile; its result kept",
+                            "done",
+                        )
+                    )
                     outcomes[i] = Outcome(stage.name, unit, "skipped", 0.0, entry)
                     return
-                outcomes[i] = _record_unit(study, stage, settings_json, unit, i, n, digest, inputs,
-                                           need_digests[unit], done, emit)
+                outcomes[i] = _record_unit(
+                    study, stage, settings_json, unit, i, n, digest, inputs, need_digests[unit], done, emit
+                )
 
         fields = {f.name for f in dataclasses.fields(Event)}  # Dask adds the sender ('worker') to each message
 
@@ -746,13 +880,20 @@ def _execute_distributed(study: Study, stage: Stage, settings, settings_json, un
             emit(Event(**{k: v for k, v in message.items() if k in fields}))
 
         with runner.forwarding(forwarded) as topic:
-            runner.map(_unit_task, [(str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}),
-                                     topic) for _, unit, _ in jobs], name=f"{stage.name}", on_result=recorded)
+            runner.map(
+                _unit_task,
+                [
+                    (str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}), topic)
+                    for _, unit, _ in jobs
+                ],
+                name=f"{stage.name}",
+                on_result=recorded,
+            )
     return [outcomes[i] for i in range(n)]
 
 
 def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+    return datetime.now(UTC).isoformat(timespec="seconds")
 
 
 def recorded_times(study: Study, order=()) -> list[str]:
@@ -762,8 +903,11 @@ def recorded_times(study: Study, order=()) -> list[str]:
     lines = []
     for name in [n for n in order if n in stages] + [n for n in stages if n not in order]:
         e = stages[name]
-        units = [u for u in ((e.get("scans") or {}).values() if "scans" in e else [e])
-                 if isinstance(u, dict) and "seconds" in u]
+        units = [
+            u
+            for u in ((e.get("scans") or {}).values() if "scans" in e else [e])
+            if isinstance(u, dict) and "seconds" in u
+        ]
         if not units:
             continue
         steps: dict = {}

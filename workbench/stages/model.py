@@ -59,8 +59,11 @@ def _inputs(study, s: ModelSettings, scan):
             if not t:
                 from workbench.study import StudyError
 
-                raise StudyError(f"{study.manifest_path}: scan {sid!r} has no ground truth to build a model from; "
-                                 "use --source registration (after `workbench register`).", study.manifest_path)
+                raise StudyError(
+                    f"{study.manifest_path}: scan {sid!r} has no ground truth to build a model from; "
+                    "use --source registration (after `workbench register`).",
+                    study.manifest_path,
+                )
             files[f"truth_pose/{sid}"] = t["pose"]
             files[f"truth/{sid}"] = t.get("template_to_scan") or t["correspondence"]
     return files
@@ -69,8 +72,8 @@ def _inputs(study, s: ModelSettings, scan):
 def _run(ctx) -> dict:
     from deformation.evd import ExampleVolumeDeformation, fill_unmatched
     from deformation.geometry import Volume
-    from deformation.resample import FOLDED, invert_scan_to_template
     from deformation.posespace import pose_vector
+    from deformation.resample import FOLDED, invert_scan_to_template
     from deformation.skinning import stack_transforms
 
     study, s = ctx.study, ctx.settings
@@ -97,8 +100,9 @@ def _run(ctx) -> dict:
                 ijk = np.rint(g.world_to_index((truth.data + truth.geometry.world_coordinates()).reshape(-1, 3)))
                 ijk = np.clip(ijk.astype(np.int64), 0, np.asarray(g.size) - 1)
                 prefer = body.data[ijk[:, 2], ijk[:, 1], ijk[:, 0]].reshape(truth.geometry.array_shape).astype(bool)
-                bm = invert_scan_to_template(truth, g, transforms=stack_transforms(pose.transforms, sk.bone_names),
-                                             prefer=prefer)
+                bm = invert_scan_to_template(
+                    truth, g, transforms=stack_transforms(pose.transforms, sk.bone_names), prefer=prefer
+                )
                 pos, found = bm.template_positions(), bm.status <= FOLDED
                 how = "inverting the truth's scan → template field"
         pos = fill_unmatched(g, weights, pose.transforms, pos, found)
@@ -108,23 +112,38 @@ def _run(ctx) -> dict:
         ctx.report(k + 1, len(ids), f"{sid}: template → scan positions from {how}")
     model = ExampleVolumeDeformation.from_correspondences(g, weights, sk, poses, fields)
     del fields
-    disp = model.displacements[:, :len(ids)].reshape(g.array_shape + (3 * len(ids),))
-    doc = {"format": "avw-evd", "version": 1, "source": s.source, "scans": list(ids),
-           "joint_order": [j.name for j in sk.joints],
-           "pose_vectors": {sid: pose_vector(sk, p).tolist() for sid, p in zip(ids, poses)},
-           "displacements": "evd_displacements.mha",
-           "layout": "per voxel: (d_x, d_y, d_z) of each training scan in turn, mm, template frame (Rhee Eq. 7)",
-           "poses": "estimated (pose stage)" if s.source == "registration" else "ground truth",
-           "template_example": model.template_example,
-           "template_example_is": "the template's rest pose as one more example with zero displacement "
-                                  "(Kurihara's base pose S0), included unless a training scan is near rest "
-                                  "(deformation.evd.wants_template_example)",
-           "weights_sha256": weights.digest(), "unmatched_voxels": unmatched,
-           "unmatched": "template voxels with no correspondence in that scan (outside its field of view, or the "
-                        "inverse not found): d_k = 0 there, i.e. VBD",
-           "workbench_version": __version__}
+    disp = model.displacements[:, : len(ids)].reshape(g.array_shape + (3 * len(ids),))
+    doc = {
+        "format": "avw-evd",
+        "version": 1,
+        "source": s.source,
+        "scans": list(ids),
+        "joint_order": [j.name for j in sk.joints],
+        "pose_vectors": {sid: pose_vector(sk, p).tolist() for sid, p in zip(ids, poses)},
+        "displacements": "evd_displacements.mha",
+        "layout": "per voxel: (d_x, d_y, d_z) of each training scan in turn, mm, template frame (Rhee Eq. 7)",
+        "poses": "estimated (pose stage)" if s.source == "registration" else "ground truth",
+        "template_example": model.template_example,
+        "template_example_is": "the template's rest pose as one more example with zero displacement "
+        "(Kurihara's base pose S0), included unless a training scan is near rest "
+        "(deformation.evd.wants_template_example)",
+        "weights_sha256": weights.digest(),
+        "unmatched_voxels": unmatched,
+        "unmatched": "template voxels with no correspondence in that scan (outside its field of view, or the "
+        "inverse not found): d_k = 0 there, i.e. VBD",
+        "workbench_version": __version__,
+    }
     return {"evd_displacements.mha": VectorImage(Volume(disp, g)), "evd.json": Json(doc)}
 
 
-STAGE = Stage(name="model", folder="model", per_scan=False, settings_type=ModelSettings, run=_run, needs=_needs,
-              inputs=_inputs, uses=lambda study, s: s.scans, version=2)  # 2: the template's rest pose as an example
+STAGE = Stage(
+    name="model",
+    folder="model",
+    per_scan=False,
+    settings_type=ModelSettings,
+    run=_run,
+    needs=_needs,
+    inputs=_inputs,
+    uses=lambda study, s: s.scans,
+    version=2,
+)  # 2: the template's rest pose as an example

@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 
 from deformation.geometry import every_nth
-
 from workbench.io.inputs import read_initial_poses
 from workbench.io.volumes import read_image_geometry
 from workbench.stages.mechanism import Json, Stage, Text, working_factor, working_labels
@@ -70,8 +69,10 @@ class PoseSettings:
         if self.max_joint_gap_mm is not None and self.max_joint_gap_mm < 0:
             raise ValueError(f"--max-joint-gap-mm must be ≥ 0 (0 switches the check off), got {self.max_joint_gap_mm}")
         if self.outlier_factor is not None and (self.outlier_factor < 0 or 0 < self.outlier_factor <= 1):
-            raise ValueError(f"--outlier-factor must be 0 (off) or above 1 (a multiple of the joint's median miss), "
-                             f"got {self.outlier_factor}")
+            raise ValueError(
+                f"--outlier-factor must be 0 (off) or above 1 (a multiple of the joint's median miss), "
+                f"got {self.outlier_factor}"
+            )
 
 
 def finite(obj):
@@ -86,8 +87,11 @@ def finite(obj):
 
 
 def _inputs(study, s: PoseSettings, scan):
-    files = {"template": study.path(study.manifest["template"]), "skeleton": study.path(study.manifest["skeleton"]),
-             "labels": study.template_labels_path()}
+    files = {
+        "template": study.path(study.manifest["template"]),
+        "skeleton": study.path(study.manifest["skeleton"]),
+        "labels": study.template_labels_path(),
+    }
     files.update({f"scan/{sid}": study.scan_path(sid) for sid in study.check_scan_ids(s.scans)})
     if s.init not in ("identity", "moments"):
         files["init"] = Path(s.init)
@@ -114,12 +118,16 @@ def _require_bones_in_view(study, ids) -> None:
                 f"{_box_text(lo, hi)} mm; the template's bones lie within {_box_text(centres.min(0), centres.max(0))} "
                 "mm), so no bone could be placed: the pose stage starts every bone where the template has it. "
                 "Check the scan's origin and direction (its header), or start the root bone with --init moments "
-                "or an initial-pose file.", path)
+                "or an initial-pose file.",
+                path,
+            )
 
 
 def _world_box(g) -> tuple[np.ndarray, np.ndarray]:
-    corners = np.array([[i, j, k] for i in (0, g.size[0] - 1) for j in (0, g.size[1] - 1) for k in (0, g.size[2] - 1)],
-                       dtype=np.float64)
+    corners = np.array(
+        [[i, j, k] for i in (0, g.size[0] - 1) for j in (0, g.size[1] - 1) for k in (0, g.size[2] - 1)],
+        dtype=np.float64,
+    )
     w = g.index_to_world(corners)
     return w.min(0), w.max(0)
 
@@ -143,24 +151,37 @@ def _require_placed(study, result) -> None:
         if r.fits and not any(f.ok for f in r.fits.values()):
             why = ", ".join(f"{n} {status}" for status, n in Counter(f.status for f in r.fits.values()).items())
             path = study.scan_path(r.scan_id)
-            raise StudyError(f"{path}: no bone of scan {r.scan_id!r} could be placed ({why}; fits.json is not written)."
-                             " Check that the scan shows the template's body part, its header's origin and "
-                             "direction, or give the root bone a start (--init moments or an initial-pose file).",
-                             path)
+            raise StudyError(
+                f"{path}: no bone of scan {r.scan_id!r} could be placed ({why}; fits.json is not written)."
+                " Check that the scan shows the template's body part, its header's origin and "
+                "direction, or give the root bone a start (--init moments or an initial-pose file).",
+                path,
+            )
 
 
 def _fit_arguments(s: PoseSettings, root_init) -> dict:
     """The arguments of :func:`registration.pose.pose_scans` / ``estimate_poses`` the settings give."""
-    return dict(method=s.method, root_init=root_init, metric=s.metric, interpolation=s.interpolation,
-                prior_deg=s.prior_deg, min_ncc=s.min_ncc, bias_correction=s.bias_correction, margin_mm=s.margin_mm,
-                max_joint_gap_mm=s.max_joint_gap_mm)
+    return dict(
+        method=s.method,
+        root_init=root_init,
+        metric=s.metric,
+        interpolation=s.interpolation,
+        prior_deg=s.prior_deg,
+        min_ncc=s.min_ncc,
+        bias_correction=s.bias_correction,
+        margin_mm=s.margin_mm,
+        max_joint_gap_mm=s.max_joint_gap_mm,
+    )
 
 
 def _working(study, f: int):
     """The template, its labels and a scan reader on the grid the bones are registered on: every ``f``-th voxel
     (intensities smoothed first, :meth:`Volume.every`); the transforms found there are in world mm, as any."""
-    return (study.template().every(f, smooth=True), working_labels(study, study.template_labels(), f),
-            lambda sid: study.scan(sid).every(f, smooth=True))
+    return (
+        study.template().every(f, smooth=True),
+        working_labels(study, study.template_labels(), f),
+        lambda sid: study.scan(sid).every(f, smooth=True),
+    )
 
 
 def _scan_task(shared, sid: str):
@@ -183,8 +204,10 @@ def _run(ctx) -> dict:
     f = working_factor(s.grid_factor, grid)
     template, labels, read_scan = _working(study, f)
     if f > 1:
-        ctx.say(f"template of {grid.n_voxels:,} voxels: bones registered on {every_nth(f)} voxel "
-                f"along each axis ({template.geometry.n_voxels:,} voxels; --grid-factor)")
+        ctx.say(
+            f"template of {grid.n_voxels:,} voxels: bones registered on {every_nth(f)} voxel "
+            f"along each axis ({template.geometry.n_voxels:,} voxels; --grid-factor)"
+        )
     ids = study.check_scan_ids(s.scans)
     if s.init in ("identity", "moments"):
         root_init = None if s.init == "identity" else "moments"
@@ -198,8 +221,11 @@ def _run(ctx) -> dict:
     n_bones = len(skeleton.bones)
 
     def cb(sid, si, n_scans, bone, done, total, fit):
-        ctx.report(si * n_bones + done, n_scans * n_bones,
-                   f"{sid} bone {done}/{total} {bone:<18} {fit.status:<14} ncc {fit.ncc:.3f}  {fit.seconds:.1f} s")
+        ctx.report(
+            si * n_bones + done,
+            n_scans * n_bones,
+            f"{sid} bone {done}/{total} {bone:<18} {fit.status:<14} ncc {fit.ncc:.3f}  {fit.seconds:.1f} s",
+        )
 
     t0 = time.perf_counter()
     kwargs = _fit_arguments(s, root_init)
@@ -212,34 +238,82 @@ def _run(ctx) -> dict:
             ctx.report(len(finished), len(ids), f"{r.scan_id}: bones fitted in {r.seconds:.1f} s")
 
         per_scan = ctx.map_scans(_scan_task, ids, shared=(str(study.root.resolve()), f, kwargs), on_result=done)
-    result = estimate_poses(template, labels, scans, skeleton, outlier_factor=s.outlier_factor, progress=cb,
-                            scan_poses=per_scan, **kwargs)
+    result = estimate_poses(
+        template, labels, scans, skeleton, outlier_factor=s.outlier_factor, progress=cb, scan_poses=per_scan, **kwargs
+    )
     _require_placed(study, result)
     total = time.perf_counter() - t0
-    ctx.timings.update(total=round(total, 3), scans={  # to study.json, not to the files (module docstring)
-        r.scan_id: {"seconds": round(r.seconds, 3), "bones": {b: round(f.seconds, 4) for b, f in r.fits.items()}}
-        for r in result.scans})
-    text = f"workbench pose — {study.manifest.get('name', study.root.name)} — method {s.method}\n\n{format_fits(result)}"
-    report = finite({"method": s.method, "metric": s.metric, "grid_factor": f,
-                     "failures": result.failures(), "eq1_rms_mm": result.overall_rms_mm(),
-                     "eq1_base_pose_counted": False, "text": text})
+    ctx.timings.update(
+        total=round(total, 3),
+        scans={  # to study.json, not to the files (module docstring)
+            r.scan_id: {"seconds": round(r.seconds, 3), "bones": {b: round(f.seconds, 4) for b, f in r.fits.items()}}
+            for r in result.scans
+        },
+    )
+    text = (
+        f"workbench pose — {study.manifest.get('name', study.root.name)} — method {s.method}\n\n{format_fits(result)}"
+    )
+    report = finite(
+        {
+            "method": s.method,
+            "metric": s.metric,
+            "grid_factor": f,
+            "failures": result.failures(),
+            "eq1_rms_mm": result.overall_rms_mm(),
+            "eq1_base_pose_counted": False,
+            "text": text,
+        }
+    )
     out = {f"{r.scan_id}_pose.json": Json(r.pose.to_dict()) for r in result.scans}
     out["skeleton_estimated.json"] = Json(result.skeleton.to_dict())
     order = [j.name for j in skeleton.joints]
-    out["pose_vectors.json"] = Json({
-        "format": "avw-pose-vectors", "version": 1, "joint_order": order, "dof": [j.dof for j in skeleton.joints],
-        "units": "degrees (6-DOF joints: three angles, then mm)",
-        "missing": "null: a joint with a bone flagged in that scan (see fits.json)",
-        "scans": {r.scan_id: [v for j in order for v in (np.asarray(r.pose.joint_angles[j]).tolist()
-                                                         if j in r.pose.joint_angles else [None] * skeleton.joint(j).dof)]
-                  for r in result.scans}})
-    out["joints.json"] = Json(finite({"format": "avw-joints", "version": 1, "method": s.method, "units": "mm",
-                                      "eq1_rms_mm": result.overall_rms_mm(), "eq1_base_pose_counted": False,
-                                      "joints": result.joints_dict()}))
-    out["fits.json"] = Json(finite({"format": "avw-fits", "version": 1, "method": s.method,
-                                    "scans": {r.scan_id: {"bones": {b: _untimed(f.to_dict())
-                                                                    for b, f in r.fits.items()}}
-                                              for r in result.scans}}))
+    out["pose_vectors.json"] = Json(
+        {
+            "format": "avw-pose-vectors",
+            "version": 1,
+            "joint_order": order,
+            "dof": [j.dof for j in skeleton.joints],
+            "units": "degrees (6-DOF joints: three angles, then mm)",
+            "missing": "null: a joint with a bone flagged in that scan (see fits.json)",
+            "scans": {
+                r.scan_id: [
+                    v
+                    for j in order
+                    for v in (
+                        np.asarray(r.pose.joint_angles[j]).tolist()
+                        if j in r.pose.joint_angles
+                        else [None] * skeleton.joint(j).dof
+                    )
+                ]
+                for r in result.scans
+            },
+        }
+    )
+    out["joints.json"] = Json(
+        finite(
+            {
+                "format": "avw-joints",
+                "version": 1,
+                "method": s.method,
+                "units": "mm",
+                "eq1_rms_mm": result.overall_rms_mm(),
+                "eq1_base_pose_counted": False,
+                "joints": result.joints_dict(),
+            }
+        )
+    )
+    out["fits.json"] = Json(
+        finite(
+            {
+                "format": "avw-fits",
+                "version": 1,
+                "method": s.method,
+                "scans": {
+                    r.scan_id: {"bones": {b: _untimed(f.to_dict()) for b, f in r.fits.items()}} for r in result.scans
+                },
+            }
+        )
+    )
     out["report.json"] = Json(report)
     out["report.txt"] = Text(text)
     return out
@@ -250,8 +324,16 @@ def _untimed(fit: dict) -> dict:
     return {k: v for k, v in fit.items() if k != "seconds"}
 
 
-STAGE = Stage(name="pose", folder="poses", per_scan=False, settings_type=PoseSettings, run=_run,
-              # 2: ICP (--method surface) with the prior; 3: its matched points only; 4: a flagged bone's pose
-              # follows its nearest placed ancestor; 5: no time in fits.json, report.json, report.txt (study.json's
-              # timings have them)
-              needs=lambda s: ("bones",), inputs=_inputs, version=5)
+STAGE = Stage(
+    name="pose",
+    folder="poses",
+    per_scan=False,
+    settings_type=PoseSettings,
+    run=_run,
+    # 2: ICP (--method surface) with the prior; 3: its matched points only; 4: a flagged bone's pose
+    # follows its nearest placed ancestor; 5: no time in fits.json, report.json, report.txt (study.json's
+    # timings have them)
+    needs=lambda s: ("bones",),
+    inputs=_inputs,
+    version=5,
+)

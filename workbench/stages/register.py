@@ -79,14 +79,18 @@ class RegisterSettings:
         if self.method not in METHODS:
             raise ValueError(f"--method must be one of {METHODS[1:]}, got {self.method!r}")
         if self.method == "dense" and self.preset != "auto":
-            raise ValueError(f"the preset {self.preset!r} is a setting of Rhee's Algorithm 1: give --method adaptive "
-                             "(or leave --method out)")
+            raise ValueError(
+                f"the preset {self.preset!r} is a setting of Rhee's Algorithm 1: give --method adaptive "
+                "(or leave --method out)"
+            )
         if self.levels is not None:
             object.__setattr__(self, "levels", tuple(int(v) for v in self.levels))
         object.__setattr__(self, "dense_settings", _dense_pairs(self.dense_settings))
         if self.dense_settings and self.resolved_method != "dense":
-            raise ValueError(f"--dense {self.dense_settings[0][0]}=...: the dense registration's settings do not "
-                             "apply to Rhee's Algorithm 1 (--method adaptive, --preset): leave them out")
+            raise ValueError(
+                f"--dense {self.dense_settings[0][0]}=...: the dense registration's settings do not "
+                "apply to Rhee's Algorithm 1 (--method adaptive, --preset): leave them out"
+            )
         self.adaptive("vbd")  # validates the overrides now, not after the first scan
 
     @property
@@ -106,8 +110,16 @@ class RegisterSettings:
         """The :class:`~registration.adaptive.AdaptiveSettings` for a start made by ``init_method``."""
         from registration.adaptive import AdaptiveSettings
 
-        over = {k: v for k, v in (("levels", self.levels), ("optimizer", self.optimizer), ("metric", self.metric),
-                                  ("max_steps_per_level", self.max_steps_per_level)) if v is not None}
+        over = {
+            k: v
+            for k, v in (
+                ("levels", self.levels),
+                ("optimizer", self.optimizer),
+                ("metric", self.metric),
+                ("max_steps_per_level", self.max_steps_per_level),
+            )
+            if v is not None
+        }
         over.update(fix_bones=self.fix_bones, seed=self.seed)
         preset = self.preset
         if preset == "auto":
@@ -140,8 +152,10 @@ def _dense_pairs(pairs) -> tuple:
         if name == "bones":
             raise ValueError("--dense bones=...: the bones are held or not by --no-fix-bones (fix_bones)")
         if name not in hints:
-            raise ValueError(f"--dense {name}=...: the dense registration has no setting {name!r}; its settings are "
-                             f"{sorted(k for k in hints if k != 'bones')}")
+            raise ValueError(
+                f"--dense {name}=...: the dense registration has no setting {name!r}; its settings are "
+                f"{sorted(k for k in hints if k != 'bones')}"
+            )
         if name in seen:
             raise ValueError(f"--dense {name}=... is given twice: give each setting once")
         seen.add(name)
@@ -152,8 +166,9 @@ def _dense_pairs(pairs) -> tuple:
             low = 1 if name == "shrink" else 0
             value = [int(v) if isinstance(v, float) and v.is_integer() else v for v in value]
             if not all(isinstance(v, int) and not isinstance(v, bool) and v >= low for v in value):
-                raise ValueError(f"--dense {name}: the setting is a list of whole numbers ≥ {low}, one per level, "
-                                 f"got {value}")
+                raise ValueError(
+                    f"--dense {name}: the setting is a list of whole numbers ≥ {low}, one per level, got {value}"
+                )
             value = tuple(value)
         out.append((name, value))
     out.sort(key=lambda kv: kv[0])
@@ -165,8 +180,11 @@ def _dense_pairs(pairs) -> tuple:
 
 
 def _inputs(study, s, scan):
-    return {"template": study.path(study.manifest["template"]), "scan": study.scan_path(scan),
-            "labels": study.template_labels_path()}
+    return {
+        "template": study.path(study.manifest["template"]),
+        "scan": study.scan_path(scan),
+        "labels": study.template_labels_path(),
+    }
 
 
 def _forward(study, sid, start, template_geometry):
@@ -178,8 +196,11 @@ def _forward(study, sid, start, template_geometry):
         return vbd_forward(template_geometry, weights.reorder(start["bones"]), np.asarray(start["transforms"]))
     if start["method"] == "polyrigid":
         fwd = study.init_forward(sid)
-        template_geometry.check_same(fwd.geometry, names=("template", "init forward.mha"),
-                                     remedy="rerun the init stage: workbench register --force")
+        template_geometry.check_same(
+            fwd.geometry,
+            names=("template", "init forward.mha"),
+            remedy="rerun the init stage: workbench register --force",
+        )
         return np.asarray(fwd.data, np.float64) + template_geometry.world_coordinates()
     return None
 
@@ -207,8 +228,9 @@ def adaptive_registration(study, sid: str, s: RegisterSettings, *, template=None
     rigid = _held_bones(study, start) if (articulated and settings.fix_bones) else None
     template = study.template() if template is None else template
     scan = study.scan(sid) if scan is None else scan
-    return register_adaptive(scan, template, initial=study.init_field(sid), rigid_mask=rigid, settings=settings,
-                             progress=progress)
+    return register_adaptive(
+        scan, template, initial=study.init_field(sid), rigid_mask=rigid, settings=settings, progress=progress
+    )
 
 
 def _run(ctx) -> dict:
@@ -225,13 +247,19 @@ def _run(ctx) -> dict:
     def step(info):
         if "level_done" in info:
             lv = info["level_done"]
-            ctx.say(f"{sid} level {lv.level}: {lv.steps} steps ({lv.accepted} accepted), {lv.control_points} "
-                    f"control points, {lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, stopped: "
-                    f"{lv.stopped}, {lv.seconds:.1f} s")
+            ctx.say(
+                f"{sid} level {lv.level}: {lv.steps} steps ({lv.accepted} accepted), {lv.control_points} "
+                f"control points, {lv.metric} {lv.metric_before:.4g} -> {lv.metric_after:.4g}, stopped: "
+                f"{lv.stopped}, {lv.seconds:.1f} s"
+            )
         else:
-            ctx.report(info["step"], 0, f"{sid} level {info['level']} step {info['step']} block "
-                                        f"{tuple(info['block'])}: {info['metric']} {info['block_before']:.4g} -> "
-                                        f"{info['block_after']:.4g}; ~{info['eta']:.0f} s left in this level")
+            ctx.report(
+                info["step"],
+                0,
+                f"{sid} level {info['level']} step {info['step']} block "
+                f"{tuple(info['block'])}: {info['metric']} {info['block_before']:.4g} -> "
+                f"{info['block_after']:.4g}; ~{info['eta']:.0f} s left in this level",
+            )
 
     result = adaptive_registration(study, sid, s, template=template, scan=scan, progress=step)
     ctx.say(f"{sid}: inverting the field onto the template grid ...")
@@ -242,20 +270,40 @@ def _run(ctx) -> dict:
     del inner["seconds"]
     inner["levels"], level_seconds = _untimed(inner["levels"])
     inner["steps"], step_seconds = _untimed(inner["steps"])
-    ctx.timings.update(registration=round(result.seconds, 3), inverse=round(time.perf_counter() - t0, 3),
-                       levels=[round(v, 3) for v in level_seconds], steps=[round(v, 4) for v in step_seconds])
-    summary = {"scan": sid, "init": method,
-               "control_points": result.control_points, "steps": len(result.steps),
-               "evaluations": result.evaluations, "inverse": bm.summary(), "folding": result.folding,
-               "similarity_before": result.similarity_before, "similarity_after": result.similarity_after}
-    return _outputs(result, bm, template, {"method": "locally adaptive (Rhee §4, Alg. 1)",
-                                           "settings": dataclasses.asdict(s), "summary": summary,
-                                           "log": inner})
+    ctx.timings.update(
+        registration=round(result.seconds, 3),
+        inverse=round(time.perf_counter() - t0, 3),
+        levels=[round(v, 3) for v in level_seconds],
+        steps=[round(v, 4) for v in step_seconds],
+    )
+    summary = {
+        "scan": sid,
+        "init": method,
+        "control_points": result.control_points,
+        "steps": len(result.steps),
+        "evaluations": result.evaluations,
+        "inverse": bm.summary(),
+        "folding": result.folding,
+        "similarity_before": result.similarity_before,
+        "similarity_after": result.similarity_after,
+    }
+    return _outputs(
+        result,
+        bm,
+        template,
+        {
+            "method": "locally adaptive (Rhee §4, Alg. 1)",
+            "settings": dataclasses.asdict(s),
+            "summary": summary,
+            "log": inner,
+        },
+    )
 
 
 def _untimed(records: list) -> tuple[list, list]:
     """``(records without their "seconds", those seconds)``: the times go to ``ctx.timings``, not to log.json
     (nor do the dense level's bone refinement rounds' own)."""
+
     def strip(r):
         out = {k: v for k, v in r.items() if k != "seconds"}
         if out.get("bone_refinement"):
@@ -269,14 +317,22 @@ def _outputs(result, bm, template, log: dict) -> dict:
     """The register stage's files, the same for both methods; ``log`` fills log.json beside the conventions."""
     from deformation.geometry import Volume
 
-    return {"correspondence.mha": Field(result.correspondence),
-            "template_to_scan.mha": Field(bm.scan_to_template()),
-            "inverse_status.nii.gz": Labels(Volume(bm.status.astype(np.uint8), template.geometry)),
-            "registered.nii.gz": Image(result.registered),
-            "log.json": Json({"format": "avw-registration", "version": 1,
-                              "direction": "correspondence: scan_to_template on the scan grid (template position − "
-                                           "voxel, mm); template_to_scan: its inverse on the template grid",
-                              **log, "workbench_version": __version__})}
+    return {
+        "correspondence.mha": Field(result.correspondence),
+        "template_to_scan.mha": Field(bm.scan_to_template()),
+        "inverse_status.nii.gz": Labels(Volume(bm.status.astype(np.uint8), template.geometry)),
+        "registered.nii.gz": Image(result.registered),
+        "log.json": Json(
+            {
+                "format": "avw-registration",
+                "version": 1,
+                "direction": "correspondence: scan_to_template on the scan grid (template position − "
+                "voxel, mm); template_to_scan: its inverse on the template grid",
+                **log,
+                "workbench_version": __version__,
+            }
+        ),
+    }
 
 
 def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
@@ -290,36 +346,64 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
     def level(rec):
         moved = [rd for rd in rec.get("bone_refinement") or [] if rd["taken"]]
-        bones = (f"; bones refined in {len(moved)} round(s), {len(moved[-1]['poses'])} moved from the pose stage's "
-                 f"estimate" if moved else "")
-        ctx.say(f"{sid} level {rec['level']} (1/{rec['shrink']} of the grid): {rec['iterations']} steps taken, "
-                f"{rec['rejected']} tried and refused, stopped: {rec['stop']}; "
-                f"objective {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}{bones}, {rec['seconds']:.1f} s")
+        bones = (
+            f"; bones refined in {len(moved)} round(s), {len(moved[-1]['poses'])} moved from the pose stage's estimate"
+            if moved
+            else ""
+        )
+        ctx.say(
+            f"{sid} level {rec['level']} (1/{rec['shrink']} of the grid): {rec['iterations']} steps taken, "
+            f"{rec['rejected']} tried and refused, stopped: {rec['stop']}; "
+            f"objective {rec['lncc_before']:.4f} -> {rec['lncc_after']:.4f}{bones}, {rec['seconds']:.1f} s"
+        )
 
-    result = register_dense(scan, template, initial=initial, moving_labels=labels, settings=settings,
-                            progress=level)
+    result = register_dense(scan, template, initial=initial, moving_labels=labels, settings=settings, progress=level)
     ctx.say(f"{sid}: inverting the field onto the template grid ...")
     t0 = time.perf_counter()
     bm = invert_scan_to_template(result.correspondence, template.geometry, forward=forward)
     levels, level_seconds = _untimed(result.levels)
-    ctx.timings.update(registration=round(result.seconds, 3), inverse=round(time.perf_counter() - t0, 3),
-                       levels=level_seconds)
-    summary = {"scan": sid, "init": start["method"],
-               "control_points": None, "levels": levels, "inverse": bm.summary(),
-               "folding": result.folding, "unfold": result.unfold, "similarity_before": result.similarity_before,
-               "similarity_after": result.similarity_after}
-    return _outputs(result, bm, template, {
-        "method": f"dense (LNCC diffeomorphic steps, bones {settings.bones}; registration.dense)",
-        "settings": dataclasses.asdict(s), "dense_settings": settings.to_dict(), "summary": summary})
+    ctx.timings.update(
+        registration=round(result.seconds, 3), inverse=round(time.perf_counter() - t0, 3), levels=level_seconds
+    )
+    summary = {
+        "scan": sid,
+        "init": start["method"],
+        "control_points": None,
+        "levels": levels,
+        "inverse": bm.summary(),
+        "folding": result.folding,
+        "unfold": result.unfold,
+        "similarity_before": result.similarity_before,
+        "similarity_after": result.similarity_after,
+    }
+    return _outputs(
+        result,
+        bm,
+        template,
+        {
+            "method": f"dense (LNCC diffeomorphic steps, bones {settings.bones}; registration.dense)",
+            "settings": dataclasses.asdict(s),
+            "dense_settings": settings.to_dict(),
+            "summary": summary,
+        },
+    )
 
 
-STAGE = Stage(name="register", folder="registration", per_scan=True, settings_type=RegisterSettings, run=_run,
-              # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC; 8: bones the pose
-              # stage flagged are not held; 9: dense windows and smoothing over the scan's tissue only; 10: no time in
-              # log.json (study.json's timings have them); 11: each dense level converges under a trust region; 12: the
-              # held bones' poses refined rigidly (dense refine_bones); 13: the template sampled once through φ₀ ∘ U, the
-              # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
-              # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
-              # leaves; 16: the skin's term in the dense objective (skin_weight); 17: the membrane energy where the
-              # scan shows only noise (stiffness)
-              needs=lambda s: ("init", "bones"), inputs=_inputs, version=17)
+STAGE = Stage(
+    name="register",
+    folder="registration",
+    per_scan=True,
+    settings_type=RegisterSettings,
+    run=_run,
+    # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC; 8: bones the pose
+    # stage flagged are not held; 9: dense windows and smoothing over the scan's tissue only; 10: no time in
+    # log.json (study.json's timings have them); 11: each dense level converges under a trust region; 12: the
+    # held bones' poses refined rigidly (dense refine_bones); 13: the template sampled once through φ₀ ∘ U, the
+    # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
+    # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
+    # leaves; 16: the skin's term in the dense objective (skin_weight); 17: the membrane energy where the
+    # scan shows only noise (stiffness)
+    needs=lambda s: ("init", "bones"),
+    inputs=_inputs,
+    version=17,
+)

@@ -48,6 +48,13 @@ def _run(ctx) -> dict:
     return {"report.html": Text(html)}
 
 
-STAGE = Stage(name="report", folder="report", per_scan=False, settings_type=ReportSettings, run=_run,
-              needs=lambda s: ("register", "validate"), inputs=_inputs,
-              version=2)  # 2: no time nor machine (the registration's seconds, the platform): the same bytes
+STAGE = Stage(
+    name="report",
+    folder="report",
+    per_scan=False,
+    settings_type=ReportSettings,
+    run=_run,
+    needs=lambda s: ("register", "validate"),
+    inputs=_inputs,
+    version=2,
+)  # 2: no time nor machine (the registration's seconds, the platform): the same bytes

@@ -45,6 +45,7 @@ def _closure(targets, settings: dict) -> list[str]:
         want.add(n)
         for m in STAGES[n].needs(settings[n]):
             add(m)
+
     for t in targets:
         add(t)
     return [n for n in ORDER if n in want]
@@ -64,8 +65,17 @@ def dependents(names) -> set[str]:
     return out
 
 
-def run_stages(study: Study, targets, *, settings: dict | None = None, force=(), scans=None,
-               progress: Callable | None = None, options: dict | None = None, runner=None) -> list[Outcome]:
+def run_stages(
+    study: Study,
+    targets,
+    *,
+    settings: dict | None = None,
+    force=(),
+    scans=None,
+    progress: Callable | None = None,
+    options: dict | None = None,
+    runner=None,
+) -> list[Outcome]:
     """Run ``targets`` (stage names) and what they need; see the module docstring.
 
     ``settings``: ``{stage: settings}`` for this call (a stage given settings
@@ -92,8 +102,17 @@ def run_stages(study: Study, targets, *, settings: dict | None = None, force=(),
             if all(stage_status(study, stage, u, registry=STAGES) == "done" for u in units):
                 emit(Event(name, None, len(units), len(units), f"{name}: up to date, skipped", "skip"))
                 continue
-        outcomes += execute(study, stage, resolved[name], registry=STAGES, scans=scan_ids,
-                            force=name in force, progress=emit, options=(options or {}).get(name), runner=runner)
+        outcomes += execute(
+            study,
+            stage,
+            resolved[name],
+            registry=STAGES,
+            scans=scan_ids,
+            force=name in force,
+            progress=emit,
+            options=(options or {}).get(name),
+            runner=runner,
+        )
     return outcomes
 
 
@@ -134,8 +153,13 @@ def _declared_type(stage: str, field: str):
     return typing.get_type_hints(STAGES[stage].settings_type)[field]
 
 
-_TYPE_WORDS = {int: "a whole number (int)", float: "a number (float)", bool: "true or false (bool)",
-               str: "text (str)", tuple: "a JSON list (tuple), e.g. [3, 5]"}
+_TYPE_WORDS = {
+    int: "a whole number (int)",
+    float: "a number (float)",
+    bool: "true or false (bool)",
+    str: "text (str)",
+    tuple: "a JSON list (tuple), e.g. [3, 5]",
+}
 
 
 def _typed(name: str, value, declared, option: str = "--set"):
@@ -144,8 +168,11 @@ def _typed(name: str, value, declared, option: str = "--set"):
     import types
     import typing
 
-    args = typing.get_args(declared) if isinstance(declared, types.UnionType) or \
-        typing.get_origin(declared) is typing.Union else (declared,)
+    args = (
+        typing.get_args(declared)
+        if isinstance(declared, types.UnionType) or typing.get_origin(declared) is typing.Union
+        else (declared,)
+    )
     optional = type(None) in args
     kinds = [a for a in args if a is not type(None)]
     if value is None and optional:
@@ -176,8 +203,9 @@ def merged_settings(study: Study, overrides: dict) -> dict:
     for stage, fields in overrides.items():
         base = settings_for(study, stage)
         try:
-            out[stage] = dataclasses.replace(base, **{k: tuple(v) if isinstance(v, list) else v
-                                                      for k, v in fields.items()})
+            out[stage] = dataclasses.replace(
+                base, **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
+            )
         except (TypeError, ValueError) as e:
             raise StudyError(f"--set {stage}: {e}", study.manifest_path) from e
     return out

@@ -60,9 +60,11 @@ class SurfaceSettings:
         if self.fit not in FITS:
             raise ValueError(f"--fit must be one of {FITS}, got {self.fit!r}")
         if (self.features == "landmarks") != (self.landmarks is not None):
-            raise ValueError("a landmarks file goes with the landmarks feature source (--landmarks FILE, or "
-                             "--set surface.features=\"landmarks\" --set surface.landmarks=\"FILE\"); got features "
-                             f"{self.features!r} and landmarks {self.landmarks!r}")
+            raise ValueError(
+                "a landmarks file goes with the landmarks feature source (--landmarks FILE, or "
+                '--set surface.features="landmarks" --set surface.landmarks="FILE"); got features '
+                f"{self.features!r} and landmarks {self.landmarks!r}"
+            )
         if self.landmarks is not None:  # absolute: the recorded setting works from any folder
             from pathlib import Path
 
@@ -74,11 +76,14 @@ class SurfaceSettings:
         if not self.stiffness > 0:
             raise ValueError(f"--stiffness must be positive, got {self.stiffness}")
         if not self.max_distance_mm > 0:
-            raise ValueError(f"surface.max_distance_mm (--set surface.max_distance_mm=MM) must be positive, got "
-                             f"{self.max_distance_mm}")
+            raise ValueError(
+                f"surface.max_distance_mm (--set surface.max_distance_mm=MM) must be positive, got "
+                f"{self.max_distance_mm}"
+            )
         if self.smooth_voxels < 0:
-            raise ValueError(f"surface.smooth_voxels (--set surface.smooth_voxels=V) must be ≥ 0, got "
-                             f"{self.smooth_voxels}")
+            raise ValueError(
+                f"surface.smooth_voxels (--set surface.smooth_voxels=V) must be ≥ 0, got {self.smooth_voxels}"
+            )
         if self.scans is not None:
             object.__setattr__(self, "scans", tuple(str(v) for v in self.scans))
 
@@ -88,8 +93,11 @@ def _needs(s: SurfaceSettings):
 
 
 def _inputs(study, s: SurfaceSettings, scan):
-    files = {"template": study.path(study.manifest["template"]), "labels": study.template_labels_path(),
-             "skeleton": study.path(study.manifest["skeleton"])}
+    files = {
+        "template": study.path(study.manifest["template"]),
+        "labels": study.template_labels_path(),
+        "skeleton": study.path(study.manifest["skeleton"]),
+    }
     for sid in study.check_scan_ids(s.scans):
         files[f"scan/{sid}"] = study.scan_path(sid)
     if s.landmarks is not None:
@@ -132,13 +140,24 @@ def _run(ctx) -> dict:
     base = skin_surface(template, target_triangles=s.target_triangles, smooth_voxels=s.smooth_voxels)
     weights, how_w = vertex_weights(study, base.vertices)
     bones, vlab = label_surfaces(study.template_labels())
-    out = {"template_skin.vtp": MeshFile(base, weight_arrays(weights.bones, weights.dense())),
-           "template_bones.vtp": MeshFile(bones, {"label": vlab.astype(float)})}
-    doc = {"format": "avw-surface", "version": 1, "scans": list(ids),
-           "template": {"vertices": base.n_vertices, "triangles": base.n_triangles, "weights": how_w,
-                        "bones_vertices": bones.n_vertices},
-           "per_scan": {}, "settings": _settings_doc(study, s),
-           "workbench_version": __version__}
+    out = {
+        "template_skin.vtp": MeshFile(base, weight_arrays(weights.bones, weights.dense())),
+        "template_bones.vtp": MeshFile(bones, {"label": vlab.astype(float)}),
+    }
+    doc = {
+        "format": "avw-surface",
+        "version": 1,
+        "scans": list(ids),
+        "template": {
+            "vertices": base.n_vertices,
+            "triangles": base.n_triangles,
+            "weights": how_w,
+            "bones_vertices": bones.n_vertices,
+        },
+        "per_scan": {},
+        "settings": _settings_doc(study, s),
+        "workbench_version": __version__,
+    }
     sites = {}
     if marks is not None:  # every landmark the user picked, where it lies on S0
         from workbench.errors import InputFileError
@@ -147,8 +166,11 @@ def _run(ctx) -> dict:
             try:
                 sites[sid] = landmark_sites(base, marks[sid][0], max_snap_mm=s.max_distance_mm)
             except ValueError as e:
-                raise InputFileError(f"{s.landmarks}: scan {sid!r}: {e} (the limit is surface.max_distance_mm, "
-                                     f"--set surface.max_distance_mm=MM)", s.landmarks) from None
+                raise InputFileError(
+                    f"{s.landmarks}: scan {sid!r}: {e} (the limit is surface.max_distance_mm, "
+                    f"--set surface.max_distance_mm=MM)",
+                    s.landmarks,
+                ) from None
     ctx.report(1, len(ids) + 1, f"S0: {base.n_triangles} triangles")
     shared = (str(study.root.resolve()), s, base, weights, template.geometry, sites, marks)
 
@@ -158,8 +180,12 @@ def _run(ctx) -> dict:
         sid, entry, meshes, confident = r
         finished.append(sid)
         d = entry["fit_distance_mm"]
-        ctx.report(len(finished) + 1, len(ids) + 1, f"{sid}: fitted, {100 * confident:.0f} % of the vertices on a confident "
-                                        f"target, mean distance {d['mean']:.2f} mm")
+        ctx.report(
+            len(finished) + 1,
+            len(ids) + 1,
+            f"{sid}: fitted, {100 * confident:.0f} % of the vertices on a confident "
+            f"target, mean distance {d['mean']:.2f} mm",
+        )
 
     # each scan's meshes: here, one after the other, or one Dask task per scan (workbench.scale)
     for sid, entry, meshes, _ in ctx.map_scans(_fit_scan, ids, shared=shared, on_result=done):
@@ -206,20 +232,39 @@ def _fit_scan(shared, sid: str):
         feats = sample(Volume(pos.astype(np.float64), g), base.vertices, order=1, fill=np.nan)
         ok = sample(Volume(found.astype(np.float32), g), base.vertices, order=1, fill=0.0) > 0.999
         feats[~ok] = np.nan
-    res = consistent_mesh(base, weights, pose.transforms, target, feature_targets=feats,
-                          landmarks=None if marks is None else (sites[sid], marks[sid][1]),
-                          n_features=s.n_features, fit=s.fit, max_distance_mm=s.max_distance_mm,
-                          stiffness=s.stiffness)
+    res = consistent_mesh(
+        base,
+        weights,
+        pose.transforms,
+        target,
+        feature_targets=feats,
+        landmarks=None if marks is None else (sites[sid], marks[sid][1]),
+        n_features=s.n_features,
+        fit=s.fit,
+        max_distance_mm=s.max_distance_mm,
+        stiffness=s.stiffness,
+    )
     d = res["fit"].distance_mm
-    entry = {**res["info"], "skin_triangles": target.n_triangles,
-             "pose": pose.to_dict(),  # the pose the mesh was fitted with (surface_model reads it)
-             "fit_distance_mm": {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)), "max": float(d.max())},
-             "feature_vertices": res["features"].tolist()}
+    entry = {
+        **res["info"],
+        "skin_triangles": target.n_triangles,
+        "pose": pose.to_dict(),  # the pose the mesh was fitted with (surface_model reads it)
+        "fit_distance_mm": {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)), "max": float(d.max())},
+        "feature_vertices": res["features"].tolist(),
+    }
     meshes = {name: res[name] for name in ("ssd", "rbf", "fitted")}
     meshes["skin"] = target
     return sid, entry, meshes, float(res["fit"].confident.mean())
 
 
-STAGE = Stage(name="surface", folder="surface", per_scan=False, settings_type=SurfaceSettings, run=_run,
-              needs=_needs, inputs=_inputs, uses=lambda study, s: s.scans,
-              version=3)  # 2: landmarks on S0's triangles; 3: a landmarks file in the study by its relative path
+STAGE = Stage(
+    name="surface",
+    folder="surface",
+    per_scan=False,
+    settings_type=SurfaceSettings,
+    run=_run,
+    needs=_needs,
+    inputs=_inputs,
+    uses=lambda study, s: s.scans,
+    version=3,
+)  # 2: landmarks on S0's triangles; 3: a landmarks file in the study by its relative path

@@ -57,30 +57,59 @@ def _run(ctx) -> dict:
     truth = study.truth_correspondence(sid)
     field = study.registration_correspondence(sid)
     markers = study.truth_markers(sid)
-    rows = validation_rows(study.scan(sid), template, truth=truth, template_body=body, markers=markers,
-                           registered=study.registered(sid), field=field, initial=study.init_field(sid))
+    rows = validation_rows(
+        study.scan(sid),
+        template,
+        truth=truth,
+        template_body=body,
+        markers=markers,
+        registered=study.registered(sid),
+        field=field,
+        initial=study.init_field(sid),
+    )
     body_scan = body_on_scan(truth, body)
-    doc = {"format": "avw-validation", "version": 1, "scan": sid, "rows": rows,
-           "markers": [{"name": m.get("name", f"m{i}"), "error_mm": float(e)}
-                       for i, (m, e) in enumerate(zip(markers, marker_errors(field, markers)))],
-           "measures": {"med_mm": "mean |recovered − true| template position over the scan's body voxels (mm)",
-                        "marker_med_mm": "the same at the skin markers",
-                        "ssd": "mean squared intensity difference, scan vs template resampled through the field",
-                        "cc": "Pearson correlation", "mi": "mutual information, nats, 32 bins",
-                        "folded_fraction": "fraction of the scan's body voxels with Jacobian determinant ≤ 0"}}
+    doc = {
+        "format": "avw-validation",
+        "version": 1,
+        "scan": sid,
+        "rows": rows,
+        "markers": [
+            {"name": m.get("name", f"m{i}"), "error_mm": float(e)}
+            for i, (m, e) in enumerate(zip(markers, marker_errors(field, markers)))
+        ],
+        "measures": {
+            "med_mm": "mean |recovered − true| template position over the scan's body voxels (mm)",
+            "marker_med_mm": "the same at the skin markers",
+            "ssd": "mean squared intensity difference, scan vs template resampled through the field",
+            "cc": "Pearson correlation",
+            "mi": "mutual information, nats, 32 bins",
+            "folded_fraction": "fraction of the scan's body voxels with Jacobian determinant ≤ 0",
+        },
+    }
     if s.pose and study.has_pose(sid):
-        centroids = {k: r.centroid for k, r in bone_regions(template, study.template_labels(),
-                                                            study.skeleton()).items()}
+        centroids = {
+            k: r.centroid for k, r in bone_regions(template, study.template_labels(), study.skeleton()).items()
+        }
         doc["pose"] = pose_errors(study.pose(sid), study.truth_pose(sid), centroids)
     g = truth.geometry
     from workbench.stages.pose import finite
 
     # a measure with nothing to measure (no markers) is written as null
-    return {"measures.json": Json(finite(doc)),
-            "error_mm.nii.gz": Image(Volume(error_map(field, truth, body_scan), g)),
-            "body.nii.gz": Labels(Volume(body_scan.astype(np.uint8), g))}
+    return {
+        "measures.json": Json(finite(doc)),
+        "error_mm.nii.gz": Image(Volume(error_map(field, truth, body_scan), g)),
+        "body.nii.gz": Labels(Volume(body_scan.astype(np.uint8), g)),
+    }
 
 
-STAGE = Stage(name="validate", folder="validation", per_scan=True, settings_type=ValidateSettings, run=_run,
-              needs=lambda s: ("register", "weights"), inputs=_inputs, applies=_applies,
-              version=2)  # 2: error map, body mask and per-marker errors written beside the measures
+STAGE = Stage(
+    name="validate",
+    folder="validation",
+    per_scan=True,
+    settings_type=ValidateSettings,
+    run=_run,
+    needs=lambda s: ("register", "weights"),
+    inputs=_inputs,
+    applies=_applies,
+    version=2,
+)  # 2: error map, body mask and per-marker errors written beside the measures

@@ -31,7 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from deformation.geometry import every_nth
-
 from workbench import __version__
 from workbench.errors import InputFileError
 from workbench.stages.mechanism import Labels, Stage, TetMeshFile, WeightMap, working_factor, working_labels
@@ -59,8 +58,11 @@ class WeightsSettings:
 
 
 def _inputs(study, s, scan):
-    return {"template": study.path(study.manifest["template"]), "labels": study.template_labels_path(),
-            "skeleton": study.path(study.manifest["skeleton"])}
+    return {
+        "template": study.path(study.manifest["template"]),
+        "labels": study.template_labels_path(),
+        "skeleton": study.path(study.manifest["skeleton"]),
+    }
 
 
 def _run(ctx) -> dict:
@@ -75,8 +77,10 @@ def _run(ctx) -> dict:
     template, labels = study.template(), study.template_labels()
     f = working_factor(s.grid_factor, template.geometry)
     if f > 1:  # a big template: the weights (and body mask) on every f-th voxel; deform solves its maps there
-        ctx.say(f"template of {template.geometry.n_voxels:,} voxels: weights on {every_nth(f)} voxel along each axis "
-                f"({template.geometry.every(f).n_voxels:,} voxels; --grid-factor)")
+        ctx.say(
+            f"template of {template.geometry.n_voxels:,} voxels: weights on {every_nth(f)} voxel along each axis "
+            f"({template.geometry.every(f).n_voxels:,} voxels; --grid-factor)"
+        )
         template, labels = template.every(f), working_labels(study, labels, f)
     body = segment_body(template, labels=labels)
     out = {"body_mask.nii.gz": Labels(body)}
@@ -85,8 +89,9 @@ def _run(ctx) -> dict:
         # A bone that holds no lattice node (smaller than a step of several voxels, or where the body is too
         # thin for a mostly-body cube) fixes the vertex nearest to it instead: the discrete boundary condition
         # at the mesh's resolution.
-        r = harmonic_voxel_weights(labels, bone_labels, body, edge_length_mm=s.edge_length_mm, progress=ctx.say,
-                                   snap_missing=True)
+        r = harmonic_voxel_weights(
+            labels, bone_labels, body, edge_length_mm=s.edge_length_mm, progress=ctx.say, snap_missing=True
+        )
         weights = r.weights
         info.update(r.info)
         out["tetmesh.vtu"] = TetMeshFile(r.mesh, weight_arrays(r.bones, r.vertex_weights))
@@ -99,5 +104,13 @@ def _run(ctx) -> dict:
     return out
 
 
-STAGE = Stage(name="weights", folder="skinning", per_scan=False, settings_type=WeightsSettings, run=_run,
-              needs=lambda s: ("bones",), inputs=_inputs, version=3)  # 3: the lattice (Kuhn) mesh replaces fTetWild's
+STAGE = Stage(
+    name="weights",
+    folder="skinning",
+    per_scan=False,
+    settings_type=WeightsSettings,
+    run=_run,
+    needs=lambda s: ("bones",),
+    inputs=_inputs,
+    version=3,
+)  # 3: the lattice (Kuhn) mesh replaces fTetWild's

@@ -40,8 +40,15 @@ from deformation.skeleton import SkeletonError
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.jsonio import read_json
 
-__all__ = ["Keyframes", "read_keyframes", "builtin_keyframes", "camera_from", "covering_grid", "animate_study",
-           "FORMATS"]
+__all__ = [
+    "Keyframes",
+    "read_keyframes",
+    "builtin_keyframes",
+    "camera_from",
+    "covering_grid",
+    "animate_study",
+    "FORMATS",
+]
 
 KEYFRAMES_FORMAT = "avw-keyframes"
 FORMATS = (".mp4", ".gif", ".png")
@@ -90,14 +97,13 @@ def _keyframes_from_dict(d, skeleton, where: str, *, check_limits: bool = True, 
     if not isinstance(d, dict) or d.get("format") != KEYFRAMES_FORMAT:
         raise bad(f"not a keyframe file ('format' must be {KEYFRAMES_FORMAT!r}); see `workbench animate --help`")
     if d.get("skeleton") not in (None, skeleton.name):
-        raise bad(f"keyframes for the skeleton {d.get('skeleton')!r}, but the study's skeleton is "
-                  f"{skeleton.name!r}")
+        raise bad(f"keyframes for the skeleton {d.get('skeleton')!r}, but the study's skeleton is {skeleton.name!r}")
     interp = d.get("interpolation", "smooth")
     if interp not in _INTERPOLATIONS:
         raise bad(f"interpolation {interp!r}: expected one of {_INTERPOLATIONS}")
     kfs = d.get("keyframes")
     if not isinstance(kfs, list) or len(kfs) < 2:
-        raise bad("needs a list 'keyframes' of at least 2 entries {\"time\": s, \"angles\": {joint: [deg, ...]}}")
+        raise bad('needs a list \'keyframes\' of at least 2 entries {"time": s, "angles": {joint: [deg, ...]}}')
     times, angles, names = [], [], []
     zero = skeleton.zero_angles()
     for n, kf in enumerate(kfs):
@@ -113,8 +119,10 @@ def _keyframes_from_dict(d, skeleton, where: str, *, check_limits: bool = True, 
                 raise bad(f"keyframe {n}: joint {j!r} needs a list of numbers (degrees), got {v!r}")
             a = np.asarray(v, float)
             if a.shape != full[j].shape:
-                raise bad(f"keyframe {n}: joint {j!r} takes {full[j].size} values (degrees, then mm for a "
-                          f"6-DOF joint), got {a.size}")
+                raise bad(
+                    f"keyframe {n}: joint {j!r} takes {full[j].size} values (degrees, then mm for a "
+                    f"6-DOF joint), got {a.size}"
+                )
             if not np.all(np.isfinite(a)):
                 raise bad(f"keyframe {n}: joint {j!r} has a non-finite angle {v!r}")
             full[j] = a
@@ -124,9 +132,15 @@ def _keyframes_from_dict(d, skeleton, where: str, *, check_limits: bool = True, 
             raise bad(f"keyframe {n}: {e}") from e
         outside = skeleton.limit_problems(full) if check_limits else []
         if outside:
-            raise bad(f"keyframe {n}: {outside[0]}" + (f" (and {len(outside) - 1} more)" if len(outside) > 1 else "")
-                      + ("" if "half a turn" in outside[0] else
-                         ", the range of motion of the study's skeleton (skeleton.json, 'limits')"))
+            raise bad(
+                f"keyframe {n}: {outside[0]}"
+                + (f" (and {len(outside) - 1} more)" if len(outside) > 1 else "")
+                + (
+                    ""
+                    if "half a turn" in outside[0]
+                    else ", the range of motion of the study's skeleton (skeleton.json, 'limits')"
+                )
+            )
         times.append(float(kf["time"]))
         angles.append(full)
         names.append(str(kf.get("name", f"keyframe {n}")))
@@ -163,8 +177,9 @@ def camera_from(doc: dict, **override):
     d = {"view": "auto", "azimuth": 0.0, "elevation": 0.0, "zoom": 1.0}
     d.update({k: doc[k] for k in ("view", "azimuth", "elevation", "zoom") if k in doc})
     d.update({k: v for k, v in override.items() if v is not None})
-    return Camera(view=str(d["view"]), azimuth=float(d["azimuth"]), elevation=float(d["elevation"]),
-                  zoom=float(d["zoom"]))
+    return Camera(
+        view=str(d["view"]), azimuth=float(d["azimuth"]), elevation=float(d["elevation"]), zoom=float(d["zoom"])
+    )
 
 
 def read_keyframes(path, skeleton) -> Keyframes:
@@ -177,13 +192,18 @@ def builtin_keyframes(skeleton) -> Keyframes:
     """The ready keyframes for the knee or hand skeleton (``workbench/viz/keyframes/<name>.json``)."""
     res = resources.files("workbench.viz") / "keyframes" / f"{skeleton.name}.json"
     if not res.is_file():
-        have = sorted(p.name[:-5] for p in (resources.files("workbench.viz") / "keyframes").iterdir()
-                      if p.name.endswith(".json"))
-        raise InputFileError(f"no ready keyframes for the skeleton {skeleton.name!r} (there are {have}); "
-                             "pass --keyframes FILE (see `workbench animate --help` for the format).")
+        have = sorted(
+            p.name[:-5] for p in (resources.files("workbench.viz") / "keyframes").iterdir() if p.name.endswith(".json")
+        )
+        raise InputFileError(
+            f"no ready keyframes for the skeleton {skeleton.name!r} (there are {have}); "
+            "pass --keyframes FILE (see `workbench animate --help` for the format)."
+        )
     import json
 
-    return _keyframes_from_dict(json.loads(res.read_text(encoding="utf-8")), skeleton, f"<builtin {skeleton.name}.json>")
+    return _keyframes_from_dict(
+        json.loads(res.read_text(encoding="utf-8")), skeleton, f"<builtin {skeleton.name}.json>"
+    )
 
 
 def scan_keyframes(study, *, seconds_per_pose: float = 1.0) -> Keyframes:
@@ -193,20 +213,33 @@ def scan_keyframes(study, *, seconds_per_pose: float = 1.0) -> Keyframes:
     no angle (a flagged bone's) stays at rest."""
     sk = study.skeleton()
     zero = sk.zero_angles()
-    frames = [{"time": 0.0, "name": "template (rest)", "angles": {k: np.asarray(v, float).tolist()
-                                                                  for k, v in zero.items()}}]
+    frames = [
+        {"time": 0.0, "name": "template (rest)", "angles": {k: np.asarray(v, float).tolist() for k, v in zero.items()}}
+    ]
     for sid in study.scan_ids:
         a = study.pose(sid).joint_angles
         if not a:
-            raise InputFileError(f"{study.root}: scan {sid!r} has no joint angles; run `workbench pose "
-                                 f"{study.root} --force` first (--keyframes scans follows the scans' poses)",
-                                 study.manifest_path)
-        frames.append({"time": len(frames) * seconds_per_pose, "name": sid,
-                       "angles": {k: np.asarray(v, float).tolist() for k, v in a.items() if k in zero}})
+            raise InputFileError(
+                f"{study.root}: scan {sid!r} has no joint angles; run `workbench pose "
+                f"{study.root} --force` first (--keyframes scans follows the scans' poses)",
+                study.manifest_path,
+            )
+        frames.append(
+            {
+                "time": len(frames) * seconds_per_pose,
+                "name": sid,
+                "angles": {k: np.asarray(v, float).tolist() for k, v in a.items() if k in zero},
+            }
+        )
     frames.append({"time": len(frames) * seconds_per_pose, "name": "template (rest)", "angles": frames[0]["angles"]})
     # measured angles: a straight joint estimated at −1° is no user error (no range-of-motion check)
-    return _keyframes_from_dict({"format": KEYFRAMES_FORMAT, "skeleton": sk.name, "keyframes": frames}, sk,
-                                f"<the scans of {study.root.name}>", check_limits=False, path=study.manifest_path)
+    return _keyframes_from_dict(
+        {"format": KEYFRAMES_FORMAT, "skeleton": sk.name, "keyframes": frames},
+        sk,
+        f"<the scans of {study.root.name}>",
+        check_limits=False,
+        path=study.manifest_path,
+    )
 
 
 # -- output ----------------------------------------------------------------------------------------------
@@ -234,9 +267,17 @@ class _Writer:
 
             # H.264 in yuv420p (what players and slide software accept); even sizes are checked by parse_size;
             # macro_block_size=1: no silent resize to multiples of 16
-            self._w = iio2.get_writer(str(self.staging), format="FFMPEG", fps=fps, codec="libx264",
-                                      pixelformat="yuv420p", quality=8, macro_block_size=1,
-                                      ffmpeg_log_level="error", output_params=["-threads", "1"])
+            self._w = iio2.get_writer(
+                str(self.staging),
+                format="FFMPEG",
+                fps=fps,
+                codec="libx264",
+                pixelformat="yuv420p",
+                quality=8,
+                macro_block_size=1,
+                ffmpeg_log_level="error",
+                output_params=["-threads", "1"],
+            )
 
     @staticmethod
     def check(out: Path, overwrite: bool) -> None:
@@ -244,8 +285,10 @@ class _Writer:
         from workbench.io.atomic import check_output_folder
 
         if out.suffix.lower() not in FORMATS:
-            raise ValueError(f"{out}: the animation format is chosen by the extension: .mp4 (H.264), .gif, or "
-                             ".png (numbered frames <name>_0000.png, ...)")
+            raise ValueError(
+                f"{out}: the animation format is chosen by the extension: .mp4 (H.264), .gif, or "
+                ".png (numbered frames <name>_0000.png, ...)"
+            )
         check_output_folder(out, "--out")
         if not overwrite:
             clash = _Writer._existing_files(out)
@@ -296,13 +339,15 @@ class _Writer:
             import imageio.v3 as iio
 
             # the GIF frame delay is in whole hundredths of a second: 24 fps plays at 25
-            self.staging.write_bytes(iio.imwrite("<bytes>", np.stack(self._gif), extension=".gif",
-                                                 duration=1000.0 / self.fps, loop=0))
+            self.staging.write_bytes(
+                iio.imwrite("<bytes>", np.stack(self._gif), extension=".gif", duration=1000.0 / self.fps, loop=0)
+            )
         from workbench.io.atomic import commit_file
 
         if self.kind == ".png":
             # A set of files cannot be swapped in one step: every frame is complete in the
-            # staging folder first (each flushed as it is moved), then the old frames (with --force) are removed and the new ones moved
+            # staging folder first (each flushed as it is moved), then the old frames (with --force) are removed
+            # and the new ones moved
             # in, without clobbering a frame that appeared meanwhile unless --force.
             names = [self.frame_name(i) for i in range(self.n)]
             stale = self._existing()
@@ -317,7 +362,9 @@ class _Writer:
                 done.append(self.out.parent / name)
             self.staging.rmdir()
             return done
-        commit_file(self.staging, self.out, overwrite=self.overwrite)  # no clobber without --force, even at the last moment
+        commit_file(
+            self.staging, self.out, overwrite=self.overwrite
+        )  # no clobber without --force, even at the last moment
         return [self.out]
 
     def abort(self) -> None:
@@ -358,8 +405,9 @@ def _camera_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, marg
     at :func:`_sweep_times`."""
     from workbench.viz.render import points_bounds, union_bounds
 
-    return union_bounds([points_bounds(poser.forward(skeleton.pose(keyframes.at(t)))[mask], margin_mm)
-                         for t in _sweep_times(keyframes)])
+    return union_bounds(
+        [points_bounds(poser.forward(skeleton.pose(keyframes.at(t)))[mask], margin_mm) for t in _sweep_times(keyframes)]
+    )
 
 
 def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
@@ -383,10 +431,28 @@ def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
     return GridGeometry(size, geometry.spacing, origin, geometry.direction)
 
 
-def animate_study(folder, out, *, keyframes=None, method: str = "auto", weighting: str = "psd", fps=None,
-                  size=(640, 480), n_frames: int | None = None, transfer="mri", camera=None, orbit=None,
-                  clip=None, bones: bool = False, background=(0.0, 0.0, 0.0), mapper: str = "auto",
-                  skin: str | None = None, overwrite: bool = False, map_factor: int = 1, progress=None) -> dict:
+def animate_study(
+    folder,
+    out,
+    *,
+    keyframes=None,
+    method: str = "auto",
+    weighting: str = "psd",
+    fps=None,
+    size=(640, 480),
+    n_frames: int | None = None,
+    transfer="mri",
+    camera=None,
+    orbit=None,
+    clip=None,
+    bones: bool = False,
+    background=(0.0, 0.0, 0.0),
+    mapper: str = "auto",
+    skin: str | None = None,
+    overwrite: bool = False,
+    map_factor: int = 1,
+    progress=None,
+) -> dict:
     """Render the study's template moving through ``keyframes`` and write ``out`` (.mp4, .gif or .png frames).
 
     ``skin`` ("ssd", "psd" or "wpsd"): instead of the volume, Kurihara's surface model (``workbench
@@ -400,8 +466,8 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
     the frame count and the time spent deforming, rendering and encoding.
     """
     from workbench.deform import study_poser
-    from workbench.viz.render import VolumeRenderer, first_visible, transfer_function, robust_range, content_mask
     from workbench.study import read_study
+    from workbench.viz.render import VolumeRenderer, content_mask, first_visible, robust_range, transfer_function
 
     say = progress or (lambda line: None)
     t_start = time.perf_counter()
@@ -416,8 +482,10 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
         if bones:
             raise ValueError("--bones draws posed bone labels on a volume animation; leave it out with --skin")
         if int(map_factor) != 1:
-            raise ValueError("--map-factor sets how a volume animation's maps are solved; a --skin animation poses "
-                             "a mesh: leave it out")
+            raise ValueError(
+                "--map-factor sets how a volume animation's maps are solved; a --skin animation poses "
+                "a mesh: leave it out"
+            )
         model = study.surface_model()  # a clear "run `workbench surface` first" before any work
         poser = None
     else:
@@ -450,11 +518,11 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
             def deform(pose):
                 return model.deform(pose, skin)
 
-            bounds = union_bounds([points_bounds(deform(sk.pose(kf.at(t))).vertices, 2.0)
-                                   for t in _sweep_times(kf)])
+            bounds = union_bounds([points_bounds(deform(sk.pose(kf.at(t))).vertices, 2.0) for t in _sweep_times(kf)])
             g = None
-            renderer = VolumeRenderer(None, size=size, camera=camera, clip=clip, background=background,
-                                      bounds=bounds, mapper=mapper)
+            renderer = VolumeRenderer(
+                None, size=size, camera=camera, clip=clip, background=background, bounds=bounds, mapper=mapper
+            )
             what = f"Kurihara's surface model ({model.base.n_triangles} triangles) by {skin.upper()}"
         else:
             template = poser.template
@@ -466,11 +534,22 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
             wf = poser.weights_factor  # the forward map lies on the weights' grid
             bounds = _camera_bounds(poser, sk, kf, mask[::wf, ::wf, ::wf], 2.0 * max(g.spacing))
             g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
-            renderer = VolumeRenderer(g, size=size, transfer=tf, reference=template, camera=camera, clip=clip,
-                                      background=background, bounds=bounds, mapper=mapper)
+            renderer = VolumeRenderer(
+                g,
+                size=size,
+                transfer=tf,
+                reference=template,
+                camera=camera,
+                clip=clip,
+                background=background,
+                bounds=bounds,
+                mapper=mapper,
+            )
             what = f"{poser.method.upper()} deformation"
-        say(f"{n} frames at {fps:g} fps ({kf.duration:g} s, {len(kf.times)} keyframes, {kf.interpolation}); "
-            f"{what}; {renderer.backend.describe()}, {renderer.mapper_name} mapper")
+        say(
+            f"{n} frames at {fps:g} fps ({kf.duration:g} s, {len(kf.times)} keyframes, {kf.interpolation}); "
+            f"{what}; {renderer.backend.describe()}, {renderer.mapper_name} mapper"
+        )
         t_deform = t_render = t_encode = 0.0
         base_az = camera.azimuth
         last_say = time.perf_counter()
@@ -502,17 +581,32 @@ def animate_study(folder, out, *, keyframes=None, method: str = "auto", weightin
                 if done in (1, n) or now - last_say >= 2.0:  # a line every ~2 s, not one per frame
                     last_say = now
                     left = (t_deform + t_render + t_encode) / done * (n - done)
-                    say(f"frame {done}/{n}  t={t:.2f} s  deform {t1 - t0:.2f} s  render {t2 - t1:.2f} s  "
-                        f"elapsed {now - t_start:.0f} s  ~{left:.0f} s left")
+                    say(
+                        f"frame {done}/{n}  t={t:.2f} s  deform {t1 - t0:.2f} s  render {t2 - t1:.2f} s  "
+                        f"elapsed {now - t_start:.0f} s  ~{left:.0f} s left"
+                    )
         t4 = time.perf_counter()
         files = writer.commit()
         t_encode += time.perf_counter() - t4
     except BaseException:
         writer.abort()
         raise
-    return {"out": str(out), "files": len(files), "frames": n, "fps": fps, "size": list(size),
-            "method": poser.method if skin is None else f"surface {skin}", "keyframes": kf.source, "backend": renderer.backend.describe(),
-            "mapper": renderer.mapper_name, "deform_seconds": t_deform, "render_seconds": t_render,
-            "encode_seconds": t_encode, "total_seconds": time.perf_counter() - t_start,
-            "render_seconds_per_frame": t_render / n, "deform_seconds_per_frame": t_deform / n,
-            "bounds_mm": [round(v, 2) for v in bounds], "grid": None if g is None else list(g.size)}
+    return {
+        "out": str(out),
+        "files": len(files),
+        "frames": n,
+        "fps": fps,
+        "size": list(size),
+        "method": poser.method if skin is None else f"surface {skin}",
+        "keyframes": kf.source,
+        "backend": renderer.backend.describe(),
+        "mapper": renderer.mapper_name,
+        "deform_seconds": t_deform,
+        "render_seconds": t_render,
+        "encode_seconds": t_encode,
+        "total_seconds": time.perf_counter() - t_start,
+        "render_seconds_per_frame": t_render / n,
+        "deform_seconds_per_frame": t_deform / n,
+        "bounds_mm": [round(v, 2) for v in bounds],
+        "grid": None if g is None else list(g.size),
+    }

@@ -48,11 +48,33 @@ import numpy as np
 from deformation.geometry import GridGeometry, Volume
 from workbench.errors import InputFileError, WorkbenchError
 
-__all__ = ["Backend", "RenderError", "opengl_backend", "offscreen_available", "TransferFunction", "PRESETS",
-           "Camera", "ClipPlane", "VolumeRenderer", "render_volume", "render_overlay", "render_difference",
-           "write_png", "parse_size", "label_colour", "content_mask", "points_bounds", "union_bounds", "content_bounds",
-           "CONTRAST_COLOURS", "LEVEL_COLOURS", "transfer_function", "robust_range", "first_visible",
-           "MARKER_COLOUR"]
+__all__ = [
+    "Backend",
+    "RenderError",
+    "opengl_backend",
+    "offscreen_available",
+    "TransferFunction",
+    "PRESETS",
+    "Camera",
+    "ClipPlane",
+    "VolumeRenderer",
+    "render_volume",
+    "render_overlay",
+    "render_difference",
+    "write_png",
+    "parse_size",
+    "label_colour",
+    "content_mask",
+    "points_bounds",
+    "union_bounds",
+    "content_bounds",
+    "CONTRAST_COLOURS",
+    "LEVEL_COLOURS",
+    "transfer_function",
+    "robust_range",
+    "first_visible",
+    "MARKER_COLOUR",
+]
 
 #: template and target colours of the papers' overlays (cyan and magenta; Rhee Figs. 1, 8, 9, 11)
 CONTRAST_COLOURS = ((0.0, 0.9, 1.0), (1.0, 0.1, 0.9))
@@ -123,9 +145,9 @@ def _probe(name: str) -> Backend | None:
     return Backend(name, _WINDOWS[name], renderer, software)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _backend_cached(forced: str) -> Backend | None:
-    for name in ([forced] if forced else ["egl", "osmesa"]):
+    for name in [forced] if forced else ["egl", "osmesa"]:
         b = _probe(name)
         if b is not None:
             return b
@@ -144,9 +166,11 @@ def opengl_backend() -> Backend:
     b = _backend_cached(forced)
     if b is None:
         tried = forced or "EGL and OSMesa"
-        raise RenderError(f"no off-screen OpenGL context ({tried} tried): install the Debian packages libegl1 "
-                          "libegl-mesa0 libgl1-mesa-dri (EGL) or libosmesa6 (OSMesa) — `make venv` does it "
-                          "as root.")
+        raise RenderError(
+            f"no off-screen OpenGL context ({tried} tried): install the Debian packages libegl1 "
+            "libegl-mesa0 libgl1-mesa-dri (EGL) or libosmesa6 (OSMesa) — `make venv` does it "
+            "as root."
+        )
     return b
 
 
@@ -183,15 +207,17 @@ class TransferFunction:
     def __post_init__(self):
         for what, pts, n in (("color", self.color, 4), ("opacity", self.opacity, 2)):
             if len(pts) < 2 or any(len(p) != n for p in pts):
-                raise ValueError(f"transfer function {self.name!r}: {what} needs ≥ 2 points of {n} numbers "
-                                 f"(value{', r, g, b' if n == 4 else ', alpha'}), got {pts!r}")
+                raise ValueError(
+                    f"transfer function {self.name!r}: {what} needs ≥ 2 points of {n} numbers "
+                    f"(value{', r, g, b' if n == 4 else ', alpha'}), got {pts!r}"
+                )
             v = [float(p[0]) for p in pts]
             if any(b <= a for a, b in zip(v, v[1:])):
                 raise ValueError(f"transfer function {self.name!r}: {what} values must increase, got {v}")
         if not self.unit_mm > 0:
             raise ValueError(f"transfer function {self.name!r}: unit_mm must be > 0, got {self.unit_mm}")
 
-    def resolved(self, lo: float, hi: float) -> "TransferFunction":
+    def resolved(self, lo: float, hi: float) -> TransferFunction:
         """Absolute values for a volume whose robust range is ``[lo, hi]``."""
         if not self.relative:
             return self
@@ -199,35 +225,55 @@ class TransferFunction:
 
         def m(v):
             return lo + float(v) * span
-        return replace(self, color=tuple((m(p[0]), *p[1:]) for p in self.color),
-                       opacity=tuple((m(p[0]), p[1]) for p in self.opacity), relative=False)
 
-    def tinted(self, rgb) -> "TransferFunction":
+        return replace(
+            self,
+            color=tuple((m(p[0]), *p[1:]) for p in self.color),
+            opacity=tuple((m(p[0]), p[1]) for p in self.opacity),
+            relative=False,
+        )
+
+    def tinted(self, rgb) -> TransferFunction:
         """The same opacity with a single colour (the overlays' contrasting colours)."""
         r, g, b = (float(c) for c in rgb)
-        return replace(self, name=f"{self.name}-tint", color=((self.color[0][0], r, g, b), (self.color[-1][0], r, g, b)))
+        return replace(
+            self, name=f"{self.name}-tint", color=((self.color[0][0], r, g, b), (self.color[-1][0], r, g, b))
+        )
 
     def to_dict(self) -> dict:
-        return {"format": "avw-transfer-function", "name": self.name, "relative": self.relative,
-                "unit_mm": self.unit_mm, "shade": self.shade,
-                "color": [list(map(float, p)) for p in self.color], "opacity": [list(map(float, p)) for p in self.opacity]}
+        return {
+            "format": "avw-transfer-function",
+            "name": self.name,
+            "relative": self.relative,
+            "unit_mm": self.unit_mm,
+            "shade": self.shade,
+            "color": [list(map(float, p)) for p in self.color],
+            "opacity": [list(map(float, p)) for p in self.opacity],
+        }
 
     @classmethod
-    def from_json(cls, path) -> "TransferFunction":
+    def from_json(cls, path) -> TransferFunction:
         """Read ``{"color": [[v, r, g, b], ...], "opacity": [[v, a], ...], "relative": bool, ...}``."""
         from workbench.io.jsonio import read_json
 
         path = Path(path)
         d = read_json(path)  # missing file, syntax errors: errors naming the file and the line
         if "color" not in d or "opacity" not in d:
-            raise InputFileError(f"{path}: a transfer function needs 'color' [[value, r, g, b], ...] and "
-                                 "'opacity' [[value, alpha], ...] (and optionally 'relative', 'unit_mm', "
-                                 "'shade'); see `workbench render --help`.", path)
+            raise InputFileError(
+                f"{path}: a transfer function needs 'color' [[value, r, g, b], ...] and "
+                "'opacity' [[value, alpha], ...] (and optionally 'relative', 'unit_mm', "
+                "'shade'); see `workbench render --help`.",
+                path,
+            )
         try:
-            return cls(name=str(d.get("name", path.stem)), color=tuple(tuple(map(float, p)) for p in d["color"]),
-                       opacity=tuple(tuple(map(float, p)) for p in d["opacity"]),
-                       relative=bool(d.get("relative", False)), unit_mm=float(d.get("unit_mm", 4.0)),
-                       shade=bool(d.get("shade", True)))
+            return cls(
+                name=str(d.get("name", path.stem)),
+                color=tuple(tuple(map(float, p)) for p in d["color"]),
+                opacity=tuple(tuple(map(float, p)) for p in d["opacity"]),
+                relative=bool(d.get("relative", False)),
+                unit_mm=float(d.get("unit_mm", 4.0)),
+                shade=bool(d.get("shade", True)),
+            )
         except (TypeError, ValueError) as e:
             raise InputFileError(f"{path}: {e}", path) from e
 
@@ -237,14 +283,36 @@ class TransferFunction:
 #: CT-like, in Hounsfield units: skin and muscle faint, bone (≥ 200 HU) ivory and nearly opaque.
 PRESETS = {
     "mri": TransferFunction(
-        "mri", color=((0.0, 0.0, 0.0, 0.0), (0.2, 0.55, 0.35, 0.3), (0.45, 0.85, 0.55, 0.45),
-                      (0.75, 1.0, 0.85, 0.65), (1.0, 1.0, 0.97, 0.9)),
-        opacity=((0.0, 0.0), (0.12, 0.0), (0.3, 0.04), (0.6, 0.12), (1.0, 0.4))),
+        "mri",
+        color=(
+            (0.0, 0.0, 0.0, 0.0),
+            (0.2, 0.55, 0.35, 0.3),
+            (0.45, 0.85, 0.55, 0.45),
+            (0.75, 1.0, 0.85, 0.65),
+            (1.0, 1.0, 0.97, 0.9),
+        ),
+        opacity=((0.0, 0.0), (0.12, 0.0), (0.3, 0.04), (0.6, 0.12), (1.0, 0.4)),
+    ),
     "ct": TransferFunction(
-        "ct", relative=False, color=((-1000.0, 0.0, 0.0, 0.0), (-150.0, 0.55, 0.3, 0.2), (40.0, 0.85, 0.45, 0.4),
-                                     (200.0, 0.95, 0.85, 0.7), (1200.0, 1.0, 1.0, 0.95)),
-        opacity=((-1000.0, 0.0), (-300.0, 0.0), (-100.0, 0.01), (60.0, 0.03), (180.0, 0.05), (300.0, 0.6),
-                 (1500.0, 0.9))),
+        "ct",
+        relative=False,
+        color=(
+            (-1000.0, 0.0, 0.0, 0.0),
+            (-150.0, 0.55, 0.3, 0.2),
+            (40.0, 0.85, 0.45, 0.4),
+            (200.0, 0.95, 0.85, 0.7),
+            (1200.0, 1.0, 1.0, 0.95),
+        ),
+        opacity=(
+            (-1000.0, 0.0),
+            (-300.0, 0.0),
+            (-100.0, 0.01),
+            (60.0, 0.03),
+            (180.0, 0.05),
+            (300.0, 0.6),
+            (1500.0, 0.9),
+        ),
+    ),
 }
 
 
@@ -335,7 +403,8 @@ class Camera:
         cam.Azimuth(az)
         cam.Elevation(el)
         cam.OrthogonalizeViewUp()
-        # fit: every corner c (relative to the centre) must satisfy |c·up| ≤ t (D − c·back), |c·right| ≤ t·aspect (D − c·back)
+        # fit: every corner c (relative to the centre) must satisfy |c·up| ≤ t (D − c·back), |c·right| ≤ t·aspect
+        # (D − c·back)
         back = np.asarray(cam.GetPosition()) - centre
         back /= np.linalg.norm(back)
         vup = np.asarray(cam.GetViewUp())
@@ -344,8 +413,14 @@ class Camera:
         corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]]) - centre
         depth = corners @ back
         if distance is None:
-            dist = max(float(np.max(np.abs(corners @ vup) / t + depth)),
-                       float(np.max(np.abs(corners @ right) / (t * aspect) + depth)), 1e-3) * 1.05
+            dist = (
+                max(
+                    float(np.max(np.abs(corners @ vup) / t + depth)),
+                    float(np.max(np.abs(corners @ right) / (t * aspect) + depth)),
+                    1e-3,
+                )
+                * 1.05
+            )
         else:
             dist = float(distance)
         cam.SetPosition(*(centre + dist * back))
@@ -377,12 +452,14 @@ class ClipPlane:
             raise ValueError(f"clip keep must be 'auto', 'above' or 'below', got {self.keep!r}")
 
     @classmethod
-    def parse(cls, text: str) -> "ClipPlane":
+    def parse(cls, text: str) -> ClipPlane:
         m = re.fullmatch(r"\s*([+-]?)([xyz])\s*:\s*([0-9.eE+-]+)\s*", str(text))
         if not m:
-            raise ValueError(f"--clip {text!r}: expected [+|-]AXIS:FRACTION, e.g. z:0.5 (cut at the middle, "
-                             "the half facing the camera removed), +x:0.3 (keep x above 30 % of the extent) "
-                             "or -x:0.3 (keep it below)")
+            raise ValueError(
+                f"--clip {text!r}: expected [+|-]AXIS:FRACTION, e.g. z:0.5 (cut at the middle, "
+                "the half facing the camera removed), +x:0.3 (keep x above 30 % of the extent) "
+                "or -x:0.3 (keep it below)"
+            )
         keep = {"": "auto", "+": "above", "-": "below"}[m.group(1)]
         return cls(m.group(2), float(m.group(3)), keep)
 
@@ -410,15 +487,25 @@ def parse_size(text: str) -> tuple[int, int]:
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
         raise ValueError(f"--size {text!r}: width and height must be between 16 and 8192 pixels")
     if w % 2 or h % 2:
-        raise ValueError(f"--size {text!r}: video encoders need an even width and height; use "
-                         f"{w + w % 2}x{h + h % 2}")
+        raise ValueError(f"--size {text!r}: video encoders need an even width and height; use {w + w % 2}x{h + h % 2}")
     return w, h
 
 
 # -- labels -----------------------------------------------------------------------------------------
-_PALETTE = np.array([[0.89, 0.85, 0.72], [0.35, 0.65, 0.95], [0.95, 0.55, 0.25], [0.45, 0.85, 0.45],
-                     [0.9, 0.35, 0.45], [0.7, 0.5, 0.9], [0.95, 0.85, 0.3], [0.35, 0.85, 0.85],
-                     [0.85, 0.6, 0.75], [0.6, 0.75, 0.35]])
+_PALETTE = np.array(
+    [
+        [0.89, 0.85, 0.72],
+        [0.35, 0.65, 0.95],
+        [0.95, 0.55, 0.25],
+        [0.45, 0.85, 0.45],
+        [0.9, 0.35, 0.45],
+        [0.7, 0.5, 0.9],
+        [0.95, 0.85, 0.3],
+        [0.35, 0.85, 0.85],
+        [0.85, 0.6, 0.75],
+        [0.6, 0.75, 0.35],
+    ]
+)
 
 
 def label_colour(label: int) -> tuple:
@@ -518,14 +605,25 @@ class VolumeRenderer:
     argument).
     """
 
-    def __init__(self, geometry: GridGeometry | None, *, size=(640, 480), transfer="mri", transfers=None,
-                 reference=None, camera: Camera | None = None, clip: ClipPlane | None = None,
-                 background=(0.0, 0.0, 0.0), mapper: str = "auto", sample_mm: float | None = None,
-                 bounds=None):
-        from vtkmodules.vtkCommonDataModel import vtkPlane
-        from vtkmodules.vtkRenderingCore import vtkRenderer, vtkWindowToImageFilter
+    def __init__(
+        self,
+        geometry: GridGeometry | None,
+        *,
+        size=(640, 480),
+        transfer="mri",
+        transfers=None,
+        reference=None,
+        camera: Camera | None = None,
+        clip: ClipPlane | None = None,
+        background=(0.0, 0.0, 0.0),
+        mapper: str = "auto",
+        sample_mm: float | None = None,
+        bounds=None,
+    ):
         import vtkmodules.vtkRenderingOpenGL2 as gl
         import vtkmodules.vtkRenderingVolumeOpenGL2  # noqa: F401 - registers the OpenGL volume mappers
+        from vtkmodules.vtkCommonDataModel import vtkPlane
+        from vtkmodules.vtkRenderingCore import vtkRenderer, vtkWindowToImageFilter
 
         self.backend = opengl_backend()
         if mapper not in ("auto", "fixed", "gpu"):
@@ -538,8 +636,11 @@ class VolumeRenderer:
         self.geometry = geometry
         self.camera = camera or Camera()
         self.clip = clip
-        tfs = [] if geometry is None else [transfer_function(t) for t in (transfers if transfers is not None
-                                                                          else [transfer])]
+        tfs = (
+            []
+            if geometry is None
+            else [transfer_function(t) for t in (transfers if transfers is not None else [transfer])]
+        )
         self.n_components = len(tfs)
         self._tfs, self._resolved = tfs, None
         self._reference = reference
@@ -621,8 +722,10 @@ class VolumeRenderer:
         for a in arrays:
             a = np.asarray(a.data if isinstance(a, Volume) else a)
             if a.shape != shape:
-                raise ValueError(f"render: a volume of shape {a.shape} on a renderer for grid {shape} "
-                                 "(resample it onto the renderer's grid first)")
+                raise ValueError(
+                    f"render: a volume of shape {a.shape} on a renderer for grid {shape} "
+                    "(resample it onto the renderer's grid first)"
+                )
             cols.append(np.asarray(a, np.float32).reshape(-1))
         flat = np.ascontiguousarray(np.stack(cols, axis=1) if len(cols) > 1 else cols[0])
         self._keep = flat  # VTK shares the buffer
@@ -663,8 +766,11 @@ class VolumeRenderer:
 
         lab = np.asarray(labels.data if isinstance(labels, Volume) else labels)
         if isinstance(labels, Volume):
-            self.geometry.check_same(labels.geometry, names=("volume", "labels"),
-                                     remedy="resample the labels onto the volume's grid (nearest neighbour)")
+            self.geometry.check_same(
+                labels.geometry,
+                names=("volume", "labels"),
+                remedy="resample the labels onto the volume's grid (nearest neighbour)",
+            )
         if lab.shape != self.geometry.array_shape:
             raise ValueError(f"labels of shape {lab.shape} on a grid of shape {self.geometry.array_shape}")
         ids = [int(v) for v in np.unique(lab) if v != 0]
@@ -676,8 +782,12 @@ class VolumeRenderer:
             sm.NormalizeCoordinatesOn()
             sm.Update()
             # the surface is in voxel indices: the grid's index → world matrix places it
-            self._add_surface(sm.GetOutput(), label_colour(lid), opacity=opacity,
-                              matrix=_vtk_matrix(self.geometry.index_to_world_matrix))
+            self._add_surface(
+                sm.GetOutput(),
+                label_colour(lid),
+                opacity=opacity,
+                matrix=_vtk_matrix(self.geometry.index_to_world_matrix),
+            )
         return len(ids)
 
     def add_points(self, points, *, colour=(1.0, 0.85, 0.1), radius_mm: float | None = None) -> int:
@@ -757,9 +867,13 @@ class VolumeRenderer:
     def _place(self, volumes) -> None:
         """Camera and clipping plane on the anatomy's world box (``bounds``, or the union of every volume's tissue)."""
         if self.bounds is None:  # the union of every component's visible tissue and of the meshes
-            self.bounds = union_bounds([content_bounds(v.data if isinstance(v, Volume) else v, self.geometry,
-                                                       first_visible(t)) for v, t in zip(volumes, self._resolved or ())]
-                                       + self._mesh_bounds)
+            self.bounds = union_bounds(
+                [
+                    content_bounds(v.data if isinstance(v, Volume) else v, self.geometry, first_visible(t))
+                    for v, t in zip(volumes, self._resolved or ())
+                ]
+                + self._mesh_bounds
+            )
         cam = self._ren.GetActiveCamera()
         first = self._distance is None
         self._distance = self.camera.place(cam, self.bounds, self.size[0] / self.size[1], self._distance)
@@ -786,8 +900,9 @@ class VolumeRenderer:
             raise ValueError(f"render: {len(volumes)} volumes for a renderer of {self.n_components} components")
         for v in volumes:
             if isinstance(v, Volume):
-                self.geometry.check_same(v.geometry, names=("renderer grid", "volume"),
-                                         remedy="resample the volume onto one grid first")
+                self.geometry.check_same(
+                    v.geometry, names=("renderer grid", "volume"), remedy="resample the volume onto one grid first"
+                )
         if volumes:
             self._resolve(volumes)
             self._set_scalars(volumes)
@@ -814,8 +929,9 @@ class VolumeRenderer:
 
 
 # -- one-call forms ------------------------------------------------------------------------------------
-def render_volume(volume: Volume | None, *, labels: Volume | None = None, points=(), meshes=(), transfer="mri",
-                  **kw) -> np.ndarray:
+def render_volume(
+    volume: Volume | None, *, labels: Volume | None = None, points=(), meshes=(), transfer="mri", **kw
+) -> np.ndarray:
     """A still of ``volume``, optionally with ``labels`` as bone surfaces, ``points`` and ``meshes``.
 
     ``points``: ``[(world points (n, 3) mm, (r, g, b)[, radius mm]), ...]``
@@ -833,7 +949,7 @@ def render_volume(volume: Volume | None, *, labels: Volume | None = None, points
         return r.render() if volume is None else r.render(volume)
 
 
-def _add_point_sets(r: "VolumeRenderer", points) -> None:
+def _add_point_sets(r: VolumeRenderer, points) -> None:
     for item in points:
         pts, colour = item[0], item[1]
         r.add_points(pts, colour=colour, radius_mm=item[2] if len(item) > 2 else None)
@@ -853,8 +969,7 @@ def _on_grid(vol: Volume, g: GridGeometry) -> Volume:
     return Volume(sitk.GetArrayFromImage(out), g)
 
 
-def render_overlay(a: Volume, b: Volume, *, colours=CONTRAST_COLOURS, transfer="mri", points=(),
-                   **kw) -> np.ndarray:
+def render_overlay(a: Volume, b: Volume, *, colours=CONTRAST_COLOURS, transfer="mri", points=(), **kw) -> np.ndarray:
     """``a`` and ``b`` in contrasting colours (default cyan and magenta, as Rhee Figs. 1, 8, 9, 11).
 
     Where the two agree the colours mix (lavender for cyan and magenta);
@@ -866,18 +981,27 @@ def render_overlay(a: Volume, b: Volume, *, colours=CONTRAST_COLOURS, transfer="
     """
     tf = transfer_function(transfer)
     b = _on_grid(b, a.geometry)
-    with VolumeRenderer(a.geometry, transfers=[tf.tinted(colours[0]), tf.tinted(colours[1])],
-                        reference=[a, b], **kw) as r:
+    with VolumeRenderer(
+        a.geometry, transfers=[tf.tinted(colours[0]), tf.tinted(colours[1])], reference=[a, b], **kw
+    ) as r:
         _add_point_sets(r, points)
         return r.render(a, b)
 
 
 #: signed difference: blue where the first volume is darker, red where brighter; |difference| sets opacity
 DIFFERENCE = TransferFunction(
-    "difference", relative=False, shade=False,
-    color=((-1.0, 0.15, 0.35, 1.0), (-0.1, 0.6, 0.7, 1.0), (0.0, 1.0, 1.0, 1.0), (0.1, 1.0, 0.7, 0.5),
-           (1.0, 1.0, 0.2, 0.1)),
-    opacity=((-1.0, 0.5), (-0.15, 0.08), (-0.05, 0.0), (0.05, 0.0), (0.15, 0.08), (1.0, 0.5)))
+    "difference",
+    relative=False,
+    shade=False,
+    color=(
+        (-1.0, 0.15, 0.35, 1.0),
+        (-0.1, 0.6, 0.7, 1.0),
+        (0.0, 1.0, 1.0, 1.0),
+        (0.1, 1.0, 0.7, 0.5),
+        (1.0, 1.0, 0.2, 0.1),
+    ),
+    opacity=((-1.0, 0.5), (-0.15, 0.08), (-0.05, 0.0), (0.05, 0.0), (0.15, 0.08), (1.0, 0.5)),
+)
 
 
 def render_difference(a: Volume, b: Volume, *, transfer="mri", **kw) -> np.ndarray:
@@ -894,9 +1018,9 @@ def render_difference(a: Volume, b: Volume, *, transfer="mri", **kw) -> np.ndarr
     diff = Volume(np.clip(d, -1.0, 1.0).astype(np.float32), a.geometry)
     if kw.get("bounds") is None:
         tf = transfer_function(transfer)
-        kw["bounds"] = union_bounds([content_bounds(v.data, a.geometry,
-                                                    first_visible(tf.resolved(*robust_range(v.data))))
-                                     for v in (a, b)])
+        kw["bounds"] = union_bounds(
+            [content_bounds(v.data, a.geometry, first_visible(tf.resolved(*robust_range(v.data)))) for v in (a, b)]
+        )
     with VolumeRenderer(a.geometry, transfer=DIFFERENCE, **kw) as r:
         return r.render(diff)
 

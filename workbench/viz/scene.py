@@ -13,8 +13,19 @@ from workbench.viz.render import LEVEL_COLOURS, MARKER_COLOUR
 __all__ = ["render_inputs"]
 
 
-def render_inputs(source, *, scan=None, registered=None, bones: bool = False, labels=None, overlay=None,
-                  difference=None, markers: bool = False, control_points: bool = False, progress=None) -> tuple:
+def render_inputs(
+    source,
+    *,
+    scan=None,
+    registered=None,
+    bones: bool = False,
+    labels=None,
+    overlay=None,
+    difference=None,
+    markers: bool = False,
+    control_points: bool = False,
+    progress=None,
+) -> tuple:
     """``(volume, labels, other, points)`` to render: an image file, or a study's template / scan (``scan``) /
     registered template (``registered``), its bone labels (``bones``) or a label file (``labels``), a second
     volume for ``overlay`` or ``difference`` (a file or a scan id), and the point sets to draw: the truth's
@@ -27,7 +38,7 @@ def render_inputs(source, *, scan=None, registered=None, bones: bool = False, la
     study = read_study(source) if (source / MANIFEST).is_file() else None
     if study is None:
         for flag in ("scan", "registered", "bones"):
-            if {'scan': scan, 'registered': registered, 'bones': bones}[flag]:
+            if {"scan": scan, "registered": registered, "bones": bones}[flag]:
                 raise ValueError(f"--{flag} needs a study folder; {source} is not one (no {MANIFEST})")
     if scan and registered:
         raise ValueError("--scan and --registered each choose the volume to render: pass one")
@@ -50,8 +61,10 @@ def render_inputs(source, *, scan=None, registered=None, bones: bool = False, la
     elif registered:
         study.check_scan_ids([registered])
         if not study.has_registration(registered):
-            raise ValueError(f"scan {registered!r} has no registration; run `workbench register "
-                             f"{study.root} --scan {registered}` first")
+            raise ValueError(
+                f"scan {registered!r} has no registration; run `workbench register "
+                f"{study.root} --scan {registered}` first"
+            )
         vol, what = study.registered(registered), f"template registered to {registered}"
     else:
         vol, what = study.template(), "template"
@@ -60,15 +73,18 @@ def render_inputs(source, *, scan=None, registered=None, bones: bool = False, la
                 raise ValueError(f"{study.root}: the study has no template label map for --bones")
             labels = study.template_labels()
     if bones and (scan or registered):
-        raise ValueError("--bones draws the template's labels: render the template (no --scan/--registered), "
-                         "or pass --labels FILE on the volume's grid")
+        raise ValueError(
+            "--bones draws the template's labels: render the template (no --scan/--registered), "
+            "or pass --labels FILE on the volume's grid"
+        )
     if label_file:
         labels = read_labels(label_file)
     if overlay and difference:
         raise ValueError("--overlay and --difference are two kinds of picture: pass one")
     if (overlay or difference) and labels is not None:
-        raise ValueError("--bones/--labels draw surfaces on a single-volume render; leave them out with "
-                         "--overlay or --difference")
+        raise ValueError(
+            "--bones/--labels draw surfaces on a single-volume render; leave them out with --overlay or --difference"
+        )
     other = resolve(overlay or difference) if (overlay or difference) else None
     say(f"{what}: {vol.geometry.describe()}")
     points = []
@@ -91,8 +107,10 @@ def render_inputs(source, *, scan=None, registered=None, bones: bool = False, la
 
         reg_log = study.registration_log(registered)
         if "log" not in reg_log:
-            raise ValueError(f"scan {registered!r} was registered by {reg_log.get('method', 'a method')}, which has "
-                             "no control points: --control-points needs `workbench register --method adaptive`")
+            raise ValueError(
+                f"scan {registered!r} was registered by {reg_log.get('method', 'a method')}, which has "
+                "no control points: --control-points needs `workbench register --method adaptive`"
+            )
         cps = control_points_from_log(reg_log["log"], vol.geometry)
         levels = sorted({lv for lv, _ in cps})
         for lv in levels:
