@@ -31,7 +31,7 @@ help:
 	@echo "make lint       ruff (lint and format) and import-linter's layering contract"
 	@echo "make test-slow  paper-size tests (minutes)"
 	@echo "make bench      add the benchmarks' peers to .venv (itk-elastix, psutil)"
-	@echo "make bench-ants ANTs SyN for benchmarks/registration.py, in its own .venv-ants (antspyx pins an"
+	@echo "make bench-ants ANTs SyN for benchmarks/bench_registration.py, in its own .venv-ants (antspyx pins an"
 	@echo "                older NumPy/SciPy than the project's)"
 	@echo "make clean      remove .venv, .venv-ants and $(DEMO_DIR)/"
 

@@ -31,7 +31,7 @@ dtype with ``order=0``.  A float32 *point* carries its own rounding
 
 Speed.  The kernels are numba-compiled (``parallel=True``, ``cache=True``,
 no fastmath); against SciPy's and SimpleITK's resampling:
-docs/measurements/library-choices.md (``benchmarks/interpolation.py``).
+docs/measurements/library-choices.md (``benchmarks/bench_interpolation.py``).
 """
 
 from __future__ import annotations

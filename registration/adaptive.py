@@ -56,7 +56,7 @@ Cost of one evaluation.  The 3×3×3 region's samples (≲ ``(3·eval_voxels)³`
 e.g. 13 824 at 8³-sample blocks), the spline basis ``B`` precomputed per
 step, and the running registered image precomputed on the region: one
 compiled serial pass of ``B @ d``, a trilinear sample and the SSD or the
-joint histogram — tens of microseconds (``benchmarks/registration.py``).
+joint histogram — tens of microseconds (``benchmarks/bench_registration.py``).
 Serial, so that a seed gives the same field to the last bit.
 """
 

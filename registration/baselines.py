@@ -2,7 +2,7 @@
 
 The peers a researcher would otherwise reach for, on the same inputs and
 returning the same thing — a ``scan_to_template`` field on the scan grid — so
-that every comparison (``benchmarks/registration.py``,
+that every comparison (``benchmarks/bench_registration.py``,
 :mod:`validation.registration_protocol`) is made in one run on the same data:
 
 * :func:`sitk_bspline` — SimpleITK's multi-resolution free-form deformation

@@ -153,7 +153,7 @@ def test_deform_with_joint_angles_and_vbd(study, tmp_path):
     assert main(["deform", str(study), "--pose", str(pose), "--out", str(out), "--quiet"]) == 1
     # --map-factor 2: the maps on every other voxel, the template pulled at full resolution, on the same grid;
     # the test knee's 5 mm grid gives a 10 mm map, so only the grid and the bulk agreement are checked here (the
-    # accuracy is measured in tests/deformation/test_evd.py and benchmarks/deformation.py)
+    # accuracy is measured in tests/deformation/test_evd.py and benchmarks/bench_deformation.py)
     coarse = tmp_path / "bend2.mha"
     assert (
         main(

@@ -93,7 +93,7 @@ __all__ = [
 log = logging.getLogger("workbench")
 
 #: the most template voxels the pose and weights stages work on: they and a full-grid deform hold ~100–117 bytes
-#: a voxel (benchmarks/big_volume.py), so ≤ 6.6 GiB here, within the 8 GiB budget; a template up to this size
+#: a voxel (benchmarks/bench_big_volume.py), so ≤ 6.6 GiB here, within the 8 GiB budget; a template up to this size
 #: keeps full-grid weights (which register, model and validate need).  A bigger one (Kurihara's CT: 197 M voxels)
 #: is worked on every f-th voxel (``--grid-factor``; f = 2 there).
 WORKING_VOXELS = 60_000_000

@@ -6,7 +6,7 @@ off-screen OpenGL context — EGL first, then OSMesa (``AVW_OPENGL=egl`` or
 a software renderer (Mesa's llvmpipe, as on machines without a GPU) the CPU
 ray caster ``vtkFixedPointVolumeRayCastMapper`` is used: it is faster there
 than the GPU ray caster, which then runs on the CPU through Mesa
-(docs/measurements/library-choices.md, ``benchmarks/rendering.py``); with a
+(docs/measurements/library-choices.md, ``benchmarks/bench_rendering.py``); with a
 hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
 
 Geometry is honest: the volume is placed in world millimetres (ITK physical

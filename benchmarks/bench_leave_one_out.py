@@ -13,8 +13,8 @@ correlation of the posed template with the scan (CC, whole grid)
 table with models built from the *truth* (exact correspondences, true
 poses) shows what the model itself can do.
 
-    python benchmarks/leave_one_out.py [--cases knee hand] [--size test] [--seed 0] [--out DIR]
-    python benchmarks/leave_one_out.py --cases hand --spacing 0.8 --n-poses 6   # a phalanx >= 5 voxels across
+    python benchmarks/bench_leave_one_out.py [--cases knee hand] [--size test] [--seed 0] [--out DIR]
+    python benchmarks/bench_leave_one_out.py --cases hand --spacing 0.8 --n-poses 6   # a phalanx >= 5 voxels across
 
 Each case prints how many voxels its thinnest bone is across (2 x its deepest voxel's distance - 1): at the
 test size's 1.6 mm a phalanx is 2-3 voxels, too few for a registration to hold it (issue M asks for >= 5).
@@ -30,12 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from validation.leave_one_out import leave_one_out_correspondences  # noqa: E402
-from validation.phantoms import make_phantom  # noqa: E402
-from workbench.stages.run import run_stages  # noqa: E402
-from workbench.study import write_phantom_study  # noqa: E402
+from validation.leave_one_out import leave_one_out_correspondences
+from validation.phantoms import make_phantom
+from workbench.stages.run import run_stages
+from workbench.study import write_phantom_study
 
 
 def _say(event):

@@ -19,29 +19,24 @@ machine is shared):
 
 Usage::
 
-    .venv/bin/python benchmarks/deformation.py            # paper-size hand (a few minutes, ~6 GB)
-    .venv/bin/python benchmarks/deformation.py --size test
+    .venv/bin/python benchmarks/bench_deformation.py            # paper-size hand (a few minutes, ~6 GB)
+    .venv/bin/python benchmarks/bench_deformation.py --size test
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
+from timing import best_of  # benchmarks/timing.py
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from timing import best_of  # noqa: E402  (benchmarks/timing.py)
-
-from deformation.evd import ExampleVolumeDeformation, vbd_forward  # noqa: E402
-from deformation.geometry import Volume  # noqa: E402
-from deformation.posespace import PoseSpace, psd_training, skin, wpsd_deform  # noqa: E402
-from deformation.resample import backward_map, resample_forward  # noqa: E402
-from deformation.skinning import distance_weights, lbs, stack_transforms  # noqa: E402
-from validation.phantoms import make_phantom  # noqa: E402
+from deformation.evd import ExampleVolumeDeformation, vbd_forward
+from deformation.geometry import Volume
+from deformation.posespace import PoseSpace, psd_training, skin, wpsd_deform
+from deformation.resample import backward_map, resample_forward
+from deformation.skinning import distance_weights, lbs, stack_transforms
+from validation.phantoms import make_phantom
 
 
 class Memory:

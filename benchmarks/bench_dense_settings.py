@@ -1,6 +1,6 @@
 """Compare settings of the dense registration on the TUNING phantoms only (the seeds settings are chosen on).
 
-Each case is the flex protocol's (``benchmarks/registration.py --cases flex``): the knee bent 45° or 70°
+Each case is the flex protocol's (``benchmarks/bench_registration.py --cases flex``): the knee bent 45° or 70°
 (2.5 mm voxels) or the hand's strongest curl (1.6 mm), poses estimated by the pose stage's method, the
 polyrigid start from them; then :func:`registration.dense.register_dense` once per variant, from that same
 start.  Printed per variant: MED over the body, bone and soft tissue, the 200-marker MED (markers drawn by the
@@ -8,12 +8,12 @@ study's rule), folded voxels of the body, time, and each level's taken steps, re
 LNCC before -> after.  The start (pose estimation, ~1-2 min a case) is cached under ``--cache``.
 
 Only tuning seeds are accepted: held-out seeds and the external set are for reporting
-(``benchmarks/registration.py``), never for choosing a setting.
+(``benchmarks/bench_registration.py``), never for choosing a setting.
 
 Usage::
 
-    .venv/bin/python benchmarks/dense_settings.py knee 0 bend70 '{}' '{"radius_growth": 2.0}'
-    .venv/bin/python benchmarks/dense_settings.py hand 1 curl '{}' '{"elastic_voxels": 1.2}'
+    .venv/bin/python benchmarks/bench_dense_settings.py knee 0 bend70 '{}' '{"radius_growth": 2.0}'
+    .venv/bin/python benchmarks/bench_dense_settings.py hand 1 curl '{}' '{"elastic_voxels": 1.2}'
 
 Each variant is a JSON object of :class:`registration.dense.DenseSettings` fields (lists become tuples);
 ``{}`` is the default.
@@ -29,30 +29,18 @@ import sys
 import tempfile
 from pathlib import Path
 
+import bench_registration  # benchmarks/bench_registration.py: the flex case's constants and a row's measures
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from deformation.geometry import Volume  # noqa: E402
-from registration.dense import DenseSettings, register_dense  # noqa: E402
-from validation.phantoms import make_phantom  # noqa: E402
-from validation.registration_measures import body_on_scan, marker_med  # noqa: E402
+from deformation.geometry import Volume
+from registration.dense import DenseSettings, register_dense
+from validation.phantoms import make_phantom
+from validation.registration_measures import body_on_scan, marker_med
 
 #: the hand's middle finger curled (MCP / PIP / DIP flexion, degrees), every other joint at the template's: one
 #: finger's crease and the sliding web beside straight neighbours, a motion the flex cases (every finger curling
 #: together) do not have
 CURL_ONE = {"middle_mcp": [70.0, 0.0, 0.0], "middle_pip": [75.0, 0.0, 0.0], "middle_dip": [50.0, 0.0, 0.0]}
-
-
-def _bench():
-    """benchmarks/registration.py as a module (one home for the flex case's constants and a row's measures;
-    loaded by path: the name ``registration`` is the package's)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("bench_registration", Path(__file__).with_name("registration.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def tuning_case(
@@ -67,7 +55,7 @@ def tuning_case(
     texture: float = 1.0,
 ) -> dict:
     """The scan, template, held bones, polyrigid start and truth of one tuning case (cached).  ``start``
-    "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/registration.py's
+    "perturbed": the estimated poses each off by 2-5° and 2 mm (benchmarks/bench_registration.py's
     ``perturbed_transforms``, drawn from the seed and region) before the polyrigid start is made.  ``without``
     ("bias" or "noise", random acquisition only): the same draw with every bias amplitude 1e-12 or every SNR 10⁶
     (the other draws unchanged: each image's parameters come from its own stream in the same order).  ``shift``:
@@ -106,7 +94,7 @@ def _build_case(region, seed, scan, cache, start, acquisition, tag, shift=0.0, t
     from registration.initialise import polyrigid_initial_field
     from registration.pose import estimate_poses, released_labels
 
-    bench = _bench()
+    bench = bench_registration
     flex_knee, n_markers = bench.FLEX_KNEE, bench.MARKER_SAMPLE
     if region == "knee":
         ph = make_phantom(
@@ -184,9 +172,9 @@ def _template(ph, shift: float):
 
 
 def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bone: bool = False) -> dict:
-    """The flex case's row (benchmarks/registration.py ``field_measures``) of ``field``, printed with the levels;
+    """The flex case's row (benchmarks/bench_registration.py ``field_measures``) of ``field``, printed with the levels;
     ``per_bone``: then each held bone's MED (mm, over its voxels on the scan: its label pulled through the truth)."""
-    out = _bench().field_measures(
+    out = bench_registration.field_measures(
         d["scan"], d["template"], field, d["truth"], d["body"], d["bone"], d["markers"], seconds, 0.0
     )
     out["markers_many_mm"] = marker_med(field, d["many"])
@@ -261,7 +249,7 @@ def _print_measures(tag: str, m: dict) -> None:
 
 
 def main(argv=None) -> int:
-    bench = _bench()
+    bench = bench_registration
     tuning, n_markers = bench.TUNING_SEEDS, bench.MARKER_SAMPLE
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("region", choices=["knee", "hand"])
@@ -282,7 +270,7 @@ def main(argv=None) -> int:
         "--acquisition",
         choices=["fixed", "random"],
         default="fixed",
-        help="the phantom's acquisition, as benchmarks/registration.py's --acquisition",
+        help="the phantom's acquisition, as benchmarks/bench_registration.py's --acquisition",
     )
     p.add_argument(
         "--without",

@@ -15,8 +15,8 @@ Times are measured in one run on a shared machine: compare the ratios.
 
 Usage::
 
-    .venv/bin/python benchmarks/rendering.py                 # hand and knee, ~2 min
-    .venv/bin/python benchmarks/rendering.py --cases hand --frames 60 --repeats 5
+    .venv/bin/python benchmarks/bench_rendering.py                 # hand and knee, ~2 min
+    .venv/bin/python benchmarks/bench_rendering.py --cases hand --frames 60 --repeats 5
 """
 
 from __future__ import annotations
@@ -29,15 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from validation.phantoms import make_phantom  # noqa: E402
-from workbench.stages.model import ModelSettings  # noqa: E402
-from workbench.stages.run import run_stages  # noqa: E402
-from workbench.stages.weights import WeightsSettings  # noqa: E402
-from workbench.study import write_phantom_study  # noqa: E402
-from workbench.viz.animate import animate_study  # noqa: E402
-from workbench.viz.render import Camera, VolumeRenderer, opengl_backend  # noqa: E402
+from validation.phantoms import make_phantom
+from workbench.stages.model import ModelSettings
+from workbench.stages.run import run_stages
+from workbench.stages.weights import WeightsSettings
+from workbench.study import write_phantom_study
+from workbench.viz.animate import animate_study
+from workbench.viz.render import Camera, VolumeRenderer, opengl_backend
 
 
 def _time_mapper(vol, mapper, repeats, size):

@@ -1,6 +1,6 @@
 """Trilinear sampling and displacement-field operations vs SciPy and SimpleITK (one run, ratios).
 
-    .venv/bin/python benchmarks/interpolation.py [--repeat 3] [--invert-iter 20]
+    .venv/bin/python benchmarks/bench_interpolation.py [--repeat 3] [--invert-iter 20]
 
 On the paper-size hand grid (255×255×90 float32 at 0.78×0.78×1.0 mm) every
 voxel is sampled at ``x + u(x)`` for a smooth displacement field ``u`` (three
@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
-from pathlib import Path
 
 import numba
 import numpy as np
@@ -36,13 +34,11 @@ import scipy.ndimage as ndi
 import SimpleITK as sitk
 
 # The project root first: this folder holds a ``deformation.py`` benchmark that would shadow the package.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from timing import best_of  # benchmarks/timing.py
 
-from timing import best_of  # noqa: E402  (benchmarks/timing.py)
-
-from deformation import fields as F  # noqa: E402
-from deformation.geometry import GridGeometry, Volume  # noqa: E402
-from deformation.interpolate import sample, sample_displaced_array  # noqa: E402
+from deformation import fields as F
+from deformation.geometry import GridGeometry, Volume
+from deformation.interpolate import sample, sample_displaced_array
 
 
 def smooth_field(g: GridGeometry) -> np.ndarray:

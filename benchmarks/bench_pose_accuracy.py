@@ -21,21 +21,18 @@ Prints, in one run on the same data:
 
 Usage::
 
-    .venv/bin/python benchmarks/pose_accuracy.py [--regions knee hand] [--modalities mri ct] [--scale 1]
+    .venv/bin/python benchmarks/bench_pose_accuracy.py [--regions knee hand] [--modalities mri ct] [--scale 1]
         [--methods ours paper surface] [--out DIR] [--no-bound] [--no-wrist] [--tables]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 CONFIGS = {
     "ours": dict(method="intensity"),

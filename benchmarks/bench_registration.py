@@ -19,15 +19,16 @@ shared machine: compare ratios, not seconds.
 
 Usage::
 
-    .venv/bin/python benchmarks/registration.py                    # table2 and knee, test size (~10 min)
-    .venv/bin/python benchmarks/registration.py --cases table2 --paper-preset
-    .venv/bin/python benchmarks/registration.py --cases hand
-    .venv/bin/python benchmarks/registration.py --cases knee hand --from-truth   # the intensity floor
-    .venv/bin/python benchmarks/registration.py --cases flex --split held-out   # issue I's protocol
-    .venv/bin/python benchmarks/registration.py --cases flex --start vbd         # every method from VBD
-    .venv/bin/python benchmarks/registration.py --cases flex --start perturbed   # poses off 2-5 deg, 2 mm
-    nice .venv/bin/python benchmarks/registration.py --cases external          # the external set (tens of minutes)
-    nice .venv/bin/python benchmarks/registration.py --cases suite --no-sitk --no-adaptive --no-vbd-starts \
+    .venv/bin/python benchmarks/bench_registration.py                    # table2 and knee, test size (~10 min)
+    .venv/bin/python benchmarks/bench_registration.py --cases table2 --paper-preset
+    .venv/bin/python benchmarks/bench_registration.py --cases hand
+    .venv/bin/python benchmarks/bench_registration.py --cases knee hand --from-truth   # the intensity floor
+    .venv/bin/python benchmarks/bench_registration.py --cases flex --split held-out   # issue I's protocol
+    .venv/bin/python benchmarks/bench_registration.py --cases flex --start vbd         # every method from VBD
+    .venv/bin/python benchmarks/bench_registration.py --cases flex --start perturbed   # poses off 2-5 deg, 2 mm
+    nice .venv/bin/python benchmarks/bench_registration.py --cases external          # the external set (tens of
+    minutes)
+    nice .venv/bin/python benchmarks/bench_registration.py --cases suite --no-sitk --no-adaptive --no-vbd-starts \
         --no-elastix-rigidity --acquisition random    # all three sets, one table each (~40 min)
 
 ``suite`` (issue M part 5): the flex cases on the tuning seeds, then on the
@@ -92,30 +93,28 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from deformation.fields import folding_statistics  # noqa: E402
-from deformation.geometry import Volume  # noqa: E402
-from deformation.skinning import stack_transforms  # noqa: E402
-from registration.adaptive import AdaptiveSettings, register_adaptive  # noqa: E402
+from deformation.fields import folding_statistics
+from deformation.geometry import Volume
+from deformation.skinning import stack_transforms
+from registration.adaptive import AdaptiveSettings, register_adaptive
 from registration.baselines import (
     _itk,
     ants_available,
     ants_syn,
     elastix_available,
-    elastix_bspline,  # noqa: E402
+    elastix_bspline,
     sitk_bspline,
     warp_template,
 )
-from registration.initialise import vbd_initial_field  # noqa: E402
-from validation.phantoms import make_phantom  # noqa: E402
-from validation.phantoms.generate import ACQUISITIONS, describe_acquisition  # noqa: E402
-from validation.protocols.registration import PAPER as RHEE_TABLES  # noqa: E402
+from registration.initialise import vbd_initial_field
+from validation.phantoms import make_phantom
+from validation.phantoms.generate import ACQUISITIONS, describe_acquisition
+from validation.protocols.registration import PAPER as RHEE_TABLES
 from validation.registration_measures import (
     MEASURE_KEYS,
     body_on_scan,
     error_map,
-    marker_med,  # noqa: E402
+    marker_med,
     registration_measures,
 )
 

@@ -1,6 +1,6 @@
 """Kurihara's surface model: the consistent-mesh fits and SSD / PSD / WPSD per pose, beside the paper's times.
 
-    .venv/bin/python benchmarks/surface.py [--triangles 100000] [--repeat 5]
+    .venv/bin/python benchmarks/bench_surface.py [--triangles 100000] [--repeat 5]
 
 Kurihara & Miyata 2004 (§4–5, a 2.2 GHz Pentium IV): RBF fitting 1.0 s and
 the final nearest-point fitting 9.0 s per pose (§4), PSD ("the shape
@@ -26,15 +26,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from timing import best_of  # noqa: E402  (benchmarks/timing.py)
+from timing import best_of  # benchmarks/timing.py
 
 PAPER = {"rbf": 1.0, "nearest": 9.0, "psd": 0.062, "wpsd": 0.157}  # seconds per pose, Kurihara §4, §5.1–5.2
 

@@ -1,6 +1,6 @@
 """A skin layer sliding over deeper tissue, in air: the dense registration with and without ``tissue_only``.
 
-    .venv/bin/python benchmarks/sliding_skin.py [--slide-mm 4] [--seed 3]
+    .venv/bin/python benchmarks/bench_sliding_skin.py [--slide-mm 4] [--seed 3]
 
 A textured slab (infinite along its x axis, faces normal to y and z, on an
 anisotropic grid turned 10° about x) in air; the scan is the template moved
@@ -18,17 +18,13 @@ that peaks at the skin.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from deformation.geometry import GridGeometry, Volume  # noqa: E402
-from deformation.interpolate import sample_displaced_array  # noqa: E402
-from registration.dense import DenseSettings, register_dense  # noqa: E402
+from deformation.geometry import GridGeometry, Volume
+from deformation.interpolate import sample_displaced_array
+from registration.dense import DenseSettings, register_dense
 
 
 def main(argv=None):

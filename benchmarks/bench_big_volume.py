@@ -19,7 +19,7 @@ stopped and reported as over.
 
 Usage::
 
-    .venv/bin/python benchmarks/big_volume.py [--out /tmp/avw-big] [--size 512 512 750]
+    .venv/bin/python benchmarks/bench_big_volume.py [--out /tmp/avw-big] [--size 512 512 750]
         [--stages pose weights init unfold deform field animate] [--kill-gib 20]
 
 ``--size`` makes a smaller grid over the same field of view (e.g. ``256 256
@@ -41,7 +41,6 @@ from pathlib import Path
 import numpy as np
 
 # this folder holds registration.py, which would shadow the project's `registration` package
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 BUDGET_GIB = 8.0
 KURIHARA_SIZE = (512, 512, 750)

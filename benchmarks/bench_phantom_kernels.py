@@ -1,6 +1,6 @@
 """Compiled phantom kernels vs their NumPy definitions on the same points (one run, ratios).
 
-    .venv/bin/python benchmarks/phantom_kernels.py [--region hand] [--points 200000]
+    .venv/bin/python benchmarks/bench_phantom_kernels.py [--region hand] [--points 200000]
 
 Prints, for the signed distances, the intensity model, the soft and vbd forward
 maps, the time of each implementation and the speed-up ratio.  Numba's
@@ -10,17 +10,13 @@ compilation is excluded (one warm-up call).  Never asserts times.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
 # The project root first: this folder holds a ``deformation.py`` benchmark that would shadow the package.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from timing import best_of  # benchmarks/timing.py
 
-from timing import best_of  # noqa: E402  (benchmarks/timing.py)
-
-from validation.phantoms import make_phantom  # noqa: E402
+from validation.phantoms import make_phantom
 
 
 def main(argv=None):
