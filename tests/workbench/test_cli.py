@@ -1,4 +1,4 @@
-"""`workbench` command line: phantom studies on disk, their manifest, errors (issue A)."""
+"""`workbench` command line: phantom studies on disk, their manifest, errors."""
 
 from __future__ import annotations
 
@@ -43,6 +43,26 @@ def test_version_and_help(capsys):
         main(["phantom", "--help"])
     text = capsys.readouterr().out
     assert "--poses-file" in text and "scan-to-template" in text.replace("\n", " ").replace("  ", " ")
+
+
+def test_the_parser_imports_no_stage_nor_protocol_and_takes_the_protocols_tables_in_their_order():
+    """`workbench --help` stays fast: building the whole parser imports the CLI's modules only; `reproduce`'s
+    tables are validation.protocols' names, in its order, then 'all'."""
+    code = (
+        "import sys; from workbench.cli import build_parser; build_parser().format_help(); "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('workbench', 'validation', 'registration', "
+        "'deformation', 'numpy') and not m.startswith('workbench.cli')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "['workbench']"
+    from validation.protocols import PROTOCOLS
+    from workbench.cli import build_parser
+    from workbench.cli.reproduce import TableNames
+
+    assert list(TableNames()) == [*PROTOCOLS, "all"]
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(["reproduce", "table5", "--out", "x"])
+    assert e.value.code == 2
 
 
 def test_python_dash_m_runs():

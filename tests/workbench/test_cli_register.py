@@ -324,7 +324,8 @@ def test_register_refuses_algorithm_1_options_with_dense(tmp_path, study, capsys
 def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path, study, capsys):
     # a study last registered with VBD + --unfold-init and Rhee's paper preset: --init none and --method dense
     # must not inherit the repair or the preset (both would be refused)
-    from workbench.cli import _register_settings, build_parser
+    from workbench.cli import build_parser
+    from workbench.stages.run import register_settings
 
     d = tmp_path / "r"
     shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
@@ -337,12 +338,12 @@ def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path
     }
     (d / "study.json").write_text(json.dumps(m))
     args = build_parser().parse_args(["register", str(d), "--init", "none", "--method", "dense"])
-    s = _register_settings(args)
+    s = register_settings(read_study(d), vars(args))
     assert s["init"].method == "identity" and s["init"].unfold is False
     assert s["register"].method == "dense" and s["register"].preset == "auto"
     assert s["register"].levels is None and s["register"].optimizer is None  # Algorithm 1's: dropped
     args = build_parser().parse_args(["register", str(d), "--preset", "paper"])
-    assert _register_settings(args)["register"].resolved_method == "adaptive"
+    assert register_settings(read_study(d), vars(args))["register"].resolved_method == "adaptive"
 
 
 def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tmp_path, study, capsys):
@@ -394,9 +395,10 @@ def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tm
         ("iterations", (2, 2, 2)),
         ("window_mm", 4.0),
     )
-    from workbench.cli import _register_settings, build_parser
+    from workbench.cli import build_parser
+    from workbench.stages.run import register_settings
 
     args = build_parser().parse_args(["register", str(d), "--dense", "default"])
-    assert _register_settings(args)["register"].dense_settings == ()
+    assert register_settings(read_study(d), vars(args))["register"].dense_settings == ()
     args = build_parser().parse_args(["register", str(d), "--preset", "paper"])  # Algorithm 1: theirs dropped
-    assert _register_settings(args)["register"].dense_settings == ()
+    assert register_settings(read_study(d), vars(args))["register"].dense_settings == ()

@@ -339,10 +339,10 @@ def test_a_stage_waits_for_a_rerun_two_stages_upstream(study, tmp_path):
 
 
 def test_the_cli_names_the_stages_in_the_pipeline_order():
-    from workbench.cli import _stage_names
+    from workbench.cli.options import STAGE_NAMES
     from workbench.stages import ORDER
 
-    assert _stage_names() == list(ORDER)
+    assert list(STAGE_NAMES) == list(ORDER)
 
 
 def _caught_signals() -> int:
@@ -363,8 +363,8 @@ def _drops_sigint(ctx):
 
 
 def test_a_stage_that_replaces_the_sigint_handler_in_c_gets_python_s_back(study):
-    """Issue Q: after a stage whose library reset SIGINT in C, Python's handler is installed again (else Ctrl-C
-    kills the process without a message and leaves staging folders)."""
+    """After a stage whose library reset SIGINT in C, Python's handler is installed again (else Ctrl-C kills the
+    process without a message and leaves staging folders)."""
     import signal
 
     if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
