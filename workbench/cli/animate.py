@@ -12,7 +12,7 @@ DESCRIPTION = """Animate the study's template through keyframe poses and write a
 
 Each frame: joint angles interpolated between keyframes, the template deformed
 (EVD, Rhee Eq. 6-7, when the study has a model - `workbench model` - else VBD,
-Eq. 2), volume-rendered off-screen (see `workbench render --help`) and encoded:
+Rhee Eq. 2), volume-rendered off-screen (see `workbench render --help`) and encoded:
 .mp4 (H.264 through the ffmpeg binary of imageio-ffmpeg; no system ffmpeg needed),
 .gif, or .png (numbered frames NAME_0000.png ...).  The camera is fitted once to
 the anatomy over all keyframe poses, so nothing leaves the picture.

@@ -29,7 +29,7 @@ def handle(args) -> int:
     print(summarize(study))
     if not args.check:
         return 0
-    from workbench.checks import check_study_images, study_warnings
+    from workbench.study import check_study_images, study_warnings
 
     problems = check_study_images(study)
     warnings = [] if problems else study_warnings(study)

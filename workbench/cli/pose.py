@@ -15,7 +15,7 @@ of rotation and each scan's joint angles (Rhee §3.1, Kurihara §3).
 Bones are registered root first, then down the skeleton: each child starts
 from its parent's transform, a grid search over rotations about the joint
 picks the start, and the bone is refined by intensity (Rhee Eq. 1) or by
-surfaces (Kurihara's ICP).  Each joint's centre minimises Eq. 1 of Kurihara
+surfaces (Kurihara's ICP).  Each joint's centre minimises Kurihara Eq. 1
 (Σ|M c − c|², closed form, with a quasi-Newton cross-check); joints that only
 flex (a hinge) get an axis, and the centre is put on it nearest the bones'
 contact.  Angles are intrinsic XYZ in the skeleton's joint frame (degrees).
@@ -75,7 +75,7 @@ def add_parser(subparsers) -> None:
         "--metric",
         choices=["ncc", "ssd"],
         default=argparse.SUPPRESS,
-        help="cost of the coarse search and the polish: 'ssd' is Eq. 1 as printed; 'ncc' is Eq. 1 "
+        help="cost of the coarse search and the polish: 'ssd' is Rhee Eq. 1 as printed; 'ncc' is Rhee Eq. 1 "
         "after the best linear intensity map per bone (insensitive to an MRI bias field). "
         "Default: ncc",
     )
@@ -93,7 +93,7 @@ def add_parser(subparsers) -> None:
         metavar="DEG",
         help="width (degrees) of the weak prior tying each bone's rotation to its hierarchical "
         "initialisation (the translation prior is 2 mm; with --method surface, combined with "
-        "the ICP fit); 0 turns it off (plain Eq. 1 through SimpleITK, plain ICP). Default: 2",
+        "the ICP fit); 0 turns it off (plain Rhee Eq. 1 through SimpleITK, plain ICP). Default: 2",
     )
     p.add_argument(
         "--margin-mm",
@@ -130,7 +130,7 @@ def add_parser(subparsers) -> None:
         type=float,
         default=argparse.SUPPRESS,
         metavar="K",
-        help="Eq. 1 consistency check: with 4 or more scans, a bone whose motion misses its joint's "
+        help="Kurihara Eq. 1 consistency check: with 4 or more scans, a bone whose motion misses its joint's "
         "centre (estimated from all scans) by more than K times the joint's median miss, and by "
         "more than half a voxel, is reported as 'joint_outlier'; 0 switches the check off. "
         "Default: 4",

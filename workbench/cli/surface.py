@@ -13,11 +13,11 @@ DESCRIPTION = """Kurihara's consistent skin meshes (Kurihara & Miyata 2004, §3-
 The template's skin becomes the base mesh S0 (an isosurface between air and
 tissue, cleaned of debris, decimated to --target-triangles; the paper's
 hand: ~100k).  For each scan: S0 posed by SSD with the scan's estimated bone
-transforms (Eq. 2-3), moved by RBF feature points (Eq. 4-5: --features
-registration takes their targets from `workbench register`'s map of the
-template onto the scan, --features closest from confident closest points on
-the scan's skin, --landmarks FILE from points picked on the template's and
-each scan's skin, as the paper did: 70-150 per pose), then fitted to the scan's
+transforms (Kurihara Eq. 2-3), moved by RBF feature points (Kurihara Eq. 4-5:
+--features registration takes their targets from `workbench register`'s map
+of the template onto the scan, --features closest from confident closest
+points on the scan's skin, --landmarks FILE from points picked on the
+template's and each scan's skin, as the paper did: 70-150 per pose), then fitted to the scan's
 skin: --fit regularised (default) follows the skin where it is seen and keeps
 the mesh's shape where it is not (fingers touching), --fit nearest is the
 paper's nearest-point fit.  Every fitted mesh has S0's connectivity, so

@@ -10,10 +10,10 @@ from workbench.cli.options import add_common
 DESCRIPTION = """Pose Kurihara's surface model (workbench surface's meshes) and write the skin.
 
 --method ssd: S0 skinned by the pose's bone transforms (Kurihara Eq. 2);
-psd: the scans' meshes taken back to the base pose (Eq. 6), blended with one
-set of RBF weights of the pose (Eq. 7, 12-14), then skinned (Eq. 8); wpsd:
-the blend weighted per vertex by its bones' joints (Eq. 16), so each finger
-follows its own joints.  POSE.json: joint angles or bone transforms (as for
+psd: the scans' meshes taken back to the base pose (Kurihara Eq. 6), blended
+with one set of RBF weights of the pose (Kurihara Eq. 7, 12-14), then skinned
+(Kurihara Eq. 8); wpsd: the blend weighted per vertex by its bones' joints
+(Kurihara Eq. 16), so each finger follows its own joints.  POSE.json: joint angles or bone transforms (as for
 `workbench deform`).
 
 Example:
@@ -34,7 +34,7 @@ def add_parser(subparsers) -> None:
         "--method",
         choices=["ssd", "psd", "wpsd"],
         default="wpsd",
-        help="SSD (Eq. 2), PSD (Eq. 6-8) or WPSD (Eq. 16). Default: wpsd",
+        help="SSD (Eq. 2), PSD (Kurihara Eq. 6-8) or WPSD (Kurihara Eq. 16). Default: wpsd",
     )
     p.add_argument("--out", required=True, type=Path, metavar="MESH", help="output mesh (.ply, .vtp, .obj, .stl)")
     p.add_argument("--force", action="store_true", help="overwrite --out")

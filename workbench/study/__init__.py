@@ -4,9 +4,12 @@
 * :mod:`workbench.study.folder` — :class:`Study`, a study opened through its manifest: the inputs, the stages'
   outputs and the one (locked) writer of ``study.json``; :func:`read_study` opens one;
 * :mod:`workbench.study.phantom` — :func:`write_phantom_study`, a phantom written as a study with its truth;
-* :mod:`workbench.study.summary` — :func:`summarize`, what ``workbench info`` prints.
+* :mod:`workbench.study.summary` — :func:`summarize`, what ``workbench info`` prints;
+* :mod:`workbench.study.checks` — :func:`check_study_images` and :func:`study_warnings`, what ``workbench info
+  --check`` says of a study before any work.
 """
 
+from workbench.study.checks import check_study_images, study_warnings
 from workbench.study.folder import Study, read_study
 from workbench.study.manifest import (
     MANIFEST,
@@ -27,6 +30,8 @@ __all__ = [
     "read_study",
     "write_phantom_study",
     "summarize",
+    "check_study_images",
+    "study_warnings",
     "STUDY_FORMAT",
     "MANIFEST",
     "MANIFEST_VERSION",
