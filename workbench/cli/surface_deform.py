@@ -34,7 +34,7 @@ def add_parser(subparsers) -> None:
         "--method",
         choices=["ssd", "psd", "wpsd"],
         default="wpsd",
-        help="SSD (Eq. 2), PSD (Kurihara Eq. 6-8) or WPSD (Kurihara Eq. 16). Default: wpsd",
+        help="SSD (Kurihara Eq. 2), PSD (Kurihara Eq. 6-8) or WPSD (Kurihara Eq. 16). Default: wpsd",
     )
     p.add_argument("--out", required=True, type=Path, metavar="MESH", help="output mesh (.ply, .vtp, .obj, .stl)")
     p.add_argument("--force", action="store_true", help="overwrite --out")
