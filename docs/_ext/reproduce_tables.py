@@ -1,7 +1,7 @@
 """The results pages, generated at build time from ``workbench reproduce``'s JSON tables.
 
 Each ``results/data/<id>.json`` (written by :func:`workbench.reproduce.write_table`) becomes the page
-``results/generated/<id>.md``: :func:`workbench.reproduce.format_markdown` of :meth:`Table.from_dict` — the
+``results/generated/<id>.md`` (and their toctree, ``toctree.txt``, which ``results/index.md`` includes): :func:`workbench.reproduce.format_markdown` of :meth:`Table.from_dict` — the
 same text ``workbench reproduce`` prints, so the same figures — with its heading made the page's title,
 followed by the run's settings (the table's ``meta``) and the provenance of the data
 (``results/data/PROVENANCE.json``).  MyST renders the pages; nothing is copied by hand.
@@ -69,6 +69,9 @@ def generate(app) -> None:
     for stale in out.glob("*.md"):
         if stale.name not in made:
             stale.unlink()
+    # the results index includes this toctree: the pages in the protocols' order, whichever tables there are
+    toc = ["```{toctree}", ":maxdepth: 1", ""] + [f"generated/{n}" for n, _ in tables(srcdir)] + ["```", ""]
+    _write_if_changed(out / "toctree.txt", "\n".join(toc))
 
 
 def setup(app):
