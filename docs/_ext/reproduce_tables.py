@@ -1,10 +1,11 @@
 """The results pages, generated at build time from ``workbench reproduce``'s JSON tables.
 
 Each ``results/data/<id>.json`` (written by :func:`workbench.reproduce.write_table`) becomes the page
-``results/generated/<id>.md`` (and their toctree, ``toctree.txt``, which ``results/index.md`` includes): :func:`workbench.reproduce.format_markdown` of :meth:`Table.from_dict` — the
+``results/generated/<id>.md``: :func:`workbench.reproduce.format_markdown` of :meth:`Table.from_dict` — the
 same text ``workbench reproduce`` prints, so the same figures — with its heading made the page's title,
 followed by the run's settings (the table's ``meta``) and the provenance of the data
-(``results/data/PROVENANCE.json``).  MyST renders the pages; nothing is copied by hand.
+(``results/data/PROVENANCE.json``).  ``results/generated/toctree.txt`` lists the pages in the protocols' order
+for ``results/index.md`` to include.  MyST renders the pages; nothing is copied by hand.
 """
 
 import json
