@@ -45,7 +45,7 @@ myst_heading_anchors = 3
 # autodoc / autosummary: one page per module, members in source order; type hints in the description.
 autosummary_generate = True
 autosummary_imported_members = False
-autodoc_default_options = {"members": True, "member-order": "bysource", "show-inheritance": False}
+autodoc_default_options = {"members": True, "member-order": "bysource"}
 autodoc_typehints = "none"
 autodoc_mock_imports = []
 # numpydoc: the docstrings are prose with numpydoc sections where they have them; no per-member tables of

@@ -23,7 +23,9 @@ def render_plain(items, markdown_help, settings=None):
                 continue
             if "\n" in text:
                 text = textwrap.dedent(text)
-                out.append(nodes.literal_block(text, text))
+                block = nodes.literal_block(text, text)
+                block["language"] = "none"  # plain text: no lexer colours words of the prose
+                out.append(block)
             else:
                 out.append(nodes.paragraph(text, text))
         elif isinstance(element, nodes.definition):
