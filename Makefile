@@ -20,15 +20,17 @@ TEST_DEB_PACKAGES := chromium
 # Shell: the packages of $(1) that dpkg does not list as installed, in $$missing.
 missing_of = missing=""; for p in $(1); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; done
 
-.PHONY: demo test lint test-slow system-deps test-deps venv clean help bench bench-ants
+.PHONY: demo test lint docs test-slow system-deps test-deps venv clean help bench bench-ants
 
 help:
 	@echo "make demo       set up, build a phantom knee study in $(DEMO_DIR)/ and run the pipeline on it (bones, pose,"
 	@echo "                weights, registrations, an EVD model from them; the truth only validates), deform it to a"
 	@echo "                45° bend ($(DEMO_DIR)/bend45.nii.gz), render it ($(DEMO_DIR)/bend45.png) and animate a"
 	@echo "                bend-and-straighten ($(DEMO_DIR)/knee.mp4)"
-	@echo "make test       set up, then run the gates (make lint) and the test suite (slow tests excluded)"
+	@echo "make test       set up, then run the gates (make lint), build the docs (make docs) and the test suite"
+	@echo "                (slow tests excluded)"
 	@echo "make lint       ruff (lint and format) and import-linter's layering contract"
+	@echo "make docs       the documentation site, warnings as errors: open docs/_build/html/index.html"
 	@echo "make test-slow  paper-size tests (minutes)"
 	@echo "make bench      add the benchmarks' peers to .venv (itk-elastix, psutil)"
 	@echo "make bench-ants ANTs SyN for benchmarks/bench_registration.py, in its own .venv-ants (antspyx pins an"
@@ -68,7 +70,7 @@ $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "$(PYTHON) not found: install Python 3.11 (python3.11, python3.11-venv) or run make PYTHON=/path/to/python3.11"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,docs]'
 	@touch $(STAMP)
 
 venv: system-deps $(STAMP)
@@ -95,7 +97,12 @@ lint: venv
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports
 
-test: venv test-deps lint
+# The documentation site (docs/), Sphinx with warnings as errors; `make test` builds it after the gates.
+docs: venv
+	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+	@echo "docs: open docs/_build/html/index.html"
+
+test: venv test-deps lint docs
 	$(VENV)/bin/pytest -n 2 --dist loadfile
 
 test-slow: venv test-deps
@@ -111,4 +118,4 @@ bench-ants: bench
 	.venv-ants/bin/python -m pip install --quiet antspyx
 
 clean:
-	rm -rf $(VENV) .venv-ants $(DEMO_DIR)
+	rm -rf $(VENV) .venv-ants $(DEMO_DIR) docs/_build docs/api/generated

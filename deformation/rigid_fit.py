@@ -1,4 +1,4 @@
-"""Least-squares rigid fit between corresponding point sets (Kabsch / Umeyama).
+"""Least-squares rigid fit between corresponding point sets (Kabsch [1]_ / Umeyama [2]_).
 
 Convention (DESIGN.md): a transform is a 4x4 homogeneous matrix mapping
 template world → scan world.  :func:`fit_rigid` returns the ``T`` for which

@@ -211,7 +211,7 @@ class DenseSettings:
     #: along it stays free).  At 1 its cost per voxel (at most 0.42) is of the order of the LNCC's; 0: off
     skin_weight: float = 1.0
     #: the start stands where the scan shows only its noise: the level's objective also subtracts stiffness times
-    #: the mean over the region of n |∇u|² (u the correction of the start, mm/mm by forward differences; the
+    #: the mean over the region of n ``|∇u|²`` (u the correction of the start, mm/mm by forward differences; the
     #: bones left out), n the share of the scan's local variance in the LNCC's window that its noise makes up (1
     #: where the window holds noise only, towards 0 where structure rises above it; the noise measured in the
     #: scan's air, _voxel_noise_variance, and thinned by the level's pre-smoothing; the air around the body, which

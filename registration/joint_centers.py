@@ -2,7 +2,7 @@
 
 For a joint, let ``M_i`` be the child bone's motion relative to its parent in
 scan ``i`` (``M_i = T_parent,i⁻¹ T_child,i``, Kurihara's ``M_{i,k}``).  The
-centre of rotation ``c`` is the point that moves least:
+centre of rotation ``c`` is the point that moves least::
 
     E(c) = Σ_i |M_i c − c|²                                   (Eq. 1)
 

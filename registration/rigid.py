@@ -714,7 +714,7 @@ def polish_with_prior(
     A bone that is nearly symmetric about an axis (a phalanx two voxels
     across, seen about its length; a small patella about its normal) leaves
     Eq. 1 almost flat along that rotation: noise alone then moves it by
-    degrees.  We minimise
+    degrees.  We minimise::
 
         Σ_x (I_scan(T x) − I_template(x))² / σ² + |θ|² / τ_θ² + |t|² / τ_t²
 

@@ -1,14 +1,14 @@
 """The papers' protocols: functions that run the pipeline on phantoms and return tables of numbers.
 
-==============  =====================================================================================
-``table2``      Rhee Table 2: knee bent 10° by VBD, registered without initialisation
-``table3``      Rhee Table 3: knee, 4 poses, template → 3 scans after VBD from estimated poses
-``table4``      Rhee Table 4: hand, 10 poses, template → 9 scans after VBD from estimated poses
-``loo``         leave one scan out: VBD vs EVD from the others' registrations (Rhee Figs. 11–12)
-``eigenposes``  principal components of a 71-pose hand library (Rhee §6.2)
-``kurihara``    Kurihara Eq. 1 joint centres of the CT hand in 5 poses
-``kurihara_skin`` Kurihara §4–5: consistent skin meshes, SSD / PSD / WPSD, on the same study
-==============  =====================================================================================
+=================  =====================================================================================
+``table2``         Rhee Table 2: knee bent 10° by VBD, registered without initialisation
+``table3``         Rhee Table 3: knee, 4 poses, template → 3 scans after VBD from estimated poses
+``table4``         Rhee Table 4: hand, 10 poses, template → 9 scans after VBD from estimated poses
+``loo``            leave one scan out: VBD vs EVD from the others' registrations (Rhee Figs. 11–12)
+``eigenposes``     principal components of a 71-pose hand library (Rhee §6.2)
+``kurihara``       Kurihara Eq. 1 joint centres of the CT hand in 5 poses
+``kurihara_skin``  Kurihara §4–5: consistent skin meshes, SSD / PSD / WPSD, on the same study
+=================  =====================================================================================
 
 Each protocol is ``f(runner) -> Table`` (:class:`~validation.protocols.table.Table`).
 The pipeline's stages live in the workbench, above this package (imports go
