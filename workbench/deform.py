@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deformation.geometry import every_nth
+from deformation.geometry import covering_grid, every_nth, points_bounds
 from deformation.posed_template import WEIGHTINGS, TemplatePoser
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.inputs import read_target_pose
@@ -176,9 +176,6 @@ def deform_study(
     used = poser.method
     target = None
     if grow:  # the template's grid (same spacing and direction) extended to hold the posed body
-        from workbench.viz.animate import covering_grid
-        from workbench.viz.render import points_bounds
-
         g = poser.template.geometry
         target = covering_grid(g, points_bounds(poser.forward(pose)[poser.body.data > 0], 2.0 * max(g.spacing)))
         say(f"posed volume on the grid grown to hold the posed body: {target.describe()}")

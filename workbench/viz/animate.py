@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deformation.geometry import covering_grid
 from deformation.skeleton import SkeletonError
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.jsonio import read_json
@@ -45,7 +46,6 @@ __all__ = [
     "read_keyframes",
     "builtin_keyframes",
     "camera_from",
-    "covering_grid",
     "animate_study",
     "FORMATS",
 ]
@@ -410,27 +410,6 @@ def _camera_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, marg
     )
 
 
-def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
-    """``geometry`` extended (same spacing and direction, whole voxels) to cover the world box ``bounds``.
-
-    The posed anatomy can leave the template's grid (curling fingers pass
-    below a flat hand's slab); frames are resampled onto this grid so that
-    nothing is cut off.  Each side grows by at most ``max_growth`` − 1 times
-    the grid's extent along it.
-    """
-    from deformation.geometry import GridGeometry
-
-    b = np.asarray(bounds, float).reshape(3, 2)
-    corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]])
-    ijk = np.asarray(geometry.world_to_index(corners))
-    n = np.asarray(geometry.size, float)
-    lo = np.maximum(np.minimum(np.floor(ijk.min(axis=0)), 0.0), -(max_growth - 1.0) * n).astype(int)
-    hi = np.minimum(np.maximum(np.ceil(ijk.max(axis=0)), n - 1), (max_growth * n) - 1).astype(int)
-    size = tuple(int(v) for v in hi - lo + 1)
-    origin = tuple(float(v) for v in geometry.index_to_world(lo.astype(float)[None])[0])
-    return GridGeometry(size, geometry.spacing, origin, geometry.direction)
-
-
 def animate_study(
     folder,
     out,
@@ -533,7 +512,8 @@ def animate_study(
             mask = content_mask(template.data, thr)
             wf = poser.weights_factor  # the forward map lies on the weights' grid
             bounds = _camera_bounds(poser, sk, kf, mask[::wf, ::wf, ::wf], 2.0 * max(g.spacing))
-            g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
+            # frames on a grid the whole motion fits in: curling fingers pass below a flat hand's slab
+            g = covering_grid(g, bounds)
             renderer = VolumeRenderer(
                 g,
                 size=size,
