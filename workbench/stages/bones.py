@@ -1,4 +1,4 @@
-"""The ``bones`` stage: the template's bone label map and each bone's frame (Rhee §3.1; DESIGN step 1).
+"""The ``bones`` stage: the template's bone label map and each bone's frame (Rhee §3.1).
 
 * ``source="labels"``: the study's own ``template_labels`` (given);
 * ``source="seeds"``: segmented from a seeds file (one world point in mm

@@ -214,7 +214,7 @@ def _run(ctx) -> dict:
     else:
         root_init = read_initial_poses(s.init, ids, skeleton)
     for sid in ids:  # every scan read once before any work: a corrupt one (NaN voxels) is said at once, not
-        study.scan(sid)  # after the scans before it (about 0.3 s a paper-size hand scan; the stage takes minutes)
+        study.scan(sid)  # after minutes of work on the scans before it (docs/measurements/workbench.md)
     if root_init is None:
         _require_bones_in_view(study, ids)
     scans = {sid: (lambda sid=sid: read_scan(sid)) for sid in ids}
@@ -230,7 +230,8 @@ def _run(ctx) -> dict:
     t0 = time.perf_counter()
     kwargs = _fit_arguments(s, root_init)
     per_scan = None
-    if ctx.runner is not None and ctx.runner.distributed:  # each scan's bones as a Dask task; Eq. 1 pools them here
+    # each scan's bones as a Dask task; Kurihara Eq. 1 pools them here
+    if ctx.runner is not None and ctx.runner.distributed:
         finished = []
 
         def done(k, r):

@@ -9,20 +9,16 @@ A keyframe file (``avw-keyframes``, JSON) lists joint angles at times::
      "keyframes": [{"time": 0.0, "angles": {"knee": [0, 0, 0]}},
                    {"time": 1.25, "angles": {"knee": [60, 0, 0]}}, ...]}
 
-Joints a keyframe leaves out stay at 0 (the template's pose), as in
-``workbench deform --pose``.  Between two keyframes every angle moves with
-the smoothstep ``s = u²(3 − 2u)`` of the segment's time fraction ``u``
-(``smooth``: the motion starts and stops gently at each keyframe) or
-linearly.  ``camera.orbit`` turns the camera by that many degrees of azimuth
-over the animation.
+Joints a keyframe leaves out stay at 0 (the template's pose), as in ``workbench deform --pose``.  Between two
+keyframes every angle moves with the smoothstep ``s = u²(3 − 2u)`` of the segment's time fraction ``u``
+(``smooth``: the motion starts and stops gently at each keyframe) or linearly.  ``camera.orbit`` turns the camera
+by that many degrees of azimuth over the animation.
 
-Each frame: the pose by forward kinematics, the template deformed to it (EVD,
-Rhee Eq. 6–7, when the study has a model; VBD, Eq. 2, otherwise), rendered by
-one reused :class:`workbench.viz.render.VolumeRenderer` whose camera is fitted
-once to the anatomy over all keyframe poses, and encoded: MP4 (H.264 through
-the ffmpeg binary imageio-ffmpeg ships), GIF, or numbered PNGs.
-Ready keyframes for the knee (bend and straighten) and the hand (open, fist,
-point with the index finger) are in ``workbench/viz/keyframes/``.
+Each frame: the pose by forward kinematics, the template deformed to it (EVD, Rhee Eq. 6–7, when the study has a
+model; VBD, Rhee Eq. 2, otherwise), rendered by one reused :class:`workbench.viz.render.VolumeRenderer` whose
+camera is fitted once to the anatomy over all keyframe poses, and encoded: MP4 (H.264 through the ffmpeg binary
+imageio-ffmpeg ships), GIF, or numbered PNGs. Ready keyframes for the knee (bend and straighten) and the hand
+(open, fist, point with the index finger) are in ``workbench/viz/keyframes/``.
 """
 
 from __future__ import annotations
