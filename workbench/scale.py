@@ -6,10 +6,10 @@ tasks, and hands each result back to the coordinator as it arrives.
 What runs where:
 
 * **per-scan stages** (``init``, ``register``, ``validate``): one task per scan
-  (:func:`workbench.stages.mechanism.execute`).  A task gets the study folder, the stage's name, its settings as
-  JSON and the scan id — paths and plain data, never ITK objects — runs the stage, writes the scan's folder and
-  swaps it in itself, and returns the file names and their digest.  Only the coordinator writes ``study.json``,
-  each scan as its task finishes, so an interrupted run resumes from the scans left over.
+  (:func:`workbench.stages.mechanism.execute`).  A task gets the study folder, the stage's declaration, its
+  settings as JSON and the scan id — paths and plain data, never ITK objects — runs the stage, writes the scan's
+  folder and swaps it in itself, and returns the file names and their digest.  Only the coordinator writes
+  ``study.json``, each scan as its task finishes, so an interrupted run resumes from the scans left over.
 * **whole-study stages with per-scan work inside** (``pose``: every bone of a scan, before Kurihara Eq. 1 pools
   the scans; ``surface``: each scan's consistent mesh): one task per scan, given the study folder, the scan id and
   the settings, returning plain arrays to the coordinator, which pools them and writes the stage's folder as

@@ -416,13 +416,11 @@ def _execute_unit(
 
 
 def _unit_task(job: tuple) -> dict:
-    """One scan of a per-scan stage, on a Dask worker: paths and JSON in, file names and digest out."""
+    """One scan of a per-scan stage, on a Dask worker: the stage, paths and JSON in, file names and digest out."""
     from workbench.scale import task_reporter
-    from workbench.stages import STAGES
     from workbench.study import read_study
 
-    root, name, settings_json, unit, options, topic = job
-    stage = STAGES[name]
+    root, stage, settings_json, unit, options, topic = job
     study = read_study(root)
     settings = stage.settings_type(**settings_from_json(stage.settings_type, settings_json))
     send = task_reporter(topic)  # the stage's progress, back to the coordinator's progress bars
@@ -431,7 +429,7 @@ def _unit_task(job: tuple) -> dict:
         if event.kind in ("progress", "message"):
             send(dataclasses.asdict(event))
 
-    with _unit_lock(study.root, name, unit):
+    with _unit_lock(study.root, stage.name, unit):
         done = _run_unit(study, stage, settings, unit, emit, options)
         done["stats"] = _file_stats(_unit_folder(study, stage, unit), done["names"])
         return done
@@ -515,7 +513,7 @@ def _execute_distributed(
             runner.map(
                 _unit_task,
                 [
-                    (str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}), topic)
+                    (str(study.root.resolve()), stage, settings_json, unit, dict(options or {}), topic)
                     for _, unit, _ in jobs
                 ],
                 name=f"{stage.name}",

@@ -167,7 +167,7 @@ def _is_number(v) -> bool:
 
 
 def camera_from(doc: dict, **override):
-    """A :class:`workbench.viz.render.Camera` from a keyframe file's ``camera`` block (``override`` wins)."""
+    """A :class:`workbench.viz.view.Camera` from a keyframe file's ``camera`` block (``override`` wins)."""
     from workbench.viz.render import Camera
 
     d = {"view": "auto", "azimuth": 0.0, "elevation": 0.0, "zoom": 1.0}
@@ -436,7 +436,7 @@ def animate_study(
     ``keyframes``: a file, a :class:`Keyframes`, or ``None`` for the ready
     ones of the study's skeleton.  ``fps`` (default: the file's, else 24) and
     ``n_frames`` (default: duration × fps + 1) set the timing; ``camera``
-    (:class:`workbench.viz.render.Camera`) and ``orbit`` (degrees of azimuth over
+    (:class:`workbench.viz.view.Camera`) and ``orbit`` (degrees of azimuth over
     the animation) default to the file's ``camera``.  Returns a summary with
     the frame count and the time spent deforming, rendering and encoding.
     """
