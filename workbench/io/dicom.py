@@ -4,9 +4,9 @@ GDCM orders the slices by their position along the slice normal (Image
 Position Patient projected on the normal from Image Orientation Patient), not
 by file name or instance number; the slice spacing is the distance between
 slice positions.  Series whose slices share a position or are not equally
-spaced are refused (:class:`UnreadableFileError`); a folder with several
-series needs the ``series_uid`` of one (:class:`AmbiguousSeriesError`,
-:class:`SeriesNotFoundError`).
+spaced are refused (:class:`~workbench.errors.UnreadableFileError`); a folder with several
+series needs the ``series_uid`` of one (:class:`~workbench.errors.AmbiguousSeriesError`,
+:class:`~workbench.errors.SeriesNotFoundError`).
 """
 
 from __future__ import annotations

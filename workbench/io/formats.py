@@ -18,8 +18,8 @@ Formats, chosen by suffix (case-insensitive):
 
 Geometry no scan of a body has (a voxel spacing outside
 :data:`SPACING_RANGE_MM`, a field of view longer than :data:`MAX_EXTENT_MM`)
-is refused with :class:`ImplausibleGeometryError`; NaN and infinite voxels,
-unless asked for, with :class:`NonFiniteError` (:func:`check_finite`).
+is refused with :class:`~workbench.errors.ImplausibleGeometryError`; NaN and infinite voxels,
+unless asked for, with :class:`~workbench.errors.NonFiniteError` (:func:`check_finite`).
 """
 
 from __future__ import annotations
@@ -171,7 +171,8 @@ def require_plausible_geometry(size, spacing, path: Path) -> None:
 
 
 def check_finite(data: np.ndarray, path: Path, what: str, fix: str) -> None:
-    """Raise :class:`NonFiniteError` naming the first NaN or infinite voxel of ``data`` (and how many), then ``fix``."""
+    """Raise :class:`~workbench.errors.NonFiniteError` naming the first NaN or infinite voxel of ``data`` (and how
+    many), then ``fix``."""
     finite = np.isfinite(data)
     if finite.all():
         return

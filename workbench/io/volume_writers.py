@@ -2,7 +2,7 @@
 
 Writers never modify their input, write atomically (:mod:`workbench.io.atomic`),
 refuse to overwrite unless ``overwrite=True``, and refuse NaN or infinite
-voxels (:class:`NonFiniteError`) unless asked.  What each format keeps of the
+voxels (:class:`~workbench.errors.NonFiniteError`) unless asked.  What each format keeps of the
 geometry: :mod:`workbench.io.formats`.  All are re-exported by
 :mod:`workbench.io.volumes`.
 """
@@ -112,7 +112,7 @@ def write_volume(
         ``.nrrd``, ``.nhdr``, ``.mha``, ``.mhd``).  NIfTI keeps the geometry to
         float32 precision only (see the module docstring).
     overwrite : bool, optional
-        Replace an existing file; otherwise :class:`OutputExistsError`.
+        Replace an existing file; otherwise :class:`~workbench.errors.OutputExistsError`.
     compress : bool, optional
         zlib/gzip compression for MetaImage and NRRD.  NIfTI follows its
         suffix (``.nii.gz`` compressed, ``.nii`` not).

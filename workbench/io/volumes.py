@@ -6,13 +6,13 @@ in ITK ``(x, y, z)`` order — and every writer takes one.  The formats and
 what each keeps of the geometry: :mod:`workbench.io.formats`; NIfTI's
 guards: :mod:`workbench.io.nifti`; DICOM folders: :mod:`workbench.io.dicom`.
 
-Readers reject missing files (:class:`MissingFileError`), unknown suffixes
-(:class:`UnknownFormatError`), truncated or corrupt data
-(:class:`UnreadableFileError`, chaining SimpleITK's ``RuntimeError``), images
+Readers reject missing files (:class:`~workbench.errors.MissingFileError`), unknown suffixes
+(:class:`~workbench.errors.UnknownFormatError`), truncated or corrupt data
+(:class:`~workbench.errors.UnreadableFileError`, chaining SimpleITK's ``RuntimeError``), images
 that are not 3-D or have the wrong number of components
-(:class:`DimensionError`), implausible geometry
-(:class:`ImplausibleGeometryError`) and, unless asked, NaN or infinite
-voxels (:class:`NonFiniteError`).  The writers (:mod:`workbench.io.volume_writers`)
+(:class:`~workbench.errors.DimensionError`), implausible geometry
+(:class:`~workbench.errors.ImplausibleGeometryError`) and, unless asked, NaN or infinite
+voxels (:class:`~workbench.errors.NonFiniteError`).  The writers (:mod:`workbench.io.volume_writers`)
 are re-exported here.
 """
 
@@ -376,7 +376,7 @@ def read_vector_image(path: str | os.PathLike, *, components: int | None = None)
     """Read a 3-D vector image as ``(nz, ny, nx, c)`` in its stored dtype (scalars get ``c = 1``).
 
     ``components`` checks the number of components per voxel
-    (:class:`DimensionError` naming the file when it differs).
+    (:class:`~workbench.errors.DimensionError` naming the file when it differs).
     """
     loaded = _read_sitk(path)
     image, p = loaded.image, loaded.path
