@@ -331,10 +331,7 @@ STAGE = Stage(
     per_scan=False,
     settings_type=PoseSettings,
     run=_run,
-    # 2: ICP (--method surface) with the prior; 3: its matched points only; 4: a flagged bone's pose
-    # follows its nearest placed ancestor; 5: no time in fits.json, report.json, report.txt (study.json's
-    # timings have them)
     needs=lambda s: ("bones",),
     inputs=_inputs,
-    version=5,
+    version=5,  # what each version changed: docs/measurements/workbench.md
 )

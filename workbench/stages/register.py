@@ -387,15 +387,7 @@ STAGE = Stage(
     per_scan=True,
     settings_type=RegisterSettings,
     run=_run,
-    # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC; 8: bones the pose
-    # stage flagged are not held; 9: dense windows and smoothing over the scan's tissue only; 10: no time in
-    # log.json (study.json's timings have them); 11: each dense level converges under a trust region; 12: the
-    # held bones' poses refined rigidly (dense refine_bones); 13: the template sampled once through φ₀ ∘ U, the
-    # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
-    # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
-    # leaves; 16: the skin's term in the dense objective (skin_weight); 17: the membrane energy where the
-    # scan shows only noise (stiffness)
     needs=lambda s: ("init", "bones"),
     inputs=_inputs,
-    version=17,
+    version=17,  # what each version changed: docs/measurements/workbench.md
 )

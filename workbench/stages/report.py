@@ -53,7 +53,5 @@ STAGE = Stage(
     run=_run,
     needs=lambda s: ("register", "validate"),
     inputs=_inputs,
-    # 2: no time nor machine (the registration's seconds, the platform): the same bytes; 3: "Kurihara Eq. 1" in
-    # the poses' table
-    version=3,
+    version=3,  # what each version changed: docs/measurements/workbench.md
 )

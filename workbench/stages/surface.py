@@ -259,5 +259,5 @@ STAGE = Stage(
     needs=_needs,
     inputs=_inputs,
     uses=lambda study, s: s.scans,
-    version=3,
-)  # 2: landmarks on S0's triangles; 3: a landmarks file in the study by its relative path
+    version=3,  # what each version changed: docs/measurements/workbench.md
+)

@@ -105,5 +105,5 @@ STAGE = Stage(
     run=_run,
     needs=lambda s: ("bones",),
     inputs=_inputs,
-    version=3,
-)  # 3: the lattice (Kuhn) mesh replaces fTetWild's
+    version=3,  # what each version changed: docs/measurements/workbench.md
+)
