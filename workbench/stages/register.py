@@ -1,7 +1,8 @@
 """The ``register`` stage: the non-rigid registration of the template to each scan.
 
 ``method="dense"`` (default, see docs/measurements/workbench.md): :func:`registration.dense.register_dense` —
-local-correlation diffeomorphic steps over the whole scan, every step one-to-one, the bones held in place.
+local-correlation diffeomorphic steps over the whole scan, every step one-to-one, the bones held where the pose
+stage put them.
 
 ``method="adaptive"`` (``--preset paper`` selects it; Rhee §4, Algorithm 1): from the init stage's start, the
 worst-matching block of a hierarchy gets 8 clamped-plate-spline control points whose displacements an NLopt
@@ -20,8 +21,7 @@ Outputs (``registration/<scan>/``)::
     registered.nii.gz      the template resampled onto the scan grid through the field
     log.json               settings, per-level and per-step log, similarity before/after, folding
 
-The times are in the scan's ``study.json`` entry (``timings``), not in the files: the same inputs and settings
-give the same bytes.
+The times are in the scan's ``study.json`` entry (``timings``), not in its files: the same inputs, the same bytes.
 """
 
 from __future__ import annotations
