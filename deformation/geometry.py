@@ -24,7 +24,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["GridGeometry", "Volume", "GeometryMismatchError", "every_nth", "slabs", "SLAB_VOXELS", "from_every"]
+__all__ = [
+    "GridGeometry",
+    "Volume",
+    "GeometryMismatchError",
+    "every_nth",
+    "slabs",
+    "SLAB_VOXELS",
+    "from_every",
+    "points_bounds",
+    "covering_grid",
+]
 
 
 class GeometryMismatchError(ValueError):
@@ -356,3 +366,26 @@ class Volume:
         import SimpleITK as sitk
 
         return cls(sitk.GetArrayFromImage(image), GridGeometry.from_sitk(image))
+
+
+def points_bounds(points, margin_mm: float) -> tuple:
+    """Robust world box of points ``(n, 3)`` mm: the 0.1 and 99.9 percentiles per axis, widened by ``margin_mm``."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    p = p[:: max(1, p.shape[0] // 200_000)]
+    lo, hi = np.percentile(p, [0.1, 99.9], axis=0)
+    return tuple(float(v) for pair in zip(lo - margin_mm, hi + margin_mm) for v in pair)
+
+
+def covering_grid(geometry: GridGeometry, bounds, *, max_growth: float = 2.0) -> GridGeometry:
+    """``geometry`` extended (same spacing and direction, whole voxels) to cover the world box ``bounds``
+    ``(xmin, xmax, ymin, ymax, zmin, zmax)``; each side grows by at most ``max_growth`` − 1 times the grid's
+    extent along it."""
+    b = np.asarray(bounds, float).reshape(3, 2)
+    corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]])
+    ijk = np.asarray(geometry.world_to_index(corners))
+    n = np.asarray(geometry.size, float)
+    lo = np.maximum(np.minimum(np.floor(ijk.min(axis=0)), 0.0), -(max_growth - 1.0) * n).astype(int)
+    hi = np.minimum(np.maximum(np.ceil(ijk.max(axis=0)), n - 1), (max_growth * n) - 1).astype(int)
+    size = tuple(int(v) for v in hi - lo + 1)
+    origin = tuple(float(v) for v in geometry.index_to_world(lo.astype(float)[None])[0])
+    return GridGeometry(size, geometry.spacing, origin, geometry.direction)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deformation.geometry import every_nth
+from deformation.geometry import covering_grid, every_nth, points_bounds
 from deformation.posed_template import WEIGHTINGS, TemplatePoser
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.inputs import read_target_pose
@@ -110,7 +110,7 @@ def _refuse_study_files(study, paths, what: str) -> None:
 
 
 def say_if_compiling(say) -> None:
-    """Tell the user when the deformation kernels are compiled on this first use (issue L: 29 s in silence)."""
+    """Tell the user when the deformation kernels are compiled on this first use (tens of seconds otherwise silent)."""
     from deformation.evd import _forward_kernel
     from deformation.resample import _backward_kernel
     from workbench.progress import compile_note
@@ -134,7 +134,7 @@ def deform_study(
     map_factor: int = 1,
     progress=None,
 ) -> dict:
-    """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Eq. 6) and write the posed volume and labels.
+    """Deform the template to a pose (VBD, Rhee Eq. 2, or EVD, Rhee Eq. 6) and write the posed volume and labels.
 
     The posed volume lies on the template's grid (same geometry), or with
     ``grow`` on that grid extended by whole voxels to hold the posed body
@@ -176,9 +176,6 @@ def deform_study(
     used = poser.method
     target = None
     if grow:  # the template's grid (same spacing and direction) extended to hold the posed body
-        from workbench.viz.animate import covering_grid
-        from workbench.viz.render import points_bounds
-
         g = poser.template.geometry
         target = covering_grid(g, points_bounds(poser.forward(pose)[poser.body.data > 0], 2.0 * max(g.spacing)))
         say(f"posed volume on the grid grown to hold the posed body: {target.describe()}")
@@ -190,7 +187,7 @@ def deform_study(
         from workbench.io.volumes import write_displacement
 
         # the field (12 B a voxel) and SimpleITK's copy of it to write: the posed volume, its labels and the
-        # poser's template are let go first (at Kurihara's 197 M voxels 9.1 GiB held them all, 6.8 GiB does not)
+        # poser's template are let go first, to stay within 8 GiB at Kurihara's size (docs/measurements/workbench.md)
         del posed, poser
         write_displacement(bm.scan_to_template(), field_out, overwrite=overwrite)
     summary = {

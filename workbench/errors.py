@@ -1,10 +1,8 @@
 """Exceptions raised by the workbench's file input and output.
 
-Every input error carries the offending path in ``.path`` and a message that
-names the file and says how to fix the problem.  The classes also derive from
-the matching built-in exception (``ValueError``, ``FileNotFoundError``,
-``FileExistsError``) so that callers who do not know this module can still
-catch them.
+Every input error carries the offending path in ``.path`` and a message that names the file and says how to fix
+the problem.  The classes also derive from the matching built-in exception (``ValueError``, ``FileNotFoundError``,
+``FileExistsError``) so that callers who do not know this module can still catch them.
 
 Hierarchy::
 
@@ -23,8 +21,7 @@ Hierarchy::
     ├── OutputFolderError(WorkbenchError, OSError)           an output's folder is missing or read-only
     └── OutputWriteError(WorkbenchError, OSError)            .path: a write that did not complete
 
-``GeometryMismatchError`` (two grids that must agree do not) is defined in
-:mod:`deformation.geometry` and re-exported here.
+``GeometryMismatchError`` (two grids that must agree do not) is :mod:`deformation.geometry`'s, re-exported here.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """One progress protocol for the command line: stage events to progress bars or plain lines, and logging.
 
-Stages report :class:`workbench.stages.mechanism.Event` records to one
+Stages report :class:`workbench.stages.stage.Event` records to one
 callback.  :class:`ProgressPrinter` is that callback for the CLI: on a
 terminal, a tqdm bar per unit of work with a total (bones of a pose
 estimate, scans of a model) and the unit's messages above it; elsewhere

@@ -254,8 +254,8 @@ def reproduce(
     if (int(workers) > 1 or scheduler) and len(side) > 1:
         from workbench.scale import open_runner
 
-        # the longest first (at test size: table4 ~6 min, kurihara ~5, table3 ~2, table2 ~1): the workers take
-        # the tasks in the order they were given
+        # the longest first (their times: docs/measurements/workbench.md): the workers take the tasks in the order
+        # they were given
         order = sorted(
             side,
             key=lambda n: (

@@ -1,31 +1,25 @@
 """Per-scan work as Dask tasks: a ``LocalCluster`` (``--workers N``) or an existing cluster (``--scheduler ADDRESS``).
 
-DESIGN's "Scale-out" and issue L item 1.  A :class:`Runner` maps a function
-over items, in this process (the synchronous path, no Dask at all) or as
-Dask tasks, and hands each result back to the coordinator as it arrives.
+A :class:`Runner` maps a function over items, in this process (the synchronous path, no Dask at all) or as Dask
+tasks, and hands each result back to the coordinator as it arrives.
 
 What runs where:
 
-* **per-scan stages** (``init``, ``register``, ``validate``): one task per
-  scan (:func:`workbench.stages.mechanism.execute`).  A task gets the study
-  folder, the stage's name, its settings as JSON and the scan id — paths and
-  plain data, never ITK objects — runs the stage, writes the scan's folder
-  and swaps it in itself, and returns the file names and their digest.  Only
-  the coordinator writes ``study.json``, each scan as its task finishes, so an
-  interrupted run resumes from the scans left over.
-* **whole-study stages with per-scan work inside** (``pose``: every bone of a
-  scan, before Kurihara Eq. 1 pools the scans; ``surface``: each scan's
-  consistent mesh): one task per scan, given the study folder, the scan id
-  and the settings, returning plain arrays to the coordinator, which pools
-  them and writes the stage's folder as usual.
-* **validation sweeps** (``workbench reproduce``): one task per protocol
-  (:mod:`workbench.reproduce`).
+* **per-scan stages** (``init``, ``register``, ``validate``): one task per scan
+  (:func:`workbench.stages.mechanism.execute`).  A task gets the study folder, the stage's declaration, its
+  settings as JSON and the scan id — paths and plain data, never ITK objects — runs the stage, writes the scan's
+  folder and swaps it in itself, and returns the file names and their digest.  Only the coordinator writes
+  ``study.json``, each scan as its task finishes, so an interrupted run resumes from the scans left over.
+* **whole-study stages with per-scan work inside** (``pose``: every bone of a scan, before Kurihara Eq. 1 pools
+  the scans; ``surface``: each scan's consistent mesh): one task per scan, given the study folder, the scan id and
+  the settings, returning plain arrays to the coordinator, which pools them and writes the stage's folder as
+  usual.
+* **validation sweeps** (``workbench reproduce``): one task per protocol (:mod:`workbench.reproduce`).
 
-Every task is the same code on the same inputs as the synchronous path, so
-the results are bit-identical for any number of workers (tested on a
-``LocalCluster`` of 2 workers and against a ``dask scheduler`` with two
-``dask worker`` processes).  Workers must see the study folder at the same
-path (one machine, or a shared file system on a cluster).
+Every task is the same code on the same inputs as the synchronous path, so the results are bit-identical for any
+number of workers (tested on a ``LocalCluster`` of 2 workers and against a ``dask scheduler`` with two
+``dask worker`` processes).  Workers must see the study folder at the same path (one machine, or a shared file
+system on a cluster).
 """
 
 from __future__ import annotations

@@ -311,8 +311,7 @@ def test_keyframes_dataclass_needs_two_frames():
 
 
 def test_covering_grid_extends_the_grid_by_whole_voxels():
-    from deformation.geometry import GridGeometry
-    from workbench.viz.animate import covering_grid
+    from deformation.geometry import GridGeometry, covering_grid
 
     g = GridGeometry(
         (10, 8, 6), (2.0, 1.5, 3.0), (-9.0, -5.25, 0.0), ((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))

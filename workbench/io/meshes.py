@@ -1,35 +1,27 @@
 """Reading and writing triangle surface meshes (PLY, OBJ, STL, VTP).
 
-Formats, chosen by suffix (case-insensitive)
---------------------------------------------
-``.ply``
-    Through Open3D.  Written binary with float64 (``double``) vertices, so a
-    round trip is exact; float32 PLY files (common from VTK and scanners) are
-    read exactly and widened to float64.  Vertex order and unused vertices are
-    kept.
-``.obj``
-    Read and written by this module, not Open3D: Open3D writes OBJ vertices
-    with 6 significant digits, parses them into float32, and renumbers the
-    vertices in the order the faces first use them, dropping unused ones.
-    Here vertices are written with 17 significant digits (exact round trip),
-    order is kept, polygons are fan-triangulated and ``v/vt/vn`` face
-    references and negative indices are understood.
-``.stl``
-    Through Open3D.  STL has no shared vertices: each triangle stores its own
-    three corners in **float32**.  :func:`read_mesh` merges corners with
-    identical coordinates into one vertex (numbered in order of first
-    appearance), so connectivity survives, but coordinates are rounded to
-    float32, the original vertex order is lost, and distinct vertices that
-    round to the same float32 point merge.
-``.vtp``
-    VTK XML PolyData through VTK, float64 points, exact.  Polygons and
-    triangle strips are triangulated on reading; vertices and lines are
-    ignored.
+Formats, chosen by suffix (case-insensitive):
 
-Errors: :class:`MissingFileError`, :class:`UnknownFormatError`, and
-:class:`UnreadableFileError` for truncated, corrupt or empty meshes (no
-triangles).  Writers are atomic and refuse to overwrite unless
-``overwrite=True``.
+``.ply``
+    Through Open3D.  Written binary with float64 (``double``) vertices, so a round trip is exact; float32 PLY
+    files (common from VTK and scanners) are read exactly and widened to float64.  Vertex order and unused
+    vertices are kept.
+``.obj``
+    Read and written by this module, not Open3D: Open3D writes OBJ vertices with 6 significant digits, parses
+    them into float32, and renumbers the vertices in the order the faces first use them, dropping unused ones.
+    Here vertices are written with 17 significant digits (exact round trip), order is kept, polygons are
+    fan-triangulated and ``v/vt/vn`` face references and negative indices are understood.
+``.stl``
+    Through Open3D.  STL has no shared vertices: each triangle stores its own three corners in **float32**.
+    :func:`read_mesh` merges corners with identical coordinates into one vertex (numbered in order of first
+    appearance), so connectivity survives, but coordinates are rounded to float32, the original vertex order is
+    lost, and distinct vertices that round to the same float32 point merge.
+``.vtp``
+    VTK XML PolyData through VTK, float64 points, exact.  Polygons and triangle strips are triangulated on
+    reading; vertices and lines are ignored.
+
+Errors: :class:`MissingFileError`, :class:`UnknownFormatError`, and :class:`UnreadableFileError` for truncated,
+corrupt or empty meshes (no triangles).  Writers are atomic and refuse to overwrite unless ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -337,7 +329,7 @@ class _VtkMessages:
 
 
 @contextlib.contextmanager
-def _capture_vtk_output() -> Iterator[_VtkMessages]:
+def capture_vtk_output() -> Iterator[_VtkMessages]:
     """Capture VTK's console messages (as PyVista's ``VtkErrorCatcher`` does).
 
     VTK reports errors of the reader's helpers (the XML parser, the pipeline
@@ -368,7 +360,7 @@ def _read_vtp(path: Path) -> SurfaceMesh:
 
     reader = vtkXMLPolyDataReader()
     reader.SetFileName(str(path))
-    with _capture_vtk_output() as caught:
+    with capture_vtk_output() as caught:
         reader.Update()
     poly = reader.GetOutput()
     if caught.errors or poly is None or poly.GetPoints() is None:
@@ -382,7 +374,7 @@ def _read_vtp(path: Path) -> SurfaceMesh:
         tri.SetInputData(poly)
         tri.PassVertsOff()
         tri.PassLinesOff()
-        with _capture_vtk_output() as caught:
+        with capture_vtk_output() as caught:
             tri.Update()
         if caught.errors:
             raise _unreadable(path, ".vtp", caught.errors[0])
@@ -415,7 +407,7 @@ def write_vtk_xml(writer, path: Path) -> None:
     Python.  VTK's own file output crashes the process (SIGSEGV) when a write fails for a full disk or a
     file-size limit; Python's raises :class:`OSError`, which :mod:`workbench.io.atomic` names."""
     writer.WriteToOutputStringOn()
-    with _capture_vtk_output() as caught:
+    with capture_vtk_output() as caught:
         ok = writer.Write()
     if ok != 1 or caught.errors:
         raise OSError(
@@ -475,7 +467,7 @@ def read_mesh_point_data(path: str | os.PathLike) -> dict[str, np.ndarray]:
     _require_file(p)
     reader = vtkXMLPolyDataReader()
     reader.SetFileName(str(p))
-    with _capture_vtk_output() as caught:
+    with capture_vtk_output() as caught:
         reader.Update()
     if caught.errors:
         raise _unreadable(p, ".vtp", caught.errors[0])

@@ -3,8 +3,8 @@
 The weights stage writes its body mesh, with each bone's harmonic weight, as
 a ``.vtu`` file, which ParaView, 3D Slicer and PyVista open directly.
 
-Format
-------
+The format:
+
 * Points: float64 world millimetres (``x, y, z``), written in VTK's binary
   (base64, zlib-compressed) encoding, so the round trip is bit-exact.
 * Cells: one ``VTK_TETRA`` per tetrahedron, vertex order kept (positively
@@ -31,7 +31,7 @@ import numpy as np
 from deformation.tetmesh import TetMesh
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
 from workbench.io.atomic import atomic_path, split_suffix
-from workbench.io.meshes import _capture_vtk_output, write_vtk_xml  # VTK prints errors instead of raising
+from workbench.io.meshes import capture_vtk_output, write_vtk_xml  # VTK prints errors instead of raising
 
 __all__ = ["WEIGHT_PREFIX", "read_tetmesh", "write_tetmesh", "weight_arrays", "weights_from_point_data"]
 
@@ -186,7 +186,7 @@ def read_tetmesh(path: str | os.PathLike) -> tuple[TetMesh, dict[str, np.ndarray
         raise _unreadable(p, "the file is empty")
     reader = vtkXMLUnstructuredGridReader()
     reader.SetFileName(str(p))
-    with _capture_vtk_output() as caught:
+    with capture_vtk_output() as caught:
         reader.Update()
     grid = reader.GetOutput()
     if caught.errors or grid is None or grid.GetPoints() is None:

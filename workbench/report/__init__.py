@@ -1,35 +1,27 @@
 """The HTML validation report: one self-contained file a reviewer can open offline.
 
-:func:`study_report` builds it for a study folder after the pipeline ran
-(the ``report`` stage calls it, so ``workbench run`` ends with it):
+:func:`study_report` builds it for a study folder after the pipeline ran (the ``report`` stage calls it, so
+``workbench run`` ends with it):
 
-* **poses** — each scan's joint angles, each joint's Kurihara Eq. 1 residual,
-  the bones the pose stage flagged;
-* **registration** — per scan: similarity (SSD, CC, MI) of the start and the
-  result, the folded voxels, the convergence of each level
-  (each level's objective per taken step for the dense method, the metric
-  per accepted step for Rhee's Algorithm 1), a control-point or correction
-  map;
-* **overlays** — the registered template (green) over its target (magenta)
-  on three index planes, with a toggle/flicker between the two greyscale
-  pictures, and the start beside it;
-* **with ground truth** — the validate stage's rows (MED over body voxels,
-  marker MED, SSD, CC, MI, folded fraction), MED maps as slices, each
-  marker's error;
-* **renders** — pictures and animations the user put in the study's
-  ``renders/`` folder (``workbench render STUDY --out STUDY/renders/x.png``,
-  ``workbench animate STUDY --out STUDY/renders/bend.mp4``), videos up to
-  3 MB embedded whole;
-* **provenance** — software versions, every stage's settings, the study
-  digest (SHA-256 over the recorded outputs of every stage).
+* **poses** — each scan's joint angles, each joint's Kurihara Eq. 1 residual, the bones the pose stage flagged;
+* **registration** — per scan: similarity (SSD, CC, MI) of the start and the result, the folded voxels, the
+  convergence of each level (each level's objective per taken step for the dense method, the metric per accepted
+  step for Rhee's Algorithm 1), a control-point or correction map;
+* **overlays** — the registered template (green) over its target (magenta) on three index planes, with a
+  toggle/flicker between the two greyscale pictures, and the start beside it;
+* **with ground truth** — the validate stage's rows (MED over body voxels, marker MED, SSD, CC, MI, folded
+  fraction), MED maps as slices, each marker's error;
+* **renders** — pictures and animations the user put in the study's ``renders/`` folder
+  (``workbench render STUDY --out STUDY/renders/x.png``,
+  ``workbench animate STUDY --out STUDY/renders/bend.mp4``), videos up to 3 MB embedded whole;
+* **provenance** — software versions, every stage's settings, the study digest (SHA-256 over the recorded outputs
+  of every stage).
 
-The report holds no time, date, host or machine name (the times are in
-``study.json``'s entries: ``workbench info``), so the same results give the
-same bytes.
+The report holds no time, date, host or machine name (the times are in ``study.json``'s entries:
+``workbench info``), so the same results give the same bytes.
 
-:func:`tables_report` builds it for a ``workbench reproduce`` folder: every
-table with its definitions and notes, then a compact section for each
-phantom study it ran on.
+:func:`tables_report` builds it for a ``workbench reproduce`` folder: every table with its definitions and notes,
+then a compact section for each phantom study it ran on.
 """
 
 from __future__ import annotations
@@ -105,7 +97,9 @@ def _pose_section(page: Page, study) -> None:
     ]
     parts.append(
         table_html(
-            ["joint", "DOF", "Eq. 1 RMS (mm)", "scans", "centre estimated", "kind"], rows, decimals=[0, 0, 2, 0, 0, 0]
+            ["joint", "DOF", "Kurihara Eq. 1 RMS (mm)", "scans", "centre estimated", "kind"],
+            rows,
+            decimals=[0, 0, 2, 0, 0, 0],
         )
     )
     ids = [s for s in study.scan_ids if study.has_pose(s)]
@@ -438,7 +432,7 @@ def study_report(study, *, scans=None, pictures: bool = True) -> str:
 
 
 def _table_section(page: Page, doc: dict) -> None:
-    from validation.protocols import Table
+    from validation.protocols import Table  # the protocols (and what they import) only for a reproduce folder
 
     t = Table.from_dict(doc)
     parts = page.section(t.title)
@@ -474,6 +468,7 @@ def _table_section(page: Page, doc: dict) -> None:
 
 def tables_report(folder: Path) -> str:
     """The report of a ``workbench reproduce`` folder (module docstring) as an HTML string."""
+    from validation.protocols import PROTOCOLS
     from workbench.study import read_study
 
     folder = Path(folder)
@@ -486,9 +481,7 @@ def tables_report(folder: Path) -> str:
             continue
         if isinstance(d, dict) and d.get("format") == "avw-table":
             docs.append(d)
-    from workbench.reproduce import NAMES
-
-    order = list(NAMES)
+    order = list(PROTOCOLS)  # the tables in the protocols' order, as `workbench reproduce all` makes them
     docs.sort(key=lambda d: order.index(d["id"]) if d["id"] in order else len(order))
     page = Page(f"Reproduced tables: {folder.name}", f"{len(docs)} tables from {folder}")
     if unreadable:

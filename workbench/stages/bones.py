@@ -1,4 +1,4 @@
-"""The ``bones`` stage: the template's bone label map and each bone's frame (Rhee §3.1; DESIGN step 1).
+"""The ``bones`` stage: the template's bone label map and each bone's frame (Rhee §3.1).
 
 * ``source="labels"``: the study's own ``template_labels`` (given);
 * ``source="seeds"``: segmented from a seeds file (one world point in mm
@@ -167,5 +167,11 @@ def unknown_labels_text(unknown: dict) -> str:
 
 
 STAGE = Stage(
-    name="bones", folder="bones", per_scan=False, settings_type=BonesSettings, run=_run, inputs=_inputs, version=2
-)  # 2: bones.json lists the label ids that are no bone's
+    name="bones",
+    folder="bones",
+    per_scan=False,
+    settings_type=BonesSettings,
+    run=_run,
+    inputs=_inputs,
+    version=2,  # what each version changed: docs/measurements/workbench.md
+)

@@ -1,32 +1,24 @@
-"""The ``init`` stage: the registration's articulated start for each scan (Rhee §3.3, Eq. 2; DESIGN step 5).
+"""The ``init`` stage: the registration's articulated start for each scan (Rhee §3, Rhee Eq. 2).
 
-``method="polyrigid"`` (default): the bones' rigid motions to the scan's pose
-blended as a flow (:func:`registration.initialise.polyrigid_initial_field`,
-:mod:`deformation.polyrigid`): one-to-one by construction, every bone exactly
-rigid, and its forward map (template → scan) is written beside it, so the
-register stage inverts only its own correction.  Issue I measured it against
-VBD on the structured phantoms (README, "Registration"): no fold of its own in
-the crease and a smaller MED at 45-70° of flexion.
-``method="vbd"``: every template voxel moved by the weighted blend of its
-bones' transforms (VBD, Rhee Eq. 2) to the scan's pose — the *estimated*
-pose of the pose stage, or with ``pose="truth"`` the phantom's true pose (an
-explicit protocol choice, e.g. Rhee's Table 4; the pipeline never falls back
-to it) — inverted onto the scan grid by the backward map
-(:func:`registration.initialise.vbd_initial_field`).  ``unfold`` repairs the
-folds of VBD in the crease of a flexed joint (:func:`deformation.fields.unfold`).
+``method="polyrigid"`` (default): the bones' rigid motions to the scan's pose blended as a flow
+(:func:`registration.initialise.polyrigid_initial_field`, :mod:`deformation.polyrigid`): one-to-one by
+construction, every bone exactly rigid, and its forward map (template → scan) is written beside it, so the
+register stage inverts only its own correction; no fold of its own in a flexed joint's crease
+(docs/measurements/workbench.md). ``method="vbd"``: every template voxel moved by the weighted blend of its bones'
+transforms (VBD, Rhee Eq. 2) to the scan's pose — the *estimated* pose of the pose stage, or with ``pose="truth"``
+the phantom's true pose (an explicit protocol choice, e.g. Rhee's Table 4; the pipeline never falls back to it) —
+inverted onto the scan grid by the backward map (:func:`registration.initialise.vbd_initial_field`).  ``unfold``
+repairs the folds of VBD in the crease of a flexed joint (:func:`deformation.fields.unfold`).
 ``method="identity"``: no start (Rhee's Table 2 protocol).
 
-The polyrigid flow is integrated voxel by voxel (10–110 µs a voxel on two
-cores: the knee's 2–4 bones, the hand's 21 at its strongest curl); on a grid
-of more than :data:`POLYRIGID_VOXELS` voxels (a CT at 0.5 mm) it is integrated
-on every f-th voxel and blended up, exactly where the map jumps (``map_factor``,
-:meth:`deformation.polyrigid.PolyrigidFlow.scan_to_template`).
+The polyrigid flow is integrated voxel by voxel; on a grid of more than :data:`POLYRIGID_VOXELS` voxels (a CT at
+0.5 mm) it is integrated on every f-th voxel and blended up, integrated exactly where the map jumps
+(``map_factor``, :meth:`deformation.polyrigid.PolyrigidFlow.scan_to_template`).
 
-Outputs (``init/<scan>/``): ``field.mha`` (``scan_to_template`` on the scan
-grid, mm; not for the identity), ``forward.mha`` (polyrigid only: the flow's
-``template_to_scan`` field on the template grid) and ``init.json`` (the
-method, the bone transforms it blended — what the register stage needs to
-invert its result — and the backward map's summary).
+Outputs (``init/<scan>/``): ``field.mha`` (``scan_to_template`` on the scan grid, mm; not for the identity),
+``forward.mha`` (polyrigid only: the flow's ``template_to_scan`` field on the template grid) and ``init.json``
+(the method, the bone transforms it blended — what the register stage needs to invert its result — and the
+backward map's summary).
 """
 
 from __future__ import annotations
@@ -39,8 +31,8 @@ from workbench.stages.mechanism import Field, Json, Stage
 __all__ = ["InitSettings", "STAGE", "METHODS"]
 
 METHODS = ("polyrigid", "vbd", "identity")
-#: the most voxels of a grid the polyrigid flow is integrated at every voxel of (≤ 30 min a map on two cores at
-#: the hand's 110 µs a voxel); a bigger grid gets the smallest map factor that leaves at most this many
+#: the most voxels of a grid the polyrigid flow is integrated at every voxel of (about half an hour a map: see
+#: docs/measurements/workbench.md); a bigger grid gets the smallest map factor that leaves at most this many
 POLYRIGID_VOXELS = 16_000_000
 
 
@@ -217,5 +209,5 @@ STAGE = Stage(
     run=_run,
     needs=_needs,
     inputs=_inputs,
-    version=5,
-)  # 5: the polyrigid start's map factor (big grids); 4: flagged bones
+    version=5,  # what each version changed: docs/measurements/workbench.md
+)

@@ -1,52 +1,33 @@
 """The one stage mechanism: digest, skip, staging folder, atomic swap, manifest entry, progress.
 
-A :class:`Stage` declares its name, its folder in the study, the stages it
-needs, whether it runs per scan, a frozen settings dataclass, the input files
-it reads, and a ``run`` that wires library functions and *returns* its outputs
-(``{file name: Image(...) | Labels(...) | Field(...) | Json(...) | ...}``).
-:func:`execute` does the rest, the same way for every stage:
+A :class:`Stage` (:mod:`workbench.stages.stage`) declares its name, folder, needs, settings dataclass and
+input files, and a ``run`` that *returns* its outputs (:mod:`workbench.stages.outputs`).  :func:`execute`
+does the rest, the same way for every stage:
 
-1. **needs** — each needed stage must have an entry (for per-scan needs: for
-   each scan in question) that is up to date with its own inputs; otherwise
-   one clear line: "run `workbench X STUDY` first" or "... is out of date".
-2. **digest** — SHA-256 of the stage's name and version, the workbench
-   version, the settings (canonical JSON), the content of its input files and
-   the ``outputs_digest`` of every needed stage's entry.  A stage whose
-   recorded digest matches and whose outputs exist is skipped (and says so).
-3. **staging** — ``run`` returns the outputs; they are written into a private
-   staging folder (``.<folder>.partial-<pid>-<random>``) beside the final
-   one, which is then swapped in atomically (the old one removed only once
-   the new one is in place).  Any exception, Ctrl-C (SIGINT) or SIGTERM
-   (turned into :class:`KeyboardInterrupt` by the CLI) removes the staging
-   folder: no partial file is ever left where a reader looks.  Staging
-   folders of processes that died (SIGKILL) are removed by the next
-   :func:`execute` of the stage.
-4. **manifest** — one entry per stage, and per scan for per-scan stages
-   (inputs with digests, settings, needs, outputs with their digest, seed,
-   timings — the unit's ``seconds`` and the per-step ``timings`` its stage
-   put in ``ctx.timings`` —, versions), recorded through :meth:`workbench.study.Study.record`
-   (locked, re-read, renamed).  Times, dates and hosts go there only: no
-   file under a stage folder holds one, so the same inputs and settings give
-   the same bytes there in every run (``study.json`` alone differs).  Per-scan stages commit each scan as it
-   finishes, so an interrupted run resumes from the first unfinished scan.
-5. **scale-out** — with a Dask cluster (:mod:`workbench.scale`), a per-scan
-   stage's scans run as tasks that do steps 3 for their scan (their own
-   folder, swapped in by the worker), and this process alone does step 4 as
-   each arrives; stages run inside :func:`workbench.scale.same_bits`, so the
-   files are the same bits on any machine and for any number of workers.
+1. **needs** — each needed stage must be recorded and up to date, else one clear line: "run
+   ``workbench X STUDY`` first" or "... is out of date";
+2. **digest** — a unit whose recorded digest (:mod:`workbench.stages.digests`) matches and whose outputs
+   exist is skipped, and says so;
+3. **staging** — the outputs are written into a private staging folder beside the final one, then swapped
+   in atomically; an exception, Ctrl-C or SIGTERM removes the staging folder, and the next run removes
+   those of processes that died (SIGKILL);
+4. **manifest** — one entry per stage (per scan for per-scan stages) through
+   :meth:`workbench.study.Study.record`: inputs, settings, needs, outputs and their digest, seed, timings,
+   versions.  Times, dates and hosts go there only, so the same inputs and settings give the same bytes in
+   the stage folders.  Per-scan stages commit each scan as it finishes (an interrupted run resumes);
+5. **scale-out** — with a Dask cluster (:mod:`workbench.scale`), a per-scan stage's scans run as tasks that
+   do step 3 for their scan, and this process alone does step 4 as each arrives, inside
+   :func:`workbench.scale.same_bits`: the same bits on any machine, for any number of workers.
 
-Progress: stages report :class:`Event` records ``(stage, scan, done, total,
-message)`` to one callback; the CLI turns them into progress bars or plain
-lines (:mod:`workbench.progress`).  Everything else goes to
-``logging.getLogger("workbench")``.
+Progress: stages report :class:`Event` records to one callback (:mod:`workbench.progress` draws them);
+everything else goes to ``logging.getLogger("workbench")``.  The names of the modules above are
+re-exported here.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
-import json
 import logging
 import os
 import secrets
@@ -54,16 +35,47 @@ import shutil
 import socket
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from deformation.geometry import every_nth
 from workbench import __version__
-from workbench.errors import WorkbenchError
 from workbench.io.atomic import naming_staged, replace_dir
-from workbench.io.jsonio import to_jsonable, write_json
-from workbench.study import STAGE_COMMANDS, Study, StudyError
+from workbench.io.jsonio import to_jsonable
+from workbench.stages.digests import (
+    digests_of_needs,
+    dir_digest,
+    file_digest,
+    input_digests,
+    need_units,
+    outputs_exist,
+    stage_status,
+    unit_digest,
+)
+from workbench.stages.outputs import (
+    CopyFile,
+    Field,
+    Image,
+    Json,
+    Labels,
+    MeshFile,
+    TetMeshFile,
+    Text,
+    VectorImage,
+    WeightMap,
+    write_output,
+)
+from workbench.stages.settings import settings_dict, settings_from_json
+from workbench.stages.stage import (
+    WORKING_VOXELS,
+    Event,
+    Outcome,
+    Stage,
+    StageContext,
+    StageNotReady,
+    working_factor,
+    working_labels,
+)
+from workbench.study import Study
 
 __all__ = [
     "Stage",
@@ -92,378 +104,6 @@ __all__ = [
 
 log = logging.getLogger("workbench")
 
-#: the most template voxels the pose and weights stages work on: they and a full-grid deform hold ~100–117 bytes
-#: a voxel (benchmarks/bench_big_volume.py), so ≤ 6.6 GiB here, within the 8 GiB budget; a template up to this size
-#: keeps full-grid weights (which register, model and validate need).  A bigger one (Kurihara's CT: 197 M voxels)
-#: is worked on every f-th voxel (``--grid-factor``; f = 2 there).
-WORKING_VOXELS = 60_000_000
-
-
-def working_factor(setting, geometry) -> int:
-    """The ``--grid-factor`` of a stage: the setting, or (None) the smallest that leaves at most
-    :data:`WORKING_VOXELS` of the template's grid."""
-    return geometry.factor_within(WORKING_VOXELS) if setting is None else int(setting)
-
-
-def working_labels(study, labels, f: int):
-    """The template's bone labels on every ``f``-th voxel; a bone left with no voxel there is one clear error
-    naming ``--grid-factor``."""
-    if f == 1:
-        return labels
-    sk = study.skeleton()
-    coarse = labels.every(f)
-    gone = [
-        b for b in sk.bone_names if (labels.data == sk.label_of(b)).any() and not (coarse.data == sk.label_of(b)).any()
-    ]
-    if gone:
-        path = study.template_labels_path()
-        raise StudyError(
-            f"{path}: bone(s) {', '.join(gone)} have no voxel on {every_nth(f)} voxel of the template; "
-            "give a smaller --grid-factor (1 keeps the full grid)",
-            path,
-        )
-    return coarse
-
-
-class StageNotReady(StudyError):
-    """A stage cannot run: a stage it needs has not run (or is out of date)."""
-
-
-# -- outputs: what a stage's run returns, written by the mechanism ----------------------------------
-@dataclass(frozen=True)
-class Image:
-    """An intensity volume (float32 NIfTI/MHA/NRRD with its geometry)."""
-
-    volume: object
-
-
-@dataclass(frozen=True)
-class Labels:
-    """A label map (unsigned integers)."""
-
-    volume: object
-
-
-@dataclass(frozen=True)
-class Field:
-    """A displacement field (ITK vector image, mm), usable by ``sitk.DisplacementFieldTransform``."""
-
-    volume: object
-
-
-@dataclass(frozen=True)
-class VectorImage:
-    """A multi-component image (any number of components)."""
-
-    volume: object
-
-
-@dataclass(frozen=True)
-class Json:
-    """A JSON document (keys sorted, floats round-trip exactly)."""
-
-    doc: object
-
-
-@dataclass(frozen=True)
-class Text:
-    """A UTF-8 text file."""
-
-    text: str
-
-
-@dataclass(frozen=True)
-class WeightMap:
-    """A voxel weight map (``.json`` + two vector images, :mod:`workbench.io.weights`)."""
-
-    weights: object
-    geometry: object
-    meta: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class TetMeshFile:
-    """A tetrahedral mesh (VTU) with point arrays."""
-
-    mesh: object
-    point_data: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class MeshFile:
-    """A triangle mesh in world mm (PLY, VTP — with named per-vertex arrays —, OBJ or STL by the suffix)."""
-
-    mesh: object
-    point_data: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class CopyFile:
-    """A file copied as it is (e.g. a kept mesh, byte for byte)."""
-
-    source: Path
-
-
-def _write_output(obj, path: Path) -> list[Path]:
-    """Write one output into the staging folder; returns every file written (companions included)."""
-    from workbench.io import volumes
-
-    if isinstance(obj, Image):
-        volumes.write_volume(obj.volume, path)
-    elif isinstance(obj, Labels):
-        volumes.write_labels(obj.volume, path)
-    elif isinstance(obj, Field):
-        volumes.write_displacement(obj.volume, path)
-    elif isinstance(obj, VectorImage):
-        volumes.write_vector_image(obj.volume, path)
-    elif isinstance(obj, Json):
-        write_json(obj.doc, path)
-    elif isinstance(obj, Text):
-        path.write_text(obj.text if obj.text.endswith("\n") else obj.text + "\n", encoding="utf-8")
-    elif isinstance(obj, WeightMap):
-        from workbench.io.weights import write_voxel_weights
-
-        write_voxel_weights(obj.weights, obj.geometry, path, **obj.meta)
-        return [path, path.with_name(f"{path.stem}_index.mha"), path.with_name(f"{path.stem}_value.mha")]
-    elif isinstance(obj, CopyFile):
-        shutil.copy2(obj.source, path)
-    elif isinstance(obj, TetMeshFile):
-        from workbench.io.tetmeshes import write_tetmesh
-
-        write_tetmesh(obj.mesh, path, point_data=obj.point_data)
-    elif isinstance(obj, MeshFile):
-        from workbench.io.meshes import write_mesh
-
-        write_mesh(obj.mesh, path, point_data=obj.point_data or None)
-    else:
-        raise TypeError(
-            f"{path.name}: a stage output must be Image, Labels, Field, VectorImage, Json, Text, "
-            f"WeightMap, TetMeshFile, MeshFile or CopyFile, got {type(obj).__name__}"
-        )
-    return [path]
-
-
-# -- events and results ------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Event:
-    """One progress report: ``stage``, ``scan`` (or None), ``done`` of ``total`` units, a message.
-
-    ``kind`` is ``"progress"`` (work inside a unit: ``done`` of ``total``,
-    ``total`` 0 when unknown; shown as a bar or a rate-limited line),
-    ``"message"`` (a line always shown), ``"start"``, ``"done"`` or ``"skip"``
-    (a unit begun, finished or skipped).
-    """
-
-    stage: str
-    scan: str | None
-    done: int
-    total: int
-    message: str = ""
-    kind: str = "progress"
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """What :func:`execute` did with one unit (the study, or one scan)."""
-
-    stage: str
-    scan: str | None
-    status: str  #: "ran" or "skipped"
-    seconds: float
-    entry: dict
-
-
-@dataclass(frozen=True)
-class StageContext:
-    """What a stage's ``run`` gets: the study, its settings, the scan, the previous outputs, progress."""
-
-    study: Study
-    settings: object
-    scan: str | None
-    previous: dict  #: file name → path of the outputs of the previous run, if any
-    report: Callable  #: report(done, total, message="")
-    options: dict = field(default_factory=dict)  #: run-time options that do not change the result's meaning
-    stage_name: str = ""
-    emit: Callable = lambda event: None
-    runner: object = None  #: a :class:`workbench.scale.Runner` for per-scan work inside a whole-study stage, or None
-    #: wall-clock seconds of the stage's steps (JSON: numbers, lists, dicts), recorded under the unit's manifest
-    #: entry's ``timings``: a stage's files hold no time, so the same inputs and settings give the same bytes
-    timings: dict = field(default_factory=dict)
-
-    def map_scans(self, fn, items, *, shared=None, on_result=None) -> list:
-        """``fn`` over ``items`` here, or as Dask tasks when the run has a cluster (:mod:`workbench.scale`)."""
-        from workbench.scale import Runner
-
-        return (self.runner or Runner()).map(fn, items, shared=shared, name=self.stage_name, on_result=on_result)
-
-    def say(self, message: str) -> None:
-        """A message worth every line (always shown, unlike ``report``'s rate-limited progress)."""
-        self.emit(Event(self.stage_name, self.scan, 0, 0, message, "message"))
-
-
-@dataclass(frozen=True)
-class Stage:
-    """A pipeline stage (see the module docstring).
-
-    ``needs(settings)`` names the stages whose outputs it reads; ``inputs(study,
-    settings, scan)`` maps names to the input files it reads (their content
-    goes into the digest); ``applies(study, settings, scan)`` returns ``None``
-    when the stage has work for that unit, else the reason it has none (e.g.
-    validate without ground truth); ``run(ctx)`` returns ``{file name:
-    output}``.  Bump ``version`` when the stage's results change for the same
-    inputs and settings.
-    """
-
-    name: str
-    folder: str
-    per_scan: bool
-    settings_type: type
-    run: Callable
-    needs: Callable = lambda settings: ()
-    inputs: Callable = lambda study, settings, scan: {}
-    applies: Callable = lambda study, settings, scan: None
-    uses: Callable = lambda study, settings: None  #: scans a whole-study stage reads of per-scan needs (None: all)
-    version: int = 1
-
-
-def settings_dict(settings) -> dict:
-    """A settings dataclass as plain JSON (paths as strings, tuples as lists)."""
-    return to_jsonable(dataclasses.asdict(settings))
-
-
-_DIGESTS: dict = {}
-
-
-def file_digest(path: Path) -> str:
-    """SHA-256 of a file's content (cached per process by path, size and modification time); of a folder (a
-    DICOM series), of the names and contents of the files in it."""
-    path = Path(path)
-    if path.is_dir():
-        h = hashlib.sha256()
-        for p in sorted(q for q in path.iterdir() if q.is_file()):
-            h.update(p.name.encode() + b"\0" + file_digest(p).encode())
-        return h.hexdigest()
-    st = path.stat()
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-    if key not in _DIGESTS:
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 22), b""):
-                h.update(chunk)
-        _DIGESTS[key] = h.hexdigest()
-    return _DIGESTS[key]
-
-
-def _input_digests(study: Study, stage: Stage, settings, scan) -> dict:
-    files = stage.inputs(study, settings, scan)
-    out = {}
-    for k, p in sorted(files.items()):
-        if p is None:
-            continue
-        p = Path(p)
-        if not p.exists():
-            raise StudyError(f"{p}: an input of the {stage.name} stage is missing.", p)
-        try:
-            rel = str(p.resolve().relative_to(study.root.resolve()))
-        except ValueError:
-            rel = str(p)
-        out[k] = {"path": rel, "sha256": file_digest(p)}
-    return out
-
-
-def _need_units(need: Stage, scan, scans) -> list:
-    """The units of ``need`` a unit reads: the study, the same scan, or (for a whole-study stage) ``scans``."""
-    if not need.per_scan:
-        return [None]
-    return [scan] if scan is not None else list(scans)
-
-
-def _need_digests(study: Study, stage: Stage, settings, scan, scans, registry) -> dict:
-    """``{need: outputs_digest}`` (per-scan needs: ``{need/scan: ...}``); raises :class:`StageNotReady`."""
-    out = {}
-    for name in stage.needs(settings):
-        need = registry[name]
-        for unit in _need_units(need, scan, scans):
-            e = study.stage_entry(name, unit)  # the caller holds the unit's shared lock (_needs_held)
-            what = f"the {name} stage" + (f" of scan {unit!r}" if unit else "")
-            cmd = f"`{STAGE_COMMANDS.get(name, 'workbench run')} {study.root}`"
-            if e is not None and e.get("skipped"):
-                continue  # the need had no work for this unit (e.g. validate without truth)
-            if e is None:
-                raise StageNotReady(
-                    f"{study.manifest_path}: {stage.name} needs {what}; run {cmd} (or `workbench "
-                    f"run {study.root}`) first.",
-                    study.manifest_path,
-                )
-            if stage_status(study, need, unit, registry=registry) != "done":
-                raise StageNotReady(
-                    f"{study.manifest_path}: {what} is out of date (its inputs or a stage before "
-                    f"it changed since it ran); run {cmd} or `workbench run {study.root}` first.",
-                    study.manifest_path,
-                )
-            out[name if unit is None else f"{name}/{unit}"] = e["outputs_digest"]
-    return out
-
-
-def _digest(stage: Stage, settings_json, inputs: dict, needs: dict) -> str:
-    doc = {
-        "stage": stage.name,
-        "stage_version": stage.version,
-        "workbench_version": __version__,
-        "settings": settings_json,
-        "inputs": {k: v["sha256"] for k, v in inputs.items()},
-        "needs": needs,
-    }
-    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
-
-
-def _outputs_exist(study: Study, entry: dict) -> bool:
-    return all(study.path(p).exists() for p in (entry.get("outputs") or {}).values())
-
-
-def stage_status(study: Study, stage: Stage, scan=None, *, registry: dict) -> str:
-    """``"missing"``, ``"stale"`` (its inputs or needs changed since it ran) or ``"done"``, from its recorded settings.
-
-    A unit recorded as having nothing to do (validate without truth) is done
-    while that still holds, and missing once it has work.
-    """
-    e = study.stage_entry(stage.name, scan)
-    if e is None:
-        return "missing"
-    try:
-        settings = stage.settings_type(**_settings_from_json(stage.settings_type, e.get("settings") or {}))
-        if e.get("skipped"):
-            return "done" if stage.applies(study, settings, scan) else "missing"
-        if not _outputs_exist(study, e):
-            return "missing"
-        inputs = _input_digests(study, stage, settings, scan)
-        scans = None if stage.per_scan else study.check_scan_ids(stage.uses(study, settings))
-        needs = {}
-        for name in stage.needs(settings):
-            for unit in _need_units(registry[name], scan, scans or []):
-                ne = study.stage_entry(name, unit)
-                if ne is None:
-                    return "stale"
-                if not ne.get("skipped"):
-                    needs[name if unit is None else f"{name}/{unit}"] = ne["outputs_digest"]
-    except (WorkbenchError, OSError, TypeError, ValueError):
-        return "stale"
-    return "done" if _digest(stage, e.get("settings"), inputs, needs) == e["digest"] else "stale"
-
-
-def _settings_from_json(cls, d: dict) -> dict:
-    """Recorded settings back into constructor arguments (lists → tuples where the default is a tuple)."""
-    out = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in d:
-            continue
-        v = d[f.name]
-        if isinstance(v, list):
-            v = tuple(v)
-        out[f.name] = v
-    return out
-
-
 _HOST = socket.gethostname()
 
 
@@ -486,14 +126,6 @@ def _clean_dead_staging(folder: Path) -> None:
                         shutil.rmtree(p, ignore_errors=True)
                     except PermissionError:
                         pass
-
-
-def _dir_digest(files: list[Path], base: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(files):
-        h.update(str(p.relative_to(base)).encode())
-        h.update(file_digest(p).encode())
-    return h.hexdigest()
 
 
 def execute(
@@ -527,7 +159,7 @@ def execute(
     with _needs_held(study, stage, settings, units, registry):
         study.reload()
         # every need is checked before any work, so that a missing stage is reported at once
-        need_digests = {u: _need_digests(study, stage, settings, u, need_scans, registry) for u in units}
+        need_digests = {u: digests_of_needs(study, stage, settings, u, need_scans, registry) for u in units}
         root = study.root
         folder = root / stage.folder
         _clean_dead_staging(folder if stage.per_scan else root)
@@ -568,14 +200,14 @@ def _upstream_units(study: Study, stage: Stage, settings, units, registry) -> li
     while todo:
         name, u = todo.pop()
         need = registry[name]
-        for unit in _need_units(need, u, study.scan_ids):  # a whole-study unit: every scan (an over-estimate)
+        for unit in need_units(need, u, study.scan_ids):  # a whole-study unit: every scan (an over-estimate)
             if (name, unit or "") in out:
                 continue
             out.add((name, unit or ""))
             recorded = (study.stage_entry(name, unit) or {}).get("settings") or {}
             sets = []
             for make in (
-                lambda: need.settings_type(**_settings_from_json(need.settings_type, recorded)),
+                lambda: need.settings_type(**settings_from_json(need.settings_type, recorded)),
                 need.settings_type,
             ):
                 try:
@@ -642,9 +274,9 @@ def _prepare_unit(
             study.record(stage.name, entry, unit, stage_info={"folder": stage.folder})
         emit(Event(stage.name, unit, i + 1, n, f"{label}: nothing to do ({reason})", "skip"))
         return Outcome(stage.name, unit, "skipped", 0.0, entry)
-    inputs = _input_digests(study, stage, settings, unit)
-    digest = _digest(stage, settings_json, inputs, need_digests)
-    if not force and old is not None and old.get("digest") == digest and _outputs_exist(study, old):
+    inputs = input_digests(study, stage, settings, unit)
+    digest = unit_digest(stage, settings_json, inputs, need_digests)
+    if not force and old is not None and old.get("digest") == digest and outputs_exist(study, old):
         emit(Event(stage.name, unit, i + 1, n, f"{label}: up to date, skipped", "skip"))
         return Outcome(stage.name, unit, "skipped", 0.0, old)
     return digest, inputs
@@ -682,8 +314,8 @@ def _run_unit(study: Study, stage: Stage, settings, unit, emit, options, runner=
         files = []
         for name, obj in outputs.items():
             with naming_staged(staging, final):  # a full disk or a file-size limit: named by the final path
-                files += _write_output(obj, staging / name)
-        out_digest = _dir_digest(files, staging)
+                files += write_output(obj, staging / name)
+        out_digest = dir_digest(files, staging)
         timings = to_jsonable(ctx.timings, where=f"{stage.name} timings")  # refused before the swap, not after
         if forget is not None:
             forget()
@@ -784,22 +416,20 @@ def _execute_unit(
 
 
 def _unit_task(job: tuple) -> dict:
-    """One scan of a per-scan stage, on a Dask worker: paths and JSON in, file names and digest out."""
+    """One scan of a per-scan stage, on a Dask worker: the stage, paths and JSON in, file names and digest out."""
     from workbench.scale import task_reporter
-    from workbench.stages import STAGES
     from workbench.study import read_study
 
-    root, name, settings_json, unit, options, topic = job
-    stage = STAGES[name]
+    root, stage, settings_json, unit, options, topic = job
     study = read_study(root)
-    settings = stage.settings_type(**_settings_from_json(stage.settings_type, settings_json))
+    settings = stage.settings_type(**settings_from_json(stage.settings_type, settings_json))
     send = task_reporter(topic)  # the stage's progress, back to the coordinator's progress bars
 
     def emit(event: Event) -> None:
         if event.kind in ("progress", "message"):
             send(dataclasses.asdict(event))
 
-    with _unit_lock(study.root, name, unit):
+    with _unit_lock(study.root, stage.name, unit):
         done = _run_unit(study, stage, settings, unit, emit, options)
         done["stats"] = _file_stats(_unit_folder(study, stage, unit), done["names"])
         return done
@@ -883,7 +513,7 @@ def _execute_distributed(
             runner.map(
                 _unit_task,
                 [
-                    (str(study.root.resolve()), stage.name, settings_json, unit, dict(options or {}), topic)
+                    (str(study.root.resolve()), stage, settings_json, unit, dict(options or {}), topic)
                     for _, unit, _ in jobs
                 ],
                 name=f"{stage.name}",

@@ -1,4 +1,4 @@
-"""The ``model`` stage: the example-based volume deformation model (EVD, Rhee §5, Eq. 6–7; DESIGN step 7).
+"""The ``model`` stage: the example-based volume deformation model (EVD, Rhee §5, Rhee Eq. 6–7).
 
 For each training scan ``k``, the displacement of every template voxel in the
 template frame after undoing VBD with the scan's pose (Rhee Eq. 7):
@@ -145,5 +145,5 @@ STAGE = Stage(
     needs=_needs,
     inputs=_inputs,
     uses=lambda study, s: s.scans,
-    version=2,
-)  # 2: the template's rest pose as an example
+    version=2,  # what each version changed: docs/measurements/workbench.md
+)

@@ -214,7 +214,7 @@ def _run(ctx) -> dict:
     else:
         root_init = read_initial_poses(s.init, ids, skeleton)
     for sid in ids:  # every scan read once before any work: a corrupt one (NaN voxels) is said at once, not
-        study.scan(sid)  # after the scans before it (about 0.3 s a paper-size hand scan; the stage takes minutes)
+        study.scan(sid)  # after minutes of work on the scans before it (docs/measurements/workbench.md)
     if root_init is None:
         _require_bones_in_view(study, ids)
     scans = {sid: (lambda sid=sid: read_scan(sid)) for sid in ids}
@@ -230,7 +230,8 @@ def _run(ctx) -> dict:
     t0 = time.perf_counter()
     kwargs = _fit_arguments(s, root_init)
     per_scan = None
-    if ctx.runner is not None and ctx.runner.distributed:  # each scan's bones as a Dask task; Eq. 1 pools them here
+    # each scan's bones as a Dask task; Kurihara Eq. 1 pools them here
+    if ctx.runner is not None and ctx.runner.distributed:
         finished = []
 
         def done(k, r):
@@ -330,10 +331,7 @@ STAGE = Stage(
     per_scan=False,
     settings_type=PoseSettings,
     run=_run,
-    # 2: ICP (--method surface) with the prior; 3: its matched points only; 4: a flagged bone's pose
-    # follows its nearest placed ancestor; 5: no time in fits.json, report.json, report.txt (study.json's
-    # timings have them)
     needs=lambda s: ("bones",),
     inputs=_inputs,
-    version=5,
+    version=5,  # what each version changed: docs/measurements/workbench.md
 )

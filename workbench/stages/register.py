@@ -1,22 +1,16 @@
 """The ``register`` stage: the non-rigid registration of the template to each scan.
 
-``method="dense"`` (default): :func:`registration.dense.register_dense` —
-local-correlation diffeomorphic steps over the whole scan, every step
-one-to-one, the bones held where the pose stage put them.  Issue I's
-benchmark (README, "Registration") measured it against Rhee's Algorithm 1,
-elastix, SimpleITK and ANTs on phantoms with structured soft tissue.
+``method="dense"`` (default, see docs/measurements/workbench.md): :func:`registration.dense.register_dense` —
+local-correlation diffeomorphic steps over the whole scan, every step one-to-one, the bones held where the pose
+stage put them.
 
-``method="adaptive"`` (``--preset paper`` selects it; Rhee §4, Algorithm 1):
-from the init stage's start (polyrigid, VBD, or the identity), the worst-matching block
-of a hierarchy gets 8 clamped-plate-spline control points whose
-displacements an NLopt simplex optimises; each accepted step is composed into
-the running field (:func:`registration.adaptive.register_adaptive`).  After
-VBD the template's bone voxels are zero-displacement control points (Rhee
-§4.3).  The result is inverted onto the template grid
-(:func:`deformation.resample.invert_scan_to_template`; after VBD through its
-exact forward map — VBD's, or the polyrigid flow's ``forward.mha`` — so
-that only the registration's own correction is inverted numerically) for
-EVD (Rhee Eq. 7).
+``method="adaptive"`` (``--preset paper`` selects it; Rhee §4, Algorithm 1): from the init stage's start, the
+worst-matching block of a hierarchy gets 8 clamped-plate-spline control points whose displacements an NLopt
+simplex optimises; each accepted step is composed into the running field
+(:func:`registration.adaptive.register_adaptive`).  After VBD the template's bone voxels are zero-displacement
+control points (Rhee §4.3).  The result is inverted onto the template grid for EVD (Rhee Eq. 7) by
+:func:`deformation.resample.invert_scan_to_template`, through the start's exact forward map (VBD's, or the
+polyrigid flow's ``forward.mha``), so that only the registration's own correction is inverted numerically.
 
 Outputs (``registration/<scan>/``)::
 
@@ -27,9 +21,7 @@ Outputs (``registration/<scan>/``)::
     registered.nii.gz      the template resampled onto the scan grid through the field
     log.json               settings, per-level and per-step log, similarity before/after, folding
 
-The times (the registration's, the inversion's, each level's and, for Rhee's
-method, each step's) are in the scan's ``study.json`` entry, ``timings``: the
-files hold none, so the same inputs and settings give the same bytes.
+The times are in the scan's ``study.json`` entry (``timings``), not in its files: the same inputs, the same bytes.
 """
 
 from __future__ import annotations
@@ -42,6 +34,7 @@ import numpy as np
 
 from workbench import __version__
 from workbench.stages.mechanism import Field, Image, Json, Labels, Stage
+from workbench.stages.settings import setting_value
 
 __all__ = ["RegisterSettings", "STAGE", "PRESETS", "adaptive_registration"]
 
@@ -141,7 +134,6 @@ def _dense_pairs(pairs) -> tuple:
     import typing
 
     from registration.dense import DenseSettings
-    from workbench.stages.run import _typed
 
     hints = typing.get_type_hints(DenseSettings)
     out, seen = [], set()
@@ -159,7 +151,7 @@ def _dense_pairs(pairs) -> tuple:
         if name in seen:
             raise ValueError(f"--dense {name}=... is given twice: give each setting once")
         seen.add(name)
-        value = _typed(name, list(value) if isinstance(value, tuple) else value, hints[name], option="--dense")
+        value = setting_value(name, list(value) if isinstance(value, tuple) else value, hints[name], option="--dense")
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"--dense {name}: the setting must be a finite number, got {value}")
         if isinstance(value, list):  # shrink, iterations: one whole number per level
@@ -395,15 +387,7 @@ STAGE = Stage(
     per_scan=True,
     settings_type=RegisterSettings,
     run=_run,
-    # 6: dense LNCC window 5 -> 3 mm; 7: levels on the body's box, stop on its LNCC; 8: bones the pose
-    # stage flagged are not held; 9: dense windows and smoothing over the scan's tissue only; 10: no time in
-    # log.json (study.json's timings have them); 11: each dense level converges under a trust region; 12: the
-    # held bones' poses refined rigidly (dense refine_bones); 13: the template sampled once through φ₀ ∘ U, the
-    # bones' candidates kept one-to-one; 14: a bone's first move needs its own fit to rise significantly;
-    # 15: ... on images smoothed by a scan voxel, counting the independent samples the noise's correlation
-    # leaves; 16: the skin's term in the dense objective (skin_weight); 17: the membrane energy where the
-    # scan shows only noise (stiffness)
     needs=lambda s: ("init", "bones"),
     inputs=_inputs,
-    version=17,
+    version=17,  # what each version changed: docs/measurements/workbench.md
 )

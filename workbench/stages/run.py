@@ -21,7 +21,8 @@ import dataclasses
 from collections.abc import Callable
 
 from workbench.stages import ORDER, STAGES
-from workbench.stages.mechanism import Event, Outcome, _settings_from_json, execute, stage_status
+from workbench.stages.mechanism import Event, Outcome, execute, stage_status
+from workbench.stages.settings import setting_value, settings_from_json
 from workbench.study import Study, StudyError
 
 __all__ = [
@@ -50,7 +51,7 @@ def settings_for(study: Study, name: str, given: dict | None = None):
     recorded = study.recorded_settings(name)
     if recorded:
         try:
-            return stage.settings_type(**_settings_from_json(stage.settings_type, recorded))
+            return stage.settings_type(**settings_from_json(stage.settings_type, recorded))
         except (TypeError, ValueError):
             pass  # settings of an older version: the defaults
     return stage.settings_type()
@@ -153,7 +154,9 @@ def parse_set(items) -> dict:
         names = [f.name for f in dataclasses.fields(STAGES[stage].settings_type)]
         if field not in names:
             raise ValueError(f"--set {item!r}: the {stage} stage has no setting {field!r}; its settings are {names}")
-        out.setdefault(stage, {})[field] = _typed(f"{stage}.{field}", json_value(value), _declared_type(stage, field))
+        out.setdefault(stage, {})[field] = setting_value(
+            f"{stage}.{field}", json_value(value), _declared_type(stage, field)
+        )
     return out
 
 
@@ -171,50 +174,6 @@ def _declared_type(stage: str, field: str):
     import typing
 
     return typing.get_type_hints(STAGES[stage].settings_type)[field]
-
-
-_TYPE_WORDS = {
-    int: "a whole number (int)",
-    float: "a number (float)",
-    bool: "true or false (bool)",
-    str: "text (str)",
-    tuple: "a JSON list (tuple), e.g. [3, 5]",
-}
-
-
-def _typed(name: str, value, declared, option: str = "--set"):
-    """``value`` as the type ``declared`` (``X`` or ``X | None``), else one clear :class:`ValueError`."""
-    import json
-    import types
-    import typing
-
-    args = (
-        typing.get_args(declared)
-        if isinstance(declared, types.UnionType) or typing.get_origin(declared) is typing.Union
-        else (declared,)
-    )
-    optional = type(None) in args
-    kinds = [a for a in args if a is not type(None)]
-    if value is None and optional:
-        return None
-    for kind in kinds:
-        if kind is bool and isinstance(value, bool):
-            return value
-        if kind is int and isinstance(value, int) and not isinstance(value, bool):
-            return value
-        if kind is int and isinstance(value, float) and value.is_integer():
-            return int(value)
-        if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        if kind is str and isinstance(value, str):
-            return value
-        if kind is tuple and isinstance(value, list):
-            return value
-    want = " or ".join(_TYPE_WORDS.get(k, getattr(k, "__name__", str(k))) for k in kinds)
-    if optional:
-        want += " (null for the default)"
-    got = "null" if value is None else f"the text {value!r}" if isinstance(value, str) else json.dumps(value)
-    raise ValueError(f"{option} {name}: the setting is {want}, got {got}; nothing was changed.")
 
 
 def merged_settings(study: Study, overrides: dict) -> dict:

@@ -1,31 +1,24 @@
-"""The ``surface`` stage: Kurihara's consistent skin meshes (Kurihara & Miyata 2004, §3–4; DESIGN's surface track).
+"""The ``surface`` stage: Kurihara's consistent skin meshes (Kurihara & Miyata 2004, §3–4).
 
-* **S0**, the base mesh: the template's skin
-  (:func:`registration.segmentation.skin_surface`: air/tissue isosurface,
-  debris dropped, decimated to ``target_triangles``; the paper: ~800 k →
-  ~100 k triangles), with every vertex's skinning weights — the weights
-  stage's harmonic weights at the vertex (its tet mesh), or the nearest
+* **S0**, the base mesh: the template's skin (:func:`registration.segmentation.skin_surface`: air/tissue
+  isosurface, debris dropped, decimated to ``target_triangles``; the paper: ~800 k → ~100 k triangles), with every
+  vertex's skinning weights — the weights stage's harmonic weights at the vertex (its tet mesh), or the nearest
   voxel's weights when it kept no tet mesh;
 * the template's bones as surfaces (each label's boundary, for pictures);
-* per scan ``i`` (:func:`registration.surface_fit.consistent_mesh`): the
-  scan's skin ``T_i``; ``S^s_i``, S0 by SSD with the pose stage's estimated
-  transforms (Kurihara Eq. 2–3); ``S^r_i``, RBF feature-point deformation
-  (Eq. 4–5) with ``n_features`` vertices spread over S0 whose targets come
-  from the volume registration (``features="registration"``: where the
-  register stage's inverse field puts each vertex) or from confident
-  closest points on ``T_i`` (``"closest"``), or with landmarks picked on the
-  template's and the scan's skin (``"landmarks"``, a JSON/CSV file: the
-  paper picked 70–150 points by hand per pose); and ``S^f_i``, the fit to ``T_i`` — the smoothness-
-  regularised one (``fit="regularised"``, for touching or missing skin) or
-  the paper's nearest-point fit (``"nearest"``).  Every ``S^f_i`` has S0's
-  connectivity, so :class:`deformation.surface_model.SurfaceModel` can
-  interpolate them (``workbench surface-deform``).
+* per scan ``i`` (:func:`registration.surface_fit.consistent_mesh`): the scan's skin ``T_i``; ``S^s_i``, S0 by SSD
+  with the pose stage's estimated transforms (Kurihara Eq. 2–3); ``S^r_i``, RBF feature-point deformation
+  (Kurihara Eq. 4–5) with ``n_features`` vertices spread over S0 whose targets come from the volume registration
+  (``features="registration"``: where the register stage's inverse field puts each vertex) or from confident
+  closest points on ``T_i`` (``"closest"``), or with landmarks picked on the template's and the scan's skin
+  (``"landmarks"``, a JSON/CSV file: the paper picked 70–150 points by hand per pose); and ``S^f_i``, the fit to
+  ``T_i`` — the smoothness- regularised one (``fit="regularised"``, for touching or missing skin) or the paper's
+  nearest-point fit (``"nearest"``).  Every ``S^f_i`` has S0's connectivity, so
+  :class:`deformation.surface_model.SurfaceModel` can interpolate them (``workbench surface-deform``).
 
-Outputs (``surface/``): ``template_skin.vtp`` (S0 with ``weight_<bone>``
-point arrays), ``template_bones.vtp`` (a ``label`` point array), per scan
-``<scan>_skin.ply``, ``<scan>_ssd.ply``, ``<scan>_rbf.ply``,
-``<scan>_fitted.ply``, and ``surface.json`` (what each step did, fit
-distances).  All in world mm: they open in ParaView and 3D Slicer.
+Outputs (``surface/``): ``template_skin.vtp`` (S0 with ``weight_<bone>`` point arrays), ``template_bones.vtp`` (a
+``label`` point array), per scan ``<scan>_skin.ply``, ``<scan>_ssd.ply``, ``<scan>_rbf.ply``,
+``<scan>_fitted.ply``, and ``surface.json`` (what each step did, fit distances).  All in world mm: they open in
+ParaView and 3D Slicer.
 """
 
 from __future__ import annotations
@@ -266,5 +259,5 @@ STAGE = Stage(
     needs=_needs,
     inputs=_inputs,
     uses=lambda study, s: s.scans,
-    version=3,
-)  # 2: landmarks on S0's triangles; 3: a landmarks file in the study by its relative path
+    version=3,  # what each version changed: docs/measurements/workbench.md
+)

@@ -111,5 +111,5 @@ STAGE = Stage(
     needs=lambda s: ("register", "weights"),
     inputs=_inputs,
     applies=_applies,
-    version=2,
-)  # 2: error map, body mask and per-marker errors written beside the measures
+    version=2,  # what each version changed: docs/measurements/workbench.md
+)

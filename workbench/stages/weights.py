@@ -1,29 +1,22 @@
-"""The ``weights`` stage: skinning weights of every template voxel (Kurihara Eq. 3's w; DESIGN step 4).
+"""The ``weights`` stage: skinning weights of every template voxel (the ``w`` of Rhee Eq. 2 and Kurihara Eq. 2–3).
 
-``method="harmonic"``: the body (segmented from the template,
-:func:`registration.segmentation.segment_body`) is meshed with the Kuhn
-tetrahedra of a lattice of its voxel centres
-(:func:`deformation.tetmesh.lattice_tetmesh`: the mask's own resolution up to
-:data:`~deformation.tetmesh.MAX_LATTICE_VERTICES` vertices, or
-``edge_length_mm``) and each bone's weight solved as a harmonic function
-(:func:`deformation.harmonic.harmonic_voxel_weights`); ``"distance"``:
-inverse-distance weights (:func:`deformation.skinning.distance_voxel_weights`).
-The mesh is a function of the body mask and the step, so a rerun gives the
-same bits.
+``method="harmonic"``: the body (segmented from the template, :func:`registration.segmentation.segment_body`) is
+meshed with the Kuhn tetrahedra of a lattice of its voxel centres (:func:`deformation.tetmesh.lattice_tetmesh`:
+the mask's own resolution up to :data:`~deformation.tetmesh.MAX_LATTICE_VERTICES` vertices, or ``edge_length_mm``)
+and each bone's weight solved as a harmonic function (:func:`deformation.harmonic.harmonic_voxel_weights`);
+``"distance"``: inverse-distance weights (:func:`deformation.skinning.distance_voxel_weights`). The mesh is a
+function of the body mask and the step, so a rerun gives the same bits.
 
-A template of more than :data:`~workbench.stages.mechanism.WORKING_VOXELS`
-voxels (a CT the size of Kurihara's) gets its weights and body mask on every
-f-th voxel along each axis (``grid_factor``; the weights are smooth; a bone with no voxel left on that
-grid is one clear error naming ``--grid-factor``): deform,
-animate and the init stage's VBD solve their maps on that grid and pull the
-full template (or blend the field) up to full resolution
-(:class:`deformation.resample.CoarseBackwardMap`); register after a VBD
-start, model and validate, which need full-grid weights, say so.
+A template of more than :data:`~workbench.stages.stage.WORKING_VOXELS` voxels (a CT the size of Kurihara's) gets
+its weights and body mask on every f-th voxel along each axis (``grid_factor``; the weights are smooth; a bone
+with no voxel left on that grid is one clear error naming ``--grid-factor``): deform, animate and the init stage's
+VBD solve their maps on that grid and pull the full template (or blend the field) up to full resolution
+(:class:`deformation.resample.CoarseBackwardMap`); register after a VBD start, model and validate, which need
+full-grid weights, say so.
 
-Outputs (``skinning/``): ``body_mask.nii.gz``, ``weights.json`` with
-``weights_index.mha`` and ``weights_value.mha`` (:mod:`workbench.io.weights`),
-and, for harmonic weights, ``tetmesh.vtu`` (with one point array per bone,
-``weight_<bone>``: open it in ParaView).
+Outputs (``skinning/``): ``body_mask.nii.gz``, ``weights.json`` with ``weights_index.mha`` and
+``weights_value.mha`` (:mod:`workbench.io.weights`), and, for harmonic weights, ``tetmesh.vtu`` (with one point
+array per bone, ``weight_<bone>``: open it in ParaView).
 """
 
 from __future__ import annotations
@@ -112,5 +105,5 @@ STAGE = Stage(
     run=_run,
     needs=lambda s: ("bones",),
     inputs=_inputs,
-    version=3,
-)  # 3: the lattice (Kuhn) mesh replaces fTetWild's
+    version=3,  # what each version changed: docs/measurements/workbench.md
+)

@@ -9,20 +9,16 @@ A keyframe file (``avw-keyframes``, JSON) lists joint angles at times::
      "keyframes": [{"time": 0.0, "angles": {"knee": [0, 0, 0]}},
                    {"time": 1.25, "angles": {"knee": [60, 0, 0]}}, ...]}
 
-Joints a keyframe leaves out stay at 0 (the template's pose), as in
-``workbench deform --pose``.  Between two keyframes every angle moves with
-the smoothstep ``s = u²(3 − 2u)`` of the segment's time fraction ``u``
-(``smooth``: the motion starts and stops gently at each keyframe) or
-linearly.  ``camera.orbit`` turns the camera by that many degrees of azimuth
-over the animation.
+Joints a keyframe leaves out stay at 0 (the template's pose), as in ``workbench deform --pose``.  Between two
+keyframes every angle moves with the smoothstep ``s = u²(3 − 2u)`` of the segment's time fraction ``u``
+(``smooth``: the motion starts and stops gently at each keyframe) or linearly.  ``camera.orbit`` turns the camera
+by that many degrees of azimuth over the animation.
 
-Each frame: the pose by forward kinematics, the template deformed to it (EVD,
-Rhee Eq. 6–7, when the study has a model; VBD, Eq. 2, otherwise), rendered by
-one reused :class:`workbench.viz.render.VolumeRenderer` whose camera is fitted
-once to the anatomy over all keyframe poses, and encoded: MP4 (H.264 through
-the ffmpeg binary imageio-ffmpeg ships), GIF, or numbered PNGs.
-Ready keyframes for the knee (bend and straighten) and the hand (open, fist,
-point with the index finger) are in ``workbench/viz/keyframes/``.
+Each frame: the pose by forward kinematics, the template deformed to it (EVD, Rhee Eq. 6–7, when the study has a
+model; VBD, Rhee Eq. 2, otherwise), rendered by one reused :class:`workbench.viz.render.VolumeRenderer` whose
+camera is fitted once to the anatomy over all keyframe poses, and encoded: MP4 (H.264 through the ffmpeg binary
+imageio-ffmpeg ships), GIF, or numbered PNGs. Ready keyframes for the knee (bend and straighten) and the hand
+(open, fist, point with the index finger) are in ``workbench/viz/keyframes/``.
 """
 
 from __future__ import annotations
@@ -36,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deformation.geometry import covering_grid
 from deformation.skeleton import SkeletonError
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.jsonio import read_json
@@ -45,7 +42,6 @@ __all__ = [
     "read_keyframes",
     "builtin_keyframes",
     "camera_from",
-    "covering_grid",
     "animate_study",
     "FORMATS",
 ]
@@ -171,7 +167,7 @@ def _is_number(v) -> bool:
 
 
 def camera_from(doc: dict, **override):
-    """A :class:`workbench.viz.render.Camera` from a keyframe file's ``camera`` block (``override`` wins)."""
+    """A :class:`workbench.viz.view.Camera` from a keyframe file's ``camera`` block (``override`` wins)."""
     from workbench.viz.render import Camera
 
     d = {"view": "auto", "azimuth": 0.0, "elevation": 0.0, "zoom": 1.0}
@@ -410,27 +406,6 @@ def _camera_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, marg
     )
 
 
-def covering_grid(geometry, bounds, *, max_growth: float = 2.0):
-    """``geometry`` extended (same spacing and direction, whole voxels) to cover the world box ``bounds``.
-
-    The posed anatomy can leave the template's grid (curling fingers pass
-    below a flat hand's slab); frames are resampled onto this grid so that
-    nothing is cut off.  Each side grows by at most ``max_growth`` − 1 times
-    the grid's extent along it.
-    """
-    from deformation.geometry import GridGeometry
-
-    b = np.asarray(bounds, float).reshape(3, 2)
-    corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]])
-    ijk = np.asarray(geometry.world_to_index(corners))
-    n = np.asarray(geometry.size, float)
-    lo = np.maximum(np.minimum(np.floor(ijk.min(axis=0)), 0.0), -(max_growth - 1.0) * n).astype(int)
-    hi = np.minimum(np.maximum(np.ceil(ijk.max(axis=0)), n - 1), (max_growth * n) - 1).astype(int)
-    size = tuple(int(v) for v in hi - lo + 1)
-    origin = tuple(float(v) for v in geometry.index_to_world(lo.astype(float)[None])[0])
-    return GridGeometry(size, geometry.spacing, origin, geometry.direction)
-
-
 def animate_study(
     folder,
     out,
@@ -461,7 +436,7 @@ def animate_study(
     ``keyframes``: a file, a :class:`Keyframes`, or ``None`` for the ready
     ones of the study's skeleton.  ``fps`` (default: the file's, else 24) and
     ``n_frames`` (default: duration × fps + 1) set the timing; ``camera``
-    (:class:`workbench.viz.render.Camera`) and ``orbit`` (degrees of azimuth over
+    (:class:`workbench.viz.view.Camera`) and ``orbit`` (degrees of azimuth over
     the animation) default to the file's ``camera``.  Returns a summary with
     the frame count and the time spent deforming, rendering and encoding.
     """
@@ -533,7 +508,8 @@ def animate_study(
             mask = content_mask(template.data, thr)
             wf = poser.weights_factor  # the forward map lies on the weights' grid
             bounds = _camera_bounds(poser, sk, kf, mask[::wf, ::wf, ::wf], 2.0 * max(g.spacing))
-            g = covering_grid(g, bounds)  # frames on a grid the whole motion fits in
+            # frames on a grid the whole motion fits in: curling fingers pass below a flat hand's slab
+            g = covering_grid(g, bounds)
             renderer = VolumeRenderer(
                 g,
                 size=size,

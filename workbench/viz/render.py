@@ -1,52 +1,54 @@
 """Off-screen volume rendering with VTK: stills, clipped views, overlays (Rhee Figures 1, 8–12).
 
-Everything renders without a display.  :func:`opengl_backend` finds an
-off-screen OpenGL context — EGL first, then OSMesa (``AVW_OPENGL=egl`` or
-``osmesa`` forces one) — and says which, with the OpenGL renderer string.  On
-a software renderer (Mesa's llvmpipe, as on machines without a GPU) the CPU
-ray caster ``vtkFixedPointVolumeRayCastMapper`` is used: it is faster there
-than the GPU ray caster, which then runs on the CPU through Mesa
-(docs/measurements/library-choices.md, ``benchmarks/bench_rendering.py``); with a
-hardware renderer ``vtkGPUVolumeRayCastMapper`` is used.
+Everything renders without a display, in the off-screen OpenGL context of
+:mod:`workbench.viz.backend`.  Geometry is honest: the volume is placed in
+world millimetres (ITK physical space) by its origin, spacing *and*
+direction — the direction goes into the prop's matrix, so any mapper honours
+it — and cameras, clipping planes and bounding boxes (:mod:`workbench.viz.view`)
+are all in world mm; colours and opacities come from :mod:`workbench.viz.transfer`.
 
-Geometry is honest: the volume is placed in world millimetres (ITK physical
-space) by its origin, spacing *and* direction — the direction goes into the
-prop's matrix, so any mapper honours it — and cameras, clipping planes and
-bounding boxes are all in world mm.
-
-* :class:`TransferFunction` — colour and opacity as functions of intensity,
-  absolute or relative to the volume's robust range; presets in
-  :data:`PRESETS` (``mri``, ``ct``), or the user's own JSON file.
-* :class:`Camera` — a view (``auto``, ``iso``, or a world axis such as
-  ``+z``), azimuth, elevation and zoom.
-* :class:`ClipPlane` — ``[+|-]x|y|z:FRACTION``: a plane across a world axis
-  at that fraction of the anatomy's extent; the side facing the camera is cut
-  away (``+``/``-`` keep the larger / smaller coordinates instead), showing
-  the interior (Rhee Fig. 10).
 * :class:`VolumeRenderer` — one render window and pipeline, reused from
-  frame to frame (animations); :func:`render_volume`, :func:`render_overlay`
-  (two volumes in contrasting colours: Rhee's green/cyan template against the
-  magenta target, Figs. 1, 8, 9, 11) and :func:`render_difference` are the
-  one-call forms.
+  frame to frame (animations);
+* :func:`render_volume`, :func:`render_overlay` (two volumes in contrasting
+  colours: Rhee's green/cyan template against the magenta target, Rhee
+  Figs. 1, 8, 9, 11) and :func:`render_difference` — the one-call forms.
 
 Images are ``(height, width, 3)`` uint8 arrays; :func:`write_png` writes one
 atomically.  Rendering is deterministic: automatic sample-distance
-adjustment (which depends on the time a frame took) is switched off.
+adjustment (which depends on the time a frame took) is switched off.  The
+names of the three modules above are re-exported here.
 """
 
 from __future__ import annotations
 
-import functools
-import math
-import os
-import re
-from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from deformation.geometry import GridGeometry, Volume
-from workbench.errors import InputFileError, WorkbenchError
+from workbench.viz.backend import Backend, RenderError, offscreen_available, opengl_backend
+from workbench.viz.transfer import (
+    CONTRAST_COLOURS,
+    LEVEL_COLOURS,
+    MARKER_COLOUR,
+    PRESETS,
+    SKIN_COLOUR,
+    TransferFunction,
+    first_visible,
+    label_colour,
+    robust_range,
+    transfer_function,
+)
+from workbench.viz.view import (
+    Camera,
+    ClipPlane,
+    content_bounds,
+    content_mask,
+    grid_bounds,
+    parse_size,
+    points_bounds,
+    union_bounds,
+)
 
 __all__ = [
     "Backend",
@@ -76,444 +78,7 @@ __all__ = [
     "MARKER_COLOUR",
 ]
 
-#: template and target colours of the papers' overlays (cyan and magenta; Rhee Figs. 1, 8, 9, 11)
-CONTRAST_COLOURS = ((0.0, 0.9, 1.0), (1.0, 0.1, 0.9))
-#: colours of registration control points by block level (Rhee Fig. 9 draws level 3), then cycling
-LEVEL_COLOURS = ((0.3, 1.0, 0.3), (1.0, 0.9, 0.2), (1.0, 0.5, 0.1), (1.0, 0.2, 0.2), (0.7, 0.4, 1.0))
-MARKER_COLOUR = (1.0, 1.0, 1.0)
-SKIN_COLOUR = (0.93, 0.76, 0.65)  # a mesh's default colour: a light skin tone
-_SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software rasterizer", "lavapipe")
 
-
-class RenderError(WorkbenchError, RuntimeError):
-    """No off-screen OpenGL, or a rendering request that cannot be met."""
-
-
-# -- the OpenGL context --------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Backend:
-    name: str  #: "egl" or "osmesa"
-    window_class: str  #: the VTK render-window class
-    renderer: str  #: the OpenGL renderer string (e.g. "llvmpipe (LLVM 15.0.6, 256 bits)")
-    software: bool  #: a software rasteriser (no GPU)
-
-    @property
-    def mapper(self) -> str:
-        """The volume mapper ``auto`` picks: ``fixed`` (CPU ray cast) on software OpenGL, else ``gpu``."""
-        return "fixed" if self.software else "gpu"
-
-    def describe(self) -> str:
-        kind = "software" if self.software else "hardware"
-        return f"{self.name.upper()} ({self.window_class}), {kind} OpenGL: {self.renderer}"
-
-
-_WINDOWS = {"egl": "vtkEGLRenderWindow", "osmesa": "vtkOSOpenGLRenderWindow"}
-
-
-def _probe(name: str) -> Backend | None:
-    import vtkmodules.vtkRenderingOpenGL2 as gl
-    from vtkmodules.vtkCommonCore import vtkObject
-    from vtkmodules.vtkRenderingCore import vtkRenderer
-
-    cls = getattr(gl, _WINDOWS[name], None)
-    if cls is None:
-        return None
-    warn = vtkObject.GetGlobalWarningDisplay()
-    vtkObject.GlobalWarningDisplayOff()  # a failed probe prints VTK errors; we report our own
-    win = None
-    try:
-        win = cls()
-        win.SetOffScreenRendering(1)
-        win.SetSize(8, 8)
-        win.AddRenderer(vtkRenderer())
-        win.Render()
-        if not win.SupportsOpenGL():
-            return None
-        caps = win.ReportCapabilities() or ""
-        m = re.search(r"OpenGL renderer string:\s*(.+)", caps)
-        renderer = m.group(1).strip() if m else "unknown"
-    except Exception:  # noqa: BLE001 - any failure means this backend is unusable here
-        return None
-    finally:
-        if win is not None:
-            try:
-                win.Finalize()
-            except Exception:  # noqa: BLE001 - releasing a context that never worked
-                pass
-        vtkObject.SetGlobalWarningDisplay(warn)
-    software = any(s in renderer.lower() for s in _SOFTWARE_GL)
-    return Backend(name, _WINDOWS[name], renderer, software)
-
-
-@functools.cache
-def _backend_cached(forced: str) -> Backend | None:
-    for name in [forced] if forced else ["egl", "osmesa"]:
-        b = _probe(name)
-        if b is not None:
-            return b
-    return None
-
-
-def opengl_backend() -> Backend:
-    """The off-screen OpenGL context this machine offers: EGL, else OSMesa (probed once per process).
-
-    ``AVW_OPENGL=egl`` or ``AVW_OPENGL=osmesa`` forces one.  Raises
-    :class:`RenderError` naming the Debian packages to install when neither works.
-    """
-    forced = os.environ.get("AVW_OPENGL", "").strip().lower()
-    if forced and forced not in _WINDOWS:
-        raise RenderError(f"AVW_OPENGL={forced!r}: expected 'egl' or 'osmesa' (or unset it to probe both)")
-    b = _backend_cached(forced)
-    if b is None:
-        tried = forced or "EGL and OSMesa"
-        raise RenderError(
-            f"no off-screen OpenGL context ({tried} tried): install the Debian packages libegl1 "
-            "libegl-mesa0 libgl1-mesa-dri (EGL) or libosmesa6 (OSMesa) — `make venv` does it "
-            "as root."
-        )
-    return b
-
-
-def offscreen_available() -> bool:
-    """Whether :func:`opengl_backend` finds a context (tests skip rendering when not)."""
-    try:
-        opengl_backend()
-        return True
-    except RenderError:
-        return False
-
-
-# -- transfer functions --------------------------------------------------------------------------
-@dataclass(frozen=True)
-class TransferFunction:
-    """Colour and opacity of intensity for the volume ray caster.
-
-    ``color``: ``((value, r, g, b), ...)`` with r, g, b in [0, 1];
-    ``opacity``: ``((value, alpha), ...)`` — alpha per unit length
-    ``unit_mm`` (VTK's scalar-opacity unit distance), so the look does not
-    depend on the voxel size.  With ``relative=True`` the values are fractions
-    of the volume's robust range (its 0.5 and 99.5 percentiles map to 0 and
-    1), so one preset fits any scanner's units; otherwise they are intensities
-    (e.g. Hounsfield units).
-    """
-
-    name: str
-    color: tuple
-    opacity: tuple
-    relative: bool = True
-    unit_mm: float = 4.0
-    shade: bool = True
-
-    def __post_init__(self):
-        for what, pts, n in (("color", self.color, 4), ("opacity", self.opacity, 2)):
-            if len(pts) < 2 or any(len(p) != n for p in pts):
-                raise ValueError(
-                    f"transfer function {self.name!r}: {what} needs ≥ 2 points of {n} numbers "
-                    f"(value{', r, g, b' if n == 4 else ', alpha'}), got {pts!r}"
-                )
-            v = [float(p[0]) for p in pts]
-            if any(b <= a for a, b in zip(v, v[1:])):
-                raise ValueError(f"transfer function {self.name!r}: {what} values must increase, got {v}")
-        if not self.unit_mm > 0:
-            raise ValueError(f"transfer function {self.name!r}: unit_mm must be > 0, got {self.unit_mm}")
-
-    def resolved(self, lo: float, hi: float) -> TransferFunction:
-        """Absolute values for a volume whose robust range is ``[lo, hi]``."""
-        if not self.relative:
-            return self
-        span = (hi - lo) or 1.0
-
-        def m(v):
-            return lo + float(v) * span
-
-        return replace(
-            self,
-            color=tuple((m(p[0]), *p[1:]) for p in self.color),
-            opacity=tuple((m(p[0]), p[1]) for p in self.opacity),
-            relative=False,
-        )
-
-    def tinted(self, rgb) -> TransferFunction:
-        """The same opacity with a single colour (the overlays' contrasting colours)."""
-        r, g, b = (float(c) for c in rgb)
-        return replace(
-            self, name=f"{self.name}-tint", color=((self.color[0][0], r, g, b), (self.color[-1][0], r, g, b))
-        )
-
-    def to_dict(self) -> dict:
-        return {
-            "format": "avw-transfer-function",
-            "name": self.name,
-            "relative": self.relative,
-            "unit_mm": self.unit_mm,
-            "shade": self.shade,
-            "color": [list(map(float, p)) for p in self.color],
-            "opacity": [list(map(float, p)) for p in self.opacity],
-        }
-
-    @classmethod
-    def from_json(cls, path) -> TransferFunction:
-        """Read ``{"color": [[v, r, g, b], ...], "opacity": [[v, a], ...], "relative": bool, ...}``."""
-        from workbench.io.jsonio import read_json
-
-        path = Path(path)
-        d = read_json(path)  # missing file, syntax errors: errors naming the file and the line
-        if "color" not in d or "opacity" not in d:
-            raise InputFileError(
-                f"{path}: a transfer function needs 'color' [[value, r, g, b], ...] and "
-                "'opacity' [[value, alpha], ...] (and optionally 'relative', 'unit_mm', "
-                "'shade'); see `workbench render --help`.",
-                path,
-            )
-        try:
-            return cls(
-                name=str(d.get("name", path.stem)),
-                color=tuple(tuple(map(float, p)) for p in d["color"]),
-                opacity=tuple(tuple(map(float, p)) for p in d["opacity"]),
-                relative=bool(d.get("relative", False)),
-                unit_mm=float(d.get("unit_mm", 4.0)),
-                shade=bool(d.get("shade", True)),
-            )
-        except (TypeError, ValueError) as e:
-            raise InputFileError(f"{path}: {e}", path) from e
-
-
-#: MRI-like (T1: fat and marrow bright, cortical bone dark, air black): relative to the robust range, the
-#: soft tissue a faint translucent shell and the brightest tissue (fat, marrow) warm and denser.
-#: CT-like, in Hounsfield units: skin and muscle faint, bone (≥ 200 HU) ivory and nearly opaque.
-PRESETS = {
-    "mri": TransferFunction(
-        "mri",
-        color=(
-            (0.0, 0.0, 0.0, 0.0),
-            (0.2, 0.55, 0.35, 0.3),
-            (0.45, 0.85, 0.55, 0.45),
-            (0.75, 1.0, 0.85, 0.65),
-            (1.0, 1.0, 0.97, 0.9),
-        ),
-        opacity=((0.0, 0.0), (0.12, 0.0), (0.3, 0.04), (0.6, 0.12), (1.0, 0.4)),
-    ),
-    "ct": TransferFunction(
-        "ct",
-        relative=False,
-        color=(
-            (-1000.0, 0.0, 0.0, 0.0),
-            (-150.0, 0.55, 0.3, 0.2),
-            (40.0, 0.85, 0.45, 0.4),
-            (200.0, 0.95, 0.85, 0.7),
-            (1200.0, 1.0, 1.0, 0.95),
-        ),
-        opacity=(
-            (-1000.0, 0.0),
-            (-300.0, 0.0),
-            (-100.0, 0.01),
-            (60.0, 0.03),
-            (180.0, 0.05),
-            (300.0, 0.6),
-            (1500.0, 0.9),
-        ),
-    ),
-}
-
-
-def robust_range(data) -> tuple[float, float]:
-    """The 0.5–99.5 % intensity range of ``data`` (finite values; ``(0, 1)`` when there are none)."""
-    a = np.asarray(data, np.float64)
-    a = a[np.isfinite(a)]
-    if a.size == 0:
-        return 0.0, 1.0
-    step = max(1, a.size // 200_000)  # percentiles of a regular subsample: fast and deterministic
-    lo, hi = np.percentile(a.reshape(-1)[::step], [0.5, 99.5])
-    return float(lo), float(hi if hi > lo else lo + 1.0)
-
-
-def transfer_function(tf) -> TransferFunction:
-    """A :class:`TransferFunction` from a preset name (``mri``, ``ct``), a JSON file, or one already made."""
-    if isinstance(tf, TransferFunction):
-        return tf
-    if isinstance(tf, (str, os.PathLike)) and str(tf) in PRESETS:
-        return PRESETS[str(tf)]
-    p = Path(tf)
-    if p.suffix.lower() == ".json":
-        return TransferFunction.from_json(p)
-    raise ValueError(f"preset {tf!r}: expected one of {sorted(PRESETS)} or a transfer-function .json file")
-
-
-# -- camera and clipping -------------------------------------------------------------------------
-_AXES = {"x": 0, "y": 1, "z": 2}
-
-
-@dataclass(frozen=True)
-class Camera:
-    """Where the camera looks from, in world mm (ITK physical space, LPS for patient scans).
-
-    ``view``: ``auto`` (from the + side of the volume's thinnest world axis,
-    the longest axis up, then turned by 30° azimuth and 15° elevation — the
-    knee phantom's flexion plane; the hand's back, so its ready keyframes
-    look from ``+x``, the little-finger side), ``iso`` (from
-    ``(+1, +1, +1)``), or a world axis ``+x -x +y -y +z -z`` (from that side,
-    the longest remaining axis up); ``azimuth``/``elevation`` (degrees) turn
-    the camera about the view-up axis and the horizontal axis (added to the
-    view's own); ``zoom`` > 1 enlarges.
-    """
-
-    view: str = "auto"
-    azimuth: float = 0.0
-    elevation: float = 0.0
-    zoom: float = 1.0
-
-    VIEWS = ("auto", "iso", "+x", "-x", "+y", "-y", "+z", "-z")
-
-    def __post_init__(self):
-        if self.view not in self.VIEWS:
-            raise ValueError(f"camera view {self.view!r}: expected one of {', '.join(self.VIEWS)}")
-        if not self.zoom > 0:
-            raise ValueError(f"camera zoom must be > 0, got {self.zoom}")
-
-    def place(self, cam, bounds, aspect: float = 4 / 3, distance: float | None = None) -> float:
-        """Point a ``vtkCamera`` at the world box ``bounds`` (xmin, xmax, ymin, ymax, zmin, zmax).
-
-        The distance is the smallest at which the box's eight corners fit the
-        30° view angle (and ``aspect`` = width / height), 5 % margin, then
-        ``zoom``; or ``distance`` (mm, before the zoom) when given — an orbit
-        keeps its first frame's, so the picture does not breathe.  Returns the
-        distance used.
-        """
-        b = np.asarray(bounds, float).reshape(3, 2)
-        centre, ext = b.mean(axis=1), b[:, 1] - b[:, 0]
-        az, el = self.azimuth, self.elevation
-        if self.view == "iso":
-            d, up = np.array([1.0, 1.0, 1.0]), np.array([0.0, 0.0, 1.0])
-        else:
-            if self.view == "auto":
-                a, sign = int(np.argmin(ext)), 1.0
-                az, el = az + 30.0, el + 15.0
-            else:
-                a, sign = _AXES[self.view[1]], (1.0 if self.view[0] == "+" else -1.0)
-            others = [k for k in range(3) if k != a]
-            u = max(others, key=lambda k: (ext[k], -k))
-            d, up = np.zeros(3), np.zeros(3)
-            d[a], up[u] = sign, 1.0
-        d = d / np.linalg.norm(d)
-        radius = 0.5 * float(np.linalg.norm(ext)) or 1.0
-        cam.SetFocalPoint(*centre)
-        cam.SetPosition(*(centre + 4.0 * radius * d))
-        cam.SetViewUp(*up)
-        cam.SetViewAngle(30.0)
-        cam.Azimuth(az)
-        cam.Elevation(el)
-        cam.OrthogonalizeViewUp()
-        # fit: every corner c (relative to the centre) must satisfy |c·up| ≤ t (D − c·back), |c·right| ≤ t·aspect
-        # (D − c·back)
-        back = np.asarray(cam.GetPosition()) - centre
-        back /= np.linalg.norm(back)
-        vup = np.asarray(cam.GetViewUp())
-        right = np.cross(vup, back)
-        t = math.tan(math.radians(15.0))
-        corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]]) - centre
-        depth = corners @ back
-        if distance is None:
-            dist = (
-                max(
-                    float(np.max(np.abs(corners @ vup) / t + depth)),
-                    float(np.max(np.abs(corners @ right) / (t * aspect) + depth)),
-                    1e-3,
-                )
-                * 1.05
-            )
-        else:
-            dist = float(distance)
-        cam.SetPosition(*(centre + dist * back))
-        cam.Zoom(self.zoom)
-        cam.SetClippingRange(max(dist - 2 * radius, 1e-3 * dist), dist + 2 * radius)
-        return dist
-
-
-@dataclass(frozen=True)
-class ClipPlane:
-    """A plane across world ``axis`` at ``fraction`` of the anatomy's extent along it; one side is cut away.
-
-    ``keep="auto"`` (``z:0.5``) cuts away the side facing the camera, so the
-    cut face — the interior — is what one sees (Rhee Fig. 10);
-    ``keep="above"`` (``+z:0.5``) keeps the larger coordinates, ``"below"``
-    (``-z:0.5``) the smaller.  Parsed by :meth:`parse`.
-    """
-
-    axis: str
-    fraction: float
-    keep: str = "auto"
-
-    def __post_init__(self):
-        if self.axis not in _AXES:
-            raise ValueError(f"clip axis {self.axis!r}: expected x, y or z")
-        if not 0.0 <= self.fraction <= 1.0:
-            raise ValueError(f"clip fraction must be within [0, 1], got {self.fraction}")
-        if self.keep not in ("auto", "above", "below"):
-            raise ValueError(f"clip keep must be 'auto', 'above' or 'below', got {self.keep!r}")
-
-    @classmethod
-    def parse(cls, text: str) -> ClipPlane:
-        m = re.fullmatch(r"\s*([+-]?)([xyz])\s*:\s*([0-9.eE+-]+)\s*", str(text))
-        if not m:
-            raise ValueError(
-                f"--clip {text!r}: expected [+|-]AXIS:FRACTION, e.g. z:0.5 (cut at the middle, "
-                "the half facing the camera removed), +x:0.3 (keep x above 30 % of the extent) "
-                "or -x:0.3 (keep it below)"
-            )
-        keep = {"": "auto", "+": "above", "-": "below"}[m.group(1)]
-        return cls(m.group(2), float(m.group(3)), keep)
-
-    def plane(self, bounds, camera_position=None):
-        """``(origin, normal)`` in world mm; VTK keeps the side the normal points to."""
-        b = np.asarray(bounds, float).reshape(3, 2)
-        a = _AXES[self.axis]
-        origin = b.mean(axis=1)
-        origin[a] = b[a, 0] + self.fraction * (b[a, 1] - b[a, 0])
-        normal = np.zeros(3)
-        if self.keep == "auto":
-            toward = 0.0 if camera_position is None else float(np.asarray(camera_position)[a] - origin[a])
-            normal[a] = -1.0 if toward > 0 else 1.0  # keep the far side
-        else:
-            normal[a] = 1.0 if self.keep == "above" else -1.0
-        return origin, normal
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """``"640x480"`` → ``(640, 480)``; both even (H.264's 4:2:0 chroma needs it) and 16–8192 pixels."""
-    m = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", str(text))
-    if not m:
-        raise ValueError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 640x480")
-    w, h = int(m.group(1)), int(m.group(2))
-    if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise ValueError(f"--size {text!r}: width and height must be between 16 and 8192 pixels")
-    if w % 2 or h % 2:
-        raise ValueError(f"--size {text!r}: video encoders need an even width and height; use {w + w % 2}x{h + h % 2}")
-    return w, h
-
-
-# -- labels -----------------------------------------------------------------------------------------
-_PALETTE = np.array(
-    [
-        [0.89, 0.85, 0.72],
-        [0.35, 0.65, 0.95],
-        [0.95, 0.55, 0.25],
-        [0.45, 0.85, 0.45],
-        [0.9, 0.35, 0.45],
-        [0.7, 0.5, 0.9],
-        [0.95, 0.85, 0.3],
-        [0.35, 0.85, 0.85],
-        [0.85, 0.6, 0.75],
-        [0.6, 0.75, 0.35],
-    ]
-)
-
-
-def label_colour(label: int) -> tuple:
-    """A fixed colour per label id (a 10-colour cycle; label 0, the background, is never drawn)."""
-    return tuple(float(c) for c in _PALETTE[(int(label) - 1) % len(_PALETTE)])
-
-
-# -- the renderer ------------------------------------------------------------------------------------
 def _prop_matrix(g: GridGeometry):
     """The vtkMatrix4x4 taking the image's (spacing-scaled, origin 0) coordinates to world mm."""
     m = np.eye(4)
@@ -532,60 +97,6 @@ def _vtk_matrix(m):
         for j in range(4):
             vm.SetElement(i, j, float(m[i, j]))
     return vm
-
-
-def _world_bounds(g: GridGeometry) -> tuple:
-    """Axis-aligned world box of the voxel centres (any direction)."""
-    n = np.asarray(g.size, float) - 1.0
-    corners = np.array([[i, j, k] for i in (0, n[0]) for j in (0, n[1]) for k in (0, n[2])])
-    w = np.asarray(g.index_to_world(corners))
-    lo, hi = w.min(axis=0), w.max(axis=0)
-    return tuple(float(v) for pair in zip(lo, hi) for v in pair)
-
-
-def first_visible(tf: TransferFunction) -> float:
-    """The intensity from which ``tf`` (absolute) is not fully transparent."""
-    pts = tf.opacity
-    for (v0, a0), (_, a1) in zip(pts, pts[1:]):
-        if a0 > 0 or a1 > 0:  # opacity rises from v0 on (piecewise linear)
-            return float(v0)
-    return float(pts[-1][0])
-
-
-def content_mask(data, threshold: float) -> np.ndarray:
-    """Voxels whose 3×3×3 mean is above ``threshold``: the tissue, without the isolated noisy voxels of the air."""
-    from scipy import ndimage as ndi
-
-    return ndi.uniform_filter(np.asarray(data, np.float32), size=3, mode="nearest") > threshold
-
-
-def points_bounds(points, margin_mm: float) -> tuple:
-    """Robust world box of points ``(n, 3)`` mm: the 0.1 and 99.9 percentiles per axis, widened by ``margin_mm``."""
-    p = np.asarray(points, float).reshape(-1, 3)
-    p = p[:: max(1, p.shape[0] // 200_000)]
-    lo, hi = np.percentile(p, [0.1, 99.9], axis=0)
-    return tuple(float(v) for pair in zip(lo - margin_mm, hi + margin_mm) for v in pair)
-
-
-def union_bounds(boxes) -> tuple:
-    """The world box holding every ``(xmin, xmax, ymin, ymax, zmin, zmax)`` box of ``boxes``."""
-    b = np.asarray(boxes, float).reshape(-1, 6)
-    return tuple(float(b[:, k].min() if k % 2 == 0 else b[:, k].max()) for k in range(6))
-
-
-def content_bounds(data, geometry: GridGeometry, threshold: float, *, margin_mm: float | None = None) -> tuple:
-    """World box (xmin, xmax, ymin, ymax, zmin, zmax) of the tissue above ``threshold``.
-
-    :func:`content_mask`, then :func:`points_bounds` of the voxel centres'
-    world positions, widened by ``margin_mm`` (default: two of the largest
-    voxel spacing).  The grid's own box when no voxel is above.
-    """
-    mask = content_mask(data, threshold)
-    if not mask.any():
-        return _world_bounds(geometry)
-    kji = np.argwhere(mask)  # (z, y, x) index rows
-    w = geometry.index_to_world(kji[:, ::-1].astype(float))
-    return points_bounds(w, 2.0 * max(geometry.spacing) if margin_mm is None else float(margin_mm))
 
 
 class VolumeRenderer:
@@ -711,7 +222,7 @@ class VolumeRenderer:
     @staticmethod
     def grid_bounds(geometry: GridGeometry) -> tuple:
         """The world box of a grid's voxel centres (any direction): a fixed ``bounds`` for the camera."""
-        return _world_bounds(geometry)
+        return grid_bounds(geometry)
 
     # -- inputs --
     def _set_scalars(self, arrays) -> None:
