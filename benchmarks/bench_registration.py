@@ -637,8 +637,7 @@ def run_external(args):
 
     from registration.segmentation import segment_body
     from workbench.stages import ORDER
-    from workbench.stages.mechanism import recorded_times
-    from workbench.study import read_study
+    from workbench.study import read_study, recorded_times
 
     src = Path(args.external).resolve()
     if not src.is_dir():

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from workbench.stages.mechanism import Image, Json, Stage, StageNotReady, execute, recorded_times, stage_status
-from workbench.study import read_study
+from workbench.stages.mechanism import Image, Json, Stage, StageNotReady, execute, stage_status
+from workbench.study import read_study, recorded_times
 
 
 @pytest.fixture()

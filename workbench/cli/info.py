@@ -23,10 +23,11 @@ def add_parser(subparsers) -> None:
 
 
 def handle(args) -> int:
+    from workbench.stages import ORDER
     from workbench.study import read_study, summarize
 
     study = read_study(args.study)
-    print(summarize(study))
+    print(summarize(study, ORDER))
     if not args.check:
         return 0
     from workbench.study import check_study_images, study_warnings

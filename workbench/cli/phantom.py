@@ -97,6 +97,7 @@ def add_parser(subparsers) -> None:
 def handle(args) -> int:
     from validation.phantoms import Phantom, PhantomSpec
     from workbench.errors import InputFileError, OutputExistsError
+    from workbench.stages import ORDER
     from workbench.study import summarize, write_phantom_study
 
     if args.out.exists() and not args.force:
@@ -144,7 +145,7 @@ def handle(args) -> int:
             bar.close()
     if not args.quiet:
         print(f"wrote {args.out} in {time.perf_counter() - t0:.1f} s")
-        print(summarize(study))
+        print(summarize(study, ORDER))
     return 0
 
 

@@ -27,6 +27,7 @@ from workbench.errors import InputFileError
 from workbench.io.inputs import read_seeds
 from workbench.io.volumes import read_labels
 from workbench.stages.mechanism import Json, Labels, Stage
+from workbench.study.checks import unknown_labels, unknown_labels_text
 
 __all__ = ["BonesSettings", "STAGE"]
 
@@ -152,18 +153,6 @@ def _run(ctx) -> dict:
         }
     )
     return out
-
-
-def unknown_labels(counts: np.ndarray, skeleton) -> dict[int, int]:
-    """``{label id: voxels}`` of the non-zero ids in a label map's ``counts`` (a bincount) that are no bone's."""
-    known = {b.label for b in skeleton.bones} | {0}
-    return {int(k): int(counts[k]) for k in np.flatnonzero(counts) if int(k) not in known}
-
-
-def unknown_labels_text(unknown: dict) -> str:
-    """``"label ids 7 (3 voxels), 200 (5 voxels) are"``: the start of a sentence about :func:`unknown_labels`."""
-    ids = ", ".join(f"{k} ({n} voxels)" for k, n in sorted(unknown.items()))
-    return f"label id{'s' if len(unknown) > 1 else ''} {ids} {'are' if len(unknown) > 1 else 'is'}"
 
 
 STAGE = Stage(

@@ -99,7 +99,6 @@ __all__ = [
     "WORKING_VOXELS",
     "working_factor",
     "working_labels",
-    "recorded_times",
 ]
 
 log = logging.getLogger("workbench")
@@ -524,36 +523,3 @@ def _execute_distributed(
 
 def _now() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
-
-
-def recorded_times(study: Study, order=()) -> list[str]:
-    """One line per stage recorded in ``study.json`` (``order`` first): its wall-clock seconds (summed over its
-    scans) and those of the steps it recorded in ``timings`` — the times no stage writes into its files."""
-    stages = study.manifest.get("stages") or {}
-    lines = []
-    for name in [n for n in order if n in stages] + [n for n in stages if n not in order]:
-        e = stages[name]
-        units = [
-            u
-            for u in ((e.get("scans") or {}).values() if "scans" in e else [e])
-            if isinstance(u, dict) and "seconds" in u
-        ]
-        if not units:
-            continue
-        steps: dict = {}
-        per_scan: dict = {}
-        for u in units:
-            for k, v in (u.get("timings") or {}).items():
-                if isinstance(v, (int, float)) and not isinstance(v, bool):
-                    steps[k] = steps.get(k, 0.0) + v
-                elif k == "scans" and isinstance(v, dict):  # a whole-study stage's per-scan work (pose)
-                    per_scan.update({s: t["seconds"] for s, t in v.items() if isinstance(t, dict) and "seconds" in t})
-        text = f"  {name:<10}{sum(u['seconds'] for u in units):>9.1f} s"
-        if "scans" in e:
-            text += f"  ({len(units)} scan{'s' if len(units) != 1 else ''})"
-        if steps:
-            text += "  " + ", ".join(f"{k} {v:.1f} s" for k, v in steps.items())
-        if per_scan:
-            text += "; per scan: " + ", ".join(f"{s} {v:.1f} s" for s, v in per_scan.items())
-        lines.append(text)
-    return lines

@@ -4,7 +4,8 @@
 * :mod:`workbench.study.folder` — :class:`Study`, a study opened through its manifest: the inputs, the stages'
   outputs and the one (locked) writer of ``study.json``; :func:`read_study` opens one;
 * :mod:`workbench.study.phantom` — :func:`write_phantom_study`, a phantom written as a study with its truth;
-* :mod:`workbench.study.summary` — :func:`summarize`, what ``workbench info`` prints;
+* :mod:`workbench.study.summary` — :func:`summarize`, what ``workbench info`` prints, and
+  :func:`recorded_times`, the stages' times from the manifest;
 * :mod:`workbench.study.checks` — :func:`check_study_images` and :func:`study_warnings`, what ``workbench info
   --check`` says of a study before any work.
 """
@@ -20,7 +21,7 @@ from workbench.study.manifest import (
     StudyError,
 )
 from workbench.study.phantom import write_phantom_study
-from workbench.study.summary import summarize
+from workbench.study.summary import recorded_times, summarize
 
 __all__ = [
     "Study",
@@ -30,6 +31,7 @@ __all__ = [
     "read_study",
     "write_phantom_study",
     "summarize",
+    "recorded_times",
     "check_study_images",
     "study_warnings",
     "STUDY_FORMAT",

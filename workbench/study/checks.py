@@ -14,7 +14,7 @@ import numpy as np
 
 from workbench.errors import WorkbenchError
 
-__all__ = ["check_study_images", "study_warnings"]
+__all__ = ["check_study_images", "study_warnings", "unknown_labels", "unknown_labels_text"]
 
 
 def check_study_images(study) -> list[str]:
@@ -51,7 +51,6 @@ def check_study_images(study) -> list[str]:
 def study_warnings(study) -> list[str]:
     """One line per thing a study's user should know before the work (see the module docstring)."""
     from workbench.io.volumes import read_image_geometry
-    from workbench.stages.bones import unknown_labels, unknown_labels_text
 
     m = study.manifest
     sk = study.skeleton()
@@ -108,3 +107,15 @@ def study_warnings(study) -> list[str]:
             "only to keep their rotations within ±180°"
         )
     return out
+
+
+def unknown_labels(counts: np.ndarray, skeleton) -> dict[int, int]:
+    """``{label id: voxels}`` of the non-zero ids in a label map's ``counts`` (a bincount) that are no bone's."""
+    known = {b.label for b in skeleton.bones} | {0}
+    return {int(k): int(counts[k]) for k in np.flatnonzero(counts) if int(k) not in known}
+
+
+def unknown_labels_text(unknown: dict) -> str:
+    """``"label ids 7 (3 voxels), 200 (5 voxels) are"``: the start of a sentence about :func:`unknown_labels`."""
+    ids = ", ".join(f"{k} ({n} voxels)" for k, n in sorted(unknown.items()))
+    return f"label id{'s' if len(unknown) > 1 else ''} {ids} {'are' if len(unknown) > 1 else 'is'}"

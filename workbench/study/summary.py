@@ -7,13 +7,13 @@ import numpy as np
 from workbench.io.jsonio import read_json
 from workbench.io.volumes import read_image_geometry
 
-__all__ = ["summarize"]
+__all__ = ["summarize", "recorded_times"]
 
 
-def summarize(study) -> str:
+def summarize(study, stage_order=()) -> str:
     """A human-readable summary of a study folder (``workbench info``): the template's grid, the skeleton, the
     bones' sizes, each scan's flexion and, for a phantom, its generation statistics, and the stages' recorded
-    times."""
+    times (``stage_order`` first: :data:`workbench.stages.ORDER`)."""
     m = study.manifest
     sk = study.skeleton()
     g = read_image_geometry(study.path(m["template"]))
@@ -75,11 +75,41 @@ def summarize(study) -> str:
             "correspondence has Jacobian determinant ≤ 0; inv. resid.: 99th percentile of |F(φ(x)) − x| "
             "in the body)"
         )
-    from workbench.stages import ORDER
-    from workbench.stages.mechanism import recorded_times
-
-    times = recorded_times(study, ORDER)  # study.json's: the stages' files hold no time
+    times = recorded_times(study, stage_order)  # study.json's: the stages' files hold no time
     if times:
         lines.append("stages run (wall-clock seconds, from study.json):")
         lines += times
     return "\n".join(lines)
+
+
+def recorded_times(study, order=()) -> list[str]:
+    """One line per stage recorded in ``study.json`` (``order`` first): its wall-clock seconds (summed over its
+    scans) and those of the steps it recorded in ``timings`` — the times no stage writes into its files."""
+    stages = study.manifest.get("stages") or {}
+    lines = []
+    for name in [n for n in order if n in stages] + [n for n in stages if n not in order]:
+        e = stages[name]
+        units = [
+            u
+            for u in ((e.get("scans") or {}).values() if "scans" in e else [e])
+            if isinstance(u, dict) and "seconds" in u
+        ]
+        if not units:
+            continue
+        steps: dict = {}
+        per_scan: dict = {}
+        for u in units:
+            for k, v in (u.get("timings") or {}).items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    steps[k] = steps.get(k, 0.0) + v
+                elif k == "scans" and isinstance(v, dict):  # a whole-study stage's per-scan work (pose)
+                    per_scan.update({s: t["seconds"] for s, t in v.items() if isinstance(t, dict) and "seconds" in t})
+        text = f"  {name:<10}{sum(u['seconds'] for u in units):>9.1f} s"
+        if "scans" in e:
+            text += f"  ({len(units)} scan{'s' if len(units) != 1 else ''})"
+        if steps:
+            text += "  " + ", ".join(f"{k} {v:.1f} s" for k, v in steps.items())
+        if per_scan:
+            text += "; per scan: " + ", ".join(f"{s} {v:.1f} s" for s, v in per_scan.items())
+        lines.append(text)
+    return lines
