@@ -98,11 +98,11 @@ from deformation.geometry import Volume
 from deformation.skinning import stack_transforms
 from registration.adaptive import AdaptiveSettings, register_adaptive
 from registration.baselines import (
-    _itk,
     ants_available,
     ants_syn,
     elastix_available,
     elastix_bspline,
+    load_itk,
     sitk_bspline,
     warp_template,
 )
@@ -653,7 +653,7 @@ def run_external(args):
     )
     before = _tree_state(src)
     if elastix_available() and not args.no_elastix:
-        _itk()  # ITK's modules loaded before any sampler starts: elastix's peak memory is its registration's
+        load_itk()  # ITK's modules loaded before any sampler starts: elastix's peak memory is its registration's
     summary, failures = [], []
     for d in studies:
         copy = work / d.name

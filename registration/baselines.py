@@ -149,7 +149,7 @@ def sitk_bspline(
     return _finish("sitk-bspline", fixed, moving, initial, field, time.perf_counter() - t0, params)
 
 
-def _itk():
+def load_itk():
     """``import itk`` with its import-time warnings silenced: under ``-W error`` (our test suite) a warning
     raised half-way through ITK's lazy module loading crashes the interpreter."""
     with warnings.catch_warnings():
@@ -173,7 +173,7 @@ def elastix_available() -> bool:
 
 
 def _to_itk(vol: Volume):
-    itk = _itk()
+    itk = load_itk()
     img = itk.image_from_array(np.ascontiguousarray(vol.data, dtype=np.float32))
     g = vol.geometry
     img.SetSpacing([float(v) for v in g.spacing])
@@ -207,7 +207,7 @@ def elastix_bspline(
     """
     if not elastix_available():
         raise ImportError("elastix baseline needs itk-elastix: pip install -e '.[bench]' (or pip install itk-elastix)")
-    itk = _itk()
+    itk = load_itk()
 
     if metric not in ("mi", "ssd"):
         raise ValueError(f"metric must be 'mi' or 'ssd', got {metric!r}")
@@ -222,7 +222,7 @@ def elastix_bspline(
     p["RandomSeed"] = [str(int(seed))]
     p["WriteResultImage"] = ["false"]
     with tempfile.TemporaryDirectory(prefix="avw-elastix-") as tmp, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # ITK's lazy loader imports more modules here (see _itk)
+        warnings.simplefilter("ignore")  # ITK's lazy loader imports more modules here (see load_itk)
         if rigidity_labels is not None:
             from scipy import ndimage
 

@@ -135,13 +135,13 @@ def vbd_initial_field(
         # a clamped best position, constant along the clamped axis) and next to such voxels the determinant
         # is ~0 without a fold; on the test-size knee 19 % of the scan's voxels, and 5,838 of its 6,079
         # "folded" ones, there; at Kurihara's size 3 % of the grid, spread over all of it, had det < 0.05
-        mapped = _mapped(coarse, f, scan_geometry)
+        mapped = mapped_voxels(coarse, f, scan_geometry)
         del bm, coarse  # the map (17 B a voxel at f = 1) is not needed by the repair
         field, summary["unfold"] = unfold_field(field, mask=mapped)
     return field, summary
 
 
-def _mapped(coarse_map, f: int, scan_geometry: GridGeometry) -> np.ndarray:
+def mapped_voxels(coarse_map, f: int, scan_geometry: GridGeometry) -> np.ndarray:
     """Scan voxels the backward map sends into the template, less one voxel around those it does not
     (solved on every f-th voxel: each coarse voxel's answer given to the f³ fine voxels from it onwards)."""
     from scipy import ndimage as ndi

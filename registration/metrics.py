@@ -135,7 +135,7 @@ def cc(a, b, mask=None) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
-def _joint_hist(pa, ib, bins, out):
+def accumulate_joint_histogram(pa, ib, bins, out):
     """Triangular kernel on A's bin coordinate ``pa``, hard bins ``ib`` for B; ``out`` (bins, bins) is added to."""
     for n in range(pa.shape[0]):
         p = pa[n]
@@ -149,7 +149,7 @@ def _joint_hist(pa, ib, bins, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _entropies(h):
+def entropies(h):
     """``H(A), H(B), H(A,B)`` (nats) of a joint histogram of counts."""
     n = h.shape[0]
     total = 0.0
@@ -192,7 +192,7 @@ def joint_histogram(
     if bins_a.bins != bins_b.bins:
         raise ValueError(f"both images need the same number of bins, got {bins_a.bins} and {bins_b.bins}")
     h = np.zeros((bins_a.bins, bins_a.bins))
-    _joint_hist(bins_a.position(x), bins_b.index(y), bins_a.bins, h)
+    accumulate_joint_histogram(bins_a.position(x), bins_b.index(y), bins_a.bins, h)
     return h
 
 
@@ -206,7 +206,7 @@ def entropy(a, *, bins: HistogramBins | None = None, mask=None) -> float:
 
 
 def _mi_parts(a, b, *, bins_a=None, bins_b=None, bins=MI_BINS, mask=None):
-    return _entropies(joint_histogram(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask))
+    return entropies(joint_histogram(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask))
 
 
 def mutual_information(

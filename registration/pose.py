@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from deformation.filters import smooth
 from deformation.geometry import Volume
 from deformation.skeleton import Joint, Pose, Skeleton
 from deformation.transforms import apply, compose, invert, rotation_angle_deg
@@ -48,7 +49,6 @@ from .rigid import (
     coarse_rotation_search,
     refine_intensity,
     refine_surface,
-    smooth,
 )
 
 __all__ = [
@@ -464,9 +464,11 @@ def pose_scans(
         bias_correction = guess_modality(template) == "mri"
     if bias_correction:
         template = correct_bias(template)
-    regions = bone_regions(smooth(template, smooth_voxels), labels, skeleton, margin_mm=margin_mm)
+    regions = bone_regions(smooth(template, smooth_voxels, dtype=np.float32), labels, skeleton, margin_mm=margin_mm)
     coarse_regions = (
-        bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton, margin_mm=margin_mm)
+        bone_regions(
+            smooth(template, max(COARSE_SMOOTH, smooth_voxels), dtype=np.float32), labels, skeleton, margin_mm=margin_mm
+        )
         if coarse
         else None
     )

@@ -48,6 +48,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from deformation.filters import smooth
 from deformation.geometry import Volume
 from deformation.isosurface import isosurface
 from deformation.transforms import apply, compose, rotation_angle_deg
@@ -56,7 +57,6 @@ __all__ = [
     "BoneRegion",
     "BoneFit",
     "Sampler",
-    "smooth",
     "bone_regions",
     "polish_with_prior",
     "surface_prior",
@@ -226,7 +226,7 @@ class Sampler:
     def __init__(self, image: Volume, order: int = 3, smooth_voxels: float = 0.0):
         if order not in (1, 3):
             raise ValueError(f"interpolation order must be 1 (linear) or 3 (cubic B-spline), got {order}")
-        image = smooth(image, smooth_voxels)
+        image = smooth(image, smooth_voxels, dtype=np.float32)  # SciPy's kernel in voxels, edges reflected
         self.image = image
         self.order = order
         data = np.asarray(image.data, dtype=np.float64)
@@ -243,23 +243,6 @@ class Sampler:
         out = ndimage.map_coordinates(self.coeffs, ijk[:, ::-1].T, order=self.order, mode="mirror", prefilter=False)
         out[np.any((ijk < -0.5) | (ijk > self._size - 0.5), axis=1)] = np.nan
         return out
-
-
-def smooth(image: Volume, sigma_voxels: float) -> Volume:
-    """Gaussian smoothing by ``sigma_voxels`` along each index axis (a no-op for 0).
-
-    Both images are smoothed a little before Eq. 1: interpolating unsmoothed
-    noise lowers its variance between grid points, so the SSD of a noisy scan
-    prefers transforms that put samples off the grid (Pluim et al. 2000's
-    interpolation artefact); a little smoothing correlates neighbouring
-    voxels' noise, so interpolation between them lowers it much less
-    (the measurements: docs/measurements/pose-and-initialisation.md).
-    """
-    if not sigma_voxels:
-        return image
-    return Volume(
-        ndimage.gaussian_filter(np.asarray(image.data, dtype=np.float32), float(sigma_voxels)), image.geometry
-    )
 
 
 def ssd(a: np.ndarray, b: np.ndarray) -> float:

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from deformation.filters import smooth
 from deformation.geometry import Volume
 
 __all__ = [
@@ -323,14 +324,12 @@ def segment_bones(
 
 
 def _smoothed(image: Volume, smooth_voxels: float):
-    """The image as a SimpleITK image in voxel units, Gaussian-smoothed by ``smooth_voxels`` (0: as it is)."""
+    """The image as a float32 SimpleITK image in voxel units (spacing 1), smoothed by SimpleITK's recursive
+    Gaussian of ``smooth_voxels`` voxels (0: as it is)."""
     import SimpleITK as sitk
 
-    img = sitk.GetImageFromArray(np.asarray(image.data, dtype=np.float32))
-    img.SetSpacing((1.0, 1.0, 1.0))  # smoothing in voxels
-    if smooth_voxels > 0:
-        img = sitk.SmoothingRecursiveGaussian(img, float(smooth_voxels))
-    return img
+    data = np.asarray(image.data, dtype=np.float32)
+    return sitk.GetImageFromArray(smooth(data, max(float(smooth_voxels), 0.0), method="recursive"))
 
 
 def _air_tissue_level(img) -> float:

@@ -63,7 +63,7 @@ FEATURE_SOURCES = ("registration", "closest", "landmarks")  #: where the RBF fea
 FITS = ("regularised", "nearest")
 
 
-def _scene(mesh: SurfaceMesh):
+def raycasting_scene(mesh: SurfaceMesh):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -80,7 +80,7 @@ def closest_points(mesh: SurfaceMesh, points, *, scene=None) -> tuple[np.ndarray
 
     if mesh.n_triangles == 0:
         raise ValueError("closest points on a mesh with no triangles")
-    scene = scene or _scene(mesh)
+    scene = scene or raycasting_scene(mesh)
     q = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3), dtype=np.float32)
     ans = scene.compute_closest_points(o3d.core.Tensor(q))
     p = ans["points"].numpy().astype(np.float64)
@@ -146,7 +146,7 @@ def _cg(a, b, x0, inv_diag, *, rtol: float = 1e-10, maxiter: int = 5000):
     return x, maxiter, bool(np.all(np.sqrt(np.sum(r * r, axis=0)) <= stop))
 
 
-def _confident_targets(
+def confident_targets(
     x, normals, target: SurfaceMesh, scene, target_normals, max_distance_mm: float, cos_max: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Closest points of ``x`` on ``target`` and which count: near, facing the same way, and found along the
@@ -195,7 +195,7 @@ class FitResult:
 
 def fit_nearest(start: SurfaceMesh, target: SurfaceMesh) -> FitResult:
     """Kurihara §4's fit: every vertex of ``start`` moved to its closest point on ``target``."""
-    scene = _scene(target)
+    scene = raycasting_scene(target)
     p, _, _ = closest_points(target, start.vertices, scene=scene)
     return FitResult(SurfaceMesh(p, start.triangles), np.zeros(len(p)), np.ones(len(p), bool), 1, {"method": "nearest"})
 
@@ -224,7 +224,7 @@ def fit_regularised(
     lap = umbrella_laplacian(n, start.triangles)
     ltl = (lap.T @ lap).tocsc()
     rhs_shape = ltl @ x0  # λ Lᵀ L x₀: the start's Laplacian coordinates kept
-    scene = _scene(target)
+    scene = raycasting_scene(target)
     tn = triangle_normals(target.vertices, target.triangles)
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     x = x0.copy()
@@ -232,7 +232,7 @@ def fit_regularised(
     it, cg_iters, cg_ok = 0, 0, True
     moved = np.inf
     for _ in range(1, int(iterations) + 1):
-        p, conf = _confident_targets(x, vertex_normals(x, start.triangles), target, scene, tn, max_distance_mm, cos_max)
+        p, conf = confident_targets(x, vertex_normals(x, start.triangles), target, scene, tn, max_distance_mm, cos_max)
         c = conf.astype(float)
         # a vertex with no confident target in a component that has none either would leave A singular:
         # a tiny pull towards where it is now keeps it there
@@ -355,8 +355,8 @@ def consistent_mesh(
             has = np.isfinite(tgt).all(axis=1)
             source = "given targets"
         else:
-            scene = _scene(target)
-            tgt, has = _confident_targets(
+            scene = raycasting_scene(target)
+            tgt, has = confident_targets(
                 ssd.vertices,
                 vertex_normals(ssd.vertices, ssd.triangles),
                 target,
