@@ -31,7 +31,7 @@ import SimpleITK as sitk
 
 from deformation.fields import compose, from_transform
 from deformation.geometry import Volume
-from deformation.interpolate import sample_displaced_array
+from deformation.interpolate import warp
 
 from .metrics import air_level
 
@@ -42,7 +42,6 @@ __all__ = [
     "elastix_available",
     "ants_syn",
     "ants_available",
-    "warp_template",
 ]
 
 
@@ -55,28 +54,21 @@ class BaselineResult:
     parameters: dict
 
 
-def warp_template(moving: Volume, field: Volume) -> Volume:
-    """The template pulled onto ``field``'s grid through a ``scan_to_template`` field (trilinear, air outside)."""
-    g = field.geometry
-    out = sample_displaced_array(
-        moving.data, moving.geometry.world_to_index_matrix, g, field.data, 1, air_level(moving)
-    )
-    return Volume(out.astype(np.float32), g)
-
-
 def _initialised(fixed: Volume, moving: Volume, initial: Volume | None) -> Volume:
     if initial is None:
         if moving.geometry.is_close(fixed.geometry):
             return Volume(moving.data.astype(np.float32), fixed.geometry)
         initial = Volume(np.zeros(fixed.geometry.array_shape + (3,)), fixed.geometry)
     fixed.geometry.check_same(initial.geometry, names=("fixed image", "initial correspondence"))
-    return warp_template(moving, initial)
+    return warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32)
 
 
 def _finish(name, fixed, moving, initial, t_field: Volume, seconds, params) -> BaselineResult:
     corr = t_field if initial is None else compose(initial, t_field)
     corr = Volume(corr.data.astype(np.float32), fixed.geometry)
-    return BaselineResult(name, corr, warp_template(moving, corr), seconds, params)
+    return BaselineResult(
+        name, corr, warp(moving, displacement=corr, fill=air_level(moving), dtype=np.float32), seconds, params
+    )
 
 
 def sitk_bspline(

@@ -135,9 +135,8 @@ from scipy import ndimage
 from deformation.fields import folding_statistics, jacobian_determinant_components, unfold
 from deformation.filters import smooth
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted
+from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted, warp
 
-from .baselines import warp_template
 from .metrics import air_level, cc, similarity
 
 __all__ = ["DenseSettings", "DenseResult", "register_dense"]
@@ -334,8 +333,8 @@ os.register_at_fork(after_in_child=POOLS.clear)
 
 def smooth_all(arrays, sigma_vox) -> list:
     """Each array smoothed by the dense Gaussian (:data:`GAUSSIAN`), on as many threads as numba's setting
-    allows (SciPy's filters release the GIL; arrays of fewer than ``SMOOTH_SERIAL_BELOW`` voxels serially).  Whole arrays go to the threads in
-    turn; the ones left over (the third of three on two threads) are cut into one slab per thread along their
+    allows (SciPy's filters release the GIL; arrays of fewer than ``SMOOTH_SERIAL_BELOW`` voxels serially).
+    Whole arrays go to the threads in turn; the ones left over (the third of three on two threads) are cut into one slab per thread along their
     longest axis, each with a halo of the kernel's reach: a Gaussian is a 1-D filter per axis, and every output
     voxel of a slab is computed from the same inputs in the same order as on the whole array, so the bits do
     not depend on the thread count."""
@@ -1057,7 +1056,7 @@ def register_dense(
     if initial is None:
         initial = Volume(np.zeros(g.array_shape + (3,), np.float32), g)
     g.check_same(initial.geometry, names=("fixed image", "initial correspondence"))
-    m0 = warp_template(moving, initial).data.astype(np.float32)  # a new array
+    m0 = warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32).data  # a new array
     f0 = np.array(fixed.data, np.float32, copy=True)  # normalised in place below: never the caller's array
     lab0 = None
     if st.bones != "free" and moving_labels is not None:
@@ -1651,7 +1650,7 @@ def register_dense(
             repair["attempts"] = [[peel, info["n_folded_after"]] for peel, (_, info) in tried.items()]
             if repair["taken"]:
                 corr = Volume(best[0].data.astype(np.float32), g)
-    registered = warp_template(moving, corr)
+    registered = warp(moving, displacement=corr, fill=air_level(moving), dtype=np.float32)
     seconds = time.perf_counter() - t0
     return DenseResult(
         corr,
@@ -1659,7 +1658,9 @@ def register_dense(
         seconds,
         levels,
         st.to_dict(),
-        similarity_before=similarity(fixed.data, warp_template(moving, initial).data),
+        similarity_before=similarity(
+            fixed.data, warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32).data
+        ),
         similarity_after=similarity(fixed.data, registered.data),
         folding={
             **folding_statistics(corr, scan_body),

@@ -22,7 +22,7 @@ region (the mean midpoint of the closest voxel pairs of the two bones in the
 template), and each scan's joint angles (:meth:`Joint.angles_from_motion`,
 intrinsic XYZ in the skeleton's joint frame).  Poses use the same schema as
 the phantoms' truth (:class:`deformation.skeleton.Pose`), so estimate and
-truth compare with :func:`compare_poses`.
+truth compare with :func:`validation.pose_measures.compare_poses`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 from deformation.filters import smooth
 from deformation.geometry import Volume
 from deformation.skeleton import Joint, Pose, Skeleton
-from deformation.transforms import apply, compose, invert, rotation_angle_deg
+from deformation.transforms import apply, compose, rotation_angle_deg
 
 from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
 from .rigid import (
@@ -60,7 +60,6 @@ __all__ = [
     "estimate_poses",
     "pose_scans",
     "contact_point",
-    "compare_poses",
     "moments_init",
     "flag_joint_outliers",
 ]
@@ -667,24 +666,3 @@ def flag_joint_outliers(
                     f"{s.fits[name].stop}; its parent '{jj.parent}' was flagged "
                     f"({s.fits[jj.parent].status}) and this bone was fitted from it"
                 )
-
-
-# -- accuracy against ground truth ---------------------------------------------------------------------
-def compare_poses(estimate: Pose, truth: Pose, centroids: dict[str, np.ndarray]) -> dict[str, dict]:
-    """Per-bone error of an estimated pose against the truth.
-
-    Rotation error: the angle of ``T_true⁻¹ T_est`` (degrees).  Translation
-    error: the distance between where the two transforms put the bone's
-    template centroid (mm) — independent of where the world origin is.
-    """
-    out = {}
-    for b, t_true in truth.transforms.items():
-        if b not in estimate.transforms:
-            continue
-        t_est = estimate.transforms[b]
-        c = np.asarray(centroids[b], float)
-        out[b] = {
-            "rotation_deg": rotation_angle_deg(compose(invert(t_true), t_est)),
-            "translation_mm": float(np.linalg.norm(apply(t_est, c) - apply(t_true, c))),
-        }
-    return out

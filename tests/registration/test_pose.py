@@ -9,8 +9,8 @@ import pytest
 
 from deformation.geometry import GridGeometry, Volume
 from registration.pose import contact_point, estimate_poses, pose_scans
-from registration.report import accuracy
 from registration.rigid import bone_regions
+from validation.pose_measures import pose_accuracy
 
 
 def cut_above_knee(scan):
@@ -37,7 +37,7 @@ def knee_result(knee_ct_study, knee_fits):
         tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk, scan_poses=copy.deepcopy(knee_fits)
     )
     centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
-    acc = accuracy(res, {s: st.truth_pose(s) for s in st.scan_ids}, sk, centroids)
+    acc = pose_accuracy(res, {s: st.truth_pose(s) for s in st.scan_ids}, sk, centroids)
     return res, acc
 
 
@@ -214,7 +214,7 @@ def test_a_joint_that_barely_moves_keeps_the_skeleton_centre_and_is_not_scored(k
         assert not r.estimated and not res.joints_dict()[j.name]["estimated"]
         np.testing.assert_array_equal(r.center, j.center)
     centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
-    acc = accuracy(res, {"pose00": st.truth_pose("pose00")}, sk, centroids)
+    acc = pose_accuracy(res, {"pose00": st.truth_pose("pose00")}, sk, centroids)
     assert acc["summary"]["center_error_mm_2_3_dof_moving"]["n"] == 0
     assert all(not e["estimated"] for e in acc["joints"].values())
 
