@@ -1,62 +1,17 @@
 """Locally adaptive non-rigid volume registration (Rhee et al. 2011, §4, Algorithm 1).
 
 The template (``moving``, optionally initialised by VBD) is registered to a
-scan (``fixed``) by intensity alone, a few degrees of freedom at a time:
+scan (``fixed``) by intensity alone, a few degrees of freedom at a time: on a
+hierarchy of blocks, the most mismatched block (normalised MI on coarse
+levels, SSD on fine ones: Rhee Eqs. 4–5, §4.1) takes one local step, a
+biharmonic clamped plate spline through 8 control points (§4.2), optimised by
+an NLopt derivative-free method over the block's neighbourhood through the
+running deformation (§4.3), checked for folding and *composed* into the
+running ``scan_to_template`` field.  :func:`register_adaptive` describes each
+part; the measurements behind :class:`AdaptiveSettings` are in
+``docs/measurements/pose-and-initialisation.md`` and
+``docs/measurements/registration-settings.md``.
 
-1. **Block hierarchy** (Algorithm 1, lines 1–3).  At block level ``b`` the
-   scan grid is split into ``2**b`` blocks along each axis (level 3 = 8 blocks
-   ≈ 32³ voxels on a 256³ grid; never fewer than ``min_block_voxels`` voxels a
-   side).  *Multi-resolution volumes* (the loop the paper mentions but does
-   not list): the cost of a level is evaluated on its images smoothed with a
-   Gaussian and sampled every ``f`` voxels, ``f`` chosen so that a block has
-   at most ``eval_voxels`` samples a side.
-2. **The most mismatched block** (lines 4–5): the block of lowest normalised
-   MI ``MI / min(H(Bs), H(Bt))`` (§4.1, coarse levels) or highest SSD (fine
-   levels; the paper switches at ≈32³ → ≈16³ blocks, i.e. from level 4 on).
-   Only blocks with tissue in them take part (featureless air has no
-   information); a block is *mismatched* while its measure is worse than the
-   tolerance, ``tolerance_factor`` times better than the whole volume's value
-   before registration: ``NMI < f · NMI₀`` or ``SSD > SSD₀ / f`` (Rhee §6.1:
-   f ≈ 1.5, :meth:`AdaptiveSettings.paper`; our default 3 visits more blocks).
-3. **One local step** (lines 6–9): 8 control points in a 2×2×2 pattern a
-   quarter of the half-block inside the block's corners; the region is the
-   block's 3×3×3 neighbourhood, scaled per axis and centred so that it spans
-   ``(−1, 1)³`` (§4.3) — the moving points are those inside the unit ball, so
-   every point that moves lies in the region over which the cost is
-   evaluated.  The displacement is the biharmonic clamped plate spline
-   (§4.2, :func:`deformation.splines.cps_green`) through the 8 control points
-   and, optionally, up to ``max_fixed_points`` zero-displacement control points
-   on bone voxels (§4.3, "to maintain rigidity in the bone region").  The 24
-   displacement values (mm) are optimised by an NLopt derivative-free method
-   with seeded random restarts (Nelder–Mead is the paper's choice and
-   :meth:`AdaptiveSettings.paper`'s; BOBYQA, our default, reached the same
-   accuracy with ~3× fewer evaluations), plus — our addition — the spline's
-   bending energy as a regulariser (``regularization``); the cost
-   (SSD, or −MI) is evaluated over the whole region *through the running
-   deformation* (§4.3: "previously computed displacements affecting the
-   neighboring blocks are considered").
-4. **No folding.**  A candidate whose Jacobian ``det(I + ∇u)`` falls below
-   ``min_jacobian`` at any check point of the ball is rejected inside the
-   cost (a penalty the simplex retreats from), and the accepted step is
-   checked again on every voxel of the ball (halved until it passes).  Every
-   step is then orientation-preserving, and so is their composition.
-5. **Composition** (line 10): the accepted step ``U(x) = x + u(x)`` is
-   *composed* into the running correspondence, ``φ ← φ ∘ U`` — the
-   registered template at scan voxel ``x`` is the template at ``φ(x + u(x))``
-   — never added.  A block that cannot improve its region's cost by
-   ``min_improvement`` (or has been visited ``max_visits`` times) is retired
-   for the level, so the loop always ends.
-
-Direction.  The running field is ``scan_to_template`` on the scan grid — for
-scan voxel ``x``, the template position ``φ(x)`` it came from, exactly the
-convention of the phantoms' truth field — so a registration's MED is one
-subtraction.
-
-Cost of one evaluation.  The 3×3×3 region's samples (≲ ``(3·eval_voxels)³``,
-e.g. 13 824 at 8³-sample blocks), the spline basis ``B`` precomputed per
-step, and the running registered image precomputed on the region: one
-compiled serial pass of ``B @ d``, a trilinear sample and the SSD or the
-joint histogram — tens of microseconds (``benchmarks/bench_registration.py``).
 Serial, so that a seed gives the same field to the last bit.
 """
 
@@ -1038,7 +993,7 @@ def register_adaptive(
     settings: AdaptiveSettings | None = None,
     progress=None,
 ) -> AdaptiveResult:
-    """Register ``moving`` (template) to ``fixed`` (scan) by Rhee's Algorithm 1 (see the module docstring).
+    """Register ``moving`` (template) to ``fixed`` (scan) by Rhee's Algorithm 1 (see Notes).
 
     Parameters
     ----------
@@ -1063,6 +1018,64 @@ def register_adaptive(
     Returns
     -------
     AdaptiveResult
+
+    Notes
+    -----
+    1. **Block hierarchy** (Algorithm 1, lines 1–3).  At block level ``b`` the
+       scan grid is split into ``2**b`` blocks along each axis (level 3 = 8 blocks
+       ≈ 32³ voxels on a 256³ grid; never fewer than ``min_block_voxels`` voxels a
+       side).  *Multi-resolution volumes* (the loop the paper mentions but does
+       not list): the cost of a level is evaluated on its images smoothed with a
+       Gaussian and sampled every ``f`` voxels, ``f`` chosen so that a block has
+       at most ``eval_voxels`` samples a side.
+    2. **The most mismatched block** (lines 4–5): the block of lowest normalised
+       MI ``MI / min(H(Bs), H(Bt))`` (§4.1, coarse levels) or highest SSD (fine
+       levels; the paper switches at ≈32³ → ≈16³ blocks, i.e. from level 4 on).
+       Only blocks with tissue in them take part (featureless air has no
+       information); a block is *mismatched* while its measure is worse than the
+       tolerance, ``tolerance_factor`` times better than the whole volume's value
+       before registration: ``NMI < f · NMI₀`` or ``SSD > SSD₀ / f`` (Rhee §6.1:
+       f ≈ 1.5, :meth:`AdaptiveSettings.paper`; our default 3 visits more blocks).
+    3. **One local step** (lines 6–9): 8 control points in a 2×2×2 pattern a
+       quarter of the half-block inside the block's corners; the region is the
+       block's 3×3×3 neighbourhood, scaled per axis and centred so that it spans
+       ``(−1, 1)³`` (§4.3) — the moving points are those inside the unit ball, so
+       every point that moves lies in the region over which the cost is
+       evaluated.  The displacement is the biharmonic clamped plate spline
+       (§4.2, :func:`deformation.splines.cps_green`) through the 8 control points
+       and, optionally, up to ``max_fixed_points`` zero-displacement control points
+       on bone voxels (§4.3, "to maintain rigidity in the bone region").  The 24
+       displacement values (mm) are optimised by an NLopt derivative-free method
+       with seeded random restarts (Nelder–Mead is the paper's choice and
+       :meth:`AdaptiveSettings.paper`'s; BOBYQA is our default:
+       ``docs/measurements/registration-settings.md``), plus — our addition — the spline's
+       bending energy as a regulariser (``regularization``); the cost
+       (SSD, or −MI) is evaluated over the whole region *through the running
+       deformation* (§4.3: "previously computed displacements affecting the
+       neighboring blocks are considered").
+    4. **No folding.**  A candidate whose Jacobian ``det(I + ∇u)`` falls below
+       ``min_jacobian`` at any check point of the ball is rejected inside the
+       cost (a penalty the simplex retreats from), and the accepted step is
+       checked again on every voxel of the ball (halved until it passes).  Every
+       step is then orientation-preserving, and so is their composition.
+    5. **Composition** (line 10): the accepted step ``U(x) = x + u(x)`` is
+       *composed* into the running correspondence, ``φ ← φ ∘ U`` — the
+       registered template at scan voxel ``x`` is the template at ``φ(x + u(x))``
+       — never added.  A block that cannot improve its region's cost by
+       ``min_improvement`` (or has been visited ``max_visits`` times) is retired
+       for the level, so the loop always ends.
+
+    Direction.  The running field is ``scan_to_template`` on the scan grid — for
+    scan voxel ``x``, the template position ``φ(x)`` it came from, exactly the
+    convention of the phantoms' truth field — so a registration's MED is one
+    subtraction.
+
+    Cost of one evaluation.  The 3×3×3 region's samples (≲ ``(3·eval_voxels)³``,
+    e.g. 13 824 at 8³-sample blocks), the spline basis ``B`` precomputed per
+    step, and the running registered image precomputed on the region: one
+    compiled serial pass of ``B @ d``, a trilinear sample and the SSD or the
+    joint histogram — tens of microseconds (``benchmarks/bench_registration.py``).
+    Serial, so that a seed gives the same field to the last bit.
     """
     if fixed.is_vector or moving.is_vector:
         raise ValueError("fixed and moving must be scalar images")

@@ -1,114 +1,18 @@
 """Articulated dense registration: diffeomorphic local-correlation steps with the bones kept rigid.
 
-Rhee's Algorithm 1 (:mod:`registration.adaptive`) moves one block at a time
-and keeps a step only when it pays; on soft tissue with real structure
-(issue I's independent phantom) it barely moves, while a B-spline that moves
-everything at once halves the start's error.  This stage moves every voxel
-at every iteration, and keeps what an articulated body needs:
-
-* **Start**: ``φ₀`` (scan → template), one-to-one (the polyrigid flow of
-  :mod:`deformation.polyrigid`); the registration finds ``U = id + u`` on the
-  scan grid with ``F ≈ M ∘ φ₀ ∘ U``, the template sampled once through the
-  composed map at every trial (:class:`TemplateSampler`: resampling an
-  already resampled template rewards sub-voxel shifts that smooth its noise);
-  the result is ``φ = φ₀ ∘ U`` (composed, not added).
-* **Similarity**: local normalised cross-correlation in a Gaussian window
-  (LNCC), insensitive to the MRI bias field and to contrast differences
-  between scans; its gradient is that of Avants et al. (ANTs SyN's CC).
-* **Steps**: the gradient, smoothed by a Gaussian ("fluid" regularisation),
-  scaled so that no voxel moves more than the trust radius, then *composed*
-  into ``U`` (``u ← f + u ∘ (id + f)``) and ``U`` smoothed ("elastic"
-  regularisation, in proportion to the step: half the radius, half the
-  smoothing).  A step with ``det(I + ∇f) ≤ min_jacobian`` anywhere is halved
-  until it has none, so every step is one-to-one and so is their
-  composition: no fold is created.
-* **Convergence** (a trust region on each level's objective, the mean LNCC
-  over the voxels where the force acts less the skin's term and the membrane
-  energy below): a step is taken only when it raises
-  the objective; otherwise the radius halves and the step is tried again from
-  the same direction; after a taken step the radius grows (``radius_growth``,
-  up to ``step_mm``).  A level stops when no step of radius
-  ``step_mm · 2^-max_halvings`` raises its objective, or when 10 taken steps
-  together gained less than ``tolerance``; ``iterations`` only caps the
-  trials.  Each level's record holds its objective per taken step (it never
-  falls), the rejected trials and why it stopped.
-* **Bones** (the template's labels pulled through the current map):
-  ``bones="fixed"`` (default) holds each bone at a rigid motion — ``U = id``,
-  where the pose stage's rigid intensity registration placed it, more
-  precisely than a dense force can — fading into the smooth step over
-  ``bone_margin_mm``; ``"rigid"`` replaces the step (and the smoothed field)
-  on each bone by its least-squares rigid motion; ``"free"`` ignores the
-  labels.
-* **Held bones refined** (``refine_bones``, with ``"fixed"``): a pose stage
-  that erred leaves a held bone where it put it, so the bones' poses are
-  refined too, by block-coordinate ascent on the same objective: before a
-  level's steps, and each time they stop, each bone's rigid motion (six
-  parameters about its centroid) is optimised with the soft tissue held
-  (NLopt BOBYQA, derivative-free; the candidate moves the bone and fades over
-  ``refine_margin_voxels``; the objective is the LNCC over the voxels that
-  motion can change, against its value as ``U`` is; a candidate that would
-  bring ``det(I + ∇u)`` below ``min_jacobian`` scores below every one-to-one
-  one), and the round is taken only if the level's objective rises; the
-  steps then go on.
-  The pose stage's estimate stands unless the image moves a bone past
-  ``refine_min_move_voxels`` (half a scan voxel: the LNCC's windows reach
-  into the soft tissue, and its optimum sits a few tenths of a mm from the
-  bone's own fit) and the bone's own fit rises significantly with it
-  (``refine_significance``, :func:`bone_fit_improves`: the images smoothed
-  by a scan voxel, the noise's correlation counted); a bone is tested on a
-  level only where it is at least ``refine_min_voxels`` across (a pose is read from opposite edges), once on
-  the finest level if no coarser one could, and once moved it is refined on
-  every later round.
-* **Multi-resolution**: the images are smoothed and subsampled by
-  ``shrink`` per level, coarse to fine; ``u`` is carried up by trilinear
-  interpolation.  The smoothing σ are in voxels of each level by default
-  (``fluid_voxels``, ``elastic_voxels``), as ANTs SyN's.
-* **Body only**: the force acts inside the two images' bodies
-  (:func:`registration.segmentation.segment_body`) grown by two windows: in
-  air the noise alone moves the map, and nothing anatomical holds it.  The levels
-  compute on the box around that region grown by the LNCC statistics' reach
-  (less time where the body fills a small part of the grid), and U takes
-  its edge values beyond the box.
-* **Tissue only** (``tissue_only``, when air surrounds the scan's body):
-  the LNCC windows are over the scan's body only, the smoothed force is
-  divided by the tissue's share of the kernel (at least 1/2), and ``U`` is
-  smoothed by a normalised convolution (Knutsson & Westin 1993) weighing the
-  air by ``air_weight``, so the skin's motion is not averaged with the air's,
-  which no image drives, and the correlation at the skin follows the
-  tissue's texture rather than the body/air step; as sliding-motion
-  registration smooths each region on its own (Risser et al. 2013,
-  piecewise-diffeomorphic registration).
-* **The skin** (``skin_weight``, with the tissue-only windows): those windows
-  do not see the skin, and in flat tissue (soft tissue in CT) nothing else
-  does, so a step driven elsewhere could pull the registered body's outline
-  inside the scan's.  The level's objective is the LNCC less ``skin_weight``
-  times the mean squared difference of the two bodies' masks, each smoothed
-  by the window (the template's sampled through the same map; unknown beyond
-  its grid, where the term is left out), counted near the scan's skin only
-  (deep in its body the template's air is a crease whose skins touch in the
-  scan): a force across the skin, not along it.
-* **Where the scan shows only noise** (``stiffness``): a step that moves
-  tissue there raises the LNCC by fitting the noise, and nothing in the
-  images holds the start.  The level's objective also subtracts a membrane
-  energy of the correction ``u``, each voxel weighed by the share of the
-  scan's local variance (in the LNCC's window) its noise makes up: near 1 in
-  flat tissue, near 0 where structure rises above the noise, so a correction
-  the images support costs little and one they do not support costs.
-* **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
-  grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
-  start compresses a crease below the voxel size or curled fingers touch;
-  those voxels of the scan's body are smoothed locally
-  (:func:`deformation.fields.unfold`) around the bones' interiors (their
-  deepest voxels frozen, then fewer; as a last resort none, which is tried
-  second as a probe: when it leaves folds, freezing more is not tried),
-  every smoothed voxel then going back towards the registered value as far as the
-  determinant allows (unfold's restoring passes: the smoothing replaces
-  patches, a fold needs a few voxels), and the repair is taken only when it
-  removes every fold (``DenseResult.unfold`` says which attempt,
-  ``bone_layers_released`` None for the last resort).
-
-The measurements behind these choices (and the variants tried and not kept) are in
-``docs/measurements/dense-registration.md``, with the commands that reproduce them.
+Rhee's Algorithm 1 (:mod:`registration.adaptive`, Rhee §4.3) moves one block at a
+time and keeps a step only when it pays; this method moves every voxel at every
+iteration, in the manner of ANTs SyN's greedy cross-correlation registration,
+and keeps what an articulated body needs.  From a one-to-one start ``φ₀``
+(scan → template, the polyrigid flow of :mod:`deformation.polyrigid`) it finds
+``U = id + u`` on the scan grid with ``F ≈ M ∘ φ₀ ∘ U`` and returns
+``φ = φ₀ ∘ U``: local normalised cross-correlation (LNCC) in a Gaussian
+window, its gradient smoothed ("fluid") and composed into ``U`` within a trust
+radius, ``U`` smoothed ("elastic"), every step one-to-one, the bones held
+rigid at the pose stage's placement (their poses refined on the same
+objective), coarse to fine.  :func:`register_dense` describes each part;
+:class:`DenseSettings` holds the settings, whose measurements are in
+``docs/measurements/registration-settings.md``.
 
 References
 ----------
@@ -146,14 +50,16 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DenseSettings:
-    """Settings of :func:`register_dense` (lengths in mm, so that they mean the same on any grid)."""
+    """Settings of :func:`register_dense` (lengths in mm, so that they mean the same on any grid).
+
+    The measurements behind the defaults are in ``docs/measurements/registration-settings.md``.
+    """
 
     shrink: tuple = (4, 2, 1)  #: subsampling per level, coarse to fine
     #: trials per level, at most: a cap for safety; a level stops on convergence (tolerance, max_halvings)
     iterations: tuple = (200, 200, 200)
-    #: LNCC Gaussian window σ: about the size of the soft tissue's structure (septa, vessels: a few mm), so that
-    #: the correlation follows it rather than the skin's edge (the measurements: docs/measurements/
-    #: dense-registration.md, "Measurements behind the settings")
+    #: LNCC Gaussian window σ: about the size of the soft tissue's structure (septa, vessels), so that the
+    #: correlation follows it rather than the skin's edge (registration-settings.md, "window_mm")
     window_mm: float = 3.0
     fluid_mm: float = 4.0  #: σ of the smoothing of each step, when fluid_voxels is None
     step_mm: float = 0.5  #: the trust radius's upper bound: a voxel's largest move in one step (see step_voxels)
@@ -161,82 +67,56 @@ class DenseSettings:
     radius_growth: float = 1.25  #: the trust radius grows by this factor after a taken step (up to step_mm)
     max_halvings: int = 5  #: a level stops when a step of radius step_mm·2⁻ᵏ does not raise its objective
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
-    bones: str = (
-        "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
-    )
+    #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
+    bones: str = "fixed"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
-    #: with bones="fixed": each held bone's pose refined as a rigid body on the level's objective (the soft tissue
-    #: held; see the module docstring), within refine_deg (rotation vector, each component) and refine_mm (each
-    #: axis) of the start's pose: the pose stage's estimate is corrected, not replaced
+    #: with bones="fixed": each held bone's pose refined as a rigid body on the level's objective, the soft tissue
+    #: held (:func:`register_dense`, Notes)
     refine_bones: bool = True
-    refine_deg: float = 8.0
-    refine_mm: float = 4.0
+    refine_deg: float = 8.0  #: the refinement's bound on each rotation-vector component from the start's pose
+    refine_mm: float = 4.0  #: ... and on each axis of the translation: the estimate is corrected, not replaced
     refine_evaluations: int = 150  #: objective evaluations per bone and round, at most (NLopt BOBYQA)
-    #: rounds of the bones' refinement per level, at most: one before the steps, then one each time the steps
-    #: stop, the steps going on while a round raises the objective
+    #: rounds of the bones' refinement per level, at most: one before the steps, then one each time they stop
     refine_rounds: int = 3
     refine_margin_voxels: float | None = 1.0  #: a refined bone's motion fades over this many level voxels
     #: a bone's pose is first changed only when the refinement moves one of its voxels by more than this many
-    #: voxels of the scan; once changed it is refined on every later round
+    #: scan voxels (the LNCC's optimum sits a few tenths of a mm from the bone's own fit)
     refine_min_move_voxels: float = 0.5
-    #: a bone not moved so far is tested on the first round of each level where it is at least this many level
-    #: voxels thick (its inscribed diameter), and on the finest level only if no coarser level tested it
+    #: a bone not moved so far is tested on a level only where it is at least this many level voxels thick
     refine_min_voxels: float = 3.0
-    #: ... and only when the bone's own fit rises with it, by more than this many standard errors (Fisher's z of
-    #: its NCC over its voxels and one voxel around: bone_fit_improves); 0 accepts any rise
+    #: ... and moved only when its own fit rises by more than this many standard errors (Fisher's z of its NCC:
+    #: :func:`bone_fit_improves`); 0 accepts any rise
     refine_significance: float = 2.0
     elastic_mm: float = 2.0  #: σ of the smoothing of the field after each step (0: none), when elastic_voxels is None
-    #: fluid σ in voxels of each level (None: fluid_mm).  In voxels, as ANTs SyN's update field: each level
-    #: regularises at its own scale (coarse levels smoothly, the fine one locally)
+    #: fluid σ in voxels of each level (None: fluid_mm), as ANTs SyN's: each level regularises at its own scale
+    #: (registration-settings.md, "fluid_voxels")
     fluid_voxels: float | None = 3.0
     elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
-    #: a level stops when 10 taken steps gain less than this much objective (the LNCC's mean over the voxels where
-    #: the force acts, less the skin's term and the membrane energy), or when no step of the smallest radius raises
-    #: it (max_halvings)
+    #: a level stops when 10 taken steps gain less than this much of its objective
     tolerance: float = 1e-4
-    #: the LNCC windows and both smoothings keep to the scan's tissue (U's by normalised convolution, Knutsson
-    #: & Westin 1993).  A Gaussian across the skin averages the skin's motion with the air's, which no image force
-    #: drives, and an LNCC window across it is ruled by the body/air step, blind to sliding along the skin (the
-    #: skin's tangential slide was under-recovered).  With it the windows' statistics are over the scan's body
-    #: only, the force's smoothing is divided by the tissue's share of the kernel (floored at 1/2: at the skin the
-    #: force is the tissue's mean, into the air at most twice the plain one) and U's smoothing weighs the air by
-    #: air_weight.  (Applied only when air surrounds the scan's body, AIR_AROUND; each level's record says
-    #: whether it was.)
+    #: the LNCC windows and both smoothings keep to the scan's tissue (when air surrounds its body), so that the
+    #: skin's motion is not averaged with the air's, which no image drives (registration-settings.md, "tissue_only")
     tissue_only: bool = True
-    air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
-    #: with tissue_only, the skin's term: the tissue-only windows do not see the skin, so nothing holds the
-    #: registered body's outline on the scan's.  The level's objective is the LNCC less skin_weight times the mean
-    #: squared difference of the two bodies' masks (segment_body), each smoothed by the LNCC's window, near the
-    #: scan's skin (weighed by 4 s (1 − s), s the scan's smoothed mask): a force across the skin only (sliding
-    #: along it stays free).  At 1 its cost per voxel (at most 0.42) is of the order of the LNCC's; 0: off
+    air_weight: float = 0.05  #: the air's weight in U's normalised smoothing when tissue_only (1: a plain Gaussian)
+    #: with tissue_only, the weight of the skin's term (the bodies' smoothed masks' squared difference near the
+    #: scan's skin), which holds the registered body's outline on the scan's; 0: off
+    #: (registration-settings.md, "skin_weight and stiffness")
     skin_weight: float = 1.0
-    #: the start stands where the scan shows only its noise: the level's objective also subtracts stiffness times
-    #: the mean over the region of n |∇u|² (u the correction of the start, mm/mm by forward differences; the
-    #: bones left out), n the share of the scan's local variance in the LNCC's window that its noise makes up (1
-    #: where the window holds noise only, towards 0 where structure rises above it; the noise measured in the
-    #: scan's air, voxel_noise_variance, and thinned by the level's pre-smoothing; the air around the body, which
-    #: shows only noise, weighs 1).  0: off
+    #: the weight of the membrane energy of the correction ``u``, each voxel weighed by the noise's share of the
+    #: scan's local variance: the start stands where the scan shows only noise; 0: off
     stiffness: float = 3.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
-    #: (interpolation_noise_variance, the template's noise measured in its air): no sub-voxel position is preferred for the
-    #: noise it averages away.  Off by default: it helps most tuning cases and loses the identity start of Rhee's
-    #: Table 2 protocol (docs/measurements/dense-registration.md, "The template's noise and the interpolation")
+    #: (:func:`interpolation_noise_variance`); off by default (registration-settings.md, "interpolation_noise")
     interpolation_noise: bool = False
-    #: data fission (Leiner et al. 2023): both images split into ``x + a z`` for the steps and ``x − z / a`` held
-    #: out, ``z`` Gaussian of each image's own noise SD (its tissue's, measured in its air where there is enough:
-    #: voxel_noise_variance), so that the two copies' noises are
-    #: independent; each level returns the map of its taken steps whose held-out LNCC (the template read at its
-    #: nearest voxel: no sub-voxel position favoured) is the highest, and stops after holdout_patience taken steps
-    #: without a new highest.  Off by default: it keeps the CT-like knee near its start on one noise draw of two,
-    #: and loses on Rhee's Table 2 protocol (identity start) and, with a share of 0.5, on the large motions
-    #: (docs/measurements/dense-registration.md, "A held-out copy of the noise")
+    #: data fission (Leiner et al. 2023): each level returns the map its held-out copy of the noise scores
+    #: highest (:func:`fission`); off by default (registration-settings.md, "holdout")
     holdout: bool = False
     #: ``a``: the steps' images carry (1 + a²) times the image's noise variance, the held-out copy (1 + 1/a²) times
     holdout_share: float = 0.35
-    holdout_patience: int = 10
-    holdout_seed: int = 0  #: the draw of ``z`` (same inputs and seed, same bits)
+    holdout_patience: int = 10  #: a level stops after this many taken steps without a new highest held-out LNCC
+    holdout_seed: int = 0  #: the draw of the fission's noise (same inputs and seed, same bits)
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -334,10 +214,10 @@ os.register_at_fork(after_in_child=POOLS.clear)
 def smooth_all(arrays, sigma_vox) -> list:
     """Each array smoothed by the dense Gaussian (:data:`GAUSSIAN`), on as many threads as numba's setting
     allows (SciPy's filters release the GIL; arrays of fewer than ``SMOOTH_SERIAL_BELOW`` voxels serially).
-    Whole arrays go to the threads in turn; the ones left over (the third of three on two threads) are cut into one slab per thread along their
-    longest axis, each with a halo of the kernel's reach: a Gaussian is a 1-D filter per axis, and every output
-    voxel of a slab is computed from the same inputs in the same order as on the whole array, so the bits do
-    not depend on the thread count."""
+    Whole arrays go to the threads in turn; the ones left over (the third of three on two threads) are cut into one slab
+    per thread along their longest axis, each with a halo of the kernel's reach: a Gaussian is a 1-D filter per axis,
+    and every output voxel of a slab is computed from the same inputs in the same order as on the whole array, so the
+    bits do not depend on the thread count."""
     n = min(len(arrays), max(int(numba.get_num_threads()), 1))
     # small arrays (a bone's box in the refinement) serially: handing them to the threads costs more than it saves
     if n <= 1 or not np.any(np.asarray(sigma_vox) > 0) or max(a.size for a in arrays) < SMOOTH_SERIAL_BELOW:
@@ -582,9 +462,9 @@ def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
     return body_f, (d <= grow_mm).astype(np.float32)
 
 
-#: settings.tissue_only applies when at least this share of the grid's faces lies outside the scan's body: the
-#: body is surrounded by air (test knee 0.95, test hand 0.99).  Without air the segmentation's "body" is the
-#: brighter tissue (a textured block with no air: 0.46), and keeping to it would drop the rest of the tissue.
+#: settings.tissue_only applies when at least this share of the grid's faces lies outside the scan's body (air
+#: surrounds it): without air the segmentation's "body" is the brighter tissue, and keeping to it would drop the
+#: rest of the tissue (registration-settings.md, "tissue_only")
 AIR_AROUND = 0.75
 
 
@@ -745,7 +625,7 @@ class TemplateSampler:
 
     def level(self, s: int, sig_pre: float, shape: tuple):
         """``(warp, sample)`` on the level of shrink ``s`` (grid ``shape``): ``warp(u)`` is ``w`` on the whole
-        level for ``u`` (3, *shape) mm along the array axes; ``sample(coords)`` is ``w`` at fractional level
+        level for ``u`` ``(3, *shape)`` mm along the array axes; ``sample(coords)`` is ``w`` at fractional level
         indices ``coords`` (z, y, x arrays of any one shape), through ``φ₀`` there.  Both read the template
         trilinearly; ``warp(u, order=0)`` at its nearest voxel."""
         g, tg = self.scan, self.geometry
@@ -992,9 +872,9 @@ def refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, grid
 
 
 def membrane_energy(u: np.ndarray, weight: np.ndarray, sp) -> tuple[float, np.ndarray]:
-    """The membrane energy ``Σ m |∇u|²`` of ``u`` (3, *shape; mm along the array axes) by forward differences,
+    """The membrane energy ``Σ m |∇u|²`` of ``u`` (``(3, *shape)``, mm along the array axes) by forward differences,
     each pair of neighbours weighed by the product of their ``weight`` (``m``), and its derivative with respect to
-    ``u`` (3, *shape): exact for this discrete energy, so that a step along its negative lowers it."""
+    ``u`` (``(3, *shape)``): exact for this discrete energy, so that a step along its negative lowers it."""
     energy = 0.0
     grad = np.zeros_like(u)
     for b in range(3):
@@ -1043,12 +923,115 @@ def register_dense(
     settings: DenseSettings | None = None,
     progress=None,
 ) -> DenseResult:
-    """Register the template ``moving`` to the scan ``fixed`` from ``initial`` (see the module docstring).
+    """Register the template ``moving`` to the scan ``fixed`` from ``initial`` (``φ₀``, scan → template).
 
     ``moving_labels`` (the template's bone label map) makes every bone move
     rigidly or stay fixed (``settings.bones``).  Returns the ``scan_to_template``
     field ``φ₀ ∘ U`` on the scan grid.  ``progress(dict)`` is called once per
     level with its record.
+
+    Notes
+    -----
+    * **Start**: ``φ₀`` (scan → template), one-to-one (the polyrigid flow of
+      :mod:`deformation.polyrigid`); the registration finds ``U = id + u`` on the
+      scan grid with ``F ≈ M ∘ φ₀ ∘ U``, the template sampled once through the
+      composed map at every trial (:class:`TemplateSampler`: resampling an
+      already resampled template rewards sub-voxel shifts that smooth its noise);
+      the result is ``φ = φ₀ ∘ U`` (composed, not added).
+    * **Similarity**: local normalised cross-correlation in a Gaussian window
+      (LNCC), insensitive to the MRI bias field and to contrast differences
+      between scans; its gradient is that of Avants et al. (ANTs SyN's CC).
+    * **Steps**: the gradient, smoothed by a Gaussian ("fluid" regularisation),
+      scaled so that no voxel moves more than the trust radius, then *composed*
+      into ``U`` (``u ← f + u ∘ (id + f)``) and ``U`` smoothed ("elastic"
+      regularisation, in proportion to the step: half the radius, half the
+      smoothing).  A step with ``det(I + ∇f) ≤ min_jacobian`` anywhere is halved
+      until it has none, so every step is one-to-one and so is their
+      composition: no fold is created.
+    * **Convergence** (a trust region on each level's objective, the mean LNCC
+      over the voxels where the force acts less the skin's term and the membrane
+      energy below): a step is taken only when it raises
+      the objective; otherwise the radius halves and the step is tried again from
+      the same direction; after a taken step the radius grows (``radius_growth``,
+      up to ``step_mm``).  A level stops when no step of radius
+      ``step_mm · 2^-max_halvings`` raises its objective, or when 10 taken steps
+      together gained less than ``tolerance``; ``iterations`` only caps the
+      trials.  Each level's record holds its objective per taken step (it never
+      falls), the rejected trials and why it stopped.
+    * **Bones** (the template's labels pulled through the current map):
+      ``bones="fixed"`` (default) holds each bone at a rigid motion — ``U = id``,
+      where the pose stage's rigid intensity registration placed it, more
+      precisely than a dense force can — fading into the smooth step over
+      ``bone_margin_mm``; ``"rigid"`` replaces the step (and the smoothed field)
+      on each bone by its least-squares rigid motion; ``"free"`` ignores the
+      labels.
+    * **Held bones refined** (``refine_bones``, with ``"fixed"``): a pose stage
+      that erred leaves a held bone where it put it, so the bones' poses are
+      refined too, by block-coordinate ascent on the same objective: before a
+      level's steps, and each time they stop, each bone's rigid motion (six
+      parameters about its centroid) is optimised with the soft tissue held
+      (NLopt BOBYQA, derivative-free; the candidate moves the bone and fades over
+      ``refine_margin_voxels``; the objective is the LNCC over the voxels that
+      motion can change, against its value as ``U`` is; a candidate that would
+      bring ``det(I + ∇u)`` below ``min_jacobian`` scores below every one-to-one
+      one), and the round is taken only if the level's objective rises; the
+      steps then go on.
+      The pose stage's estimate stands unless the image moves a bone past
+      ``refine_min_move_voxels`` (half a scan voxel: the LNCC's windows reach
+      into the soft tissue, and its optimum sits a few tenths of a mm from the
+      bone's own fit) and the bone's own fit rises significantly with it
+      (``refine_significance``, :func:`bone_fit_improves`: the images smoothed
+      by a scan voxel, the noise's correlation counted); a bone is tested on a
+      level only where it is at least ``refine_min_voxels`` across (a pose is read from opposite edges), once on
+      the finest level if no coarser one could, and once moved it is refined on
+      every later round.
+    * **Multi-resolution**: the images are smoothed and subsampled by
+      ``shrink`` per level, coarse to fine; ``u`` is carried up by trilinear
+      interpolation.  The smoothing σ are in voxels of each level by default
+      (``fluid_voxels``, ``elastic_voxels``), as ANTs SyN's.
+    * **Body only**: the force acts inside the two images' bodies
+      (:func:`registration.segmentation.segment_body`) grown by two windows: in
+      air the noise alone moves the map, and nothing anatomical holds it.  The levels
+      compute on the box around that region grown by the LNCC statistics' reach
+      (less time where the body fills a small part of the grid), and U takes
+      its edge values beyond the box.
+    * **Tissue only** (``tissue_only``, when air surrounds the scan's body):
+      the LNCC windows are over the scan's body only, the smoothed force is
+      divided by the tissue's share of the kernel (at least 1/2), and ``U`` is
+      smoothed by a normalised convolution (Knutsson & Westin 1993) weighing the
+      air by ``air_weight``, so the skin's motion is not averaged with the air's,
+      which no image drives, and the correlation at the skin follows the
+      tissue's texture rather than the body/air step; as sliding-motion
+      registration smooths each region on its own (Risser et al. 2013,
+      piecewise-diffeomorphic registration).
+    * **The skin** (``skin_weight``, with the tissue-only windows): those windows
+      do not see the skin, and in flat tissue (soft tissue in CT) nothing else
+      does, so a step driven elsewhere could pull the registered body's outline
+      inside the scan's.  The level's objective is the LNCC less ``skin_weight``
+      times the mean squared difference of the two bodies' masks, each smoothed
+      by the window (the template's sampled through the same map; unknown beyond
+      its grid, where the term is left out), counted near the scan's skin only
+      (deep in its body the template's air is a crease whose skins touch in the
+      scan): a force across the skin, not along it.
+    * **Where the scan shows only noise** (``stiffness``): a step that moves
+      tissue there raises the LNCC by fitting the noise, and nothing in the
+      images holds the start.  The level's objective also subtracts a membrane
+      energy of the correction ``u``, each voxel weighed by the share of the
+      scan's local variance (in the LNCC's window) its noise makes up: near 1 in
+      flat tissue, near 0 where structure rises above the noise, so a correction
+      the images support costs little and one they do not support costs.
+    * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
+      grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
+      start compresses a crease below the voxel size or curled fingers touch;
+      those voxels of the scan's body are smoothed locally
+      (:func:`deformation.fields.unfold`) around the bones' interiors (their
+      deepest voxels frozen, then fewer; as a last resort none, which is tried
+      second as a probe: when it leaves folds, freezing more is not tried),
+      every smoothed voxel then going back towards the registered value as far as the
+      determinant allows (unfold's restoring passes: the smoothing replaces
+      patches, a fold needs a few voxels), and the repair is taken only when it
+      removes every fold (``DenseResult.unfold`` says which attempt,
+      ``bone_layers_released`` None for the last resort).
     """
     st = settings or DenseSettings()
     t0 = time.perf_counter()
@@ -1074,7 +1057,7 @@ def register_dense(
     # force is zero, so padding the box's edges by their values (the filters' "nearest") smooths the force
     # as the whole grid would.  Near the box's edge, in the air, the result is not the whole grid's: U's
     # smoothing and composition there see U continued flat (on the whole grid it decays), and the levels'
-    # pre-smoothing sees the edge continued (the MED it changes: the docs' "Measurements behind the settings").
+    # pre-smoothing sees the edge continued (registration-settings.md, "body_only").
     crop = _crop_box(
         region,
         g.array_shape,
@@ -1587,11 +1570,10 @@ def register_dense(
     u_folds = folding_statistics(Volume(u_world, g), scan_body)["n_folded"]
     repair = None
     if st.unfold:
-        # Every step was one-to-one on its level's grid (the smoothing of U between steps is not checked, but
-        # has not folded in any measured run); φ₀ ∘ U, sampled on the scan grid,
-        # can show det ≤ 0 where the start compresses the crease below the voxel size (as the phantoms' exact
-        # fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are smoothed
-        # locally, inside the body only (air carries no anatomy).
+        # Every step was one-to-one on its level's grid (the smoothing of U between steps is not checked); φ₀ ∘ U,
+        # sampled on the scan grid, can show det ≤ 0 where the start compresses the crease below the voxel size (as the
+        # phantoms' exact fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are
+        # smoothed locally, inside the body only (air carries no anatomy).
         mask = scan_body
         lab_now = (
             None
@@ -1603,10 +1585,9 @@ def register_dense(
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
             # pressed against a bone frees one more voxel layer of it at a time (up to 3, a bone's deepest
             # voxels staying, _bone_cores); nothing frozen is the last choice, though it runs second as a probe
-            # (the smoothing stays local to the folds, but may then bend a bone next to one: the bone MED
-            # measures it).  Only a complete
-            # repair is taken: a failing one smooths an ever larger region (it moved tissue by 100 mm on the
-            # hand's fist), so then the folds stay, reported in ``folding``.
+            # (the smoothing stays local to the folds, but may then bend a bone next to one).  Only a complete
+            # repair is taken: a failing one smooths an ever larger region, so then the folds stay, reported in
+            # ``folding`` (registration-settings.md, "unfold").
             # Each attempt first smooths only the folded voxels with a narrow kernel (σ 0.7 voxel, no margin):
             # on the hand the folds sit where curled fingers touch, where neighbouring voxels map to different
             # fingers and a wider average lands between them; the knee's crease folds need the defaults (σ 1,

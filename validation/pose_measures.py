@@ -186,14 +186,14 @@ def format_pose_accuracy(acc: dict) -> str:
     lines.append("")
     lines.append(
         f"{'joint':<18}{'dof':>4}{'moves °':>9}{'hinge':>7}{'centre err mm':>15}{'true c→axis mm':>16}"
-        f"{'axis err °':>12}{'Eq.1 rms mm':>13}{'|cf−it| mm':>12}"
+        f"{'axis err °':>12}{'Kurihara Eq. 1 rms mm':>23}{'|cf−it| mm':>12}"
     )
     for j, e in acc["joints"].items():
         hinge = "kept" if not e["estimated"] else "yes" if e["is_hinge"] else "no"
         lines.append(
             f"{j:<18}{e['dof']:>4}{e['max_rotation_deg']:>9.1f}{hinge:>7}"
             f"{_f(e.get('center_error_mm')):>15}{_f(e.get('center_to_axis_mm')):>16}"
-            f"{_f(e.get('axis_error_deg')):>12}{e['rms_mm']:>13.2f}"
+            f"{_f(e.get('axis_error_deg')):>12}{e['rms_mm']:>23.2f}"
             f"{_f(e['closed_form_vs_iterative_mm'], '{:.1e}'):>12}"
         )
     c = s["center_error_mm_2_3_dof_moving"]
