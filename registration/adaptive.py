@@ -192,7 +192,7 @@ class StepRecord:
 
 @dataclass
 class LevelRecord:
-    """What one block level did (the issue's per-level log)."""
+    """What one block level did (a per-level log)."""
 
     level: int
     blocks: tuple  #: blocks along x, y, z

@@ -58,7 +58,7 @@ def test_local_step_recovers_a_planted_clamped_plate_spline_displacement():
     assert rec.accepted
     err = np.linalg.norm(corr.data.reshape(-1, 3) - u.reshape(-1, 3), axis=1)[inball]
     voxel = min(G.spacing)
-    # the bound: < 0.2 voxel (measured: mean 0.03, max 0.27 voxel — the max is at the ball's rim,
+    # the required bound: < 0.2 voxel (measured: mean 0.03, max 0.27 voxel — the max is at the ball's rim,
     # where the displacement is tiny and the image gradient alone cannot pin it)
     assert err.mean() < 0.2 * voxel
     assert np.percentile(err, 95) < 0.2 * voxel
@@ -173,7 +173,7 @@ def test_rhee_table2_protocol_on_the_test_knee():
     zero = Volume(np.zeros(truth.data.shape, np.float32), truth.geometry)
     before, after = med(zero, truth, body), med(res.correspondence, truth, body)
     # Rhee: 5.5 → 3.5 mm (−36 %), CC 0.63 → 0.80.  Measured here: 7.2 → 2.3 mm (−69 %), CC 0.85 → 0.985.
-    # The target is −75 % (not met yet, see README); this guards what is reached.
+    # The target is −75 % (not met yet); this guards what is reached.
     assert after < 0.4 * before
     assert res.similarity_after["cc"] > 0.95
     assert res.folding["n_folded"] == 0

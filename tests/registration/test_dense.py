@@ -490,7 +490,7 @@ def test_tissue_only_applies_when_air_surrounds_the_body(case):
 
 @pytest.mark.parametrize("air", [False, True])
 def test_each_level_objective_never_falls_at_a_taken_step(air):
-    """Issue M: a step is taken only when it raises the level's LNCC (a trust region: otherwise its radius
+    """A step is taken only when it raises the level's LNCC (a trust region: otherwise its radius
     halves), and a level stops on convergence (10 taken steps gaining < tolerance, or no step of the smallest
     radius raising it) rather than on its trial cap.  The cap here (200) is far above what the case needs."""
     template, labels, scan, truth, bone = make_case(air=air)

@@ -45,7 +45,7 @@ def test_bone_transforms_match_the_truth(knee_result):
     res, acc = knee_result
     assert all(f.ok for s in res.scans for f in s.fits.values()), res.failures()
     s = acc["summary"]
-    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion: the bounds (median ≤ 0.5° / 0.5 mm, worst
+    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion: the required bounds (median ≤ 0.5° / 0.5 mm, worst
     # bone ≤ 2° / 2 mm).  Measured: median 0.08° / 0.05 mm, worst 1.15° (the patella, whose Cramér–Rao bound
     # on the benchmark's 4-scan CT knee is 0.46° rms) and 0.24 mm.  Before the phantom rendered bone edges rigidly
     # and the polish became
@@ -57,7 +57,7 @@ def test_bone_transforms_match_the_truth(knee_result):
 def test_joint_centres_and_hinge_axes(knee_result):
     res, acc = knee_result
     # Every joint flexes (70°, or 49° for the patella) with only a few degrees of varus and twist: Eq. 1 sees
-    # near-hinges.  The bounds: the true centre within 1 mm of the estimated axis, the axis within 2°
+    # near-hinges.  The required bounds: the true centre within 1 mm of the estimated axis, the axis within 2°
     # of the one the true motions define.  Measured: knee 0.04 mm / 0.64°, tibiofibular 0.17 mm / 0.13°,
     # patellofemoral 0.65 mm / 0.47°.
     for name, e in acc["joints"].items():
