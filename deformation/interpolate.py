@@ -521,6 +521,8 @@ def warp(
             volume.data, volume.geometry.world_to_index_matrix, target_geometry, displacement.data, order, fill
         )
         return Volume(out if dtype is None else out.astype(dtype), target_geometry)
+    if positions is None or target_geometry is None:
+        raise ValueError("give positions and target_geometry, or a displacement")
     pos = np.asarray(positions)
     if pos.shape != target_geometry.array_shape + (3,):
         raise GeometryMismatchError(
