@@ -110,8 +110,8 @@ def print_bound(phantom, regions, study, summary):
 
 def run_phantoms(args, root: Path):
     from registration.pose import estimate_poses
-    from registration.report import accuracy
     from registration.rigid import bone_regions
+    from validation.pose_measures import pose_accuracy
 
     rows = []
     for region in args.regions:
@@ -134,7 +134,7 @@ def run_phantoms(args, root: Path):
                 t0 = time.perf_counter()
                 res = estimate_poses(tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk, **CONFIGS[name])
                 dt = (time.perf_counter() - t0) / len(st.scan_ids)
-                acc = accuracy(res, truth, sk, centroids)
+                acc = pose_accuracy(res, truth, sk, centroids)
                 s = acc["summary"]
                 per[name] = (s, dt)
                 fails = len(res.failures())
@@ -156,9 +156,9 @@ def run_phantoms(args, root: Path):
                 )
                 rows.append((region, modality, name, s, dt, fails))
                 if name == "ours" and args.tables:
-                    from registration.report import format_accuracy
+                    from validation.pose_measures import format_pose_accuracy
 
-                    print(format_accuracy(acc))
+                    print(format_pose_accuracy(acc))
             if args.bound:
                 print_bound(ph, regions, st, per["ours"][0] if "ours" in per else None)
             if "ours" in per and "paper" in per:

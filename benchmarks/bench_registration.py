@@ -95,18 +95,19 @@ from scipy import ndimage
 
 from deformation.fields import folding_statistics
 from deformation.geometry import Volume
+from deformation.interpolate import warp
 from deformation.skinning import stack_transforms
 from registration.adaptive import AdaptiveSettings, register_adaptive
 from registration.baselines import (
-    _itk,
     ants_available,
     ants_syn,
     elastix_available,
     elastix_bspline,
+    load_itk,
     sitk_bspline,
-    warp_template,
 )
 from registration.initialise import vbd_initial_field
+from registration.metrics import air_level
 from validation.phantoms import make_phantom
 from validation.phantoms.generate import ACQUISITIONS, describe_acquisition
 from validation.protocols.registration import PAPER as RHEE_TABLES
@@ -195,7 +196,14 @@ def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem
     through it), its MED over the ``bone`` voxels of the body and over the rest of the body (soft tissue), its
     P95 over the body, the body's folded voxels, ``seconds`` and ``mem`` (MiB), and ``<name>_mm``: its MED over
     each further mask of ``regions``."""
-    m = registration_measures(scan, warp_template(template, fld), fld, truth=truth, body=body, markers=markers)
+    m = registration_measures(
+        scan,
+        warp(template, displacement=fld, fill=air_level(template), dtype=np.float32),
+        fld,
+        truth=truth,
+        body=body,
+        markers=markers,
+    )
     err = error_map(fld, truth, dtype=np.float64)
     m.update(
         bone_mm=float(err[bone].mean()),
@@ -652,7 +660,7 @@ def run_external(args):
     )
     before = _tree_state(src)
     if elastix_available() and not args.no_elastix:
-        _itk()  # ITK's modules loaded before any sampler starts: elastix's peak memory is its registration's
+        load_itk()  # ITK's modules loaded before any sampler starts: elastix's peak memory is its registration's
     summary, failures = [], []
     for d in studies:
         copy = work / d.name
@@ -907,18 +915,28 @@ def run_case(name, ph, articulated, args):
             m["seconds"] = seconds
             rows.setdefault(method, []).append(m)
 
-        add("source", zero, warp_template(template, zero), 0.0)
+        add("source", zero, warp(template, displacement=zero, fill=air_level(template), dtype=np.float32), 0.0)
         initial = None
         if args.from_truth:  # the intensity floor: how far each method drifts from the exact answer
             initial = truth
-            add("initialised", truth, warp_template(template, truth), 0.0)
+            add(
+                "initialised",
+                truth,
+                warp(template, displacement=truth, fill=air_level(template), dtype=np.float32),
+                0.0,
+            )
         elif articulated:
             t0 = time.perf_counter()
             t = stack_transforms(sc.pose.transforms, weights.bones)
             initial, _ = vbd_initial_field(
                 ph.geometry, sc.image.geometry, weights, t, body=body_t.data, unfold=args.unfold_init
             )
-            add("initialised", initial, warp_template(template, initial), time.perf_counter() - t0)
+            add(
+                "initialised",
+                initial,
+                warp(template, displacement=initial, fill=air_level(template), dtype=np.float32),
+                time.perf_counter() - t0,
+            )
         if articulated or args.from_truth:
             st = AdaptiveSettings.initialised(seed=args.seed)
         else:

@@ -51,11 +51,11 @@ def main(argv=None):
     from deformation.splines import KURIHARA_D_MM, RBFDeformation
     from deformation.surface_model import SurfaceModel
     from registration.surface_fit import (
-        _confident_targets,
-        _scene,
+        confident_targets,
         farthest_points,
         fit_nearest,
         fit_regularised,
+        raycasting_scene,
         triangle_normals,
         vertex_normals,
     )
@@ -86,11 +86,11 @@ def main(argv=None):
     fitted = {}
     for pid, target in targets.items():
         ssd = SurfaceMesh(lbs(base.vertices, weights, poses[pid].transforms), base.triangles)
-        tgt, has = _confident_targets(
+        tgt, has = confident_targets(
             ssd.vertices,
             vertex_normals(ssd.vertices, ssd.triangles),
             target,
-            _scene(target),
+            raycasting_scene(target),
             triangle_normals(target.vertices, target.triangles),
             5.0,
             np.cos(np.deg2rad(60.0)),

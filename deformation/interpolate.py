@@ -485,8 +485,17 @@ def sample_shifted(data, shift, scale=(1.0, 1.0, 1.0), order: int = 1) -> np.nda
     return out[0] if scalar else out
 
 
-def warp(volume: Volume, positions, target_geometry: GridGeometry, *, order: int = 1, fill: float = 0.0) -> Volume:
-    """Pull-resample ``volume`` onto ``target_geometry``.
+def warp(
+    volume: Volume,
+    positions=None,
+    target_geometry: GridGeometry | None = None,
+    *,
+    displacement: Volume | None = None,
+    order: int = 1,
+    fill: float = 0.0,
+    dtype=None,
+) -> Volume:
+    """Pull-resample ``volume`` onto ``target_geometry`` (or onto ``displacement``'s grid).
 
     ``positions`` ``(nz, ny, nx, 3)`` gives, for each target voxel, the world
     point (mm) of ``volume`` whose value it takes: for a field ``u`` on the
@@ -496,11 +505,29 @@ def warp(volume: Volume, positions, target_geometry: GridGeometry, *, order: int
     ``warp(scan, positions(template_to_scan), template.geometry)``, where the
     ``template_to_scan`` field gives, for each template voxel, the scan position
     minus the template position.  Points outside ``volume`` give ``fill``.
+
+    ``displacement`` (a volume ``(nz, ny, nx, 3)``, mm) instead of ``positions``
+    and ``target_geometry``: each voxel ``x`` of its grid takes ``volume``'s value
+    at ``x + displacement[x]``, the points never stored
+    (:func:`sample_displaced_array`); the template pulled onto a scan through a
+    ``scan_to_template`` field is ``warp(template, displacement=scan_to_template)``.
+    ``dtype``: the result converted to it (None: the sampling's dtype).
     """
+    if displacement is not None:
+        if positions is not None or target_geometry is not None:
+            raise ValueError("give positions and target_geometry, or a displacement, not both")
+        target_geometry = displacement.geometry
+        out = sample_displaced_array(
+            volume.data, volume.geometry.world_to_index_matrix, target_geometry, displacement.data, order, fill
+        )
+        return Volume(out if dtype is None else out.astype(dtype), target_geometry)
+    if positions is None or target_geometry is None:
+        raise ValueError("give positions and target_geometry, or a displacement")
     pos = np.asarray(positions)
     if pos.shape != target_geometry.array_shape + (3,):
         raise GeometryMismatchError(
             f"positions shape {pos.shape} does not match the target grid {target_geometry.describe()} "
             f"(expected {target_geometry.array_shape + (3,)})"
         )
-    return Volume(sample(volume, pos, order=order, fill=fill), target_geometry)
+    out = sample(volume, pos, order=order, fill=fill)
+    return Volume(out if dtype is None else out.astype(dtype), target_geometry)

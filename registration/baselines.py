@@ -31,7 +31,7 @@ import SimpleITK as sitk
 
 from deformation.fields import compose, from_transform
 from deformation.geometry import Volume
-from deformation.interpolate import sample_displaced_array
+from deformation.interpolate import warp
 
 from .metrics import air_level
 
@@ -42,7 +42,6 @@ __all__ = [
     "elastix_available",
     "ants_syn",
     "ants_available",
-    "warp_template",
 ]
 
 
@@ -55,28 +54,21 @@ class BaselineResult:
     parameters: dict
 
 
-def warp_template(moving: Volume, field: Volume) -> Volume:
-    """The template pulled onto ``field``'s grid through a ``scan_to_template`` field (trilinear, air outside)."""
-    g = field.geometry
-    out = sample_displaced_array(
-        moving.data, moving.geometry.world_to_index_matrix, g, field.data, 1, air_level(moving)
-    )
-    return Volume(out.astype(np.float32), g)
-
-
 def _initialised(fixed: Volume, moving: Volume, initial: Volume | None) -> Volume:
     if initial is None:
         if moving.geometry.is_close(fixed.geometry):
             return Volume(moving.data.astype(np.float32), fixed.geometry)
         initial = Volume(np.zeros(fixed.geometry.array_shape + (3,)), fixed.geometry)
     fixed.geometry.check_same(initial.geometry, names=("fixed image", "initial correspondence"))
-    return warp_template(moving, initial)
+    return warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32)
 
 
 def _finish(name, fixed, moving, initial, t_field: Volume, seconds, params) -> BaselineResult:
     corr = t_field if initial is None else compose(initial, t_field)
     corr = Volume(corr.data.astype(np.float32), fixed.geometry)
-    return BaselineResult(name, corr, warp_template(moving, corr), seconds, params)
+    return BaselineResult(
+        name, corr, warp(moving, displacement=corr, fill=air_level(moving), dtype=np.float32), seconds, params
+    )
 
 
 def sitk_bspline(
@@ -149,7 +141,7 @@ def sitk_bspline(
     return _finish("sitk-bspline", fixed, moving, initial, field, time.perf_counter() - t0, params)
 
 
-def _itk():
+def load_itk():
     """``import itk`` with its import-time warnings silenced: under ``-W error`` (our test suite) a warning
     raised half-way through ITK's lazy module loading crashes the interpreter."""
     with warnings.catch_warnings():
@@ -173,7 +165,7 @@ def elastix_available() -> bool:
 
 
 def _to_itk(vol: Volume):
-    itk = _itk()
+    itk = load_itk()
     img = itk.image_from_array(np.ascontiguousarray(vol.data, dtype=np.float32))
     g = vol.geometry
     img.SetSpacing([float(v) for v in g.spacing])
@@ -207,7 +199,7 @@ def elastix_bspline(
     """
     if not elastix_available():
         raise ImportError("elastix baseline needs itk-elastix: pip install -e '.[bench]' (or pip install itk-elastix)")
-    itk = _itk()
+    itk = load_itk()
 
     if metric not in ("mi", "ssd"):
         raise ValueError(f"metric must be 'mi' or 'ssd', got {metric!r}")
@@ -222,7 +214,7 @@ def elastix_bspline(
     p["RandomSeed"] = [str(int(seed))]
     p["WriteResultImage"] = ["false"]
     with tempfile.TemporaryDirectory(prefix="avw-elastix-") as tmp, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # ITK's lazy loader imports more modules here (see _itk)
+        warnings.simplefilter("ignore")  # ITK's lazy loader imports more modules here (see load_itk)
         if rigidity_labels is not None:
             from scipy import ndimage
 

@@ -1,114 +1,18 @@
 """Articulated dense registration: diffeomorphic local-correlation steps with the bones kept rigid.
 
-Rhee's Algorithm 1 (:mod:`registration.adaptive`) moves one block at a time
-and keeps a step only when it pays; on soft tissue with real structure
-(issue I's independent phantom) it barely moves, while a B-spline that moves
-everything at once halves the start's error.  This stage moves every voxel
-at every iteration, and keeps what an articulated body needs:
-
-* **Start**: ``φ₀`` (scan → template), one-to-one (the polyrigid flow of
-  :mod:`deformation.polyrigid`); the registration finds ``U = id + u`` on the
-  scan grid with ``F ≈ M ∘ φ₀ ∘ U``, the template sampled once through the
-  composed map at every trial (:class:`_TemplateSampler`: resampling an
-  already resampled template rewards sub-voxel shifts that smooth its noise);
-  the result is ``φ = φ₀ ∘ U`` (composed, not added).
-* **Similarity**: local normalised cross-correlation in a Gaussian window
-  (LNCC), insensitive to the MRI bias field and to contrast differences
-  between scans; its gradient is that of Avants et al. (ANTs SyN's CC).
-* **Steps**: the gradient, smoothed by a Gaussian ("fluid" regularisation),
-  scaled so that no voxel moves more than the trust radius, then *composed*
-  into ``U`` (``u ← f + u ∘ (id + f)``) and ``U`` smoothed ("elastic"
-  regularisation, in proportion to the step: half the radius, half the
-  smoothing).  A step with ``det(I + ∇f) ≤ min_jacobian`` anywhere is halved
-  until it has none, so every step is one-to-one and so is their
-  composition: no fold is created.
-* **Convergence** (a trust region on each level's objective, the mean LNCC
-  over the voxels where the force acts less the skin's term and the membrane
-  energy below): a step is taken only when it raises
-  the objective; otherwise the radius halves and the step is tried again from
-  the same direction; after a taken step the radius grows (``radius_growth``,
-  up to ``step_mm``).  A level stops when no step of radius
-  ``step_mm · 2^-max_halvings`` raises its objective, or when 10 taken steps
-  together gained less than ``tolerance``; ``iterations`` only caps the
-  trials.  Each level's record holds its objective per taken step (it never
-  falls), the rejected trials and why it stopped.
-* **Bones** (the template's labels pulled through the current map):
-  ``bones="fixed"`` (default) holds each bone at a rigid motion — ``U = id``,
-  where the pose stage's rigid intensity registration placed it, more
-  precisely than a dense force can — fading into the smooth step over
-  ``bone_margin_mm``; ``"rigid"`` replaces the step (and the smoothed field)
-  on each bone by its least-squares rigid motion; ``"free"`` ignores the
-  labels.
-* **Held bones refined** (``refine_bones``, with ``"fixed"``): a pose stage
-  that erred leaves a held bone where it put it, so the bones' poses are
-  refined too, by block-coordinate ascent on the same objective: before a
-  level's steps, and each time they stop, each bone's rigid motion (six
-  parameters about its centroid) is optimised with the soft tissue held
-  (NLopt BOBYQA, derivative-free; the candidate moves the bone and fades over
-  ``refine_margin_voxels``; the objective is the LNCC over the voxels that
-  motion can change, against its value as ``U`` is; a candidate that would
-  bring ``det(I + ∇u)`` below ``min_jacobian`` scores below every one-to-one
-  one), and the round is taken only if the level's objective rises; the
-  steps then go on.
-  The pose stage's estimate stands unless the image moves a bone past
-  ``refine_min_move_voxels`` (half a scan voxel: the LNCC's windows reach
-  into the soft tissue, and its optimum sits a few tenths of a mm from the
-  bone's own fit) and the bone's own fit rises significantly with it
-  (``refine_significance``, :func:`_bone_fit_improves`: the images smoothed
-  by a scan voxel, the noise's correlation counted); a bone is tested on a
-  level only where it is at least ``refine_min_voxels`` across (a pose is read from opposite edges), once on
-  the finest level if no coarser one could, and once moved it is refined on
-  every later round.
-* **Multi-resolution**: the images are smoothed and subsampled by
-  ``shrink`` per level, coarse to fine; ``u`` is carried up by trilinear
-  interpolation.  The smoothing σ are in voxels of each level by default
-  (``fluid_voxels``, ``elastic_voxels``), as ANTs SyN's.
-* **Body only**: the force acts inside the two images' bodies
-  (:func:`registration.segmentation.segment_body`) grown by two windows: in
-  air the noise alone moves the map, and nothing anatomical holds it.  The levels
-  compute on the box around that region grown by the LNCC statistics' reach
-  (less time where the body fills a small part of the grid), and U takes
-  its edge values beyond the box.
-* **Tissue only** (``tissue_only``, when air surrounds the scan's body):
-  the LNCC windows are over the scan's body only, the smoothed force is
-  divided by the tissue's share of the kernel (at least 1/2), and ``U`` is
-  smoothed by a normalised convolution (Knutsson & Westin 1993) weighing the
-  air by ``air_weight``, so the skin's motion is not averaged with the air's,
-  which no image drives, and the correlation at the skin follows the
-  tissue's texture rather than the body/air step; as sliding-motion
-  registration smooths each region on its own (Risser et al. 2013,
-  piecewise-diffeomorphic registration).
-* **The skin** (``skin_weight``, with the tissue-only windows): those windows
-  do not see the skin, and in flat tissue (soft tissue in CT) nothing else
-  does, so a step driven elsewhere could pull the registered body's outline
-  inside the scan's.  The level's objective is the LNCC less ``skin_weight``
-  times the mean squared difference of the two bodies' masks, each smoothed
-  by the window (the template's sampled through the same map; unknown beyond
-  its grid, where the term is left out), counted near the scan's skin only
-  (deep in its body the template's air is a crease whose skins touch in the
-  scan): a force across the skin, not along it.
-* **Where the scan shows only noise** (``stiffness``): a step that moves
-  tissue there raises the LNCC by fitting the noise, and nothing in the
-  images holds the start.  The level's objective also subtracts a membrane
-  energy of the correction ``u``, each voxel weighed by the share of the
-  scan's local variance (in the LNCC's window) its noise makes up: near 1 in
-  flat tissue, near 0 where structure rises above the noise, so a correction
-  the images support costs little and one they do not support costs.
-* **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
-  grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
-  start compresses a crease below the voxel size or curled fingers touch;
-  those voxels of the scan's body are smoothed locally
-  (:func:`deformation.fields.unfold`) around the bones' interiors (their
-  deepest voxels frozen, then fewer; as a last resort none, which is tried
-  second as a probe: when it leaves folds, freezing more is not tried),
-  every smoothed voxel then going back towards the registered value as far as the
-  determinant allows (unfold's restoring passes: the smoothing replaces
-  patches, a fold needs a few voxels), and the repair is taken only when it
-  removes every fold (``DenseResult.unfold`` says which attempt,
-  ``bone_layers_released`` None for the last resort).
-
-The measurements behind these choices (and the variants tried and not kept) are in
-``docs/measurements/dense-registration.md``, with the commands that reproduce them.
+Rhee's Algorithm 1 (:mod:`registration.adaptive`, Rhee §4.3) moves one block at a
+time and keeps a step only when it pays; this method moves every voxel at every
+iteration, in the manner of ANTs SyN's greedy cross-correlation registration,
+and keeps what an articulated body needs.  From a one-to-one start ``φ₀``
+(scan → template, the polyrigid flow of :mod:`deformation.polyrigid`) it finds
+``U = id + u`` on the scan grid with ``F ≈ M ∘ φ₀ ∘ U`` and returns
+``φ = φ₀ ∘ U``: local normalised cross-correlation (LNCC) in a Gaussian
+window, its gradient smoothed ("fluid") and composed into ``U`` within a trust
+radius, ``U`` smoothed ("elastic"), every step one-to-one, the bones held
+rigid at the pose stage's placement (their poses refined on the same
+objective), coarse to fine.  :func:`register_dense` describes each part;
+:class:`DenseSettings` holds the settings, whose measurements are in
+``docs/measurements/registration-settings.md``.
 
 References
 ----------
@@ -133,10 +37,10 @@ import numpy as np
 from scipy import ndimage
 
 from deformation.fields import folding_statistics, jacobian_determinant_components, unfold
+from deformation.filters import smooth
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted
+from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted, warp
 
-from .baselines import warp_template
 from .metrics import air_level, cc, similarity
 
 __all__ = ["DenseSettings", "DenseResult", "register_dense"]
@@ -146,14 +50,16 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DenseSettings:
-    """Settings of :func:`register_dense` (lengths in mm, so that they mean the same on any grid)."""
+    """Settings of :func:`register_dense` (lengths in mm, so that they mean the same on any grid).
+
+    The measurements behind the defaults are in ``docs/measurements/registration-settings.md``.
+    """
 
     shrink: tuple = (4, 2, 1)  #: subsampling per level, coarse to fine
     #: trials per level, at most: a cap for safety; a level stops on convergence (tolerance, max_halvings)
     iterations: tuple = (200, 200, 200)
-    #: LNCC Gaussian window σ: about the size of the soft tissue's structure (septa, vessels: a few mm), so that
-    #: the correlation follows it rather than the skin's edge (the measurements: docs/measurements/
-    #: dense-registration.md, "Measurements behind the settings")
+    #: LNCC Gaussian window σ: about the size of the soft tissue's structure (septa, vessels), so that the
+    #: correlation follows it rather than the skin's edge (registration-settings.md, "window_mm")
     window_mm: float = 3.0
     fluid_mm: float = 4.0  #: σ of the smoothing of each step, when fluid_voxels is None
     step_mm: float = 0.5  #: the trust radius's upper bound: a voxel's largest move in one step (see step_voxels)
@@ -161,82 +67,56 @@ class DenseSettings:
     radius_growth: float = 1.25  #: the trust radius grows by this factor after a taken step (up to step_mm)
     max_halvings: int = 5  #: a level stops when a step of radius step_mm·2⁻ᵏ does not raise its objective
     min_jacobian: float = 0.2  #: every step keeps det(I + ∇f) above this
-    bones: str = (
-        "fixed"  #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
-    )
+    #: "fixed" (U = id on the bones: the pose stage placed them), "rigid" (each moves rigidly), "free"
+    bones: str = "fixed"
     bone_margin_mm: float = 4.0  #: the bones' motion fades into the smooth step over this distance
-    #: with bones="fixed": each held bone's pose refined as a rigid body on the level's objective (the soft tissue
-    #: held; see the module docstring), within refine_deg (rotation vector, each component) and refine_mm (each
-    #: axis) of the start's pose: the pose stage's estimate is corrected, not replaced
+    #: with bones="fixed": each held bone's pose refined as a rigid body on the level's objective, the soft tissue
+    #: held (:func:`register_dense`, Notes)
     refine_bones: bool = True
-    refine_deg: float = 8.0
-    refine_mm: float = 4.0
+    refine_deg: float = 8.0  #: the refinement's bound on each rotation-vector component from the start's pose
+    refine_mm: float = 4.0  #: ... and on each axis of the translation: the estimate is corrected, not replaced
     refine_evaluations: int = 150  #: objective evaluations per bone and round, at most (NLopt BOBYQA)
-    #: rounds of the bones' refinement per level, at most: one before the steps, then one each time the steps
-    #: stop, the steps going on while a round raises the objective
+    #: rounds of the bones' refinement per level, at most: one before the steps, then one each time they stop
     refine_rounds: int = 3
     refine_margin_voxels: float | None = 1.0  #: a refined bone's motion fades over this many level voxels
     #: a bone's pose is first changed only when the refinement moves one of its voxels by more than this many
-    #: voxels of the scan; once changed it is refined on every later round
+    #: scan voxels (the LNCC's optimum sits a few tenths of a mm from the bone's own fit)
     refine_min_move_voxels: float = 0.5
-    #: a bone not moved so far is tested on the first round of each level where it is at least this many level
-    #: voxels thick (its inscribed diameter), and on the finest level only if no coarser level tested it
+    #: a bone not moved so far is tested on a level only where it is at least this many level voxels thick
     refine_min_voxels: float = 3.0
-    #: ... and only when the bone's own fit rises with it, by more than this many standard errors (Fisher's z of
-    #: its NCC over its voxels and one voxel around: _bone_fit_improves); 0 accepts any rise
+    #: ... and moved only when its own fit rises by more than this many standard errors (Fisher's z of its NCC:
+    #: :func:`bone_fit_improves`); 0 accepts any rise
     refine_significance: float = 2.0
     elastic_mm: float = 2.0  #: σ of the smoothing of the field after each step (0: none), when elastic_voxels is None
-    #: fluid σ in voxels of each level (None: fluid_mm).  In voxels, as ANTs SyN's update field: each level
-    #: regularises at its own scale (coarse levels smoothly, the fine one locally)
+    #: fluid σ in voxels of each level (None: fluid_mm), as ANTs SyN's: each level regularises at its own scale
+    #: (registration-settings.md, "fluid_voxels")
     fluid_voxels: float | None = 3.0
     elastic_voxels: float | None = 0.8  #: elastic σ in voxels of each level (None: elastic_mm)
-    #: a level stops when 10 taken steps gain less than this much objective (the LNCC's mean over the voxels where
-    #: the force acts, less the skin's term and the membrane energy), or when no step of the smallest radius raises
-    #: it (max_halvings)
+    #: a level stops when 10 taken steps gain less than this much of its objective
     tolerance: float = 1e-4
-    #: the LNCC windows and both smoothings keep to the scan's tissue (U's by normalised convolution, Knutsson
-    #: & Westin 1993).  A Gaussian across the skin averages the skin's motion with the air's, which no image force
-    #: drives, and an LNCC window across it is ruled by the body/air step, blind to sliding along the skin (the
-    #: skin's tangential slide was under-recovered).  With it the windows' statistics are over the scan's body
-    #: only, the force's smoothing is divided by the tissue's share of the kernel (floored at 1/2: at the skin the
-    #: force is the tissue's mean, into the air at most twice the plain one) and U's smoothing weighs the air by
-    #: air_weight.  (Applied only when air surrounds the scan's body, AIR_AROUND; each level's record says
-    #: whether it was.)
+    #: the LNCC windows and both smoothings keep to the scan's tissue (when air surrounds its body), so that the
+    #: skin's motion is not averaged with the air's, which no image drives (registration-settings.md, "tissue_only")
     tissue_only: bool = True
-    air_weight: float = 0.05  #: the air's weight in U's smoothing when tissue_only (1: a plain Gaussian)
-    #: with tissue_only, the skin's term: the tissue-only windows do not see the skin, so nothing holds the
-    #: registered body's outline on the scan's.  The level's objective is the LNCC less skin_weight times the mean
-    #: squared difference of the two bodies' masks (segment_body), each smoothed by the LNCC's window, near the
-    #: scan's skin (weighed by 4 s (1 − s), s the scan's smoothed mask): a force across the skin only (sliding
-    #: along it stays free).  At 1 its cost per voxel (at most 0.42) is of the order of the LNCC's; 0: off
+    air_weight: float = 0.05  #: the air's weight in U's normalised smoothing when tissue_only (1: a plain Gaussian)
+    #: with tissue_only, the weight of the skin's term (the bodies' smoothed masks' squared difference near the
+    #: scan's skin), which holds the registered body's outline on the scan's; 0: off
+    #: (registration-settings.md, "skin_weight and stiffness")
     skin_weight: float = 1.0
-    #: the start stands where the scan shows only its noise: the level's objective also subtracts stiffness times
-    #: the mean over the region of n ``|∇u|²`` (u the correction of the start, mm/mm by forward differences; the
-    #: bones left out), n the share of the scan's local variance in the LNCC's window that its noise makes up (1
-    #: where the window holds noise only, towards 0 where structure rises above it; the noise measured in the
-    #: scan's air, _voxel_noise_variance, and thinned by the level's pre-smoothing; the air around the body, which
-    #: shows only noise, weighs 1).  0: off
+    #: the weight of the membrane energy of the correction ``u``, each voxel weighed by the noise's share of the
+    #: scan's local variance: the start stands where the scan shows only noise; 0: off
     stiffness: float = 3.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
     unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
-    #: (_interpolation_noise, the template's noise measured in its air): no sub-voxel position is preferred for the
-    #: noise it averages away.  Off by default: it helps most tuning cases and loses the identity start of Rhee's
-    #: Table 2 protocol (docs/measurements/dense-registration.md, "The template's noise and the interpolation")
+    #: (:func:`interpolation_noise_variance`); off by default (registration-settings.md, "interpolation_noise")
     interpolation_noise: bool = False
-    #: data fission (Leiner et al. 2023): both images split into ``x + a z`` for the steps and ``x − z / a`` held
-    #: out, ``z`` Gaussian of each image's own noise SD (its tissue's, measured in its air where there is enough:
-    #: _voxel_noise_variance), so that the two copies' noises are
-    #: independent; each level returns the map of its taken steps whose held-out LNCC (the template read at its
-    #: nearest voxel: no sub-voxel position favoured) is the highest, and stops after holdout_patience taken steps
-    #: without a new highest.  Off by default: it keeps the CT-like knee near its start on one noise draw of two,
-    #: and loses on Rhee's Table 2 protocol (identity start) and, with a share of 0.5, on the large motions
-    #: (docs/measurements/dense-registration.md, "A held-out copy of the noise")
+    #: data fission (Leiner et al. 2023): each level returns the map its held-out copy of the noise scores
+    #: highest (:func:`fission`); off by default (registration-settings.md, "holdout")
     holdout: bool = False
     #: ``a``: the steps' images carry (1 + a²) times the image's noise variance, the held-out copy (1 + 1/a²) times
     holdout_share: float = 0.35
-    holdout_patience: int = 10
-    holdout_seed: int = 0  #: the draw of ``z`` (same inputs and seed, same bits)
+    holdout_patience: int = 10  #: a level stops after this many taken steps without a new highest held-out LNCC
+    holdout_seed: int = 0  #: the draw of the fission's noise (same inputs and seed, same bits)
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -317,35 +197,34 @@ class DenseResult:
 TEST_SMOOTH_VOXELS = 1.0
 
 
-def _smooth(a, sigma_vox):
-    return (
-        ndimage.gaussian_filter(a, sigma_vox, mode="nearest", truncate=3.0) if np.any(np.asarray(sigma_vox) > 0) else a
-    )
+#: the dense registration's Gaussians (:func:`deformation.filters.smooth`, SciPy's, σ in voxels of the level):
+#: the edge values continued (a level's box ends in the air), the kernel cut at 3 σ
+GAUSSIAN = {"mode": "nearest", "truncate": 3.0}
 
 
 #: arrays smaller than this (voxels) are smoothed serially: handing a bone's box to the threads costs more than
 #: it saves (32³, as the interpolation's serial threshold)
-_SMOOTH_SERIAL_BELOW = 32768
-_POOL: dict = {}  # one thread pool per thread count, kept: starting threads at every step cost ~1 s a run
-_POOL_LOCK = threading.Lock()
+SMOOTH_SERIAL_BELOW = 32768
+POOLS: dict = {}  # one thread pool per thread count, kept: starting threads at every step cost ~1 s a run
+POOLS_LOCK = threading.Lock()
 # a forked child inherits the pools without their threads, and map() on one would wait forever
-os.register_at_fork(after_in_child=_POOL.clear)
+os.register_at_fork(after_in_child=POOLS.clear)
 
 
-def _smooth_all(arrays, sigma_vox) -> list:
-    """:func:`_smooth` of each array, on as many threads as numba's setting allows (SciPy's filters release
-    the GIL; arrays of fewer than ``_SMOOTH_SERIAL_BELOW`` voxels serially).  Whole arrays go to the threads in
-    turn; the ones left over (the third of three on two threads) are cut into one slab per thread along their
-    longest axis, each with a halo of the kernel's reach: a Gaussian is a 1-D filter per axis, and every output
-    voxel of a slab is computed from the same inputs in the same order as on the whole array, so the bits do
-    not depend on the thread count."""
+def smooth_all(arrays, sigma_vox) -> list:
+    """Each array smoothed by the dense Gaussian (:data:`GAUSSIAN`), on as many threads as numba's setting
+    allows (SciPy's filters release the GIL; arrays of fewer than ``SMOOTH_SERIAL_BELOW`` voxels serially).
+    Whole arrays go to the threads in turn; the ones left over (the third of three on two threads) are cut into one slab
+    per thread along their longest axis, each with a halo of the kernel's reach: a Gaussian is a 1-D filter per axis,
+    and every output voxel of a slab is computed from the same inputs in the same order as on the whole array, so the
+    bits do not depend on the thread count."""
     n = min(len(arrays), max(int(numba.get_num_threads()), 1))
     # small arrays (a bone's box in the refinement) serially: handing them to the threads costs more than it saves
-    if n <= 1 or not np.any(np.asarray(sigma_vox) > 0) or max(a.size for a in arrays) < _SMOOTH_SERIAL_BELOW:
-        return [_smooth(a, sigma_vox) for a in arrays]
-    with _POOL_LOCK:
-        if n not in _POOL:
-            _POOL[n] = ThreadPoolExecutor(n, thread_name_prefix="dense-smooth")
+    if n <= 1 or not np.any(np.asarray(sigma_vox) > 0) or max(a.size for a in arrays) < SMOOTH_SERIAL_BELOW:
+        return [smooth(a, sigma_vox, **GAUSSIAN) for a in arrays]
+    with POOLS_LOCK:
+        if n not in POOLS:
+            POOLS[n] = ThreadPoolExecutor(n, thread_name_prefix="dense-smooth")
     n_whole = len(arrays) - len(arrays) % n
     out = [None] * len(arrays)
     jobs = [(i, None, None) for i in range(n_whole)]
@@ -353,7 +232,7 @@ def _smooth_all(arrays, sigma_vox) -> list:
     for i in range(n_whole, len(arrays)):
         a = arrays[i]
         ax = int(np.argmax(a.shape))
-        reach = int(3.0 * float(sig[ax]) + 0.5)  # scipy's radius for truncate=3
+        reach = int(GAUSSIAN["truncate"] * float(sig[ax]) + 0.5)  # SciPy's kernel radius
         cuts = np.linspace(0, a.shape[ax], n + 1).astype(int)
         out[i] = np.empty_like(a)
         for lo, hi in zip(cuts[:-1], cuts[1:]):
@@ -362,41 +241,41 @@ def _smooth_all(arrays, sigma_vox) -> list:
     def run(job):
         i, ax, cut = job
         if ax is None:
-            out[i] = _smooth(arrays[i], sigma_vox)
+            out[i] = smooth(arrays[i], sigma_vox, **GAUSSIAN)
             return
         lo, hi, lo_h, hi_h = cut
         take = [slice(None)] * arrays[i].ndim
         take[ax] = slice(lo_h, hi_h)
-        sm = _smooth(arrays[i][tuple(take)], sigma_vox)
+        sm = smooth(arrays[i][tuple(take)], sigma_vox, **GAUSSIAN)
         keep = [slice(None)] * arrays[i].ndim
         keep[ax] = slice(lo - lo_h, hi - lo_h)
         dest = [slice(None)] * arrays[i].ndim
         dest[ax] = slice(lo, hi)
         out[i][tuple(dest)] = sm[tuple(keep)]
 
-    list(_POOL[n].map(run, jobs))
+    list(POOLS[n].map(run, jobs))
     return out
 
 
-def _local_stats(f, sig, mask=None):
+def local_stats(f, sig, mask=None):
     """The fixed image's local mean and variance in the LNCC window (the same at every step of a level), and
     the window's mask, its local weight and mask·f (``None`` without a mask)."""
     if mask is None:
-        mf, sff = _smooth_all([f, f * f], sig)
+        mf, sff = smooth_all([f, f * f], sig)
         return mf, sff - mf * mf, None
     masked_f = mask * f  # kept: every step's f·w term uses it
-    sm, smf, smff = _smooth_all([mask, masked_f, masked_f * f], sig)
+    sm, smf, smff = smooth_all([mask, masked_f, masked_f * f], sig)
     sm = np.maximum(sm, 1e-3)
     mf = smf / sm
     return mf, smff / sm - mf * mf, (mask, sm, masked_f)
 
 
-def _lncc_force(f, w, sig, f_stats, region=None, v=None):
+def lncc_force(f, w, sig, f_stats, region=None, v=None):
     """LNCC of ``f`` and ``w`` (mean over the voxels where ``region`` > 0, or all) and its gradient with
-    respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`_local_stats` of ``f``.  With a window mask
+    respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`local_stats` of ``f``.  With a window mask
     the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed force
     still reaches into the air from the tissue).  ``v`` (or ``None``): a variance added to ``w``'s at each
-    voxel (:func:`_interpolation_noise`), in its local second moment, times the share of a voxel's noise
+    voxel (:func:`interpolation_noise_variance`), in its local second moment, times the share of a voxel's noise
     variance a window's variance holds: the variance of independent samples about their weighted mean is
     ``1 − Σ K²`` of theirs, ``K`` the window's weights (its discrete kernel; ~0 for a window under a voxel, as on
     the coarse levels, where there is then nothing to even out; the level's samples are nearly independent, the
@@ -406,15 +285,15 @@ def _lncc_force(f, w, sig, f_stats, region=None, v=None):
     mf, sff, masked = f_stats
     if v is not None:
         v = v * np.float32(
-            1.0 - np.prod([_kernel_noise(float(x))[0] for x in np.broadcast_to(np.asarray(sig, float), (3,))])
+            1.0 - np.prod([kernel_noise(float(x))[0] for x in np.broadcast_to(np.asarray(sig, float), (3,))])
         )
     if masked is None:
-        mw, sww, sfw = _smooth_all([w, w * w if v is None else w * w + v, f * w], sig)
+        mw, sww, sfw = smooth_all([w, w * w if v is None else w * w + v, f * w], sig)
     else:
         mask, sm, masked_f = masked
         mask_w = mask * w
         ww = mask_w * w if v is None else mask_w * w + mask * v
-        mw, sww, sfw = (a / sm for a in _smooth_all([mask_w, ww, masked_f * w], sig))
+        mw, sww, sfw = (a / sm for a in smooth_all([mask_w, ww, masked_f * w], sig))
     sww = sww - mw * mw
     sfw = sfw - mf * mw
     # A floor on the local variances (intensities are normalised to ~[0, 1]): flat air or marrow has no
@@ -459,7 +338,7 @@ def _pseudo_residual_variance(d: np.ndarray, where: np.ndarray | None) -> float:
 AIR_NOISE_GROW, AIR_NOISE_VOXELS = 2, 1000
 
 
-def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[float, float]:
+def voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[float, float]:
     """The variance of an image's voxel-to-voxel (white) noise in its tissue and in its air, measured in the air
     where there is enough of it: there is no anatomy there, so the pseudo-residual
     (:func:`_pseudo_residual_variance`) is the noise's alone.  A magnitude image's air (no value below 0, mean
@@ -498,10 +377,10 @@ def _voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[fl
     return var, var
 
 
-def _fission(f: np.ndarray, body: np.ndarray | None, moving: Volume, m_body: np.ndarray | None, st) -> tuple:
+def fission(f: np.ndarray, body: np.ndarray | None, moving: Volume, m_body: np.ndarray | None, st) -> tuple:
     """Data fission of both images (settings.holdout): ``x + a z`` for the steps and ``x − z / a`` held out,
     ``z`` Gaussian white noise of each image's own noise SD (its tissue's, measured in its air where there is
-    enough: :func:`_voxel_noise_variance`; a magnitude image's noise is Gaussian in the tissue), so that the two
+    enough: :func:`voxel_noise_variance`; a magnitude image's noise is Gaussian in the tissue), so that the two
     copies' noises are independent where the image's noise is Gaussian and white (Leiner J, Duan B, Wasserman
     L, Ramdas A. Data fission: splitting a single data point. J Am Stat Assoc (2023)).  ``f`` is the scan's
     array, ``body`` its body and ``m_body`` the template's (None: the noise measured over every voxel).  Returns
@@ -510,8 +389,8 @@ def _fission(f: np.ndarray, body: np.ndarray | None, moving: Volume, m_body: np.
     a = np.float32(st.holdout_share)
     rng = np.random.default_rng(st.holdout_seed)
     m = np.asarray(moving.data, np.float32)
-    sd_f = np.float32(np.sqrt(_voxel_noise_variance(f, body)[0]))
-    sd_m = np.float32(np.sqrt(_voxel_noise_variance(m, m_body)[0]))
+    sd_f = np.float32(np.sqrt(voxel_noise_variance(f, body)[0]))
+    sd_m = np.float32(np.sqrt(voxel_noise_variance(m, m_body)[0]))
     z = rng.standard_normal(f.shape, dtype=np.float32) * sd_f
     f_steps, f_held = (f + a * z).astype(np.float32), (f - z / a).astype(np.float32)
     z = rng.standard_normal(m.shape, dtype=np.float32) * sd_m
@@ -520,8 +399,8 @@ def _fission(f: np.ndarray, body: np.ndarray | None, moving: Volume, m_body: np.
     return (f_held, m_held, (float(sd_f), float(sd_m))), f_steps, m_steps
 
 
-def _kernel_noise(sigma: float) -> tuple[float, float]:
-    """White noise smoothed by :func:`_smooth`'s Gaussian of ``sigma`` voxels along one axis: its variance
+def kernel_noise(sigma: float) -> tuple[float, float]:
+    """White noise smoothed by the dense Gaussian (:data:`GAUSSIAN`) of ``sigma`` voxels along one axis: its variance
     (as a share of the unsmoothed one) and the correlation of neighbouring voxels."""
     if sigma <= 0:
         return 1.0, 0.0
@@ -531,7 +410,7 @@ def _kernel_noise(sigma: float) -> tuple[float, float]:
     return float((k * k).sum()), float((k[1:] * k[:-1]).sum() / (k * k).sum())
 
 
-def _interpolation_noise(p: np.ndarray, var: float, rho) -> np.ndarray:
+def interpolation_noise_variance(p: np.ndarray, var: float, rho) -> np.ndarray:
     """What evens out the template's noise variance over the positions trilinear sampling reads it at: for
     index positions ``p`` (3, ...) of a template whose noise has variance ``var`` and neighbour correlation
     ``rho[a]`` along index axis ``a``, the variance the noise keeps on average over positions less the one it
@@ -558,11 +437,11 @@ def _interpolation_noise(p: np.ndarray, var: float, rho) -> np.ndarray:
     return (np.float32(var) * (np.float32(mean) - f)).astype(np.float32)
 
 
-def _weighted_smooth(arrays, weight, norm, sigma_vox) -> np.ndarray:
+def weighted_smooth(arrays, weight, norm, sigma_vox) -> np.ndarray:
     """Normalised convolution of each array with weights ``weight``: ``G∗(w·a) / G∗w``, ``norm`` = 1 / G∗w
     (the same for every step of a level).  A voxel's value is its neighbours' weighted mean: where the weight
     is 1 in the tissue and small in the air, the skin's value is (almost) the tissue's alone."""
-    return np.stack(_smooth_all([a * weight for a in arrays], sigma_vox)) * norm[None]
+    return np.stack(smooth_all([a * weight for a in arrays], sigma_vox)) * norm[None]
 
 
 def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
@@ -570,7 +449,7 @@ def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
     body or within ``grow_mm`` of it (float32 0/1), where the force acts.
 
     ``(None, None)`` when the segmentation finds no tissue (then every voxel takes part).  On an image without
-    air (a field of view inside the limb) the "body" is the brighter tissue: see :func:`_air_around`.
+    air (a field of view inside the limb) the "body" is the brighter tissue: see :func:`share_of_air_around`.
     """
     from .segmentation import segment_body
 
@@ -583,13 +462,13 @@ def _body_region(fixed: Volume, moving: Volume, grow_mm: float):
     return body_f, (d <= grow_mm).astype(np.float32)
 
 
-#: settings.tissue_only applies when at least this share of the grid's faces lies outside the scan's body: the
-#: body is surrounded by air (test knee 0.95, test hand 0.99).  Without air the segmentation's "body" is the
-#: brighter tissue (a textured block with no air: 0.46), and keeping to it would drop the rest of the tissue.
+#: settings.tissue_only applies when at least this share of the grid's faces lies outside the scan's body (air
+#: surrounds it): without air the segmentation's "body" is the brighter tissue, and keeping to it would drop the
+#: rest of the tissue (registration-settings.md, "tissue_only")
 AIR_AROUND = 0.75
 
 
-def _air_around(body: np.ndarray) -> float:
+def share_of_air_around(body: np.ndarray) -> float:
     """The share of the grid's face voxels outside ``body``."""
     faces = [body[0], body[-1], body[:, 0], body[:, -1], body[:, :, 0], body[:, :, -1]]
     return float(sum(int((~f).sum()) for f in faces) / sum(f.size for f in faces))
@@ -650,7 +529,7 @@ def _sample(a, coords, order=1):
     return ndimage.map_coordinates(a, coords, order=order, mode="nearest")
 
 
-def _jacobian_min(u, sp):
+def jacobian_min(u, sp):
     """Smallest det(I + ∇u) of a displacement ``u`` (3, nz, ny, nx) in mm along the array axes (spacing ``sp``)."""
     return float(jacobian_determinant_components(u, sp).min())
 
@@ -708,7 +587,7 @@ def _rigid_displacement(p, centre, grid_mm, box) -> np.ndarray:
     )
 
 
-class _TemplateSampler:
+class TemplateSampler:
     """The template seen through ``φ₀ ∘ U`` on each level: ``w(x) = M(x + u(x) + φ₀(x + u(x)))``, the template
     itself sampled once (trilinear) at every trial, its intensities divided by ``scale``.
 
@@ -735,7 +614,7 @@ class _TemplateSampler:
         # differ (a magnitude image's Rayleigh air) a map of it on the template's grid, the body's value inside
         self.noise_var = self.noise_air = self.noise_map = None
         if noise_body is not False:
-            self.noise_var, self.noise_air = _voxel_noise_variance(self.data, noise_body)
+            self.noise_var, self.noise_air = voxel_noise_variance(self.data, noise_body)
             if noise_body is not None and abs(self.noise_air - self.noise_var) > 0.05 * self.noise_var:
                 self.noise_map = np.where(noise_body, np.float32(self.noise_var), np.float32(self.noise_air))
         # read beyond the template's grid: its air (``outside`` None), else ``outside``
@@ -746,7 +625,7 @@ class _TemplateSampler:
 
     def level(self, s: int, sig_pre: float, shape: tuple):
         """``(warp, sample)`` on the level of shrink ``s`` (grid ``shape``): ``warp(u)`` is ``w`` on the whole
-        level for ``u`` (3, *shape) mm along the array axes; ``sample(coords)`` is ``w`` at fractional level
+        level for ``u`` ``(3, *shape)`` mm along the array axes; ``sample(coords)`` is ``w`` at fractional level
         indices ``coords`` (z, y, x arrays of any one shape), through ``φ₀`` there.  Both read the template
         trilinearly; ``warp(u, order=0)`` at its nearest voxel."""
         g, tg = self.scan, self.geometry
@@ -756,14 +635,16 @@ class _TemplateSampler:
             dg, dt = g.direction_matrix, tg.direction_matrix
             cov = dg @ np.diag((sig_pre * np.asarray(g.spacing, float)) ** 2) @ dg.T  # world mm²
             sigma = np.sqrt(np.einsum("ia,ij,ja->a", dt, cov, dt)) / np.asarray(tg.spacing, float)  # i, j, k
-            m = _smooth(m, sigma[::-1])
+            m = smooth(m, sigma[::-1], **GAUSSIAN)
         # the level's template noise: its variance and neighbours' correlation along i, j, k after the smoothing
-        kn = [_kernel_noise(float(v)) for v in sigma]
+        kn = [kernel_noise(float(v)) for v in sigma]
         kappa = kn[0][0] * kn[1][0] * kn[2][0]
         noise_var = None if self.noise_var is None else self.noise_var * kappa
         noise_map = None
         if self.noise_map is not None:  # the tissue's and the air's, smoothed as the template (its mean: the map's)
-            noise_map = (_smooth(self.noise_map, sigma[::-1]) if sig_pre > 0 else self.noise_map) * np.float32(kappa)
+            noise_map = (
+                smooth(self.noise_map, sigma[::-1], **GAUSSIAN) if sig_pre > 0 else self.noise_map
+            ) * np.float32(kappa)
         rho = [k[1] for k in kn]
         phi = np.ascontiguousarray(self.phi[:, ::s, ::s, ::s])
         lg = GridGeometry(
@@ -779,7 +660,7 @@ class _TemplateSampler:
 
         def warp(u, order=1):
             """``(w, v)``: the template through the map and the variance that evens out its noise over the
-            sampled positions (:func:`_interpolation_noise`; None when not counted)."""
+            sampled positions (:func:`interpolation_noise_variance`; None when not counted)."""
             ph = sample_shifted(phi, u, inv_sp)
             # u along the array axes (z, y, x) → world, written out (no BLAS: the same bits on every run)
             disp = np.stack([d[r, 0] * u[2] + d[r, 1] * u[1] + d[r, 2] * u[0] + ph[r] for r in range(3)], axis=-1)
@@ -793,7 +674,7 @@ class _TemplateSampler:
                     for r in range(3)
                 ]
             ).astype(np.float32)
-            v = _interpolation_noise(p, noise_var, rho)
+            v = interpolation_noise_variance(p, noise_var, rho)
             if noise_map is not None:  # the variance at the sampled place over the body's (the map's there)
                 v *= sample_displaced_array(noise_map, w2i, lg, disp, 1, self.noise_air * kappa).astype(
                     np.float32
@@ -825,7 +706,7 @@ class _TemplateSampler:
         return warp, sample
 
 
-def _voxel_in_voxels(a: GridGeometry, b: GridGeometry) -> float:
+def voxel_in_voxels(a: GridGeometry, b: GridGeometry) -> float:
     """Grid ``a``'s voxel in voxels of grid ``b``, along the axis of ``b`` where it is the most: the voxel's
     extent along each of ``b``'s axes (its edges, world mm, projected through both directions) over ``b``'s
     spacing there."""
@@ -833,7 +714,7 @@ def _voxel_in_voxels(a: GridGeometry, b: GridGeometry) -> float:
     return float(np.max(np.asarray(a.spacing, float) @ cosines / np.asarray(b.spacing, float)))
 
 
-def _noise_correlation_factor(f, w, air, shape_voxels: float, w_fill: float | None = None) -> float:
+def noise_correlation_factor(f, w, air, shape_voxels: float, w_fill: float | None = None) -> float:
     """How many voxels of the level carry one independent sample of the noise, for a correlation between ``f``
     and ``w``: Bartlett's (1935) variance of a correlation between two autocorrelated fields, the product over
     the axes of ``Σ_k ρ_f(k) ρ_w(k)`` (exact for uncorrelated fields; for a bone's NCC of 0.9 a heuristic), each
@@ -869,18 +750,18 @@ def _noise_correlation_factor(f, w, air, shape_voxels: float, w_fill: float | No
     return max(factor, 1.0)
 
 
-def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, st, per_sample: float = 1.0) -> bool:
+def bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, st, per_sample: float = 1.0) -> bool:
     """Whether the bone's own fit shows its pose off: the NCC of the scan and the template over the bone's voxels
     and one voxel around (``m`` dilated, on the level), with the bone at pose ``p`` against ``u`` as it is,
     compared by Fisher's z-transform: True when ``atanh(r₁) − atanh(r₀)`` exceeds ``st.refine_significance``
     standard errors ``√(2 / (n_eff − 3))``, that of two independent correlations over ``n_eff = n / per_sample``
-    independent samples (``per_sample``: :func:`_noise_correlation_factor`).  The candidate is the one the
+    independent samples (``per_sample``: :func:`noise_correlation_factor`).  The candidate is the one the
     refinement's search found best on the same noise, which no error of a fixed comparison accounts for; the
     independent correlations' error is the larger one (Steiger's 1980 test of correlations sharing the scan
     would pass smaller gains), and is kept for that, not because it corrects the search's selection.  ``fl``
     and ``sample_w`` are the level's images smoothed for the test (``register_dense``: at least one scan and
     one template voxel), so that a candidate between the template's voxel centres hardly lowers its noise
-    (:class:`_TemplateSampler`'s artefact).
+    (:class:`TemplateSampler`'s artefact).
     The refinement's own objective spans the soft tissue around the bone, whose map is still being fitted; a
     thin bone's roll is barely seen by its own voxels, and the noise of a CT-like scan can then pay for a wrong
     one.  (A constant image: NaN, not significant.)"""
@@ -908,14 +789,14 @@ def _bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, 
     return z > st.refine_significance
 
 
-def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, grid_mm, sp, st):
+def refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, grid_mm, sp, st):
     """One held bone's rigid pose refined on the LNCC, the soft tissue held.
 
     The candidate field is ``u`` moved towards the bone's rigid displacement by its weight (exactly rigid on
     the bone, fading over its margin); its objective is the LNCC's mean over the voxels whose value the bone's
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
     that the windows' statistics there are the whole grid's (the same template samples as the level's:
-    :class:`_TemplateSampler`).  The skin's term and the membrane energy are left out of it: the round is taken
+    :class:`TemplateSampler`).  The skin's term and the membrane energy are left out of it: the round is taken
     only when the whole level's objective, which has them, rises.
     Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
     ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
@@ -932,7 +813,7 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
         return tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(bx, outer))
 
     fo = fl[outer]
-    stats = _local_stats(fo, win, None if tissue is None else tissue[outer])
+    stats = local_stats(fo, win, None if tissue is None else tissue[outer])
     reg = np.zeros(fo.shape, np.float32)
     reg[rel(inner)] = 1.0 if region is None else region[inner]
     uo = u[(slice(None),) + outer]
@@ -947,22 +828,22 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
     # min_jacobian (or not below its value as u is, where it already was); one that does not is never the best
     # (the LNCC can rise by crushing the tissue between two bones into the fade)
     grown = (slice(None),) + tuple(slice(max(r.start - 1, 0), min(r.stop + 1, n)) for r, n in zip(rel(box), fo.shape))
-    det_floor = min(st.min_jacobian, _jacobian_min(uo[grown], sp))
+    det_floor = min(st.min_jacobian, jacobian_min(uo[grown], sp))
 
     def objective(p, grad=None):
         uc = uo.copy()
         uc[rb] += wb * (_rigid_displacement(p, centre, go, rel(box)) - uc[rb])
         # strictly below: where u already is at or under min_jacobian, a candidate that leaves that voxel as it is
         # is one-to-one as u is (with ≤ every candidate would be refused)
-        if _jacobian_min(uc[grown], sp) < det_floor:
+        if jacobian_min(uc[grown], sp) < det_floor:
             return f_now - 1.0  # below every LNCC a one-to-one candidate can reach from here (it is ≤ 1)
         w = w_now.copy()  # only the bone's box changes
         w[rbox] = sample_w([idx[a][rbox] + uc[a][rbox] * inv[a] for a in range(3)])
-        return _lncc_force(fo, w, win, stats, reg)[0]
+        return lncc_force(fo, w, win, stats, reg)[0]
 
     rbox = rel(box)
     w_now = sample_w([idx[a] + uo[a] * inv[a] for a in range(3)])
-    f_now = _lncc_force(fo, w_now, win, stats, reg)[0]  # the objective as u is now
+    f_now = lncc_force(fo, w_now, win, stats, reg)[0]  # the objective as u is now
     x0 = np.asarray(p0, float)
     bound = np.r_[np.full(3, st.refine_deg), np.full(3, st.refine_mm)]
     x0 = np.clip(x0, -bound, bound)
@@ -990,10 +871,10 @@ def _refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, gri
     return best[0], best[1] - f_now, best[2]
 
 
-def _membrane(u: np.ndarray, weight: np.ndarray, sp) -> tuple[float, np.ndarray]:
-    """The membrane energy ``Σ m |∇u|²`` of ``u`` (3, *shape; mm along the array axes) by forward differences,
+def membrane_energy(u: np.ndarray, weight: np.ndarray, sp) -> tuple[float, np.ndarray]:
+    """The membrane energy ``Σ m |∇u|²`` of ``u`` (``(3, *shape)``, mm along the array axes) by forward differences,
     each pair of neighbours weighed by the product of their ``weight`` (``m``), and its derivative with respect to
-    ``u`` (3, *shape): exact for this discrete energy, so that a step along its negative lowers it."""
+    ``u`` (``(3, *shape)``): exact for this discrete energy, so that a step along its negative lowers it."""
     energy = 0.0
     grad = np.zeros_like(u)
     for b in range(3):
@@ -1011,11 +892,11 @@ def _membrane(u: np.ndarray, weight: np.ndarray, sp) -> tuple[float, np.ndarray]
     return energy, grad
 
 
-def _penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffness: float, n_region: float):
+def penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffness: float, n_region: float):
     """The level's objective is the LNCC's mean less the returned penalties: ``skin_weight`` times the mean over
     the region of ``band (b − s)²`` (``b``: the template's smoothed body through the map, ``s`` the scan's; ``b``
     None: no skin term) plus ``stiffness`` times the membrane energy of ``u`` weighed by ``membrane_w``
-    (:func:`_membrane`; None: none) over ``n_region``.  Returns ``(penalty, skin, membrane)``: the objective's
+    (:func:`membrane_energy`; None: none) over ``n_region``.  Returns ``(penalty, skin, membrane)``: the objective's
     ascent along ``b`` and along ``u`` times ``n_region`` (as the LNCC's force is: the derivative of its sum),
     None where the term is off.  ``penalty`` is ``(membrane's, skin's)``, subtracted in that order."""
     skin_penalty = membrane_penalty = 0.0
@@ -1027,7 +908,7 @@ def _penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffn
         skin_penalty = skin_weight * float(np.mean(sq if region is None else sq[region > 0], dtype=np.float64))
         skin = np.float32(-2.0 * skin_weight) * wdiff
     if membrane_w is not None:
-        energy, membrane = _membrane(u, membrane_w, sp)
+        energy, membrane = membrane_energy(u, membrane_w, sp)
         membrane_penalty = stiffness * energy / n_region
         membrane *= u.dtype.type(-stiffness)
     return (membrane_penalty, skin_penalty), skin, membrane
@@ -1042,12 +923,115 @@ def register_dense(
     settings: DenseSettings | None = None,
     progress=None,
 ) -> DenseResult:
-    """Register the template ``moving`` to the scan ``fixed`` from ``initial`` (see the module docstring).
+    """Register the template ``moving`` to the scan ``fixed`` from ``initial`` (``φ₀``, scan → template).
 
     ``moving_labels`` (the template's bone label map) makes every bone move
     rigidly or stay fixed (``settings.bones``).  Returns the ``scan_to_template``
     field ``φ₀ ∘ U`` on the scan grid.  ``progress(dict)`` is called once per
     level with its record.
+
+    Notes
+    -----
+    * **Start**: ``φ₀`` (scan → template), one-to-one (the polyrigid flow of
+      :mod:`deformation.polyrigid`); the registration finds ``U = id + u`` on the
+      scan grid with ``F ≈ M ∘ φ₀ ∘ U``, the template sampled once through the
+      composed map at every trial (:class:`TemplateSampler`: resampling an
+      already resampled template rewards sub-voxel shifts that smooth its noise);
+      the result is ``φ = φ₀ ∘ U`` (composed, not added).
+    * **Similarity**: local normalised cross-correlation in a Gaussian window
+      (LNCC), insensitive to the MRI bias field and to contrast differences
+      between scans; its gradient is that of Avants et al. (ANTs SyN's CC).
+    * **Steps**: the gradient, smoothed by a Gaussian ("fluid" regularisation),
+      scaled so that no voxel moves more than the trust radius, then *composed*
+      into ``U`` (``u ← f + u ∘ (id + f)``) and ``U`` smoothed ("elastic"
+      regularisation, in proportion to the step: half the radius, half the
+      smoothing).  A step with ``det(I + ∇f) ≤ min_jacobian`` anywhere is halved
+      until it has none, so every step is one-to-one and so is their
+      composition: no fold is created.
+    * **Convergence** (a trust region on each level's objective, the mean LNCC
+      over the voxels where the force acts less the skin's term and the membrane
+      energy below): a step is taken only when it raises
+      the objective; otherwise the radius halves and the step is tried again from
+      the same direction; after a taken step the radius grows (``radius_growth``,
+      up to ``step_mm``).  A level stops when no step of radius
+      ``step_mm · 2^-max_halvings`` raises its objective, or when 10 taken steps
+      together gained less than ``tolerance``; ``iterations`` only caps the
+      trials.  Each level's record holds its objective per taken step (it never
+      falls), the rejected trials and why it stopped.
+    * **Bones** (the template's labels pulled through the current map):
+      ``bones="fixed"`` (default) holds each bone at a rigid motion — ``U = id``,
+      where the pose stage's rigid intensity registration placed it, more
+      precisely than a dense force can — fading into the smooth step over
+      ``bone_margin_mm``; ``"rigid"`` replaces the step (and the smoothed field)
+      on each bone by its least-squares rigid motion; ``"free"`` ignores the
+      labels.
+    * **Held bones refined** (``refine_bones``, with ``"fixed"``): a pose stage
+      that erred leaves a held bone where it put it, so the bones' poses are
+      refined too, by block-coordinate ascent on the same objective: before a
+      level's steps, and each time they stop, each bone's rigid motion (six
+      parameters about its centroid) is optimised with the soft tissue held
+      (NLopt BOBYQA, derivative-free; the candidate moves the bone and fades over
+      ``refine_margin_voxels``; the objective is the LNCC over the voxels that
+      motion can change, against its value as ``U`` is; a candidate that would
+      bring ``det(I + ∇u)`` below ``min_jacobian`` scores below every one-to-one
+      one), and the round is taken only if the level's objective rises; the
+      steps then go on.
+      The pose stage's estimate stands unless the image moves a bone past
+      ``refine_min_move_voxels`` (half a scan voxel: the LNCC's windows reach
+      into the soft tissue, and its optimum sits a few tenths of a mm from the
+      bone's own fit) and the bone's own fit rises significantly with it
+      (``refine_significance``, :func:`bone_fit_improves`: the images smoothed
+      by a scan voxel, the noise's correlation counted); a bone is tested on a
+      level only where it is at least ``refine_min_voxels`` across (a pose is read from opposite edges), once on
+      the finest level if no coarser one could, and once moved it is refined on
+      every later round.
+    * **Multi-resolution**: the images are smoothed and subsampled by
+      ``shrink`` per level, coarse to fine; ``u`` is carried up by trilinear
+      interpolation.  The smoothing σ are in voxels of each level by default
+      (``fluid_voxels``, ``elastic_voxels``), as ANTs SyN's.
+    * **Body only**: the force acts inside the two images' bodies
+      (:func:`registration.segmentation.segment_body`) grown by two windows: in
+      air the noise alone moves the map, and nothing anatomical holds it.  The levels
+      compute on the box around that region grown by the LNCC statistics' reach
+      (less time where the body fills a small part of the grid), and U takes
+      its edge values beyond the box.
+    * **Tissue only** (``tissue_only``, when air surrounds the scan's body):
+      the LNCC windows are over the scan's body only, the smoothed force is
+      divided by the tissue's share of the kernel (at least 1/2), and ``U`` is
+      smoothed by a normalised convolution (Knutsson & Westin 1993) weighing the
+      air by ``air_weight``, so the skin's motion is not averaged with the air's,
+      which no image drives, and the correlation at the skin follows the
+      tissue's texture rather than the body/air step; as sliding-motion
+      registration smooths each region on its own (Risser et al. 2013,
+      piecewise-diffeomorphic registration).
+    * **The skin** (``skin_weight``, with the tissue-only windows): those windows
+      do not see the skin, and in flat tissue (soft tissue in CT) nothing else
+      does, so a step driven elsewhere could pull the registered body's outline
+      inside the scan's.  The level's objective is the LNCC less ``skin_weight``
+      times the mean squared difference of the two bodies' masks, each smoothed
+      by the window (the template's sampled through the same map; unknown beyond
+      its grid, where the term is left out), counted near the scan's skin only
+      (deep in its body the template's air is a crease whose skins touch in the
+      scan): a force across the skin, not along it.
+    * **Where the scan shows only noise** (``stiffness``): a step that moves
+      tissue there raises the LNCC by fitting the noise, and nothing in the
+      images holds the start.  The level's objective also subtracts a membrane
+      energy of the correction ``u``, each voxel weighed by the share of the
+      scan's local variance (in the LNCC's window) its noise makes up: near 1 in
+      flat tissue, near 0 where structure rises above the noise, so a correction
+      the images support costs little and one they do not support costs.
+    * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
+      grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
+      start compresses a crease below the voxel size or curled fingers touch;
+      those voxels of the scan's body are smoothed locally
+      (:func:`deformation.fields.unfold`) around the bones' interiors (their
+      deepest voxels frozen, then fewer; as a last resort none, which is tried
+      second as a probe: when it leaves folds, freezing more is not tried),
+      every smoothed voxel then going back towards the registered value as far as the
+      determinant allows (unfold's restoring passes: the smoothing replaces
+      patches, a fold needs a few voxels), and the repair is taken only when it
+      removes every fold (``DenseResult.unfold`` says which attempt,
+      ``bone_layers_released`` None for the last resort).
     """
     st = settings or DenseSettings()
     t0 = time.perf_counter()
@@ -1055,7 +1039,7 @@ def register_dense(
     if initial is None:
         initial = Volume(np.zeros(g.array_shape + (3,), np.float32), g)
     g.check_same(initial.geometry, names=("fixed image", "initial correspondence"))
-    m0 = warp_template(moving, initial).data.astype(np.float32)  # a new array
+    m0 = warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32).data  # a new array
     f0 = np.array(fixed.data, np.float32, copy=True)  # normalised in place below: never the caller's array
     lab0 = None
     if st.bones != "free" and moving_labels is not None:
@@ -1073,14 +1057,14 @@ def register_dense(
     # force is zero, so padding the box's edges by their values (the filters' "nearest") smooths the force
     # as the whole grid would.  Near the box's edge, in the air, the result is not the whole grid's: U's
     # smoothing and composition there see U continued flat (on the whole grid it decays), and the levels'
-    # pre-smoothing sees the edge continued (the MED it changes: the docs' "Measurements behind the settings").
+    # pre-smoothing sees the edge continued (registration-settings.md, "body_only").
     crop = _crop_box(
         region,
         g.array_shape,
         np.ceil((3.0 * st.window_mm + max(st.shrink) * sp_full.max()) / sp_full),
         int(np.lcm.reduce([int(v) for v in st.shrink])),
     )
-    del m0  # the steps sample the template itself (_TemplateSampler), not this resampled copy
+    del m0  # the steps sample the template itself (TemplateSampler), not this resampled copy
     # the template's body, where its noise is measured (settings.interpolation_noise, settings.holdout): a mask on
     # its grid, None where none is found (every voxel then); False: not needed
     template_body = False
@@ -1094,16 +1078,16 @@ def register_dense(
     held_out = None  # settings.holdout: (scan's held-out copy on the box, its template sampler, noise SDs)
     moving_steps = moving
     if st.holdout:  # on the whole scan, before the crop: its noise is measured in all of its air
-        held_out, f0, moving_steps = _fission(f0, scan_body, moving, template_body, st)
-        held_out = (held_out[0][crop], _TemplateSampler(held_out[1], initial, scale, crop), held_out[2])
+        held_out, f0, moving_steps = fission(f0, scan_body, moving, template_body, st)
+        held_out = (held_out[0][crop], TemplateSampler(held_out[1], initial, scale, crop), held_out[2])
     # settings.stiffness: the voxel noise variance of the scan the steps see (normalised; with holdout, its steps'
     # copy), measured in its air
-    noise_var = _voxel_noise_variance(f0, scan_body)[0] if st.stiffness > 0 else None
+    noise_var = voxel_noise_variance(f0, scan_body)[0] if st.stiffness > 0 else None
     f0 = f0[crop]
-    template = _TemplateSampler(moving_steps, initial, scale, crop, template_body if st.interpolation_noise else False)
+    template = TemplateSampler(moving_steps, initial, scale, crop, template_body if st.interpolation_noise else False)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
-    air_around = scan_body is not None and _air_around(scan_body) >= AIR_AROUND
-    template_voxel = _voxel_in_voxels(moving.geometry, g)  # the bones' test smooths by at least one of each
+    air_around = scan_body is not None and share_of_air_around(scan_body) >= AIR_AROUND
+    template_voxel = voxel_in_voxels(moving.geometry, g)  # the bones' test smooths by at least one of each
     if st.tissue_only and air_around:
         tissue0 = scan_body[crop].astype(np.float32)
     skin = None  # settings.skin_weight: (the template body's sampler, the scan's body on the box), both smoothed
@@ -1119,14 +1103,14 @@ def register_dense(
             t_sig = st.window_mm / np.asarray(moving.geometry.spacing, float)[::-1]
             # beyond the template's grid its body is unknown: read as far below 0, which score() leaves out
             skin = (
-                _TemplateSampler(
-                    Volume(_smooth(template_body.astype(np.float32), t_sig), moving.geometry),
+                TemplateSampler(
+                    Volume(smooth(template_body.astype(np.float32), t_sig, **GAUSSIAN), moving.geometry),
                     initial,
                     1.0,
                     crop,
                     outside=-1e4,
                 ),
-                _smooth(tissue0, st.window_mm / sp_full),
+                smooth(tissue0, st.window_mm / sp_full, **GAUSSIAN),
             )
     lab_full = lab0  # the fold repair below works on the whole grid
     if lab0 is not None:
@@ -1150,7 +1134,7 @@ def register_dense(
         s = int(s)
         sp = sp_full * s
         sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
-        fl = _smooth(f0, sig_pre)[::s, ::s, ::s].astype(np.float32)
+        fl = smooth(f0, sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
         shape = fl.shape
         warp_w, sample_w = template.level(s, sig_pre, shape)
         grid = np.indices(shape, dtype=np.float32)
@@ -1166,14 +1150,14 @@ def register_dense(
         regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
         win = st.window_mm / sp
         # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
-        tissue = None if tissue0 is None else _smooth(tissue0, sig_pre)[::s, ::s, ::s].astype(np.float32)
-        f_stats = _local_stats(fl, win, tissue)
+        tissue = None if tissue0 is None else smooth(tissue0, sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
+        f_stats = local_stats(fl, win, tissue)
         # settings.stiffness: each voxel's weight in the membrane energy (the share of the scan's local variance its
         # noise makes up, the bones and beyond the region 0) and the mean's denominator (the LNCC's: the region)
         membrane_w = None
         n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
         if noise_var is not None and noise_var > 0:
-            level_noise = np.float32(noise_var * _kernel_noise(sig_pre)[0] ** 3)  # the pre-smoothing thins it
+            level_noise = np.float32(noise_var * kernel_noise(sig_pre)[0] ** 3)  # the pre-smoothing thins it
             membrane_w = np.clip(level_noise / np.maximum(f_stats[1], np.float32(1e-12)), 0.0, 1.0).astype(np.float32)
             if regl is not None:
                 membrane_w *= regl > 0
@@ -1182,29 +1166,29 @@ def register_dense(
         skin_warp = skin_l = skin_band = None
         if skin is not None:
             skin_warp = skin[0].level(s, sig_pre, shape)[0]
-            skin_l = _smooth(skin[1], sig_pre)[::s, ::s, ::s].astype(np.float32)
+            skin_l = smooth(skin[1], sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
             # the term counts where the scan shows an outline: 1 at its skin, falling to 0 a few windows inside and
             # outside.  Deep in the scan's body the template's air is a crease whose skins touch in the scan
             # (contact), which no map of one outline onto the other can mend
             skin_band = (4.0 * skin_l * (1.0 - skin_l)).astype(np.float32)
         held_score = None  # settings.holdout: the held-out LNCC of a map (the template at its nearest voxel)
         if held_out is not None:
-            flv = _smooth(held_out[0], sig_pre)[::s, ::s, ::s].astype(np.float32)
-            fv_stats = _local_stats(flv, win, tissue)
+            flv = smooth(held_out[0], sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
+            fv_stats = local_stats(flv, win, tissue)
             warp_v = held_out[1].level(s, sig_pre, shape)[0]
 
             def held_score(u_now):
-                return _lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl)[0]
+                return lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl)[0]
 
         fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
         elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
         if tissue is not None:  # the normalised convolutions' denominators (settings.tissue_only)
-            force_norm = 1.0 / np.maximum(_smooth(tissue, fluid), 0.5)
+            force_norm = 1.0 / np.maximum(smooth(tissue, fluid, **GAUSSIAN), 0.5)
             u_weight = tissue + np.float32(st.air_weight) * (1.0 - tissue)
-            u_norm = 1.0 / _smooth(u_weight, elastic)
+            u_norm = 1.0 / smooth(u_weight, elastic, **GAUSSIAN)
         step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
         bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
-        test = None  # the bones' significance test's images (_bone_fit_improves), made when first needed
+        test = None  # the bones' significance test's images (bone_fit_improves), made when first needed
         bone_w = []
         hold = (None, None)  # bone_hold() of the current bone_w
         inv_sp = 1.0 / sp
@@ -1226,7 +1210,7 @@ def register_dense(
             return keep, held
 
         def refine(u_now, test_all):
-            """settings.refine_bones: each held bone's pose refined in turn (:func:`_refine_bone`), only those
+            """settings.refine_bones: each held bone's pose refined in turn (:func:`refine_bone`), only those
             already moved unless ``test_all``; returns the new ``u`` (``u_now`` untouched) and the record."""
             nonlocal bone_w, test
             u_now = u_now.copy()
@@ -1248,7 +1232,7 @@ def register_dense(
                     tested.add(b)
                 lb = lab_now[box]
                 wgt = np.where((lb == 0) | (lb == b), wgt, np.float32(0.0))  # a bone's move moves no other bone
-                p, gain, n = _refine_bone(
+                p, gain, n = refine_bone(
                     params.get(b, np.zeros(6)),
                     centres[b],
                     box,
@@ -1269,12 +1253,12 @@ def register_dense(
                         move = np.sqrt((_rigid_displacement(p, centres[b], grid_mm, box)[:, m] ** 2).sum(axis=0)).max()
                     if move <= st.refine_min_move_voxels * float(sp_full.min()):
                         continue
-                    if test is None:  # smoothed by at least one scan voxel: see _bone_fit_improves
+                    if test is None:  # smoothed by at least one scan voxel: see bone_fit_improves
                         # at least a scan voxel and a template voxel (in mm, as scan voxels)
                         sig_t = max(sig_pre, TEST_SMOOTH_VOXELS, TEST_SMOOTH_VOXELS * template_voxel)
                         fl_t, sample_t = fl, sample_w
                         if sig_t > sig_pre:
-                            fl_t = _smooth(f0, sig_t)[::s, ::s, ::s].astype(np.float32)
+                            fl_t = smooth(f0, sig_t, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
                             warp_t, sample_t = template.level(s, sig_t, shape)
                         else:
                             warp_t = warp_w
@@ -1283,9 +1267,9 @@ def register_dense(
                         test = (
                             fl_t,
                             sample_t,
-                            _noise_correlation_factor(fl_t, warp_t(u_now)[0], air, sig_t / s, template.air),
+                            noise_correlation_factor(fl_t, warp_t(u_now)[0], air, sig_t / s, template.air),
                         )
-                    if not _bone_fit_improves(
+                    if not bone_fit_improves(
                         p, b, box, m, wgt, u_now, test[0], test[1], centres[b], grid_mm, sp, st, test[2]
                     ):
                         unseen += 1
@@ -1296,11 +1280,11 @@ def register_dense(
                     grown = (slice(None),) + tuple(
                         slice(max(c.start - 1, 0), min(c.stop + 1, n)) for c, n in zip(box, shape)
                     )
-                    det_before = _jacobian_min(u_now[grown], sp)
+                    det_before = jacobian_min(u_now[grown], sp)
                     sub = u_now[(slice(None),) + box]  # a view
                     kept_sub = sub.copy()
                     sub += wgt[None] * (_rigid_displacement(p, centres[b], grid_mm, box) - sub)
-                    if _jacobian_min(u_now[grown], sp) < min(st.min_jacobian, det_before):
+                    if jacobian_min(u_now[grown], sp) < min(st.min_jacobian, det_before):
                         sub[...] = kept_sub
                         folded += 1
                         continue
@@ -1320,14 +1304,14 @@ def register_dense(
             LNCC's with respect to ``w``; with the skin's term ``(b, d)``, the template's smoothed body through the
             map and the term's derivative with respect to it; with the energy, its ascent along ``u``."""
             w_now, v_now = warp_w(u_now)
-            cc_now, dcc_now = _lncc_force(fl, w_now, win, f_stats, regl, v_now)
+            cc_now, dcc_now = lncc_force(fl, w_now, win, f_stats, regl, v_now)
             b = None
             if skin_warp is not None:
                 # beyond the template's grid (its body unknown there: a limb leaving the field of view; any
                 # trilinear share of it reads far below 0) the template's body is taken as the scan's: no cost
                 b = skin_warp(u_now)[0]
                 b = np.where(b >= 0.0, b, skin_l)
-            penalty, skin_d, membrane = _penalties(
+            penalty, skin_d, membrane = penalties(
                 b, skin_l, skin_band, regl, st.skin_weight, u_now, membrane_w, sp, st.stiffness, n_region
             )
             return w_now, cc_now - penalty[0] - penalty[1], (dcc_now, None if b is None else (b, skin_d), membrane)
@@ -1354,7 +1338,7 @@ def register_dense(
                 parts = [parts[a] + membrane[a] for a in range(3)]
             if regl is not None:
                 parts = [p * regl for p in parts]
-            force = np.stack(_smooth_all(parts, fluid))
+            force = np.stack(smooth_all(parts, fluid))
             if tissue is not None:
                 force *= force_norm[None]
             nonlocal hold
@@ -1376,7 +1360,7 @@ def register_dense(
                     sub *= (1.0 - wgt)[None]
             halved = 0
             for _ in range(60):  # 2⁻⁶⁰: a step that still folds is then nothing
-                if _jacobian_min(fstep, sp) > st.min_jacobian:
+                if jacobian_min(fstep, sp) > st.min_jacobian:
                     break
                 fstep *= 0.5
                 halved += 1
@@ -1388,9 +1372,9 @@ def register_dense(
             share = np.float32(radius / step)
             if np.any(elastic > 0):
                 if tissue is not None:
-                    smoothed = _weighted_smooth(list(u_new), u_weight, u_norm, elastic)
+                    smoothed = weighted_smooth(list(u_new), u_weight, u_norm, elastic)
                 else:
-                    smoothed = np.stack(_smooth_all(list(u_new), elastic))
+                    smoothed = np.stack(smooth_all(list(u_new), elastic))
                 u_new = u_new + share * (smoothed - u_new) if share < 1 else smoothed
                 if bone_w and st.bones == "fixed":
                     keep, held = hold
@@ -1586,11 +1570,10 @@ def register_dense(
     u_folds = folding_statistics(Volume(u_world, g), scan_body)["n_folded"]
     repair = None
     if st.unfold:
-        # Every step was one-to-one on its level's grid (the smoothing of U between steps is not checked, but
-        # has not folded in any measured run); φ₀ ∘ U, sampled on the scan grid,
-        # can show det ≤ 0 where the start compresses the crease below the voxel size (as the phantoms' exact
-        # fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are smoothed
-        # locally, inside the body only (air carries no anatomy).
+        # Every step was one-to-one on its level's grid (the smoothing of U between steps is not checked); φ₀ ∘ U,
+        # sampled on the scan grid, can show det ≤ 0 where the start compresses the crease below the voxel size (as the
+        # phantoms' exact fields do) or where trilinear sampling of a steep φ₀ meets U's shift.  Those voxels are
+        # smoothed locally, inside the body only (air carries no anatomy).
         mask = scan_body
         lab_now = (
             None
@@ -1602,10 +1585,9 @@ def register_dense(
             # the bones keep the start's rigid motion: the repair works around their interiors, and a fold
             # pressed against a bone frees one more voxel layer of it at a time (up to 3, a bone's deepest
             # voxels staying, _bone_cores); nothing frozen is the last choice, though it runs second as a probe
-            # (the smoothing stays local to the folds, but may then bend a bone next to one: the bone MED
-            # measures it).  Only a complete
-            # repair is taken: a failing one smooths an ever larger region (it moved tissue by 100 mm on the
-            # hand's fist), so then the folds stay, reported in ``folding``.
+            # (the smoothing stays local to the folds, but may then bend a bone next to one).  Only a complete
+            # repair is taken: a failing one smooths an ever larger region, so then the folds stay, reported in
+            # ``folding`` (registration-settings.md, "unfold").
             # Each attempt first smooths only the folded voxels with a narrow kernel (σ 0.7 voxel, no margin):
             # on the hand the folds sit where curled fingers touch, where neighbouring voxels map to different
             # fingers and a wider average lands between them; the knee's crease folds need the defaults (σ 1,
@@ -1649,7 +1631,7 @@ def register_dense(
             repair["attempts"] = [[peel, info["n_folded_after"]] for peel, (_, info) in tried.items()]
             if repair["taken"]:
                 corr = Volume(best[0].data.astype(np.float32), g)
-    registered = warp_template(moving, corr)
+    registered = warp(moving, displacement=corr, fill=air_level(moving), dtype=np.float32)
     seconds = time.perf_counter() - t0
     return DenseResult(
         corr,
@@ -1657,7 +1639,9 @@ def register_dense(
         seconds,
         levels,
         st.to_dict(),
-        similarity_before=similarity(fixed.data, warp_template(moving, initial).data),
+        similarity_before=similarity(
+            fixed.data, warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32).data
+        ),
         similarity_after=similarity(fixed.data, registered.data),
         folding={
             **folding_statistics(corr, scan_body),

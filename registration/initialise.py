@@ -1,4 +1,4 @@
-"""Articulated initialisation of the registration (Rhee §3.3, Eq. 2).
+"""Articulated initialisation of the registration (Rhee §3.2, Rhee Eq. 2).
 
 :func:`polyrigid_initial_field` — the one-to-one alternative: the bones'
 motions blended as a flow (:mod:`deformation.polyrigid`), whose backward
@@ -99,7 +99,7 @@ def vbd_initial_field(
 
     Where the linear blend is many-to-one (the crease of a flexed joint) its
     inverse must jump between the two sheets of tissue, and the field folds
-    (≈0.2 % of the body voxels of the test-size knee and hand phantoms).
+    (on a fraction of a percent of the body's voxels: registration-settings.md, "initialise").
     ``unfold=True`` repairs those voxels with :func:`deformation.fields.unfold`
     (the summary gains an ``unfold`` entry) wherever the map sends a voxel
     into the template (elsewhere it keeps a clamped position, det ~0 without
@@ -133,15 +133,14 @@ def vbd_initial_field(
     if unfold:
         # the folds repaired are those of the map: where it has no preimage in the template (status OUTSIDE,
         # a clamped best position, constant along the clamped axis) and next to such voxels the determinant
-        # is ~0 without a fold; on the test-size knee 19 % of the scan's voxels, and 5,838 of its 6,079
-        # "folded" ones, there; at Kurihara's size 3 % of the grid, spread over all of it, had det < 0.05
-        mapped = _mapped(coarse, f, scan_geometry)
+        # is ~0 without a fold, and most of the "folded" voxels lie there (registration-settings.md, "initialise")
+        mapped = mapped_voxels(coarse, f, scan_geometry)
         del bm, coarse  # the map (17 B a voxel at f = 1) is not needed by the repair
         field, summary["unfold"] = unfold_field(field, mask=mapped)
     return field, summary
 
 
-def _mapped(coarse_map, f: int, scan_geometry: GridGeometry) -> np.ndarray:
+def mapped_voxels(coarse_map, f: int, scan_geometry: GridGeometry) -> np.ndarray:
     """Scan voxels the backward map sends into the template, less one voxel around those it does not
     (solved on every f-th voxel: each coarse voxel's answer given to the f³ fine voxels from it onwards)."""
     from scipy import ndimage as ndi

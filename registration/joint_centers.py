@@ -1,30 +1,26 @@
-"""Joint centres of rotation from bone motions (Kurihara & Miyata 2004, §3, Eq. 1).
+"""Joint centres of rotation from bone motions (Kurihara & Miyata 2004, §3, Kurihara Eq. 1).
 
 For a joint, let ``M_i`` be the child bone's motion relative to its parent in
 scan ``i`` (``M_i = T_parent,i⁻¹ T_child,i``, Kurihara's ``M_{i,k}``).  The
 centre of rotation ``c`` is the point that moves least::
 
-    E(c) = Σ_i |M_i c − c|²                                   (Eq. 1)
+    E(c) = Σ_i |M_i c − c|²                                   (Kurihara Eq. 1)
 
 With ``M_i c = R_i c + t_i`` this is linear least squares,
 ``[R_i − I] c = −t_i`` stacked over the scans, solved here in closed form by
-SVD.  Kurihara minimised it with Davidon–Fletcher–Powell; we keep a
-quasi-Newton minimisation (SciPy's BFGS, DFP's dual update) as a cross-check.
+SVD (:func:`estimate_joint_center`).  Kurihara minimised it with
+Davidon–Fletcher–Powell; a quasi-Newton minimisation (SciPy's BFGS, DFP's dual
+update) is kept as a cross-check.
 
 Near-hinge joints (knee, finger PIP/DIP) rotate about nearly one axis, so
-``E`` is nearly flat along that axis and the centre is fixed only up to a
-line.  This is detected from the stacked matrix's conditioning, in two
-ways: its smallest / largest singular value is below ``hinge_ratio`` (the
-motions share one axis), or the centre's standard error along the weakest
-direction, ``σ̂ / s_min`` with ``σ̂`` the residual's standard deviation
-per row, exceeds ``hinge_sd_mm`` (the data place the centre along the axis
-no better than that: a knee whose 8° of screw-home rotation sits beside 70°
-of flexion has a singular-value ratio of 0.05, so the ratio alone decides by
-a coin flip, while registration noise moves its centre along the axis by
-millimetres).  The axis is reported and the
-centre is taken as the point on the axis closest to a ``reference`` point —
-the caller passes the bones' contact region (e.g. the midpoint of the closest
-points of the two bone surfaces), which puts the centre where the joint
+``E`` fixes the centre only up to a line.  This is detected from the stacked
+matrix's conditioning: its smallest / largest singular value below
+``hinge_ratio``, or the centre's standard error along the weakest direction
+(``σ̂ / s_min``, ``σ̂`` the residual's standard deviation per row) above
+``hinge_sd_mm`` (a knee whose 8° of screw-home rotation sits beside 70° of
+flexion has a ratio of 0.05: the ratio alone would decide by a coin flip).
+The axis is reported and the centre is the point on it closest to the
+``reference`` the caller passes (the bones' contact region), where the joint
 physically is.
 """
 
@@ -45,7 +41,7 @@ class JointCenterResult:
     """Centre (world mm), its fit, and whether the joint is hinge-like.
 
     ``rms_mm`` is ``sqrt(E(c) / n)`` over the ``n`` motions used (Kurihara's
-    "square root of the mean error in Equation 1"); ``per_motion_mm`` the
+    "square root of the mean error in Equation 1", Kurihara Eq. 1); ``per_motion_mm`` the
     individual ``|M_i c − c|``.  ``singular_values`` of the stacked
     ``[R_i − I]`` (descending) show the conditioning; ``axis`` is the weakest
     direction (the hinge axis when ``is_hinge``) and ``axis_sd_mm`` the
@@ -61,13 +57,13 @@ class JointCenterResult:
     axis: np.ndarray
     n_motions: int
     axis_sd_mm: float = float("nan")
-    estimated: bool = True  # False: Eq. 1 was not solved and the given centre was kept (see ``message``)
+    estimated: bool = True  # False: Kurihara Eq. 1 was not solved and the given centre was kept (see ``message``)
     iterative_center: np.ndarray | None = None
     message: str = ""
 
 
 def eq1_energy(center, motions) -> float:
-    """Kurihara Eq. (1): ``Σ_i |M_i c − c|²``."""
+    """Kurihara Eq. 1: ``Σ_i |M_i c − c|²``."""
     c = np.asarray(center, float)
     return float(sum(np.sum((m[:3, :3] @ c + m[:3, 3] - c) ** 2) for m in motions))
 
@@ -80,13 +76,13 @@ def estimate_joint_center(
     hinge_sd_mm: float | None = HINGE_SD_MM,
     cross_check: bool = True,
 ) -> JointCenterResult:
-    """Closed-form joint centre from relative motions (Eq. 1), with hinge handling.
+    """Closed-form joint centre from relative motions (Kurihara Eq. 1), with hinge handling.
 
     Parameters
     ----------
     motions : sequence of 4x4
         Child-relative-to-parent motions, one per scan.  Identity motions (the
-        base pose) add nothing to Eq. 1 and are dropped from the RMS, so the
+        base pose) add nothing to Kurihara Eq. 1 and are dropped from the RMS, so the
         RMS is over the moving scans only.
     reference : (3,), optional
         A point near the joint (the bones' contact region).  Required to pin
@@ -97,7 +93,7 @@ def estimate_joint_center(
         Standard error of the centre along the weakest direction above which
         the joint counts as a hinge too (None: the ratio alone decides).
     cross_check : bool
-        Also minimise Eq. 1 with BFGS from the reference (or the origin) —
+        Also minimise Kurihara Eq. 1 with BFGS from the reference (or the origin) —
         for a hinge, on the plane through the reference perpendicular to the
         axis, the problem the closed form solves there.
     """
@@ -105,7 +101,7 @@ def estimate_joint_center(
     moving = [m for m in ms if not np.allclose(m, np.eye(4), atol=1e-12)]
     if len(moving) < 1:
         raise ValueError("joint centre needs at least one scan in which the joint moves; all motions are identity")
-    a = np.concatenate([m[:3, :3] - np.eye(3) for m in moving])  # Eq. (1) as A c = b
+    a = np.concatenate([m[:3, :3] - np.eye(3) for m in moving])  # Kurihara Eq. 1 as A c = b
     b = np.concatenate([-m[:3, 3] for m in moving])
     u, s, vt = np.linalg.svd(a, full_matrices=False)
     axis = vt[-1]
@@ -138,7 +134,7 @@ def estimate_joint_center(
     if cross_check:
         x0 = np.zeros(3) if reference is None else np.asarray(reference, float)
         if is_hinge:
-            # The same problem on the plane through the start point perpendicular to the axis: Eq. 1 is nearly
+            # The same problem on the plane through the start point perpendicular to the axis: Kurihara Eq. 1 is nearly
             # flat along the axis, so an unconstrained descent stops anywhere along it.
             basis = vt[:2].T
             p0 = x0 if reference is not None else c

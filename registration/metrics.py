@@ -1,30 +1,22 @@
 """Voxel similarity measures (Rhee et al. 2011, §4.1): SSD, MI, normalised MI, CC.
 
-Two families with one definition each:
+Two families with one definition each: whole-volume values (:func:`similarity`,
+:func:`sitk_metric`) for reports and tables, and inner-loop kernels
+(:class:`HistogramBins`, :func:`block_statistics`, the compiled kernels of
+:mod:`registration.adaptive`), the same quantities on small blocks, fast
+enough to be called thousands of times by a simplex.  SSD and CC are the
+numbers SimpleITK's ``MeanSquares`` and ``Correlation`` metrics give;
+SimpleITK has no plain-histogram MI (its estimators smooth the density with
+Parzen windows), so MI is ours.
 
-* **whole-volume values** (:func:`similarity`, :func:`sitk_metric`) for
-  reports and tables.  SSD and CC are the same numbers SimpleITK's
-  ``MeanSquares`` and ``Correlation`` metrics give (``tests`` check this to
-  1e-6); SimpleITK has no plain-histogram MI (its Mattes and joint-histogram
-  estimators smooth the density with Parzen windows), so MI is ours, and
-  agrees with SimpleITK's ``JointHistogramMutualInformation`` within the
-  tolerance stated in the tests.
-* **inner-loop kernels** (:class:`HistogramBins`, :func:`block_statistics`,
-  the compiled ``*_kernel`` functions in :mod:`registration.adaptive`) — the
-  same quantities on small blocks, fast enough to be called thousands of times
-  by a simplex.
-
-Definitions (stated once, used everywhere):
-
-* **SSD** is Rhee Eq. 4 divided by the number of voxels — the *mean* squared
-  intensity difference — so that blocks of different sizes are comparable.
-* **MI** (Rhee Eq. 5) ``H(A) + H(B) − H(A, B)`` of the joint histogram of the
-  two images' intensities, ``bins × bins`` equal-width bins over each image's
-  intensity range (the range is fixed per registration so that block values
-  are comparable), **natural logarithm** (nats).  Values of A are binned with a
-  triangular (linear) kernel — each value splits between its two nearest bin
-  centres — which makes MI a continuous function of the warp (hard binning is
-  piecewise constant, and a simplex stalls on it); B is binned hard.
+* **SSD** is Rhee Eq. 4 divided by the number of voxels (the *mean* squared
+  intensity difference), so that blocks of different sizes are comparable.
+* **MI** (Rhee Eq. 5) ``H(A) + H(B) − H(A, B)`` of the joint histogram,
+  ``bins × bins`` equal-width bins over each image's intensity range (fixed
+  per registration so that block values are comparable), in nats.  Values of
+  A are binned with a triangular kernel (each splits between its two nearest
+  bin centres), which makes MI a continuous function of the warp (a simplex
+  stalls on hard binning's steps); B is binned hard.
 * **NMI** is Rhee's ratio ``MI / min(H(A), H(B))`` (after Park et al.), in
   [0, 1]: lowest where the images have detail but do not match.
 * **CC** is Pearson's correlation coefficient.
@@ -135,7 +127,7 @@ def cc(a, b, mask=None) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
-def _joint_hist(pa, ib, bins, out):
+def accumulate_joint_histogram(pa, ib, bins, out):
     """Triangular kernel on A's bin coordinate ``pa``, hard bins ``ib`` for B; ``out`` (bins, bins) is added to."""
     for n in range(pa.shape[0]):
         p = pa[n]
@@ -149,7 +141,7 @@ def _joint_hist(pa, ib, bins, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _entropies(h):
+def entropies(h):
     """``H(A), H(B), H(A,B)`` (nats) of a joint histogram of counts."""
     n = h.shape[0]
     total = 0.0
@@ -192,7 +184,7 @@ def joint_histogram(
     if bins_a.bins != bins_b.bins:
         raise ValueError(f"both images need the same number of bins, got {bins_a.bins} and {bins_b.bins}")
     h = np.zeros((bins_a.bins, bins_a.bins))
-    _joint_hist(bins_a.position(x), bins_b.index(y), bins_a.bins, h)
+    accumulate_joint_histogram(bins_a.position(x), bins_b.index(y), bins_a.bins, h)
     return h
 
 
@@ -206,7 +198,7 @@ def entropy(a, *, bins: HistogramBins | None = None, mask=None) -> float:
 
 
 def _mi_parts(a, b, *, bins_a=None, bins_b=None, bins=MI_BINS, mask=None):
-    return _entropies(joint_histogram(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask))
+    return entropies(joint_histogram(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask))
 
 
 def mutual_information(

@@ -22,7 +22,7 @@ region (the mean midpoint of the closest voxel pairs of the two bones in the
 template), and each scan's joint angles (:meth:`Joint.angles_from_motion`,
 intrinsic XYZ in the skeleton's joint frame).  Poses use the same schema as
 the phantoms' truth (:class:`deformation.skeleton.Pose`), so estimate and
-truth compare with :func:`compare_poses`.
+truth compare with :func:`validation.pose_measures.compare_poses`.
 """
 
 from __future__ import annotations
@@ -34,9 +34,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from deformation.filters import smooth
 from deformation.geometry import Volume
 from deformation.skeleton import Joint, Pose, Skeleton
-from deformation.transforms import apply, compose, invert, rotation_angle_deg
+from deformation.transforms import apply, compose, rotation_angle_deg
 
 from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
 from .rigid import (
@@ -48,7 +49,6 @@ from .rigid import (
     coarse_rotation_search,
     refine_intensity,
     refine_surface,
-    smooth,
 )
 
 __all__ = [
@@ -60,7 +60,6 @@ __all__ = [
     "estimate_poses",
     "pose_scans",
     "contact_point",
-    "compare_poses",
     "moments_init",
     "flag_joint_outliers",
 ]
@@ -70,7 +69,7 @@ MOVING_DEG = 5.0  # a joint whose largest rotation over the scans is below this 
 COARSE_SMOOTH = 1.5  # voxels: Gaussian blur of both images for the joint grid search
 RUNNERS_UP = 3  # a flagged child bone is refined again from this many of the grid search's next local winners
 MAX_JOINT_GAP_MM = 10.0  # a bone whose joint centre lands farther than this from its parent's is flagged
-# Eq. 1 consistency (estimate_poses): a scan whose child-bone motion misses the joint centre estimated from all
+# Kurihara Eq. 1 consistency (estimate_poses): a scan whose child-bone motion misses the joint centre estimated from all
 # scans by more than OUTLIER_FACTOR x the joint's median miss (and more than OUTLIER_VOXELS voxels) is flagged.
 OUTLIER_FACTOR = 4.0
 OUTLIER_VOXELS = 0.5
@@ -83,7 +82,7 @@ class ScanPose:
     pose: Pose
     fits: dict[str, BoneFit]
     seconds: float
-    voxel_mm: float = math.nan  #: the scan's largest spacing (Eq. 1's outlier test counts misses in voxels)
+    voxel_mm: float = math.nan  #: the scan's largest spacing (Kurihara Eq. 1's outlier test counts misses in voxels)
 
     @property
     def failures(self) -> list[BoneFit]:
@@ -141,7 +140,7 @@ class PoseResult:
         return out
 
     def overall_rms_mm(self) -> float:
-        """RMS of Eq. 1's residual over all joints and moving scans (Kurihara's 0.91 mm figure)."""
+        """RMS of Kurihara Eq. 1's residual over all joints and moving scans (Kurihara's 0.91 mm figure)."""
         res = np.concatenate([r.per_motion_mm for r in self.joints.values()] or [np.zeros(0)])
         return float(np.sqrt(np.mean(res**2))) if res.size else math.nan
 
@@ -266,7 +265,7 @@ def register_scan(
             else:
                 init, how = parent_t.copy(), "parent"
         if method == "intensity":  # the root starts from a rough pose: multi-resolution, no prior to tie it to
-            # ``prior_deg`` None is Eq. 1 through SimpleITK alone; otherwise the polish follows, with the prior
+            # ``prior_deg`` None is Rhee Eq. 1 through SimpleITK alone; otherwise the polish follows, with the prior
             # for a child bone and without one for the root (no parent to tie it to).
             def refine(start, centre):
                 return refine_intensity(
@@ -392,7 +391,7 @@ def estimate_poses(
     root_init : None, ``"identity"``, ``"moments"``, or dict scan id → 4x4 root transform
     bias_correction : N4-correct template and scans first (:func:`correct_bias`);
         None (default) does so for MRI-like images (no values below −500)
-    outlier_factor : Eq. 1 consistency check (None: off).  All the scans of a
+    outlier_factor : Kurihara Eq. 1 consistency check (None: off).  All the scans of a
         joint (of 3 DOF or fewer, moving, with at least
         :data:`OUTLIER_MIN_MOTIONS` scans where both bones are ok) fix its
         centre ``c``; a scan whose child motion misses it, ``|M_i c − c|``,
@@ -404,7 +403,7 @@ def estimate_poses(
         its joint by less than ``max_joint_gap_mm``.
     progress : callable(scan_id, scan_index, n_scans, bone, done, total, fit), optional
     scan_poses : the scans' bone fits already made by :func:`pose_scans` with the same arguments (e.g. one scan
-        per Dask task, :mod:`workbench.scale`); then only the pooling (Eq. 1, outliers, angles) runs here
+        per Dask task, :mod:`workbench.scale`); then only the pooling (Kurihara Eq. 1, outliers, angles) runs here
     """
     results = (
         scan_poses
@@ -430,7 +429,7 @@ def estimate_poses(
     )
     voxel_mm = {s.scan_id: s.voxel_mm for s in results}
     bad = [sid for sid, v in voxel_mm.items() if not (np.isfinite(v) and v > 0)]
-    if bad:  # a NaN spacing would switch Eq. 1's outlier test off without a word
+    if bad:  # a NaN spacing would switch Kurihara Eq. 1's outlier test off without a word
         raise ValueError(
             f"scan_poses of scans {bad} carry no voxel size (ScanPose.voxel_mm): make them with pose_scans"
         )
@@ -464,9 +463,11 @@ def pose_scans(
         bias_correction = guess_modality(template) == "mri"
     if bias_correction:
         template = correct_bias(template)
-    regions = bone_regions(smooth(template, smooth_voxels), labels, skeleton, margin_mm=margin_mm)
+    regions = bone_regions(smooth(template, smooth_voxels, dtype=np.float32), labels, skeleton, margin_mm=margin_mm)
     coarse_regions = (
-        bone_regions(smooth(template, max(COARSE_SMOOTH, smooth_voxels)), labels, skeleton, margin_mm=margin_mm)
+        bone_regions(
+            smooth(template, max(COARSE_SMOOTH, smooth_voxels), dtype=np.float32), labels, skeleton, margin_mm=margin_mm
+        )
         if coarse
         else None
     )
@@ -549,7 +550,7 @@ def _pool(
             else None
         )
         if r is None:
-            # The joint barely turns: Eq. 1's centre would be translation noise over a tiny angle (millimetres
+            # The joint barely turns: Kurihara Eq. 1's centre would be translation noise over a tiny angle (millimetres
             # off for 0.3° of noise), so the skeleton's centre stays, with its residual reported.
             c = np.asarray(j.center, float)
             per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in motions])
@@ -564,7 +565,7 @@ def _pool(
                 iterative_center=c.copy(),
                 estimated=False,
                 message=f"moves less than {MOVING_DEG:.0f}° in every scan: the skeleton's centre "
-                "is kept (Eq. 1 cannot place it)",
+                "is kept (Kurihara Eq. 1 cannot place it)",
             )
         joints[j.name] = r
         new_joints.append(Joint(j.name, j.parent, j.child, j.dof, tuple(r.center), j.axes, j.limits))
@@ -585,7 +586,7 @@ def _pool(
 def placed_transforms(fits: dict, skeleton: Skeleton) -> dict:
     """The pose's transforms: each placed bone's fit; a flagged bone (its fit is kept in ``fits``) follows its
     nearest placed ancestor rigidly, its joints as in the template.  A flagged fit is one the image did not
-    confirm (NCC < 0.5, outside the scan, detached from its joint, an Eq. 1 outlier): handing it on made
+    confirm (NCC < 0.5, outside the scan, detached from its joint, an Kurihara Eq. 1 outlier): handing it on made
     every later stage start from it (the measurements: docs/measurements/pose-and-initialisation.md).  A
     flagged root keeps its fit (nothing to follow)."""
     out = {}
@@ -617,7 +618,7 @@ def flag_joint_outliers(
     hinge_ratio: float = 0.05,
     hinge_sd_mm: float | None = HINGE_SD_MM,
 ) -> list[tuple[str, str]]:
-    """Flag child bones whose motion is inconsistent with their joint's Eq. 1 centre (see :func:`estimate_poses`).
+    """Flag child bones whose motion is inconsistent with their joint's Kurihara Eq. 1 centre (:func:`estimate_poses`).
 
     Returns the ``(scan id, bone)`` pairs flagged ``joint_outlier``; their
     fits (and those below them, ``parent_flagged``) are updated in place.
@@ -627,7 +628,7 @@ def flag_joint_outliers(
     while True:
         worst = None  # (excess ratio, scan, joint, miss, limit)
         for j in skeleton.joints:
-            if j.dof > 3:  # a 6-DOF joint translates: Eq. 1's residual is motion, not error
+            if j.dof > 3:  # a 6-DOF joint translates: Kurihara Eq. 1's residual is motion, not error
                 continue
             used = [s for s in results if s.fits[j.parent].ok and s.fits[j.child].ok]
             if len(used) < OUTLIER_MIN_MOTIONS:
@@ -652,7 +653,7 @@ def flag_joint_outliers(
         f.status = "joint_outlier"
         f.extra["eq1_miss_mm"] = d
         f.stop = (
-            f"{f.stop}; its motion misses joint '{j.name}''s centre, estimated by Eq. 1 from all scans, by "
+            f"{f.stop}; its motion misses joint '{j.name}''s centre, estimated by Kurihara Eq. 1 from all scans, by "
             f"{d:.1f} mm (limit {limit:.1f} mm: {factor:g}x the joint's median, at least "
             f"{OUTLIER_VOXELS:g} voxel)"
         )
@@ -665,24 +666,3 @@ def flag_joint_outliers(
                     f"{s.fits[name].stop}; its parent '{jj.parent}' was flagged "
                     f"({s.fits[jj.parent].status}) and this bone was fitted from it"
                 )
-
-
-# -- accuracy against ground truth ---------------------------------------------------------------------
-def compare_poses(estimate: Pose, truth: Pose, centroids: dict[str, np.ndarray]) -> dict[str, dict]:
-    """Per-bone error of an estimated pose against the truth.
-
-    Rotation error: the angle of ``T_true⁻¹ T_est`` (degrees).  Translation
-    error: the distance between where the two transforms put the bone's
-    template centroid (mm) — independent of where the world origin is.
-    """
-    out = {}
-    for b, t_true in truth.transforms.items():
-        if b not in estimate.transforms:
-            continue
-        t_est = estimate.transforms[b]
-        c = np.asarray(centroids[b], float)
-        out[b] = {
-            "rotation_deg": rotation_angle_deg(compose(invert(t_true), t_est)),
-            "translation_mm": float(np.linalg.norm(apply(t_est, c) - apply(t_true, c))),
-        }
-    return out

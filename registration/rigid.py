@@ -1,40 +1,24 @@
-"""Rigid registration of one bone, template → scan (Rhee et al. 2011, §3.1, Eq. 1; Kurihara & Miyata 2004, §3).
+"""Rigid registration of one bone, template → scan (Rhee et al. 2011, §3.1, Rhee Eq. 1; Kurihara & Miyata 2004, §3).
 
 Rhee §3.1 finds each bone's rigid transform ``T`` by minimising the sum of
-squared differences over the bone's voxels (Eq. 1)::
+squared differences over the bone's voxels (Rhee Eq. 1)::
 
     E(T) = Σ_{x ∈ bone} (I_scan(T x) − I_template(x))²
 
 "with trilinear interpolation", initialised down the skeleton from the
 parent bone's result.  Kurihara §3 instead aligns bone isosurfaces by ICP.
 This module holds both refinements plus the shared pieces:
-
-* :class:`BoneRegion` — a bone's region in the template: a crop around the
-  bone, the (slightly dilated) bone mask inside it, its voxel centres in world
-  mm and their template intensities.  Each dilation voxel belongs to its
-  nearest bone only (a Voronoi split), and none lies within the margin of
-  another bone, so voxels that move with a neighbour never pull on this bone
-  (across a joint space narrower than twice the margin, nothing is added).
-* :class:`Sampler` — a scan interpolated at world points, cubic B-spline by
-  default (trilinear, Rhee's choice, on request), after a light Gaussian
-  smoothing (:func:`smooth`) that removes the noise-interpolation bias.
-* :func:`coarse_rotation_search` — our addition: before refining a child
-  bone, try rotations about its joint centre (carried by the parent's
-  transform) on a grid of flexion, abduction and twist and keep the best
-  cost.  Initialising a child from its parent alone (the paper's scheme)
-  starts a fist's middle phalanx 85° off, far outside any local optimiser's
-  capture range.
-* :func:`refine_intensity` — Eq. 1 through SimpleITK's registration
-  framework: mean squares over the bone mask (a fixed-image mask on the
-  template crop), the sampler's interpolation, a regular-step gradient
-  descent on a ``Euler3DTransform`` centred on the bone (multi-resolution
-  for a root bone), then :func:`polish_with_prior`: the same cost minimised
-  to convergence by least squares, optionally blind to a linear intensity
-  change, with a weak prior towards the kinematic initialisation for the
-  directions the image does not determine, and the posterior uncertainty.
-* :func:`refine_surface` — Kurihara's ICP: isosurfaces of template and scan
-  extracted with VTK flying edges at the same level, in world mm, aligned by
-  Open3D ICP (:mod:`registration.icp`).
+:class:`BoneRegion` (a bone's dilated region in the template, each dilation
+voxel given to its nearest bone only), :class:`Sampler` (a scan interpolated
+at world points after a light Gaussian smoothing),
+:func:`coarse_rotation_search` (our addition: rotations of a child bone about
+its joint centre on a grid, since its parent's transform alone can start it
+far outside any local optimiser's capture range), :func:`refine_intensity`
+(Rhee Eq. 1 through SimpleITK's registration framework, then
+:func:`polish_with_prior`: the same cost to convergence by least squares with
+a weak prior towards the kinematic initialisation, and the posterior
+uncertainty) and :func:`refine_surface` (Kurihara's ICP of VTK isosurfaces by
+Open3D, :mod:`registration.icp`).
 
 Every transform maps template world points to scan world points (4x4).
 """
@@ -48,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from deformation.filters import smooth
 from deformation.geometry import Volume
 from deformation.isosurface import isosurface
 from deformation.transforms import apply, compose, rotation_angle_deg
@@ -56,7 +41,6 @@ __all__ = [
     "BoneRegion",
     "BoneFit",
     "Sampler",
-    "smooth",
     "bone_regions",
     "polish_with_prior",
     "surface_prior",
@@ -70,20 +54,14 @@ __all__ = [
 ]
 
 
-# Voxels per independent sample of the residual in the polish's data term.  The smoothing (σ 0.6 voxel), the
-# scanner's point spread and model error near the bone's edge correlate neighbouring residuals, so counting
-# every voxel as independent makes the posterior too sure of itself; a larger value helped some phantoms and
-# hurt others, so each voxel counts, and the reported standard deviations are optimistic by about the
-# correlation's square root (docs/measurements/pose-and-initialisation.md).
+#: voxels per independent sample of the residual in the polish's data term: each voxel counts, so the reported
+#: standard deviations are optimistic by about the residual's correlation length's square root
+#: (registration-settings.md, "NOISE_CORRELATION")
 NOISE_CORRELATION = 1.0
 
-# The polish's robust loss (scipy.optimize.least_squares) and its threshold in units of the residual's robust
-# scale (1.4826 x its MAD).  A bone's dilated region holds soft tissue that does not move with the bone (it
-# slides and bulges near a flexed joint), which pulls the least-squares minimum off the truth.  Huber at 2σ
-# bounds those voxels' pull and keeps ~99 % of the squares' efficiency on Gaussian noise (Cauchy, which throws
-# them away, also threw away information on a noise-limited scan); the threshold is on the MAD, not the RMS,
-# which the outliers inflate (tests/registration/test_rigid.py; the measurements:
-# docs/measurements/pose-and-initialisation.md).
+#: the polish's robust loss (scipy.optimize.least_squares) and its threshold in units of the residual's robust
+#: scale (1.4826 × its MAD): Huber at 2σ bounds the pull of the soft tissue in a bone's region that does not move
+#: with the bone (registration-settings.md, "ROBUST_LOSS and ROBUST_SCALE")
 ROBUST_LOSS = "huber"
 ROBUST_SCALE = 2.0
 PRIOR_MM = 2.0  # the polish's translation prior (the rotation prior is the callers' prior_deg)
@@ -226,7 +204,7 @@ class Sampler:
     def __init__(self, image: Volume, order: int = 3, smooth_voxels: float = 0.0):
         if order not in (1, 3):
             raise ValueError(f"interpolation order must be 1 (linear) or 3 (cubic B-spline), got {order}")
-        image = smooth(image, smooth_voxels)
+        image = smooth(image, smooth_voxels, dtype=np.float32)  # SciPy's kernel in voxels, edges reflected
         self.image = image
         self.order = order
         data = np.asarray(image.data, dtype=np.float64)
@@ -243,23 +221,6 @@ class Sampler:
         out = ndimage.map_coordinates(self.coeffs, ijk[:, ::-1].T, order=self.order, mode="mirror", prefilter=False)
         out[np.any((ijk < -0.5) | (ijk > self._size - 0.5), axis=1)] = np.nan
         return out
-
-
-def smooth(image: Volume, sigma_voxels: float) -> Volume:
-    """Gaussian smoothing by ``sigma_voxels`` along each index axis (a no-op for 0).
-
-    Both images are smoothed a little before Eq. 1: interpolating unsmoothed
-    noise lowers its variance between grid points, so the SSD of a noisy scan
-    prefers transforms that put samples off the grid (Pluim et al. 2000's
-    interpolation artefact); a little smoothing correlates neighbouring
-    voxels' noise, so interpolation between them lowers it much less
-    (the measurements: docs/measurements/pose-and-initialisation.md).
-    """
-    if not sigma_voxels:
-        return image
-    return Volume(
-        ndimage.gaussian_filter(np.asarray(image.data, dtype=np.float32), float(sigma_voxels)), image.geometry
-    )
 
 
 def ssd(a: np.ndarray, b: np.ndarray) -> float:
@@ -299,10 +260,10 @@ def _batch_ssd(
 ):
     """Cost of the region under each of ``transforms`` (k, 4, 4), one interpolation call per batch.
 
-    ``metric="ssd"``: mean squared difference (Eq. 1).  ``metric="ncc"``: the
+    ``metric="ssd"``: mean squared difference (Rhee Eq. 1).  ``metric="ncc"``: the
     mean squared difference left after the best linear intensity map
     ``a·I_scan + b`` per candidate, ``var(I_template)·(1 − ρ²)`` with ρ the
-    correlation — Eq. 1 made blind to a bone-wide gain and offset (an MRI
+    correlation — Rhee Eq. 1 made blind to a bone-wide gain and offset (an MRI
     bias field, a different window).
     """
     k, n = len(transforms), len(region_pts)
@@ -474,7 +435,7 @@ def coarse_rotation_search(
     return transforms(best_angles[None])[0], best, n, best_angles
 
 
-# -- Eq. 1 through SimpleITK ---------------------------------------------------------------------------
+# -- Rhee Eq. 1 through SimpleITK ---------------------------------------------------------------------------
 def _euler_from_matrix(t: np.ndarray, center: np.ndarray):
     import SimpleITK as sitk
 
@@ -571,9 +532,9 @@ def refine_intensity(
     reg = sitk.ImageRegistrationMethod()
     if metric not in ("ssd", "ncc"):
         raise ValueError(
-            f"metric must be 'ssd' (Rhee Eq. 1) or 'ncc' (Eq. 1 after a linear intensity fit), got {metric!r}"
+            f"metric must be 'ssd' (Rhee Eq. 1) or 'ncc' (Rhee Eq. 1 after a linear intensity fit), got {metric!r}"
         )
-    # Eq. 1 as printed.  (ITK's correlation metric with the same optimiser ran into the iteration cap on every
+    # Rhee Eq. 1 as printed.  (ITK's correlation metric with the same optimiser ran into the iteration cap on every
     # bone and took 25x longer; the intensity-invariant variant lives in the polish below.)
     reg.SetMetricAsMeanSquares()
     reg.SetMetricFixedMask(mask)
@@ -709,11 +670,11 @@ def polish_with_prior(
     loss: str = ROBUST_LOSS,
     loss_scale: float = ROBUST_SCALE,
 ) -> tuple[np.ndarray, dict]:
-    """Eq. 1 plus a weak Gaussian prior tying the bone to its hierarchical initialisation.
+    """Rhee Eq. 1 plus a weak Gaussian prior tying the bone to its hierarchical initialisation.
 
     A bone that is nearly symmetric about an axis (a phalanx two voxels
     across, seen about its length; a small patella about its normal) leaves
-    Eq. 1 almost flat along that rotation: noise alone then moves it by
+    Rhee Eq. 1 almost flat along that rotation: noise alone then moves it by
     degrees.  We minimise::
 
         Σ_x (I_scan(T x) − I_template(x))² / σ² + |θ|² / τ_θ² + |t|² / τ_t²
@@ -722,7 +683,7 @@ def polish_with_prior(
     and translation relative to ``init`` (the prior's centre: the parent's
     transform turned by the joint's flexion from the grid search, other joint
     angles zero — joints move mostly in flexion), and ``σ²`` the mean squared
-    residual of the plain Eq. 1 fit (``sigma``, so that costs from several
+    residual of the plain Rhee Eq. 1 fit (``sigma``, so that costs from several
     starts compare).  Directions the image determines well are practically
     unchanged (their data curvature is orders of magnitude above ``1/τ²``);
     undetermined ones stay at the initialisation instead of fitting noise
@@ -731,7 +692,7 @@ def polish_with_prior(
     that part of the prior (a root bone has no parent to be tied to).
 
     ``loss`` (a :func:`~scipy.optimize.least_squares` loss; ``"linear"`` is
-    Eq. 1's plain sum of squares) with ``loss_scale`` in units of ``σ`` (here;
+    Rhee Eq. 1's plain sum of squares) with ``loss_scale`` in units of ``σ`` (here;
     :func:`refine_intensity` sets it on the residual's robust scale) makes
     the fit robust: voxels of the dilated region whose residual exceeds
     ``loss_scale·σ`` — soft tissue that slides past the bone, a neighbour
@@ -1015,10 +976,9 @@ def refine_surface(
         # The information is the matched points': those with a scan point within ICP's last distance (a point
         # with no partner — cropped, outside the field of view — fixes nothing).  σ is ICP's inlier RMS (point
         # to point), not the point-to-plane RMS: two isosurfaces of one bone sampled on different grids differ
-        # systematically, their residuals correlated along the surface, so the plane distances (~0.05 mm on
-        # the 1.6 mm CT hand) would count each point as independent evidence and overstate the information
-        # ~30-fold: the prior then lost to ICP's noise again (median bone errors 0.9-3.4° on the kurihara
-        # study against 0.4-1.5° with the point-to-point RMS)
+        # systematically, their residuals correlated along the surface, so the plane distances would count each
+        # point as independent evidence and overstate the information (registration-settings.md, "The surface
+        # polish's σ")
         from scipy.spatial import cKDTree
 
         dist, _ = cKDTree(tgt).query(apply(t, src), distance_upper_bound=0.5 * d)

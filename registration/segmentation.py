@@ -2,36 +2,24 @@
 
 The pose pipeline needs each bone's voxels in the template.  When the study
 has a label map it is used as it is.  Otherwise the bones are segmented from
-the template image and seeds (``{bone: (n, 3) world points}``; the file is
-read by :func:`workbench.io.inputs.read_seeds`), a **seeds file** — one or more world points (mm)
-inside each bone, the manual step both papers had (Rhee segmented MRI by
-graph cut from user strokes, Kurihara thresholded CT)::
+the template image and a **seeds file** (read by
+:func:`workbench.io.inputs.read_seeds`): one or more world points (mm) inside
+each bone, the manual step both papers had (Rhee segmented MRI by graph cut
+from user strokes, Kurihara thresholded CT)::
 
     {"format": "avw-seeds", "version": 1, "units": "mm",
      "seeds": {"femur": [[x, y, z], ...], "tibia": [[x, y, z]], ...}}
 
-* **CT-like** (:func:`segment_ct`): threshold (bone is the brightest
-  tissue; default 400 HU, about a third of the way between soft tissue and cortical
-  bone, so that partial-volume voxels count as bone when they are more than
-  half bone), fill the marrow cavities, connected components
-  (SimpleITK), each component given to the bone whose seed it holds.  Bones
-  that touch at the scan's resolution share a component; it is split by a
-  marker-controlled watershed (SimpleITK) of the negated distance to the
-  mask's edge, whose ridges run through the necks where bones touch.
-* **MRI-like** (:func:`segment_mri`): the marrow is bright and enclosed by
-  the dark cortex, but no brighter than the fat around the bone (fat septa,
-  subcutaneous fat), so no intensity band separates them.  Each bone's
-  marrow is flooded from its seeds (SimpleITK ``ConnectedThreshold``) over
-  the voxels above a threshold, the lowest at which the flood stays inside
-  the cortex — it touches no air and stays under ``max_volume_ml`` and a
-  quarter of the body — found by bisection; then the dark voxels within
-  ``cortex_mm`` of the marrow are the cortex.  A seed that leaks at its own
-  intensity, or whose flood lies apart from the marrow its bone's other
-  seeds reach, is reported and left out.  Voxels claimed by two bones go
-  to the nearer seed.  (The earlier region growing,
-  ``ConfidenceConnected``, grew by intensity statistics alone: it leaked
-  into fat for the fibula and patella and under-segmented the femur
-  silently, Dice 0.29, on the knee phantom with structured soft tissue.)
+* **CT-like** (:func:`segment_ct`): a threshold (bone is the brightest tissue;
+  400 HU by default, so that partial-volume voxels count as bone when they are
+  more than half bone), the marrow cavities filled, each connected component
+  (SimpleITK) given to the bone whose seed it holds; bones that touch share a
+  component, split by a marker-controlled watershed of the negated distance
+  to the mask's edge, whose ridges run through the necks where bones touch.
+* **MRI-like** (:func:`segment_mri`): the marrow, bright inside the dark
+  cortex but no brighter than the fat around the bone, is flooded from its
+  seeds at the lowest threshold at which the flood stays inside the cortex;
+  the dark voxels within ``cortex_mm`` of the marrow are the cortex.
 
 Both return a label map on the image's grid with the skeleton's label ids.
 """
@@ -43,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from deformation.filters import smooth
 from deformation.geometry import Volume
 
 __all__ = [
@@ -323,14 +312,12 @@ def segment_bones(
 
 
 def _smoothed(image: Volume, smooth_voxels: float):
-    """The image as a SimpleITK image in voxel units, Gaussian-smoothed by ``smooth_voxels`` (0: as it is)."""
+    """The image as a float32 SimpleITK image in voxel units (spacing 1), smoothed by SimpleITK's recursive
+    Gaussian of ``smooth_voxels`` voxels (0: as it is)."""
     import SimpleITK as sitk
 
-    img = sitk.GetImageFromArray(np.asarray(image.data, dtype=np.float32))
-    img.SetSpacing((1.0, 1.0, 1.0))  # smoothing in voxels
-    if smooth_voxels > 0:
-        img = sitk.SmoothingRecursiveGaussian(img, float(smooth_voxels))
-    return img
+    data = np.asarray(image.data, dtype=np.float32)
+    return sitk.GetImageFromArray(smooth(data, max(float(smooth_voxels), 0.0), method="recursive"))
 
 
 def _air_tissue_level(img) -> float:

@@ -1,33 +1,19 @@
 """Fitting a mesh to a scan's surface with its connectivity kept (Kurihara & Miyata 2004, §4, Fig. 5).
 
 Kurihara builds, for every measured pose ``i``, a mesh ``S^f_i`` with the base
-mesh ``S_0``'s connectivity: ``S_0`` deformed by SSD (Eq. 2–3), then by RBF
-feature points (Eq. 4–5, :class:`deformation.splines.RBFDeformation`), then
-each vertex moved to its nearest point on the scan's surface (the paper used
-PQP).  Here:
+mesh ``S_0``'s connectivity: ``S_0`` deformed by SSD (Kurihara Eqs. 2–3), then
+by RBF feature points (Kurihara Eqs. 4–5,
+:class:`deformation.splines.RBFDeformation`), then each vertex moved to its
+nearest point on the scan's surface (the paper used PQP).  Here:
 
-* :func:`closest_points` — Open3D's ``RaycastingScene`` closest-point query
-  on a triangle mesh (exact point-to-triangle, not to its vertices);
-* :func:`fit_nearest` — the paper's fit: every vertex onto its closest point;
-* :func:`fit_regularised` — our addition for scans where the nearest point
-  is wrong: where fingers touch, the skin between them is missing from the
-  scan's isosurface, and the nearest point of a vertex on one finger's side
-  lies on the merged surface or on the other finger (Kurihara's Pose 4, which
-  its fit could not handle).  A vertex's target counts only when it is near
-  (``max_distance_mm``), its surface faces the same way (normals within
-  ``max_angle_deg``) and it lies along the vertex's normal (within the same
-  angle: a hidden vertex's nearest point lies sideways, on the seam where the
-  two skins merge); every vertex keeps the shape of the mesh it started from
-  through its Laplacian (umbrella) coordinates::
-
-      min_x  Σ_j c_j |x_j − p_j|² + λ Σ_j |L x − L x₀|²_j
-
-  with ``p_j`` the closest point of the current ``x_j``, ``c_j`` ∈ {0, 1} its
-  confidence and ``x₀`` the start; a sparse symmetric positive definite
-  system (conjugate gradients, warm-started from the current vertices,
-  for the three coordinates at once), repeated as the closest points move.  Vertices with no confident target are
-  carried by
-  their neighbours (the Laplacian) rather than pulled onto a wrong surface.
+* :func:`closest_points`: Open3D's ``RaycastingScene`` closest-point query on
+  a triangle mesh (exact point-to-triangle, not to its vertices);
+* :func:`fit_nearest`: the paper's fit, every vertex onto its closest point;
+* :func:`fit_regularised`: our addition for scans where the nearest point is
+  wrong (where fingers touch, the skin between them is missing from the
+  scan's isosurface: Kurihara's Pose 4, which its fit could not handle): only
+  confident targets pull, and every vertex keeps the shape of the mesh it
+  started from through its Laplacian coordinates (Sorkine et al. 2004).
 
 References
 ----------
@@ -63,7 +49,7 @@ FEATURE_SOURCES = ("registration", "closest", "landmarks")  #: where the RBF fea
 FITS = ("regularised", "nearest")
 
 
-def _scene(mesh: SurfaceMesh):
+def raycasting_scene(mesh: SurfaceMesh):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -80,7 +66,7 @@ def closest_points(mesh: SurfaceMesh, points, *, scene=None) -> tuple[np.ndarray
 
     if mesh.n_triangles == 0:
         raise ValueError("closest points on a mesh with no triangles")
-    scene = scene or _scene(mesh)
+    scene = scene or raycasting_scene(mesh)
     q = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3), dtype=np.float32)
     ans = scene.compute_closest_points(o3d.core.Tensor(q))
     p = ans["points"].numpy().astype(np.float64)
@@ -146,7 +132,7 @@ def _cg(a, b, x0, inv_diag, *, rtol: float = 1e-10, maxiter: int = 5000):
     return x, maxiter, bool(np.all(np.sqrt(np.sum(r * r, axis=0)) <= stop))
 
 
-def _confident_targets(
+def confident_targets(
     x, normals, target: SurfaceMesh, scene, target_normals, max_distance_mm: float, cos_max: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Closest points of ``x`` on ``target`` and which count: near, facing the same way, and found along the
@@ -195,7 +181,7 @@ class FitResult:
 
 def fit_nearest(start: SurfaceMesh, target: SurfaceMesh) -> FitResult:
     """Kurihara §4's fit: every vertex of ``start`` moved to its closest point on ``target``."""
-    scene = _scene(target)
+    scene = raycasting_scene(target)
     p, _, _ = closest_points(target, start.vertices, scene=scene)
     return FitResult(SurfaceMesh(p, start.triangles), np.zeros(len(p)), np.ones(len(p), bool), 1, {"method": "nearest"})
 
@@ -210,7 +196,25 @@ def fit_regularised(
     iterations: int = 10,
     tolerance_mm: float = 1e-3,
 ) -> FitResult:
-    """The smoothness-regularised fit of the module docstring.
+    """The smoothness-regularised fit: the nearest points that can be trusted, the mesh's shape kept.
+
+    Where fingers touch, the skin between them is missing from the scan's
+    isosurface, and the nearest point of a vertex on one finger's side lies on
+    the merged surface or on the other finger.  A vertex's target counts only
+    when it is near (``max_distance_mm``), its surface faces the same way
+    (normals within ``max_angle_deg``) and it lies along the vertex's normal
+    (within the same angle: a hidden vertex's nearest point lies sideways, on
+    the seam where the two skins merge); every vertex keeps the shape of the
+    mesh it started from through its Laplacian (umbrella) coordinates::
+
+        min_x  Σ_j c_j |x_j − p_j|² + λ Σ_j |L x − L x₀|²_j
+
+    with ``p_j`` the closest point of the current ``x_j``, ``c_j`` ∈ {0, 1} its
+    confidence and ``x₀`` the start; a sparse symmetric positive definite
+    system (conjugate gradients, warm-started from the current vertices, for
+    the three coordinates at once), repeated as the closest points move.
+    Vertices with no confident target are carried by their neighbours (the
+    Laplacian) rather than pulled onto a wrong surface.
 
     ``stiffness`` is λ (relative to the data term's unit weight per confident vertex): 1 keeps the
     start's local shape about as strongly as it follows the surface; the Laplacian of a smooth region is
@@ -224,7 +228,7 @@ def fit_regularised(
     lap = umbrella_laplacian(n, start.triangles)
     ltl = (lap.T @ lap).tocsc()
     rhs_shape = ltl @ x0  # λ Lᵀ L x₀: the start's Laplacian coordinates kept
-    scene = _scene(target)
+    scene = raycasting_scene(target)
     tn = triangle_normals(target.vertices, target.triangles)
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     x = x0.copy()
@@ -232,7 +236,7 @@ def fit_regularised(
     it, cg_iters, cg_ok = 0, 0, True
     moved = np.inf
     for _ in range(1, int(iterations) + 1):
-        p, conf = _confident_targets(x, vertex_normals(x, start.triangles), target, scene, tn, max_distance_mm, cos_max)
+        p, conf = confident_targets(x, vertex_normals(x, start.triangles), target, scene, tn, max_distance_mm, cos_max)
         c = conf.astype(float)
         # a vertex with no confident target in a component that has none either would leave A singular:
         # a tiny pull towards where it is now keeps it there
@@ -319,8 +323,8 @@ def consistent_mesh(
     stiffness: float = 1.0,
 ) -> dict:
     """Kurihara §4 for one scan: ``S_0`` (``base``, its vertices' skinning ``weights``) → SSD with the scan's
-    bone ``transforms`` (Eq. 2–3) → RBF feature-point deformation (Eq. 4–5) → fit to the scan's surface
-    ``target`` (:func:`fit_regularised` or the paper's :func:`fit_nearest`).
+    bone ``transforms`` (Kurihara Eqs. 2–3) → RBF feature-point deformation (Kurihara Eqs. 4–5) → fit to the
+    scan's surface ``target`` (:func:`fit_regularised` or the paper's :func:`fit_nearest`).
 
     Feature points: ``landmarks`` ``(sites, scan points)`` — points picked on the template's skin
     (:func:`landmark_sites` on S0) and where they are in the scan, every one a feature point (Kurihara's
@@ -355,8 +359,8 @@ def consistent_mesh(
             has = np.isfinite(tgt).all(axis=1)
             source = "given targets"
         else:
-            scene = _scene(target)
-            tgt, has = _confident_targets(
+            scene = raycasting_scene(target)
+            tgt, has = confident_targets(
                 ssd.vertices,
                 vertex_normals(ssd.vertices, ssd.triangles),
                 target,

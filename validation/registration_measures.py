@@ -125,18 +125,29 @@ def validation_rows(
 ) -> dict:
     """Rhee's Tables 2–4 rows for one scan: ``source`` (no deformation), ``initialised`` (when ``initial``
     is given) and ``registered``, each with the measures of the module docstring over the same body voxels."""
-    from registration.baselines import warp_template
+    from deformation.interpolate import warp
+    from registration.metrics import air_level
 
     body = body_on_scan(truth, template_body)
     zero = Volume(np.zeros(truth.data.shape, np.float32), truth.geometry)
     rows = {
         "source": registration_measures(
-            scan, warp_template(template, zero), zero, truth=truth, body=body, markers=markers
+            scan,
+            warp(template, displacement=zero, fill=air_level(template), dtype=np.float32),
+            zero,
+            truth=truth,
+            body=body,
+            markers=markers,
         )
     }
     if initial is not None:
         rows["initialised"] = registration_measures(
-            scan, warp_template(template, initial), initial, truth=truth, body=body, markers=markers
+            scan,
+            warp(template, displacement=initial, fill=air_level(template), dtype=np.float32),
+            initial,
+            truth=truth,
+            body=body,
+            markers=markers,
         )
     rows["registered"] = registration_measures(scan, registered, field, truth=truth, body=body, markers=markers)
     return rows

@@ -236,8 +236,14 @@ def test_sample_array_warp_and_displaced_sampling_agree(geom):
     # the interpolated values (gradients ≤ 1/voxel of data in [0,1)) differ by ~1e-15
     fused = sample_displaced_array(vol.data, geom.world_to_index_matrix, out_geom, disp, 1, -1.0)
     np.testing.assert_allclose(fused, expected, rtol=0, atol=1e-12)
+    # warp through a displacement volume is the fused kernel, converted to the dtype asked for
+    wd = warp(vol, displacement=Volume(disp, out_geom), fill=-1.0, dtype=np.float32)
+    assert wd.geometry == out_geom and wd.data.dtype == np.float32
+    np.testing.assert_array_equal(wd.data, fused.astype(np.float32))
     with pytest.raises(GeometryMismatchError):
         warp(vol, pos[:-1], out_geom)
+    with pytest.raises(ValueError):
+        warp(vol, pos, out_geom, displacement=Volume(disp, out_geom))
 
 
 # ================================================================================ fields: basics

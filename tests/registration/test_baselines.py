@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_adaptive import G, _bent_pair  # same folder (rootdir-less test modules)
+from test_adaptive import G, bent_pair  # same folder (rootdir-less test modules)
 
 from deformation.geometry import Volume
 from registration.baselines import ants_available, ants_syn, elastix_available, sitk_bspline
@@ -14,7 +14,7 @@ from registration.baselines import ants_available, ants_syn, elastix_available, 
 
 @pytest.mark.slow  # ~16 s; elastix's B-spline, the main peer, stays in the default suite (`make test-slow`)
 def test_sitk_bspline_recovers_a_smooth_deformation():
-    fixed, moving, u = _bent_pair()
+    fixed, moving, u = bent_pair()
     res = sitk_bspline(
         fixed,
         moving,
@@ -32,7 +32,7 @@ def test_sitk_bspline_recovers_a_smooth_deformation():
 
 
 def test_sitk_bspline_composes_with_the_initial_field():
-    fixed, moving, u = _bent_pair()
+    fixed, moving, u = bent_pair()
     init = Volume(u.astype(np.float32), G)  # exact: the baseline must keep it (composition, not a sum)
     res = sitk_bspline(
         fixed,
@@ -51,9 +51,9 @@ def test_sitk_bspline_composes_with_the_initial_field():
 ELASTIX_SCRIPT = """
 import sys, numpy as np
 sys.path.insert(0, sys.argv[1])
-from test_adaptive import _bent_pair
+from test_adaptive import bent_pair
 from registration.baselines import elastix_bspline
-f, m, u = _bent_pair()
+f, m, u = bent_pair()
 r = elastix_bspline(f, m, metric="ssd", grid_spacing_mm=8.0, resolutions=2, iterations=200)
 print(np.linalg.norm(u, axis=-1).mean(), np.linalg.norm(r.correspondence.data - u, axis=-1).mean())
 """
@@ -76,7 +76,7 @@ def test_elastix_bspline_recovers_a_smooth_deformation():
 
 
 def test_bad_metric_is_refused():
-    fixed, moving, _ = _bent_pair()
+    fixed, moving, _ = bent_pair()
     with pytest.raises(ValueError, match="metric"):
         sitk_bspline(fixed, moving, metric="ncc")
 
@@ -84,10 +84,10 @@ def test_bad_metric_is_refused():
 ELASTIX_RIGIDITY_SCRIPT = """
 import sys, numpy as np
 sys.path.insert(0, sys.argv[1])
-from test_adaptive import G, _bent_pair
+from test_adaptive import G, bent_pair
 from deformation.geometry import Volume
 from registration.baselines import elastix_bspline
-f, m, u = _bent_pair()
+f, m, u = bent_pair()
 lab = np.zeros(G.array_shape, np.uint8)
 lab[:, :, : G.array_shape[2] // 3] = 1  # a 'bone' slab where the bend leaves the tissue in place
 r = elastix_bspline(f, m, metric="ssd", grid_spacing_mm=8.0, resolutions=2, iterations=200,
@@ -117,7 +117,7 @@ def test_elastix_with_the_rigidity_penalty_runs_and_registers():
 
 @pytest.mark.skipif(not ants_available(), reason="antspyx not installed in .venv-ants (make bench-ants)")
 def test_ants_syn_recovers_a_smooth_deformation():
-    fixed, moving, u = _bent_pair()
+    fixed, moving, u = bent_pair()
     res = ants_syn(fixed, moving, seed=1, threads=1)
     err0 = np.linalg.norm(u, axis=-1).mean()
     err = np.linalg.norm(res.correspondence.data - u, axis=-1).mean()

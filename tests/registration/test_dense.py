@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from deformation.filters import smooth
 from deformation.geometry import GridGeometry, Volume
 from registration.dense import DenseSettings, register_dense
 
@@ -335,11 +336,11 @@ def test_smoothing_split_into_slabs_gives_the_whole_arrays_bits():
     before = numba.get_num_threads()
     numba.set_num_threads(2)
     try:
-        dense._POOL.clear()
+        dense.POOLS.clear()
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(dense, "_SMOOTH_SERIAL_BELOW", 0)  # these small arrays would be smoothed serially
-            got = dense._smooth_all(arrays, sigma)
-        assert dense._POOL, "the threads did not run"
+            mp.setattr(dense, "SMOOTH_SERIAL_BELOW", 0)  # these small arrays would be smoothed serially
+            got = dense.smooth_all(arrays, sigma)
+        assert dense.POOLS, "the threads did not run"
     finally:
         numba.set_num_threads(before)
     for a, g in zip(arrays, got):
@@ -403,13 +404,13 @@ def test_lncc_over_the_tissue_only_ignores_the_air():
     w = (0.6 * f + 0.8 * rng.normal(size=shape)).astype(np.float32)
     zz, yy, xx = np.indices(shape)
     tissue = ((zz - 13) ** 2 / 64 + (yy - 12) ** 2 / 49 + (xx - 11) ** 2 / 36 < 1).astype(np.float32)
-    stats = dense._local_stats(f, sig, tissue)
-    cc, dcc = dense._lncc_force(f, w, sig, stats)
+    stats = dense.local_stats(f, sig, tissue)
+    cc, dcc = dense.lncc_force(f, w, sig, stats)
     air = tissue == 0
     f2, w2 = f.copy(), w.copy()
     f2[air] = rng.normal(size=int(air.sum())) * 5
     w2[air] = rng.normal(size=int(air.sum())) * 5
-    cc2, dcc2 = dense._lncc_force(f2, w2, sig, dense._local_stats(f2, sig, tissue))
+    cc2, dcc2 = dense.lncc_force(f2, w2, sig, dense.local_stats(f2, sig, tissue))
     assert np.array_equal(dcc, dcc2) and cc == cc2
     assert np.all(dcc[air] == 0)
     # brute force at voxels on the ellipsoid's edge (their windows half air), away from the grid's edge
@@ -448,18 +449,18 @@ def test_smoothing_of_u_over_the_tissue():
     air = tissue == 0
     u = [np.where(air, 3.0 + rng.random(shape), 1.0).astype(np.float32) for _ in range(3)]  # c = 1
     wt = tissue + eps * (1.0 - tissue)
-    out = dense._weighted_smooth(u, wt, 1.0 / dense._smooth(wt, sig), sig)
-    m = dense._smooth(tissue, sig)
+    out = dense.weighted_smooth(u, wt, 1.0 / smooth(wt, sig, **dense.GAUSSIAN), sig)
+    m = smooth(tissue, sig, **dense.GAUSSIAN)
     bound = eps * (1 - m) / (m + eps * (1 - m)) * 3.0  # max |air − c| < 3 (air in [3, 4), c = 1)
     for a in range(3):
         assert np.all(np.abs(out[a] - 1.0)[~air] <= bound[~air] * (1 + 1e-4) + 1e-6)
     skin = np.zeros(shape, bool)
     skin[:, 10] = True
-    assert np.abs(dense._smooth(u[0], sig)[skin] - 1.0).min() > 0.5  # the plain Gaussian: the air drags it
+    assert np.abs(smooth(u[0], sig, **dense.GAUSSIAN)[skin] - 1.0).min() > 0.5  # the plain Gaussian: the air drags it
     one = np.ones(shape, np.float32)
     np.testing.assert_allclose(
-        dense._weighted_smooth(u, one, 1.0 / dense._smooth(one, sig), sig)[1],
-        dense._smooth(u[1], sig),
+        dense.weighted_smooth(u, one, 1.0 / smooth(one, sig, **dense.GAUSSIAN), sig)[1],
+        smooth(u[1], sig, **dense.GAUSSIAN),
         rtol=1e-6,
         atol=1e-6,
     )
@@ -469,7 +470,7 @@ def test_tissue_only_applies_when_air_surrounds_the_body(case):
     """Without air the segmentation's "body" is the brighter half of the texture (46 % of the grid's faces
     outside it): keeping to it would drop the rest of the tissue, so the plain path runs (the same bits as
     tissue_only=False); with air around the body (every face voxel) the tissue-only one runs, and it differs."""
-    from registration.dense import _air_around
+    from registration.dense import share_of_air_around
 
     template, labels, scan, truth, bone = case
     st = dict(shrink=(2, 1), iterations=(6, 4))
@@ -484,12 +485,12 @@ def test_tissue_only_applies_when_air_surrounds_the_body(case):
     assert not np.array_equal(on.correspondence.data, off.correspondence.data)
     ring = np.zeros((6, 7, 8), bool)
     ring[1:-1, 1:-1, 1:-1] = True
-    assert _air_around(ring) == 1.0 and _air_around(np.ones_like(ring)) == 0.0
+    assert share_of_air_around(ring) == 1.0 and share_of_air_around(np.ones_like(ring)) == 0.0
 
 
 @pytest.mark.parametrize("air", [False, True])
 def test_each_level_objective_never_falls_at_a_taken_step(air):
-    """Issue M: a step is taken only when it raises the level's LNCC (a trust region: otherwise its radius
+    """A step is taken only when it raises the level's LNCC (a trust region: otherwise its radius
     halves), and a level stops on convergence (10 taken steps gaining < tolerance, or no step of the smallest
     radius raising it) rather than on its trial cap.  The cap here (200) is far above what the case needs."""
     template, labels, scan, truth, bone = make_case(air=air)
@@ -543,7 +544,7 @@ def _bone_in_a_box():
     scan) and the sampler of the template: that texture shifted by 1.5 mm along x (array axis 2), so that
     ``u = +1.5 mm`` along x on the bone is right.  Returns shape, spacing, geometry, index grid, grid in mm, box,
     the bone's mask in its box, its centre (mm), the scan and the template's sampler."""
-    from registration.dense import _TemplateSampler
+    from registration.dense import TemplateSampler
 
     shape, sp = (24, 24, 24), np.ones(3)
     g = GridGeometry(shape[::-1], (1.0, 1.0, 1.0))
@@ -555,19 +556,19 @@ def _bone_in_a_box():
     rng = np.random.default_rng(5)
     tex = ndimage.gaussian_filter(rng.normal(size=shape), 1.5).astype(np.float32)
     moved = ndimage.shift(tex, (0.0, 0.0, 1.5), order=3, mode="nearest")  # template(x) = scan(x - s)
-    sample_w = _TemplateSampler(
+    sample_w = TemplateSampler(
         Volume(moved, g), Volume(np.zeros(shape + (3,), np.float32), g), 1.0, tuple(slice(0, n) for n in shape)
     ).level(1, 0.0, shape)[1]
     return shape, sp, g, grid, grid_mm, box, m, np.full(3, 11.5), tex, sample_w
 
 
 def test_a_bone_first_moves_only_when_its_own_fit_rises_significantly():
-    """registration.dense._bone_fit_improves, the refinement's test of a first move: the bone's own NCC (its
+    """registration.dense.bone_fit_improves, the refinement's test of a first move: the bone's own NCC (its
     voxels and one around) must rise by more than 2 standard errors of Fisher's z.  A textured bone whose
     template is off by 1.5 mm: the correcting shift passes (measured: NCC 0.76 → 0.91 over 1600 voxels, z 15).
     The same bone under noise, off by 0.1 mm: the correction's gain is within the noise, and passes only a
     test that accepts any rise."""
-    from registration.dense import _bone_fit_improves, _TemplateSampler
+    from registration.dense import TemplateSampler, bone_fit_improves
 
     shape, sp, g, grid, grid_mm, box, m, centre, tex, sample_w = _bone_in_a_box()
     rng = np.random.default_rng(5)
@@ -576,11 +577,11 @@ def test_a_bone_first_moves_only_when_its_own_fit_rises_significantly():
     u = np.zeros((3,) + shape, np.float32)
     st = DenseSettings()
     fix = np.array([0, 0, 0, 0.0, 0.0, 1.5])  # u = +s: the scan at x is the template at x + s
-    assert _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st)
+    assert bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st)
     # the same gain over 100 times fewer independent samples (the noise correlated over ~4.6 voxels along each
     # axis): z 1.4 (measured), not significant; over 3 or fewer, never
-    assert not _bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st, 100.0)
-    assert not _bone_fit_improves(
+    assert not bone_fit_improves(fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, st, 100.0)
+    assert not bone_fit_improves(
         fix, 1, box, m, wgt, u, tex, sample_w, centre, grid_mm, sp, DenseSettings(refine_significance=0.0), 1700.0
     )
     # the same bone under independent noise in scan and template, its template off by 0.1 mm only: the correcting
@@ -590,24 +591,24 @@ def test_a_bone_first_moves_only_when_its_own_fit_rises_significantly():
     templ = ndimage.shift(tex, (0.0, 0.0, 0.1), order=3, mode="nearest") + 0.5 * float(tex.std()) * rng.normal(
         size=shape
     ).astype(np.float32)
-    sample_w = _TemplateSampler(
+    sample_w = TemplateSampler(
         Volume(templ, g), Volume(np.zeros(shape + (3,), np.float32), g), 1.0, tuple(slice(0, n) for n in shape)
     ).level(1, 0.0, shape)[1]
     small = np.array([0, 0, 0, 0.0, 0.0, 0.1])
-    assert _bone_fit_improves(
+    assert bone_fit_improves(
         small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp, DenseSettings(refine_significance=0.0)
     )
-    assert not _bone_fit_improves(small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp, st)
+    assert not bone_fit_improves(small, 1, box, m, wgt, u, noisy, sample_w, centre, grid_mm, sp, st)
 
 
 def test_template_sampler_reads_the_template_through_the_composed_map_on_another_grid():
-    """registration.dense._TemplateSampler against a direct computation in world mm: a template on its own grid
+    """registration.dense.TemplateSampler against a direct computation in world mm: a template on its own grid
     (other spacing per axis, origin), a scan box whose corner is not the grid's, an affine start, level 2 with
     its pre-smoothing (0.5 scan voxel, carried to the template's axes in mm) and a constant u.  ``warp`` and
     ``sample`` must read the template smoothed by σ = 0.5 · scan spacing / template spacing per axis at
     x + u + φ₀(x + u).  Tolerance 1e-4 of the image's range: float32 sampling; interior level voxels only
     (φ₀ continues by its edge values beyond the box, which the affine reference does not)."""
-    from registration.dense import _TemplateSampler
+    from registration.dense import TemplateSampler
 
     gs = GridGeometry((20, 18, 16), (1.2, 1.5, 2.0), (-5.0, 3.0, 1.0))
     gt = GridGeometry((44, 40, 34), (0.8, 1.1, 1.6), (-12.0, -6.0, -9.0))
@@ -621,7 +622,7 @@ def test_template_sampler_reads_the_template_through_the_composed_map_on_another
     crop = (slice(2, 14), slice(4, 16), slice(6, 18))  # array axes (z, y, x)
     s, sig_pre = 2, 0.5
     shape = tuple(len(range(c.start, c.stop, s)) for c in crop)
-    warp, sample = _TemplateSampler(Volume(tdata, gt), phi, 1.0, crop).level(s, sig_pre, shape)
+    warp, sample = TemplateSampler(Volume(tdata, gt), phi, 1.0, crop).level(s, sig_pre, shape)
     u = np.zeros((3,) + shape, np.float32)
     u[0], u[1], u[2] = 0.3, -0.2, 0.5  # mm along z, y, x
     # the reference: smoothed on the template's grid, σ per array axis (z, y, x) in its voxels
@@ -642,39 +643,39 @@ def test_template_sampler_reads_the_template_through_the_composed_map_on_another
 
 
 def test_noise_correlation_factor_counts_the_samples_smoothing_leaves():
-    """registration.dense._noise_correlation_factor (Bartlett's variance of a correlation between two
+    """registration.dense.noise_correlation_factor (Bartlett's variance of a correlation between two
     autocorrelated fields): white noise in both images carries one sample per voxel; both smoothed by a Gaussian
     of σ = 1.5 voxels, ρ(k) = exp(−k²/4σ²) each, Σ_k ρ_f(k) ρ_w(k) = Σ_k exp(−k²/2σ²) ≈ √(2π)·1.5 = 3.76 per axis,
     53 over three.  Measured in the air (a 40³ grid around a 12³ body: ~62 000 voxels); the tolerance (±20 %)
     covers the discrete filter's lag-1 correlation against the continuous formula's, cubed with the sum (a 1 %
     error in ρ₁ moves the factor by ~7 %), and its sampling error (~0.4 % of ρ₁).  Without enough air, the
     stated smoothing's value."""
-    from registration.dense import _noise_correlation_factor
+    from registration.dense import noise_correlation_factor
 
     rng = np.random.default_rng(11)
     shape = (40, 40, 40)
     air = np.ones(shape, bool)
     air[14:26, 14:26, 14:26] = False
     white_f, white_w = rng.normal(size=shape), rng.normal(size=shape)
-    assert _noise_correlation_factor(white_f, white_w, air, 0.0) == pytest.approx(1.0, abs=0.1)
+    assert noise_correlation_factor(white_f, white_w, air, 0.0) == pytest.approx(1.0, abs=0.1)
     sm_f, sm_w = (ndimage.gaussian_filter(x, 1.5) for x in (white_f, white_w))
     expected = float(np.exp(-(np.arange(-12, 13) ** 2) / (2 * 1.5**2)).sum()) ** 3
-    assert _noise_correlation_factor(sm_f, sm_w, air, 0.0) == pytest.approx(expected, rel=0.2)
+    assert noise_correlation_factor(sm_f, sm_w, air, 0.0) == pytest.approx(expected, rel=0.2)
     # one image white: no shared correlation, one sample per voxel whatever the other's smoothing
-    assert _noise_correlation_factor(white_f, sm_w, air, 0.0) == pytest.approx(1.0, abs=0.1)
+    assert noise_correlation_factor(white_f, sm_w, air, 0.0) == pytest.approx(1.0, abs=0.1)
     # no air: white noise smoothed by the stated σ, the same formula
-    assert _noise_correlation_factor(sm_f, sm_w, None, 1.5) == pytest.approx(expected, rel=1e-6)
+    assert noise_correlation_factor(sm_f, sm_w, None, 1.5) == pytest.approx(expected, rel=1e-6)
 
 
 def test_bone_refinement_runs_where_u_already_sits_under_the_jacobian_floor():
-    """registration.dense._refine_bone's one-to-one floor is strict: where ``u`` already compresses a voxel of the
+    """registration.dense.refine_bone's one-to-one floor is strict: where ``u`` already compresses a voxel of the
     bone's box below ``min_jacobian`` (det 0.15 here, in a corner the bone's fade does not reach), a candidate
     that leaves that voxel as it is stays one-to-one as ``u`` is and must be searched; with ``≤`` every candidate
     scored below the start and the bone kept its error.  A textured bone whose template is off by 1.5 mm along x:
     the refinement must gain and move it most of the way (tolerance 0.5 mm, a third of the error: the LNCC's
     optimum over the bone and the tissue around is a few tenths of a mm off on this 16-voxel box, measured 1.81
     mm; a refused search stays at 0)."""
-    from registration.dense import _jacobian_min, _refine_bone
+    from registration.dense import jacobian_min, refine_bone
 
     shape, sp, g, grid, grid_mm, box, m, centre, tex, sample_w = _bone_in_a_box()
     # the fade: 1 on the bone, 0 three voxels out (the box's faces and corners)
@@ -684,9 +685,9 @@ def test_bone_refinement_runs_where_u_already_sits_under_the_jacobian_floor():
     u = np.zeros((3,) + shape, np.float32)
     u[0] = (-1.4 * (grid[0] - 5.0) * np.exp(-r2 / 2.0)).astype(np.float32)
     assert wgt[1, 1, 1] == 0.0  # the corner (5, 5, 5) is beyond the bone's fade
-    det_corner = _jacobian_min(u[:, 3:8, 3:8, 3:8], sp)
+    det_corner = jacobian_min(u[:, 3:8, 3:8, 3:8], sp)
     assert det_corner < DenseSettings().min_jacobian
-    p, gain, _ = _refine_bone(
+    p, gain, _ = refine_bone(
         np.zeros(6), centre, box, wgt, u, tex, sample_w, np.full(3, 1.5), None, None, grid_mm, sp, DenseSettings()
     )
     assert gain > 0, gain
@@ -694,27 +695,27 @@ def test_bone_refinement_runs_where_u_already_sits_under_the_jacobian_floor():
 
 
 def test_a_voxel_of_one_grid_in_voxels_of_another_follows_both_directions():
-    """registration.dense._voxel_in_voxels (how much the bones' test smooths for a coarser template): a template
+    """registration.dense.voxel_in_voxels (how much the bones' test smooths for a coarser template): a template
     whose index axes are a cycle of the scan's (its i along world y, j along z, k along x) with anisotropic
     (0.5, 2.0, 1.0) mm voxels, against a scan of (1.0, 0.8, 3.0) mm: along the scan's x its voxel is 1.0 mm (k) =
     1 scan voxel, along y 0.5 / 0.8, along z 2.0 / 3.0: 1.0.  The cycle is not its own transpose and the spacings
     are not palindromes, so a transposed direction (2.0), a reversed template spacing (1.25) or a reversed scan
     spacing (2.0) would show.  Unrotated: 2.0 / 0.8 = 2.5 along y.  Exact to rounding."""
-    from registration.dense import _voxel_in_voxels
+    from registration.dense import voxel_in_voxels
 
     scan = GridGeometry((8, 8, 8), (1.0, 0.8, 3.0))
     cycled = GridGeometry((8, 8, 8), (0.5, 2.0, 1.0), direction=(0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0))
     assert np.array_equal(np.asarray(cycled.direction_matrix)[:, 0], [0.0, 1.0, 0.0])  # i along world y
-    assert _voxel_in_voxels(cycled, scan) == pytest.approx(1.0, abs=1e-12)
+    assert voxel_in_voxels(cycled, scan) == pytest.approx(1.0, abs=1e-12)
     plain = GridGeometry((8, 8, 8), (0.5, 2.0, 1.0))
-    assert _voxel_in_voxels(plain, scan) == pytest.approx(2.5, abs=1e-12)
-    assert _voxel_in_voxels(scan, scan) == pytest.approx(1.0, abs=1e-12)
+    assert voxel_in_voxels(plain, scan) == pytest.approx(2.5, abs=1e-12)
+    assert voxel_in_voxels(scan, scan) == pytest.approx(1.0, abs=1e-12)
 
 
 def test_the_noise_that_sampling_averages_away_is_counted_back():
     """settings.interpolation_noise: a noisy template sampled half a voxel off its centres on every axis keeps
     1/8 of its white noise's variance, and a plain LNCC rises with that alone (the interpolation artefact);
-    with every position given the noise of the average one (_interpolation_noise) it behaves as the noise-free
+    with every position given the noise of the average one (interpolation_noise_variance) it behaves as the noise-free
     template's does.  Signal: a smooth random field (σ 3 voxels, unit SD) in both images; independent white
     noise of SD 1 in the scan and in the noisy template (an SNR of 1: the noise rules the windows' variance, as
     in flat soft tissue).  Measured (seeds 11-15): the noise-free template's LNCC at the half-voxel shift is
@@ -735,20 +736,20 @@ def test_the_noise_that_sampling_averages_away_is_counted_back():
     zero = Volume(np.zeros(g.array_shape + (3,), np.float32), g)
     sp = np.asarray(g.spacing, float)[::-1]
     win = 2.0 * np.ones(3)
-    stats = dense._local_stats(scan, win)
+    stats = dense.local_stats(scan, win)
     inner = np.zeros(g.array_shape, np.float32)
     inner[4:-4, 4:-4, 4:-4] = 1.0  # away from the grid's edge, where the shifted sampling reads the edge
     lncc = {}
     for name, template in (("clean", signal.astype(np.float32)), ("noisy", noisy)):
-        sampler = dense._TemplateSampler(Volume(template, g), zero, 1.0, crop, None)
+        sampler = dense.TemplateSampler(Volume(template, g), zero, 1.0, crop, None)
         if name == "noisy":  # its noise variance (1) estimated: the smooth signal hardly reaches the residual
             assert sampler.noise_var == pytest.approx(1.0, rel=0.1)
         warp, _ = sampler.level(1, 0.0, g.array_shape)
         for frac in (0.0, 0.5):
             u = np.stack([np.full(g.array_shape, frac * sp[a], np.float32) for a in range(3)])
             w, v = warp(u)
-            lncc[name, frac, "plain"] = dense._lncc_force(scan, w, win, stats, inner)[0]
-            lncc[name, frac, "counted"] = dense._lncc_force(scan, w, win, stats, inner, v)[0]
+            lncc[name, frac, "plain"] = dense.lncc_force(scan, w, win, stats, inner)[0]
+            lncc[name, frac, "counted"] = dense.lncc_force(scan, w, win, stats, inner, v)[0]
             if name == "noisy":  # white noise keeps all of its variance at the centres, 1/8 midway, (2/3)³ on average
                 kept = 1.0 if frac == 0.0 else 0.125
                 np.testing.assert_allclose(v, sampler.noise_var * ((2.0 / 3.0) ** 3 - kept), rtol=1e-4)
@@ -763,23 +764,23 @@ def test_the_noise_that_sampling_averages_away_is_counted_back():
 
 
 def test_kernel_noise_is_the_smoothed_white_noises():
-    """registration.dense._kernel_noise against white noise smoothed by the same filter (10⁶ samples along one
+    """registration.dense.kernel_noise against white noise smoothed by the same filter (10⁶ samples along one
     axis: the variance and lag-1 correlation to ±1 %, several standard errors)."""
-    from registration.dense import _kernel_noise
+    from registration.dense import kernel_noise
 
     rng = np.random.default_rng(5)
     x = rng.normal(size=1_000_000)
     for sigma in (0.6, 1.5):
         y = ndimage.gaussian_filter1d(x, sigma, truncate=3.0)
-        var, rho = _kernel_noise(sigma)
+        var, rho = kernel_noise(sigma)
         assert var == pytest.approx(y.var(), rel=0.01)
         assert rho == pytest.approx(np.corrcoef(y[1:], y[:-1])[0, 1], abs=0.01)
-    assert _kernel_noise(0.0) == (1.0, 0.0)
+    assert kernel_noise(0.0) == (1.0, 0.0)
 
 
 @pytest.mark.parametrize("air", ["gaussian", "rayleigh", "half constant fill", "clipped gaussian", "none"])
 def test_the_template_noise_is_measured_in_its_air(air):
-    """registration.dense._voxel_noise_variance: a 40³ image, a ball of textured tissue (radius 12 voxels,
+    """registration.dense.voxel_noise_variance: a 40³ image, a ball of textured tissue (radius 12 voxels,
     a smooth texture of SD ~30 under Gaussian noise of σ 20) in air of the given kind.  The tissue's variance
     returned is σ² within 10 % (the median's sampling error over ~40 000 air stencils is ~1 %; the air's
     noise is white): Gaussian air (offset −1000, as CT's) is the tissue's noise; a magnitude image's Rayleigh air
@@ -787,7 +788,7 @@ def test_the_template_noise_is_measured_in_its_air(air):
     left out; Gaussian air clipped at 0 (40 ± 20: mean over SD 2, as a Rayleigh's 1.91, but its median over mean
     is ~1 against 0.94) is not taken for Rayleigh.
     Without air, the tissue's own pseudo-residual (the texture adds to it: within 25 %)."""
-    from registration.dense import _voxel_noise_variance
+    from registration.dense import voxel_noise_variance
 
     rng = np.random.default_rng(8)
     shape, sigma = (40, 40, 40), 20.0
@@ -806,7 +807,7 @@ def test_the_template_noise_is_measured_in_its_air(air):
         img[out & (xx < 20)] = -1024.0
     elif air == "clipped gaussian":
         img[out] = np.maximum(40.0 + sigma * rng.normal(size=int(out.sum())), 0.0)
-    tissue, in_air = _voxel_noise_variance(img.astype(np.float32), body)
+    tissue, in_air = voxel_noise_variance(img.astype(np.float32), body)
     if air == "none":
         assert tissue == in_air and tissue == pytest.approx(sigma**2, rel=0.25)
         return
@@ -818,8 +819,8 @@ def test_the_template_noise_is_measured_in_its_air(air):
 
 
 def test_interpolation_noise_follows_each_template_axis():
-    """registration.dense._interpolation_noise as the sampler computes it on a smoothed level, against the closed
-    form with the template index positions found independently (GridGeometry.world_to_index of the sampled world
+    """registration.dense.interpolation_noise_variance as the sampler computes it on a smoothed level, against the
+    closed form with the template index positions found independently (GridGeometry.world_to_index of the sampled world
     points): the scan and the template on different spacings, the template's axes a permutation of the scan's,
     a level of shrink 2 with pre-smoothing (σ 0.5 scan voxel, so a different noise correlation ρ_a along each
     template axis) and a shift giving each axis its own fraction.  A swapped axis in the fractions, ρ or the
@@ -830,7 +831,7 @@ def test_interpolation_noise_follows_each_template_axis():
     perm = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # template axis i along world y, ...
     gt = GridGeometry((30, 28, 26), (0.8, 1.1, 1.4), (-6.0, -5.0, -7.0), tuple(perm.ravel()))
     rng = np.random.default_rng(4)
-    sampler = dense._TemplateSampler(
+    sampler = dense.TemplateSampler(
         Volume(rng.normal(size=gt.array_shape).astype(np.float32), gt),
         Volume(np.zeros(gs.array_shape + (3,), np.float32), gs),
         1.0,
@@ -850,7 +851,7 @@ def test_interpolation_noise_follows_each_template_axis():
     sig_scan_mm = sig_pre * np.asarray(gs.spacing)  # along world x, y, z (identity direction)
     dt = np.asarray(gt.direction_matrix)
     sigma_t = np.sqrt((dt**2).T @ sig_scan_mm**2) / np.asarray(gt.spacing)  # per template axis i, j, k
-    kern = [dense._kernel_noise(float(v_)) for v_ in sigma_t]
+    kern = [dense.kernel_noise(float(v_)) for v_ in sigma_t]
     assert len({round(k[1], 3) for k in kern}) == 3  # three different correlations: the test can tell the axes
     kappa = np.prod([k[0] for k in kern])
     t = p - np.floor(p)
@@ -860,7 +861,7 @@ def test_interpolation_noise_follows_each_template_axis():
 
 
 def test_data_fission_splits_the_noise_into_independent_copies():
-    """registration.dense._fission (settings.holdout): an image ``s + n`` (white Gaussian noise of σ 20 over a
+    """registration.dense.fission (settings.holdout): an image ``s + n`` (white Gaussian noise of σ 20 over a
     textured ball in Gaussian air) becomes ``s + n + a z`` and ``s + n − z / a`` with ``z`` of the measured σ.
     Their noises are uncorrelated: ``E[(n + a z)(n − z / a)] = σ² − σ_z²``.  σ_z, measured in the air's ~40 000
     stencils (the median's sampling error ~1 %), must be σ within 3 %; then ``|σ² − σ_z²| ≤ 0.061 σ²`` and the
@@ -869,7 +870,7 @@ def test_data_fission_splits_the_noise_into_independent_copies():
     error moves it ≤ 1.2 %), (1 + 1 / a²) σ² within 7 % (≤ 4.9 %), the rest sampling error.  The inputs are not
     changed; the same seed gives the same bits, another seed another draw.  (Measured: SDs within 0.3 %,
     correlations under 0.01, variances within 2 %.)"""
-    from registration.dense import _fission
+    from registration.dense import fission
 
     rng = np.random.default_rng(5)
     shape, sigma, a = (40, 40, 40), 20.0, 0.5
@@ -882,7 +883,7 @@ def test_data_fission_splits_the_noise_into_independent_copies():
     moving = Volume((signal + noise[1]).astype(np.float32), g)
     f_in, m_in = f.copy(), moving.data.copy()
     st = DenseSettings(holdout=True, holdout_share=a)
-    (f_held, m_held, sds), f_steps, m_steps = _fission(f, body, moving, body, st)
+    (f_held, m_held, sds), f_steps, m_steps = fission(f, body, moving, body, st)
     assert np.array_equal(f, f_in) and np.array_equal(moving.data, m_in)
     assert sds[0] == pytest.approx(sigma, rel=0.03) and sds[1] == pytest.approx(sigma, rel=0.03)
     for steps, held, _n in ((f_steps, f_held, noise[0]), (m_steps.data, m_held.data, noise[1])):
@@ -890,9 +891,9 @@ def test_data_fission_splits_the_noise_into_independent_copies():
         assert abs(np.corrcoef(e1, e2)[0, 1]) < 0.04
         assert e1.var() == pytest.approx((1 + a * a) * sigma**2, rel=0.05)
         assert e2.var() == pytest.approx((1 + 1 / (a * a)) * sigma**2, rel=0.07)
-    again = _fission(f, body, moving, body, st)
+    again = fission(f, body, moving, body, st)
     assert np.array_equal(again[1], f_steps) and np.array_equal(again[0][1].data, m_held.data)
-    other = _fission(f, body, moving, body, DenseSettings(holdout=True, holdout_share=a, holdout_seed=1))
+    other = fission(f, body, moving, body, DenseSettings(holdout=True, holdout_share=a, holdout_seed=1))
     assert not np.array_equal(other[1], f_steps)
 
 
@@ -1050,16 +1051,16 @@ def _flat_body(g, r, radii, rng):
 
 
 def test_membrane_energy_and_its_derivative():
-    """_membrane: Σ m |∇u|² by forward differences (each pair weighed by both voxels' m) against a direct sum on
+    """membrane_energy: Σ m |∇u|² by forward differences (each pair weighed by both voxels' m) against a direct sum on
     a small anisotropic case, and its derivative against central finite differences of the energy (float64: the
     energy is quadratic in u, so the difference quotient is exact up to round-off)."""
-    from registration.dense import _membrane
+    from registration.dense import membrane_energy
 
     rng = np.random.default_rng(3)
     sp = np.array([1.5, 2.0, 0.8])
     u = rng.normal(size=(3, 5, 6, 4))
     m = (rng.uniform(size=(5, 6, 4)) > 0.3).astype(float)
-    e, g = _membrane(u, m, sp)
+    e, g = membrane_energy(u, m, sp)
     direct = 0.0
     for a in range(3):
         for z in range(5):
@@ -1076,7 +1077,7 @@ def test_membrane_energy_and_its_derivative():
         up[idx] += h
         dn[idx] -= h
         assert g[idx] == pytest.approx(
-            (_membrane(up, m, sp)[0] - _membrane(dn, m, sp)[0]) / (2 * h), rel=1e-6, abs=1e-9
+            (membrane_energy(up, m, sp)[0] - membrane_energy(dn, m, sp)[0]) / (2 * h), rel=1e-6, abs=1e-9
         )
 
 
@@ -1106,11 +1107,11 @@ def test_stiffness_keeps_the_start_where_the_scan_shows_only_noise():
 
 
 def test_penalties_and_their_ascent_match_finite_differences():
-    """_penalties (the skin's term and the membrane energy the level's objective subtracts): their ascents along
+    """penalties (the skin's term and the membrane energy the level's objective subtracts): their ascents along
     ``b`` and along ``u``, times the region's voxel count (as the LNCC's force), against central finite differences
     of minus the penalties (float64: both are quadratic, so the difference quotient is exact up to round-off).  A
     sign or scale error in either force fails here."""
-    from registration.dense import _penalties
+    from registration.dense import penalties
 
     rng = np.random.default_rng(4)
     shape, sp = (5, 6, 4), np.array([1.5, 2.0, 0.8])
@@ -1124,9 +1125,9 @@ def test_penalties_and_their_ascent_match_finite_differences():
     n = float(np.count_nonzero(region))
 
     def objective(b_, u_):  # the objective's part these terms make
-        return -sum(_penalties(b_, s, band, region, 1.7, u_, m, sp, 2.5, n)[0])
+        return -sum(penalties(b_, s, band, region, 1.7, u_, m, sp, 2.5, n)[0])
 
-    _, skin, membrane = _penalties(b, s, band, region, 1.7, u, m, sp, 2.5, n)
+    _, skin, membrane = penalties(b, s, band, region, 1.7, u, m, sp, 2.5, n)
     h = 1e-5
     for idx in checked:
         up, dn = b.copy(), b.copy()
@@ -1138,7 +1139,7 @@ def test_penalties_and_their_ascent_match_finite_differences():
         up[idx] += h
         dn[idx] -= h
         assert membrane[idx] / n == pytest.approx((objective(b, up) - objective(b, dn)) / (2 * h), rel=1e-6, abs=1e-12)
-    off = _penalties(None, s, band, region, 1.7, u, None, sp, 2.5, n)
+    off = penalties(None, s, band, region, 1.7, u, None, sp, 2.5, n)
     assert off == ((0.0, 0.0), None, None)
 
 

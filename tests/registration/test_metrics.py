@@ -5,7 +5,7 @@ import pytest
 
 from deformation.geometry import GridGeometry, Volume
 from registration import metrics as M
-from registration.adaptive import _neg_mi_cost, _ssd_cost
+from registration.adaptive import neg_mi_cost, ssd_cost
 
 # anisotropic spacing and a rotated grid: the measures must not care
 G = GridGeometry(
@@ -87,11 +87,11 @@ def test_inner_loop_costs_equal_whole_volume_definitions_at_zero_displacement():
     e = np.zeros((8, 3))
     fixed = a.data.reshape(-1).astype(float)
     buf = np.empty(n)
-    assert _ssd_cost(e, B, base, b.data, fixed, buf) == pytest.approx(M.ssd(a, b), rel=1e-9)
+    assert ssd_cost(e, B, base, b.data, fixed, buf) == pytest.approx(M.ssd(a, b), rel=1e-9)
     bins = M.HistogramBins.of(b.data)
     fb = M.HistogramBins(bins.lo, bins.hi, bins.bins)
     hist = np.zeros((32, 32))
-    ours = -_neg_mi_cost(e, B, base, b.data, fb.index(fixed), bins.lo, bins.scale, 32, buf, hist)
+    ours = -neg_mi_cost(e, B, base, b.data, fb.index(fixed), bins.lo, bins.scale, 32, buf, hist)
     assert ours == pytest.approx(M.mutual_information(b, a, bins_a=bins, bins_b=fb), rel=1e-9)
 
 

@@ -9,8 +9,8 @@ import pytest
 
 from deformation.geometry import GridGeometry, Volume
 from registration.pose import contact_point, estimate_poses, pose_scans
-from registration.report import accuracy
 from registration.rigid import bone_regions
+from validation.pose_measures import pose_accuracy
 
 
 def cut_above_knee(scan):
@@ -37,7 +37,7 @@ def knee_result(knee_ct_study, knee_fits):
         tpl, lab, {s: (lambda s=s: st.scan(s)) for s in st.scan_ids}, sk, scan_poses=copy.deepcopy(knee_fits)
     )
     centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
-    acc = accuracy(res, {s: st.truth_pose(s) for s in st.scan_ids}, sk, centroids)
+    acc = pose_accuracy(res, {s: st.truth_pose(s) for s in st.scan_ids}, sk, centroids)
     return res, acc
 
 
@@ -45,7 +45,7 @@ def test_bone_transforms_match_the_truth(knee_result):
     res, acc = knee_result
     assert all(f.ok for s in res.scans for f in s.fits.values()), res.failures()
     s = acc["summary"]
-    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion: the bounds (median ≤ 0.5° / 0.5 mm, worst
+    # CT-like knee, 5 mm voxels, 3 scans up to 70° flexion: the required bounds (median ≤ 0.5° / 0.5 mm, worst
     # bone ≤ 2° / 2 mm).  Measured: median 0.08° / 0.05 mm, worst 1.15° (the patella, whose Cramér–Rao bound
     # on the benchmark's 4-scan CT knee is 0.46° rms) and 0.24 mm.  Before the phantom rendered bone edges rigidly
     # and the polish became
@@ -57,7 +57,7 @@ def test_bone_transforms_match_the_truth(knee_result):
 def test_joint_centres_and_hinge_axes(knee_result):
     res, acc = knee_result
     # Every joint flexes (70°, or 49° for the patella) with only a few degrees of varus and twist: Eq. 1 sees
-    # near-hinges.  The bounds: the true centre within 1 mm of the estimated axis, the axis within 2°
+    # near-hinges.  The required bounds: the true centre within 1 mm of the estimated axis, the axis within 2°
     # of the one the true motions define.  Measured: knee 0.04 mm / 0.64°, tibiofibular 0.17 mm / 0.13°,
     # patellofemoral 0.65 mm / 0.47°.
     for name, e in acc["joints"].items():
@@ -214,7 +214,7 @@ def test_a_joint_that_barely_moves_keeps_the_skeleton_centre_and_is_not_scored(k
         assert not r.estimated and not res.joints_dict()[j.name]["estimated"]
         np.testing.assert_array_equal(r.center, j.center)
     centroids = {k: r.centroid for k, r in bone_regions(tpl, lab, sk).items()}
-    acc = accuracy(res, {"pose00": st.truth_pose("pose00")}, sk, centroids)
+    acc = pose_accuracy(res, {"pose00": st.truth_pose("pose00")}, sk, centroids)
     assert acc["summary"]["center_error_mm_2_3_dof_moving"]["n"] == 0
     assert all(not e["estimated"] for e in acc["joints"].values())
 

@@ -50,7 +50,7 @@ def _brightest(img, lab, sk, bone, n=5):
 
 
 def test_mri_marrow_flood_at_5mm(knee_templates):
-    """Issue L: on the knee with structured soft tissue (fat septa as bright as marrow), the earlier region
+    """On the knee with structured soft tissue (fat septa as bright as marrow), the earlier region
     growing under-segmented the femur silently (Dice 0.29) and dropped the fibula and patella."""
     img, lab, sk = knee_templates["mri"]
     assert guess_modality(img) == "mri"
@@ -64,7 +64,7 @@ def test_mri_marrow_flood_at_5mm(knee_templates):
 
 
 def test_mri_fibula_from_five_bright_seeds_at_2_5mm():
-    """The issue's case: five seeds in the fibula's brightest voxels, at a grid that resolves its marrow."""
+    """The failing case: five seeds in the fibula's brightest voxels, at a grid that resolves its marrow."""
     from validation.phantoms import make_phantom
 
     ph = make_phantom("knee", size="test", modality="mri", n_poses=1, seed=4, spacing=(2.5, 2.5, 2.5))

@@ -220,15 +220,16 @@ def test_bone_edges_move_rigidly_so_eq1_is_minimal_at_the_truth():
     patella at 70° of flexion), and Eq. 1 started at the truth settled 2.8° off for the patella and
     0.2° for the femur.  Now (noise-free CT knee, 70°): measured 0.06° and 0.03°.  The tolerance of
     0.5° is the rest of the sampling error at 5 mm voxels (0.25° on a globally rigid motion)."""
+    from deformation.filters import smooth
     from deformation.transforms import compose, invert, rotation_angle_deg
-    from registration.rigid import Sampler, bone_regions, refine_intensity, smooth
+    from registration.rigid import Sampler, bone_regions, refine_intensity
 
     ph = make_phantom("knee", size="test", modality="ct", noise=False, n_poses=4)
     tpl, lab = ph.template()
     pid, angles = ph.poses[-1]
     assert angles["knee"][0] == pytest.approx(70.0)
     scan = ph.make_scan(3, pid, angles)
-    regions = bone_regions(smooth(tpl, 0.6), lab, ph.skeleton)
+    regions = bone_regions(smooth(tpl, 0.6, dtype=np.float32), lab, ph.skeleton)
     sampler = Sampler(scan.image, smooth_voxels=0.6)
     for bone in ("patella", "femur"):
         truth = np.asarray(scan.pose.transforms[bone])

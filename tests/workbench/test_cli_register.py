@@ -164,7 +164,7 @@ def test_register_unfold_init_repairs_the_folds_of_the_map(tmp_path, study, caps
     from deformation.fields import jacobian_determinant
     from deformation.resample import backward_map
     from deformation.skinning import stack_transforms
-    from registration.initialise import _mapped
+    from registration.initialise import mapped_voxels as _mapped
     from validation.registration_measures import body_on_scan
     from workbench.io.volumes import read_image_geometry
 

@@ -158,7 +158,8 @@ def _convergence(log: dict) -> bytes | None:
 
 def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> None:
     from deformation.fields import jacobian_determinant
-    from registration.baselines import warp_template
+    from deformation.interpolate import warp
+    from registration.metrics import air_level
 
     scan = study.scan(sid)
     reg = study.registered(sid)
@@ -174,7 +175,7 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
     at = F.centre_index(body if body is not None and body.any() else content)
     sp = scan.geometry.spacing
     win_t = F.robust(template.data)
-    start = warp_template(template, init) if init is not None else None
+    start = warp(template, displacement=init, fill=air_level(template), dtype=np.float32) if init is not None else None
     figs = []
     for which in F.PLANES:
         ts, px = F.plane(scan.data, sp, which, at)
