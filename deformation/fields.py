@@ -19,9 +19,7 @@ from minus ``x``; its map sends scan space to template space.  Its inverse,
 ``template_to_scan``, lives on the template grid.  Composition reads right to
 left like maps: ``compose(outer, inner)`` is ``O ∘ I``.
 
-All per-voxel work is numba-compiled and parallel, so a paper-size
-255×255×90 field is composed, inverted (per iteration) or differentiated in
-well under a second.
+All per-voxel work is numba-compiled and parallel.
 """
 
 from __future__ import annotations
