@@ -214,7 +214,7 @@ def fill_unmatched(geometry: GridGeometry, weights: SkinningWeights, transforms,
 
 
 class ExampleVolumeDeformation:
-    """EVD (Rhee §5, Eq. 6–7): training displacements over pose space, a posed volume at any pose.
+    """EVD (Rhee §5, Rhee Eq. 6–7): training displacements over pose space, a posed volume at any pose.
 
     Parameters
     ----------
@@ -225,7 +225,7 @@ class ExampleVolumeDeformation:
     space : PoseSpace
         The training poses' pose vectors (same order as ``displacements``).
     displacements : (n_voxels, n_poses, 3) float32
-        ``d_k`` of Eq. 7 per voxel (world mm, template frame).
+        ``d_k`` of Rhee Eq. 7 per voxel (world mm, template frame).
     template_example : bool
         The last example is the template's rest pose with ``d = 0`` (module docstring); ``n_scans`` then
         counts the others.

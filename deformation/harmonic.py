@@ -8,17 +8,17 @@ bone ``k`` and 0 on every other bone::
 
     Δ w_k = 0 in the soft tissue,   w_k = δ_kl on bone l.
 
-The boundary values sum to one, so ``Σ_k w_k = 1`` everywhere (Kurihara
-Eq. 3), and by the maximum principle ``0 ≤ w_k ≤ 1`` with no island of
-influence away from the bone.  :func:`harmonic_weights` solves it with P1
+The boundary values sum to one, so ``Σ_k w_k = 1`` everywhere
+(Kurihara Eq. 3), and by the maximum principle ``0 ≤ w_k ≤ 1`` with no
+island of influence away from the bone.  :func:`harmonic_weights` solves it with P1
 finite elements (the cotangent Laplacian, one sparse LU for all bones); on a
 Kuhn lattice that is the 7-point stencil, an M-matrix, so the discrete
 maximum principle holds (Ciarlet & Raviart 1973).  A vertex is on bone ``k``
 when its nearest voxel carries bone ``k``'s label
 (:func:`constrained_vertices`).  :func:`weights_on_grid` and
 :func:`weights_at_points` carry the vertex weights to voxels and skin
-vertices by barycentric interpolation (a partition of unity, so Kurihara
-Eq. 3 still holds).
+vertices by barycentric interpolation (a partition of unity, so
+Kurihara Eq. 3 still holds).
 """
 
 from __future__ import annotations

@@ -1,36 +1,26 @@
 """Fast sampling of volumes at world points (compiled, parallel trilinear / nearest interpolation).
 
-Convention — the same as SimpleITK's ``sitk.Resample`` (checked in
-``tests/deformation/test_fields.py``)
---------------------------------------------------------------------------------------
-A world point ``p`` (mm, components x, y, z) is mapped to a continuous index
-``(i, j, k) = world_to_index(p)`` (:class:`~deformation.geometry.GridGeometry`:
-``p = origin + direction @ (spacing * ijk)``, voxel centres at integer
-indices).  Along every axis of ``n`` voxels:
+The convention is SimpleITK's ``sitk.Resample`` (checked in
+``tests/deformation/test_fields.py``).  A world point ``p`` (mm, components
+x, y, z) is mapped to a continuous index ``(i, j, k) = world_to_index(p)``
+(:class:`~deformation.geometry.GridGeometry`).  Along every axis of ``n``
+voxels:
 
 * **inside** means ``-0.5 <= index < n - 0.5`` — the voxel-centre box grown by
   half a voxel, half-open like ITK's ``ImageFunction::IsInsideBuffer``;
-* inside but beyond the outermost voxel centres (the half-voxel border), the
-  index is **clamped** to ``[0, n - 1]``: the edge value is extended, exactly
-  as ITK's ``LinearInterpolateImageFunction`` does;
+* inside but beyond the outermost voxel centres the index is **clamped** to
+  ``[0, n - 1]``, as ITK's ``LinearInterpolateImageFunction`` does;
 * outside (or a NaN point) the result is ``fill``.
 
 ``order=1`` is trilinear interpolation; ``order=0`` is nearest neighbour with
-ITK's rounding (``floor(index + 0.5)``, i.e. halves round up), meant for label
-maps: it never mixes values and keeps integer dtypes.
+ITK's rounding (``floor(index + 0.5)``), meant for label maps: it never mixes
+values and keeps integer dtypes.  Indices, weights and sums are computed in
+float64 whatever the data or point dtype; float32 data give float32 output
+(one final rounding, as SimpleITK does: the two agree to 1 float32 ulp),
+integer or boolean data float64 with ``order=1``.
 
-Precision.  Indices, weights and sums are computed in float64 whatever the
-data or point dtype (float32 and float64 points are both accepted without a
-copy); the result is then rounded to the output dtype.  For float32 data the
-output is float32, so the only error beyond float64 round-off is the final
-rounding, ≤ 0.5 ulp of the value (relative 6e-8) — SimpleITK does the same
-(double arithmetic, float output), and the two agree to 1 float32 ulp.
-Integer or boolean data give float64 output with ``order=1`` and keep their
-dtype with ``order=0``.  A float32 *point* carries its own rounding
-(≈ 6e-8 × its coordinate, e.g. 6e-6 mm at 100 mm).
-
-Speed.  The kernels are numba-compiled (``parallel=True``, ``cache=True``,
-no fastmath); against SciPy's and SimpleITK's resampling:
+The kernels are numba-compiled (``parallel=True``, ``cache=True``, no
+fastmath); against SciPy's and SimpleITK's resampling:
 docs/measurements/library-choices.md (``benchmarks/bench_interpolation.py``).
 """
 
@@ -53,8 +43,8 @@ if nb.config.THREADING_LAYER == "default":
 
 # -- compiled kernels -----------------------------------------------------------------------
 # Voxel data are passed flattened: ``f[(k*ny + j)*nx + i]`` (scalar) or ``f[(k*ny + j)*nx + i, c]``
-# (vector), with the grid size (nx, ny, nz) alongside.  Scalar and vector kernels are separate
-# because a run-time component loop costs ~1.5x on scalar volumes.
+# (vector), with the grid size (nx, ny, nz) alongside.  Scalar and vector kernels are separate: a run-time
+# component loop slows the scalar volumes (docs/measurements/deformation-and-validation.md).
 @nb.njit(cache=True)
 def _to_index(m, x, y, z):
     """Continuous index (i, j, k) of world point (x, y, z) through the 4x4 (or 3x4) matrix ``m``."""
@@ -125,8 +115,8 @@ def _lerp_component(f, b, di, dj, dk, ti, tj, tk, c):
 
 @nb.njit(cache=True)
 def _lerp_xyz(f, b, di, dj, dk, ti, tj, tk):
-    """Trilinear interpolation of a 3-component ``f (nvox, 3)`` (displacement fields): ~1.3x faster
-    than the component loop, and the same arithmetic, bit for bit."""
+    """Trilinear interpolation of a 3-component ``f (nvox, 3)`` (displacement fields), unrolled: the same
+    arithmetic as the component loop, bit for bit, and faster (docs/measurements/deformation-and-validation.md)."""
     si = 1.0 - ti
     sj = 1.0 - tj
     sk = 1.0 - tk

@@ -18,9 +18,7 @@ Inside a bone its weight is one, so the bone moves rigidly; outside, the
 weights are Lipschitz, so the flow is a diffeomorphism: the map and its
 inverse are one-to-one, with no fold in the crease.  With weights fixed in
 space (Arsigny's stationary polyrigid field) a bone moving through its
-neighbours' weights would bend.
-
-Reference: Arsigny V, Commowick O, Ayache N, Pennec X. A fast and log-Euclidean
+neighbours' weights would bend.  Reference: Arsigny V, Commowick O, Ayache N, Pennec X. A fast and log-Euclidean
 polyaffine framework for locally linear registration. J Math Imaging Vis
 33 (2009) 222–238. https://doi.org/10.1007/s10851-008-0135-9
 """

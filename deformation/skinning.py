@@ -128,8 +128,8 @@ class SkinningWeights:
         n = dense.shape[0]
         idx_out = np.empty((n, k), dtype=np.intp)
         val_out = np.empty((n, k), dtype=np.float64)
-        # rows in chunks: the sort's temporaries are (rows, n_bones) float64 and int64, several of them (a
-        # paper-size hand grid's 5.9 M voxels x 20 bones held 5 GB at once); every row is independent
+        # rows in chunks: the sort's temporaries are (rows, n_bones) float64 and int64, several of them
+        # (docs/measurements/deformation-and-validation.md); every row is independent
         for lo in range(0, n, DENSE_CHUNK):
             d = np.clip(np.asarray(dense[lo : lo + DENSE_CHUNK], dtype=np.float64), 0.0, None)
             if k < len(bones):
@@ -189,7 +189,7 @@ class SkinningWeights:
 
 @nb.njit(cache=True, inline="always")
 def blend_point(idx, val, v, t, p0, p1, p2):
-    """``(Σ_m w_m T_{b_m}) p`` for point ``v`` of sparse weights (compiled kernels' inner step, Eq. 2).
+    """``(Σ_m w_m T_{b_m}) p`` for point ``v`` of sparse weights (compiled kernels' inner step, Rhee Eq. 2).
 
     ``t`` is ``(n_bones, 3, 4)``; returns the blended point as a tuple ``(x, y, z)``.
     """
