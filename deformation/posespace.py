@@ -133,8 +133,9 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
     phi = np.exp(-pair / sigma**2)
     dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
     try:
-        # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹; φ scaled by exp(min dq / σ²), which Kurihara Eq. 14's normalisation cancels:
-        # far from every example, the φ themselves underflow to 0 and s would be 0 / 0
+        # Kurihara Eq. 13: f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹; φ scaled by exp(min dq / σ²), which
+        # Kurihara Eq. 14's normalisation cancels: far from every example, the φ themselves underflow to 0
+        # and s would be 0 / 0
         dq = dq - dq.min(axis=1, keepdims=True)
         f = np.linalg.solve(phi, np.exp(-dq / sigma**2).T).T
     except np.linalg.LinAlgError:
@@ -372,7 +373,8 @@ def psd_training(samples, weights: SkinningWeights, sample_transforms) -> np.nda
 
 
 def psd_deform(base_samples: np.ndarray, weights: SkinningWeights, s: np.ndarray, transforms) -> np.ndarray:
-    """PSD: morph the base-pose samples with ``s`` (Kurihara Eq. 7), then SSD with the pose's transforms (Kurihara Eq. 8).
+    """PSD: morph the base-pose samples with ``s`` (Kurihara Eq. 7), then SSD with the pose's transforms
+    (Kurihara Eq. 8).
 
     ``s`` is ``(P,)`` for PSD (the same weights for all vertices) or ``(n, P)``
     for WPSD (per-vertex weights from :meth:`PointPoseSpace.weights`).
@@ -433,10 +435,10 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
 
 @nb.njit(cache=True, parallel=True)
 def _wpsd_exponents(idx, val, inv_sigma2, bone_q, glob_q, arg):
-    """Per point j, the exponents of Kurihara Eq. 12 with Kurihara Eq. 16's distances: ``arg[j, l] = −(d_jl − min_l d_jl)
-    / σ_j²`` (:func:`_query_kernel`'s shift against underflow), ``d_jl`` as :func:`_weighted_sq` sums it
-    (``glob_q[l] = Σ_b bone_q[b, l]`` carries the U_FLOOR term, so only the point's ≤ K bones are visited),
-    written in place (a row view per point cost a fifth more)."""
+    """Per point j, the exponents of Kurihara Eq. 12 with Kurihara Eq. 16's distances:
+    ``arg[j, l] = −(d_jl − min_l d_jl) / σ_j²`` (:func:`_query_kernel`'s shift against underflow), ``d_jl``
+    as :func:`_weighted_sq` sums it (``glob_q[l] = Σ_b bone_q[b, l]`` carries the U_FLOOR term, so only the
+    point's ≤ K bones are visited), written in place (cheaper than a row view per point)."""
     n, P = arg.shape
     for j in nb.prange(n):
         for l in range(P):

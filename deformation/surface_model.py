@@ -92,7 +92,8 @@ class SurfaceModel:
 
     def deform(self, pose, method: str = "wpsd") -> SurfaceMesh:
         """The skin at ``pose`` (a :class:`~deformation.skeleton.Pose`: bone transforms and joint angles) by
-        ``method`` — "ssd" (Kurihara Eq. 2), "psd" (Kurihara Eq. 7–8 with Kurihara Eq. 12–15) or "wpsd" (Kurihara Eq. 16)."""
+        ``method`` — "ssd" (Kurihara Eq. 2), "psd" (Kurihara Eq. 7–8 with Kurihara Eq. 12–15) or "wpsd"
+        (Kurihara Eq. 16)."""
         if method not in SURFACE_METHODS:
             raise ValueError(f"method must be one of {SURFACE_METHODS}, got {method!r}")
         t = pose.transforms
