@@ -84,7 +84,7 @@ def loo(runner) -> Table:
             "VBD": "volume blend deformation (Rhee Eq. 2) at the held-out scan's estimated pose",
             "EVD": "example-based volume deformation (Rhee Eq. 6–7), normalised-RBF pose-space "
             "interpolation of the training scans' displacements, weighted per voxel as "
-            "Kurihara's WPSD (Eq. 16)",
+            "Kurihara's WPSD (Kurihara Eq. 16)",
         },
         notes=[
             "the paper shows these comparisons as pictures only (Figs. 11–12): no published numbers",
