@@ -575,8 +575,8 @@ def unfold(
     m_inv = np.ascontiguousarray(np.linalg.inv(g.index_to_world_matrix[:3, :3]))
     shape = g.array_shape
     # The repair works fold by fold, each on a crop of the grid around it: a grid may hold 200 M voxels with
-    # folds in a few creases, and the repair of the whole grid held ~90 B a voxel (a float64 copy, its
-    # determinants, the input again to restore from: 16.6 GiB for the VBD start of Kurihara's 197 M-voxel CT).
+    # folds in a few creases, and a whole-grid repair holds a float64 copy, its determinants and the input to
+    # restore from (the memory: docs/measurements/deformation-and-validation.md).
     # Folds closer than ``pad`` voxels are one cluster; each cluster's crop is repaired as the whole grid would be
     # with only the folds in the crop (it is widened until the repair keeps off the crop's faces, where a
     # determinant would be one-sided and a Gaussian box clipped), and the clusters one after the other.

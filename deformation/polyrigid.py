@@ -180,13 +180,9 @@ class PolyrigidFlow:
         within a few coarse voxels of each other, exact where the map is affine, as inside a bone); the voxels
         of the other cells (where curled fingers touch and the map jumps) and those past the last coarse voxel
         (which a blend would extrapolate) are integrated exactly.  The map has kinks (the distance weights
-        change where a voxel's nearest bone does), so the blend is an approximation: the test hand at 1.6 mm,
-        f = 2, every 2nd voxel plus 10 % of the grid integrated (0.30 of the time), deviates from the exact
-        map by 0.067 mm on average over the body (p99 0.9 mm), MED to the truth 0.547 → 0.577 mm; blending
-        everywhere instead, 0.30 mm (MED 0.663).  At 0.8 mm (6.9 M voxels) f = 2 took 0.25 of the exact
-        map's time, 0.017 mm off on average, MED 0.493 → 0.498.  The blend is not one-to-one by
+        change where a voxel's nearest bone does), so the blend is an approximation, and not one-to-one by
         construction: where a blended cell meets an integrated one their values differ by the blend's error
-        (the test hand at 1.6 mm: 115 folded body voxels, against 127 in the exact map on that grid).
+        (time, deviation and folds against the exact map: docs/measurements/deformation-and-validation.md).
         """
         from . import geometry as geometry_module
         from .resample import OK, BackwardMap, CoarseBackwardMap

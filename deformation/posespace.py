@@ -489,14 +489,15 @@ def wpsd_deform(
     *,
     folded: np.ndarray | None = None,
 ) -> np.ndarray:
-    """WPSD (Kurihara §5.2): per-vertex pose weights (Kurihara Eq. 16), morph (Kurihara Eq. 7), SSD (Kurihara Eq. 8).
+    """WPSD (Kurihara §5.2): per-vertex pose weights (Kurihara Eq. 16), morph (Kurihara Eq. 7), SSD
+    (Kurihara Eq. 8).
 
     ``base_samples_per_point`` is ``(n, P, 3)``: each vertex's base-pose position in every sample
     (:func:`psd_training`, transposed).  Equal to ``skin(base, weights, transforms,
     point_space.weights(pose))`` up to rounding, without the ``(n, P)`` weights.  ``folded``:
     ``point_space.fold(base)``, made once for a mesh posed many times (made here when not given).
-    The exponentials run in NumPy (SIMD: 0.16 ms for 250 k, against 1.1 ms one by one in a numba
-    loop on this machine; they were two thirds of WPSD's cost beyond LBS).
+    The exponentials run in NumPy (vectorised, faster than one by one in a numba loop:
+    docs/measurements/deformation-and-validation.md).
     """
     if point_space.weights_ is not weights:
         raise ValueError(

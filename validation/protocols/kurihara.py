@@ -61,9 +61,9 @@ def pose_angles(shape) -> dict:
 
 PHANTOM = dict(region="hand", modality="ct", poses=tuple((k, pose_angles(v)) for k, v in POSES.items()))
 SETTINGS = {"pose": {"method": "surface"}}  # Kurihara §3: ICP of the bones' isosurfaces
-# At the test grid's 3.1 mm a distal phalanx is 2-3 voxels across and its isosurface a blob: ICP lost every
-# distal phalanx and turned the middle ones 40-55° (median bone error 20°).  The test-size protocol samples the
-# same field of view at 1.6 mm (Kurihara's CT: about 0.5 mm).
+# At the test grid's 3.1 mm a distal phalanx is 2-3 voxels across and its isosurface a blob that ICP cannot
+# hold (docs/measurements/deformation-and-validation.md), so the test-size protocol samples the same field of
+# view at 1.6 mm (Kurihara's CT: about 0.5 mm).
 TEST_SPACING_MM = (1.6, 1.6, 1.6)
 PAPER_RMS_MM = 0.91
 

@@ -32,8 +32,8 @@ from .table import Column, Table
 __all__ = ["kurihara_skin", "SURFACE"]
 
 # Feature points: landmarks from the phantom (the paper's hand-picked points, without picking error); the
-# registration's (the stage's default) would need the init and register stages on 5 hand scans (measured on
-# this study: no better than confident closest points, whose meshes the table shows beside the landmarks')
+# registration's (the stage's default) would need the init and register stages on 5 hand scans, and did no
+# better than confident closest points, whose meshes the table shows beside the landmarks'
 SURFACE = {"features": "landmarks"}
 N_LANDMARKS = 150  # Kurihara §4: 70–150 per pose
 METHODS = ("ssd", "psd", "wpsd")
