@@ -30,8 +30,8 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry
-from .posespace import PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones, per_bone_sq
-from .skinning import SkinningWeights, _as_stack, blend_point
+from .posespace import PoseSpace, chol_factor, chol_subst, dof_bones, per_bone_sq, query_kernel, rbf_width, weighted_sq
+from .skinning import SkinningWeights, blend_point, stack_transforms
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -104,20 +104,20 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
             for i in range(nx):
                 v = k * nxy + j * nx + i
                 # Kurihara Eq. 16 per voxel: squared pose distances to the query and between the examples
-                _weighted_sq(idx, val, v, bone_q, glob_q, phi)
-                _weighted_sq(idx, val, v, flat, glob_pair, pair_flat)
+                weighted_sq(idx, val, v, bone_q, glob_q, phi)
+                weighted_sq(idx, val, v, flat, glob_pair, pair_flat)
                 pair = pair_flat.reshape(P, P)
-                sig = _width(pair, P)  # Gaussian width: mean nearest-neighbour distance in this metric
+                sig = rbf_width(pair, P)  # Gaussian width: mean nearest-neighbour distance in this metric
                 inv = 1.0 / (sig * sig) if sig > 0.0 else 0.0
-                _query_kernel(phi, P, inv)
+                query_kernel(phi, P, inv)
                 for q in range(P):
                     for r in range(q + 1):
                         e = np.exp(-pair[q, r] * inv)
                         pair[q, r] = e
                         pair[r, q] = e
-                ok = _chol_factor(pair, P)
+                ok = chol_factor(pair, P)
                 if ok:
-                    _chol_subst(pair, phi, P, work)
+                    chol_subst(pair, phi, P, work)
                     tot = 0.0
                     for q in range(P):
                         tot += phi[q]
@@ -181,7 +181,7 @@ def vbd_forward(geometry: GridGeometry, weights: SkinningWeights, transforms) ->
     ``(n_bones, 4, 4)`` array in ``weights.bones`` order).
     """
     _check_grid_weights(geometry, weights)
-    t = np.ascontiguousarray(_as_stack(transforms, weights)[:, :3, :])
+    t = np.ascontiguousarray(stack_transforms(transforms, weights.bones)[:, :3, :])
     out = np.empty(geometry.array_shape + (3,), dtype=np.float32)
     nx, ny, nz = geometry.size
     disp = np.zeros((weights.n_points, 0, 3), dtype=np.float32)
@@ -315,7 +315,7 @@ class ExampleVolumeDeformation:
             pos = np.asarray(pos).reshape(-1, 3)  # read blockwise below: no float64 copy of the whole field
             if pos.shape[0] != n:
                 raise ValueError(f"correspondence {k} has {pos.shape[0]} points, the template grid {n} voxels")
-            t = _as_stack(pose.transforms, weights)
+            t = stack_transforms(pose.transforms, weights.bones)
             # Rhee Eq. 7: (Σ w T)⁻¹ v̂ − v0, blockwise to bound memory
             for lo in range(0, n, 1 << 20):
                 hi = min(n, lo + (1 << 20))
@@ -353,7 +353,7 @@ class ExampleVolumeDeformation:
             if isinstance(pose, np.ndarray):
                 raise ValueError("give the bone transforms with a bare pose vector")
             transforms = pose.transforms
-        t = np.ascontiguousarray(_as_stack(transforms, self.weights)[:, :3, :])
+        t = np.ascontiguousarray(stack_transforms(transforms, self.weights.bones)[:, :3, :])
         g = self.geometry
         nx, ny, nz = g.size
         a = np.ascontiguousarray(g.index_to_world_matrix[:3])

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .skinning import SkinningWeights, _as_stack, blend_point, inverse_lbs, lbs
+from .skinning import SkinningWeights, blend_point, inverse_lbs, lbs, stack_transforms
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -180,7 +180,7 @@ class PoseSpace:
 
 # -- per-point (WPSD) pose weights ------------------------------------------------------------
 @nb.njit(cache=True, inline="always")
-def _query_kernel(phi, n, inv):
+def query_kernel(phi, n, inv):
     """φ_i = exp(−(d_i − min d) / σ²) in place from squared pose distances d (Kurihara Eq. 12): the common
     factor exp(min d / σ²) cancels in Kurihara Eq. 14's normalisation, and without it a pose far from every example
     underflows every φ to 0 (s = 0 / 0)."""
@@ -193,7 +193,7 @@ def _query_kernel(phi, n, inv):
 
 
 @nb.njit(cache=True, inline="always")
-def _chol_factor(a, n):
+def chol_factor(a, n):
     """In-place lower Cholesky factor of the SPD matrix a (n×n).  False if a is not positive definite."""
     for j in range(n):
         s = a[j, j]
@@ -211,8 +211,8 @@ def _chol_factor(a, n):
 
 
 @nb.njit(cache=True, inline="always")
-def _chol_subst(a, b, n, work):
-    """Solve L Lᵀ x = b with the factor from :func:`_chol_factor`; b is overwritten by x."""
+def chol_subst(a, b, n, work):
+    """Solve L Lᵀ x = b with the factor from :func:`chol_factor`; b is overwritten by x."""
     for i in range(n):
         t = b[i]
         for k in range(i):
@@ -226,7 +226,7 @@ def _chol_subst(a, b, n, work):
 
 
 @nb.njit(cache=True, inline="always")
-def _weighted_sq(idx, val, j, per_bone, glob, out):
+def weighted_sq(idx, val, j, per_bone, glob, out):
     """Kurihara Eq. 16 squared: ``out[r] = Σ_b u_jb per_bone[b, r]`` with ``u_jb = U_FLOOR + w_jb``.
 
     ``per_bone (n_bones, R)`` holds the squared DOF differences summed per bone (for the query pose,
@@ -245,7 +245,9 @@ def _weighted_sq(idx, val, j, per_bone, glob, out):
 
 
 @nb.njit(cache=True, inline="always")
-def _width(pair, P):
+def rbf_width(pair, P):
+    """The Gaussian's width ``σ``: the mean nearest-neighbour distance of ``P`` poses from their squared
+    pairwise distances ``pair (P, P)`` (the module docstring's scale-free width)."""
     tot = 0.0
     for i in range(P):
         m = np.inf
@@ -268,20 +270,20 @@ def _wpsd_coefficients(idx, val, bone_pair, out_c, out_inv_sigma2):
         a = np.empty((P, P))
         col = np.empty(P)
         work = np.empty(P)
-        _weighted_sq(idx, val, j, flat, glob, pair_flat)
+        weighted_sq(idx, val, j, flat, glob, pair_flat)
         pair = pair_flat.reshape(P, P)
-        sig = _width(pair, P)
+        sig = rbf_width(pair, P)
         inv = 1.0 / (sig * sig)
         out_inv_sigma2[j] = inv
         for i in range(P):
             for l in range(P):
                 a[i, l] = np.exp(-pair[i, l] * inv)
-        ok = _chol_factor(a, P)
+        ok = chol_factor(a, P)
         for c in range(P):
             for i in range(P):
                 col[i] = 1.0 if i == c else 0.0
             if ok:
-                _chol_subst(a, col, P, work)
+                chol_subst(a, col, P, work)
             for i in range(P):
                 out_c[j, i, c] = col[i] if ok else np.nan
 
@@ -347,8 +349,8 @@ def _wpsd_weights(idx, val, bone_q, coef, inv_sigma2, out):
     glob_q = bone_q.sum(axis=0)
     for j in nb.prange(n):
         phi = np.empty(P)
-        _weighted_sq(idx, val, j, bone_q, glob_q, phi)
-        _query_kernel(phi, P, inv_sigma2[j])
+        weighted_sq(idx, val, j, bone_q, glob_q, phi)
+        query_kernel(phi, P, inv_sigma2[j])
         tot = 0.0
         for i in range(P):
             f = 0.0
@@ -412,7 +414,7 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
     ``base_points`` is ``(n, 3)`` (plain SSD, Kurihara Eq. 2) or ``(n, P, 3)`` base-pose
     samples laid out per point; ``s`` is ``(P,)`` (PSD) or ``(n, P)`` (WPSD).
     """
-    t = _as_stack(transforms, weights)[:, :3, :]
+    t = stack_transforms(transforms, weights.bones)[:, :3, :]
     base = np.asarray(base_points, dtype=np.float64)
     if base.ndim == 2:
         if s is not None:
@@ -436,8 +438,8 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
 @nb.njit(cache=True, parallel=True)
 def _wpsd_exponents(idx, val, inv_sigma2, bone_q, glob_q, arg):
     """Per point j, the exponents of Kurihara Eq. 12 with Kurihara Eq. 16's distances:
-    ``arg[j, l] = −(d_jl − min_l d_jl) / σ_j²`` (:func:`_query_kernel`'s shift against underflow), ``d_jl``
-    as :func:`_weighted_sq` sums it (``glob_q[l] = Σ_b bone_q[b, l]`` carries the U_FLOOR term, so only the
+    ``arg[j, l] = −(d_jl − min_l d_jl) / σ_j²`` (:func:`query_kernel`'s shift against underflow), ``d_jl``
+    as :func:`weighted_sq` sums it (``glob_q[l] = Σ_b bone_q[b, l]`` carries the U_FLOOR term, so only the
     point's ≤ K bones are visited), written in place (cheaper than a row view per point)."""
     n, P = arg.shape
     for j in nb.prange(n):
@@ -514,7 +516,7 @@ def wpsd_deform(
         )
     a = point_space.space.vector(pose)
     bone_q = np.ascontiguousarray(point_space._per_bone((a[None, :] - point_space.space.train)[None])[:, 0])
-    t = _as_stack(transforms, weights)[:, :3, :]
+    t = stack_transforms(transforms, weights.bones)[:, :3, :]
     phi = np.empty((weights.n_points, P))
     _wpsd_exponents(weights.index, weights.value, point_space.inv_sigma2, bone_q, bone_q.sum(axis=0), phi)
     np.exp(phi, out=phi)  # Kurihara Eq. 12's φ

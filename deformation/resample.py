@@ -31,7 +31,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import SLAB_VOXELS, GridGeometry, Volume, every_nth, slabs
-from .interpolate import _fill_value, _flat_data, _interp_scalar, _output_dtype, sample_array
+from .interpolate import fill_value, flat_data, interp_scalar, output_dtype, sample_array
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -873,7 +873,7 @@ def _pull_kernel(cx, cst, ok, f, src, nx, ny, nz, order, fill, out):
                     a = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 0)
                     b = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 1)
                     c = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 2)
-                    out[k, j, i] = _interp_scalar(
+                    out[k, j, i] = interp_scalar(
                         src, nx, ny, nz, np.float64(a), np.float64(b), np.float64(c), order, fill
                     )
 
@@ -971,11 +971,11 @@ class CoarseBackwardMap:
         holding only the output)."""
         src = _source(self, volume, labels)
         order = 0 if labels else 1
-        odt = _output_dtype(src.dtype, order)
-        flat, (nx, ny, nz), _ = _flat_data(src)
+        odt = output_dtype(src.dtype, order)
+        flat, (nx, ny, nz), _ = flat_data(src)
         out = np.empty(self.target_geometry.array_shape, dtype=np.uint8 if odt == np.bool_ else odt)
         _pull_kernel(
-            self._cx, self.coarse.status, self._ok, self.factor, flat, nx, ny, nz, order, _fill_value(fill, odt), out
+            self._cx, self.coarse.status, self._ok, self.factor, flat, nx, ny, nz, order, fill_value(fill, odt), out
         )
         return Volume(out.view(np.bool_) if odt == np.bool_ else out, self.target_geometry)
 

@@ -29,7 +29,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RigidBound", "rigid_information", "rigid_bound", "phantom_pose_bounds", "median_error_norm"]
+__all__ = [
+    "RigidBound",
+    "rigid_information",
+    "rigid_bound",
+    "phantom_pose_bounds",
+    "median_error_norm",
+    "template_gradient",
+]
 
 GRADIENT_STEP_MM = 0.05  # central-difference step of the template gradient (edges are ≥ 0.8 voxel wide)
 
@@ -138,7 +145,9 @@ def median_error_norm(cov, *, seed: int = 0, n: int = 20000) -> float:
     return float(np.median(np.concatenate(norms)))
 
 
-def _template_gradient(phantom, p: np.ndarray, h: float) -> np.ndarray:
+def template_gradient(phantom, p: np.ndarray, h: float) -> np.ndarray:
+    """``∇I`` at template points ``p (n, 3)``: central differences of step ``h`` mm of the phantom's noise-free
+    analytic template intensity (per mm, ``(n, 3)``)."""
     g = np.empty_like(p)
     for k in range(3):
         e = np.zeros(3)
@@ -189,7 +198,7 @@ def phantom_pose_bounds(
         sel = np.zeros(len(x), bool)
         sel[inside] = region.mask[ijk[inside, 2], ijk[inside, 1], ijk[inside, 0]]
         x, p = x[sel], p[sel]
-        grad = _template_gradient(phantom, p, step_mm) @ r.T  # ∇S(x) = R ∇I(T⁻¹x)
+        grad = template_gradient(phantom, p, step_mm) @ r.T  # ∇S(x) = R ∇I(T⁻¹x)
         centre = r @ np.asarray(region.centroid, float) + tr
         info = rigid_information(x, grad, centre, sigma)
         out[name] = rigid_bound(info, bone=name, n_voxels=len(x), prior_deg=prior_deg, prior_mm=prior_mm)
