@@ -319,7 +319,7 @@ def harmonic_weights(
         snapped), ``raw`` (the unclipped solution, (n, n_bones)), ``raw_min`` and
         ``raw_max`` (over the free vertices), ``clipped_max`` (largest change by clipping),
         ``clipped_fraction`` (of free entries changed), ``sum_error_raw``
-        (max |Σ_k w_k − 1| before clipping), ``residual`` (max-norm of
+        (``max |Σ_k w_k − 1|`` before clipping), ``residual`` (max-norm of
         ``L_ii W_i + L_ib W_b`` relative to ``L_ib W_b``), ``max_influences``,
         and ``seconds`` ({assemble, factorize, solve}).
 

@@ -106,7 +106,7 @@ def cps_green(x, y) -> np.ndarray:
     which has only sums of non-negative terms (``r`` is computed from the
     coordinate differences, not from ``|x|² + |y|² − 2xᵀy``), so it is
     accurate to a few ulps everywhere inside the ball — near the sphere, to
-    the unavoidable rounding of ``1 − |x|²``, ~eps / (1 − |x|) — and
+    the unavoidable rounding of ``1 − |x|²``, ``~eps / (1 − |x|)`` — and
     at ``x = y`` gives the diagonal limit ``G(x, x) = 1 − |x|²``.  The factor
     ``(1 − |x|²)²`` gives zero value and zero gradient on the sphere.
     ``1 − |x|²`` is clamped to 0 for ``|x| ≥ 1``, which makes ``G = 0``

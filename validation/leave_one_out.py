@@ -135,7 +135,7 @@ class HeldOut:
 
     scan: str
     training: tuple  #: the scans the EVD model was built from
-    med_vbd: float  #: mean |F(v) − F_true(v)| over template body voxels, mm
+    med_vbd: float  #: mean ``|F(v) − F_true(v)|`` over template body voxels, mm
     med_evd: float
     cc_vbd: float | None = None  #: Pearson correlation of the posed template with the held-out scan
     cc_evd: float | None = None

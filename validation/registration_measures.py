@@ -64,7 +64,7 @@ def error_map(field: Volume, truth: Volume, mask: np.ndarray | None = None, *, d
 
 
 def med(field: Volume, truth: Volume, mask: np.ndarray) -> float:
-    """Mean |recovered − true| template position (mm) over ``mask`` (fields on one grid; :func:`error_map`)."""
+    """Mean ``|recovered − true|`` template position (mm) over ``mask`` (fields on one grid; :func:`error_map`)."""
     mask = np.asarray(mask, bool)
     return float(error_map(field, truth, dtype=np.float64)[mask].mean()) if mask.any() else float("nan")
 

@@ -256,7 +256,7 @@ def draw_acquisition(spec: PhantomSpec, n_images: int | None = None) -> dict:
     SNR is the muscle's mean signal above air (times ``gain``) over σ, so ``noise_sigma`` = gain · (muscle −
     air) / snr; ``gain`` ~ U(GAIN_RANGE); ``offset`` ~ U(±OFFSET_FRACTION · (muscle − air)) for Gaussian
     noise (a CT-like calibration shift), 0 for Rician; ``bias_amplitude`` ~ U(BIAS_RANGE), the largest
-    |bias − 1| of the image's smooth multiplicative bias field.
+    ``|bias − 1|`` of the image's smooth multiplicative bias field.
     """
     study = _draw_study(spec)
     span = study["contrast"]["muscle"] - study["contrast"]["air"]
@@ -446,7 +446,7 @@ class Phantom:
         return out
 
     def _bias_field(self, rng: np.random.Generator, amplitude: float | None = None) -> np.ndarray:
-        """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1, max |bias − 1| = ``amplitude``
+        """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1, ``max |bias − 1|`` = ``amplitude``
         (default: the contrast's)."""
         amp = self.contrast.bias_amplitude if amplitude is None else amplitude
         if amp == 0:
