@@ -224,9 +224,8 @@ class ClampedPlateSpline:
     Hot path (Rhee Algorithm 1: a simplex over the 24 displacement values of
     8 control points, thousands of cost evaluations on 10⁴–10⁵ voxels):
     precompute ``B = spline.basis_for_values(points)`` once, then each
-    evaluation is a single ``(m, n) @ (n, 3)`` product ``B @ d`` (≈ 0.1 ms
-    for m = 20 000, n = 8) — do not call :meth:`evaluate` inside the
-    optimiser loop.
+    evaluation is a single ``(m, n) @ (n, 3)`` product ``B @ d`` — do not
+    call :meth:`evaluate` inside the optimiser loop.
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Phantom ground truth is exact: resampling, rigid bones, markers, determinism (issue A).
+"""Phantom ground truth is exact: resampling, rigid bones, markers, determinism.
 
 Tolerances
 ----------
