@@ -11,6 +11,10 @@ baseline.  Both are compared with the truth by the mean Euclidean distance
 * ``med_scan``: over posed body voxels ``y`` whose true template position
   lies in the template's field of view, ``|F⁻¹(y) − φ_true(y)|`` — Rhee's
   MED of correspondences, through the backward map (:mod:`deformation.resample`).
+
+:func:`leave_one_out_correspondences` does the same from any correspondences
+(a study's registrations), and :func:`registration_training_positions` gives
+a study scan's EVD example the way the pipeline's ``model`` stage builds it.
 """
 
 from __future__ import annotations
