@@ -17,7 +17,7 @@ poses) shows what the model itself can do.
     python benchmarks/bench_leave_one_out.py --cases hand --spacing 0.8 --n-poses 6   # a phalanx >= 5 voxels across
 
 Each case prints how many voxels its thinnest bone is across (2 x its deepest voxel's distance - 1): at the
-test size's 1.6 mm a phalanx is 2-3 voxels, too few for a registration to hold it (issue M asks for >= 5).
+test size's 1.6 mm a phalanx is 2-3 voxels, too few for a registration to hold it (5 or more are wanted).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from validation.leave_one_out import leave_one_out_correspondences
+from validation.leave_one_out import leave_one_out_correspondences, registration_training_positions
 from validation.phantoms import make_phantom
 from workbench.stages.run import run_stages
 from workbench.study import write_phantom_study
@@ -78,13 +78,9 @@ def run_case(case: str, size: str, seed: int, out: Path, spacing=None, n_poses=N
     template, sk = study.template(), study.skeleton()
     ids = study.scan_ids
     g = template.geometry
-    from deformation.evd import fill_unmatched
-
     est_poses, reg_pos = {}, {}
     for sid in ids:
-        est_poses[sid] = study.pose(sid)
-        pos, found = study.registration_positions(sid)
-        reg_pos[sid] = fill_unmatched(g, weights, est_poses[sid].transforms, pos, found)
+        est_poses[sid], reg_pos[sid], _ = registration_training_positions(study, sid, g, weights)
     true_poses = {sid: study.truth_pose(sid) for sid in ids}
     true_pos = {sid: study.truth_template_to_scan(sid).data + g.world_coordinates() for sid in ids}
     images = {sid: study.scan(sid) for sid in ids}

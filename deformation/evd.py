@@ -5,35 +5,23 @@
 * :class:`ExampleVolumeDeformation` — EVD, Rhee Eq. 6–7.  From registered
   correspondences (the position ``v̂_k`` of every template voxel in scan
   ``k``) the training displacement in the template frame is
-  ``d_k = (Σ_j w_j T_j^k)⁻¹ v̂_k − v_0`` (Eq. 7, with the template weights
-  of ``v_0``); at a pose ``a`` the displacement ``d_a = Σ_k s_k(a) d_k`` is
-  interpolated over pose space with normalised RBFs (Kurihara Eq. 12–14),
-  and the posed position is ``v_a = E(v_0 + d_a)`` (Eq. 6), ``E`` being VBD
-  with the weights of ``v_0`` (the voxel carries its weights with it: the
-  inverse in Eq. 7 used the same ones, so the training poses are
-  reproduced exactly).
+  ``d_k = (Σ_j w_j T_j^k)⁻¹ v̂_k − v_0`` (Rhee Eq. 7); at a pose ``a`` the
+  displacement ``d_a = Σ_k s_k(a) d_k`` is interpolated over pose space
+  with normalised RBFs (Kurihara Eq. 12–14), and the posed position is
+  ``v_a = E(v_0 + d_a)`` (Rhee Eq. 6), ``E`` being VBD with the weights of
+  ``v_0``, so the training poses are reproduced exactly.
 
-The template itself is an example (Kurihara's base pose ``S_0``, §4): at
-its own pose every bone's transform is the identity and Eq. 7 gives
-``d = 0``, so a model that includes it reproduces the template at rest (a
-scan held out at rest is otherwise extrapolated from the flexed ones: the
-test knee's rest scan, EVD 1.30 mm against VBD's 0.20).  It joins the
-examples unless a training scan's pose is within half the training poses'
-mean nearest-neighbour distance of the rest pose (that scan then stands for
-the rest pose: two examples so close make the RBF matrix of Kurihara Eq. 13
-near-singular, and their difference — that scan's registration error — would
-be interpolated as an oscillation); :func:`wants_template_example`.
+The template itself is an example (Kurihara's base pose ``S_0``, §4): at its
+own pose every transform is the identity and Rhee Eq. 7 gives ``d = 0``.  It
+joins the examples unless a training pose is close to rest
+(:func:`wants_template_example`): two examples so close make the RBF matrix
+of Kurihara Eq. 13 near-singular.  With ``weighting="wpsd"`` the pose weights
+are per voxel, from the weighted pose distance of Kurihara Eq. 16
+(:mod:`.posespace`), computed on the fly.  Measurements behind these choices:
+``docs/measurements/deformation-and-validation.md``.
 
-With ``weighting="wpsd"`` the pose weights are per voxel, from the weighted
-pose distance of Kurihara Eq. 16 (:mod:`.posespace`), computed on the fly (a
-voxel whose kernel matrix is numerically singular takes uniform weights 1/P)
-(a precomputed ``n_pose²`` matrix per voxel would be 4.6 GB for the
-paper-size hand).
-
-Both return forward positions ``(nz, ny, nx, 3)``; :mod:`.resample` turns
-them into a posed volume on a regular grid.  The example displacements are
-stored per voxel (``(n_voxels, n_poses, 3)`` float32) so that one pass reads
-them contiguously.
+Positions are ``(nz, ny, nx, 3)`` (:mod:`.resample` makes a posed volume); the
+displacements are stored per voxel, ``(n_voxels, n_poses, 3)`` float32.
 """
 
 from __future__ import annotations
@@ -42,14 +30,15 @@ import numba as nb
 import numpy as np
 
 from .geometry import GridGeometry
-from .posespace import PoseSpace, _chol_factor, _chol_subst, _query_kernel, _weighted_sq, _width, dof_bones, per_bone_sq
-from .skinning import SkinningWeights, _as_stack, blend_point
+from .posespace import PoseSpace, chol_factor, chol_subst, dof_bones, per_bone_sq, query_kernel, rbf_width, weighted_sq
+from .skinning import SkinningWeights, blend_point, stack_transforms
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
 __all__ = [
     "vbd_forward",
+    "forward_kernel",
     "fill_unmatched",
     "ExampleVolumeDeformation",
     "EVD_WEIGHTINGS",
@@ -80,8 +69,16 @@ def _evd_point(a, i, j, k, v, disp, s, idx, val, t, out):
 
 
 @nb.njit(cache=True, parallel=True)
-def _forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out):
-    """out[v] = (Σ_m w_m T_{b_m}) (v + Σ_p s_p disp[v, p]) for every grid point v (index → world a)."""
+def forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out):
+    """Rhee Eq. 6 on a grid: ``out[v] = (Σ_m w_m T_{b_m}) (v + Σ_p s_p disp[v, p])`` for every grid point ``v``.
+
+    The compiled kernel behind :func:`vbd_forward` (no examples: ``disp`` of
+    shape ``(n_voxels, 0, 3)``, Rhee Eq. 2) and
+    :meth:`ExampleVolumeDeformation.forward`.  ``a`` is the grid's 3×4
+    index → world matrix, ``(nx, ny, nz)`` its size; ``idx``, ``val`` the
+    sparse skinning weights per voxel; ``t`` the bones' 3×4 transforms;
+    ``s`` the pose weights of the examples; ``out`` ``(nz, ny, nx, 3)``.
+    """
     nxy = nx * ny
     for k in nb.prange(nz):
         for j in range(ny):
@@ -92,7 +89,7 @@ def _forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out):
 
 @nb.njit(cache=True, parallel=True)
 def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, out):
-    """As :func:`_forward_kernel` with per-voxel pose weights (Kurihara Eq. 16, 12–14), solved on the fly."""
+    """As :func:`forward_kernel` with per-voxel pose weights (Kurihara Eq. 16, 12–14), solved on the fly."""
     P = disp.shape[1]
     n_bones = bone_pair.shape[0]
     nxy = nx * ny
@@ -107,20 +104,20 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
             for i in range(nx):
                 v = k * nxy + j * nx + i
                 # Kurihara Eq. 16 per voxel: squared pose distances to the query and between the examples
-                _weighted_sq(idx, val, v, bone_q, glob_q, phi)
-                _weighted_sq(idx, val, v, flat, glob_pair, pair_flat)
+                weighted_sq(idx, val, v, bone_q, glob_q, phi)
+                weighted_sq(idx, val, v, flat, glob_pair, pair_flat)
                 pair = pair_flat.reshape(P, P)
-                sig = _width(pair, P)  # Gaussian width: mean nearest-neighbour distance in this metric
+                sig = rbf_width(pair, P)  # Gaussian width: mean nearest-neighbour distance in this metric
                 inv = 1.0 / (sig * sig) if sig > 0.0 else 0.0
-                _query_kernel(phi, P, inv)
+                query_kernel(phi, P, inv)
                 for q in range(P):
                     for r in range(q + 1):
                         e = np.exp(-pair[q, r] * inv)
                         pair[q, r] = e
                         pair[r, q] = e
-                ok = _chol_factor(pair, P)
+                ok = chol_factor(pair, P)
                 if ok:
-                    _chol_subst(pair, phi, P, work)
+                    chol_subst(pair, phi, P, work)
                     tot = 0.0
                     for q in range(P):
                         tot += phi[q]
@@ -184,11 +181,11 @@ def vbd_forward(geometry: GridGeometry, weights: SkinningWeights, transforms) ->
     ``(n_bones, 4, 4)`` array in ``weights.bones`` order).
     """
     _check_grid_weights(geometry, weights)
-    t = np.ascontiguousarray(_as_stack(transforms, weights)[:, :3, :])
+    t = np.ascontiguousarray(stack_transforms(transforms, weights.bones)[:, :3, :])
     out = np.empty(geometry.array_shape + (3,), dtype=np.float32)
     nx, ny, nz = geometry.size
     disp = np.zeros((weights.n_points, 0, 3), dtype=np.float32)
-    _forward_kernel(
+    forward_kernel(
         np.ascontiguousarray(geometry.index_to_world_matrix[:3]),
         nx,
         ny,
@@ -217,7 +214,7 @@ def fill_unmatched(geometry: GridGeometry, weights: SkinningWeights, transforms,
 
 
 class ExampleVolumeDeformation:
-    """EVD (Rhee §5, Eq. 6–7): training displacements over pose space, a posed volume at any pose.
+    """EVD (Rhee §5, Rhee Eq. 6–7): training displacements over pose space, a posed volume at any pose.
 
     Parameters
     ----------
@@ -228,7 +225,7 @@ class ExampleVolumeDeformation:
     space : PoseSpace
         The training poses' pose vectors (same order as ``displacements``).
     displacements : (n_voxels, n_poses, 3) float32
-        ``d_k`` of Eq. 7 per voxel (world mm, template frame).
+        ``d_k`` of Rhee Eq. 7 per voxel (world mm, template frame).
     template_example : bool
         The last example is the template's rest pose with ``d = 0`` (module docstring); ``n_scans`` then
         counts the others.
@@ -311,15 +308,15 @@ class ExampleVolumeDeformation:
         space = PoseSpace(skeleton, poses)  # distinct poses, checked before the work
         vectors, with_template = with_template_example(skeleton, space.train, template_example)
         n = geometry.n_voxels
-        # room for the template's example (d = 0, the last) from the start: adding it later copied the model
+        # room for the template's example (d = 0, the last) from the start: appending it would copy the model
         d = np.zeros((n, len(poses) + int(with_template), 3), dtype=np.float32)
         grid = geometry.world_coordinates().reshape(-1, 3)
         for k, (pose, pos) in enumerate(zip(poses, fields)):
-            pos = np.asarray(pos).reshape(-1, 3)  # read blockwise below (a float64 copy of it was 140 MB)
+            pos = np.asarray(pos).reshape(-1, 3)  # read blockwise below: no float64 copy of the whole field
             if pos.shape[0] != n:
                 raise ValueError(f"correspondence {k} has {pos.shape[0]} points, the template grid {n} voxels")
-            t = _as_stack(pose.transforms, weights)
-            # Eq. 7: (Σ w T)⁻¹ v̂ − v0, blockwise to bound memory
+            t = stack_transforms(pose.transforms, weights.bones)
+            # Rhee Eq. 7: (Σ w T)⁻¹ v̂ − v0, blockwise to bound memory
             for lo in range(0, n, 1 << 20):
                 hi = min(n, lo + (1 << 20))
                 m = np.zeros((hi - lo, 3, 4))
@@ -356,14 +353,14 @@ class ExampleVolumeDeformation:
             if isinstance(pose, np.ndarray):
                 raise ValueError("give the bone transforms with a bare pose vector")
             transforms = pose.transforms
-        t = np.ascontiguousarray(_as_stack(transforms, self.weights)[:, :3, :])
+        t = np.ascontiguousarray(stack_transforms(transforms, self.weights.bones)[:, :3, :])
         g = self.geometry
         nx, ny, nz = g.size
         a = np.ascontiguousarray(g.index_to_world_matrix[:3])
         out = np.empty(g.array_shape + (3,), dtype=np.float32)
         if weighting == "psd":
             s = np.ascontiguousarray(self.space.weights(pose), dtype=np.float64)
-            _forward_kernel(a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, s, out)
+            forward_kernel(a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, s, out)
         else:
             vec = self.space.vector(pose)
             train = self.space.train

@@ -19,9 +19,7 @@ from minus ``x``; its map sends scan space to template space.  Its inverse,
 ``template_to_scan``, lives on the template grid.  Composition reads right to
 left like maps: ``compose(outer, inner)`` is ``O ∘ I``.
 
-All per-voxel work is numba-compiled and parallel, so a paper-size
-255×255×90 field is composed, inverted (per iteration) or differentiated in
-well under a second.
+All per-voxel work is numba-compiled and parallel.
 """
 
 from __future__ import annotations
@@ -33,7 +31,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .geometry import GeometryMismatchError, GridGeometry, Volume, from_every, slabs
-from .interpolate import _SERIAL_BELOW, _interp_vector, _native, _to_index, sample_displaced_array, serial_twin
+from .interpolate import SERIAL_BELOW, interp_vector, native_order, sample_displaced_array, serial_twin, to_index
 
 __all__ = [
     "positions",
@@ -96,13 +94,13 @@ def _invert_step(f, nx, ny, nz, w2i_u, i2w_y, v, v_new, resid, done, tol):
                 vn[row, 1] = v1
                 vn[row, 2] = v2
                 continue
-            ci, cj, ck = _to_index(
+            ci, cj, ck = to_index(
                 w2i_u,
                 i2w_y[0, 0] * i + i2w_y[0, 1] * j + i2w_y[0, 2] * k + i2w_y[0, 3] + v0,
                 i2w_y[1, 0] * i + i2w_y[1, 1] * j + i2w_y[1, 2] * k + i2w_y[1, 3] + v1,
                 i2w_y[2, 0] * i + i2w_y[2, 1] * j + i2w_y[2, 2] * k + i2w_y[2, 3] + v2,
             )
-            _interp_vector(f, nx, ny, nz, ci, cj, ck, 1, 0.0, vn, row)  # vn[row] = s (scratch)
+            interp_vector(f, nx, ny, nz, ci, cj, ck, 1, 0.0, vn, row)  # vn[row] = s (scratch)
             s0 = vn[row, 0]
             s1 = vn[row, 1]
             s2 = vn[row, 2]
@@ -290,7 +288,7 @@ def _check_field(field: Volume, name: str = "field") -> np.ndarray:
         raise ValueError(f"{name} must have data (nz, ny, nx, 3) (displacements x, y, z in mm), got {d.shape}")
     if not np.issubdtype(d.dtype, np.floating):
         raise ValueError(f"{name} must hold floating-point displacements, got dtype {d.dtype}")
-    d = _native(np.ascontiguousarray(d))
+    d = native_order(np.ascontiguousarray(d))
     return d if d.dtype in (np.float32, np.float64) else d.astype(np.float64)  # e.g. float16
 
 
@@ -329,7 +327,7 @@ def from_positions(positions, geometry: GridGeometry) -> Volume:
     ``positions`` ``(nz, ny, nx, 3)`` gives, for each voxel centre x of
     ``geometry``, the world point (mm) it maps to.
     """
-    p = _native(np.ascontiguousarray(_grid_array(positions, geometry, "positions")))
+    p = native_order(np.ascontiguousarray(_grid_array(positions, geometry, "positions")))
     if p.dtype not in (np.float32, np.float64):
         p = p.astype(np.float64)
     out = np.empty(p.shape, dtype=np.float64)
@@ -452,7 +450,7 @@ def jacobian_determinant(field: Volume) -> np.ndarray:
     u = _check_field(field)
     m = np.ascontiguousarray(np.linalg.inv(field.geometry.index_to_world_matrix[:3, :3]))
     out = np.empty(field.geometry.array_shape, dtype=np.float64)
-    (_jacobian_det_serial if out.size < _SERIAL_BELOW else _jacobian_det)(u, m, out)
+    (_jacobian_det_serial if out.size < SERIAL_BELOW else _jacobian_det)(u, m, out)
     return out
 
 
@@ -469,7 +467,7 @@ def jacobian_determinant_components(u: np.ndarray, spacing_zyx) -> np.ndarray:
     if u.ndim != 4 or u.shape[0] != 3:
         raise ValueError(f"u must be (3, nz, ny, nx), got {u.shape}")
     out = np.empty(u.shape[1:], dtype=np.float64)
-    (_jacobian_det_zyx_serial if out.size < _SERIAL_BELOW else _jacobian_det_zyx)(
+    (_jacobian_det_zyx_serial if out.size < SERIAL_BELOW else _jacobian_det_zyx)(
         u, 1.0 / np.asarray(spacing_zyx, dtype=np.float64), out
     )
     return out
@@ -577,8 +575,8 @@ def unfold(
     m_inv = np.ascontiguousarray(np.linalg.inv(g.index_to_world_matrix[:3, :3]))
     shape = g.array_shape
     # The repair works fold by fold, each on a crop of the grid around it: a grid may hold 200 M voxels with
-    # folds in a few creases, and the repair of the whole grid held ~90 B a voxel (a float64 copy, its
-    # determinants, the input again to restore from: 16.6 GiB for the VBD start of Kurihara's 197 M-voxel CT).
+    # folds in a few creases, and a whole-grid repair holds a float64 copy, its determinants and the input to
+    # restore from (the memory: docs/measurements/deformation-and-validation.md).
     # Folds closer than ``pad`` voxels are one cluster; each cluster's crop is repaired as the whole grid would be
     # with only the folds in the crop (it is widened until the repair keeps off the crop's faces, where a
     # determinant would be one-sided and a Gaussian box clipped), and the clusters one after the other.

@@ -2,60 +2,23 @@
 
 Kurihara & Miyata set their skinning weights by hand and name automatic
 weights as future work; Rhee et al. do not say how theirs were made.  Here
-(DESIGN.md, pipeline step 4) the weight of bone ``k`` is the harmonic
-function on the body's tet mesh (the Kuhn lattice of
-:func:`~deformation.tetmesh.lattice_tetmesh`) that is 1 on bone ``k`` and 0
-on every other bone:
+the weight of bone ``k`` is the harmonic function on the body's tet mesh (the
+Kuhn lattice of :func:`~deformation.tetmesh.lattice_tetmesh`) that is 1 on
+bone ``k`` and 0 on every other bone::
 
     Δ w_k = 0 in the soft tissue,   w_k = δ_kl on bone l.
 
-The constant function is harmonic and the boundary values sum to one, so
-``Σ_k w_k = 1`` everywhere; by the maximum principle ``0 ≤ w_k ≤ 1`` and
-each ``w_k`` falls off smoothly with no island of influence away from its
-bone.  Interpolated with barycentric coordinates (a partition of unity
-themselves) the weights of every voxel and skin vertex stay non-negative and
-sum to one (Kurihara Eq. 3).
-
-Discretisation
---------------
-P1 finite elements on the tets: the stiffness matrix ``L`` (the cotangent
-Laplacian of a tet mesh), ``L_ij = Σ_t |t| ∇φ_i·∇φ_j``.  Dirichlet vertices
-(``b``) are those inside a bone; the free ones (``i``) solve
-``L_ii W_i = −L_ib W_b`` with one sparse LU factorisation
-(:func:`scipy.sparse.linalg.splu`, symmetric mode, diagonal pivots in a
-nested-dissection order) for all bones as right-hand sides.
-
-On a Kuhn lattice ``L`` is the 7-point finite-difference stencil (times the
-cube volume) for any spacing: no off-diagonal entry is positive, ``L_ii`` is
-an M-matrix and the discrete maximum principle holds, so the weights stay
-in [0, 1] up to the solve's round-off (Ciarlet & Raviart 1973; the
-derivation is in :func:`~deformation.tetmesh.lattice_tetmesh`).  On a
-general mesh a tet with an obtuse dihedral angle gives a positive
-off-diagonal entry and the principle can fail slightly.  Either way the
-weights are clipped to [0, 1] and renormalised, and the amount is reported
-(``info["clipped_max"]``, ``info["raw_min"]``, ``info["raw_max"]``).
-
-Which vertices are on a bone
-----------------------------
-A mesh vertex is constrained to bone ``k`` when the label map's voxel
-nearest to it (ITK rounding, ``floor(index + 0.5)``) carries bone ``k``'s
-label.  Every bone must constrain at least one vertex; a small bone between
-vertices (thinner than a lattice step of more than one voxel) raises an
-error that suggests a smaller step, or, with ``snap_missing=True``,
-constrains the free vertex nearest to the bone's voxels instead (reported in
-``info["snapped"]``).
-
-Voxels and points
------------------
-:func:`weights_on_grid` gives every voxel of a grid its weights: voxels of a
-bone are exactly one-hot on it; voxels in the mesh interpolate the vertex
-weights barycentrically; voxels outside the mesh (air, and the body voxels
-at the skin that no mostly-body cube holds) take the weights of the nearest
-boundary vertex of the mesh.  :func:`weights_at_points` interpolates at arbitrary
-points (skin-mesh vertices) with :func:`~deformation.tetmesh.locate`; a point
-outside the mesh takes the weights at its closest point on the mesh
-boundary.  Both keep at most ``max_influences`` bones per point,
-renormalised.
+The boundary values sum to one, so ``Σ_k w_k = 1`` everywhere
+(Kurihara Eq. 3), and by the maximum principle ``0 ≤ w_k ≤ 1`` with no
+island of influence away from the bone.  :func:`harmonic_weights` solves it with P1
+finite elements (the cotangent Laplacian, one sparse LU for all bones); on a
+Kuhn lattice that is the 7-point stencil, an M-matrix, so the discrete
+maximum principle holds (Ciarlet & Raviart 1973).  A vertex is on bone ``k``
+when its nearest voxel carries bone ``k``'s label
+(:func:`constrained_vertices`).  :func:`weights_on_grid` and
+:func:`weights_at_points` carry the vertex weights to voxels and skin
+vertices by barycentric interpolation (a partition of unity, so
+Kurihara Eq. 3 still holds).
 """
 
 from __future__ import annotations
@@ -356,7 +319,7 @@ def harmonic_weights(
         snapped), ``raw`` (the unclipped solution, (n, n_bones)), ``raw_min`` and
         ``raw_max`` (over the free vertices), ``clipped_max`` (largest change by clipping),
         ``clipped_fraction`` (of free entries changed), ``sum_error_raw``
-        (max ``|Σ_k w_k − 1|`` before clipping), ``residual`` (max-norm of
+        (``max |Σ_k w_k − 1|`` before clipping), ``residual`` (max-norm of
         ``L_ii W_i + L_ib W_b`` relative to ``L_ib W_b``), ``max_influences``,
         and ``seconds`` ({assemble, factorize, solve}).
 
@@ -642,7 +605,7 @@ def weights_on_grid(
                 "use outside='nearest' or mesh a larger body region"
             )
         bverts = mesh.boundary_vertices()
-        # An unbalanced tree queries these grid points ~2x faster here (same exact answer).
+        # An unbalanced tree is faster on these lattice-aligned points (same exact answer).
         tree = cKDTree(mesh.vertices[bverts], balanced_tree=False, compact_nodes=False)
         a = geometry.index_to_world_matrix
         tie = 1e-6 * min(geometry.spacing) * TIE_DIRECTION  # ties decided by the point, not by the tree

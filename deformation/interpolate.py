@@ -1,36 +1,26 @@
 """Fast sampling of volumes at world points (compiled, parallel trilinear / nearest interpolation).
 
-Convention — the same as SimpleITK's ``sitk.Resample`` (checked in
-``tests/deformation/test_fields.py``)
---------------------------------------------------------------------------------------
-A world point ``p`` (mm, components x, y, z) is mapped to a continuous index
-``(i, j, k) = world_to_index(p)`` (:class:`~deformation.geometry.GridGeometry`:
-``p = origin + direction @ (spacing * ijk)``, voxel centres at integer
-indices).  Along every axis of ``n`` voxels:
+The convention is SimpleITK's ``sitk.Resample`` (checked in
+``tests/deformation/test_fields.py``).  A world point ``p`` (mm, components
+x, y, z) is mapped to a continuous index ``(i, j, k) = world_to_index(p)``
+(:class:`~deformation.geometry.GridGeometry`).  Along every axis of ``n``
+voxels:
 
 * **inside** means ``-0.5 <= index < n - 0.5`` — the voxel-centre box grown by
   half a voxel, half-open like ITK's ``ImageFunction::IsInsideBuffer``;
-* inside but beyond the outermost voxel centres (the half-voxel border), the
-  index is **clamped** to ``[0, n - 1]``: the edge value is extended, exactly
-  as ITK's ``LinearInterpolateImageFunction`` does;
+* inside but beyond the outermost voxel centres the index is **clamped** to
+  ``[0, n - 1]``, as ITK's ``LinearInterpolateImageFunction`` does;
 * outside (or a NaN point) the result is ``fill``.
 
 ``order=1`` is trilinear interpolation; ``order=0`` is nearest neighbour with
-ITK's rounding (``floor(index + 0.5)``, i.e. halves round up), meant for label
-maps: it never mixes values and keeps integer dtypes.
+ITK's rounding (``floor(index + 0.5)``), meant for label maps: it never mixes
+values and keeps integer dtypes.  Indices, weights and sums are computed in
+float64 whatever the data or point dtype; float32 data give float32 output
+(one final rounding, as SimpleITK does: the two agree to 1 float32 ulp),
+integer or boolean data float64 with ``order=1``.
 
-Precision.  Indices, weights and sums are computed in float64 whatever the
-data or point dtype (float32 and float64 points are both accepted without a
-copy); the result is then rounded to the output dtype.  For float32 data the
-output is float32, so the only error beyond float64 round-off is the final
-rounding, ≤ 0.5 ulp of the value (relative 6e-8) — SimpleITK does the same
-(double arithmetic, float output), and the two agree to 1 float32 ulp.
-Integer or boolean data give float64 output with ``order=1`` and keep their
-dtype with ``order=0``.  A float32 *point* carries its own rounding
-(≈ 6e-8 × its coordinate, e.g. 6e-6 mm at 100 mm).
-
-Speed.  The kernels are numba-compiled (``parallel=True``, ``cache=True``,
-no fastmath); against SciPy's and SimpleITK's resampling:
+The kernels are numba-compiled (``parallel=True``, ``cache=True``, no
+fastmath); against SciPy's and SimpleITK's resampling:
 docs/measurements/library-choices.md (``benchmarks/bench_interpolation.py``).
 """
 
@@ -53,10 +43,10 @@ if nb.config.THREADING_LAYER == "default":
 
 # -- compiled kernels -----------------------------------------------------------------------
 # Voxel data are passed flattened: ``f[(k*ny + j)*nx + i]`` (scalar) or ``f[(k*ny + j)*nx + i, c]``
-# (vector), with the grid size (nx, ny, nz) alongside.  Scalar and vector kernels are separate
-# because a run-time component loop costs ~1.5x on scalar volumes.
+# (vector), with the grid size (nx, ny, nz) alongside.  Scalar and vector kernels are separate: a run-time
+# component loop slows the scalar volumes (docs/measurements/deformation-and-validation.md).
 @nb.njit(cache=True)
-def _to_index(m, x, y, z):
+def to_index(m, x, y, z):
     """Continuous index (i, j, k) of world point (x, y, z) through the 4x4 (or 3x4) matrix ``m``."""
     return (
         m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3],
@@ -125,8 +115,8 @@ def _lerp_component(f, b, di, dj, dk, ti, tj, tk, c):
 
 @nb.njit(cache=True)
 def _lerp_xyz(f, b, di, dj, dk, ti, tj, tk):
-    """Trilinear interpolation of a 3-component ``f (nvox, 3)`` (displacement fields): ~1.3x faster
-    than the component loop, and the same arithmetic, bit for bit."""
+    """Trilinear interpolation of a 3-component ``f (nvox, 3)`` (displacement fields), unrolled: the same
+    arithmetic as the component loop, bit for bit, and faster (docs/measurements/deformation-and-validation.md)."""
     si = 1.0 - ti
     sj = 1.0 - tj
     sk = 1.0 - tk
@@ -157,7 +147,7 @@ def _lerp_xyz(f, b, di, dj, dk, ti, tj, tk):
 
 
 @nb.njit(cache=True)
-def _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, row):
+def interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, row):
     """Interpolate vector data ``f (nvox, nc)`` at continuous index (ci, cj, ck) into ``out[row, :]``."""
     nc = f.shape[1]
     if not _inside(ci, cj, ck, nx, ny, nz):
@@ -180,7 +170,7 @@ def _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, row):
 
 
 @nb.njit(cache=True, inline="always")
-def _interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill):
+def interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill):
     """Scalar ``f`` at continuous index (ci, cj, ck): ``fill`` outside, nearest or trilinear inside."""
     if not _inside(ci, cj, ck, nx, ny, nz):
         return fill
@@ -194,22 +184,22 @@ def _interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill):
 def _sample_points_scalar(f, nx, ny, nz, w2i, points, order, fill, out):
     """``out[p]`` = scalar data ``f`` sampled at world point ``points[p]``; ``w2i`` world → index."""
     for p in nb.prange(points.shape[0]):
-        ci, cj, ck = _to_index(w2i, np.float64(points[p, 0]), np.float64(points[p, 1]), np.float64(points[p, 2]))
-        out[p] = _interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill)
+        ci, cj, ck = to_index(w2i, np.float64(points[p, 0]), np.float64(points[p, 1]), np.float64(points[p, 2]))
+        out[p] = interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill)
 
 
 @nb.njit(cache=True, parallel=True)
 def _sample_points_vector(f, nx, ny, nz, w2i, points, order, fill, out):
     """``out[p, :]`` = vector data ``f (nvox, nc)`` sampled at world point ``points[p]``."""
     for p in nb.prange(points.shape[0]):
-        ci, cj, ck = _to_index(w2i, np.float64(points[p, 0]), np.float64(points[p, 1]), np.float64(points[p, 2]))
-        _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, p)
+        ci, cj, ck = to_index(w2i, np.float64(points[p, 0]), np.float64(points[p, 1]), np.float64(points[p, 2]))
+        interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, p)
 
 
 # Serial twins for small inputs (a local registration step samples a few thousand points many times):
-# below _SERIAL_BELOW points, starting the thread team costs more than the work, the more so on a busy
+# below SERIAL_BELOW points, starting the thread team costs more than the work, the more so on a busy
 # machine.  Same arithmetic per point, so the same result.
-_SERIAL_BELOW = 32768
+SERIAL_BELOW = 32768
 
 
 def serial_twin(kernel):
@@ -253,8 +243,8 @@ def _sample_displaced_scalar(f, nx, ny, nz, w2i, i2w, disp, order, fill, out):
         j = r - k * ty
         for i in range(tx):
             x, y, z = _displaced_point(i2w, disp, k, j, i)
-            ci, cj, ck = _to_index(w2i, x, y, z)
-            out[r * tx + i] = _interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill)
+            ci, cj, ck = to_index(w2i, x, y, z)
+            out[r * tx + i] = interp_scalar(f, nx, ny, nz, ci, cj, ck, order, fill)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -266,8 +256,8 @@ def _sample_displaced_vector(f, nx, ny, nz, w2i, i2w, disp, order, fill, out):
         j = r - k * ty
         for i in range(tx):
             x, y, z = _displaced_point(i2w, disp, k, j, i)
-            ci, cj, ck = _to_index(w2i, x, y, z)
-            _interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, r * tx + i)
+            ci, cj, ck = to_index(w2i, x, y, z)
+            interp_vector(f, nx, ny, nz, ci, cj, ck, order, fill, out, r * tx + i)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -300,7 +290,7 @@ def _check_order(order) -> int:
     return int(order)
 
 
-def _flat_data(data) -> tuple[np.ndarray, tuple[int, int, int], bool]:
+def flat_data(data) -> tuple[np.ndarray, tuple[int, int, int], bool]:
     """Flattened voxel data (``(nvox,)`` scalar or ``(nvox, c)`` vector, C order, booleans as uint8),
     the grid size (nx, ny, nz) and whether the data are scalar."""
     data = np.asarray(data)
@@ -309,7 +299,7 @@ def _flat_data(data) -> tuple[np.ndarray, tuple[int, int, int], bool]:
     if np.iscomplexobj(data) or not (np.issubdtype(data.dtype, np.number) or data.dtype == np.bool_):
         raise TypeError(f"voxel data must be real numbers or booleans, got dtype {data.dtype}")
     nz, ny, nx = data.shape[:3]
-    f = _native(np.ascontiguousarray(data))
+    f = native_order(np.ascontiguousarray(data))
     if f.dtype == np.float16:  # numba has no float16 arithmetic
         f = f.astype(np.float32)
     if f.dtype == np.bool_:  # sample booleans as bytes (viewed back by the caller)
@@ -318,12 +308,14 @@ def _flat_data(data) -> tuple[np.ndarray, tuple[int, int, int], bool]:
     return f, (nx, ny, nz), data.ndim == 3
 
 
-def _native(a: np.ndarray) -> np.ndarray:
+def native_order(a: np.ndarray) -> np.ndarray:
     """``a`` in native byte order (NIfTI files may be big-endian; numba needs native)."""
     return a if a.dtype.isnative else a.astype(a.dtype.newbyteorder("="))
 
 
-def _output_dtype(dtype: np.dtype, order: int) -> np.dtype:
+def output_dtype(dtype: np.dtype, order: int) -> np.dtype:
+    """The dtype sampling data of ``dtype`` gives: float16 as float32, integers and booleans kept by nearest
+    neighbour (``order=0``) and float64 by trilinear interpolation, floats kept."""
     dtype = np.dtype(dtype).newbyteorder("=")
     if dtype == np.float16:
         return np.dtype(np.float32)
@@ -332,7 +324,7 @@ def _output_dtype(dtype: np.dtype, order: int) -> np.dtype:
     return np.dtype(np.float64)
 
 
-def _fill_value(fill, dtype: np.dtype):
+def fill_value(fill, dtype: np.dtype):
     """``fill`` converted to the output dtype, refusing values the dtype cannot hold."""
     if np.issubdtype(dtype, np.floating):
         return dtype.type(fill)
@@ -352,7 +344,7 @@ def _as_points(points) -> np.ndarray:
         raise ValueError(f"points must have shape (..., 3) with components (x, y, z) in mm, got {p.shape}")
     if p.dtype.newbyteorder("=") not in (np.float32, np.float64):
         p = p.astype(np.float64)
-    return _native(np.ascontiguousarray(p.reshape(-1, 3)))
+    return native_order(np.ascontiguousarray(p.reshape(-1, 3)))
 
 
 def _matrix(m, name) -> np.ndarray:
@@ -378,17 +370,17 @@ def sample_array(data, world_to_index, points, order: int = 1, fill: float = 0.0
     boundary rule, the rounding and the dtypes.
     """
     order = _check_order(order)
-    odt = _output_dtype(np.asarray(data).dtype, order)
-    f, (nx, ny, nz), scalar = _flat_data(data)
+    odt = output_dtype(np.asarray(data).dtype, order)
+    f, (nx, ny, nz), scalar = flat_data(data)
     w2i = _matrix(world_to_index, "world_to_index")
     pts = _as_points(points)
     lead = np.shape(points)[:-1]
     out = _output(pts.shape[0], 1 if scalar else f.shape[1], scalar, odt)
-    if pts.shape[0] < _SERIAL_BELOW:
+    if pts.shape[0] < SERIAL_BELOW:
         kernel = _sample_points_scalar_serial if scalar else _sample_points_vector_serial
     else:
         kernel = _sample_points_scalar if scalar else _sample_points_vector
-    kernel(f, nx, ny, nz, w2i, pts, order, _fill_value(fill, odt), out)
+    kernel(f, nx, ny, nz, w2i, pts, order, fill_value(fill, odt), out)
     if odt == np.bool_:
         out = out.view(np.bool_)
     return out.reshape(lead) if scalar else out.reshape(lead + (f.shape[1],))
@@ -416,8 +408,8 @@ def sample_displaced_array(
     ``(nz, ny, nx, c)``.
     """
     order = _check_order(order)
-    odt = _output_dtype(np.asarray(data).dtype, order)
-    f, (nx, ny, nz), scalar = _flat_data(data)
+    odt = output_dtype(np.asarray(data).dtype, order)
+    f, (nx, ny, nz), scalar = flat_data(data)
     w2i = _matrix(world_to_index, "world_to_index")
     disp = np.asarray(displacement)
     if disp.shape != target_geometry.array_shape + (3,):
@@ -427,7 +419,7 @@ def sample_displaced_array(
         )
     if disp.dtype.newbyteorder("=") not in (np.float32, np.float64):
         disp = disp.astype(np.float64)
-    disp = _native(np.ascontiguousarray(disp))
+    disp = native_order(np.ascontiguousarray(disp))
     out = _output(target_geometry.n_voxels, 1 if scalar else f.shape[1], scalar, odt)
     kernel = _sample_displaced_scalar if scalar else _sample_displaced_vector
     kernel(
@@ -439,7 +431,7 @@ def sample_displaced_array(
         np.ascontiguousarray(target_geometry.index_to_world_matrix),
         disp,
         order,
-        _fill_value(fill, odt),
+        fill_value(fill, odt),
         out,
     )
     if odt == np.bool_:
@@ -472,8 +464,8 @@ def sample_shifted(data, shift, scale=(1.0, 1.0, 1.0), order: int = 1) -> np.nda
     if sh.shape != (3, nz, ny, nx):
         raise ValueError(f"shift must have shape {(3, nz, ny, nx)} (array axes z, y, x first), got {sh.shape}")
     odt = np.float32 if stack.dtype == np.float32 else np.float64
-    f = _native(np.ascontiguousarray(stack.reshape(stack.shape[0], -1), dtype=odt))
-    sh = _native(np.ascontiguousarray(sh.reshape(3, -1)))
+    f = native_order(np.ascontiguousarray(stack.reshape(stack.shape[0], -1), dtype=odt))
+    sh = native_order(np.ascontiguousarray(sh.reshape(3, -1)))
     if sh.dtype not in (np.float32, np.float64):
         sh = sh.astype(np.float64)
     sc = np.ascontiguousarray(np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)))

@@ -1,31 +1,24 @@
 """Isosurfaces of volumes in world millimetres: the project's one numpy → VTK → triangle mesh path.
 
-Kurihara §3–4 works on isosurfaces of CT scans: the bones' (ICP, Eq. 1) and
-the skin's (the base mesh S0 and the scans' surfaces the consistent meshes are
-fitted to).  Every isosurface of the project is extracted here:
+Kurihara §3–4 works on isosurfaces of CT scans: the bones' (ICP,
+Kurihara Eq. 1) and the skin's.  Every isosurface of the project is extracted here:
 
 * :func:`flying_edges` — VTK's flying edges (``vtkFlyingEdges3D``, or its
-  discrete variant for one label of a label map) on a ``[z, y, x]`` array in
-  *index space* (spacing 1, origin 0: VTK's point order, x fastest, is the
-  C order of such an array); the caller maps the points to the world.
+  discrete variant for one label) on a ``[z, y, x]`` array in index space.
 * :func:`isosurface` — the ``level`` surface of a :class:`Volume` in world mm
   through its full geometry (anisotropic spacing, origin, any orthonormal
   direction), triangles wound so that their normals point from the inside
   (values above ``level``) to the outside — outward for a bright object such
   as bone or a CT body, whatever the handedness of the grid's direction.
-  ``pad_value`` pads the array by one voxel of that value first, so a
-  surface cut by the field of view is closed by a cap at the grid's edge.
+  ``pad_value`` closes a surface cut by the field of view.
 * :func:`largest_components` — debris removal: the connected pieces of a
-  mesh holding at least a fraction of its triangles (a stray noise voxel
-  above the level makes a tiny closed surface of its own).
+  mesh holding at least a fraction of its triangles.
 * :func:`decimate` — Open3D's quadric error simplification (Garland &
   Heckbert 1997) to a target triangle count (Kurihara §4 reduced ~800 k to
   ~100 k triangles), in world mm so that the error metric is isotropic.
 
-References
-----------
-Schroeder W, Maynard R, Geveci B. Flying edges: a high-performance scalable
-isocontouring algorithm. IEEE LDAV 2015. https://doi.org/10.1109/LDAV.2015.7348069
+References: Schroeder W, Maynard R, Geveci B. Flying edges: a high-performance
+scalable isocontouring algorithm. IEEE LDAV 2015. https://doi.org/10.1109/LDAV.2015.7348069
 Garland M, Heckbert PS. Surface simplification using quadric error metrics.
 SIGGRAPH 1997. https://doi.org/10.1145/258734.258849
 """

@@ -2,34 +2,23 @@
 
 VBD (Rhee Eq. 2) blends the bones' *matrices*; where two bones turn towards
 each other (the crease of a flexed joint) the blend is many-to-one, and its
-backward map must fold.  No composition of one-to-one registration steps
-removes such a fold.  This module blends the bones' *velocities* instead
+backward map must fold.  This module blends the bones' *velocities* instead
 and integrates them (Arsigny et al.'s log-Euclidean polyrigid framework):
 
 * every bone ``k`` moves from the template (``t = 0``) to the scan
-  (``t = 1``) along the skeleton's geodesic ``M_k(t) = M_p(t) exp(t ℓ_k)``,
-  ``ℓ_k = log(T_p⁻¹ T_k)`` its motion relative to its parent ``p`` (the
-  root: ``exp(t log T_k)``), so joints stay articulated in between;
+  (``t = 1``) along ``M_k(t) = M_p(t) exp(t ℓ_k)``, ``ℓ_k = log(T_p⁻¹ T_k)``
+  its motion relative to its parent ``p``, so joints stay articulated;
 * the velocity of space is the blend of the bones' spatial velocities
-  ``V_k(t) = Ṁ_k M_k⁻¹ = V_p + M_p ℓ_k M_p⁻¹``,
-  ``v(x, t) = Σ_k w_k(x, t) V_k(t) x̃``;
+  ``V_k(t) = Ṁ_k M_k⁻¹``: ``v(x, t) = Σ_k w_k(x, t) V_k(t) x̃``;
 * the weights move with the bones: ``w_k(x, t)`` are the distance weights
-  (:func:`deformation.skinning.distance_weights`) of the distances
-  ``D_k(M_k(t)⁻¹ x)`` to the bones *where they are at time t* (``D_k`` the
-  template's signed distance map of bone ``k``).
+  (:func:`deformation.skinning.distance_weights`) of ``D_k(M_k(t)⁻¹ x)``,
+  ``D_k`` the template's signed distance map of bone ``k``.
 
-Inside a moving bone its weight is one, so the velocity there is exactly
-that bone's own and the bone moves rigidly, ``x(1) = T_k x(0)`` (up to the
-integrator's error, measured ~1e-7 mm).  Outside, the weights are Lipschitz
-(``(d_min/d_k)^p`` with ``p > 1`` has a zero derivative at the surface), so
-the flow of ``v`` is a diffeomorphism: the map and its inverse (integrate
-backwards) are both one-to-one, with no fold in the crease.  With weights
-fixed in space instead (Arsigny's stationary polyrigid field) a bone moving
-through its neighbours' weights would bend.
-
-References
-----------
-Arsigny V, Commowick O, Ayache N, Pennec X. A fast and log-Euclidean
+Inside a bone its weight is one, so the bone moves rigidly; outside, the
+weights are Lipschitz, so the flow is a diffeomorphism: the map and its
+inverse are one-to-one, with no fold in the crease.  With weights fixed in
+space (Arsigny's stationary polyrigid field) a bone moving through its
+neighbours' weights would bend.  Reference: Arsigny V, Commowick O, Ayache N, Pennec X. A fast and log-Euclidean
 polyaffine framework for locally linear registration. J Math Imaging Vis
 33 (2009) 222–238. https://doi.org/10.1007/s10851-008-0135-9
 """
@@ -191,13 +180,9 @@ class PolyrigidFlow:
         within a few coarse voxels of each other, exact where the map is affine, as inside a bone); the voxels
         of the other cells (where curled fingers touch and the map jumps) and those past the last coarse voxel
         (which a blend would extrapolate) are integrated exactly.  The map has kinks (the distance weights
-        change where a voxel's nearest bone does), so the blend is an approximation: the test hand at 1.6 mm,
-        f = 2, every 2nd voxel plus 10 % of the grid integrated (0.30 of the time), deviates from the exact
-        map by 0.067 mm on average over the body (p99 0.9 mm), MED to the truth 0.547 → 0.577 mm; blending
-        everywhere instead, 0.30 mm (MED 0.663).  At 0.8 mm (6.9 M voxels) f = 2 took 0.25 of the exact
-        map's time, 0.017 mm off on average, MED 0.493 → 0.498.  The blend is not one-to-one by
+        change where a voxel's nearest bone does), so the blend is an approximation, and not one-to-one by
         construction: where a blended cell meets an integrated one their values differ by the blend's error
-        (the test hand at 1.6 mm: 115 folded body voxels, against 127 in the exact map on that grid).
+        (time, deviation and folds against the exact map: docs/measurements/deformation-and-validation.md).
         """
         from . import geometry as geometry_module
         from .resample import OK, BackwardMap, CoarseBackwardMap
@@ -276,7 +261,7 @@ def _sdf(maps, k, w2i, x, y, z):
     A point beyond the template grid (a bone turned far, its inverse motion carrying the point out) takes the
     map's value at the nearest grid point plus its distance to that point, in mm: an upper bound of the true
     distance (the bone lies inside the grid), continuous, and never the small edge value alone — clamping
-    alone let a fingertip turned into a fist claim the palm's tissue (issue I, the hand's strongest curl).
+    alone would let a fingertip turned into a fist claim the palm's tissue (the phantom hand's strongest curl).
     """
     nz, ny, nx = maps.shape[1], maps.shape[2], maps.shape[3]
     ri = w2i[0, 0] * x + w2i[0, 1] * y + w2i[0, 2] * z + w2i[0, 3]

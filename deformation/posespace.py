@@ -2,34 +2,25 @@
 
 Kurihara & Miyata 2004 §5.  A *pose vector* ``a`` is the concatenation of
 every joint's degrees of freedom in the skeleton's joint order (degrees; the
-translations of a 6-DOF joint in mm) — the root bone's world placement is not
+translations of a 6-DOF joint in mm); the root bone's world placement is not
 part of it, since moving the whole body does not deform it.
 
-Pose weights (Kurihara Eq. 12–14)
----------------------------------
-``f_i(a) = Σ_j c_ij φ(d(a, a_j))`` with ``f_i(a_j) = δ_ij`` (Eq. 12–13), so
-``C = Φ⁻¹`` with ``Φ_jl = φ(d(a_j, a_l))``; then ``s_i = f_i / Σ_j f_j``
-(Eq. 14).  At a training pose ``s_i(a_j) = δ_ij`` (Eq. 10) and always
-``Σ s_i = 1`` (Eq. 11).  The paper does not name ``φ``; we use a Gaussian
-``φ(d) = exp(−(d/σ)²)`` whose width ``σ`` is the mean nearest-neighbour
-distance between the training poses *in the same metric* (so the weights do
-not change when every distance is scaled, and a WPSD point whose pose
-distances are all small is not treated differently from one whose distances
-are large).  The Gaussian kernel matrix of distinct poses is positive
-definite, so ``Φ`` is always invertible.
+Pose weights: ``f_i(a) = Σ_j c_ij φ(d(a, a_j))`` with ``f_i(a_j) = δ_ij``
+(Kurihara Eq. 12–13), so ``C = Φ⁻¹``; then ``s_i = f_i / Σ_j f_j`` (Kurihara
+Kurihara Eq. 14), which gives Kurihara Eq. 10–11.  The paper does not name ``φ``; we
+use a Gaussian ``φ(d) = exp(−(d/σ)²)`` whose width ``σ`` is the mean
+nearest-neighbour distance between the training poses in the same metric
+(scale-free), and whose kernel matrix of distinct poses is positive definite.
 
-Distances (Eq. 15, 16)
-----------------------
-PSD uses ``d(a, b) = √Σ_k (a_k − b_k)²`` (Eq. 15).  WPSD uses per point ``j``
-``d_j(a, b) = √Σ_k u_jk (a_k − b_k)²`` (Eq. 16) with, as the paper did,
-``u_jk`` the point's skinning weight of the bone that DOF ``k`` moves (the
-joint's child bone).  A point wholly on the root bone has every ``u`` zero
-and no pose distance at all; a small floor ``u_jk ≥ U_FLOOR`` makes such a
-point fall back to the global PSD weights (with the scale-free width above,
-a uniform ``u`` gives exactly the PSD weights).
+Distances: PSD uses ``d(a, b) = √Σ_k (a_k − b_k)²`` (Kurihara Eq. 15); WPSD
+uses per point ``j`` ``d_j(a, b) = √Σ_k u_jk (a_k − b_k)²`` (Kurihara Eq. 16)
+with, as the paper did, ``u_jk`` the point's skinning weight of the bone that
+DOF ``k`` moves.  A floor ``u_jk ≥ U_FLOOR`` makes a point wholly on the root
+bone fall back to the global PSD weights.
 
-PSD itself (Eq. 6–8) is in :func:`psd_training` (the inverse SSD of each
-sample, Eq. 6) and :func:`psd_deform` (morph, Eq. 7, then SSD, Eq. 8).
+PSD itself (Kurihara Eq. 6–8) is in :func:`psd_training` (the inverse SSD of
+each sample, Kurihara Eq. 6) and :func:`psd_deform` (morph, Kurihara Eq. 7,
+then SSD, Kurihara Eq. 8).
 """
 
 from __future__ import annotations
@@ -37,7 +28,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .skinning import SkinningWeights, _as_stack, blend_point, inverse_lbs, lbs
+from .skinning import SkinningWeights, blend_point, inverse_lbs, lbs, stack_transforms
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -122,7 +113,7 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
     """Normalised RBF weights ``s_i(a)`` of the training poses at ``query`` (Kurihara Eq. 12–14).
 
     ``train (P, n_dof)``, ``query (n_dof,)`` or ``(Q, n_dof)``; ``dof_weights
-    (n_dof,)`` gives Eq. 16's ``u_k`` for one point (default all one: Eq. 15).
+    (n_dof,)`` gives Kurihara Eq. 16's ``u_k`` for one point (default all one: Kurihara Eq. 15).
     Returns ``(P,)`` or ``(Q, P)``, each row summing to one.
     """
     train = np.atleast_2d(np.asarray(train, dtype=float))
@@ -142,8 +133,9 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
     phi = np.exp(-pair / sigma**2)
     dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
     try:
-        # f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹; φ scaled by exp(min dq / σ²), which Eq. 14's normalisation cancels:
-        # far from every example, the φ themselves underflow to 0 and s would be 0 / 0
+        # Kurihara Eq. 13: f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹; φ scaled by exp(min dq / σ²), which
+        # Kurihara Eq. 14's normalisation cancels: far from every example, the φ themselves underflow to 0
+        # and s would be 0 / 0
         dq = dq - dq.min(axis=1, keepdims=True)
         f = np.linalg.solve(phi, np.exp(-dq / sigma**2).T).T
     except np.linalg.LinAlgError:
@@ -155,7 +147,7 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
 
 
 class PoseSpace:
-    """Training poses of a skeleton, and their normalised RBF weights at any pose (PSD, Eq. 12–15)."""
+    """Training poses of a skeleton, and their normalised RBF weights at any pose (PSD, Kurihara Eq. 12–15)."""
 
     def __init__(self, skeleton, train_poses):
         self.skeleton = skeleton
@@ -178,19 +170,19 @@ class PoseSpace:
         return pose if isinstance(pose, np.ndarray) else pose_vector(self.skeleton, pose)
 
     def weights(self, pose) -> np.ndarray:
-        """``s(a)`` over the training poses (Eq. 14)."""
+        """``s(a)`` over the training poses (Kurihara Eq. 14)."""
         return pose_weights(self.train, self.vector(pose))
 
     def point_space(self, weights: SkinningWeights) -> PointPoseSpace:
-        """Per-point WPSD coefficients for points with these skinning weights (Eq. 16)."""
+        """Per-point WPSD coefficients for points with these skinning weights (Kurihara Eq. 16)."""
         return PointPoseSpace(self, weights)
 
 
 # -- per-point (WPSD) pose weights ------------------------------------------------------------
 @nb.njit(cache=True, inline="always")
-def _query_kernel(phi, n, inv):
+def query_kernel(phi, n, inv):
     """φ_i = exp(−(d_i − min d) / σ²) in place from squared pose distances d (Kurihara Eq. 12): the common
-    factor exp(min d / σ²) cancels in Eq. 14's normalisation, and without it a pose far from every example
+    factor exp(min d / σ²) cancels in Kurihara Eq. 14's normalisation, and without it a pose far from every example
     underflows every φ to 0 (s = 0 / 0)."""
     m = np.inf
     for i in range(n):
@@ -201,7 +193,7 @@ def _query_kernel(phi, n, inv):
 
 
 @nb.njit(cache=True, inline="always")
-def _chol_factor(a, n):
+def chol_factor(a, n):
     """In-place lower Cholesky factor of the SPD matrix a (n×n).  False if a is not positive definite."""
     for j in range(n):
         s = a[j, j]
@@ -219,8 +211,8 @@ def _chol_factor(a, n):
 
 
 @nb.njit(cache=True, inline="always")
-def _chol_subst(a, b, n, work):
-    """Solve L Lᵀ x = b with the factor from :func:`_chol_factor`; b is overwritten by x."""
+def chol_subst(a, b, n, work):
+    """Solve L Lᵀ x = b with the factor from :func:`chol_factor`; b is overwritten by x."""
     for i in range(n):
         t = b[i]
         for k in range(i):
@@ -234,7 +226,7 @@ def _chol_subst(a, b, n, work):
 
 
 @nb.njit(cache=True, inline="always")
-def _weighted_sq(idx, val, j, per_bone, glob, out):
+def weighted_sq(idx, val, j, per_bone, glob, out):
     """Kurihara Eq. 16 squared: ``out[r] = Σ_b u_jb per_bone[b, r]`` with ``u_jb = U_FLOOR + w_jb``.
 
     ``per_bone (n_bones, R)`` holds the squared DOF differences summed per bone (for the query pose,
@@ -253,7 +245,9 @@ def _weighted_sq(idx, val, j, per_bone, glob, out):
 
 
 @nb.njit(cache=True, inline="always")
-def _width(pair, P):
+def rbf_width(pair, P):
+    """The Gaussian's width ``σ``: the mean nearest-neighbour distance of ``P`` poses from their squared
+    pairwise distances ``pair (P, P)`` (the module docstring's scale-free width)."""
     tot = 0.0
     for i in range(P):
         m = np.inf
@@ -276,20 +270,20 @@ def _wpsd_coefficients(idx, val, bone_pair, out_c, out_inv_sigma2):
         a = np.empty((P, P))
         col = np.empty(P)
         work = np.empty(P)
-        _weighted_sq(idx, val, j, flat, glob, pair_flat)
+        weighted_sq(idx, val, j, flat, glob, pair_flat)
         pair = pair_flat.reshape(P, P)
-        sig = _width(pair, P)
+        sig = rbf_width(pair, P)
         inv = 1.0 / (sig * sig)
         out_inv_sigma2[j] = inv
         for i in range(P):
             for l in range(P):
                 a[i, l] = np.exp(-pair[i, l] * inv)
-        ok = _chol_factor(a, P)
+        ok = chol_factor(a, P)
         for c in range(P):
             for i in range(P):
                 col[i] = 1.0 if i == c else 0.0
             if ok:
-                _chol_subst(a, col, P, work)
+                chol_subst(a, col, P, work)
             for i in range(P):
                 out_c[j, i, c] = col[i] if ok else np.nan
 
@@ -316,7 +310,7 @@ class PointPoseSpace:
         bad = ~np.isfinite(self.coef).all(axis=(1, 2))
         if bad.any():
             raise ValueError(
-                f"{int(bad.sum())} points have a singular WPSD kernel matrix (Eq. 16): two training "
+                f"{int(bad.sum())} points have a singular WPSD kernel matrix (Kurihara Eq. 16): two training "
                 "poses coincide in those points' weighted pose distance"
             )
 
@@ -325,7 +319,7 @@ class PointPoseSpace:
 
     def fold(self, base_samples_per_point: np.ndarray) -> np.ndarray:
         """WPSD's per-point coefficients folded with the base-pose samples, ``(n, P, 4)``: ``[..., :3] = B_j =
-        C_jᵀ base_j`` and ``[..., 3] = c_j = C_jᵀ 1``.  Eq. 14 and 7 give ``u_j = Σ_i s_ji base_ji`` with
+        C_jᵀ base_j`` and ``[..., 3] = c_j = C_jᵀ 1``.  Kurihara Eq. 14 and 7 give ``u_j = Σ_i s_ji base_ji`` with
         ``s_j = C_j φ_j / Σ_i (C_j φ_j)_i``, which is ``Σ_l φ_jl B_jl / Σ_l φ_jl c_jl``: per evaluation 4P
         products a point instead of P² + 3P (Kurihara precomputes C_j; the samples are fixed too)."""
         base = np.asarray(base_samples_per_point, dtype=np.float64)
@@ -355,8 +349,8 @@ def _wpsd_weights(idx, val, bone_q, coef, inv_sigma2, out):
     glob_q = bone_q.sum(axis=0)
     for j in nb.prange(n):
         phi = np.empty(P)
-        _weighted_sq(idx, val, j, bone_q, glob_q, phi)
-        _query_kernel(phi, P, inv_sigma2[j])
+        weighted_sq(idx, val, j, bone_q, glob_q, phi)
+        query_kernel(phi, P, inv_sigma2[j])
         tot = 0.0
         for i in range(P):
             f = 0.0
@@ -381,7 +375,8 @@ def psd_training(samples, weights: SkinningWeights, sample_transforms) -> np.nda
 
 
 def psd_deform(base_samples: np.ndarray, weights: SkinningWeights, s: np.ndarray, transforms) -> np.ndarray:
-    """PSD: morph the base-pose samples with ``s`` (Eq. 7), then SSD with the pose's transforms (Eq. 8).
+    """PSD: morph the base-pose samples with ``s`` (Kurihara Eq. 7), then SSD with the pose's transforms
+    (Kurihara Eq. 8).
 
     ``s`` is ``(P,)`` for PSD (the same weights for all vertices) or ``(n, P)``
     for WPSD (per-vertex weights from :meth:`PointPoseSpace.weights`).
@@ -396,7 +391,7 @@ def psd_deform(base_samples: np.ndarray, weights: SkinningWeights, s: np.ndarray
 
 @nb.njit(cache=True, parallel=True)
 def _skin_kernel(base, s, per_point, idx, val, t, out):
-    """out_j = (Σ_k w_jk T_k)(Σ_i s_ji base_ij): Eq. 7 and 8 fused; base (n, P, 3)."""
+    """out_j = (Σ_k w_jk T_k)(Σ_i s_ji base_ij): Kurihara Eq. 7 and 8 fused; base (n, P, 3)."""
     n, P = base.shape[0], base.shape[1]
     for j in nb.prange(n):
         u0 = 0.0
@@ -416,10 +411,10 @@ def _skin_kernel(base, s, per_point, idx, val, t, out):
 def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) -> np.ndarray:
     """Compiled SSD / PSD / WPSD in one pass.
 
-    ``base_points`` is ``(n, 3)`` (plain SSD, Eq. 2) or ``(n, P, 3)`` base-pose
+    ``base_points`` is ``(n, 3)`` (plain SSD, Kurihara Eq. 2) or ``(n, P, 3)`` base-pose
     samples laid out per point; ``s`` is ``(P,)`` (PSD) or ``(n, P)`` (WPSD).
     """
-    t = _as_stack(transforms, weights)[:, :3, :]
+    t = stack_transforms(transforms, weights.bones)[:, :3, :]
     base = np.asarray(base_points, dtype=np.float64)
     if base.ndim == 2:
         if s is not None:
@@ -442,10 +437,10 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
 
 @nb.njit(cache=True, parallel=True)
 def _wpsd_exponents(idx, val, inv_sigma2, bone_q, glob_q, arg):
-    """Per point j, the exponents of Kurihara Eq. 12 with Eq. 16's distances: ``arg[j, l] = −(d_jl − min_l d_jl)
-    / σ_j²`` (:func:`_query_kernel`'s shift against underflow), ``d_jl`` as :func:`_weighted_sq` sums it
-    (``glob_q[l] = Σ_b bone_q[b, l]`` carries the U_FLOOR term, so only the point's ≤ K bones are visited),
-    written in place (a row view per point cost a fifth more)."""
+    """Per point j, the exponents of Kurihara Eq. 12 with Kurihara Eq. 16's distances:
+    ``arg[j, l] = −(d_jl − min_l d_jl) / σ_j²`` (:func:`query_kernel`'s shift against underflow), ``d_jl``
+    as :func:`weighted_sq` sums it (``glob_q[l] = Σ_b bone_q[b, l]`` carries the U_FLOOR term, so only the
+    point's ≤ K bones are visited), written in place (cheaper than a row view per point)."""
     n, P = arg.shape
     for j in nb.prange(n):
         for l in range(P):
@@ -467,8 +462,8 @@ def _wpsd_exponents(idx, val, inv_sigma2, bone_q, glob_q, arg):
 
 @nb.njit(cache=True, parallel=True)
 def _wpsd_skin_kernel(folded, idx, val, t, phi, out):
-    """WPSD's morph and skin per point j: u0 = Σ_l φ_jl B_jl / Σ_l φ_jl c_jl (Eq. 14 and 7 through
-    :meth:`PointPoseSpace.fold`), then SSD (Eq. 8)."""
+    """WPSD's morph and skin per point j: u0 = Σ_l φ_jl B_jl / Σ_l φ_jl c_jl (Kurihara Eq. 14 and 7 through
+    :meth:`PointPoseSpace.fold`), then SSD (Kurihara Eq. 8)."""
     n, P = folded.shape[0], folded.shape[1]
     for j in nb.prange(n):
         u0 = 0.0
@@ -496,14 +491,15 @@ def wpsd_deform(
     *,
     folded: np.ndarray | None = None,
 ) -> np.ndarray:
-    """WPSD (Kurihara §5.2): per-vertex pose weights (Eq. 16), morph (Eq. 7), SSD (Eq. 8).
+    """WPSD (Kurihara §5.2): per-vertex pose weights (Kurihara Eq. 16), morph (Kurihara Eq. 7), SSD
+    (Kurihara Eq. 8).
 
     ``base_samples_per_point`` is ``(n, P, 3)``: each vertex's base-pose position in every sample
     (:func:`psd_training`, transposed).  Equal to ``skin(base, weights, transforms,
     point_space.weights(pose))`` up to rounding, without the ``(n, P)`` weights.  ``folded``:
     ``point_space.fold(base)``, made once for a mesh posed many times (made here when not given).
-    The exponentials run in NumPy (SIMD: 0.16 ms for 250 k, against 1.1 ms one by one in a numba
-    loop on this machine; they were two thirds of WPSD's cost beyond LBS).
+    The exponentials run in NumPy (vectorised, faster than one by one in a numba loop:
+    docs/measurements/deformation-and-validation.md).
     """
     if point_space.weights_ is not weights:
         raise ValueError(
@@ -520,10 +516,10 @@ def wpsd_deform(
         )
     a = point_space.space.vector(pose)
     bone_q = np.ascontiguousarray(point_space._per_bone((a[None, :] - point_space.space.train)[None])[:, 0])
-    t = _as_stack(transforms, weights)[:, :3, :]
+    t = stack_transforms(transforms, weights.bones)[:, :3, :]
     phi = np.empty((weights.n_points, P))
     _wpsd_exponents(weights.index, weights.value, point_space.inv_sigma2, bone_q, bone_q.sum(axis=0), phi)
-    np.exp(phi, out=phi)  # Eq. 12's φ
+    np.exp(phi, out=phi)  # Kurihara Eq. 12's φ
     out = np.empty((weights.n_points, 3))
     _wpsd_skin_kernel(folded, weights.index, weights.value, np.ascontiguousarray(t), phi, out)
     return out

@@ -5,41 +5,22 @@ give ``F(v)``, the posed position of every template grid point ``v``.  A
 posed volume on a regular grid needs the opposite, the template position
 ``F⁻¹(y)`` of every target voxel ``y``.
 
-How
----
 ``F`` between grid points is the trilinear interpolation of the forward
-positions, a continuous, piecewise-trilinear map.  For each target voxel we
-solve ``F(x) = y`` by Newton's method on that map (its Jacobian is exact
-inside a cell), walking along each row of the target grid: every solve
-starts from its neighbour's answer moved by ``J⁻¹ Δy`` (≈ 1.9 evaluations per
-voxel on the paper-size hand).  The first voxel of a row, and any voxel where
+positions.  For each target voxel :func:`backward_map` solves ``F(x) = y`` by
+Newton's method on that map (its Jacobian is exact inside a cell), walking
+along each row of the target grid: every solve starts from its neighbour's
+answer moved by ``J⁻¹ Δy``.  The first voxel of a row, and any voxel where
 that fails, starts from the template voxel whose forward position landed
-nearest (a serial, hence deterministic, splat), then from the best few
-*candidates* ``T_b⁻¹ y`` — the inverse of each bone's rigid transform, exact
-wherever tissue moves with a bone — picked by their residual ``|F(x) − y|``.
-Target voxels inside no template cell's forward bounding box have no
-preimage and get no solve.  Rows are independent, so they run in parallel
-and the result is deterministic.
+nearest (a serial, hence deterministic, splat), then from the candidates
+``T_b⁻¹ y`` (each bone's inverse rigid transform, exact wherever tissue moves
+with a bone).  Rows are independent: they run in parallel, deterministically.
+Rasterising the deformed cells as tetrahedra instead would invert a
+piecewise-linear map (not the trilinear one the forward pass defines) and
+write each voxel from whichever tetrahedron reaches it, racy in parallel.
 
-The alternative, rasterising the deformed grid cells as tetrahedra (not
-benchmarked here), inverts a *piecewise-linear* forward map instead — a
-different map from the trilinear interpolation the forward pass defines —
-and writes each target voxel from whichever tetrahedron reaches it, which is
-racy in parallel.
-
-Every target voxel gets a status:
-
-* ``OK`` — converged, ``|F(x) − y| ≤ tol``;
-* ``FOLDED`` — converged, but ``det ∂F/∂x ≤ 0`` at the solution: the forward
-  map folds here (more than one template point lands on ``y``; we return
-  one of them);
-* ``NOT_CONVERGED`` — no candidate converged (returned: the best iterate);
-* ``OUTSIDE`` — the preimage lies outside the template grid, or the voxel
-  lies in no template cell's forward-mapped bounding box (so it is outside
-  the forward map's image, as where linear blending shrinks the air around a
-  fist; no solve is spent there); the voxel gets the fill value.
-
-Label maps are resampled with nearest neighbour, intensities trilinearly.
+Every target voxel gets a status (:data:`OK`, :data:`FOLDED`,
+:data:`NOT_CONVERGED`, :data:`OUTSIDE`).  Label maps are resampled with
+nearest neighbour, intensities trilinearly (:func:`resample_forward`).
 """
 
 from __future__ import annotations
@@ -50,7 +31,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import SLAB_VOXELS, GridGeometry, Volume, every_nth, slabs
-from .interpolate import _fill_value, _flat_data, _interp_scalar, _output_dtype, sample_array
+from .interpolate import fill_value, flat_data, interp_scalar, output_dtype, sample_array
 
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
@@ -63,6 +44,7 @@ __all__ = [
     "CoarseBackwardMap",
     "resample_forward",
     "invert_scan_to_template",
+    "backward_kernel",
     "OK",
     "FOLDED",
     "NOT_CONVERGED",
@@ -70,6 +52,11 @@ __all__ = [
     "STATUS_NAMES",
 ]
 
+#: Status of a target voxel: ``OK`` converged, ``|F(x) − y| ≤ tol``; ``FOLDED`` converged but
+#: ``det ∂F/∂x ≤ 0`` at the solution (several template points land on ``y``, one is returned);
+#: ``NOT_CONVERGED`` no candidate converged (the best iterate is returned); ``OUTSIDE`` the preimage lies
+#: outside the template grid, or ``y`` lies in no template cell's forward bounding box (outside the forward
+#: map's image, as where linear blending shrinks the air around a fist): the voxel gets the fill value.
 OK, FOLDED, NOT_CONVERGED, OUTSIDE = 0, 1, 2, 3
 STATUS_NAMES = {OK: "ok", FOLDED: "folded", NOT_CONVERGED: "not_converged", OUTSIDE: "outside"}
 
@@ -357,10 +344,12 @@ def _restart(fwd, cands, u0, u1, u2, y, tol, max_iter, max_step, n_try, prio, ne
 
 
 @nb.njit(cache=True, parallel=True)
-def _backward_kernel(
+def backward_kernel(
     fwd, tgt_a, cands, tol, max_iter, max_step, n_restarts, prio, occ, cover, guess, out_x, out_res, out_status
 ):
     """For every target voxel (rows in parallel) solve F(x) = y; x in template continuous index (i, j, k).
+
+    The compiled kernel of :func:`backward_map` (which prepares its arguments).
 
     Each solve starts from the previous voxel's answer in the row, moved by the local inverse
     Jacobian times the step to this voxel (one Newton evaluation usually suffices); the first voxel
@@ -496,7 +485,7 @@ def _backward_kernel(
 
 @nb.njit(cache=True, parallel=True)
 def _points_kernel(fwd, pts, cands, tol, max_iter, max_step, n_restarts, out_x, out_res, out_status):
-    """As :func:`_backward_kernel` for arbitrary world points (candidates map world → template index)."""
+    """As :func:`backward_kernel` for arbitrary world points (candidates map world → template index)."""
     nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     nc = cands.shape[0]
     no_prio = np.zeros((1, 1, 1), dtype=np.uint8)
@@ -667,7 +656,7 @@ def backward_map(
     guess = np.full(shape, -1, dtype=np.int64)
     _scatter_guess(tidx, prio, prefer is not None, guess)
     del tidx
-    _backward_kernel(
+    backward_kernel(
         fwd, tgt_a, cands, tol, int(max_iter), 2.0, int(n_restarts), prio, occ, cover, guess, out_x, out_res, out_status
     )
     _orient_status(out_status, template_geometry)
@@ -884,7 +873,7 @@ def _pull_kernel(cx, cst, ok, f, src, nx, ny, nz, order, fill, out):
                     a = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 0)
                     b = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 1)
                     c = _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, 2)
-                    out[k, j, i] = _interp_scalar(
+                    out[k, j, i] = interp_scalar(
                         src, nx, ny, nz, np.float64(a), np.float64(b), np.float64(c), order, fill
                     )
 
@@ -982,11 +971,11 @@ class CoarseBackwardMap:
         holding only the output)."""
         src = _source(self, volume, labels)
         order = 0 if labels else 1
-        odt = _output_dtype(src.dtype, order)
-        flat, (nx, ny, nz), _ = _flat_data(src)
+        odt = output_dtype(src.dtype, order)
+        flat, (nx, ny, nz), _ = flat_data(src)
         out = np.empty(self.target_geometry.array_shape, dtype=np.uint8 if odt == np.bool_ else odt)
         _pull_kernel(
-            self._cx, self.coarse.status, self._ok, self.factor, flat, nx, ny, nz, order, _fill_value(fill, odt), out
+            self._cx, self.coarse.status, self._ok, self.factor, flat, nx, ny, nz, order, fill_value(fill, odt), out
         )
         return Volume(out.view(np.bool_) if odt == np.bool_ else out, self.target_geometry)
 

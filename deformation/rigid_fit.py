@@ -1,6 +1,6 @@
-"""Least-squares rigid fit between corresponding point sets (Kabsch [1]_ / Umeyama [2]_).
+"""Least-squares rigid fit between corresponding point sets (Kabsch [1]_, Umeyama [2]_).
 
-Convention (DESIGN.md): a transform is a 4x4 homogeneous matrix mapping
+Convention: a transform is a 4x4 homogeneous matrix mapping
 template world → scan world.  :func:`fit_rigid` returns the ``T`` for which
 ``T @ [source, 1] ≈ [target, 1]``: ``source`` plays the template,
 ``target`` the scan.
@@ -60,7 +60,7 @@ def fit_rigid(source_points, target_points, *, weights=None) -> np.ndarray:
     -----
     SVD of the weighted cross-covariance ``H = Σ w (s − s̄)(d − d̄)ᵀ = U S Vᵀ``
     gives ``R = V diag(1, 1, sign det(V Uᵀ)) Uᵀ``; the sign term keeps ``R`` a
-    rotation when the best orthogonal fit would be a reflection ([2], Eq. 39-40).
+    rotation when the best orthogonal fit would be a reflection (Umeyama 1991, Eq. 39–40).
     """
     src = _points(source_points, "source_points")
     dst = _points(target_points, "target_points")

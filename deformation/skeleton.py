@@ -2,24 +2,16 @@
 
 A skeleton is a tree of bones (name, label id in the label map, parent).
 Every non-root bone hangs from its parent by exactly one joint, which has a
-centre (template world mm), an orthonormal joint frame and 1, 2, 3 or 6
-degrees of freedom.
-
-Joint-angle convention
-----------------------
-The joint frame has axes ``x`` (flexion/extension), ``y`` (ab/adduction) and
-``z`` (axial twist, along the child bone), given as world unit vectors in the
-template.  Angles are in **degrees**, applied as *intrinsic* rotations in the
-joint frame in the order x, then y, then z (SciPy ``"XYZ"``):
-
-* 1 DOF: ``[flex]`` about x;
-* 2 DOF: ``[flex, abd]`` about x then y;
-* 3 DOF: ``[flex, abd, twist]`` about x, y, z;
-* 6 DOF: ``[flex, abd, twist, tx, ty, tz]`` — the three rotations, then a
-  translation (mm) along the joint-frame axes.
+centre (template world mm), an orthonormal joint frame with axes ``x``
+(flexion/extension), ``y`` (ab/adduction) and ``z`` (axial twist, along the
+child bone), and 1, 2, 3 or 6 degrees of freedom: ``[flex]``,
+``[flex, abd]``, ``[flex, abd, twist]`` or ``[flex, abd, twist, tx, ty, tz]``.
+Angles are in **degrees**, intrinsic rotations in the joint frame in the
+order x, y, z (SciPy ``"XYZ"``); the 6-DOF translation is in mm along the
+joint-frame axes.
 
 The child's motion *relative to its parent* is (Kurihara §3, the matrix
-``M_{i,k}`` of Eq. 1)::
+``M_{i,k}`` of Kurihara Eq. 1)::
 
     M(θ) p = c + A (R(θ) Aᵀ (p − c) + t)
 
@@ -27,24 +19,8 @@ with ``c`` the joint centre, ``A`` the 3x3 matrix whose columns are the joint
 axes, ``R(θ)`` the intrinsic XYZ rotation and ``t`` the 6-DOF translation.
 Forward kinematics composes down the tree: ``T_child = T_parent @ M(θ)``; the
 root bone's world transform is given (identity by default).  All transforms
-map template world → scan world.
-
-JSON schema (``skeleton.json``)::
-
-    {"format": "avw-skeleton", "version": 1, "name": "knee",
-     "units": "mm", "angle_units": "deg", "euler": "intrinsic XYZ in the joint frame",
-     "bones":  [{"name": "femur", "label": 1, "parent": null}, ...],
-     "joints": [{"name": "knee", "parent": "femur", "child": "tibia", "dof": 3,
-                 "center": [x, y, z],
-                 "axes": {"x": [..], "y": [..], "z": [..]},
-                 "limits": [[low, high], ...]}, ...]}     # optional: range of motion per DOF
-
-A pose (``pose.json``) stores one template → scan world transform per bone
-and, optionally, each joint's angles and its centre in the scan::
-
-    {"format": "avw-pose", "version": 1, "skeleton": "knee",
-     "bones": {"femur": [[4x4 rows]], ...},
-     "joints": {"knee": {"angles_deg": [...], "center_scan": [x, y, z]}, ...}}
+map template world → scan world.  The JSON files ``skeleton.json`` and
+``pose.json`` are described at :class:`Skeleton` and :class:`Pose`.
 """
 
 from __future__ import annotations
@@ -245,7 +221,18 @@ class Joint:
 
 
 class Skeleton:
-    """A tree of bones connected by joints, with forward kinematics."""
+    """A tree of bones connected by joints, with forward kinematics.
+
+    JSON schema (``skeleton.json``, :meth:`to_dict`)::
+
+        {"format": "avw-skeleton", "version": 1, "name": "knee",
+         "units": "mm", "angle_units": "deg", "euler": "intrinsic XYZ in the joint frame",
+         "bones":  [{"name": "femur", "label": 1, "parent": null}, ...],
+         "joints": [{"name": "knee", "parent": "femur", "child": "tibia", "dof": 3,
+                     "center": [x, y, z],
+                     "axes": {"x": [..], "y": [..], "z": [..]},
+                     "limits": [[low, high], ...]}, ...]}     # optional: range of motion per DOF
+    """
 
     def __init__(self, bones, joints, *, name: str = "skeleton"):
         self.name = str(name)
@@ -435,6 +422,11 @@ class Pose:
 
     ``joint_angles`` and ``joint_centers`` (scan world, mm) are optional
     extras recorded with ground truth or estimated by pose recovery.
+    JSON schema (``pose.json``, :meth:`to_dict`)::
+
+        {"format": "avw-pose", "version": 1, "skeleton": "knee",
+         "bones": {"femur": [[4x4 rows]], ...},
+         "joints": {"knee": {"angles_deg": [...], "center_scan": [x, y, z]}, ...}}
     """
 
     transforms: dict[str, np.ndarray]

@@ -128,8 +128,8 @@ class SkinningWeights:
         n = dense.shape[0]
         idx_out = np.empty((n, k), dtype=np.intp)
         val_out = np.empty((n, k), dtype=np.float64)
-        # rows in chunks: the sort's temporaries are (rows, n_bones) float64 and int64, several of them (a
-        # paper-size hand grid's 5.9 M voxels x 20 bones held 5 GB at once); every row is independent
+        # rows in chunks: the sort's temporaries are (rows, n_bones) float64 and int64, several of them
+        # (docs/measurements/deformation-and-validation.md); every row is independent
         for lo in range(0, n, DENSE_CHUNK):
             d = np.clip(np.asarray(dense[lo : lo + DENSE_CHUNK], dtype=np.float64), 0.0, None)
             if k < len(bones):
@@ -189,7 +189,7 @@ class SkinningWeights:
 
 @nb.njit(cache=True, inline="always")
 def blend_point(idx, val, v, t, p0, p1, p2):
-    """``(Σ_m w_m T_{b_m}) p`` for point ``v`` of sparse weights (compiled kernels' inner step, Eq. 2).
+    """``(Σ_m w_m T_{b_m}) p`` for point ``v`` of sparse weights (compiled kernels' inner step, Rhee Eq. 2).
 
     ``t`` is ``(n_bones, 3, 4)``; returns the blended point as a tuple ``(x, y, z)``.
     """
@@ -208,29 +208,26 @@ def blend_point(idx, val, v, t, p0, p1, p2):
 
 
 def stack_transforms(transforms, bones) -> np.ndarray:
-    """``(n_bones, 4, 4)`` float64 from a ``{bone: 4×4}`` mapping (or a Pose) in the order of ``bones``."""
-    try:
-        return np.stack([np.asarray(transforms[b], dtype=np.float64) for b in bones])
-    except KeyError as e:
-        raise ValueError(
-            f"no transform for bone {e.args[0]!r}; the pose names "
-            f"{sorted(getattr(transforms, 'transforms', transforms))}"
-        ) from None
-
-
-def _as_stack(transforms, weights: SkinningWeights) -> np.ndarray:
+    """``(n_bones, 4, 4)`` float64 in the order of ``bones``: from a ``{bone: 4×4}`` mapping (or a Pose), or
+    an ``(n_bones, 4, 4)`` array already in that order (its shape checked)."""
     if isinstance(transforms, np.ndarray) and transforms.ndim == 3:
         t = np.asarray(transforms, dtype=np.float64)
     else:
-        t = stack_transforms(transforms, weights.bones)
-    if t.shape != (weights.n_bones, 4, 4):
-        raise ValueError(f"need one 4×4 transform per bone ({weights.n_bones}), got shape {t.shape}")
+        try:
+            t = np.stack([np.asarray(transforms[b], dtype=np.float64) for b in bones])
+        except KeyError as e:
+            raise ValueError(
+                f"no transform for bone {e.args[0]!r}; the pose names "
+                f"{sorted(getattr(transforms, 'transforms', transforms))}"
+            ) from None
+    if t.shape != (len(bones), 4, 4):
+        raise ValueError(f"need one 4×4 transform per bone ({len(bones)}), got shape {t.shape}")
     return t
 
 
 def blend_matrices(weights: SkinningWeights, transforms) -> np.ndarray:
     """``M_p = Σ_k w_pk T_k`` for every point: ``(n, 3, 4)`` (the last row of a blend is ``[0 0 0 1]``)."""
-    t = _as_stack(transforms, weights)[:, :3, :]
+    t = stack_transforms(transforms, weights.bones)[:, :3, :]
     m = np.zeros((weights.n_points, 3, 4))
     for s in range(weights.max_influences):
         m += weights.value[:, s, None, None].astype(np.float64) * t[weights.index[:, s].astype(np.int64)]

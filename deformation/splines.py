@@ -8,7 +8,7 @@
   points, localised to a ball given in world millimetres: zero value and zero
   gradient on the sphere, zero outside it (the local deformation of Rhee's
   locally adaptive registration, Algorithm 1).
-* :class:`RBFDeformation` — Kurihara & Miyata 2004, §4.2, Eq. 4–5: feature
+* :class:`RBFDeformation` — Kurihara & Miyata 2004, §4.2, Kurihara Eq. 4–5: feature
   point deformation of mesh vertices with the basis ``φ(r) = exp(−r/D)``.
 
 Every position and displacement is in world millimetres, points as arrays
@@ -216,17 +216,16 @@ class ClampedPlateSpline:
     reproducing kernel of the clamped plate energy, positive definite for
     distinct control points).  The field is biharmonic away from the control
     points, has zero value and zero gradient on the sphere and is zero outside
-    it, so a local deformation never leaks out of its region (DESIGN.md, "The
-    locally adaptive registration").
+    it, so a local deformation never leaks out of its region (the locality
+    Rhee's locally adaptive registration, Algorithm 1, relies on).
 
     World points ``p`` are mapped to unit-ball coordinates ``(p − center) / radius``.
 
     Hot path (Rhee Algorithm 1: a simplex over the 24 displacement values of
     8 control points, thousands of cost evaluations on 10⁴–10⁵ voxels):
     precompute ``B = spline.basis_for_values(points)`` once, then each
-    evaluation is a single ``(m, n) @ (n, 3)`` product ``B @ d`` (≈ 0.1 ms
-    for m = 20 000, n = 8) — do not call :meth:`evaluate` inside the
-    optimiser loop.
+    evaluation is a single ``(m, n) @ (n, 3)`` product ``B @ d`` — do not
+    call :meth:`evaluate` inside the optimiser loop.
 
     Parameters
     ----------
@@ -388,11 +387,11 @@ class ClampedPlateSpline:
 
 
 class RBFDeformation:
-    """Feature-point deformation with radial basis functions (Kurihara & Miyata 2004, §4.2, Eq. 4–5).
+    """Feature-point deformation with radial basis functions (Kurihara §4.2, Kurihara Eq. 4–5).
 
-    Eq. 4 moves a vertex ``v`` to ``v' = v + Σ_j c_j φ(|v − q_j|)(r_j − q_j)``
+    Kurihara Eq. 4 moves a vertex ``v`` to ``v' = v + Σ_j c_j φ(|v − q_j|)(r_j − q_j)``
     with ``φ(r) = exp(−r/D)``, ``q_j`` the feature points on the approximate
-    mesh and ``r_j`` their targets on the measured mesh.  Eq. 5 as printed,
+    mesh and ``r_j`` their targets on the measured mesh.  Kurihara Eq. 5 as printed,
     ``r_j − q_j = Σ_i c_i φ(|q_j − q_i|)(r_i − q_i)``, has one scalar ``c_i``
     per feature point: 3n equations in n unknowns, which in general have no
     solution (the three components of a feature's displacement would have to
@@ -403,7 +402,7 @@ class RBFDeformation:
         Φ C = R − Q,   Φ_ji = φ(|q_j − q_i|),   v' = v + Σ_j φ(|v − q_j|) C_j
 
     ``C_jc / (r_j − q_j)_c`` is Kurihara's ``c_j`` for component ``c``; when
-    one scalar per feature does satisfy Eq. 5, both readings coincide.  Each
+    one scalar per feature does satisfy Kurihara Eq. 5, both readings coincide.  Each
     feature point then moves exactly onto its target.
 
     The exponential kernel is positive definite in 3-D (Matérn ν = ½), so

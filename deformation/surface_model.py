@@ -6,12 +6,12 @@ with ``S_0``'s connectivity, :mod:`registration.surface_fit`):
 
 * the training: each ``S^f_i`` taken back to the base pose by inverse SSD
   with its pose's bone transforms, ``v⁰_ij = (Σ_k w_jk L_ik)⁻¹ v_ij``
-  (Eq. 6, :func:`deformation.posespace.psd_training`);
-* SSD: ``v = Σ_k w_k L_k v_0`` (Eq. 2) of ``S_0`` itself;
+  (Kurihara Eq. 6, :func:`deformation.posespace.psd_training`);
+* SSD: ``v = Σ_k w_k L_k v_0`` (Kurihara Eq. 2) of ``S_0`` itself;
 * PSD: the base-pose samples morphed with one set of normalised RBF weights
-  of the pose, ``u⁰_j = Σ_i s_i(a) v⁰_ij`` (Eq. 7, 12–14), then SSD (Eq. 8);
+  of the pose, ``u⁰_j = Σ_i s_i(a) v⁰_ij`` (Kurihara Eq. 7, 12–14), then SSD (Kurihara Eq. 8);
 * WPSD: the same with per-vertex weights from the pose distance weighted by
-  the vertex's skinning weights (Eq. 16), so a finger's vertices interpolate
+  the vertex's skinning weights (Kurihara Eq. 16), so a finger's vertices interpolate
   over that finger's joints only.
 
 ``S_0`` is itself an example at the rest pose (Kurihara's "base pose": the
@@ -86,13 +86,14 @@ class SurfaceModel:
         samples = psd_training([m.vertices for m in meshes], weights, [p.transforms for p in poses])
         vectors, template_example = with_template_example(skeleton, PoseSpace(skeleton, poses).train, template_example)
         samples = np.moveaxis(samples, 0, 1)  # (n, P, 3): per vertex, as the kernels read them
-        if template_example:  # S0 at rest: the identity transforms take it to itself (Eq. 6 gives S0)
+        if template_example:  # S0 at rest: the identity transforms take it to itself (Kurihara Eq. 6 gives S0)
             samples = np.concatenate([samples, np.asarray(base.vertices, float)[:, None]], axis=1)
         return cls(base, weights, PoseSpace(skeleton, vectors), samples, template_example=template_example)
 
     def deform(self, pose, method: str = "wpsd") -> SurfaceMesh:
         """The skin at ``pose`` (a :class:`~deformation.skeleton.Pose`: bone transforms and joint angles) by
-        ``method`` — "ssd" (Eq. 2), "psd" (Eq. 7–8 with Eq. 12–15) or "wpsd" (Eq. 16)."""
+        ``method`` — "ssd" (Kurihara Eq. 2), "psd" (Kurihara Eq. 7–8 with Kurihara Eq. 12–15) or "wpsd"
+        (Kurihara Eq. 16)."""
         if method not in SURFACE_METHODS:
             raise ValueError(f"method must be one of {SURFACE_METHODS}, got {method!r}")
         t = pose.transforms

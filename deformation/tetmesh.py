@@ -1,7 +1,7 @@
 """Tetrahedral meshes of the body: lattice tetrahedralisation of a mask, rasterisation, point location.
 
-Pipeline step 4 ("Skinning weights") meshes the body mask (segmented from
-the template) on its own voxel grid:
+The skinning weights (:mod:`deformation.harmonic`) are solved on a mesh of
+the body mask made on its own voxel grid:
 
 1. :func:`lattice_step` — the lattice step in voxels along each axis: from an
    edge length in mm, or the mask's own resolution unless that makes more
@@ -10,13 +10,10 @@ the template) on its own voxel grid:
    are mostly body (:func:`lattice_cubes`), each split into the 6 Kuhn
    (Freudenthal) tetrahedra about its main diagonal: a conforming,
    positively oriented :class:`TetMesh` whose P1 stiffness matrix is the
-   7-point finite-difference Laplacian, an M-matrix (harmonic weights obey
-   the discrete maximum principle, :mod:`deformation.harmonic`).
+   7-point finite-difference Laplacian, an M-matrix.  The mesh is a function
+   of the mask and the step alone: the same bits for any number of threads.
 
-The mesh is a function of the mask and the step alone: the same bits in
-every process, for any number of threads.
-
-Then, for any tet mesh — the template's, or later a *deformed* one:
+Then, for any tet mesh — the template's, or a *deformed* one:
 
 * :func:`rasterize` — for every voxel centre of a grid, the tetrahedron that
   contains it and its barycentric coordinates, plus the number of tetrahedra
@@ -24,30 +21,7 @@ Then, for any tet mesh — the template's, or later a *deformed* one:
 * :func:`locate` — the same for arbitrary points; points outside the mesh
   get the boundary face nearest to them.
 
-Containment and ties
---------------------
-A point is in a tetrahedron when all four barycentric coordinates are
-positive.  Where a coordinate is within ``1e-6`` of zero the point is near a
-face, and the side is decided instead by the sign of the face's plane
-equation evaluated with the face's vertices in ascending index order — the
-two tetrahedra sharing the face evaluate the identical floating-point
-expression, so they can never both (or neither) claim the point.  A point
-on a face, edge or vertex to within round-off (common for voxel centres on
-regular analytic meshes, and for a mesh's own vertices) goes where an
-infinitesimal step along the fixed generic direction :data:`TIE_DIRECTION`
-(world mm) takes it (simulation of simplicity).  So in a conforming,
-non-folded mesh every interior point is covered exactly once, and a cover
-count of 2 or more means the mesh overlaps itself there.  Where several
-tetrahedra claim a voxel, the one with the lowest index is reported.
-
-Geometry
---------
-World points are ``(x, y, z)`` mm; a grid's voxel centre at index
-``(i, j, k)`` is at ``origin + direction @ (spacing * ijk)``
-(:class:`~deformation.geometry.GridGeometry`); voxel arrays are indexed
-``[z, y, x]``.  The rasteriser bounds each tetrahedron in continuous index
-space (so any orthonormal direction matrix and anisotropic spacing work) and
-evaluates barycentric coordinates of the voxel centres' world positions.
+Points on a face are decided exactly (:data:`TIE_DIRECTION`).
 """
 
 from __future__ import annotations
@@ -80,7 +54,15 @@ __all__ = [
 if nb.config.THREADING_LAYER == "default":
     nb.config.THREADING_LAYER = "omp"
 
-#: Generic direction (world mm, unit length) deciding points that lie on a face (see module doc).
+#: Generic direction (world mm, unit length) deciding points that lie on a face.  A point is in a
+#: tetrahedron when all four barycentric coordinates are positive.  Within ``1e-6`` of zero the side is
+#: decided by the sign of the face's plane equation evaluated with the face's vertices in ascending index
+#: order: the two tetrahedra sharing the face evaluate the identical floating-point expression, so they never
+#: both (or neither) claim the point.  A point on a face, edge or vertex to within round-off (voxel centres on
+#: regular meshes, a mesh's own vertices) goes where an infinitesimal step along this direction takes it
+#: (simulation of simplicity).  So in a conforming, non-folded mesh every interior point is covered exactly
+#: once; where several tetrahedra claim a voxel, the one with the lowest index is reported.  Rasterisation
+#: bounds each tetrahedron in continuous index space (any orthonormal direction and anisotropic spacing).
 TIE_DIRECTION = np.array([0.5896, 0.5463, 0.5949]) / np.linalg.norm([0.5896, 0.5463, 0.5949])
 _BAND = 1e-6  # |barycentric| below this: decide the side by the exact-order face test
 

@@ -1,33 +1,26 @@
 """How well can a bone's rigid pose be known from one scan?  Cramér–Rao bounds.
 
-Rhee §3.1 (Eq. 1) registers each bone by the intensities of its (slightly
-dilated) region.  Whatever the optimiser, the noise in the scan limits how
-well those intensities fix the six rigid parameters.  For a scan
-``S(x) = I(T⁻¹x) + n`` with white noise of standard deviation ``σ`` and a
-noise-free template ``I``, the Fisher information of the bone's small motion
-``θ = (ω, t)`` (rotation vector about a point ``c``, then translation) is
+Rhee §3.1 (Rhee Eq. 1) registers each bone by the intensities of its
+(slightly dilated) region; the noise in the scan limits how well those
+intensities fix the six rigid parameters.  For a scan ``S(x) = I(T⁻¹x) + n``
+with white noise of standard deviation ``σ`` and a noise-free template ``I``,
+the Fisher information of the bone's small motion ``θ = (ω, t)`` (rotation
+vector about a point ``c``, then translation) is::
 
     F = (1/σ²) Σ_v g_v g_vᵀ,   g_v = [ (x_v − c) × ∇S(x_v) ,  ∇S(x_v) ],
 
-summed over the scan voxels ``v`` of the bone's region, and any unbiased
-estimator has covariance ``≥ F⁻¹`` (Cramér–Rao).  An estimator with a
-Gaussian prior of covariance ``P`` on the motion (our polish's weak
-kinematic prior) has mean squared error ``≥ (F + P⁻¹)⁻¹`` (van Trees).
+summed over the scan voxels ``v`` of the bone's region; any unbiased
+estimator has covariance ``≥ F⁻¹`` (Cramér–Rao), and one with a Gaussian
+prior of covariance ``P`` (the polish's weak kinematic prior) mean squared
+error ``≥ (F + P⁻¹)⁻¹`` (van Trees).
 
-These bounds are *optimistic* for registration as done here, and so are
-true lower bounds on its error:
-
-* the template is taken noise-free (the real one is a noisy scan too, which
-  doubles the residual's variance, ``2σ²``);
-* the region is exactly the truth's, and moves exactly rigidly;
-* Rician (MRI) noise is treated as Gaussian of the same ``σ``: a Rician
-  magnitude carries at most as much information as a Gaussian sample;
-* the bias field of MRI-like scans is ignored.
-
-The phantoms sample their continuous image at voxel centres (each edge
-blurred over 0.8 voxel, see :class:`~validation.phantoms.generate.Phantom`),
-so ``∇S(x) = R ∇I(T⁻¹x)`` with ``∇I`` by central differences of the analytic
-template intensity: the bound is that of the phantom's own image model.
+The bounds are optimistic, hence true lower bounds: the template is taken
+noise-free, the region exactly the truth's and exactly rigid, Rician noise
+as Gaussian of the same ``σ`` (it carries at most as much information), and
+the MRI bias field is ignored.  ``∇S(x) = R ∇I(T⁻¹x)`` with ``∇I`` by central
+differences of the phantom's analytic template intensity
+(:class:`~validation.phantoms.generate.Phantom`): the bound is that of the
+phantom's own image model.
 """
 
 from __future__ import annotations
@@ -36,7 +29,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RigidBound", "rigid_information", "rigid_bound", "phantom_pose_bounds", "median_error_norm"]
+__all__ = [
+    "RigidBound",
+    "rigid_information",
+    "rigid_bound",
+    "phantom_pose_bounds",
+    "median_error_norm",
+    "template_gradient",
+]
 
 GRADIENT_STEP_MM = 0.05  # central-difference step of the template gradient (edges are ≥ 0.8 voxel wide)
 
@@ -145,7 +145,9 @@ def median_error_norm(cov, *, seed: int = 0, n: int = 20000) -> float:
     return float(np.median(np.concatenate(norms)))
 
 
-def _template_gradient(phantom, p: np.ndarray, h: float) -> np.ndarray:
+def template_gradient(phantom, p: np.ndarray, h: float) -> np.ndarray:
+    """``∇I`` at template points ``p (n, 3)``: central differences of step ``h`` mm of the phantom's noise-free
+    analytic template intensity (per mm, ``(n, 3)``)."""
     g = np.empty_like(p)
     for k in range(3):
         e = np.zeros(3)
@@ -196,7 +198,7 @@ def phantom_pose_bounds(
         sel = np.zeros(len(x), bool)
         sel[inside] = region.mask[ijk[inside, 2], ijk[inside, 1], ijk[inside, 0]]
         x, p = x[sel], p[sel]
-        grad = _template_gradient(phantom, p, step_mm) @ r.T  # ∇S(x) = R ∇I(T⁻¹x)
+        grad = template_gradient(phantom, p, step_mm) @ r.T  # ∇S(x) = R ∇I(T⁻¹x)
         centre = r @ np.asarray(region.centroid, float) + tr
         info = rigid_information(x, grad, centre, sigma)
         out[name] = rigid_bound(info, bone=name, n_voxels=len(x), prior_deg=prior_deg, prior_mm=prior_mm)

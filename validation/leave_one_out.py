@@ -11,6 +11,10 @@ baseline.  Both are compared with the truth by the mean Euclidean distance
 * ``med_scan``: over posed body voxels ``y`` whose true template position
   lies in the template's field of view, ``|F⁻¹(y) − φ_true(y)|`` — Rhee's
   MED of correspondences, through the backward map (:mod:`deformation.resample`).
+
+:func:`leave_one_out_correspondences` does the same from any correspondences
+(a study's registrations), and :func:`registration_training_positions` gives
+a study scan's EVD example the way the pipeline's ``model`` stage builds it.
 """
 
 from __future__ import annotations
@@ -19,11 +23,41 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deformation.evd import ExampleVolumeDeformation, vbd_forward
+from deformation.evd import ExampleVolumeDeformation, fill_unmatched, vbd_forward
 from deformation.resample import backward_map
 from deformation.skinning import SkinningWeights, stack_transforms
 
-__all__ = ["LeaveOneOut", "leave_one_out", "HeldOut", "leave_one_out_correspondences"]
+__all__ = [
+    "LeaveOneOut",
+    "leave_one_out",
+    "HeldOut",
+    "leave_one_out_correspondences",
+    "registration_training_positions",
+]
+
+
+def registration_training_positions(study, scan_id: str, geometry, weights: SkinningWeights):
+    """A scan's estimated pose and where every template voxel lies in it by its registration: an EVD example.
+
+    ``study`` is a :class:`workbench.study.Study` (anything with its ``pose`` and
+    ``registration_positions``), ``geometry`` the template grid and ``weights``
+    its per-voxel skinning weights.  Template voxels the registration's inverse
+    did not find keep their VBD position (:func:`deformation.evd.fill_unmatched`),
+    so they contribute ``d_k = 0`` to EVD (Rhee Eq. 7).  The training positions of
+    the model stage (``--source registration``) and of the leave-one-out protocol.
+
+    Returns
+    -------
+    pose : Pose
+        The pose stage's estimate (template → scan).
+    positions : (nz, ny, nx, 3) float64
+        World mm in the scan.
+    found : (nz, ny, nx) bool
+        Where the registration's inverse found the voxel (elsewhere: VBD).
+    """
+    pose = study.pose(scan_id)
+    pos, found = study.registration_positions(scan_id)
+    return pose, fill_unmatched(geometry, weights, pose.transforms, pos, found), found
 
 
 @dataclass

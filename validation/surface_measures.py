@@ -1,4 +1,4 @@
-"""Kurihara's surface model against a phantom's truth (issue K): fitted meshes and posed skins.
+"""Kurihara's surface model (Kurihara §4–5) against a phantom's truth: fitted meshes and posed skins.
 
 The paper could only look at its meshes; a phantom knows where every skin
 point goes.  For a template point ``v`` the phantom's posing model gives its

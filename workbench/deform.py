@@ -111,11 +111,11 @@ def _refuse_study_files(study, paths, what: str) -> None:
 
 def say_if_compiling(say) -> None:
     """Tell the user when the deformation kernels are compiled on this first use (tens of seconds otherwise silent)."""
-    from deformation.evd import _forward_kernel
-    from deformation.resample import _backward_kernel
+    from deformation.evd import forward_kernel
+    from deformation.resample import backward_kernel
     from workbench.progress import compile_note
 
-    note = compile_note(_forward_kernel, _backward_kernel)
+    note = compile_note(forward_kernel, backward_kernel)
     if note:
         say(note)
 

@@ -136,7 +136,7 @@ def test_evd_with_ground_truth_reproduces_every_training_pose(knee, knee_example
     template_body = (ph.anatomy.distances_fast(x)[:, -1] < 0).reshape(g.array_shape)
     for k, (pose, truth_fwd, ang, pid) in enumerate(knee_examples):
         fwd = model.forward(pose)
-        # Eq. 6 at a training pose: s = e_k, so v_a = E(v0 + d_k) = v̂_k (float32: ≤ 1e-4 mm)
+        # Rhee Eq. 6 at a training pose: s = e_k, so v_a = E(v0 + d_k) = v̂_k (float32: ≤ 1e-4 mm)
         np.testing.assert_allclose(fwd, truth_fwd, atol=2e-4)
         for weighting in ("wpsd",):
             np.testing.assert_allclose(model.forward(pose, weighting=weighting), truth_fwd, atol=2e-4)

@@ -614,16 +614,16 @@ def test_unfold_keeps_a_one_to_one_field_and_checks_its_arguments():
         F.unfold(field, sigma=-1.0)
 
 
-def test_small_inputs_take_the_serial_kernels_with_the_same_result(geom):
-    # below _SERIAL_BELOW points the interpolation and the Jacobian run serially: same arithmetic per point,
+def test_small_inputs_take_the_serial_kernels_with_the_same_result(geom, monkeypatch):
+    # below SERIAL_BELOW points the interpolation and the Jacobian run serially: same arithmetic per point,
     # so a large call and the same points sampled in small chunks must agree bit for bit
-    from deformation.interpolate import _SERIAL_BELOW
+    from deformation.interpolate import SERIAL_BELOW
 
     rng = np.random.default_rng(4)
     data = rng.normal(size=geom.array_shape).astype(np.float32)
     vec = rng.normal(size=geom.array_shape + (3,)).astype(np.float32)
     lo, hi = geom.index_to_world(np.zeros(3)), geom.index_to_world(np.asarray(geom.size) - 1.0)
-    pts = rng.uniform(np.minimum(lo, hi) - 2, np.maximum(lo, hi) + 2, (_SERIAL_BELOW + 1000, 3))
+    pts = rng.uniform(np.minimum(lo, hi) - 2, np.maximum(lo, hi) + 2, (SERIAL_BELOW + 1000, 3))
     for arr in (data, vec):
         big = sample_array(arr, geom.world_to_index_matrix, pts)
         chunks = np.concatenate(
@@ -631,23 +631,15 @@ def test_small_inputs_take_the_serial_kernels_with_the_same_result(geom):
         )
         assert np.array_equal(big, chunks)
     field = Volume(0.3 * vec, geom)
-    det = F.jacobian_determinant(field)  # geom has fewer voxels than _SERIAL_BELOW: the serial kernel
-    assert det.size < _SERIAL_BELOW
-    from deformation.fields import _jacobian_det
-
-    m = np.ascontiguousarray(np.linalg.inv(geom.index_to_world_matrix[:3, :3]))
-    par = np.empty(geom.array_shape)
-    _jacobian_det(np.ascontiguousarray(field.data), m, par)
-    assert np.array_equal(det, par)
+    det = F.jacobian_determinant(field)  # geom has fewer voxels than SERIAL_BELOW: the serial kernel
+    assert det.size < SERIAL_BELOW
     # the components-along-array-axes twin (the dense registration's layout), serial below the threshold
-    from deformation.fields import _jacobian_det_zyx, jacobian_determinant_components
-
     u = np.ascontiguousarray(np.moveaxis(0.3 * vec[..., ::-1], -1, 0))  # (3, nz, ny, nx), u[0] along z
     sp = np.array([1.5, 1.2, 0.9])
-    small = jacobian_determinant_components(u, sp)
-    par = np.empty(u.shape[1:])
-    _jacobian_det_zyx(u, 1.0 / sp, par)
-    assert small.size < _SERIAL_BELOW and np.array_equal(small, par)
+    small = F.jacobian_determinant_components(u, sp)
+    monkeypatch.setattr(F, "SERIAL_BELOW", 0)  # now every input takes the parallel kernels
+    assert np.array_equal(det, F.jacobian_determinant(field))
+    assert small.size < SERIAL_BELOW and np.array_equal(small, F.jacobian_determinant_components(u, sp))
 
 
 def test_unfold_near_the_grid_edge_tracks_the_determinant_of_the_whole_grid():
@@ -777,7 +769,7 @@ def test_the_cropped_determinant_update_matches_a_full_recomputation():
     # unfold's incremental det: after u changes inside a box, the values within one voxel of it are recomputed
     # on a crop; boxes in the middle, at faces and at a corner, on a field rough enough that one-sided and
     # central differences differ — every value must be the full grid's, bit for bit
-    from deformation.fields import _jacobian_det, _update_jacobian_det
+    from deformation.fields import _update_jacobian_det
 
     g = _geom(size=(14, 12, 10))
     rng = np.random.default_rng(5)
@@ -790,14 +782,11 @@ def test_the_cropped_determinant_update_matches_a_full_recomputation():
         (slice(7, 10), slice(9, 12), slice(11, 14)),
         (slice(0, 10), slice(5, 6), slice(13, 14)),
     ):
-        det = np.empty(g.array_shape)
-        _jacobian_det(u, m, det)
+        det = F.jacobian_determinant(Volume(u, g))
         v = u.copy()
         v[box] += rng.normal(size=v[box].shape)
         _update_jacobian_det(v, m, det, box)
-        full = np.empty(g.array_shape)
-        _jacobian_det(v, m, full)
-        assert np.array_equal(det, full)
+        assert np.array_equal(det, F.jacobian_determinant(Volume(v, g)))
 
 
 def test_serial_twins_have_cache_entries_of_their_own():

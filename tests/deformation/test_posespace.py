@@ -1,4 +1,4 @@
-"""Pose weights (Kurihara Eq. 12–15), PSD (Eq. 6–8) and WPSD (Eq. 16)."""
+"""Pose weights (Kurihara Eq. 12–15), PSD (Kurihara Eq. 6–8) and WPSD (Kurihara Eq. 16)."""
 
 from __future__ import annotations
 
@@ -28,13 +28,13 @@ def hand_setup():
 def test_pose_weights_interpolate_the_training_poses_and_sum_to_one():
     rng = np.random.default_rng(3)
     train = rng.normal(scale=30.0, size=(7, 5))
-    # Eq. 10 at the training poses; the 7×7 Gaussian system is solved in float64 (cond < 1e4 here).
+    # Kurihara Eq. 10 at the training poses; the 7×7 Gaussian system is solved in float64 (cond < 1e4 here).
     np.testing.assert_allclose(pose_weights(train, train), np.eye(7), atol=1e-9)
     q = rng.normal(scale=30.0, size=(50, 5))
-    np.testing.assert_allclose(pose_weights(train, q).sum(1), 1.0, atol=1e-12)  # Eq. 11
+    np.testing.assert_allclose(pose_weights(train, q).sum(1), 1.0, atol=1e-12)  # Kurihara Eq. 11
     # the width is the nearest-neighbour distance: scaling every distance leaves the weights unchanged
     np.testing.assert_allclose(pose_weights(train, q), pose_weights(3.0 * train, 3.0 * q), atol=1e-9)
-    # per-point DOF weights (Eq. 16) that are uniform give the PSD weights
+    # per-point DOF weights (Kurihara Eq. 16) that are uniform give the PSD weights
     np.testing.assert_allclose(pose_weights(train, q, dof_weights=np.full(5, 0.2)), pose_weights(train, q), atol=1e-9)
 
 
@@ -48,7 +48,7 @@ def test_pose_weights_are_continuous():
 
 
 def test_weights_far_from_every_example_are_the_nearest_examples(hand_setup):
-    """Kurihara Eq. 14 normalises the φ of Eq. 12: far from every example each φ underflows to 0, and the
+    """Kurihara Eq. 14 normalises the φ of Kurihara Eq. 12: far from every example each φ underflows to 0, and the
     weights must still be those of the limit (the nearest example's), not 0 / 0."""
     sk, poses, bones, p, w, rng = hand_setup
     space = PoseSpace(sk, poses)
@@ -56,7 +56,7 @@ def test_weights_far_from_every_example_are_the_nearest_examples(hand_setup):
     s = pose_weights(space.train, far)
     assert np.all(np.isfinite(s)) and np.isclose(s.sum(), 1.0)
     assert np.argmax(s) == int(np.argmin(((space.train - far) ** 2).sum(axis=1)))
-    # the per-point weights of WPSD (Eq. 16) at that pose vector: finite, summing to one at every point
+    # the per-point weights of WPSD (Kurihara Eq. 16) at that pose vector: finite, summing to one at every point
     pw = space.point_space(w).weights(far)
     assert np.all(np.isfinite(pw)) and np.allclose(pw.sum(axis=1), 1.0)
 
@@ -69,12 +69,12 @@ def test_psd_and_wpsd_reproduce_every_training_example(hand_setup):
     for k, pose in enumerate(poses):
         offset = 2.0 * np.sin(p / 17.0 + k)
         samples.append(lbs(p + offset, w, pose.transforms))
-    base = psd_training(samples, w, [q.transforms for q in poses])  # Eq. 6
+    base = psd_training(samples, w, [q.transforms for q in poses])  # Kurihara Eq. 6
     per_point = np.ascontiguousarray(base.transpose(1, 0, 2))
     pts = space.point_space(w)
     for k, pose in enumerate(poses):
         s = space.weights(pose)
-        # Eq. 10: s = e_k at a training pose; Eq. 7–8 then give the sample back.  The inverse
+        # Kurihara Eq. 10: s = e_k at a training pose; Kurihara Eq. 7–8 then give the sample back.  The inverse
         # blend and the Gaussian solve cost ≤ 1e-8 mm on ~100 mm coordinates.
         np.testing.assert_allclose(psd_deform(base, w, s, pose.transforms), samples[k], atol=1e-6)
         np.testing.assert_allclose(skin(per_point, w, pose.transforms, s), samples[k], atol=1e-6)
@@ -88,7 +88,7 @@ def test_psd_and_wpsd_reproduce_every_training_example(hand_setup):
     two_step = skin(per_point, w, poses[0].transforms, pts.weights(q))
     np.testing.assert_allclose(wpsd_deform(per_point, w, pts, q, poses[0].transforms), two_step, atol=1e-9)
     # the coefficients folded with the samples once by the caller (PointPoseSpace.fold: Σ φ Cᵀbase / Σ φ Cᵀ1
-    # rearranges Eq. 14 and 7) give the two-step surface too (round-off only)
+    # rearranges Kurihara Eq. 14 and 7) give the two-step surface too (round-off only)
     folded = pts.fold(per_point)
     np.testing.assert_allclose(
         wpsd_deform(per_point, w, pts, q, poses[0].transforms, folded=folded), two_step, atol=1e-9

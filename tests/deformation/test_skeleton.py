@@ -538,7 +538,7 @@ def test_joint_limits_round_trip_and_name_what_is_outside():
     no_limits = Skeleton.from_dict(
         {**sk.to_dict(), "joints": [{k: v for k, v in j.to_dict().items() if k != "limits"}]}
     )
-    # a joint without limits (an older skeleton.json) takes rotations within ±180°: more is a slip (issue Q)
+    # a joint without limits (an older skeleton.json) takes rotations within ±180°: more is a slip
     assert no_limits.limit_problems({"knee": [170, -180, 180]}) == []
     assert no_limits.limit_problems({"knee": [1000, 0, -181]}) == [
         "knee[0] = 1000° is more than half a turn (the joint has no 'limits' in the skeleton; its rotations are "

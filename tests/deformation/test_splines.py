@@ -1,4 +1,4 @@
-"""Clamped plate spline (Rhee et al. 2011, §4.2) and RBF feature-point deformation (Kurihara 2004, Eq. 4–5)."""
+"""Clamped plate spline (Rhee et al. 2011, §4.2) and RBF feature-point deformation (Kurihara 2004, Kurihara Eq. 4–5)."""
 
 from __future__ import annotations
 
@@ -373,7 +373,7 @@ def test_rbf_moves_feature_points_onto_their_targets(D):
 
 
 def test_rbf_single_scalar_reading_is_recovered_when_it_exists():
-    # If all features move by the same vector t, Eq. 5 has a scalar solution c (Φ c = 1); our per-component
+    # If all features move by the same vector t, Kurihara Eq. 5 has a scalar solution c (Φ c = 1); our per-component
     # coefficients are then C_j = c_j t.  Same Φ, cond ≈ 3e4: agreement to ~1e-9 relative.
     rng = np.random.default_rng(302)
     q, _ = _features(rng)

@@ -37,8 +37,8 @@ def test_psd_and_wpsd_reproduce_the_examples_and_ssd_is_the_skinned_base(setup, 
     model = SurfaceModel.from_meshes(base, w, sk, poses, meshes, template_example=template_example)
     assert model.n_examples == len(poses) + int(template_example)
     for q, m in zip(poses, meshes):
-        # Eq. 10 at a training pose: s = e_k (PSD) and per vertex (WPSD), so Eq. 7–8 give the example back;
-        # inverse blend + Gaussian solve round-off ≤ 1e-6 mm on ~100 mm coordinates (as test_posespace)
+        # Kurihara Eq. 10 at a training pose: s = e_k (PSD) and per vertex (WPSD), so Kurihara Eq. 7–8 give the
+        # example back; inverse blend + Gaussian solve round-off ≤ 1e-6 mm on ~100 mm coordinates (as test_posespace)
         for method in ("psd", "wpsd"):
             np.testing.assert_allclose(model.deform(q, method).vertices, m.vertices, atol=1e-5)
         np.testing.assert_allclose(model.deform(q, "ssd").vertices, lbs(base.vertices, w, q.transforms), atol=1e-9)

@@ -91,7 +91,7 @@ def test_phantom_gradient_model_predicts_the_rendered_change():
     voxels and the dilated rim alike).  At 0.5° the tibia's far end moves 1.7 mm, past the linear range of
     a 4 mm edge, and the correlation drops to 0.965; hence the small step."""
     from registration.rigid import bone_regions
-    from validation.information_bound import _template_gradient
+    from validation.information_bound import template_gradient
     from validation.phantoms import make_phantom
 
     ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=3, noise=False)
@@ -113,7 +113,7 @@ def test_phantom_gradient_model_predicts_the_rendered_change():
     ins = np.all((ijk >= 0) & (ijk < np.asarray(g.size)), axis=1)
     sel = np.zeros(len(x), bool)
     sel[ins] = region.mask[ijk[ins, 2], ijk[ins, 1], ijk[ins, 0]]
-    grad = _template_gradient(ph, p[sel], 0.05) @ t0[:3, :3].T
+    grad = template_gradient(ph, p[sel], 0.05) @ t0[:3, :3].T
     motion = t1 @ np.linalg.inv(t0)  # scan-world motion of the tibia
     dx = x[sel] @ motion[:3, :3].T + motion[:3, 3] - x[sel]
     predicted = -(grad * dx).sum(axis=1)

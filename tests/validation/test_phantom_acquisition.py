@@ -1,4 +1,4 @@
-"""Randomised acquisition of the phantoms (``acquisition="random"``; issue M item 2).
+"""Randomised acquisition of the phantoms (``acquisition="random"``).
 
 Tolerances
 ----------

@@ -1,4 +1,4 @@
-"""Phantom ground truth is exact: resampling, rigid bones, markers, determinism (issue A).
+"""Phantom ground truth is exact: resampling, rigid bones, markers, determinism.
 
 Tolerances
 ----------
@@ -217,7 +217,7 @@ def test_bone_edges_move_rigidly_so_eq1_is_minimal_at_the_truth():
     """A scanner blurs a posed bone's edge where the bone is, so the blurred edge moves with the bone.  The
     phantom renders each bone's edge in the bone's own frame (Anatomy.intensity); rendered in template
     space the halo went with the sliding tissue around it (p90 1.7 mm within a blur width of the
-    patella at 70° of flexion), and Eq. 1 started at the truth settled 2.8° off for the patella and
+    patella at 70° of flexion), and Rhee Eq. 1 started at the truth settled 2.8° off for the patella and
     0.2° for the femur.  Now (noise-free CT knee, 70°): measured 0.06° and 0.03°.  The tolerance of
     0.5° is the rest of the sampling error at 5 mm voxels (0.25° on a globally rigid motion)."""
     from deformation.filters import smooth

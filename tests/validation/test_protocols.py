@@ -294,3 +294,37 @@ def test_table2_keeps_its_single_scan(scored):
     assert t.row("source (no deformation)")["med_mm"] == pytest.approx(11.0)  # mean of the three scans
     assert t.row(ALGORITHM1_ROW)["med_mm"] == pytest.approx(1.5)  # Algorithm 1 on all three as well
     assert t.row("paper: source")["med_mm"] == 5.5
+
+
+def test_registration_training_positions_keep_the_found_voxels_and_pose_the_others_by_vbd():
+    """The EVD example of a study scan (the model stage's and the loo protocol's): where the registration's
+    inverse found a template voxel its position is kept; elsewhere VBD puts it (Rhee Eq. 2), here a one-hot
+    blend, so bone b's voxels move by its translation and bone a's stay."""
+    from deformation.geometry import GridGeometry
+    from deformation.skeleton import Pose
+    from deformation.skinning import SkinningWeights
+    from validation.leave_one_out import registration_training_positions
+
+    g = GridGeometry((4, 3, 2), (1.0, 2.0, 3.0), (10.0, 0.0, -5.0), np.eye(3).reshape(-1))
+    x = g.world_coordinates()
+    on_b = (np.arange(g.n_voxels) % 2).reshape(g.array_shape).astype(bool)  # alternate voxels on bone b
+    weights = SkinningWeights.from_dense(np.stack([~on_b.reshape(-1), on_b.reshape(-1)], 1).astype(float), ("a", "b"))
+    shift = np.eye(4)
+    shift[:3, 3] = (5.0, -1.0, 2.0)
+    pose = Pose({"a": np.eye(4), "b": shift})
+    registered = x + 0.25  # where the registration put every voxel
+    found = np.zeros(g.array_shape, bool)
+    found[0] = True
+
+    class Study:
+        def pose(self, scan_id):
+            assert scan_id == "s1"
+            return pose
+
+        def registration_positions(self, scan_id):
+            return registered, found
+
+    got_pose, pos, got_found = registration_training_positions(Study(), "s1", g, weights)
+    assert got_pose is pose and got_found is found
+    expected = np.where(found[..., None], registered, x + np.where(on_b[..., None], shift[:3, 3], 0.0))
+    np.testing.assert_allclose(pos, expected, rtol=0, atol=1e-5)  # VBD's positions are float32

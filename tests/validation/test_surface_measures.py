@@ -1,4 +1,4 @@
-"""The surface model's measures against a phantom's truth (validation.surface_measures, issue K)."""
+"""The surface model's measures against a phantom's truth (validation.surface_measures)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,10 @@
-"""Synthetic knee and hand phantoms with exact ground truth (see DESIGN.md, "Validation")."""
+"""Synthetic knee and hand phantoms with exact ground truth.
+
+A phantom is a template (an analytic anatomy: bones, soft tissue, skin) and
+posed scans of it, each with the exact template ↔ scan correspondence, the
+bones' true poses and skin markers: the truth Rhee's and Kurihara's
+evaluations measure against, which real scans do not have.
+"""
 
 from .generate import MODALITIES, REGIONS, SIZES, Phantom, PhantomScan, PhantomSpec, make_phantom
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from deformation.fields import jacobian_determinant
 from deformation.geometry import GridGeometry, Volume
 from deformation.skeleton import Pose, Skeleton
 
@@ -445,7 +446,7 @@ class Phantom:
         return out
 
     def _bias_field(self, rng: np.random.Generator, amplitude: float | None = None) -> np.ndarray:
-        """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1, max |bias − 1| = ``amplitude``
+        """Smooth multiplicative bias on the grid (scanner frame), mean ≈ 1, ``max |bias − 1|`` = ``amplitude``
         (default: the contrast's)."""
         amp = self.contrast.bias_amplitude if amplitude is None else amplitude
         if amp == 0:
@@ -737,7 +738,7 @@ class Phantom:
         x = self._world_points().reshape(phi.shape)
         disp = phi - x
         body = self.anatomy.distances_fast(phi.reshape(-1, 3))[:, -1].reshape(residual.shape) < 0
-        det = jacobian_determinant(phi, self.geometry)
+        det = jacobian_determinant(Volume(disp, self.geometry))  # of the scan → template map, on the scan grid
         rb = residual[body]
         stats = {
             "body_voxels": int(body.sum()),
@@ -760,20 +761,6 @@ class Phantom:
             stats=stats,
             template_to_scan=Volume(forward.astype(np.float32), self.geometry),
         )
-
-
-def jacobian_determinant(positions: np.ndarray, geometry: GridGeometry) -> np.ndarray:
-    """Jacobian determinant of a map sampled on a grid (``positions``: ``(nz, ny, nx, 3)`` world mm).
-
-    Central differences along the index axes, converted to world derivatives
-    with the grid's spacing and direction (``det J_world = det J_index /
-    (sx·sy·sz·det D)``).  Values ≤ 0 mark folding.
-    """
-    pos = positions.astype(np.float32)  # differences of ~1 mm: float32 keeps ~1e-5 mm
-    # index axes i, j, k are array axes 2, 1, 0
-    j = np.stack([np.gradient(pos, axis=axis) for axis in (2, 1, 0)], axis=-1)  # [..., component, index axis]
-    det_d = np.linalg.det(geometry.direction_matrix)
-    return np.linalg.det(j) / (np.prod(geometry.spacing) * det_d)
 
 
 def make_phantom(region: str = "knee", **kwargs) -> Phantom:

@@ -117,7 +117,7 @@ def _layout():
 # Ranges of motion, degrees in the joint frames (flexion, abduction towards the radial side, axial twist): the
 # normal active ranges (American Academy of Orthopaedic Surgeons, Joint Motion: Method of Measuring and
 # Recording, 1965) widened by a few degrees for passive motion and for the jitter of measured (or the
-# phantom's seeded) angles around a straight joint — a range starting at 0° refused a PIP estimated at −1°;
+# phantom's seeded) angles around a straight joint (a PIP estimated at −1° must pass);
 # the thumb's carpometacarpal joint within ±60° about each axis; the 6-DOF joints' translations within 10 mm
 RANGE_OF_MOTION = {
     "cmc": ((-5, 25), (-7, 7), (-12, 12)),  # fingers' carpometacarpal cupping (ring and little move)
@@ -157,7 +157,7 @@ def digit_bone(a, b, ra, rb, axes) -> SmoothUnion:
 
     Real metacarpals and phalanges have a waisted shaft, a base wider
     radio-ulnarly than it is deep with a dorsal lip, and a head whose condyles
-    project palmarly.  A round cone (the first version of this phantom) is
+    project palmarly.  A round cone would be
     symmetric about its long axis, so its twist is invisible in any image and
     no registration can recover it; these widths and offsets (about 1.4:1 at
     the ends) make every rotation observable, as in real bones.  ``axes`` is

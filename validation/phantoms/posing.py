@@ -4,36 +4,24 @@ Two models, both leaving every bone exactly rigid:
 
 ``vbd``
     Plain volume blend deformation (Rhee Eq. 2): ``F(v) = (Σ_k w_k(v) T_k) v``
-    with template-space weights — the posing Rhee's Table 2 protocol uses
-    ("bent 10 degrees using the VBD algorithm").
+    with template-space weights, the posing of Rhee's Table 2 protocol.
 ``soft``
     ``F(v) = DQS_w(v)(v + δ(v))``: the bones' transforms blended as dual
-    quaternions (every blended transform is rigid, so soft tissue turns about
-    the joint instead of collapsing towards it, as skin does over a flexed
-    joint), applied after ``δ``, which adds near each flexed joint a bulge of
-    the soft tissue on the flexor side and a proximal sliding of the skin on
-    the extensor side, and a smooth random motion of the soft tissue (shear
-    waves of random direction, amplitude growing with the flexion: muscles
-    sliding and bulging unevenly).  ``δ`` vanishes inside bones and fades in over the first
-    millimetres of soft tissue (``Anatomy.bone_fade_mm``).  A VBD initialisation cannot represent either effect,
-    so it leaves a real residual.
+    quaternions (rigid blends: soft tissue turns about the joint instead of
+    collapsing towards it), applied after ``δ``: near each flexed joint a
+    flexor-side bulge and an extensor-side sliding of the skin, plus smooth
+    random shear waves growing with the flexion.  ``δ`` vanishes inside bones
+    and fades in over ``Anatomy.bone_fade_mm``; VBD cannot represent it.
 
-Weights are inverse-distance weights on the bones' signed distances,
-``w_k ∝ d_k^-p exp(−d_k/λ)`` (``p``, ``λ`` per anatomy; :func:`blend_weights`),
-exactly one-hot inside a bone.
-
-The ground truth for a scan voxel ``x`` is ``φ(x) = F⁻¹(x)``.  ``F`` is
-inverted numerically (:meth:`PosingModel.inverse`): damped Newton steps from
-the inverse blend with posed-bone weights, using the blended rotation as the
-Jacobian and switching to finite differences where that converges slowly.
-:meth:`validation.phantoms.Phantom.correspondence` restarts the few voxels
-left (near folds of the blend) from nearby forward-mapped template voxels.
-The residual ``|F(φ(x)) − x|`` is returned so callers can report it.
-
-Neither blend is guaranteed one-to-one: at strong flexion a small fraction of
-soft-tissue voxels (≈0.1 % of the body at 70° knee flexion or in the hand's
-fist) fold over, as linear and dual quaternion skinning do; the generator
-reports that fraction per scan and keeps skin markers out of folds.
+Weights are ``w_k ∝ d_k^-p exp(−d_k/λ)`` on the bones' signed distances
+(:func:`blend_weights`), exactly one-hot inside a bone.  The ground truth for
+a scan voxel ``x`` is ``φ(x) = F⁻¹(x)``, found by damped Newton steps from the
+inverse blend (:meth:`PosingModel.inverse`; the few voxels left near folds
+are restarted by :meth:`validation.phantoms.Phantom.correspondence`); the
+residual ``‖F(φ(x)) − x‖`` is returned.  Neither blend is guaranteed
+one-to-one: at strong flexion a small fraction of soft-tissue voxels fold
+over, as in linear and dual quaternion skinning; the generator reports that
+fraction per scan and keeps skin markers out of folds.
 """
 
 from __future__ import annotations

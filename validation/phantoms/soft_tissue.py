@@ -1,33 +1,25 @@
 """Structure inside a phantom's soft tissue: septa, lobules, tendons and vessels.
 
-Real MRI and CT soft tissue is not uniform: muscle is split into bellies and
-fascicles by bright intermuscular fat septa and fascia, subcutaneous fat
-into lobules by thin fibrous septa, and tendons (dark on T1 MRI) and vessels
-run through it.  That structure is what lets an intensity registration see
-soft-tissue motion at all; a phantom without it (the first versions of this
-one: uniform layers plus a 12–45 mm plane-wave texture of 8 %) lets a
-registration that stands still look as good as one that moves (issue I).
+Real MRI and CT soft tissue is not uniform: muscle is split into fascicles by
+bright fat septa and fascia, subcutaneous fat into lobules by fibrous septa,
+and tendons (dark on T1 MRI) and vessels run through it.  That structure is
+what lets an intensity registration see soft-tissue motion at all: in
+uniform tissue a registration that stands still looks as good as one that
+moves.  Everything here is a function of the *template* position, so it moves
+with its tissue and a posed scan rendered at ``φ(x)`` keeps its exact truth.
 
-Everything here is a function of the *template* position, so it moves with
-the tissue it belongs to, and a posed scan rendered at ``φ(x)`` keeps its
-exact ground truth.
-
-* **Cells** (muscle fascicles, fat lobules): the Voronoi cells of one site
-  per cell of a jittered lattice.  The site of lattice cell ``(i, j, k)`` and
-  the cell's own intensity factor come from a counter-based hash of
-  ``(i, j, k, key)`` (splitmix64), so no table is stored and the structure
-  is unbounded, seeded and identical in the NumPy definition and the
-  compiled kernel.  A point's distance to its cell's boundary is
-  ``min_j (|p − s_j|² − |p − s_1|²) / (2 |s_j − s_1|)`` over the other sites
-  ``s_j`` of the 5×5×5 neighbouring lattice cells (``s_1`` the nearest): the
-  exact distance to the bisector planes that bound the cell.
+* **Cells** (fascicles, lobules): the Voronoi cells of one site per cell of a
+  jittered lattice; each site and the cell's intensity factor come from a
+  counter-based hash of ``(i, j, k, key)`` (splitmix64): no table, unbounded,
+  seeded, and identical in NumPy and in the compiled kernel.  A point's
+  distance to its cell's boundary is
+  ``min_j (‖p − s_j‖² − ‖p − s_1‖²) / (2 ‖s_j − s_1‖)`` over the sites of the
+  5×5×5 neighbouring lattice cells (``s_1`` the nearest).
 * **Septa**: a sheet of half-width ``w`` on every cell boundary, blurred by
-  the scanner's point spread like every other edge
-  (``0.5·(1 − tanh((s − w)/edge))``).
+  the scanner's point spread (``0.5·(1 − tanh((s − w)/edge))``).
 * **Tubes**: tendons cross every soft-tissue joint on its flexor and
   extensor side, along the child bone; a vessel crosses it on the flexor
-  side, wiggling.  Each tube is a chain of round cones (the shapes of
-  :mod:`.shapes`), their offsets and wiggles drawn from the seed.
+  side, wiggling: chains of round cones (:mod:`.shapes`) drawn from the seed.
 """
 
 from __future__ import annotations

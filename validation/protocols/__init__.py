@@ -1,36 +1,25 @@
 """The papers' protocols: functions that run the pipeline on phantoms and return tables of numbers.
 
-=================  =====================================================================================
-``table2``         Rhee Table 2: knee bent 10° by VBD, registered without initialisation
-``table3``         Rhee Table 3: knee, 4 poses, template → 3 scans after VBD from estimated poses
-``table4``         Rhee Table 4: hand, 10 poses, template → 9 scans after VBD from estimated poses
-``loo``            leave one scan out: VBD vs EVD from the others' registrations (Rhee Figs. 11–12)
-``eigenposes``     principal components of a 71-pose hand library (Rhee §6.2)
-``kurihara``       Kurihara Eq. 1 joint centres of the CT hand in 5 poses
-``kurihara_skin``  Kurihara §4–5: consistent skin meshes, SSD / PSD / WPSD, on the same study
-=================  =====================================================================================
+* ``table2`` — Rhee Table 2: knee bent 10° by VBD, registered without initialisation;
+* ``table3`` — Rhee Table 3: knee, 4 poses, template → 3 scans after VBD from estimated poses;
+* ``table4`` — Rhee Table 4: hand, 10 poses, template → 9 scans after VBD from estimated poses;
+* ``loo`` — leave one scan out: VBD vs EVD from the others' registrations (Rhee Figs. 11–12);
+* ``eigenposes`` — principal components of a 71-pose hand library (Rhee §6.2);
+* ``kurihara`` — Kurihara Eq. 1 joint centres of the CT hand in 5 poses;
+* ``kurihara_skin`` — Kurihara §4–5: consistent skin meshes, SSD / PSD / WPSD, on the same study.
 
 Each protocol is ``f(runner) -> Table`` (:class:`~validation.protocols.table.Table`).
-The pipeline's stages live in the workbench, above this package (imports go
-``workbench → validation``), so a protocol does not run them itself: it asks
-``runner`` for a study, and the workbench (:mod:`workbench.reproduce`)
-supplies the runner.  A runner has
-
-* ``study(name, phantom, *, settings, targets)`` → a study object
-  (:class:`workbench.study.Study`) on which ``targets`` (stage names) and
-  everything they need have run: ``phantom`` is a dict of
-  :class:`~validation.phantoms.PhantomSpec` fields (the size is the
-  runner's), ``settings`` ``{stage: {setting: value}}``.  The same name,
-  phantom and settings give the same study, whose finished stages are reused;
-* ``size`` (``"test"`` or ``"paper"``): the phantoms' grid;
-* ``seed``: the phantoms' seed (a protocol that measures against the phantom itself rebuilds it);
-* ``register_adaptive(study, scan_id, *, settings)`` → the
-  :class:`~registration.adaptive.AdaptiveResult` of Rhee's Algorithm 1 on the
-  study's scan, run as the register stage runs ``method="adaptive"`` (from the
-  init stage's start, the register stage's ``settings`` otherwise), without
-  changing the study (Tables 2–4's ``registered (Rhee Algorithm 1, ours)`` row);
-* ``with_peers`` (bool): also run the general-purpose registrations;
-* ``say(message)``: a progress line.
+The pipeline's stages live in the workbench, above this package, so a
+protocol asks ``runner`` (supplied by :mod:`workbench.reproduce`) for what it
+needs: ``study(name, phantom, *, settings, targets)`` → a
+:class:`workbench.study.Study` on which ``targets`` (stage names) have run
+(``phantom`` a dict of :class:`~validation.phantoms.PhantomSpec` fields,
+``settings`` ``{stage: {setting: value}}``; the same arguments give the same
+study); ``size`` (``"test"`` or ``"paper"``); ``seed`` (the phantoms');
+``register_adaptive(study, scan_id, *, settings)`` → Rhee's Algorithm 1 on a
+scan as the register stage runs ``method="adaptive"``, without changing the
+study; ``with_peers`` (also run the general-purpose registrations); and
+``say(message)``, a progress line.
 """
 
 from __future__ import annotations

@@ -1,35 +1,27 @@
 """A library of plausible hand poses from documented grasps and gestures, within normal joint ranges.
 
-Rhee et al. 2011, §6.2, tested the idea that a few principal poses span
-everyday hand postures ("most actually encountered human hand poses can be
-reproduced using a combination of a limited number of principal poses",
-their ref. [48], Santello, Flanders & Soechting 1998) on "60 different
-meaningful poses from the Poser character system": 10 eigenposes covered
-more than 90 % of the variation.  Poser's pose set is not available, so this
-library is built from three published, illustrated sets:
+Rhee et al. 2011, §6.2, found that 10 eigenposes of "60 different meaningful
+poses from the Poser character system" covered more than 90 % of the
+variation (after Santello, Flanders & Soechting 1998, their ref. [48]).
+Poser's pose set is not available, so this library is built from three
+published, illustrated sets:
 
 * **GRASP** — the 33 grasp types of Feix, Romero, Schmiedmayer, Dollar &
   Kragic, *The GRASP Taxonomy of Human Grasp Types*, IEEE Trans.
   Human-Machine Systems 46(1):66–77, 2016 (their Fig. 4 and Table I);
 * **ASL** — the 26 hand shapes of the American Sign Language manual
-  alphabet (J and Z move: their starting shapes, I and Z's pointing index);
+  alphabet (J and Z move: their starting shapes);
 * **gesture** — common communicative gestures (open palm, fist, pointing,
   thumbs-up, "OK", V, horns, call-me, counting three, pinch).
 
-The joint angles are our reading of those illustrations, composed from a
-small vocabulary of finger shapes (:data:`FINGER_SHAPES`: MCP, PIP and DIP
-flexion) and thumb shapes (:data:`THUMB_SHAPES`), with a finger spread
-(:data:`SPREADS`, MCP abduction).  Every pose is checked against the hand
-skeleton's ranges of motion (:data:`RANGE_OF_MOTION`, in
-:mod:`validation.phantoms.hand`: the normal active ranges of the American
-Academy of Orthopaedic Surgeons, *Joint Motion: Method of Measuring and
-Recording*, 1965, widened a few degrees; thumb carpometacarpal motion
-within ±60° about each joint axis).
-
-Angles are in degrees in the hand phantom's joint frames
-(:mod:`validation.phantoms.hand`: intrinsic XYZ = flexion, abduction towards
-the radial side, axial twist); the wrist stays neutral (the papers' poses
-vary the fingers).
+The joint angles are our reading of those illustrations, composed from
+finger shapes (:data:`FINGER_SHAPES`), thumb shapes (:data:`THUMB_SHAPES`)
+and spreads (:data:`SPREADS`), each pose checked against the hand's ranges
+of motion (:data:`RANGE_OF_MOTION` in :mod:`validation.phantoms.hand`: the
+AAOS normal active ranges, *Joint Motion: Method of Measuring and
+Recording*, 1965, widened a few degrees).  Angles are in degrees in the hand
+phantom's joint frames (intrinsic XYZ = flexion, abduction towards the
+radial side, twist); the wrist stays neutral.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Kurihara & Miyata 2004's joint centres (§3, Eq. 1), measured against the truth the paper never had.
+"""Kurihara & Miyata 2004's joint centres (§3, Kurihara Eq. 1), measured against the truth the paper never had.
 
 Kurihara §3: CT scans of a hand in 5 poses, each bone aligned to the base
 pose by ICP of its isosurface, the centre ``c_k`` of each joint minimising
@@ -8,14 +8,14 @@ of the thumb that has 6 DOFs".
 
 Here the CT-like hand phantom in 5 poses goes through the pipeline's ``pose``
 stage with Kurihara's method (``method="surface"``: VTK isosurfaces, Open3D
-ICP; Eq. 1 in closed form, :mod:`registration.joint_centers`), and the table
+ICP; Kurihara Eq. 1 in closed form, :mod:`registration.joint_centers`), and the table
 gives:
 
-* the Eq. 1 residual as Kurihara computed it: the RMS of
+* the Kurihara Eq. 1 residual as Kurihara computed it: the RMS of
   ``|M_i,k c_k − c_k|`` over every joint but the 6-DOF ones, over the scans
   in which the joint moves;
 * the estimated centres against the phantom's true ones (its skeleton):
-  the distance, and for a hinge-like joint (Eq. 1 cannot fix the centre
+  the distance, and for a hinge-like joint (Kurihara Eq. 1 cannot fix the centre
   along the hinge's axis) the distance of the true centre from the
   estimated axis;
 * the bones' pose errors against the true poses (rotation, degrees).
@@ -61,20 +61,20 @@ def pose_angles(shape) -> dict:
 
 PHANTOM = dict(region="hand", modality="ct", poses=tuple((k, pose_angles(v)) for k, v in POSES.items()))
 SETTINGS = {"pose": {"method": "surface"}}  # Kurihara §3: ICP of the bones' isosurfaces
-# At the test grid's 3.1 mm a distal phalanx is 2-3 voxels across and its isosurface a blob: ICP lost every
-# distal phalanx and turned the middle ones 40-55° (median bone error 20°).  The test-size protocol samples the
-# same field of view at 1.6 mm (Kurihara's CT: about 0.5 mm).
+# At the test grid's 3.1 mm a distal phalanx is 2-3 voxels across and its isosurface a blob that ICP cannot
+# hold (docs/measurements/deformation-and-validation.md), so the test-size protocol samples the same field of
+# view at 1.6 mm (Kurihara's CT: about 0.5 mm).
 TEST_SPACING_MM = (1.6, 1.6, 1.6)
 PAPER_RMS_MM = 0.91
 
 
 def joint_centre_measures(joints: dict, skeleton) -> dict:
-    """Eq. 1 residual and centre errors from the pose stage's ``joints.json`` ``joints`` entries (module
+    """Kurihara Eq. 1 residual and centre errors from the pose stage's ``joints.json`` ``joints`` entries (module
     docstring); ``skeleton`` carries the true centres."""
     res, err, off = [], [], []
     for name, j in joints.items():
         if not j.get("estimated", True):
-            continue  # the joint barely moves: Eq. 1 cannot place it, the skeleton's centre was kept
+            continue  # the joint barely moves: Kurihara Eq. 1 cannot place it, the skeleton's centre was kept
         per = [v for v in j.get("per_scan_mm") or [] if v is not None]
         if j["dof"] <= 3:
             res.extend(per)
@@ -114,7 +114,7 @@ def kurihara(runner) -> Table:
         rot.extend(v["rotation_deg"] for v in e["bones"].values())
     m["bone_rotation_median_deg"] = float(np.median(rot)) if rot else None
     cols = [
-        Column("eq1_rms_mm", "Eq. 1 RMS residual", "mm"),
+        Column("eq1_rms_mm", "Kurihara Eq. 1 RMS residual", "mm"),
         Column("center_error_mean_mm", "centre error, mean", "mm"),
         Column("center_error_max_mm", "centre error, max", "mm"),
         Column("off_axis_mean_mm", "true centre off the estimated axis, mean", "mm"),
@@ -128,10 +128,10 @@ def kurihara(runner) -> Table:
         definitions={
             "eq1_rms_mm": "√(mean |M_i,k c_k − c_k|²) over every joint of at most 3 DOF and every scan in "
             "which it moves (Kurihara §3: 'except for the CMC joint of the thumb')",
-            "center_error_mean_mm": "|estimated − true| joint centre (template frame) over the joints Eq. 1 "
+            "center_error_mean_mm": "|estimated − true| joint centre (template frame) over the joints Kurihara Eq. 1 "
             "placed (the others barely move and keep the skeleton's centre)",
             "off_axis_mean_mm": "for a hinge-like joint, the true centre's distance from the estimated "
-            "hinge axis (Eq. 1 leaves the position along the axis free); else as above",
+            "hinge axis (Kurihara Eq. 1 leaves the position along the axis free); else as above",
             "bone_rotation_median_deg": "angle of T_true⁻¹ T_est per bone and scan, median",
         },
         notes=[

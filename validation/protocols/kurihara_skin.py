@@ -1,34 +1,25 @@
 """Kurihara's surface model (Kurihara & Miyata 2004, §4–5) against the truth the paper never had.
 
-The study of the ``kurihara`` protocol (the CT hand in 5 poses, the pose stage
-by ICP of bone surfaces, Kurihara §3) goes on through the weights and
-``surface`` stages: the template's skin ``S_0`` (the base mesh), and per scan
-``S_0`` by SSD with the estimated poses, by RBF feature points (Eq. 4–5) and
-fitted to the scan's skin (§4).  The phantom's posing model ``F_i`` puts
-every template point where it is in scan ``i``, so:
+The study of the ``kurihara`` protocol (the CT hand in 5 poses, poses by ICP
+of bone surfaces, Kurihara §3) goes on through the weights and ``surface``
+stages: the template's skin ``S_0`` and, per scan, ``S_0`` by SSD with the
+estimated poses, by RBF feature points (Kurihara Eq. 4–5) and fitted to the
+scan's skin (§4).  The phantom's posing model ``F_i`` puts every template
+point where it is in scan ``i``, so:
 
-* **fitted meshes** — per scan, how far the fitted vertices lie from scan
-  ``i``'s true skin (``F_i`` of the template's true skin; mean and P95) and
-  from where the truth puts their base vertices (``|S^f_i(v) − F_i(v)|``:
-  the correspondence error, which a distance to the skin cannot see);
-* **touching fingers** (Kurihara's Pose 4, whose skin "is missing where the
-  two fingers touch each other", which their nearest-point fit could not
-  handle) — the same scan fitted by the nearest-point fit and by the
-  smoothness-regularised fit, over all vertices and over those whose skin is
-  hidden in the scan (inside the other finger);
-* **leave one pose out** (Kurihara Fig. 11 made quantitative) — the model
-  from the other 4 fitted meshes deformed to the left-out pose by SSD, PSD
-  and WPSD, vertex error against ``F_i(S_0)``; a ceiling row builds the model
-  from the truth (``F_i(S_0)`` as the meshes, the true poses) to separate what
-  interpolation cannot do from what the fitting got wrong;
-* **one finger alone** — a pose that no example shows (the index straight,
-  the other fingers hooked; every example bends the fingers together):
-  Kurihara's case for WPSD.
+* **fitted meshes** — the fitted vertices' distance to scan ``i``'s true skin
+  (mean, P95) and to where the truth puts their base vertices
+  (``‖S^f_i(v) − F_i(v)‖``, the correspondence error);
+* **touching fingers** (Kurihara's Pose 4) — the nearest-point fit and the
+  smoothness-regularised fit, over all vertices and over those hidden in the
+  scan;
+* **leave one pose out** (Kurihara Fig. 11 made quantitative) — SSD, PSD and
+  WPSD from the other 4 fitted meshes, and a ceiling row from the truth;
+* **one finger alone** — a pose no example shows: Kurihara's case for WPSD.
 
-Held-out and finger-alone poses are asked by their true joint angles (what a
-user gives ``workbench surface-deform``).  Vertices on the cap where the field
-of view cuts the forearm, and those the pose takes out of the field of view,
-are not counted.
+Held-out poses are asked by their true joint angles (as a user gives
+``workbench surface-deform``).  Vertices on the forearm's cap at the field
+of view, or taken out of it by the pose, are not counted.
 """
 
 from __future__ import annotations
@@ -41,8 +32,8 @@ from .table import Column, Table
 __all__ = ["kurihara_skin", "SURFACE"]
 
 # Feature points: landmarks from the phantom (the paper's hand-picked points, without picking error); the
-# registration's (the stage's default) would need the init and register stages on 5 hand scans (measured on
-# this study: no better than confident closest points, whose meshes the table shows beside the landmarks')
+# registration's (the stage's default) would need the init and register stages on 5 hand scans, and did no
+# better than confident closest points, whose meshes the table shows beside the landmarks'
 SURFACE = {"features": "landmarks"}
 N_LANDMARKS = 150  # Kurihara §4: 70–150 per pose
 METHODS = ("ssd", "psd", "wpsd")

@@ -9,7 +9,7 @@ knee (4 poses) and hand (10 poses) studies are the ones of Tables 3 and 4
 For each scan ``k``: an EVD model (Rhee Eq. 7) from the *other* scans'
 registrations and estimated poses — the way the pipeline's ``model`` stage
 builds it, template voxels the inverse did not find kept at VBD
-(:func:`deformation.evd.fill_unmatched`) — is asked for scan ``k``'s
+(:func:`validation.leave_one_out.registration_training_positions`) — is asked for scan ``k``'s
 estimated pose, and so is VBD with the same weights
 (:func:`validation.leave_one_out.leave_one_out_correspondences`):
 
@@ -43,8 +43,7 @@ REGIONS = (("knee", "table3"), ("hand", "table4"))
 
 
 def _region_rows(runner, region: str, protocol: str) -> tuple[dict, dict]:
-    from deformation.evd import fill_unmatched
-    from validation.leave_one_out import leave_one_out_correspondences
+    from validation.leave_one_out import leave_one_out_correspondences, registration_training_positions
 
     study = runner.study(
         protocol,
@@ -57,11 +56,9 @@ def _region_rows(runner, region: str, protocol: str) -> tuple[dict, dict]:
     weights, body = study.weights()
     sk = study.skeleton()
     ids = study.scan_ids
-    poses = {s: study.pose(s) for s in ids}
-    positions = {}
+    poses, positions = {}, {}
     for s in ids:
-        pos, found = study.registration_positions(s)
-        positions[s] = fill_unmatched(g, weights, poses[s].transforms, pos, found)
+        poses[s], positions[s], _ = registration_training_positions(study, s, g, weights)
     truth = {s: study.truth_template_to_scan(s).data + g.world_coordinates() for s in ids}
     images = {s: study.scan(s) for s in ids}
     runner.say(f"loo {region}: {len(ids)} held-out scans, EVD from the registrations")
@@ -87,7 +84,7 @@ def loo(runner) -> Table:
             "VBD": "volume blend deformation (Rhee Eq. 2) at the held-out scan's estimated pose",
             "EVD": "example-based volume deformation (Rhee Eq. 6–7), normalised-RBF pose-space "
             "interpolation of the training scans' displacements, weighted per voxel as "
-            "Kurihara's WPSD (Eq. 16)",
+            "Kurihara's WPSD (Kurihara Eq. 16)",
         },
         notes=[
             "the paper shows these comparisons as pictures only (Figs. 11–12): no published numbers",

@@ -5,28 +5,22 @@
   the identity (no initialisation); one scan.
 * :func:`table3` — Rhee Table 3: the knee in 4 poses, the template registered
   to the 3 posed scans after VBD (Rhee Eq. 2) from the *estimated* poses
-  (Rhee Eq. 1 bone registration); source / initialised / registered,
-  averaged over the 3 scans.
+  (Rhee Eq. 1 bone registration); averaged over the 3 scans.
 * :func:`table4` — Rhee Table 4: the hand in 10 poses, the same over the 9
   posed scans.
 
 Each protocol writes (through ``runner``) a phantom study and runs the
 pipeline's stages up to ``validate``; the table's rows are the means of the
 validate stage's per-scan measures (:mod:`validation.registration_measures`),
-with the paper's figures beside them.  Beside the pipeline's registration
-(``registered (ours)``, the register stage's default method) every table has
-``registered (Rhee Algorithm 1, ours)``: Rhee's Algorithm 1 as this project
-implements it (:mod:`registration.adaptive`), run exactly as ``workbench
-register --method adaptive`` would (``runner.register_adaptive``) from the
-same initialisation, on the same scans, scored by the same measures — our run
-of the paper's algorithm, not the paper's figures (those are the ``paper:``
-rows).  ``runner.with_peers`` adds elastix's and SimpleITK's B-spline
-registrations from the same initialisation, on the same scans, in the same
-run (:mod:`registration.baselines`).
-
-The template is the phantom's rest pose, which the first posed scan repeats
-(a rest-pose scan with its own noise); Rhee registered the template pose to
-the *other* scans, so that scan is left out of the means.
+with the paper's figures beside them (the ``paper:`` rows).  Beside the
+register stage's default method every table has ``registered (Rhee
+Algorithm 1, ours)``: :mod:`registration.adaptive` run as ``workbench
+register --method adaptive`` would, from the same initialisation, on the
+same scans; ``runner.with_peers`` adds elastix's and SimpleITK's B-spline
+registrations (:mod:`registration.baselines`).  The template is the
+phantom's rest pose, which the first posed scan repeats with its own noise;
+Rhee registered the template to the *other* scans, so that scan is left out
+of the means.
 """
 
 from __future__ import annotations

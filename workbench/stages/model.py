@@ -75,6 +75,7 @@ def _run(ctx) -> dict:
     from deformation.posespace import pose_vector
     from deformation.resample import FOLDED, invert_scan_to_template
     from deformation.skinning import stack_transforms
+    from validation.leave_one_out import registration_training_positions
 
     study, s = ctx.study, ctx.settings
     ids = study.check_scan_ids(s.scans)
@@ -84,8 +85,7 @@ def _run(ctx) -> dict:
     poses, fields, unmatched = [], [], {}
     for k, sid in enumerate(ids):
         if s.source == "registration":
-            pose = study.pose(sid)
-            pos, found = study.registration_positions(sid)
+            pose, pos, found = registration_training_positions(study, sid, g, weights)
             how = "the registration's inverse field and the estimated pose"
         else:
             pose = study.truth_pose(sid)
@@ -105,7 +105,7 @@ def _run(ctx) -> dict:
                 )
                 pos, found = bm.template_positions(), bm.status <= FOLDED
                 how = "inverting the truth's scan → template field"
-        pos = fill_unmatched(g, weights, pose.transforms, pos, found)
+            pos = fill_unmatched(g, weights, pose.transforms, pos, found)
         unmatched[sid] = int((~found).sum())
         poses.append(pose)
         fields.append(pos)
