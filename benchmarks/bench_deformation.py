@@ -31,11 +31,11 @@ import time
 import numpy as np
 from timing import best_of  # benchmarks/timing.py
 
-from deformation.evd import ExampleVolumeDeformation, vbd_forward
+from deformation.fields.resample import backward_map, resample_forward
 from deformation.geometry import Volume
-from deformation.posespace import PoseSpace, psd_training, skin, wpsd_deform
-from deformation.resample import backward_map, resample_forward
-from deformation.skinning import distance_weights, lbs, stack_transforms
+from deformation.models.evd import ExampleVolumeDeformation, vbd_forward
+from deformation.models.posespace import PoseSpace, psd_training, skin, wpsd_deform
+from deformation.models.skinning import distance_weights, lbs, stack_transforms
 from validation.phantoms import make_phantom
 
 
@@ -140,7 +140,7 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     t_evd, (vol_evd, bm_evd) = best_of(evd, repeats)
     t_fwd, _ = best_of(lambda: model.forward(query), repeats)
     t_wpsd, _ = best_of(lambda: evd("wpsd"), 1)
-    from deformation.posed_template import TemplatePoser
+    from deformation.models.posed_template import TemplatePoser
 
     poser = TemplatePoser(template_volume, w, Volume(body.astype(np.uint8), g), model=model)
     poser.fill = 0.0  # as resample_forward's default above
@@ -211,7 +211,7 @@ def mesh_benchmark(n_vertices: int, n_poses: int, repeats: int):
     space = PoseSpace(sk, poses)
     t0 = time.perf_counter()
     pts_space = space.point_space(w)
-    folded = pts_space.fold(base)  # with Φ⁻¹, precomputed once per mesh (deformation.surface_model does so)
+    folded = pts_space.fold(base)  # with Φ⁻¹, precomputed once per mesh (deformation.models.surface_model does so)
     t_pre = time.perf_counter() - t0
     t = stack_transforms(query.transforms, w.bones)
     skin(v, w, t)

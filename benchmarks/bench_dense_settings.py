@@ -189,7 +189,7 @@ def score(d: dict, field: Volume, seconds: float, tag: str, levels=None, per_bon
         flush=True,
     )
     if per_bone:
-        from deformation.interpolate import sample_displaced_array
+        from deformation.fields.interpolate import sample_displaced_array
 
         held = d["held"]
         lab = sample_displaced_array(
@@ -214,7 +214,7 @@ def agreement_measures(d: dict, field: Volume) -> dict:
     ranking."""
     from scipy import ndimage
 
-    from deformation.interpolate import warp
+    from deformation.fields.interpolate import warp
     from registration.metrics import air_level, cc
     from registration.segmentation import segment_body
 

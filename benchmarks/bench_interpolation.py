@@ -36,9 +36,9 @@ import SimpleITK as sitk
 # The project root first: this folder holds a ``deformation.py`` benchmark that would shadow the package.
 from timing import best_of  # benchmarks/timing.py
 
-from deformation import fields as F
+from deformation.fields import displacement as F
+from deformation.fields.interpolate import sample, sample_displaced_array
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample, sample_displaced_array
 
 
 def smooth_field(g: GridGeometry) -> np.ndarray:

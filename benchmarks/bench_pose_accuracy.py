@@ -175,7 +175,7 @@ def run_phantoms(args, root: Path):
 def run_wrist():
     from scipy.spatial.transform import Rotation
 
-    from deformation.transforms import compose, from_rotation_translation, invert, rotation_angle_deg
+    from deformation.kinematics.transforms import compose, from_rotation_translation, invert, rotation_angle_deg
     from registration.icp import icp_point_to_plane
     from registration.joint_centers import estimate_joint_center
     from workbench.io.wrist_bones import find_wrist_data, load_wrist_study, true_motion, wrist_volunteers

@@ -43,7 +43,7 @@ curl, on phantoms with structured soft tissue and an uneven soft-tissue
 motion, at 2.5 mm (knee) / 1.6 mm (hand) voxels.  Poses are *estimated*
 (:func:`registration.pose.estimate_poses`), and every method starts from the
 same one-to-one initialisation (the polyrigid flow of those poses,
-:mod:`deformation.polyrigid`).  ``--split tuning`` uses the seeds settings
+:mod:`deformation.models.polyrigid`).  ``--split tuning`` uses the seeds settings
 were chosen on (:data:`TUNING_SEEDS`), ``--split held-out`` the others
 (:data:`HELD_OUT_SEEDS`), never looked at while tuning.  Printed per case:
 MED over body, bone and soft-tissue voxels, P95, marker MED, CC, folded
@@ -93,10 +93,10 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from deformation.fields import folding_statistics
+from deformation.fields.displacement import folding_statistics
+from deformation.fields.interpolate import warp
 from deformation.geometry import Volume
-from deformation.interpolate import warp
-from deformation.skinning import stack_transforms
+from deformation.models.skinning import stack_transforms
 from registration.adaptive import AdaptiveSettings, register_adaptive
 from registration.baselines import (
     ants_available,
@@ -863,8 +863,8 @@ def _cases(args):
 
 def _weights(ph, method):
     """Skinning weights and body mask of the phantom's template, from the library (as the weights stage does)."""
-    from deformation.harmonic import harmonic_voxel_weights
-    from deformation.skinning import distance_voxel_weights
+    from deformation.models.harmonic import harmonic_voxel_weights
+    from deformation.models.skinning import distance_voxel_weights
     from registration.segmentation import segment_body
 
     template, labels = ph.template()
@@ -1079,7 +1079,7 @@ def main(argv=None) -> int:
     p.add_argument(
         "--unfold-init",
         action="store_true",
-        help="repair the folds of the VBD initialisation (deformation.fields.unfold) before every method",
+        help="repair the folds of the VBD initialisation (deformation.fields.displacement.unfold) before every method",
     )
     p.add_argument(
         "--from-truth",

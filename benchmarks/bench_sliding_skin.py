@@ -22,8 +22,8 @@ import argparse
 import numpy as np
 from scipy import ndimage
 
+from deformation.fields.interpolate import sample_displaced_array
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample_displaced_array
 from registration.dense import DenseSettings, register_dense
 
 

@@ -45,11 +45,11 @@ def main(argv=None):
     if a.triangles < 1000 or a.repeat < 1:
         ap.error("--triangles must be at least 1000 and --repeat at least 1")
 
-    from deformation.isosurface import decimate
-    from deformation.mesh import SurfaceMesh
-    from deformation.skinning import distance_weights, lbs
-    from deformation.splines import KURIHARA_D_MM, RBFDeformation
-    from deformation.surface_model import SurfaceModel
+    from deformation.fields.splines import KURIHARA_D_MM, RBFDeformation
+    from deformation.meshes.isosurface import decimate
+    from deformation.meshes.mesh import SurfaceMesh
+    from deformation.models.skinning import distance_weights, lbs
+    from deformation.models.surface_model import SurfaceModel
     from registration.surface_fit import (
         confident_targets,
         farthest_points,

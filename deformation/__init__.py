@@ -1,4 +1,13 @@
-"""Kinematics, skinning, splines, pose-space interpolation and resampling.
+"""From transforms to deformed volumes and meshes.
 
-The lowest package: it imports from no other package of the workbench.
+* :mod:`deformation.geometry` — where a volume's voxels sit in world millimetres (spacing, origin, direction);
+* :mod:`deformation.filters` — Gaussian smoothing of volumes, the one helper every package uses;
+* :mod:`deformation.kinematics` — rigid transforms, skeletons, poses, rigid fits, dual quaternions;
+* :mod:`deformation.meshes` — triangle meshes, tetrahedral meshes of the body, isosurfaces;
+* :mod:`deformation.fields` — displacement fields, sampling and warping, the backward map, splines;
+* :mod:`deformation.models` — skinning and harmonic weights, the polyrigid flow, EVD (Rhee Eq. 6–7), PSD and WPSD
+  (Kurihara Eq. 6–8, 12–16), Kurihara's surface model.
+
+``models`` uses ``fields``, ``meshes`` and ``kinematics``, which use only ``geometry`` and ``filters``
+(import-linter's contract in pyproject.toml).
 """

@@ -25,11 +25,11 @@ import nlopt
 import numba
 import numpy as np
 
-from deformation.fields import folding_statistics
+from deformation.fields.displacement import folding_statistics
+from deformation.fields.interpolate import sample_array
+from deformation.fields.splines import cps_green, cps_green_gradient
 from deformation.filters import smooth
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample_array
-from deformation.splines import cps_green, cps_green_gradient
 
 from .metrics import (
     MI_BINS,
@@ -339,7 +339,7 @@ def local_step_basis(
     ``B[p] @ d`` for the moving control points' displacements ``d``; the
     remaining control points (fixed, e.g. on bone) have zero displacement.
     With ``gradient=True`` also ``dB (m, 3, n_moving)``, the derivative of
-    ``B`` along each unit axis: analytic (:func:`deformation.splines.cps_green_gradient`), or central
+    ``B`` along each unit axis: analytic (:func:`deformation.fields.splines.cps_green_gradient`), or central
     differences of step ``h`` when ``h`` is given.  ``values=False`` (with the analytic gradient) skips ``B``
     and returns ``(None, dB)``: the fold checks need only the gradient.
     """
@@ -739,7 +739,7 @@ class BlockRegistration:
         """φ ← φ ∘ U on the ball's voxels: new disp(y) = u(y) + disp(y + u(y)) (Algorithm 1, line 10).
 
         The composed field's Jacobian determinant (the finite differences of
-        :func:`deformation.fields.jacobian_determinant`, the measure the
+        :func:`deformation.fields.displacement.jacobian_determinant`, the measure the
         folding statistics report) is checked on the ball's voxels: where the
         step would bring a voxel above ``min_jacobian / 4`` below it, or lower
         the ball's minimum when it is already below (a fold inherited from the
@@ -775,7 +775,7 @@ class BlockRegistration:
         return True, min(mj, mj_step)
 
     def _det(self, crop, lo) -> np.ndarray:
-        from deformation.fields import jacobian_determinant
+        from deformation.fields.displacement import jacobian_determinant
 
         sub = self.disp[crop]
         geo = GridGeometry(
@@ -1042,7 +1042,7 @@ def register_adaptive(
        ``(−1, 1)³`` (§4.3) — the moving points are those inside the unit ball, so
        every point that moves lies in the region over which the cost is
        evaluated.  The displacement is the biharmonic clamped plate spline
-       (§4.2, :func:`deformation.splines.cps_green`) through the 8 control points
+       (§4.2, :func:`deformation.fields.splines.cps_green`) through the 8 control points
        and, optionally, up to ``max_fixed_points`` zero-displacement control points
        on bone voxels (§4.3, "to maintain rigidity in the bone region").  The 24
        displacement values (mm) are optimised by an NLopt derivative-free method

@@ -15,7 +15,7 @@ that every comparison (``benchmarks/bench_registration.py``,
 With an initial field ``φ₀`` (e.g. VBD), the template is first resampled onto
 the scan grid through ``φ₀``; the baseline registers the scan to that image,
 giving ``T`` (scan point → point of the initialised image), and the result is
-``φ₀ ∘ T`` (:func:`deformation.fields.compose`), never a sum.
+``φ₀ ∘ T`` (:func:`deformation.fields.displacement.compose`), never a sum.
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 import SimpleITK as sitk
 
-from deformation.fields import compose, from_transform
+from deformation.fields.displacement import compose, from_transform
+from deformation.fields.interpolate import warp
 from deformation.geometry import Volume
-from deformation.interpolate import warp
 
 from .metrics import air_level
 
@@ -218,7 +218,7 @@ def elastix_bspline(
         if rigidity_labels is not None:
             from scipy import ndimage
 
-            from deformation.interpolate import sample_displaced_array
+            from deformation.fields.interpolate import sample_displaced_array
 
             g = fixed.geometry
             u = initial.data if initial is not None else np.zeros(g.array_shape + (3,), np.float32)

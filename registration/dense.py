@@ -4,7 +4,7 @@ Rhee's Algorithm 1 (:mod:`registration.adaptive`, Rhee §4.3) moves one block at
 time and keeps a step only when it pays; this method moves every voxel at every
 iteration, in the manner of ANTs SyN's greedy cross-correlation registration,
 and keeps what an articulated body needs.  From a one-to-one start ``φ₀``
-(scan → template, the polyrigid flow of :mod:`deformation.polyrigid`) it finds
+(scan → template, the polyrigid flow of :mod:`deformation.models.polyrigid`) it finds
 ``U = id + u`` on the scan grid with ``F ≈ M ∘ φ₀ ∘ U`` and returns
 ``φ = φ₀ ∘ U``: local normalised cross-correlation (LNCC) in a Gaussian
 window, its gradient smoothed ("fluid") and composed into ``U`` within a trust
@@ -36,10 +36,10 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from deformation.fields import folding_statistics, jacobian_determinant_components, unfold
+from deformation.fields.displacement import folding_statistics, jacobian_determinant_components, unfold
+from deformation.fields.interpolate import sample_array, sample_displaced_array, sample_shifted, warp
 from deformation.filters import smooth
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import sample_array, sample_displaced_array, sample_shifted, warp
 
 from .metrics import air_level, cc, similarity
 
@@ -106,7 +106,9 @@ class DenseSettings:
     #: scan's local variance: the start stands where the scan shows only noise; 0: off
     stiffness: float = 3.0
     body_only: bool = True  #: forces only inside the two images' bodies grown by 2 windows (air has no anatomy)
-    unfold: bool = True  #: remove the result's grid-level folds inside the body (deformation.fields.unfold)
+    unfold: bool = (
+        True  #: remove the result's grid-level folds inside the body (deformation.fields.displacement.unfold)
+    )
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
     #: (:func:`interpolation_noise_variance`); off by default (registration-settings.md, "interpolation_noise")
     interpolation_noise: bool = False
@@ -185,10 +187,12 @@ class DenseResult:
     settings: dict = field(default_factory=dict)
     similarity_before: dict = field(default_factory=dict)  #: SSD/CC/MI of the scan and the start's template
     similarity_after: dict = field(default_factory=dict)  #: … and the registered template
-    #: det statistics of the result over the scan's body (deformation.fields.folding_statistics; ``over`` says
-    #: which voxels) and ``n_folded_u``, the folds of U alone (0: every step was one-to-one)
+    #: det statistics of the result over the scan's body (deformation.fields.displacement.folding_statistics;
+    #: ``over`` says which voxels) and ``n_folded_u``, the folds of U alone (0: every step was one-to-one)
     folding: dict = field(default_factory=dict)
-    unfold: dict | None = None  #: what the final repair changed (deformation.fields.unfold), None if nothing
+    unfold: dict | None = (
+        None  #: what the final repair changed (deformation.fields.displacement.unfold), None if nothing
+    )
 
 
 #: the bones' significance test compares images smoothed by at least this σ in scan voxels and in template voxels
@@ -933,7 +937,7 @@ def register_dense(
     Notes
     -----
     * **Start**: ``φ₀`` (scan → template), one-to-one (the polyrigid flow of
-      :mod:`deformation.polyrigid`); the registration finds ``U = id + u`` on the
+      :mod:`deformation.models.polyrigid`); the registration finds ``U = id + u`` on the
       scan grid with ``F ≈ M ∘ φ₀ ∘ U``, the template sampled once through the
       composed map at every trial (:class:`TemplateSampler`: resampling an
       already resampled template rewards sub-voxel shifts that smooth its noise);
@@ -1024,7 +1028,7 @@ def register_dense(
       grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
       start compresses a crease below the voxel size or curled fingers touch;
       those voxels of the scan's body are smoothed locally
-      (:func:`deformation.fields.unfold`) around the bones' interiors (their
+      (:func:`deformation.fields.displacement.unfold`) around the bones' interiors (their
       deepest voxels frozen, then fewer; as a last resort none, which is tried
       second as a probe: when it leaves folds, freezing more is not tried),
       every smoothed voxel then going back towards the registered value as far as the
@@ -1562,7 +1566,7 @@ def register_dense(
         [d[r, 0] * u_ijk[0] + d[r, 1] * u_ijk[1] + d[r, 2] * u_ijk[2] for r in range(3)], axis=-1
     ).astype(np.float32)
     # φ = φ₀ ∘ U: φ₀ sampled at x + u(x), extended by its edge values beyond the grid as the images were
-    # in every step (deformation.fields.compose takes φ₀ as zero there, which tears a limb cut by the edge)
+    # in every step (deformation.fields.displacement.compose takes φ₀ as zero there, which tears a limb cut by the edge)
     phi0 = np.moveaxis(
         sample_shifted(np.moveaxis(np.asarray(initial.data, np.float32), -1, 0), u, 1.0 / sp_full), 0, -1
     )

@@ -1,16 +1,16 @@
 """Articulated initialisation of the registration (Rhee §3.2, Rhee Eq. 2).
 
 :func:`polyrigid_initial_field` — the one-to-one alternative: the bones'
-motions blended as a flow (:mod:`deformation.polyrigid`), whose backward
+motions blended as a flow (:mod:`deformation.models.polyrigid`), whose backward
 map has no fold in the crease where VBD's must fold, and keeps every bone
 exactly rigid.
 
 :func:`vbd_initial_field` — VBD (Rhee Eq. 2) of the template to a scan's
 pose, as the ``scan_to_template`` field on the scan grid that
 :func:`registration.adaptive.register_adaptive` starts from, by the Newton
-backward map of :mod:`deformation.resample` (seeded by the bones' rigid
+backward map of :mod:`deformation.fields.resample` (seeded by the bones' rigid
 transforms, so large articulated motions converge).  The inverse of a
-registration's field is :func:`deformation.resample.invert_scan_to_template`.
+registration's field is :func:`deformation.fields.resample.invert_scan_to_template`.
 """
 
 from __future__ import annotations
@@ -19,13 +19,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from deformation.evd import vbd_forward
-from deformation.fields import unfold as unfold_field
+from deformation.fields.displacement import unfold as unfold_field
+from deformation.fields.resample import backward_map
 from deformation.geometry import GridGeometry, Volume, from_every
-from deformation.resample import backward_map
+from deformation.models.evd import vbd_forward
 
 if TYPE_CHECKING:
-    from deformation.polyrigid import PolyrigidFlow
+    from deformation.models.polyrigid import PolyrigidFlow
 
 __all__ = ["vbd_initial_field", "polyrigid_initial_field"]
 
@@ -46,11 +46,11 @@ def polyrigid_initial_field(
 
     ``bone_labels`` ``{bone: label id}`` and ``parents`` ``{bone: parent bone or None}`` describe the
     skeleton; ``transforms`` ``{bone: 4x4 template → scan}`` the scan's (estimated) pose.  The weights are
-    the distance weights of :func:`deformation.skinning.distance_weights` (``power``, ``falloff_mm``), taken
+    the distance weights of :func:`deformation.models.skinning.distance_weights` (``power``, ``falloff_mm``), taken
     to the bones where they are at each moment of the motion.  ``factor`` and ``progress``: see
-    :meth:`deformation.polyrigid.PolyrigidFlow.scan_to_template` (a big scan grid).
+    :meth:`deformation.models.polyrigid.PolyrigidFlow.scan_to_template` (a big scan grid).
     """
-    from deformation.polyrigid import PolyrigidFlow, bone_distance_maps
+    from deformation.models.polyrigid import PolyrigidFlow, bone_distance_maps
 
     order = list(bone_labels)
     missing = [b for b in order if b not in transforms]
@@ -100,7 +100,7 @@ def vbd_initial_field(
     Where the linear blend is many-to-one (the crease of a flexed joint) its
     inverse must jump between the two sheets of tissue, and the field folds
     (on a fraction of a percent of the body's voxels: registration-settings.md, "initialise").
-    ``unfold=True`` repairs those voxels with :func:`deformation.fields.unfold`
+    ``unfold=True`` repairs those voxels with :func:`deformation.fields.displacement.unfold`
     (the summary gains an ``unfold`` entry) wherever the map sends a voxel
     into the template (elsewhere it keeps a clamped position, det ~0 without
     a fold: those are left as they are); this makes the field one-to-one there
@@ -111,7 +111,7 @@ def vbd_initial_field(
     ``factor`` f > 1: ``weights`` and ``body`` are on every f-th template voxel
     (``workbench weights --grid-factor``, a big template); the maps are solved
     on every f-th voxel of both grids and the field blended up to the scan's
-    full grid a slab at a time (:class:`deformation.resample.CoarseBackwardMap`).
+    full grid a slab at a time (:class:`deformation.fields.resample.CoarseBackwardMap`).
     """
     f = int(factor)
     t = np.asarray(transforms, float)
@@ -126,7 +126,7 @@ def vbd_initial_field(
     del fwd
     coarse = bm
     if f > 1:
-        from deformation.resample import CoarseBackwardMap
+        from deformation.fields.resample import CoarseBackwardMap
 
         bm = CoarseBackwardMap(bm, f, template_geometry, scan_geometry)
     field, summary = bm.scan_to_template(), bm.summary()
@@ -145,7 +145,7 @@ def mapped_voxels(coarse_map, f: int, scan_geometry: GridGeometry) -> np.ndarray
     (solved on every f-th voxel: each coarse voxel's answer given to the f³ fine voxels from it onwards)."""
     from scipy import ndimage as ndi
 
-    from deformation.resample import OUTSIDE
+    from deformation.fields.resample import OUTSIDE
 
     inside = ~ndi.binary_dilation(coarse_map.status == OUTSIDE, structure=np.ones((3, 3, 3), dtype=bool))
     return inside if f == 1 else from_every(inside, f, scan_geometry.array_shape)

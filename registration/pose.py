@@ -21,7 +21,7 @@ detection, the hinge's centre placed on its axis nearest the bones' contact
 region (the mean midpoint of the closest voxel pairs of the two bones in the
 template), and each scan's joint angles (:meth:`Joint.angles_from_motion`,
 intrinsic XYZ in the skeleton's joint frame).  Poses use the same schema as
-the phantoms' truth (:class:`deformation.skeleton.Pose`), so estimate and
+the phantoms' truth (:class:`deformation.kinematics.skeleton.Pose`), so estimate and
 truth compare with :func:`validation.pose_measures.compare_poses`.
 """
 
@@ -36,8 +36,8 @@ from scipy.spatial import cKDTree
 
 from deformation.filters import smooth
 from deformation.geometry import Volume
-from deformation.skeleton import Joint, Pose, Skeleton
-from deformation.transforms import apply, compose, rotation_angle_deg
+from deformation.kinematics.skeleton import Joint, Pose, Skeleton
+from deformation.kinematics.transforms import apply, compose, rotation_angle_deg
 
 from .joint_centers import HINGE_SD_MM, JointCenterResult, estimate_joint_center
 from .rigid import (

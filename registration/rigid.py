@@ -34,8 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from deformation.filters import smooth
 from deformation.geometry import Volume
-from deformation.isosurface import isosurface
-from deformation.transforms import apply, compose, rotation_angle_deg
+from deformation.kinematics.transforms import apply, compose, rotation_angle_deg
+from deformation.meshes.isosurface import isosurface
 
 __all__ = [
     "BoneRegion",

@@ -346,13 +346,13 @@ def skin_surface(
     mask (:func:`segment_body`) eroded by two voxels — raised above the level so that no inner surface
     remains (dark MRI cortex, gas): the skin keeps the image's sub-voxel edge, the inside has none.  The
     image is padded with air (a limb cut by the field of view gets a cap), pieces under 5 % of the largest
-    dropped (:func:`deformation.isosurface.largest_components`), and the rest decimated to about
-    ``target_triangles`` (:func:`deformation.isosurface.decimate`; None: as extracted).
+    dropped (:func:`deformation.meshes.isosurface.largest_components`), and the rest decimated to about
+    ``target_triangles`` (:func:`deformation.meshes.isosurface.decimate`; None: as extracted).
     """
     import SimpleITK as sitk
     from scipy import ndimage
 
-    from deformation.isosurface import decimate, isosurface, largest_components
+    from deformation.meshes.isosurface import decimate, isosurface, largest_components
 
     img = _smoothed(image, smooth_voxels)
     lvl = _air_tissue_level(img) if level is None else float(level)

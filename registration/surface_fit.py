@@ -3,7 +3,7 @@
 Kurihara builds, for every measured pose ``i``, a mesh ``S^f_i`` with the base
 mesh ``S_0``'s connectivity: ``S_0`` deformed by SSD (Kurihara Eqs. 2–3), then
 by RBF feature points (Kurihara Eqs. 4–5,
-:class:`deformation.splines.RBFDeformation`), then each vertex moved to its
+:class:`deformation.fields.splines.RBFDeformation`), then each vertex moved to its
 nearest point on the scan's surface (the paper used PQP).  Here:
 
 * :func:`closest_points`: Open3D's ``RaycastingScene`` closest-point query on
@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from deformation.mesh import SurfaceMesh
+from deformation.meshes.mesh import SurfaceMesh
 
 __all__ = [
     "closest_points",
@@ -335,8 +335,8 @@ def consistent_mesh(
     ``fitted`` meshes, the :class:`FitResult`, the feature indices (for landmarks: the corner of its triangle
     with the largest barycentric weight) and their targets.
     """
-    from deformation.skinning import lbs
-    from deformation.splines import KURIHARA_D_MM, RBFDeformation
+    from deformation.fields.splines import KURIHARA_D_MM, RBFDeformation
+    from deformation.models.skinning import lbs
 
     if fit not in FITS:
         raise ValueError(f"fit must be one of {FITS}, got {fit!r}")

@@ -10,7 +10,7 @@ baseline.  Both are compared with the truth by the mean Euclidean distance
   (the predicted posed position against the true one);
 * ``med_scan``: over posed body voxels ``y`` whose true template position
   lies in the template's field of view, ``|F⁻¹(y) − φ_true(y)|`` — Rhee's
-  MED of correspondences, through the backward map (:mod:`deformation.resample`).
+  MED of correspondences, through the backward map (:mod:`deformation.fields.resample`).
 
 :func:`leave_one_out_correspondences` does the same from any correspondences
 (a study's registrations), and :func:`registration_training_positions` gives
@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deformation.evd import ExampleVolumeDeformation, fill_unmatched, vbd_forward
-from deformation.resample import backward_map
-from deformation.skinning import SkinningWeights, stack_transforms
+from deformation.fields.resample import backward_map
+from deformation.models.evd import ExampleVolumeDeformation, fill_unmatched, vbd_forward
+from deformation.models.skinning import SkinningWeights, stack_transforms
 
 __all__ = [
     "LeaveOneOut",
@@ -42,7 +42,7 @@ def registration_training_positions(study, scan_id: str, geometry, weights: Skin
     ``study`` is a :class:`workbench.study.Study` (anything with its ``pose`` and
     ``registration_positions``), ``geometry`` the template grid and ``weights``
     its per-voxel skinning weights.  Template voxels the registration's inverse
-    did not find keep their VBD position (:func:`deformation.evd.fill_unmatched`),
+    did not find keep their VBD position (:func:`deformation.models.evd.fill_unmatched`),
     so they contribute ``d_k = 0`` to EVD (Rhee Eq. 7).  The training positions of
     the model stage (``--source registration``) and of the leave-one-out protocol.
 
@@ -165,7 +165,7 @@ def leave_one_out_correspondences(
     """Leave each scan out of an EVD model built from the others' correspondences, predict it, compare with truth.
 
     Rhee Figs. 11–12 made quantitative, with the model built the way a user
-    builds it: ``poses`` (scan → :class:`~deformation.skeleton.Pose`, the
+    builds it: ``poses`` (scan → :class:`~deformation.kinematics.skeleton.Pose`, the
     *estimated* poses) and ``positions`` (scan → ``(nz, ny, nx, 3)`` world
     positions of every template voxel in that scan, e.g. from a
     registration's inverse field), Rhee Eq. 7.  The held-out scan is
@@ -175,7 +175,7 @@ def leave_one_out_correspondences(
     posed template is also resampled onto the scan's grid and correlated
     with it (:func:`registration.metrics.similarity`, whole grid).
     """
-    from deformation.posed_template import TemplatePoser
+    from deformation.models.posed_template import TemplatePoser
     from registration.metrics import similarity
 
     g = template.geometry

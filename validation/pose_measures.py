@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from deformation.skeleton import Pose, Skeleton
-from deformation.transforms import apply, compose, invert, rotation_angle_deg
+from deformation.kinematics.skeleton import Pose, Skeleton
+from deformation.kinematics.transforms import apply, compose, invert, rotation_angle_deg
 from registration.joint_centers import estimate_joint_center
 from registration.pose import MOVING_DEG, PoseResult
 
@@ -49,7 +49,8 @@ def compare_poses(estimate: Pose, truth: Pose, centroids: dict[str, np.ndarray])
 
 
 def pose_errors(estimate, truth, centroids: dict) -> dict:
-    """Bone and joint errors of one scan's estimated :class:`~deformation.skeleton.Pose` (see the module docstring)."""
+    """Bone and joint errors of one scan's estimated :class:`~deformation.kinematics.skeleton.Pose`
+    (see the module docstring)."""
     bones = compare_poses(estimate, truth, centroids)
     joints = {}
     for name, a_true in (truth.joint_angles or {}).items():

@@ -14,16 +14,16 @@ one subtraction:
   field, over the whole grid (:func:`registration.metrics.similarity`:
   mean squared difference, Pearson, nats with 32 bins);
 * **folding** — the fraction of body voxels whose Jacobian determinant is
-  ≤ 0 (:func:`deformation.fields.folding_statistics`).
+  ≤ 0 (:func:`deformation.fields.displacement.folding_statistics`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from deformation.fields import folding_statistics
+from deformation.fields.displacement import folding_statistics
+from deformation.fields.interpolate import sample, sample_displaced_array
 from deformation.geometry import Volume
-from deformation.interpolate import sample, sample_displaced_array
 from registration.metrics import similarity
 
 __all__ = [
@@ -125,7 +125,7 @@ def validation_rows(
 ) -> dict:
     """Rhee's Tables 2–4 rows for one scan: ``source`` (no deformation), ``initialised`` (when ``initial``
     is given) and ``registered``, each with the measures of the module docstring over the same body voxels."""
-    from deformation.interpolate import warp
+    from deformation.fields.interpolate import warp
     from registration.metrics import air_level
 
     body = body_on_scan(truth, template_body)

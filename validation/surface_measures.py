@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.isosurface import isosurface, largest_components
-from deformation.mesh import SurfaceMesh
+from deformation.meshes.isosurface import isosurface, largest_components
+from deformation.meshes.mesh import SurfaceMesh
 
 __all__ = ["true_skin", "away_from_the_edge", "skin_distance", "vertex_errors", "posed_truth"]
 

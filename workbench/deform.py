@@ -1,7 +1,7 @@
 """Using a study's model: the template posed by EVD or VBD (``workbench deform``; ``workbench animate`` too).
 
 :func:`study_poser` loads a study's template, labels, skinning weights and
-EVD model once into a :class:`deformation.posed_template.TemplatePoser` and
+EVD model once into a :class:`deformation.models.posed_template.TemplatePoser` and
 says which deformation it will use; :func:`deform_study` writes one posed
 volume, its labels and (optionally) its field.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from deformation.geometry import covering_grid, every_nth, points_bounds
-from deformation.posed_template import WEIGHTINGS, TemplatePoser
+from deformation.models.posed_template import WEIGHTINGS, TemplatePoser
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.inputs import read_target_pose
 from workbench.io.volumes import write_labels, write_volume
@@ -37,7 +37,7 @@ PROTECTED_FOLDERS = (
 
 
 def study_poser(study: Study, *, method: str = "auto", weighting: str = "psd", progress=None) -> TemplatePoser:
-    """A :class:`~deformation.posed_template.TemplatePoser` of the study, saying which deformation it uses.
+    """A :class:`~deformation.models.posed_template.TemplatePoser` of the study, saying which deformation it uses.
 
     ``method``: ``auto`` (EVD when the study has a model, else VBD — and says
     so), ``vbd`` (Rhee Eq. 2) or ``evd`` (Rhee Eq. 6–7; an error without a model).
@@ -111,8 +111,8 @@ def _refuse_study_files(study, paths, what: str) -> None:
 
 def say_if_compiling(say) -> None:
     """Tell the user when the deformation kernels are compiled on this first use (tens of seconds otherwise silent)."""
-    from deformation.evd import forward_kernel
-    from deformation.resample import backward_kernel
+    from deformation.fields.resample import backward_kernel
+    from deformation.models.evd import forward_kernel
     from workbench.progress import compile_note
 
     note = compile_note(forward_kernel, backward_kernel)
@@ -207,7 +207,7 @@ def surface_deform(folder, pose_path, out, *, method: str = "wpsd", overwrite: b
     """Pose the study's surface model (Kurihara §5: SSD, PSD or WPSD) and write the skin mesh ``out``."""
     import time
 
-    from deformation.surface_model import SURFACE_METHODS
+    from deformation.models.surface_model import SURFACE_METHODS
     from workbench.io.meshes import MESH_SUFFIXES, write_mesh
 
     if method not in SURFACE_METHODS:

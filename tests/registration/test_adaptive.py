@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from deformation.fields import folding_statistics
+from deformation.fields.displacement import folding_statistics
+from deformation.fields.interpolate import warp
 from deformation.geometry import GridGeometry, Volume
-from deformation.interpolate import warp
 from registration.adaptive import (
     AdaptiveSettings,
     block_layout,
@@ -158,12 +158,11 @@ def test_settings_are_checked(bad, match):
 # slow: ~40 s; Algorithm 1 is no longer the default registration and its steps keep their unit tests here,
 # the default (dense) method's Table 2 protocol runs in tests/registration/test_dense.py
 @pytest.mark.slow
-def test_rhee_table2_protocol_on_the_test_knee():
+def test_rhee_table2_protocol_on_the_test_knee(phantom):
     """Rhee §6.1 / Table 2: a 10° VBD bend of the knee, no initialisation (test size, ~1 min)."""
-    from validation.phantoms import make_phantom
     from validation.registration_measures import med
 
-    ph = make_phantom("knee", size="test", posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),), seed=0)
+    ph = phantom("knee", size="test", posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),), seed=0)
     template, _ = ph.template()
     scan = next(ph.scans())
     truth = scan.correspondence

@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.skeleton import Bone, Joint, Skeleton
+from deformation.kinematics.skeleton import Bone, Joint, Skeleton
 from registration.bone_frames import bone_frames
-from validation.phantoms import make_phantom
 
 
 def test_box_of_a_known_block_with_anisotropic_rotated_grid():
@@ -30,8 +29,8 @@ def test_box_of_a_known_block_with_anisotropic_rotated_grid():
     assert np.isclose(np.linalg.det(f.axes), 1.0)
 
 
-def test_phantom_knee_frames_follow_the_bones():
-    ph = make_phantom("knee", size="test", noise=False, n_poses=1)
+def test_phantom_knee_frames_follow_the_bones(phantom):
+    ph = phantom("knee", size="test", noise=False, n_poses=1)
     _, labels = ph.template()
     frames = bone_frames(labels, ph.skeleton)
     # Tibia: long axis along -y (distal), base at its proximal (plateau) end, near y ≈ -5 mm.

@@ -94,7 +94,7 @@ def test_recovers_soft_tissue_warp_and_keeps_bone_fixed(case):
     soft = inner & ~bone
     assert err[soft].mean() < 0.4 * err0[soft].mean(), (err[soft].mean(), err0[soft].mean())
     assert np.abs(res.correspondence.data[bone]).max() < 1e-4
-    from deformation.fields import folding_statistics
+    from deformation.fields.displacement import folding_statistics
 
     assert folding_statistics(res.correspondence)["fraction_folded"] == 0.0
     again = register_dense(scan, template, moving_labels=labels, settings=st)
@@ -116,7 +116,7 @@ def test_held_bone_with_an_erred_pose_is_refined_rigidly(case):
     """
     from scipy.spatial.transform import Rotation
 
-    from deformation.rigid_fit import fit_rigid
+    from deformation.kinematics.rigid_fit import fit_rigid
 
     template, labels, scan, truth, bone = case
     g = scan.geometry
@@ -171,7 +171,7 @@ def test_refining_one_bone_leaves_its_neighbour_held_and_keeps_u_one_to_one():
     and the Jacobian check refuses it)."""
     from scipy.spatial.transform import Rotation
 
-    from deformation.rigid_fit import fit_rigid
+    from deformation.kinematics.rigid_fit import fit_rigid
 
     template, labels, scan, truth, bone = make_case(bone_texture=True)
     g = scan.geometry
@@ -252,7 +252,7 @@ def test_rigid_bones_move_as_rigid_bodies(case):
     the bone is rigid too.  What a rigid fit leaves is the trilinear resampling of the composed field near the
     bone's edge (the step is rigid on the bone's voxels, the field between them is interpolated) and the
     linearised rotation of each step (O(ω²·r)): < 0.05 mm, a fiftieth of a voxel."""
-    from deformation.rigid_fit import fit_rigid
+    from deformation.kinematics.rigid_fit import fit_rigid
 
     template, labels, scan, truth, bone = case
     st = DenseSettings(shrink=(2, 1), iterations=(20, 10), bones="rigid", bone_margin_mm=3.0)
@@ -347,7 +347,7 @@ def test_smoothing_split_into_slabs_gives_the_whole_arrays_bits():
         np.testing.assert_array_equal(g, ndimage.gaussian_filter(a, sigma, mode="nearest", truncate=3.0))
 
 
-def test_rhee_table2_protocol_without_initialisation():
+def test_rhee_table2_protocol_without_initialisation(phantom):
     """Rhee's Table 2 protocol (§6.1): the knee bent 10° by VBD, registered from the identity (no start).
 
     The shank's rotation moves the foot end by ~35 mm; the coarse level (4× subsampled) must carry it.
@@ -356,10 +356,9 @@ def test_rhee_table2_protocol_without_initialisation():
     source's MED (1.36 is 19 %), no
     fold anywhere in the body.
     """
-    from validation.phantoms import make_phantom
     from validation.registration_measures import body_on_scan, med
 
-    ph = make_phantom("knee", size="test", posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),), seed=3)
+    ph = phantom("knee", size="test", posing="vbd", poses=(("bend10", {"knee": [10.0, 0.0, 0.0]}),), seed=3)
     template, _ = ph.template()
     sc = list(ph.scans())[-1]
     body_t = Volume(
@@ -374,7 +373,7 @@ def test_rhee_table2_protocol_without_initialisation():
     source = med(zero, sc.correspondence, body)
     assert source > 5.0  # the protocol's motion is there
     assert med(res.correspondence, sc.correspondence, body) < 0.3 * source
-    from deformation.fields import folding_statistics
+    from deformation.fields.displacement import folding_statistics
 
     assert folding_statistics(res.correspondence, body)["n_folded"] == 0
 

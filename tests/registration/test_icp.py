@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deformation.transforms import compose, from_rotation_translation, invert, rotation_angle_deg
+from deformation.kinematics.transforms import compose, from_rotation_translation, invert, rotation_angle_deg
 from registration.icp import icp_point_to_plane
 
 

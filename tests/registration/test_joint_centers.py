@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deformation.transforms import compose, invert, rotation_about_point
+from deformation.kinematics.transforms import compose, invert, rotation_about_point
 from registration.joint_centers import eq1_energy, estimate_joint_center
 from validation.phantoms import hand
 

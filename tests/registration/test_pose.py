@@ -250,7 +250,7 @@ def test_a_child_of_a_flagged_bone_is_flagged_too(knee_ct_study):
     the tibia is flagged by a joint-gap limit no real fit meets."""
     from dataclasses import replace
 
-    from deformation.skeleton import Skeleton
+    from deformation.kinematics.skeleton import Skeleton
 
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
@@ -271,8 +271,8 @@ def _chain_results(rng, n_scans, outlier=None, offset_mm=3.0):
     """Synthetic fits of a three-bone chain a → b → c turning about known centres, with 0.1 mm noise."""
     from scipy.spatial.transform import Rotation
 
-    from deformation.skeleton import Bone, Joint, Pose, Skeleton
-    from deformation.transforms import compose, rotation_about_point
+    from deformation.kinematics.skeleton import Bone, Joint, Pose, Skeleton
+    from deformation.kinematics.transforms import compose, rotation_about_point
     from registration.pose import ScanPose
     from registration.rigid import BoneFit
 

@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.skeleton import Bone, Joint, Skeleton
-from deformation.transforms import apply, compose, invert, rotation_about_point, rotation_angle_deg
+from deformation.kinematics.skeleton import Bone, Joint, Skeleton
+from deformation.kinematics.transforms import apply, compose, invert, rotation_about_point, rotation_angle_deg
 from registration.rigid import (
     Sampler,
     bone_regions,

@@ -17,12 +17,10 @@ def dice(a, b):
 
 
 @pytest.fixture(scope="module")
-def knee_templates():
-    from validation.phantoms import make_phantom
-
+def knee_templates(phantom):
     out = {}
     for modality in ("ct", "mri"):
-        ph = make_phantom("knee", size="test", modality=modality, n_poses=1, seed=4)
+        ph = phantom("knee", size="test", modality=modality, n_poses=1, seed=4)
         out[modality] = ph.template() + (ph.skeleton,)
     return out
 
@@ -63,11 +61,10 @@ def test_mri_marrow_flood_at_5mm(knee_templates):
     assert rep.warnings == [] and set(rep.parameters["thresholds"]) == set(sk.bone_names)
 
 
-def test_mri_fibula_from_five_bright_seeds_at_2_5mm():
+def test_mri_fibula_from_five_bright_seeds_at_2_5mm(phantom):
     """The failing case: five seeds in the fibula's brightest voxels, at a grid that resolves its marrow."""
-    from validation.phantoms import make_phantom
 
-    ph = make_phantom("knee", size="test", modality="mri", n_poses=1, seed=4, spacing=(2.5, 2.5, 2.5))
+    ph = phantom("knee", size="test", modality="mri", n_poses=1, seed=4, spacing=(2.5, 2.5, 2.5))
     img, lab = ph.template()
     sk = ph.skeleton
     seeds = {**seeds_from_labels(lab, sk), "fibula": _brightest(img, lab, sk, "fibula")}

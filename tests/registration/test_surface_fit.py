@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.isosurface import decimate, isosurface
-from deformation.mesh import SurfaceMesh
+from deformation.meshes.isosurface import decimate, isosurface
+from deformation.meshes.mesh import SurfaceMesh
 from registration.surface_fit import (
     closest_points,
     consistent_mesh,
@@ -115,8 +115,8 @@ def test_consistent_mesh_takes_the_base_through_ssd_rbf_and_fit():
     """Kurihara §4 on a sphere: S0 (R 9) on one bone moved rigidly; the scan's skin is the sphere of R 11 at the
     bone's new place.  SSD is the rigid motion exactly; with feature targets where the true map (scale, then
     the motion) puts the vertices, the RBF lands its features exactly and the fit finishes on the skin."""
-    from deformation.skinning import SkinningWeights
-    from deformation.transforms import apply, rotation_about_point
+    from deformation.kinematics.transforms import apply, rotation_about_point
+    from deformation.models.skinning import SkinningWeights
 
     base = _sphere_mesh((0.0, 0.0, 0.0), 9.0)
     w = SkinningWeights.one_hot(np.zeros(base.n_vertices, np.int64), ("b",))
@@ -149,8 +149,8 @@ def test_landmarks_lie_on_s0s_triangles_and_the_rbf_takes_them_to_their_targets(
     """Landmarks picked on the template's skin (not at S0's vertices): their closest points on S0 as triangle
     and barycentric coordinates rebuild the point on S0 itself; any mesh with S0's connectivity carries them;
     the RBF's centres are where SSD takes them, and Eq. 5 lands each exactly on its target."""
-    from deformation.skinning import SkinningWeights
-    from deformation.transforms import apply
+    from deformation.kinematics.transforms import apply
+    from deformation.models.skinning import SkinningWeights
 
     base = _sphere_mesh((0.0, 0.0, 0.0), 9.0)
     rng = np.random.default_rng(3)

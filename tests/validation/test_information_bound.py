@@ -84,7 +84,7 @@ def test_median_error_norm_of_an_isotropic_gaussian():
     assert median_error_norm([np.eye(3), np.eye(3) * 9.0], seed=2, n=100_000) == pytest.approx(m, rel=5e-3)
 
 
-def test_phantom_gradient_model_predicts_the_rendered_change():
+def test_phantom_gradient_model_predicts_the_rendered_change(phantom):
     """The bound takes the scan's change under a bone's small motion as −∇S·δx with ∇S = R∇I(T⁻¹x).  Check
     it against the phantom itself: turn the knee by 0.1° of flexion in a noise-free rendering, and compare
     the tibia region's change with the prediction.  Measured: correlation 0.998, norm ratio 0.995 (bone
@@ -92,9 +92,8 @@ def test_phantom_gradient_model_predicts_the_rendered_change():
     a 4 mm edge, and the correlation drops to 0.965; hence the small step."""
     from registration.rigid import bone_regions
     from validation.information_bound import template_gradient
-    from validation.phantoms import make_phantom
 
-    ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=3, noise=False)
+    ph = phantom("knee", size="test", modality="ct", n_poses=2, seed=3, noise=False)
     tpl, lab = ph.template()
     region = bone_regions(tpl, lab, ph.skeleton)["tibia"]
     pid, angles = ph.poses[1]
@@ -122,20 +121,17 @@ def test_phantom_gradient_model_predicts_the_rendered_change():
     assert np.linalg.norm(actual) / np.linalg.norm(predicted) == pytest.approx(1.0, abs=0.02)
 
 
-def test_phantom_bounds_shrink_with_the_voxel():
+def test_phantom_bounds_shrink_with_the_voxel(phantom):
     """Halving the voxel gives ~8x the samples and ~2x the gradient per edge voxel, so the bound on a bone's
     rotation must shrink by well over 2x (measured on the CT knee's patella: 0.47° → 0.084° rms, 278 → 1694 voxels)."""
     from registration.rigid import bone_regions
-    from validation.phantoms import make_phantom
 
     out = {}
     for scale in (1, 2):
-        ph = make_phantom("knee", size="test", modality="ct", n_poses=2, seed=3)
+        ph = phantom("knee", size="test", modality="ct", n_poses=2, seed=3)
         if scale != 1:
             _, sp = ph.region.GRIDS["test"]
-            ph = make_phantom(
-                "knee", size="test", modality="ct", n_poses=2, seed=3, spacing=tuple(s / scale for s in sp)
-            )
+            ph = phantom("knee", size="test", modality="ct", n_poses=2, seed=3, spacing=tuple(s / scale for s in sp))
         tpl, lab = ph.template()
         regs = bone_regions(tpl, lab, ph.skeleton)
         out[scale] = phantom_pose_bounds(ph, ph.poses[1][1], {"patella": regs["patella"]})["patella"]

@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from deformation.harmonic import harmonic_weights, weights_on_grid
-from deformation.tetmesh import lattice_tetmesh
+from deformation.meshes.tetmesh import lattice_tetmesh
+from deformation.models.harmonic import harmonic_weights, weights_on_grid
 from registration.segmentation import segment_body
 from validation.leave_one_out import leave_one_out
-from validation.phantoms import make_phantom
 
 # slow: ~60 s (a 10-pose hand, its tet mesh and harmonic weights); EVD and PSD/WPSD keep their unit tests in
 # tests/deformation, and the study's EVD model is built from registrations in tests/workbench/test_run.py
@@ -17,10 +16,10 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def hand():
+def hand(phantom):
     """The test hand with harmonic weights (not the phantom's own blend weights, which would make VBD
     nearly exact): segmented body, lattice tet mesh, Laplace solve — the `workbench weights` path."""
-    ph = make_phantom("hand", size="test", modality="mri", n_poses=10, seed=4, noise=False)
+    ph = phantom("hand", size="test", modality="mri", n_poses=10, seed=4, noise=False)
     template, labels = ph.template()
     body = segment_body(template, labels=labels)
     mesh = lattice_tetmesh(body)  # every voxel (3.1 mm): the weights stage's default at this size

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.isosurface import isosurface, signed_volume
+from deformation.meshes.isosurface import isosurface, signed_volume
 from validation.phantoms import Phantom, PhantomSpec
 from validation.surface_measures import away_from_the_edge, posed_truth, skin_distance, true_skin, vertex_errors
 

@@ -59,13 +59,12 @@ def _one_error_line(err: str, command: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory):
+def study(phantom, tmp_path_factory):
     """A noise-free CT knee (0°, 35°) with distance weights and an EVD model from the truth: every writer's input."""
-    from validation.phantoms import make_phantom
     from workbench.study import write_phantom_study
 
     root = write_phantom_study(
-        make_phantom("knee", size="test", modality="ct", n_poses=2, seed=2, noise=False),
+        phantom("knee", size="test", modality="ct", n_poses=2, seed=2, noise=False),
         tmp_path_factory.mktemp("faults") / "study",
     ).root
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
@@ -148,7 +147,7 @@ def test_mesh_writers_cut_short_raise(tmp_path, suffix):
     process (SIGSEGV): each now raises, naming the file, and leaves nothing."""
     code = f"""
 import numpy as np, resource
-from deformation.tetmesh import TetMesh
+from deformation.meshes.tetmesh import TetMesh
 from workbench.io.meshes import SurfaceMesh, write_mesh
 from workbench.io.tetmeshes import write_tetmesh
 rng = np.random.default_rng(0)

@@ -27,8 +27,8 @@ def test_compile_note_until_the_kernel_is_cached(tmp_path, monkeypatch):
 
 def test_the_deformation_kernels_are_cached_dispatchers():
     """deform's note looks at these two kernels' caches: they must be cached numba dispatchers."""
-    from deformation.evd import forward_kernel
-    from deformation.resample import backward_kernel
+    from deformation.fields.resample import backward_kernel
+    from deformation.models.evd import forward_kernel
 
     for k in (forward_kernel, backward_kernel):
         assert k._cache._cache_file._index_path.endswith(".nbi")

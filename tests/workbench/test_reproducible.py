@@ -31,7 +31,7 @@ from workbench.study import read_study
 # slow (~30 s in the default suite's 2 workers: two whole runs at once, harmonic weights included), to keep the
 # default suite under 6 minutes on CI; `make test-slow` runs it.  The default suite keeps the same rule piecewise:
 # a Dask worker's registrations are the synchronous run's bytes (tests/workbench/test_run.py), a phantom is the
-# same files for the same seed (tests/workbench/test_cli.py), the dense registration the same bits on 1 and 2
+# same files for the same seed (tests/workbench/cli/test_cli.py), the dense registration the same bits on 1 and 2
 # threads (tests/registration/test_dense.py).
 pytestmark = pytest.mark.slow
 

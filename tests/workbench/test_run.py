@@ -26,7 +26,7 @@ from workbench.cli import main
 from workbench.study import read_study
 
 # A fast configuration of every stage: distance weights, the polyrigid start on every other voxel (its accuracy
-# is tests/workbench/test_cli_register.py's), and Rhee Algorithm 1's budget (the levels and steps: the default
+# is tests/workbench/cli/test_cli_register.py's), and Rhee Algorithm 1's budget (the levels and steps: the default
 # dense registration does not read them; a rerun with one of them changed reruns register and what follows).
 SETTINGS = [
     "--set",
@@ -134,8 +134,8 @@ def test_second_run_skips_every_stage(done, tmp_path):
     assert (root / "study.json").read_bytes() == manifest
 
 
-# slow (~26 s: the chain from register on, again); tests/workbench/test_stages.py's rerun on a new setting stays in
-# the default suite (`make test-slow`)
+# slow (~26 s: the chain from register on, again); tests/workbench/stages/test_stages.py's rerun on a new setting
+# stays in the default suite (`make test-slow`)
 @pytest.mark.slow
 def test_changing_one_registration_setting_reruns_register_model_and_validate_only(done, tmp_path):
     root, _, _ = done
@@ -397,8 +397,8 @@ def test_surface_with_landmarks_from_a_file_and_a_bad_landmarks_file(done, tmp_p
     """`workbench surface --landmarks FILE` (Kurihara's hand-picked feature points) on a copy of the study:
     every landmark is a feature point placed on S0's triangles, the RBF mesh carries it to its scan point;
     a file naming a scan the study lacks is refused before any work, naming the file, nothing changed."""
-    from deformation.interpolate import sample
-    from deformation.splines import KURIHARA_D_MM, RBFDeformation
+    from deformation.fields.interpolate import sample
+    from deformation.fields.splines import KURIHARA_D_MM, RBFDeformation
     from registration.surface_fit import farthest_points, landmark_sites, on_mesh
     from workbench.io.meshes import read_mesh
 

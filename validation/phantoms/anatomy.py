@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deformation.skeleton import Skeleton
-from deformation.transforms import invert
+from deformation.kinematics.skeleton import Skeleton
+from deformation.kinematics.transforms import invert
 
 __all__ = ["Anatomy", "Contrast", "CONTRASTS", "Texture"]
 

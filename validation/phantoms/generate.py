@@ -30,9 +30,9 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from deformation.fields import jacobian_determinant
+from deformation.fields.displacement import jacobian_determinant
 from deformation.geometry import GridGeometry, Volume
-from deformation.skeleton import Pose, Skeleton
+from deformation.kinematics.skeleton import Pose, Skeleton
 
 from . import hand, knee
 from .anatomy import CONTRASTS, Anatomy, Contrast, Texture

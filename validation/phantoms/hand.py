@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deformation.skeleton import Bone, Joint, Skeleton
+from deformation.kinematics.skeleton import Bone, Joint, Skeleton
 
 from .anatomy import Anatomy
 from .shapes import Ellipsoid, RoundCone, SmoothUnion

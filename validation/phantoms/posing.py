@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deformation import dual_quaternion
+from deformation.kinematics import dual_quaternion
 
 from . import kernels
 from .anatomy import Anatomy

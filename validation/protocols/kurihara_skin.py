@@ -105,8 +105,8 @@ def kurihara_skin(runner) -> Table:
     import json
     import os
 
-    from deformation.mesh import SurfaceMesh
-    from deformation.surface_model import SurfaceModel
+    from deformation.meshes.mesh import SurfaceMesh
+    from deformation.models.surface_model import SurfaceModel
     from registration.surface_fit import consistent_mesh, landmark_sites
     from validation.phantoms import Phantom, PhantomSpec
     from validation.surface_measures import away_from_the_edge, posed_truth, true_skin

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deformation.skeleton import Pose, SkeletonError
-from deformation.transforms import check_rigid
+from deformation.kinematics.skeleton import Pose, SkeletonError
+from deformation.kinematics.transforms import check_rigid
 from registration.segmentation import SEEDS_FORMAT
 from workbench.errors import InputFileError
 from workbench.io.jsonio import read_json

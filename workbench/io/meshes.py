@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deformation.mesh import SurfaceMesh
+from deformation.meshes.mesh import SurfaceMesh
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
 from workbench.io.atomic import atomic_path, split_suffix
 
@@ -393,7 +393,7 @@ def _read_vtp(path: Path) -> SurfaceMesh:
 def _write_vtp(mesh: SurfaceMesh, tmp: Path, point_data: dict | None = None) -> None:
     from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
 
-    from deformation.isosurface import vtk_polydata
+    from deformation.meshes.isosurface import vtk_polydata
 
     poly = vtk_polydata(mesh.vertices, mesh.triangles, point_data)
     writer = vtkXMLPolyDataWriter()

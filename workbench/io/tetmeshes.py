@@ -8,7 +8,7 @@ The format:
 * Points: float64 world millimetres (``x, y, z``), written in VTK's binary
   (base64, zlib-compressed) encoding, so the round trip is bit-exact.
 * Cells: one ``VTK_TETRA`` per tetrahedron, vertex order kept (positively
-  oriented for meshes from :func:`deformation.tetmesh.lattice_tetmesh`).
+  oriented for meshes from :func:`deformation.meshes.tetmesh.lattice_tetmesh`).
 * Point data: any named per-vertex arrays, float64 (or their own dtype).
   Skinning weights are stored as one scalar array per bone named
   ``weight_<bone>`` (:func:`weight_arrays`), so each bone's weight field can
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deformation.tetmesh import TetMesh
+from deformation.meshes.tetmesh import TetMesh
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
 from workbench.io.atomic import atomic_path, split_suffix
 from workbench.io.meshes import capture_vtk_output, write_vtk_xml  # VTK prints errors instead of raising

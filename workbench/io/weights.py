@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from deformation.geometry import GridGeometry, Volume
-from deformation.skinning import SkinningWeights
+from deformation.models.skinning import SkinningWeights
 from workbench.errors import InputFileError
 from workbench.io.jsonio import read_json, write_json
 from workbench.io.volumes import read_image_geometry, read_vector_image, write_vector_image

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deformation.mesh import SurfaceMesh, connected_components, submesh
-from deformation.rigid_fit import fit_rigid, rigid_residuals
+from deformation.kinematics.rigid_fit import fit_rigid, rigid_residuals
+from deformation.meshes.mesh import SurfaceMesh, connected_components, submesh
 from workbench.errors import InputFileError, MissingFileError
 from workbench.io.meshes import read_mesh
 
@@ -308,7 +308,7 @@ def true_motion(study: WristBoneStudy, bone: WristBone | int, from_pose: str, to
     Returns
     -------
     BoneMotion
-        Least-squares rigid fit (:func:`deformation.rigid_fit.fit_rigid`) over
+        Least-squares rigid fit (:func:`deformation.kinematics.rigid_fit.fit_rigid`) over
         all the bone's vertices, template = ``from_pose``, scan = ``to_pose``,
         and its residuals.
     """

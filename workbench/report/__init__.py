@@ -157,8 +157,8 @@ def _convergence(log: dict) -> bytes | None:
 
 
 def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> None:
-    from deformation.fields import jacobian_determinant
-    from deformation.interpolate import warp
+    from deformation.fields.displacement import jacobian_determinant
+    from deformation.fields.interpolate import warp
     from registration.metrics import air_level
 
     scan = study.scan(sid)

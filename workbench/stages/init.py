@@ -1,19 +1,19 @@
 """The ``init`` stage: the registration's articulated start for each scan (Rhee §3, Rhee Eq. 2).
 
 ``method="polyrigid"`` (default): the bones' rigid motions to the scan's pose blended as a flow
-(:func:`registration.initialise.polyrigid_initial_field`, :mod:`deformation.polyrigid`): one-to-one by
+(:func:`registration.initialise.polyrigid_initial_field`, :mod:`deformation.models.polyrigid`): one-to-one by
 construction, every bone exactly rigid, and its forward map (template → scan) is written beside it, so the
 register stage inverts only its own correction; no fold of its own in a flexed joint's crease
 (docs/measurements/workbench.md). ``method="vbd"``: every template voxel moved by the weighted blend of its bones'
 transforms (VBD, Rhee Eq. 2) to the scan's pose — the *estimated* pose of the pose stage, or with ``pose="truth"``
 the phantom's true pose (an explicit protocol choice, e.g. Rhee's Table 4; the pipeline never falls back to it) —
 inverted onto the scan grid by the backward map (:func:`registration.initialise.vbd_initial_field`).  ``unfold``
-repairs the folds of VBD in the crease of a flexed joint (:func:`deformation.fields.unfold`).
+repairs the folds of VBD in the crease of a flexed joint (:func:`deformation.fields.displacement.unfold`).
 ``method="identity"``: no start (Rhee's Table 2 protocol).
 
 The polyrigid flow is integrated voxel by voxel; on a grid of more than :data:`POLYRIGID_VOXELS` voxels (a CT at
 0.5 mm) it is integrated on every f-th voxel and blended up, integrated exactly where the map jumps
-(``map_factor``, :meth:`deformation.polyrigid.PolyrigidFlow.scan_to_template`).
+(``map_factor``, :meth:`deformation.models.polyrigid.PolyrigidFlow.scan_to_template`).
 
 Outputs (``init/<scan>/``): ``field.mha`` (``scan_to_template`` on the scan grid, mm; not for the identity),
 ``forward.mha`` (polyrigid only: the flow's ``template_to_scan`` field on the template grid) and ``init.json``
@@ -76,7 +76,7 @@ def _inputs(study, s: InitSettings, scan):
         files["labels"] = study.template_labels_path()
         files["skeleton"] = study.path(study.manifest["skeleton"])
         if s.map_factor is not None:  # before any work: the grids' headers
-            from deformation.polyrigid import max_map_factor
+            from deformation.models.polyrigid import max_map_factor
             from workbench.io.volumes import read_image_geometry
 
             for name, path in (("scan", files["scan"]), ("template", files["template"])):
@@ -100,7 +100,7 @@ def _inputs(study, s: InitSettings, scan):
 
 
 def _run(ctx) -> dict:
-    from deformation.skinning import stack_transforms
+    from deformation.models.skinning import stack_transforms
     from registration.initialise import vbd_initial_field
     from workbench.io.volumes import read_image_geometry
 
@@ -143,8 +143,8 @@ def _run(ctx) -> dict:
 
 
 def _polyrigid(ctx, pose, g_s, flagged) -> dict:
-    from deformation.polyrigid import max_map_factor
-    from deformation.skinning import stack_transforms
+    from deformation.models.polyrigid import max_map_factor
+    from deformation.models.skinning import stack_transforms
     from registration.initialise import polyrigid_initial_field
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan

@@ -14,7 +14,7 @@ lies in scan ``k``.
 Template voxels with no correspondence in a scan (they leave its field of
 view, or the inverse did not converge there) keep VBD: ``d_k = 0``.  The
 template's rest pose joins the examples with ``d = 0`` unless a training
-scan is near rest (:mod:`deformation.evd`; ``evd.json``'s
+scan is near rest (:mod:`deformation.models.evd`; ``evd.json``'s
 ``template_example``).
 
 Outputs (``model/``): ``evd.json`` and ``evd_displacements.mha``
@@ -70,11 +70,11 @@ def _inputs(study, s: ModelSettings, scan):
 
 
 def _run(ctx) -> dict:
-    from deformation.evd import ExampleVolumeDeformation, fill_unmatched
+    from deformation.fields.resample import FOLDED, invert_scan_to_template
     from deformation.geometry import Volume
-    from deformation.posespace import pose_vector
-    from deformation.resample import FOLDED, invert_scan_to_template
-    from deformation.skinning import stack_transforms
+    from deformation.models.evd import ExampleVolumeDeformation, fill_unmatched
+    from deformation.models.posespace import pose_vector
+    from deformation.models.skinning import stack_transforms
     from validation.leave_one_out import registration_training_positions
 
     study, s = ctx.study, ctx.settings
@@ -126,7 +126,7 @@ def _run(ctx) -> dict:
         "template_example": model.template_example,
         "template_example_is": "the template's rest pose as one more example with zero displacement "
         "(Kurihara's base pose S0), included unless a training scan is near rest "
-        "(deformation.evd.wants_template_example)",
+        "(deformation.models.evd.wants_template_example)",
         "weights_sha256": weights.digest(),
         "unmatched_voxels": unmatched,
         "unmatched": "template voxels with no correspondence in that scan (outside its field of view, or the "

@@ -9,7 +9,7 @@ worst-matching block of a hierarchy gets 8 clamped-plate-spline control points w
 simplex optimises; each accepted step is composed into the running field
 (:func:`registration.adaptive.register_adaptive`).  After VBD the template's bone voxels are zero-displacement
 control points (Rhee §4.3).  The result is inverted onto the template grid for EVD (Rhee Eq. 7) by
-:func:`deformation.resample.invert_scan_to_template`, through the start's exact forward map (VBD's, or the
+:func:`deformation.fields.resample.invert_scan_to_template`, through the start's exact forward map (VBD's, or the
 polyrigid flow's ``forward.mha``), so that only the registration's own correction is inverted numerically.
 
 Outputs (``registration/<scan>/``)::
@@ -181,7 +181,7 @@ def _inputs(study, s, scan):
 
 def _forward(study, sid, start, template_geometry):
     """The start's forward map (template voxel → scan position, ``(nz, ny, nx, 3)``), or ``None`` (identity)."""
-    from deformation.evd import vbd_forward
+    from deformation.models.evd import vbd_forward
 
     if start["method"] == "vbd":
         weights, _ = study.weights()  # the weights that made the start (their digest reaches ours through it)
@@ -226,7 +226,7 @@ def adaptive_registration(study, sid: str, s: RegisterSettings, *, template=None
 
 
 def _run(ctx) -> dict:
-    from deformation.resample import invert_scan_to_template
+    from deformation.fields.resample import invert_scan_to_template
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
     start = study.init_info(sid)  # the start, as the init stage made it: no pose (nor truth) is read here
@@ -328,7 +328,7 @@ def _outputs(result, bm, template, log: dict) -> dict:
 
 
 def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
-    from deformation.resample import invert_scan_to_template
+    from deformation.fields.resample import invert_scan_to_template
     from registration.dense import register_dense
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan

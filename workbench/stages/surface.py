@@ -13,7 +13,7 @@
   (``"landmarks"``, a JSON/CSV file: the paper picked 70–150 points by hand per pose); and ``S^f_i``, the fit to
   ``T_i`` — the smoothness- regularised one (``fit="regularised"``, for touching or missing skin) or the paper's
   nearest-point fit (``"nearest"``).  Every ``S^f_i`` has S0's connectivity, so
-  :class:`deformation.surface_model.SurfaceModel` can interpolate them (``workbench surface-deform``).
+  :class:`deformation.models.surface_model.SurfaceModel` can interpolate them (``workbench surface-deform``).
 
 Outputs (``surface/``): ``template_skin.vtp`` (S0 with ``weight_<bone>`` point arrays), ``template_bones.vtp`` (a
 ``label`` point array), per scan ``<scan>_skin.ply``, ``<scan>_ssd.ply``, ``<scan>_rbf.ply``,
@@ -101,7 +101,7 @@ def _inputs(study, s: SurfaceSettings, scan):
 def vertex_weights(study, points):
     """Skinning weights at world ``points``: the harmonic ones through the weights stage's tet mesh, or the
     nearest template voxel's when the stage kept none."""
-    from deformation.harmonic import weights_at_points
+    from deformation.models.harmonic import weights_at_points
     from workbench.io.tetmeshes import read_tetmesh, weights_from_point_data
 
     if study.has_output("weights", "tetmesh.vtu"):
@@ -116,7 +116,7 @@ def vertex_weights(study, points):
 
 
 def _run(ctx) -> dict:
-    from deformation.isosurface import label_surfaces
+    from deformation.meshes.isosurface import label_surfaces
     from registration.segmentation import skin_surface
     from registration.surface_fit import landmark_sites
     from workbench.io.tetmeshes import weight_arrays
@@ -208,8 +208,8 @@ def _settings_doc(study, s: SurfaceSettings) -> dict:
 def _fit_scan(shared, sid: str):
     """One scan's consistent mesh (Kurihara §4): ``(scan, its surface.json entry, its meshes, confident
     fraction)``; reads the scan, its pose and registration from the study folder (a Dask task's input)."""
+    from deformation.fields.interpolate import sample
     from deformation.geometry import Volume
-    from deformation.interpolate import sample
     from registration.segmentation import skin_surface
     from registration.surface_fit import consistent_mesh
     from workbench.study import read_study

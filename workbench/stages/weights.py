@@ -1,17 +1,18 @@
 """The ``weights`` stage: skinning weights of every template voxel (the ``w`` of Rhee Eq. 2 and Kurihara Eq. 2–3).
 
 ``method="harmonic"``: the body (segmented from the template, :func:`registration.segmentation.segment_body`) is
-meshed with the Kuhn tetrahedra of a lattice of its voxel centres (:func:`deformation.tetmesh.lattice_tetmesh`:
-the mask's own resolution up to :data:`~deformation.tetmesh.MAX_LATTICE_VERTICES` vertices, or ``edge_length_mm``)
-and each bone's weight solved as a harmonic function (:func:`deformation.harmonic.harmonic_voxel_weights`);
-``"distance"``: inverse-distance weights (:func:`deformation.skinning.distance_voxel_weights`). The mesh is a
+meshed with the Kuhn tetrahedra of a lattice of its voxel centres (:func:`deformation.meshes.tetmesh.lattice_tetmesh`:
+the mask's own resolution up to :data:`~deformation.meshes.tetmesh.MAX_LATTICE_VERTICES` vertices, or
+``edge_length_mm``)
+and each bone's weight solved as a harmonic function (:func:`deformation.models.harmonic.harmonic_voxel_weights`);
+``"distance"``: inverse-distance weights (:func:`deformation.models.skinning.distance_voxel_weights`). The mesh is a
 function of the body mask and the step, so a rerun gives the same bits.
 
 A template of more than :data:`~workbench.stages.stage.WORKING_VOXELS` voxels (a CT the size of Kurihara's) gets
 its weights and body mask on every f-th voxel along each axis (``grid_factor``; the weights are smooth; a bone
 with no voxel left on that grid is one clear error naming ``--grid-factor``): deform, animate and the init stage's
 VBD solve their maps on that grid and pull the full template (or blend the field) up to full resolution
-(:class:`deformation.resample.CoarseBackwardMap`); register after a VBD start, model and validate, which need
+(:class:`deformation.fields.resample.CoarseBackwardMap`); register after a VBD start, model and validate, which need
 full-grid weights, say so.
 
 Outputs (``skinning/``): ``body_mask.nii.gz``, ``weights.json`` with ``weights_index.mha`` and
@@ -59,8 +60,8 @@ def _inputs(study, s, scan):
 
 
 def _run(ctx) -> dict:
-    from deformation.harmonic import harmonic_voxel_weights
-    from deformation.skinning import distance_voxel_weights
+    from deformation.models.harmonic import harmonic_voxel_weights
+    from deformation.models.skinning import distance_voxel_weights
     from registration.segmentation import segment_body
     from workbench.io.tetmeshes import weight_arrays
 

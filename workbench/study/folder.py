@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from deformation.geometry import Volume, every_nth
-from deformation.skeleton import Pose, Skeleton
+from deformation.kinematics.skeleton import Pose, Skeleton
 from workbench.errors import InputFileError, MissingFileError
 from workbench.io.jsonio import read_json, write_json
 from workbench.io.volumes import (
@@ -339,7 +339,7 @@ class Study:
 
     def registration_inverse(self, scan_id: str) -> tuple[Volume, Volume]:
         """``(template_to_scan field, status labels)`` on the template grid (status 0 ok, 1 folded, 2 not
-        converged, 3 outside the scan: :data:`deformation.resample.STATUS_NAMES`)."""
+        converged, 3 outside the scan: :data:`deformation.fields.resample.STATUS_NAMES`)."""
         return (
             read_displacement(self.output("register", "template_to_scan.mha", scan_id)),
             read_labels(self.output("register", "inverse_status.nii.gz", scan_id)),
@@ -348,7 +348,7 @@ class Study:
     def registration_positions(self, scan_id: str):
         """``(positions (nz, ny, nx, 3), found)``: where each template voxel lies in the scan by the registration
         (world mm), and where the inverse found it (ok or folded; elsewhere it left the scan's field of view)."""
-        from deformation.resample import FOLDED
+        from deformation.fields.resample import FOLDED
 
         inv, status = self.registration_inverse(scan_id)
         read_image_geometry(self.path(self.manifest["template"])).check_same(
@@ -371,7 +371,7 @@ class Study:
 
     def model(self, weights=None):
         """The study's EVD model (``workbench model``), or ``None`` when there is none."""
-        from deformation.evd import ExampleVolumeDeformation
+        from deformation.models.evd import ExampleVolumeDeformation
 
         if not self.has_model:
             return None
@@ -435,9 +435,9 @@ class Study:
 
     def surface_model(self):
         """Kurihara's surface model (``workbench surface``): S0 with its vertices' weights, the fitted meshes of
-        the scans and their estimated poses, as a :class:`deformation.surface_model.SurfaceModel`."""
-        from deformation.skinning import SkinningWeights
-        from deformation.surface_model import SurfaceModel
+        the scans and their estimated poses, as a :class:`deformation.models.surface_model.SurfaceModel`."""
+        from deformation.models.skinning import SkinningWeights
+        from deformation.models.surface_model import SurfaceModel
         from workbench.io.meshes import read_mesh, read_mesh_point_data
         from workbench.io.tetmeshes import weights_from_point_data
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from deformation.geometry import covering_grid
-from deformation.skeleton import SkeletonError
+from deformation.kinematics.skeleton import SkeletonError
 from workbench.errors import InputFileError, OutputExistsError
 from workbench.io.jsonio import read_json
 
@@ -450,7 +450,7 @@ def animate_study(
     out = Path(out)
     _Writer.check(out, overwrite)  # format, folder, clash: before the deformation model is built
     if skin is not None:
-        from deformation.surface_model import SURFACE_METHODS
+        from deformation.models.surface_model import SURFACE_METHODS
 
         if skin not in SURFACE_METHODS:
             raise ValueError(f"--skin must be one of {', '.join(SURFACE_METHODS)}, got {skin!r}")

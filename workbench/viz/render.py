@@ -273,7 +273,7 @@ class VolumeRenderer:
         """
         from vtkmodules.vtkFiltersCore import vtkWindowedSincPolyDataFilter
 
-        from deformation.isosurface import flying_edges
+        from deformation.meshes.isosurface import flying_edges
 
         lab = np.asarray(labels.data if isinstance(labels, Volume) else labels)
         if isinstance(labels, Volume):
@@ -337,7 +337,7 @@ class VolumeRenderer:
         its triangle count."""
         from vtkmodules.vtkFiltersCore import vtkPolyDataNormals
 
-        from deformation.isosurface import vtk_polydata
+        from deformation.meshes.isosurface import vtk_polydata
 
         nrm = vtkPolyDataNormals()
         nrm.SetInputData(vtk_polydata(mesh.vertices, mesh.triangles))
