@@ -60,7 +60,7 @@ class StudyRunner:
             got = study.manifest.get("phantom") or {}
             want = spec.to_dict()
             differ = [k for k in want if got.get(k) != want[k]]
-            if spec.poses is not None and not _same_poses(got.get("poses"), spec.poses):
+            if spec.poses is not None and not same_poses(got.get("poses"), spec.poses):
                 differ.append("poses")
             if differ:
                 raise WorkbenchError(
@@ -99,7 +99,7 @@ class StudyRunner:
         return result
 
 
-def _same_poses(recorded, poses) -> bool:
+def same_poses(recorded, poses) -> bool:
     """Whether a manifest's recorded phantom poses (``[{"id", "angles_deg"}]``) are the explicit ``poses``."""
     import numpy as np
 

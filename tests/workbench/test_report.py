@@ -65,7 +65,7 @@ def test_control_point_map_of_rhee_algorithm_1():
     from PIL import Image
 
     from deformation.geometry import GridGeometry, Volume
-    from workbench.report import _control_points
+    from workbench.report import control_points
     from workbench.report import figures as F
 
     c, s = np.cos(0.3), np.sin(0.3)
@@ -92,7 +92,7 @@ def test_control_point_map_of_rhee_algorithm_1():
         def scan(self, sid):
             return scan
 
-    png, caption = _control_points(Study(), "s1")
+    png, caption = control_points(Study(), "s1")
     assert "(2 steps)" in caption
     img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), int)
     for colour in ((31, 119, 180), (255, 127, 14)):  # matplotlib's C0 (level 2) and C1 (level 3)
@@ -102,7 +102,7 @@ def test_control_point_map_of_rhee_algorithm_1():
     assert F.plane_point_coordinates(p, (1.5, 1.0, 2.0), "yz")[0] == pytest.approx([5.5 * 1.0, 7.5 * 2.0])
     assert F.plane_point_coordinates(p, (1.5, 1.0, 2.0), "xy")[0] == pytest.approx([3.5 * 1.5, 5.5 * 1.0])
     log = {"summary": {"levels": [{"level": 0, "shrink": 4, "lncc": [0.1, 0.2]}]}}  # the dense method's log
-    assert _control_points(Study(), "s1") is None
+    assert control_points(Study(), "s1") is None
 
 
 def test_renders_embed_pictures_and_mp4_videos(tmp_path):
@@ -112,7 +112,7 @@ def test_renders_embed_pictures_and_mp4_videos(tmp_path):
 
     import imageio_ffmpeg
 
-    from workbench.report import _renders_section
+    from workbench.report import renders_section
     from workbench.report.html import Page
 
     renders = tmp_path / "renders"
@@ -128,7 +128,7 @@ def test_renders_embed_pictures_and_mp4_videos(tmp_path):
         root = tmp_path
 
     page = Page("t")
-    _renders_section(page, Study())
+    renders_section(page, Study())
     html = page.html()
     src = html.split('<video src="', 1)[1].split('"', 1)[0]
     assert src.startswith("data:video/mp4;base64,")

@@ -147,13 +147,13 @@ def test_two_workers_give_the_same_tables(tmp_path, capsys):
 def test_a_study_of_other_explicit_poses_is_not_reused():
     """The runner reuses a protocol's study only when its recorded phantom poses are the wanted ones: every
     DOF compared (the phantom records all of them; a wanted joint given with fewer values has zeros after)."""
-    from workbench.reproduce import _same_poses
+    from workbench.reproduce import same_poses
 
     rec = [{"id": "a", "angles_deg": {"knee": [10.0, 0.0, 0.0]}}]
-    assert _same_poses(rec, (("a", {"knee": [10.0, 0.0, 0.0]}),))
-    assert _same_poses(rec, (("a", {"knee": [10.0]}),))
-    assert not _same_poses(rec, (("a", {"knee": [12.0, 0.0, 0.0]}),))
-    assert not _same_poses([{"id": "a", "angles_deg": {"knee": [10.0, 5.0, 0.0]}}], (("a", {"knee": [10.0]}),))
-    assert not _same_poses([{"id": "a", "angles_deg": {"knee": [10.0]}}], (("a", {"knee": [10.0, 0.0, 1.0]}),))
-    assert not _same_poses(rec, (("b", {"knee": [10.0, 0.0, 0.0]}),))
-    assert not _same_poses(None, (("a", {"knee": [10.0]}),))
+    assert same_poses(rec, (("a", {"knee": [10.0, 0.0, 0.0]}),))
+    assert same_poses(rec, (("a", {"knee": [10.0]}),))
+    assert not same_poses(rec, (("a", {"knee": [12.0, 0.0, 0.0]}),))
+    assert not same_poses([{"id": "a", "angles_deg": {"knee": [10.0, 5.0, 0.0]}}], (("a", {"knee": [10.0]}),))
+    assert not same_poses([{"id": "a", "angles_deg": {"knee": [10.0]}}], (("a", {"knee": [10.0, 0.0, 1.0]}),))
+    assert not same_poses(rec, (("b", {"knee": [10.0, 0.0, 0.0]}),))
+    assert not same_poses(None, (("a", {"knee": [10.0]}),))

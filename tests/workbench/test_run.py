@@ -159,9 +159,9 @@ def test_changing_one_registration_setting_reruns_register_model_and_validate_on
 def test_a_bone_the_pose_stage_flags_is_listed_by_init_and_not_held_by_register(done, tmp_path, monkeypatch):
     """A bone the pose stage could not place (fits.json status not ``ok``; the hand's distal thumb in the
     benchmark) is listed by the init stage in init.json and is not among the bones register holds rigid
-    (workbench.stages.register._held_bones, what both registrations are given); the other bones are held as
+    (workbench.stages.register.held_bones, what both registrations are given); the other bones are held as
     labelled.  The flag is forced here (the test knee places every bone)."""
-    from workbench.stages.register import _held_bones
+    from workbench.stages.register import held_bones
     from workbench.study import Study
 
     root, _, _ = done
@@ -175,10 +175,10 @@ def test_a_bone_the_pose_stage_flags_is_listed_by_init_and_not_held_by_register(
     assert info["flagged_bones"] == ["patella"] and st.init_info("pose02")["flagged_bones"] == []
     labels = st.template_labels().data
     patella = st.skeleton().label_of("patella")
-    held = _held_bones(st, info).data
+    held = held_bones(st, info).data
     assert np.any(labels == patella) and not np.any(held == patella)
     assert np.array_equal(held[labels != patella], labels[labels != patella])
-    assert np.array_equal(_held_bones(st, st.init_info("pose02")).data, labels)
+    assert np.array_equal(held_bones(st, st.init_info("pose02")).data, labels)
 
 
 def _finished_pairs(a: Path, b: Path, stage: str):

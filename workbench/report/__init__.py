@@ -323,7 +323,7 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
                 )
             )
         if pictures:
-            cp = _control_points(study, sid)
+            cp = control_points(study, sid)
             if cp is not None:
                 figs.append(page.image(*cp))
         if figs:
@@ -332,7 +332,7 @@ def _registration_section(page: Page, study, scans, *, pictures: bool = True, he
             _scan_pictures(page, study, sid, parts, truth=truth)
 
 
-def _control_points(study, sid: str):
+def control_points(study, sid: str):
     """``(png, caption)``: the control points of every accepted step of Rhee's Algorithm 1, coloured by block
     level and projected on the scan's yz plane through its centre (Rhee Fig. 9), or None (another method)."""
     from registration.adaptive import control_points_from_log
@@ -369,7 +369,7 @@ def _control_points(study, sid: str):
 RENDER_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".mp4")
 
 
-def _renders_section(page: Page, study) -> None:
+def renders_section(page: Page, study) -> None:
     folder = study.root / "renders"
     files = sorted(p for p in folder.glob("*") if p.suffix.lower() in RENDER_SUFFIXES) if folder.is_dir() else []
     if not files:
@@ -427,7 +427,7 @@ def study_report(study, *, scans=None, pictures: bool = True) -> str:
     )
     _pose_section(page, study)
     _registration_section(page, study, ids, pictures=pictures)
-    _renders_section(page, study)
+    renders_section(page, study)
     _provenance(page, study)
     return page.html()
 

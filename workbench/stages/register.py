@@ -197,7 +197,7 @@ def _forward(study, sid, start, template_geometry):
     return None
 
 
-def _held_bones(study, start):
+def held_bones(study, start):
     """The bones a registration holds rigid: the template's labels less those the pose stage could not place
     (the init stage lists them; their start follows an ancestor, which the image may correct)."""
     from registration.pose import released_labels
@@ -208,7 +208,7 @@ def _held_bones(study, start):
 def adaptive_registration(study, sid: str, s: RegisterSettings, *, template=None, scan=None, progress=None):
     """Rhee's Algorithm 1 on scan ``sid`` as this stage runs it (``method="adaptive"``), nothing written: from the
     init stage's start (its field, or the identity), with :meth:`RegisterSettings.adaptive` for that start's
-    method and, after an articulated start, the bones :func:`_held_bones` holds.  ``template``/``scan``: the
+    method and, after an articulated start, the bones :func:`held_bones` holds.  ``template``/``scan``: the
     study's, when already read.  Returns the :class:`~registration.adaptive.AdaptiveResult` (its
     ``correspondence`` and ``registered`` are what the stage writes; ``workbench reproduce``'s Tables 2–4 score
     them directly)."""
@@ -217,7 +217,7 @@ def adaptive_registration(study, sid: str, s: RegisterSettings, *, template=None
     start = study.init_info(sid)  # the start, as the init stage made it: no pose (nor truth) is read here
     articulated = start["method"] in ("vbd", "polyrigid")
     settings = s.adaptive(start["method"])
-    rigid = _held_bones(study, start) if (articulated and settings.fix_bones) else None
+    rigid = held_bones(study, start) if (articulated and settings.fix_bones) else None
     template = study.template() if template is None else template
     scan = study.scan(sid) if scan is None else scan
     return register_adaptive(
@@ -333,7 +333,7 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
 
     study, s, sid = ctx.study, ctx.settings, ctx.scan
     settings = s.dense(articulated)
-    labels = _held_bones(study, start) if settings.bones == "fixed" else None
+    labels = held_bones(study, start) if settings.bones == "fixed" else None
     forward = _forward(study, sid, start, template.geometry)
 
     def level(rec):
