@@ -97,8 +97,10 @@ lint: venv
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports
 
-# The documentation site (docs/), Sphinx with warnings as errors; `make test` builds it after the gates.
+# The documentation site (docs/), Sphinx with warnings as errors; `make test` builds it after the gates.  The
+# generated API and results pages are made anew each time (a module that moved leaves no stale page behind).
 docs: venv
+	rm -rf docs/api/generated docs/results/generated
 	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
 	@echo "docs: open docs/_build/html/index.html"
 
