@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_adaptive import G, bent_pair  # same folder (rootdir-less test modules)
 
 from deformation.geometry import Volume
 from registration.baselines import ants_available, ants_syn, elastix_available, sitk_bspline
+from tests.registration.test_adaptive import G, bent_pair
 
 
 @pytest.mark.slow  # ~16 s; elastix's B-spline, the main peer, stays in the default suite (`make test-slow`)

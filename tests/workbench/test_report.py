@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from report_checks import decode, parse
 
+from tests.workbench.report_checks import decode, parse
 from workbench.cli import main
 
 

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from report_checks import MAX_BYTES, chromium, decode, parse
 
+from tests.workbench.report_checks import MAX_BYTES, chromium, decode, parse
 from workbench.cli import main
 from workbench.study import read_study
 
@@ -720,7 +720,7 @@ def test_run_on_a_local_dask_cluster_of_two_workers_gives_the_same_files(done, t
 @pytest.mark.slow
 def test_run_against_a_dask_scheduler_and_two_workers_gives_the_same_files(done, tmp_path):
     """`--scheduler ADDRESS` against `dask scheduler` and two `dask worker` processes on localhost (what a
-    cluster runs; README 'Many scans, big machines'): from the pose stage's outputs on, the same files."""
+    cluster runs; docs/user-guide/dask.md): from the pose stage's outputs on, the same files."""
     root, _, _ = done
     study = _strip(root, tmp_path / "sched", keep=("bones", "pose", "weights"))
     dask_cli = Path(sys.executable).with_name("dask")

@@ -42,7 +42,7 @@ poses, validated against synthetic ground truth.  Implements Kurihara &
 Miyata 2004 and Rhee et al. 2011.
 
 A *study* is a folder with a study.json manifest naming the template scan, its
-bone label map, the skeleton and the posed scans (see README.md).
+bone label map, the skeleton and the posed scans (the user guide's "Study folders": docs/user-guide/study-folders.md).
 """
 
 EPILOG = """\

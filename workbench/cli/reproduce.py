@@ -112,7 +112,7 @@ def add_parser(subparsers) -> None:
         metavar="ADDRESS",
         default=None,
         help="run the protocols' studies as tasks on an existing Dask cluster instead (e.g. "
-        "tcp://head-node:8786; README, 'Many scans, big machines'); workers must see --out at the "
+        "tcp://head-node:8786; docs/user-guide/dask.md); workers must see --out at the "
         "same path",
     )
     add_common(p)

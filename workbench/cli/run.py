@@ -54,7 +54,7 @@ examples:
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "run",
-        help="run every stage in order: bones, pose, weights, init, register, model, validate, report",
+        help="run every stage in order: bones, pose, weights, init, register, model, surface, validate, report",
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

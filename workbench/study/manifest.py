@@ -86,13 +86,13 @@ def read_manifest(root: Path) -> dict:
     if not isinstance(m, dict):
         raise StudyError(
             f'{manifest_path}: a study manifest is a JSON object {{"format": "{STUDY_FORMAT}", '
-            '"template": ..., "skeleton": ..., "scans": [...]}} (README, \'Study folders\').',
+            '"template": ..., "skeleton": ..., "scans": [...]}} (docs/user-guide/study-folders.md).',
             manifest_path,
         )
     if "format" not in m:
         raise StudyError(
             f'{manifest_path}: no \'format\' key; add "format": "{STUDY_FORMAT}", "version": 1 '
-            "at the top of the manifest (README, 'Study folders', has a minimal one).",
+            "at the top of the manifest (docs/user-guide/study-folders.md has a minimal one).",
             manifest_path,
         )
     if m.get("format") != STUDY_FORMAT:
