@@ -678,6 +678,7 @@ class BlockRegistration:
         best_x, best_f = np.zeros(24), c0n
         for r in range(s.restarts + 1):
             x0 = best_x.copy() if r == 0 else np.clip(best_x + rng.uniform(-1, 1, 24) * 2 * step, -bound, bound)
+            # Rhee Eq. 3's optimisation over f, the 8 control points' displacements (Rhee: Nelder–Mead)
             xr, fr = _run_simplex(s.optimizer, cost, x0, bound, step, s.max_evals, 0.01 * spacing_min, s.ftol_rel)
             if fr < best_f:
                 best_x, best_f = xr, fr
