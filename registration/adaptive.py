@@ -446,7 +446,7 @@ def ssd_cost(e, B, base, box, fixed, buf):
     acc = 0.0
     for p in range(buf.shape[0]):
         d = buf[p] - fixed[p]
-        acc += d * d
+        acc += d * d  # Rhee Eq. 4: Σ_i (I_s(v_i) − I_t(v_i))², then divided by n
     return acc / buf.shape[0]
 
 
@@ -460,7 +460,7 @@ def neg_mi_cost(e, B, base, box, fixed_bin, lo, scale, bins, buf, hist):
     hist[:, :] = 0.0
     accumulate_joint_histogram(buf, fixed_bin, bins, hist)
     ha, hb, hab = entropies(hist)
-    return -(ha + hb - hab)
+    return -(ha + hb - hab)  # −Rhee Eq. 5: −(H(V_s) + H(V_t) − H(V_s, V_t))
 
 
 # -- the registration -----------------------------------------------------------------------------------
@@ -584,7 +584,7 @@ class BlockRegistration:
 
     def _whole(self, metric: str) -> float:
         if metric == "ssd":
-            return float(np.mean((self.warped.astype(np.float64) - self.fixed.data) ** 2))
+            return float(np.mean((self.warped.astype(np.float64) - self.fixed.data) ** 2))  # Rhee Eq. 4 / n
         st = block_statistics(self.fixed.data, self.warped, np.zeros(self.shape, np.int32), 1, self.bins, self.bins)
         return float(st["nmi"][0])
 
@@ -668,6 +668,8 @@ class BlockRegistration:
             mj = _min_jacobian(e, dbc)
             if mj < s.min_jacobian:
                 return 2.0 + 10.0 * (s.min_jacobian - mj)
+            # Rhee Eq. 3: SM(V_s + D(V_s, c, f), V_t) over the block's region, D the CPS through the control
+            # points c with displacements f = d; the bending-energy term (λ > 0) is ours, not in Rhee Eq. 3
             return data_cost(e) / norm + lam * float(np.einsum("kc,kl,lc->", d, ginv, d))
 
         rng = np.random.default_rng([s.seed, lv.level, step_no])
@@ -676,6 +678,7 @@ class BlockRegistration:
         best_x, best_f = np.zeros(24), c0n
         for r in range(s.restarts + 1):
             x0 = best_x.copy() if r == 0 else np.clip(best_x + rng.uniform(-1, 1, 24) * 2 * step, -bound, bound)
+            # Rhee Eq. 3's optimisation over f, the 8 control points' displacements (Rhee: Nelder–Mead)
             xr, fr = _run_simplex(s.optimizer, cost, x0, bound, step, s.max_evals, 0.01 * spacing_min, s.ftol_rel)
             if fr < best_f:
                 best_x, best_f = xr, fr

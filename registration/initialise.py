@@ -115,7 +115,7 @@ def vbd_initial_field(
     """
     f = int(factor)
     t = np.asarray(transforms, float)
-    fwd = vbd_forward(template_geometry.every(f), weights, t)
+    fwd = vbd_forward(template_geometry.every(f), weights, t)  # Rhee Eq. 2: every template voxel posed by VBD
     bm = backward_map(
         fwd,
         template_geometry.every(f),

@@ -65,7 +65,7 @@ class JointCenterResult:
 def eq1_energy(center, motions) -> float:
     """Kurihara Eq. 1: ``Σ_i |M_i c − c|²``."""
     c = np.asarray(center, float)
-    return float(sum(np.sum((m[:3, :3] @ c + m[:3, 3] - c) ** 2) for m in motions))
+    return float(sum(np.sum((m[:3, :3] @ c + m[:3, 3] - c) ** 2) for m in motions))  # Kurihara Eq. 1: Σ_i ‖M_i c − c‖²
 
 
 def estimate_joint_center(
@@ -106,7 +106,7 @@ def estimate_joint_center(
     u, s, vt = np.linalg.svd(a, full_matrices=False)
     axis = vt[-1]
     dof = a.shape[0] - 3
-    c_full = vt.T @ ((u.T @ b) / s) if s[-1] > 0 else None  # the unconstrained least-squares centre
+    c_full = vt.T @ ((u.T @ b) / s) if s[-1] > 0 else None  # Kurihara Eq. 1's minimiser, closed form (SVD)
     axis_sd = (
         float(np.linalg.norm(a @ c_full - b) / np.sqrt(dof) / s[-1]) if dof > 0 and c_full is not None else float("nan")
     )
@@ -129,7 +129,7 @@ def estimate_joint_center(
     else:
         c = c_full
         msg = "well-conditioned"
-    per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in moving])
+    per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in moving])  # Kurihara Eq. 1's ‖M_i c − c‖
     it = None
     if cross_check:
         x0 = np.zeros(3) if reference is None else np.asarray(reference, float)

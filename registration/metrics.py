@@ -114,7 +114,7 @@ def _pair(a, b, mask=None) -> tuple[np.ndarray, np.ndarray]:
 def ssd(a, b, mask=None) -> float:
     """Mean squared intensity difference (Rhee Eq. 4 per voxel)."""
     x, y = _pair(a, b, mask)
-    return float(np.mean((x - y) ** 2)) if x.size else float("nan")
+    return float(np.mean((x - y) ** 2)) if x.size else float("nan")  # Rhee Eq. 4 divided by n
 
 
 def cc(a, b, mask=None) -> float:
@@ -160,17 +160,17 @@ def entropies(h):
             row += v
             if v > 0:
                 p = v / total
-                hab -= p * math.log(p)
+                hab -= p * math.log(p)  # Rhee Eq. 5's H(V_s, V_t) = −Σ P(x, y) log P(x, y)
         if row > 0:
             p = row / total
-            ha -= p * math.log(p)
+            ha -= p * math.log(p)  # Rhee Eq. 5's H(x) = −Σ P(x) log P(x), rows
     for j in range(n):
         col = 0.0
         for i in range(n):
             col += h[i, j]
         if col > 0:
             p = col / total
-            hb -= p * math.log(p)
+            hb -= p * math.log(p)  # Rhee Eq. 5's H of the columns
     return ha, hb, hab
 
 
@@ -206,7 +206,7 @@ def mutual_information(
 ) -> float:
     """MI (Rhee Eq. 5), nats, of the joint histogram (see the module docstring for the binning)."""
     ha, hb, hab = _mi_parts(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask)
-    return ha + hb - hab
+    return ha + hb - hab  # Rhee Eq. 5: MI = H(V_s) + H(V_t) − H(V_s, V_t)
 
 
 def normalized_mi(
@@ -215,7 +215,7 @@ def normalized_mi(
     """Rhee's mismatch ratio ``MI / min(H(A), H(B))`` (§4.1, after Park et al.); NaN if an image is flat."""
     ha, hb, hab = _mi_parts(a, b, bins_a=bins_a, bins_b=bins_b, bins=bins, mask=mask)
     m = min(ha, hb)
-    return (ha + hb - hab) / m if m > 0 else float("nan")
+    return (ha + hb - hab) / m if m > 0 else float("nan")  # Rhee Eq. 5 over min(H(V_s), H(V_t)), Rhee §4.1
 
 
 def similarity(fixed, moving, *, mask=None, bins: int = MI_BINS) -> dict:
@@ -227,7 +227,7 @@ def similarity(fixed, moving, *, mask=None, bins: int = MI_BINS) -> dict:
     if isinstance(fixed, Volume) and isinstance(moving, Volume):
         fixed.geometry.check_same(moving.geometry, names=("fixed", "moving"))
     ha, hb, hab = _mi_parts(moving, fixed, bins=bins, mask=mask)
-    mi = ha + hb - hab
+    mi = ha + hb - hab  # Rhee Eq. 5
     return {
         "ssd": ssd(fixed, moving, mask),
         "cc": cc(fixed, moving, mask),
@@ -296,7 +296,7 @@ def block_statistics(
     if bins_moving.bins != nb:
         raise ValueError("both images need the same number of bins")
     count = np.bincount(ids, minlength=n_blocks).astype(np.float64)
-    sq = np.bincount(ids, weights=(f - m) ** 2, minlength=n_blocks)
+    sq = np.bincount(ids, weights=(f - m) ** 2, minlength=n_blocks)  # Rhee Eq. 4 per block
     cell = (ids * nb + bins_moving.index(m)) * nb + bins_fixed.index(f)
     h = np.bincount(cell, minlength=n_blocks * nb * nb).reshape(n_blocks, nb, nb).astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -307,8 +307,8 @@ def block_statistics(
         pf = p.sum(axis=1)
         hm = -np.where(pm > 0, pm * np.log(np.where(pm > 0, pm, 1.0)), 0.0).sum(axis=1)
         hf = -np.where(pf > 0, pf * np.log(np.where(pf > 0, pf, 1.0)), 0.0).sum(axis=1)
-        mi = hm + hf - hab
+        mi = hm + hf - hab  # Rhee Eq. 5 per block
         hmin = np.minimum(hm, hf)
         nmi = np.where(hmin > 0, mi / np.where(hmin > 0, hmin, 1.0), np.nan)
-        out_ssd = np.where(count > 0, sq / np.maximum(count, 1), np.nan)
+        out_ssd = np.where(count > 0, sq / np.maximum(count, 1), np.nan)  # Rhee Eq. 4 divided by n
     return {"ssd": out_ssd, "nmi": nmi, "mi": mi, "h_fixed": hf, "h_moving": hm, "count": count.astype(np.int64)}

@@ -540,11 +540,12 @@ def _pool(
         )
     joints, new_joints = {}, []
     for j in skeleton.joints:
+        # Kurihara Eq. 1's M_{i,k}: the child's motion relative to its parent in every usable scan i
         motions = [skeleton.relative_motion(s.pose.transforms, j.name) for s in results if usable(s, j)]
         if not motions:
             new_joints.append(j)  # no scan where both bones were found: the skeleton's centre stays
             continue
-        r = (
+        r = (  # Kurihara Eq. 1 minimised over the scans
             estimate_joint_center(motions, reference=contacts[j.name], hinge_ratio=hinge_ratio, hinge_sd_mm=hinge_sd_mm)
             if max(rotation_angle_deg(m) for m in motions) >= MOVING_DEG
             else None
@@ -553,6 +554,7 @@ def _pool(
             # The joint barely turns: Kurihara Eq. 1's centre would be translation noise over a tiny angle (millimetres
             # off for 0.3° of noise), so the skeleton's centre stays, with its residual reported.
             c = np.asarray(j.center, float)
+            # Kurihara Eq. 1's residuals ‖M_i c − c‖ at the skeleton's centre
             per = np.array([np.linalg.norm(m[:3, :3] @ c + m[:3, 3] - c) for m in motions])
             r = JointCenterResult(
                 center=c,
@@ -586,7 +588,7 @@ def _pool(
 def placed_transforms(fits: dict, skeleton: Skeleton) -> dict:
     """The pose's transforms: each placed bone's fit; a flagged bone (its fit is kept in ``fits``) follows its
     nearest placed ancestor rigidly, its joints as in the template.  A flagged fit is one the image did not
-    confirm (NCC < 0.5, outside the scan, detached from its joint, an Kurihara Eq. 1 outlier): handing it on made
+    confirm (NCC < 0.5, outside the scan, detached from its joint, a Kurihara Eq. 1 outlier): handing it on made
     every later stage start from it (the measurements: docs/measurements/pose-and-initialisation.md).  A
     flagged root keeps its fit (nothing to follow)."""
     out = {}

@@ -245,7 +245,7 @@ def _evaluate(region: BoneRegion, sampler: Sampler, t: np.ndarray, *, min_inside
     inside = float(np.isfinite(vals).mean())
     if inside < min_inside:
         return math.inf, inside
-    return ssd(vals, region.values), inside
+    return ssd(vals, region.values), inside  # Rhee Eq. 1 at T, divided by the voxel count
 
 
 # -- coarse initialisation -----------------------------------------------------------------------------
@@ -272,7 +272,7 @@ def _batch_ssd(
     ok = np.isfinite(v)
     cnt = ok.sum(axis=1)
     if metric == "ssd":
-        d2 = np.where(ok, (v - region_vals) ** 2, 0.0)
+        d2 = np.where(ok, (v - region_vals) ** 2, 0.0)  # Rhee Eq. 1's (I_scan(T x) − I_template(x))² per candidate
         out = d2.sum(axis=1) / np.maximum(cnt, 1)
     else:
         w = ok.astype(float)
@@ -640,7 +640,7 @@ def _data_residuals(v: np.ndarray, ref: np.ndarray, metric: str) -> np.ndarray:
         den = float(vc @ vc)
         a = float(vc @ (ref - ref.mean())) / den if den > 0 else 0.0
         return a * vc + ref.mean() - ref
-    return v - ref
+    return v - ref  # Rhee Eq. 1's residuals I_scan(T x) − I_template(x)
 
 
 def _data_sigma(region: BoneRegion, sampler: Sampler, t: np.ndarray, metric: str) -> tuple[float, float]:
@@ -727,6 +727,7 @@ def polish_with_prior(
         x = x0 + y
         v = sampler(apply(_increment(x, init, c), pts))
         v = np.where(np.isfinite(v), v, ref)  # points leaving the grid stop contributing
+        # Rhee Eq. 1 / σ² plus the prior's terms (the prior is ours: Rhee Eq. 1 has none)
         return np.concatenate([data_residuals(v) / sigma, w * x])
 
     def jacobian(x, f0=None):

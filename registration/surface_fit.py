@@ -342,7 +342,7 @@ def consistent_mesh(
         raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
     if landmarks is not None and feature_targets is not None:
         raise ValueError("give landmarks or feature_targets, not both")
-    ssd = SurfaceMesh(lbs(base.vertices, weights, transforms), base.triangles)
+    ssd = SurfaceMesh(lbs(base.vertices, weights, transforms), base.triangles)  # S^s_i, Kurihara Eq. 2
     if landmarks is not None:
         sites, tgt = landmarks[0], np.asarray(landmarks[1], float).reshape(-1, 3)
         if len(tgt) != len(sites[0]) or len(tgt) < 4:
@@ -377,8 +377,8 @@ def consistent_mesh(
                 "(try the other --features source)"
             )
         centres, tgt = ssd.vertices[idx], tgt[idx]
-    rbf = RBFDeformation(centres, tgt, D=KURIHARA_D_MM if rbf_length_mm is None else rbf_length_mm)
-    rbf_mesh = SurfaceMesh(rbf(ssd.vertices), base.triangles)
+    rbf = RBFDeformation(centres, tgt, D=KURIHARA_D_MM if rbf_length_mm is None else rbf_length_mm)  # Kurihara Eq. 5
+    rbf_mesh = SurfaceMesh(rbf(ssd.vertices), base.triangles)  # S^r_i, Kurihara Eq. 4
     if fit == "nearest":
         res = fit_nearest(rbf_mesh, target)
     else:

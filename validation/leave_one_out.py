@@ -103,12 +103,12 @@ def leave_one_out(
     out = []
     for k in indices:
         rest = [i for i in range(n) if i != k]
-        model = ExampleVolumeDeformation.from_correspondences(
+        model = ExampleVolumeDeformation.from_correspondences(  # Rhee Eq. 7 on the other poses
             g, weights, phantom.skeleton, [poses[i] for i in rest], [fields[i] for i in rest]
         )
         truth = fields[k].reshape(-1, 3)
-        f_evd = model.forward(poses[k], weighting=weighting)
-        f_vbd = vbd_forward(g, weights, poses[k].transforms)
+        f_evd = model.forward(poses[k], weighting=weighting)  # Rhee Eq. 6
+        f_vbd = vbd_forward(g, weights, poses[k].transforms)  # Rhee Eq. 2
         r = LeaveOneOut(
             angles[k][0],
             float(np.linalg.norm(f_vbd.reshape(-1, 3)[body_t] - truth[body_t], axis=1).mean()),
@@ -187,12 +187,12 @@ def leave_one_out_correspondences(
     out = []
     for k in held_out or ids:
         rest = tuple(s for s in ids if s != k)
-        model = ExampleVolumeDeformation.from_correspondences(
+        model = ExampleVolumeDeformation.from_correspondences(  # Rhee Eq. 7 on the other scans
             g, weights, skeleton, [poses[s] for s in rest], [positions[s] for s in rest]
         )
         truth = np.asarray(truth_positions[k], np.float64).reshape(-1, 3)[mask]
-        f_evd = model.forward(poses[k], weighting=weighting).reshape(-1, 3)[mask]
-        f_vbd = vbd_forward(g, weights, poses[k].transforms).reshape(-1, 3)[mask]
+        f_evd = model.forward(poses[k], weighting=weighting).reshape(-1, 3)[mask]  # Rhee Eq. 6
+        f_vbd = vbd_forward(g, weights, poses[k].transforms).reshape(-1, 3)[mask]  # Rhee Eq. 2
         r = HeldOut(
             k,
             rest,

@@ -449,16 +449,18 @@ class RBFDeformation:
         self.D = D
         self.source_points = q
         self.target_points = r
-        self.kernel = np.exp(-cdist(q, q) / D)
-        rhs = r - q
+        self.kernel = np.exp(-cdist(q, q) / D)  # Kurihara Eq. 5's φ(|q_j − q_i|), φ(r) = e^(−r/D)
+        rhs = r - q  # Kurihara Eq. 5's r_j − q_j
         try:
             cho = scipy.linalg.cho_factor(self.kernel, lower=True, check_finite=False)
+            # Kurihara Eq. 5 as printed has one scalar c_i per feature (3n equations, n unknowns); here per
+            # component, Φ C = R − Q, with C_ic = c_i (r_i − q_i)_c (class docstring)
             coef = scipy.linalg.cho_solve(cho, rhs, check_finite=False)
             # One step of iterative refinement: cheap, and tightens the residual when Φ is ill-conditioned.
             coef += scipy.linalg.cho_solve(cho, rhs - self.kernel @ coef, check_finite=False)
             self.method = "cholesky"
         except np.linalg.LinAlgError:
-            coef = scipy.linalg.lstsq(self.kernel, rhs, check_finite=False)[0]
+            coef = scipy.linalg.lstsq(self.kernel, rhs, check_finite=False)[0]  # Kurihara Eq. 5 (per component)
             self.method = "lstsq"
         self.coefficients = coef
         self.fit_residual_mm = float(np.max(np.linalg.norm(self.kernel @ coef - rhs, axis=1)))
@@ -492,10 +494,11 @@ class RBFDeformation:
         flat, lead = _as_point_cloud(points, "points")
         out = np.empty_like(flat)
         for rows in _row_chunks(flat.shape[0], self.n_features):
+            # Kurihara Eq. 4: v' − v = Σ_j c_j φ(|v − q_j|)(r_j − q_j), c_j (r_j − q_j) the rows of C
             out[rows] = np.exp(-cdist(flat[rows], self.source_points) / self.D) @ self.coefficients
         return out.reshape(lead + (3,))
 
     def __call__(self, points) -> np.ndarray:
         """Deformed positions ``v' = v + displacement(v)`` (mm) of ``points (..., 3)``."""
         p = np.asarray(points, dtype=np.float64)
-        return p + self.displacement(p)
+        return p + self.displacement(p)  # Kurihara Eq. 4: v' = v + Σ_j c_j φ(|v − q_j|)(r_j − q_j)

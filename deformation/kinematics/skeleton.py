@@ -368,7 +368,7 @@ class Skeleton:
     def relative_motion(self, transforms: dict, joint_name: str) -> np.ndarray:
         """``M = T_parent⁻¹ T_child``: the child's motion with the parent held in the template pose."""
         j = self.joint(joint_name)
-        return compose(invert(transforms[j.parent]), transforms[j.child])
+        return compose(invert(transforms[j.parent]), transforms[j.child])  # Kurihara Eq. 1's M_{i,k}
 
     def pose(self, angles: dict | None = None, *, root_transform=None) -> Pose:
         """Forward kinematics packaged as a :class:`Pose` (transforms, angles and scan-space centres)."""

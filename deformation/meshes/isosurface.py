@@ -1,7 +1,7 @@
 """Isosurfaces of volumes in world millimetres: the project's one numpy → VTK → triangle mesh path.
 
-Kurihara §3–4 works on isosurfaces of CT scans: the bones' (ICP,
-Kurihara Eq. 1) and the skin's.  Every isosurface of the project is extracted here:
+Kurihara §3–4 works on isosurfaces of CT scans: the bones' (aligned by ICP
+for the joint centres of Kurihara Eq. 1) and the skin's.  Every isosurface of the project is extracted here:
 
 * :func:`flying_edges` — VTK's flying edges (``vtkFlyingEdges3D``, or its
   discrete variant for one label) on a ``[z, y, x]`` array in index space.

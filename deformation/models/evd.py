@@ -63,15 +63,16 @@ EVD_WEIGHTINGS = ("psd", "wpsd")
 @nb.njit(cache=True, inline="always")
 def _evd_point(a, i, j, k, v, disp, s, idx, val, t, out):
     """Rhee Eq. 6 at grid point (i, j, k) = voxel v: E(v0 + Σ_p s_p d_p) with v0 = a·(i, j, k, 1)."""
+    # Rhee Eq. 6's v0: the template grid point in world mm
     p0 = a[0, 0] * i + a[0, 1] * j + a[0, 2] * k + a[0, 3]
     p1 = a[1, 0] * i + a[1, 1] * j + a[1, 2] * k + a[1, 3]
     p2 = a[2, 0] * i + a[2, 1] * j + a[2, 2] * k + a[2, 3]
-    for p in range(disp.shape[1]):
+    for p in range(disp.shape[1]):  # Rhee Eq. 6's d_a = Σ_p s_p(a) d_p: the training displacements blended
         sp = s[p]
         p0 += sp * disp[v, p, 0]
         p1 += sp * disp[v, p, 1]
         p2 += sp * disp[v, p, 2]
-    o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)
+    o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)  # Rhee Eq. 6: va = E(v0 + d_a), E the VBD of Rhee Eq. 2
     out[k, j, i, 0] = o0
     out[k, j, i, 1] = o1
     out[k, j, i, 2] = o2
@@ -112,26 +113,26 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
         for j in range(ny):
             for i in range(nx):
                 v = k * nxy + j * nx + i
-                # Kurihara Eq. 16 per voxel: squared pose distances to the query and between the examples
+                # Kurihara Eq. 16 (squared) per voxel: pose distances to the query and between the examples
                 weighted_sq(idx, val, v, bone_q, glob_q, phi)
                 weighted_sq(idx, val, v, flat, glob_pair, pair_flat)
                 pair = pair_flat.reshape(P, P)
                 sig = rbf_width(pair, P)  # Gaussian width: mean nearest-neighbour distance in this metric
                 inv = 1.0 / (sig * sig) if sig > 0.0 else 0.0
-                query_kernel(phi, P, inv)
+                query_kernel(phi, P, inv)  # Kurihara Eq. 13's φ(d_j(a, a_l)) of the query, Gaussian
                 for q in range(P):
-                    for r in range(q + 1):
+                    for r in range(q + 1):  # Φ_ql = φ(d_j(a_q, a_l)): the matrix of Kurihara Eq. 12's conditions
                         e = np.exp(-pair[q, r] * inv)
                         pair[q, r] = e
                         pair[r, q] = e
                 ok = chol_factor(pair, P)
                 if ok:
-                    chol_subst(pair, phi, P, work)
+                    chol_subst(pair, phi, P, work)  # Kurihara Eq. 12–13: f = Φ⁻¹ φ(a) (C = Φ⁻¹, Φ symmetric)
                     tot = 0.0
                     for q in range(P):
                         tot += phi[q]
                     for q in range(P):
-                        phi[q] /= tot
+                        phi[q] /= tot  # Kurihara Eq. 14: s_q = f_q / Σ_l f_l
                 else:
                     for q in range(P):
                         phi[q] = 1.0 / P
@@ -194,7 +195,7 @@ def vbd_forward(geometry: GridGeometry, weights: SkinningWeights, transforms) ->
     out = np.empty(geometry.array_shape + (3,), dtype=np.float32)
     nx, ny, nz = geometry.size
     disp = np.zeros((weights.n_points, 0, 3), dtype=np.float32)
-    forward_kernel(
+    forward_kernel(  # Rhee Eq. 2: Rhee Eq. 6's kernel with no examples (d_a = 0), so va = (Σ_j w_j T_j) v0
         np.ascontiguousarray(geometry.index_to_world_matrix[:3]),
         nx,
         ny,
@@ -325,7 +326,7 @@ class ExampleVolumeDeformation:
             if pos.shape[0] != n:
                 raise ValueError(f"correspondence {k} has {pos.shape[0]} points, the template grid {n} voxels")
             t = stack_transforms(pose.transforms, weights.bones)
-            # Rhee Eq. 7: (Σ w T)⁻¹ v̂ − v0, blockwise to bound memory
+            # Rhee Eq. 7: d_k = (Σ_j w_j T_j^k)⁻¹ v̂_k − v0, blockwise to bound memory
             for lo in range(0, n, 1 << 20):
                 hi = min(n, lo + (1 << 20))
                 m = np.zeros((hi - lo, 3, 4))
@@ -333,6 +334,7 @@ class ExampleVolumeDeformation:
                     m += weights.value[lo:hi, s, None, None] * t[weights.index[lo:hi, s].astype(np.int64), :3, :]
                 rhs = np.asarray(pos[lo:hi], dtype=np.float64) - m[:, :, 3]
                 try:
+                    # Rhee Eq. 7's inverse VBD, v̂_k = pos, v0 = grid (solved, no inverse formed)
                     d[lo:hi, k] = np.linalg.solve(m[:, :, :3], rhs[:, :, None])[:, :, 0] - grid[lo:hi]
                 except np.linalg.LinAlgError:
                     n_sing = int(np.sum(np.abs(np.linalg.det(m[:, :, :3])) < 1e-12))
@@ -368,13 +370,15 @@ class ExampleVolumeDeformation:
         a = np.ascontiguousarray(g.index_to_world_matrix[:3])
         out = np.empty(g.array_shape + (3,), dtype=np.float32)
         if weighting == "psd":
-            s = np.ascontiguousarray(self.space.weights(pose), dtype=np.float64)
+            s = np.ascontiguousarray(self.space.weights(pose), dtype=np.float64)  # Kurihara Eq. 12–15: s_k(a)
+            # Rhee Eq. 6: va = E(v0 + Σ_k s_k(a) d_k) for every template voxel
             forward_kernel(a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, s, out)
         else:
             vec = self.space.vector(pose)
             train = self.space.train
             bone_pair = per_bone_sq(train[:, None, :] - train[None, :, :], self._dof_bone, self.weights.n_bones)
             bone_q = per_bone_sq(vec[None, :] - train, self._dof_bone, self.weights.n_bones)
+            # Rhee Eq. 6 with WPSD's per-voxel s_k (Kurihara Eq. 16 in place of Kurihara Eq. 15)
             _forward_kernel_wpsd(
                 a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, bone_pair, bone_q, out
             )

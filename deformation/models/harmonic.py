@@ -363,7 +363,7 @@ def harmonic_weights(
         residual = float(np.abs(lii @ wi - rhs).max() / scale)
     w = np.clip(raw, 0.0, 1.0)
     clipped = np.abs(w - raw)
-    w /= w.sum(axis=1, keepdims=True)
+    w /= w.sum(axis=1, keepdims=True)  # Kurihara Eq. 3: Σ_k w_k = 1 (exact for the solve, restored after clipping)
     info = {
         "bones": bones,
         "bone_of_vertex": bone_of_vertex,

@@ -96,8 +96,8 @@ class TemplatePoser:
         elif factor > 1:
             g = g.every(factor)
         if self.method == "evd":
-            return model.forward(pose, weighting=self.weighting)
-        return vbd_forward(g, weights, stack_transforms(pose.transforms, weights.bones))
+            return model.forward(pose, weighting=self.weighting)  # Rhee Eq. 6
+        return vbd_forward(g, weights, stack_transforms(pose.transforms, weights.bones))  # Rhee Eq. 2
 
     def _coarse(self, factor: int):
         """(grid, weights, model) on every ``factor``-th template voxel, made once per factor (an animation

@@ -6,8 +6,8 @@ translations of a 6-DOF joint in mm); the root bone's world placement is not
 part of it, since moving the whole body does not deform it.
 
 Pose weights: ``f_i(a) = Σ_j c_ij φ(d(a, a_j))`` with ``f_i(a_j) = δ_ij``
-(Kurihara Eq. 12–13), so ``C = Φ⁻¹``; then ``s_i = f_i / Σ_j f_j`` (Kurihara
-Kurihara Eq. 14), which gives Kurihara Eq. 10–11.  The paper does not name ``φ``; we
+(Kurihara Eq. 12–13), so ``C = Φ⁻¹``; then ``s_i = f_i / Σ_j f_j``
+(Kurihara Eq. 14), which gives Kurihara Eq. 10–11.  The paper does not name ``φ``; we
 use a Gaussian ``φ(d) = exp(−(d/σ)²)`` whose width ``σ`` is the mean
 nearest-neighbour distance between the training poses in the same metric
 (scale-free), and whose kernel matrix of distinct poses is positive definite.
@@ -95,6 +95,7 @@ def per_bone_sq(diff: np.ndarray, dof_bone: np.ndarray, n_bones: int) -> np.ndar
     if not len(dof_bone):
         return out
     starts = np.flatnonzero(np.r_[True, dof_bone[1:] != dof_bone[:-1]])
+    # Kurihara Eq. 16's (a_k − b_k)², summed over the DOFs k of each bone (u_jk is the same for all of them)
     runs = np.moveaxis(np.add.reduceat(diff * diff, starts, axis=-1), -1, 0)
     np.add.at(out, dof_bone[starts], runs)  # a bone's runs added up (one run each: its parent joint's DOFs)
     return out
@@ -126,22 +127,24 @@ def pose_weights(train: np.ndarray, query: np.ndarray, *, dof_weights=None) -> n
     if train.shape[0] == 1:
         s = np.ones((q.shape[0], 1))
         return s[0] if single else s
+    # Kurihara Eq. 15 squared (Kurihara Eq. 16 with dof_weights) between the training poses
     pair = ((train[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
     sigma = _nn_width(pair)
     if sigma <= 0:
         raise ValueError("two training poses coincide (zero pose distance): Φ of Kurihara Eq. 13 is singular")
-    phi = np.exp(-pair / sigma**2)
-    dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)
+    phi = np.exp(-pair / sigma**2)  # Φ_ij = φ(d(a_i, a_j)) of Kurihara Eq. 13 at the examples (Kurihara Eq. 12)
+    dq = ((q[:, None, :] - train[None, :, :]) ** 2 * u).sum(-1)  # Kurihara Eq. 15 squared: d(a, a_j)²
     try:
-        # Kurihara Eq. 13: f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹; φ scaled by exp(min dq / σ²), which
-        # Kurihara Eq. 14's normalisation cancels: far from every example, the φ themselves underflow to 0
-        # and s would be 0 / 0
+        # Kurihara Eq. 13: f_i(a) = Σ_j c_ij φ_j(a), C = Φ⁻¹ (Kurihara Eq. 12: f_i(a_j) = δ_ij); φ scaled by
+        # exp(min dq / σ²), which Kurihara Eq. 14's normalisation cancels: far from every example, the φ
+        # themselves underflow to 0 and s would be 0 / 0
         dq = dq - dq.min(axis=1, keepdims=True)
         f = np.linalg.solve(phi, np.exp(-dq / sigma**2).T).T
     except np.linalg.LinAlgError:
         raise ValueError(
             "Φ of Kurihara Eq. 13 is singular: two training poses coincide in this pose distance (drop one)"
         ) from None
+    # Kurihara Eq. 14: s_i = f_i / Σ_j f_j, so Σ_i s_i = 1 (Kurihara Eq. 11) and s_i(a_j) = δ_ij (Kurihara Eq. 10)
     s = f / f.sum(axis=1, keepdims=True)
     return s[0] if single else s
 
@@ -181,7 +184,7 @@ class PoseSpace:
 # -- per-point (WPSD) pose weights ------------------------------------------------------------
 @nb.njit(cache=True, inline="always")
 def query_kernel(phi, n, inv):
-    """φ_i = exp(−(d_i − min d) / σ²) in place from squared pose distances d (Kurihara Eq. 12): the common
+    """φ_i = exp(−(d_i − min d) / σ²) in place from squared pose distances d (Kurihara Eq. 13's φ): the common
     factor exp(min d / σ²) cancels in Kurihara Eq. 14's normalisation, and without it a pose far from every example
     underflows every φ to 0 (s = 0 / 0)."""
     m = np.inf
@@ -189,7 +192,7 @@ def query_kernel(phi, n, inv):
         if phi[i] < m:
             m = phi[i]
     for i in range(n):
-        phi[i] = np.exp(-(phi[i] - m) * inv)
+        phi[i] = np.exp(-(phi[i] - m) * inv)  # Kurihara Eq. 13's φ(d(a, a_i)), scaled by exp(min d / σ²)
 
 
 @nb.njit(cache=True, inline="always")
@@ -234,14 +237,14 @@ def weighted_sq(idx, val, j, per_bone, glob, out):
     the floor, so only the point's ≤ K influencing bones are visited.
     """
     for r in range(out.shape[0]):
-        out[r] = U_FLOOR * glob[r]
+        out[r] = U_FLOOR * glob[r]  # Kurihara Eq. 16's u_jk floored: U_FLOOR on every bone, not in the paper
     for m in range(idx.shape[1]):
         w = val[j, m]
         if w == 0.0:
             continue
         b = idx[j, m]
         for r in range(out.shape[0]):
-            out[r] += w * per_bone[b, r]
+            out[r] += w * per_bone[b, r]  # Kurihara Eq. 16 squared: Σ_k u_jk (a_k − b_k)², u_jk = w_jb
 
 
 @nb.njit(cache=True, inline="always")
@@ -277,13 +280,13 @@ def _wpsd_coefficients(idx, val, bone_pair, out_c, out_inv_sigma2):
         out_inv_sigma2[j] = inv
         for i in range(P):
             for l in range(P):
-                a[i, l] = np.exp(-pair[i, l] * inv)
+                a[i, l] = np.exp(-pair[i, l] * inv)  # Φ_il = φ(d_j(a_i, a_l)), Kurihara Eq. 13 with Eq. 16's d_j
         ok = chol_factor(a, P)
         for c in range(P):
             for i in range(P):
                 col[i] = 1.0 if i == c else 0.0
             if ok:
-                chol_subst(a, col, P, work)
+                chol_subst(a, col, P, work)  # Kurihara Eq. 12: f_i(a_l) = δ_il gives C_j = Φ_j⁻¹, column c
             for i in range(P):
                 out_c[j, i, c] = col[i] if ok else np.nan
 
@@ -329,8 +332,8 @@ class PointPoseSpace:
                 f"base samples must be (n_points, n_poses, 3) = {(self.weights_.n_points, P, 3)}, got {base.shape}"
             )
         out = np.empty((base.shape[0], P, 4))
-        out[..., :3] = np.einsum("jil,jic->jlc", self.coef, base)
-        out[..., 3] = self.coef.sum(axis=1)
+        out[..., :3] = np.einsum("jil,jic->jlc", self.coef, base)  # B_j = C_jᵀ base_j (Kurihara Eq. 13 and 7)
+        out[..., 3] = self.coef.sum(axis=1)  # c_j = C_jᵀ 1 (Kurihara Eq. 14's denominator)
         return out
 
     def weights(self, pose) -> np.ndarray:
@@ -355,11 +358,11 @@ def _wpsd_weights(idx, val, bone_q, coef, inv_sigma2, out):
         for i in range(P):
             f = 0.0
             for l in range(P):
-                f += coef[j, i, l] * phi[l]
+                f += coef[j, i, l] * phi[l]  # Kurihara Eq. 13: f_i(a) = Σ_l c_il φ(d_j(a, a_l))
             out[j, i] = f
             tot += f
         for i in range(P):
-            out[j, i] /= tot
+            out[j, i] /= tot  # Kurihara Eq. 14: s_ji = f_i / Σ_l f_l
 
 
 # -- PSD / WPSD of meshes (Kurihara Eq. 6–8) --------------------------------------------------------
@@ -371,6 +374,7 @@ def psd_training(samples, weights: SkinningWeights, sample_transforms) -> np.nda
     ``sample_transforms`` one set of bone transforms (template → sample) per
     sample.
     """
+    # Kurihara Eq. 6: v⁰_ij = (Σ_k w_jk L_ik)⁻¹ v_ij for every sample i
     return np.stack([inverse_lbs(v, weights, t) for v, t in zip(samples, sample_transforms, strict=True)])
 
 
@@ -383,9 +387,11 @@ def psd_deform(base_samples: np.ndarray, weights: SkinningWeights, s: np.ndarray
     """
     s = np.asarray(s, dtype=float)
     if s.ndim == 1:
-        u0 = np.tensordot(s, base_samples, axes=(0, 0))
+        u0 = np.tensordot(s, base_samples, axes=(0, 0))  # Kurihara Eq. 7: u⁰_j = Σ_i s_i v⁰_ij
     else:
-        u0 = np.einsum("np,pnc->nc", s, base_samples)
+        u0 = np.einsum("np,pnc->nc", s, base_samples)  # Kurihara Eq. 7 with WPSD's per-vertex s_ji
+    # Kurihara Eq. 8: u_j = Σ_k w_jk L_k u⁰_j; L_k are the pose's own bone transforms, not Kurihara's joint angles
+    # interpolated with s_i (the pose is given, so its transforms are known)
     return lbs(u0, weights, transforms)
 
 
@@ -397,12 +403,12 @@ def _skin_kernel(base, s, per_point, idx, val, t, out):
         u0 = 0.0
         u1 = 0.0
         u2 = 0.0
-        for i in range(P):
+        for i in range(P):  # Kurihara Eq. 7: u⁰_j = Σ_i s_ji v⁰_ij (one example and s = 1: plain SSD's p_j)
             si = s[j, i] if per_point else s[0, i]
             u0 += si * base[j, i, 0]
             u1 += si * base[j, i, 1]
             u2 += si * base[j, i, 2]
-        o0, o1, o2 = blend_point(idx, val, j, t, u0, u1, u2)
+        o0, o1, o2 = blend_point(idx, val, j, t, u0, u1, u2)  # Kurihara Eq. 8 (Kurihara Eq. 2 for plain SSD)
         out[j, 0] = o0
         out[j, 1] = o1
         out[j, 2] = o2
@@ -437,7 +443,7 @@ def skin(base_points: np.ndarray, weights: SkinningWeights, transforms, s=None) 
 
 @nb.njit(cache=True, parallel=True)
 def _wpsd_exponents(idx, val, inv_sigma2, bone_q, glob_q, arg):
-    """Per point j, the exponents of Kurihara Eq. 12 with Kurihara Eq. 16's distances:
+    """Per point j, the exponents of Kurihara Eq. 13's φ with Kurihara Eq. 16's distances:
     ``arg[j, l] = −(d_jl − min_l d_jl) / σ_j²`` (:func:`query_kernel`'s shift against underflow), ``d_jl``
     as :func:`weighted_sq` sums it (``glob_q[l] = Σ_b bone_q[b, l]`` carries the U_FLOOR term, so only the
     point's ≤ K bones are visited), written in place (cheaper than a row view per point)."""
@@ -451,13 +457,13 @@ def _wpsd_exponents(idx, val, inv_sigma2, bone_q, glob_q, arg):
                 continue
             b = idx[j, m]
             for l in range(P):
-                arg[j, l] += w * bone_q[b, l]
+                arg[j, l] += w * bone_q[b, l]  # Kurihara Eq. 16 squared, as weighted_sq
         m = arg[j, 0]
         for l in range(1, P):
             m = min(m, arg[j, l])
         inv = inv_sigma2[j]
         for l in range(P):
-            arg[j, l] = -(arg[j, l] - m) * inv
+            arg[j, l] = -(arg[j, l] - m) * inv  # the exponent of Kurihara Eq. 13's φ, shifted as in query_kernel
 
 
 @nb.njit(cache=True, parallel=True)
@@ -470,12 +476,13 @@ def _wpsd_skin_kernel(folded, idx, val, t, phi, out):
         u1 = 0.0
         u2 = 0.0
         tot = 0.0
-        for l in range(P):
+        for l in range(P):  # Kurihara Eq. 13, 14 and 7 folded: Σ_l φ_jl B_jl and Σ_l φ_jl c_jl
             p = phi[j, l]
             u0 += p * folded[j, l, 0]
             u1 += p * folded[j, l, 1]
             u2 += p * folded[j, l, 2]
             tot += p * folded[j, l, 3]
+        # Kurihara Eq. 14's normalisation gives u⁰_j (Kurihara Eq. 7); then Kurihara Eq. 8: Σ_k w_jk L_k u⁰_j
         o0, o1, o2 = blend_point(idx, val, j, t, u0 / tot, u1 / tot, u2 / tot)
         out[j, 0] = o0
         out[j, 1] = o1
@@ -519,7 +526,7 @@ def wpsd_deform(
     t = stack_transforms(transforms, weights.bones)[:, :3, :]
     phi = np.empty((weights.n_points, P))
     _wpsd_exponents(weights.index, weights.value, point_space.inv_sigma2, bone_q, bone_q.sum(axis=0), phi)
-    np.exp(phi, out=phi)  # Kurihara Eq. 12's φ
+    np.exp(phi, out=phi)  # Kurihara Eq. 13's φ(d_j(a, a_l))
     out = np.empty((weights.n_points, 3))
     _wpsd_skin_kernel(folded, weights.index, weights.value, np.ascontiguousarray(t), phi, out)
     return out

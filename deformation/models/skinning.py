@@ -85,7 +85,7 @@ class SkinningWeights:
         if value.size and value.min() < -1e-6:
             raise ValueError(f"weights must be non-negative (Kurihara Eq. 3); minimum {value.min():.3g}")
         sums = value.sum(axis=1, dtype=np.float64) if value.shape[1] <= 8 else value.sum(axis=1)
-        if value.size and np.max(np.abs(sums - 1.0)) > 1e-5:
+        if value.size and np.max(np.abs(sums - 1.0)) > 1e-5:  # Kurihara Eq. 3: Σ_k w_jk = 1 per point
             worst = int(np.argmax(np.abs(sums - 1.0)))
             raise ValueError(
                 f"weights must sum to one per point (Kurihara Eq. 3); point {worst} sums to {sums[worst]:.6f}"
@@ -143,7 +143,7 @@ class SkinningWeights:
         s = val_out.sum(axis=1)
         if np.any(s <= 0):
             raise ValueError(f"{int(np.sum(s <= 0))} point(s) have no positive weight on any bone")
-        val_out /= s[:, None]
+        val_out /= s[:, None]  # Kurihara Eq. 3: Σ_k w_jk = 1 again over the kept influences
         idx_out = np.where(val_out > 0, idx_out, idx_out[:, :1])  # unused slots repeat the strongest bone
         return cls(bones, idx_out, val_out)
 
@@ -201,6 +201,7 @@ def blend_point(idx, val, v, t, p0, p1, p2):
         if w == 0.0:
             continue
         b = idx[v, m]
+        # Rhee Eq. 2 (Kurihara Eq. 2): (Σ_m w_m T_{b_m}) p over the point's ≤ K bones, T 3×4
         o0 += w * (t[b, 0, 0] * p0 + t[b, 0, 1] * p1 + t[b, 0, 2] * p2 + t[b, 0, 3])
         o1 += w * (t[b, 1, 0] * p0 + t[b, 1, 1] * p1 + t[b, 1, 2] * p2 + t[b, 1, 3])
         o2 += w * (t[b, 2, 0] * p0 + t[b, 2, 1] * p1 + t[b, 2, 2] * p2 + t[b, 2, 3])
@@ -229,7 +230,7 @@ def blend_matrices(weights: SkinningWeights, transforms) -> np.ndarray:
     """``M_p = Σ_k w_pk T_k`` for every point: ``(n, 3, 4)`` (the last row of a blend is ``[0 0 0 1]``)."""
     t = stack_transforms(transforms, weights.bones)[:, :3, :]
     m = np.zeros((weights.n_points, 3, 4))
-    for s in range(weights.max_influences):
+    for s in range(weights.max_influences):  # Σ_k w_k T_k of Rhee Eq. 2 / Kurihara Eq. 2, one influence slot at a time
         m += weights.value[:, s, None, None].astype(np.float64) * t[weights.index[:, s].astype(np.int64)]
     return m
 
@@ -247,12 +248,12 @@ def lbs(points, weights: SkinningWeights, transforms) -> np.ndarray:
     """Linear blend skinning, Kurihara Eq. 2: ``p'_j = Σ_k w_jk L_k p_j`` (points ``(n, 3)`` mm)."""
     p = _points(points, weights)
     m = blend_matrices(weights, transforms)
-    return np.einsum("nij,nj->ni", m[:, :, :3], p) + m[:, :, 3]
+    return np.einsum("nij,nj->ni", m[:, :, :3], p) + m[:, :, 3]  # Kurihara Eq. 2: (Σ_k w_jk L_k) p_j
 
 
 def vbd_points(points, weights: SkinningWeights, transforms) -> np.ndarray:
     """Volume blend deformation of voxel grid points, Rhee Eq. 2 — the same map as :func:`lbs`."""
-    return lbs(points, weights, transforms)
+    return lbs(points, weights, transforms)  # Rhee Eq. 2: va = (Σ_j w_j T_j) vs, Kurihara Eq. 2 on grid points
 
 
 def inverse_lbs(posed_points, weights: SkinningWeights, transforms) -> np.ndarray:
@@ -267,6 +268,7 @@ def inverse_lbs(posed_points, weights: SkinningWeights, transforms) -> np.ndarra
     """
     q = _points(posed_points, weights)
     m = blend_matrices(weights, transforms)
+    # Kurihara Eq. 6 / Rhee Eq. 7's inverse blend: p = (Σ_k w_k T_k)⁻¹ p', solved per point (no inverse formed)
     return np.linalg.solve(m[:, :, :3], (q - m[:, :, 3])[:, :, None])[:, :, 0]
 
 

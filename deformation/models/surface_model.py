@@ -83,6 +83,7 @@ class SurfaceModel:
                     f"mesh {k} does not have the base mesh's connectivity ({m.n_vertices} vertices "
                     f"against {base.n_vertices}): fit it from the base mesh"
                 )
+        # Kurihara Eq. 6: each S^f_i back to the base pose by inverse SSD
         samples = psd_training([m.vertices for m in meshes], weights, [p.transforms for p in poses])
         vectors, template_example = with_template_example(skeleton, PoseSpace(skeleton, poses).train, template_example)
         samples = np.moveaxis(samples, 0, 1)  # (n, P, 3): per vertex, as the kernels read them
@@ -98,12 +99,14 @@ class SurfaceModel:
             raise ValueError(f"method must be one of {SURFACE_METHODS}, got {method!r}")
         t = pose.transforms
         if method == "ssd":
-            v = skin(self.base.vertices, self.weights, t)
+            v = skin(self.base.vertices, self.weights, t)  # Kurihara Eq. 2 of S_0
         elif method == "psd":
+            # Kurihara Eq. 7–8 with one set of s_i(a) (Kurihara Eq. 12–15)
             v = skin(self.base_samples, self.weights, t, self.space.weights(pose))
         else:
             if self._point_space is None:  # Φ⁻¹ per vertex folded with the samples, once (Kurihara: precomputed)
                 self._point_space = self.space.point_space(self.weights)
                 self._folded = self._point_space.fold(self.base_samples)
+            # Kurihara Eq. 7–8 with per-vertex s_ji(a) from Kurihara Eq. 16's distances
             v = wpsd_deform(self.base_samples, self.weights, self._point_space, pose, t, folded=self._folded)
         return SurfaceMesh(v, self.base.triangles)

@@ -183,7 +183,7 @@ def _forward_point(x, y, z, tabs, params, out, jac, d, w):
     for k in range(nbones):
         d[k] = _shape_sdf(prims, groups, group_k, table, shape_k, k, x, y, z)
     dmin = _weights(d, power, falloff, w)
-    if mode == 0:  # vbd: Rhee Eq. (2)
+    if mode == 0:  # vbd: Rhee Eq. 2, F(v) = (Σ_k w_k T_k) v
         m = np.zeros(12)
         for k in range(nbones):
             if w[k] != 0.0:

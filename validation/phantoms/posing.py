@@ -204,7 +204,7 @@ class PosingModel:
         bone_d = self.anatomy.bone_distances(p)
         w = blend_weights(bone_d, power=self.anatomy.weight_power, falloff_mm=self.anatomy.weight_falloff_mm)
         if self.mode == "vbd":
-            m = (w @ self._t12).reshape(-1, 3, 4)  # Rhee Eq. (2): (Σ_j w_j T_j) v
+            m = (w @ self._t12).reshape(-1, 3, 4)  # Rhee Eq. 2: (Σ_j w_j T_j) v
             return np.einsum("nij,nj->ni", m[:, :, :3], p) + m[:, :, 3]
         return dual_quaternion.blend_apply(w, self._dq, p + self.displacement(p, bone_d, w))[0]
 

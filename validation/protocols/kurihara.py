@@ -89,6 +89,7 @@ def joint_centre_measures(joints: dict, skeleton) -> dict:
         else:
             off.append(err[-1])
     return {
+        # Kurihara Eq. 1's "square root of the mean error" over the joints of ≤ 3 DOF
         "eq1_rms_mm": float(np.sqrt(np.mean(np.square(res)))) if res else None,
         "center_error_mean_mm": float(np.mean(err)) if err else None,
         "center_error_max_mm": float(np.max(err)) if err else None,

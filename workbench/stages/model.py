@@ -110,7 +110,7 @@ def _run(ctx) -> dict:
         poses.append(pose)
         fields.append(pos)
         ctx.report(k + 1, len(ids), f"{sid}: template → scan positions from {how}")
-    model = ExampleVolumeDeformation.from_correspondences(g, weights, sk, poses, fields)
+    model = ExampleVolumeDeformation.from_correspondences(g, weights, sk, poses, fields)  # Rhee Eq. 7
     del fields
     disp = model.displacements[:, : len(ids)].reshape(g.array_shape + (3 * len(ids),))
     doc = {

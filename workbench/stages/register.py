@@ -185,6 +185,7 @@ def _forward(study, sid, start, template_geometry):
 
     if start["method"] == "vbd":
         weights, _ = study.weights()  # the weights that made the start (their digest reaches ours through it)
+        # Rhee Eq. 2: the VBD start
         return vbd_forward(template_geometry, weights.reorder(start["bones"]), np.asarray(start["transforms"]))
     if start["method"] == "polyrigid":
         fwd = study.init_forward(sid)
