@@ -234,7 +234,8 @@ def open_runner(workers: int | None = None, scheduler: str | None = None):
             except (OSError, TimeoutError, ValueError) as e:
                 raise SchedulerError(
                     f"--scheduler {scheduler}: no Dask scheduler answers there ({e}); start one "
-                    "with `dask scheduler` and workers with `dask worker ADDRESS` (docs/user-guide/dask.md), or leave --scheduler out"
+                    "with `dask scheduler` and workers with `dask worker ADDRESS` (docs/user-guide/dask.md), "
+                    "or leave --scheduler out"
                 ) from None
             n = len(client.scheduler_info().get("workers", {}))
             desc = f"the Dask cluster at {scheduler} ({n} worker{'s' if n != 1 else ''} now)"

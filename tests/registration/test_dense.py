@@ -352,8 +352,8 @@ def test_rhee_table2_protocol_without_initialisation(phantom):
 
     The shank's rotation moves the foot end by ~35 mm; the coarse level (4× subsampled) must carry it.
     Measured at test size: source MED 7.08 mm → 1.36 (seed 0) / 1.19 (seed 100) mm, elastix's B-spline 2.37
-    / 1.95 in the same harness (benchmarks/bench_registration.py --cases table2, docs/measurements/registration-benchmarks.md).  Bound: under 30 % of the
-    source's MED (1.36 is 19 %), no
+    / 1.95 in the same harness (benchmarks/bench_registration.py --cases table2,
+    docs/measurements/registration-benchmarks.md).  Bound: under 30 % of the source's MED (1.36 is 19 %), no
     fold anywhere in the body.
     """
     from validation.registration_measures import body_on_scan, med
