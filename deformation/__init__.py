@@ -11,3 +11,11 @@
 ``models`` uses ``fields``, ``meshes`` and ``kinematics``, which use only ``geometry`` and ``filters``
 (import-linter's contract in pyproject.toml).
 """
+
+import numba as _numba
+
+# numba's threading layer, set once for every package (each imports deformation): Open3D ships an older TBB, and
+# once it is loaded numba's default layer tries that TBB and warns; OpenMP (libgomp, a declared Debian dependency)
+# instead.  A layer the user chose (NUMBA_THREADING_LAYER) is kept.
+if _numba.config.THREADING_LAYER == "default":
+    _numba.config.THREADING_LAYER = "omp"

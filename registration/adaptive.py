@@ -55,7 +55,6 @@ __all__ = [
     "OPTIMIZERS",
 ]
 
-numba.config.THREADING_LAYER = "omp"
 
 #: NLopt derivative-free algorithms a step may use (the paper: Nelder–Mead).
 OPTIMIZERS = {

@@ -48,7 +48,6 @@ __all__ = [
     "LOG_BASE",
 ]
 
-numba.config.THREADING_LAYER = "omp"
 
 MI_BINS = 32  #: histogram bins per image for MI (whole volumes and 3×3×3-block regions)
 LOG_BASE = "e"  #: MI and entropies are in nats

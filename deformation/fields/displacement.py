@@ -55,11 +55,6 @@ __all__ = [
     "from_transform",
 ]
 
-# Open3D ships an older TBB; once it is loaded, numba's default threading layer
-# tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
-
 
 # -- compiled kernels -----------------------------------------------------------------------
 @nb.njit(cache=True, parallel=True)

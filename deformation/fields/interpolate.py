@@ -35,11 +35,6 @@ from deformation.geometry import GeometryMismatchError, GridGeometry, Volume
 
 __all__ = ["sample", "sample_array", "warp", "sample_displaced_array", "sample_shifted"]
 
-# Open3D ships an older TBB; once it is loaded, numba's default threading layer
-# tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
-
 
 # -- compiled kernels -----------------------------------------------------------------------
 # Voxel data are passed flattened: ``f[(k*ny + j)*nx + i]`` (scalar) or ``f[(k*ny + j)*nx + i, c]``

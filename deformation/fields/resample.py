@@ -33,9 +33,6 @@ import numpy as np
 from deformation.fields.interpolate import fill_value, flat_data, interp_scalar, output_dtype, sample_array
 from deformation.geometry import SLAB_VOXELS, GridGeometry, Volume, every_nth, slabs
 
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
-
 __all__ = [
     "BackwardMap",
     "backward_map",

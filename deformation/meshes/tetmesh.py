@@ -49,10 +49,6 @@ __all__ = [
     "locate",
 ]
 
-# Open3D ships an older TBB; once it is loaded, numba's default threading layer
-# tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
 
 #: Generic direction (world mm, unit length) deciding points that lie on a face.  A point is in a
 #: tetrahedron when all four barycentric coordinates are positive.  Within ``1e-6`` of zero the side is

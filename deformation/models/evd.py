@@ -42,9 +42,6 @@ from deformation.models.posespace import (
 )
 from deformation.models.skinning import SkinningWeights, blend_point, stack_transforms
 
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
-
 __all__ = [
     "vbd_forward",
     "forward_kernel",

@@ -47,9 +47,6 @@ __all__ = [
     "VoxelWeights",
 ]
 
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
-
 
 # ---------------------------------------------------------------------------------------------
 # The P1 stiffness matrix

@@ -34,9 +34,6 @@ from scipy.linalg import expm, logm
 
 from deformation.geometry import GridGeometry, Volume
 
-if nb.config.THREADING_LAYER == "default":  # Open3D bundles an old TBB (see validation/phantoms/kernels.py)
-    nb.config.THREADING_LAYER = "omp"
-
 __all__ = ["PolyrigidFlow", "bone_distance_maps", "max_map_factor"]
 
 

@@ -30,9 +30,6 @@ import numpy as np
 
 from deformation.models.skinning import SkinningWeights, blend_point, inverse_lbs, lbs, stack_transforms
 
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
-
 __all__ = [
     "PoseSpace",
     "pose_vector",

@@ -24,9 +24,6 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
-
 __all__ = [
     "SkinningWeights",
     "MAX_INFLUENCES",

@@ -27,10 +27,6 @@ from .shapes import Ellipsoid, RoundCone, SmoothUnion
 
 __all__ = ["compile_shapes", "prim_row", "PRIM_WIDTH"]
 
-# Open3D ships an older TBB; once it is loaded, numba's default threading layer
-# tries that TBB and warns.  Use OpenMP (libgomp, a declared Debian dependency).
-if nb.config.THREADING_LAYER == "default":
-    nb.config.THREADING_LAYER = "omp"
 
 PRIM_WIDTH = 18
 
