@@ -14,7 +14,7 @@ machine is shared):
     also EVD with per-voxel WPSD weights (Kurihara Eq. 16);
   - the process's peak resident memory.
 * mesh, 50k vertices with 5 example poses: LBS (Kurihara Eq. 2), PSD
-  (Eq. 6–8, 12–15) and WPSD (Eq. 16), all compiled kernels on the same
+  (Kurihara Eq. 6–8, 12–15) and WPSD (Kurihara Eq. 16), all compiled kernels on the same
   threads, and the ratios PSD/LBS and WPSD/LBS.
 
 Usage::
@@ -107,7 +107,7 @@ def volume_benchmark(size: str, n_poses: int, repeats: int, weights_kind: str):
     model = ExampleVolumeDeformation.from_correspondences(g, w, ph.skeleton, poses, fields)
     del fields
     mem.phase("EVD model (Rhee Eq. 7)")
-    print(f"set-up (phantom, weights, ground truth of {n_poses} poses, Eq. 7): {time.perf_counter() - t0:.1f} s")
+    print(f"set-up (phantom, weights, ground truth of {n_poses} poses, Rhee Eq. 7): {time.perf_counter() - t0:.1f} s")
     t = stack_transforms(query.transforms, w.bones)
 
     def floor():

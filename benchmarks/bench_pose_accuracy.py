@@ -6,7 +6,7 @@ Prints, in one run on the same data:
   voxel size at the same field of view): bone rotation / translation errors,
   joint-centre errors, hinge axes and the time per scan, for
   - ``ours``: the default pipeline (grid search about the joint, SimpleITK
-    Eq. 1, cubic B-spline, least-squares polish with the weak kinematic prior,
+    Rhee Eq. 1, cubic B-spline, least-squares polish with the weak kinematic prior,
     intensity-invariant cost);
   - ``paper``: Rhee's Eq. 1 as printed after the same initialisation (SSD,
     trilinear interpolation, SimpleITK only, no smoothing, no prior);
@@ -229,7 +229,7 @@ def run_wrist():
         per = np.concatenate([r.per_motion_mm for r in res])
         print(
             f"volunteer {v}: ICP over {n} bone motions: worst rotation {worst_r:.3f}°, worst point "
-            f"{worst_t:.3f} mm (asked: ≤ 0.5°, ≤ 0.3 mm) | Eq. 1 residual of the real motion, relative to "
+            f"{worst_t:.3f} mm (asked: ≤ 0.5°, ≤ 0.3 mm) | Kurihara Eq. 1 residual of the real motion, relative to "
             f"the largest bone, {len(res)} bones × {len(w.poses) - 1} motions: RMS {np.sqrt(np.mean(per**2)):.2f} mm, "
             f"per bone {', '.join(f'{r.rms_mm:.1f}' for r in res)} mm (Kurihara: 0.91 mm)"
         )

@@ -124,17 +124,17 @@ def main(argv=None):
         f"\nper pose (mean of {len(poses)} poses; best of {a.repeat}), {base.n_triangles} triangles, "
         f"{model.n_examples} examples:"
     )
-    print(f"{'':22s}{'ours':>10s}{'paper':>10s}{'ours / paper':>14s}")
+    print(f"{'':28s}{'ours':>10s}{'paper':>10s}{'ours / paper':>14s}")
     for label, key, ours in (
-        ("RBF fit (Eq. 4-5)", "rbf", np.mean(rows["rbf"])),
+        ("RBF fit (Kurihara Eq. 4-5)", "rbf", np.mean(rows["rbf"])),
         ("nearest-point fit", "nearest", np.mean(rows["nearest"])),
         ("regularised fit", None, np.mean(rows["regularised"])),
-        ("SSD (Eq. 2)", None, ssd_t),
-        ("PSD (Eq. 7-8)", "psd", psd_t),
-        ("WPSD (Eq. 16)", "wpsd", wpsd_t),
+        ("SSD (Kurihara Eq. 2)", None, ssd_t),
+        ("PSD (Kurihara Eq. 7-8)", "psd", psd_t),
+        ("WPSD (Kurihara Eq. 16)", "wpsd", wpsd_t),
     ):
         p = PAPER.get(key)
-        print(f"{label:22s}{ours * 1e3:8.1f}ms" + (f"{p * 1e3:8.0f}ms{ours / p:14.3f}" if p else ""))
+        print(f"{label:28s}{ours * 1e3:8.1f}ms" + (f"{p * 1e3:8.0f}ms{ours / p:14.3f}" if p else ""))
     print(
         f"\nWPSD / PSD = {wpsd_t / psd_t:.2f} (paper {PAPER['wpsd'] / PAPER['psd']:.2f}); "
         f"PSD / SSD = {psd_t / ssd_t:.2f}"

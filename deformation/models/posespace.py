@@ -277,7 +277,9 @@ def _wpsd_coefficients(idx, val, bone_pair, out_c, out_inv_sigma2):
         out_inv_sigma2[j] = inv
         for i in range(P):
             for l in range(P):
-                a[i, l] = np.exp(-pair[i, l] * inv)  # Φ_il = φ(d_j(a_i, a_l)), Kurihara Eq. 13 with Eq. 16's d_j
+                a[i, l] = np.exp(
+                    -pair[i, l] * inv
+                )  # Φ_il = φ(d_j(a_i, a_l)), Kurihara Eq. 13 with Kurihara Eq. 16's d_j
         ok = chol_factor(a, P)
         for c in range(P):
             for i in range(P):

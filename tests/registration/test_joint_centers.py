@@ -1,4 +1,4 @@
-"""Kurihara Eq. (1) joint centres: closed form, hinge handling, BFGS cross-check, real wrist motion."""
+"""Kurihara Eq. 1 joint centres: closed form, hinge handling, BFGS cross-check, real wrist motion."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def test_noise_gives_the_least_squares_minimum():
     # The unconstrained minimum is what this test checks (the hinge rule is tested below; here the
     # centre's sd along the weakest direction is 0.95 mm, at the default 1 mm limit).
     r = estimate_joint_center(motions, hinge_sd_mm=None)
-    # The closed form is the minimum of Eq. 1: no nearby point does better.
+    # The closed form is the minimum of Kurihara Eq. 1: no nearby point does better.
     e0 = eq1_energy(r.center, motions)
     for d in np.eye(3):
         assert eq1_energy(r.center + 0.01 * d, motions) > e0
@@ -87,7 +87,7 @@ def test_phantom_hand_joint_centres_from_forward_kinematics():
         )
         for _ in range(5)
     ]
-    # 3-DOF joints only: a 6-DOF joint's translation moves its centre, so Eq. 1 has no exact zero
+    # 3-DOF joints only: a 6-DOF joint's translation moves its centre, so Kurihara Eq. 1 has no exact zero
     # there (Kurihara leaves the thumb CMC out of his 0.91 mm for that reason).
     for name in ("index_mcp", "little_pip", "thumb_ip"):
         j = sk.joint(name)
@@ -128,7 +128,7 @@ def test_real_wrist_bone_motion():
         ref = study.bones[b].positions[base].mean(axis=0)
         results.append(estimate_joint_center(motions, reference=ref))
         all_motions.append(motions)
-    # Carpal bones translate as well as rotate, so Eq. 1 leaves millimetres; what must hold is that
+    # Carpal bones translate as well as rotate, so Kurihara Eq. 1 leaves millimetres; what must hold is that
     # the closed form is its minimum (BFGS from the reference finds nothing lower) and that the
     # reported RMS is sqrt(E / n).
     for r, motions in zip(results, all_motions):

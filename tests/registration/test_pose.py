@@ -56,7 +56,7 @@ def test_bone_transforms_match_the_truth(knee_result):
 
 def test_joint_centres_and_hinge_axes(knee_result):
     res, acc = knee_result
-    # Every joint flexes (70°, or 49° for the patella) with only a few degrees of varus and twist: Eq. 1 sees
+    # Every joint flexes (70°, or 49° for the patella) with only a few degrees of varus and twist: Kurihara Eq. 1 sees
     # near-hinges.  The required bounds: the true centre within 1 mm of the estimated axis, the axis within 2°
     # of the one the true motions define.  Measured: knee 0.04 mm / 0.64°, tibiofibular 0.17 mm / 0.13°,
     # patellofemoral 0.65 mm / 0.47°.
@@ -204,7 +204,7 @@ def test_released_labels_drop_only_the_flagged_bones(knee_ct_study):
 
 
 def test_a_joint_that_barely_moves_keeps_the_skeleton_centre_and_is_not_scored(knee_ct_study):
-    """The straight-leg scan alone: no joint turns 5°, so Eq. 1 is not solved; the skeleton's centres are
+    """The straight-leg scan alone: no joint turns 5°, so Kurihara Eq. 1 is not solved; the skeleton's centres are
     kept, marked as not estimated, and left out of the centre-error statistics (they would score 0 mm)."""
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
@@ -299,7 +299,7 @@ def _chain_results(rng, n_scans, outlier=None, offset_mm=3.0):
 
 
 def test_a_motion_inconsistent_with_its_joint_centre_is_flagged():
-    """Eq. 1 over all scans fixes each joint's centre; a bone whose motion misses it by far more than the
+    """Kurihara Eq. 1 over all scans fixes each joint's centre; a bone whose motion misses it by far more than the
     others (here 3 mm beside 0.1 mm noise) is flagged joint_outlier, and the bone below it parent_flagged.
     Bones that are right are left alone; so is a scan set without an outlier."""
     from registration.pose import flag_joint_outliers

@@ -124,7 +124,7 @@ def test_intensity_registration_recovers_a_known_motion(template):
     truth = motion([3.0, -4.0, 6.0], [2.5, -1.5, 1.0], center=BLOBS[0])
     sampler = Sampler(render(truth), order=3)
     start = compose(motion([2.0, 1.5, -2.0], [1.5, 1.0, -1.0], center=BLOBS[0]), truth)  # ~3° and 2 mm off
-    # SimpleITK alone (Eq. 1, regular-step descent): it stops short in rotation (measured 0.11°, 0.004 mm).
+    # SimpleITK alone (Rhee Eq. 1, regular-step descent): it stops short in rotation (measured 0.11°, 0.004 mm).
     plain = refine_intensity(region, sampler, start, prior_deg=None)
     rot, tr = errors(plain.transform, truth, region.centroid)
     assert plain.ok, plain.stop

@@ -133,7 +133,7 @@ def test_consistent_mesh_takes_the_base_through_ssd_rbf_and_fit():
         r = consistent_mesh(base, w, {"b": t}, target, feature_targets=feats, n_features=40)
         np.testing.assert_allclose(r["ssd"].vertices, apply(t, base.vertices), atol=1e-9)
         assert r["info"]["features"] == 40 and len(set(r["features"].tolist())) == 40
-        # Eq. 5 solved exactly: every feature point on its target (the RBF's own residual check is 1e-6 mm)
+        # Kurihara Eq. 5 solved exactly: every feature point on its target (the RBF's own residual check is 1e-6 mm)
         np.testing.assert_allclose(r["rbf"].vertices[r["features"]], r["feature_targets"], atol=1e-5)
         _, d, _ = closest_points(target, r["fitted"].vertices)
         assert np.median(d) < 0.05 and np.array_equal(r["fitted"].triangles, base.triangles)
@@ -148,7 +148,7 @@ def test_consistent_mesh_takes_the_base_through_ssd_rbf_and_fit():
 def test_landmarks_lie_on_s0s_triangles_and_the_rbf_takes_them_to_their_targets():
     """Landmarks picked on the template's skin (not at S0's vertices): their closest points on S0 as triangle
     and barycentric coordinates rebuild the point on S0 itself; any mesh with S0's connectivity carries them;
-    the RBF's centres are where SSD takes them, and Eq. 5 lands each exactly on its target."""
+    the RBF's centres are where SSD takes them, and Kurihara Eq. 5 lands each exactly on its target."""
     from deformation.kinematics.transforms import apply
     from deformation.models.skinning import SkinningWeights
 
@@ -173,7 +173,7 @@ def test_landmarks_lie_on_s0s_triangles_and_the_rbf_takes_them_to_their_targets(
     )
     r = consistent_mesh(base, w, {"b": t}, target, landmarks=(sites, targets))
     assert r["info"]["feature_source"] == "landmarks" and r["info"]["features"] == 30
-    # Eq. 5 puts each landmark exactly on its target (the RBF's own residual check is 1e-6 mm); on the mesh it
+    # Kurihara Eq. 5 puts each landmark exactly on its target (the RBF's own residual check is 1e-6 mm); on the mesh it
     # is the blend of its triangle's corners, which the exponential kernel's cusp at the centre moves less
     # than the centre itself: within 0.1 mm of a 2 mm displacement (0.03 mm measured)
     np.testing.assert_allclose(on_mesh(r["rbf"].vertices, base.triangles, sites), targets, atol=0.1)

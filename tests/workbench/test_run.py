@@ -424,7 +424,7 @@ def test_surface_with_landmarks_from_a_file_and_a_bad_landmarks_file(done, tmp_p
     for sid in st.scan_ids:
         r = doc["per_scan"][sid]
         assert r["feature_source"] == "landmarks" and r["features"] == 20
-        # the stage's RBF is Eq. 4-5 with these landmarks as its feature points: centred where they lie on the
+        # the stage's RBF is Kurihara Eq. 4-5 with these landmarks as its feature points: centred where they lie on the
         # SSD mesh (their triangles' blend), each moved onto its scan point.  PLY keeps float32: 1e-5 relative
         # on ~100 mm coordinates, 1e-3 mm
         ssd = read_mesh(root / "surface" / f"{sid}_ssd.ply")
