@@ -101,7 +101,7 @@ lint: venv
 # generated API and results pages are made anew each time (a module that moved leaves no stale page behind).
 docs: venv
 	rm -rf docs/api/generated docs/results/generated
-	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+	$(VENV)/bin/sphinx-build -n -W --keep-going -q -b html docs docs/_build/html
 	@echo "docs: open docs/_build/html/index.html"
 
 test: venv test-deps lint docs

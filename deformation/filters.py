@@ -44,7 +44,7 @@ def smooth(
     spacing : sequence of float, optional
         The voxel size in mm along the array axes (z, y, x).
     method : {"scipy", "recursive"}
-        ``"scipy"``: :func:`scipy.ndimage.gaussian_filter`, the sampled kernel cut at ``truncate`` σ, the
+        ``"scipy"``: ``scipy.ndimage.gaussian_filter``, the sampled kernel cut at ``truncate`` σ, the
         edges continued by ``mode``, the result in the (converted) array's dtype; an axis whose σ is 0 is left
         as it is.  ``"recursive"``: SimpleITK's ``SmoothingRecursiveGaussian`` (Deriche's recursive filter) on
         a float32 copy, the result float32; ``mode`` and ``truncate`` do not apply and every σ must be > 0.

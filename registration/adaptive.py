@@ -274,8 +274,8 @@ def step_control_points(shape_zyx, level: int, block, *, inset: float = 0.25, mi
     """The 8 moving control points of a step on ``block`` (i, j, k) at ``level``: index coordinates (x, y, z).
 
     Rhee §4.3: a 2×2×2 pattern ``inset`` of the half-block inside the
-    block's corners — the points :meth:`BlockRegistration._step` places in
-    region-unit coordinates (:func:`control_points_unit`; the region is
+    block's corners — the points ``BlockRegistration._step`` places in
+    region-unit coordinates (``control_points_unit``; the region is
     the 3×3×3 blocks, half-extent 1.5 blocks), mapped back to voxel indices.
     """
     _, _, centre, half = _block_frame(block_layout(shape_zyx, level, min_block_voxels), block)

@@ -3,7 +3,7 @@
 The peers a researcher would otherwise reach for, on the same inputs and
 returning the same thing — a ``scan_to_template`` field on the scan grid — so
 that every comparison (``benchmarks/bench_registration.py``,
-:mod:`validation.registration_protocol`) is made in one run on the same data:
+:mod:`validation.protocols.registration`) is made in one run on the same data:
 
 * :func:`sitk_bspline` — SimpleITK's multi-resolution free-form deformation
   (cubic B-spline transform, MI or mean squares, gradient descent with line search, a control grid

@@ -85,7 +85,7 @@ class DenseSettings:
     #: a bone not moved so far is tested on a level only where it is at least this many level voxels thick
     refine_min_voxels: float = 3.0
     #: ... and moved only when its own fit rises by more than this many standard errors (Fisher's z of its NCC:
-    #: :func:`bone_fit_improves`); 0 accepts any rise
+    #: ``bone_fit_improves``); 0 accepts any rise
     refine_significance: float = 2.0
     elastic_mm: float = 2.0  #: σ of the smoothing of the field after each step (0: none), when elastic_voxels is None
     #: fluid σ in voxels of each level (None: fluid_mm), as ANTs SyN's: each level regularises at its own scale
@@ -110,10 +110,10 @@ class DenseSettings:
         True  #: remove the result's grid-level folds inside the body (deformation.fields.displacement.unfold)
     )
     #: the LNCC's template variance evened out over the positions trilinear sampling reads the template at
-    #: (:func:`interpolation_noise_variance`); off by default (registration-settings.md, "interpolation_noise")
+    #: (``interpolation_noise_variance``); off by default (registration-settings.md, "interpolation_noise")
     interpolation_noise: bool = False
     #: data fission (Leiner et al. 2023): each level returns the map its held-out copy of the noise scores
-    #: highest (:func:`fission`); off by default (registration-settings.md, "holdout")
+    #: highest (``fission``); off by default (registration-settings.md, "holdout")
     holdout: bool = False
     #: ``a``: the steps' images carry (1 + a²) times the image's noise variance, the held-out copy (1 + 1/a²) times
     holdout_share: float = 0.35
@@ -279,7 +279,7 @@ def lncc_force(f, w, sig, f_stats, region=None, v=None):
     respect to ``w`` (Avants 2008, Eq. 5); ``f_stats`` = :func:`local_stats` of ``f``.  With a window mask
     the local statistics are over the mask's voxels only, and the gradient is 0 outside it (the smoothed force
     still reaches into the air from the tissue).  ``v`` (or ``None``): a variance added to ``w``'s at each
-    voxel (:func:`interpolation_noise_variance`), in its local second moment, times the share of a voxel's noise
+    voxel (``interpolation_noise_variance``), in its local second moment, times the share of a voxel's noise
     variance a window's variance holds: the variance of independent samples about their weighted mean is
     ``1 − Σ K²`` of theirs, ``K`` the window's weights (its discrete kernel; ~0 for a window under a voxel, as on
     the coarse levels, where there is then nothing to even out; the level's samples are nearly independent, the
@@ -664,7 +664,7 @@ class TemplateSampler:
 
         def warp(u, order=1):
             """``(w, v)``: the template through the map and the variance that evens out its noise over the
-            sampled positions (:func:`interpolation_noise_variance`; None when not counted)."""
+            sampled positions (``interpolation_noise_variance``; None when not counted)."""
             ph = sample_shifted(phi, u, inv_sp)
             # u along the array axes (z, y, x) → world, written out (no BLAS: the same bits on every run)
             disp = np.stack([d[r, 0] * u[2] + d[r, 1] * u[1] + d[r, 2] * u[0] + ph[r] for r in range(3)], axis=-1)
@@ -765,7 +765,7 @@ def bone_fit_improves(p, b, box, m, wgt, u, fl, sample_w, centre, grid_mm, sp, s
     would pass smaller gains), and is kept for that, not because it corrects the search's selection.  ``fl``
     and ``sample_w`` are the level's images smoothed for the test (``register_dense``: at least one scan and
     one template voxel), so that a candidate between the template's voxel centres hardly lowers its noise
-    (:class:`TemplateSampler`'s artefact).
+    (``TemplateSampler``'s artefact).
     The refinement's own objective spans the soft tissue around the bone, whose map is still being fitted; a
     thin bone's roll is barely seen by its own voxels, and the noise of a CT-like scan can then pay for a wrong
     one.  (A constant image: NaN, not significant.)"""
@@ -800,7 +800,7 @@ def refine_bone(p0, centre, box, wgt, u, fl, sample_w, win, tissue, region, grid
     the bone, fading over its margin); its objective is the LNCC's mean over the voxels whose value the bone's
     motion can change (its box grown by the windows' reach), computed on a box grown by that reach again so
     that the windows' statistics there are the whole grid's (the same template samples as the level's:
-    :class:`TemplateSampler`).  The skin's term and the membrane energy are left out of it: the round is taken
+    ``TemplateSampler``).  The skin's term and the membrane energy are left out of it: the round is taken
     only when the whole level's objective, which has them, rises.
     Derivative-free (NLopt BOBYQA, Powell 2009) within the bounds ``st.refine_deg`` /
     ``st.refine_mm`` of the start.  Returns ``(p, gain, evaluations)``, ``gain`` the best candidate's objective
@@ -939,7 +939,7 @@ def register_dense(
     * **Start**: ``φ₀`` (scan → template), one-to-one (the polyrigid flow of
       :mod:`deformation.models.polyrigid`); the registration finds ``U = id + u`` on the
       scan grid with ``F ≈ M ∘ φ₀ ∘ U``, the template sampled once through the
-      composed map at every trial (:class:`TemplateSampler`: resampling an
+      composed map at every trial (``TemplateSampler``: resampling an
       already resampled template rewards sub-voxel shifts that smooth its noise);
       the result is ``φ = φ₀ ∘ U`` (composed, not added).
     * **Similarity**: local normalised cross-correlation in a Gaussian window
@@ -984,7 +984,7 @@ def register_dense(
       ``refine_min_move_voxels`` (half a scan voxel: the LNCC's windows reach
       into the soft tissue, and its optimum sits a few tenths of a mm from the
       bone's own fit) and the bone's own fit rises significantly with it
-      (``refine_significance``, :func:`bone_fit_improves`: the images smoothed
+      (``refine_significance``, ``bone_fit_improves``: the images smoothed
       by a scan voxel, the noise's correlation counted); a bone is tested on a
       level only where it is at least ``refine_min_voxels`` across (a pose is read from opposite edges), once on
       the finest level if no coarser one could, and once moved it is refined on

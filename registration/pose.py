@@ -6,7 +6,7 @@ The pipeline, per scan:
    template's scanner frame), from image moments (the centres of mass of the
    two images, SimpleITK's ``CenteredTransformInitializer``), or from a
    user-supplied pose file (the papers' semi-automatic step), then refined.
-2. **Every other bone, down the hierarchy** (:attr:`Skeleton.order`):
+2. **Every other bone, down the hierarchy** (``Skeleton.order``):
    initialised from its parent's result, improved by a coarse search over
    rotations about the joint centre
    (:func:`registration.rigid.coarse_rotation_search`), then refined by
@@ -19,7 +19,7 @@ Then, over all scans: each joint's centre by Kurihara Eq. 1
 (:func:`registration.joint_centers.estimate_joint_center`) with hinge
 detection, the hinge's centre placed on its axis nearest the bones' contact
 region (the mean midpoint of the closest voxel pairs of the two bones in the
-template), and each scan's joint angles (:meth:`Joint.angles_from_motion`,
+template), and each scan's joint angles (:meth:`~deformation.kinematics.skeleton.Joint.angles_from_motion`,
 intrinsic XYZ in the skeleton's joint frame).  Poses use the same schema as
 the phantoms' truth (:class:`deformation.kinematics.skeleton.Pose`), so estimate and
 truth compare with :func:`validation.pose_measures.compare_poses`.
@@ -204,9 +204,9 @@ def register_scan(
 ) -> dict[str, BoneFit]:
     """Every bone's template → scan transform, root first, then down the hierarchy.
 
-    ``regions`` come from :func:`bone_regions` on the template smoothed by
+    ``regions`` come from :func:`~registration.rigid.bone_regions` on the template smoothed by
     ``smooth_voxels``; ``coarse_regions`` (optional) from the template
-    smoothed by :data:`COARSE_SMOOTH` voxels, for the joint grid search, whose
+    smoothed by ``COARSE_SMOOTH`` voxels, for the joint grid search, whose
     wider blur widens the capture basin (on the 2x-resolution knee the
     fibula's grid search otherwise locked onto the tibia).
     ``root_init`` is the root's initial 4x4 (identity by default);
@@ -387,16 +387,16 @@ def estimate_poses(
 
     Parameters
     ----------
-    scans : dict scan id → :class:`Volume` (or a callable returning it, to load lazily)
+    scans : dict scan id → :class:`~deformation.geometry.Volume` (or a callable returning it, to load lazily)
     root_init : None, ``"identity"``, ``"moments"``, or dict scan id → 4x4 root transform
     bias_correction : N4-correct template and scans first (:func:`correct_bias`);
         None (default) does so for MRI-like images (no values below −500)
     outlier_factor : Kurihara Eq. 1 consistency check (None: off).  All the scans of a
         joint (of 3 DOF or fewer, moving, with at least
-        :data:`OUTLIER_MIN_MOTIONS` scans where both bones are ok) fix its
+        ``OUTLIER_MIN_MOTIONS`` scans where both bones are ok) fix its
         centre ``c``; a scan whose child motion misses it, ``|M_i c − c|``,
         by more than ``outlier_factor`` times the joint's median miss and by
-        more than :data:`OUTLIER_VOXELS` voxels is an outlier: its child bone
+        more than ``OUTLIER_VOXELS`` voxels is an outlier: its child bone
         is flagged ``joint_outlier`` (and the bones below it
         ``parent_flagged``), one scan at a time, worst first, until none is
         left.  This catches a bone that turned with its neighbour or slid off

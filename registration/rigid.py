@@ -314,7 +314,7 @@ def coarse_rotation_search(
 ) -> tuple[np.ndarray, float, int, np.ndarray]:
     """Best child transform among rotations about the joint centre (our initialisation step).
 
-    The cost is ``metric`` (see :func:`_batch_ssd`): SSD, or by default the
+    The cost is ``metric`` (see ``_batch_ssd``): SSD, or by default the
     SSD left after the best linear intensity map.
 
     Candidates are ``T_parent ∘ M(θ)`` with ``M`` the joint's rotation
@@ -504,7 +504,7 @@ def refine_intensity(
     not determine with the prior (``prior_deg`` / ``prior_mm``; None: no
     prior, as for a root bone) and estimates each bone's uncertainty.
     ``noise_correlation`` is the number of voxels that count as one
-    independent sample in the data term (see :data:`NOISE_CORRELATION`).
+    independent sample in the data term (see ``NOISE_CORRELATION``).
     """
     import time
 
@@ -687,17 +687,17 @@ def polish_with_prior(
     starts compare).  Directions the image determines well are practically
     unchanged (their data curvature is orders of magnitude above ``1/τ²``);
     undetermined ones stay at the initialisation instead of fitting noise
-    (MAP estimation; Gauss–Newton through :func:`scipy.optimize.least_squares`
+    (MAP estimation; Gauss–Newton through ``scipy.optimize.least_squares``
     with a cubic B-spline sampler).  ``prior_deg`` / ``prior_mm`` None drop
     that part of the prior (a root bone has no parent to be tied to).
 
-    ``loss`` (a :func:`~scipy.optimize.least_squares` loss; ``"linear"`` is
+    ``loss`` (a ``least_squares`` loss; ``"linear"`` is
     Rhee Eq. 1's plain sum of squares) with ``loss_scale`` in units of ``σ`` (here;
     :func:`refine_intensity` sets it on the residual's robust scale) makes
     the fit robust: voxels of the dilated region whose residual exceeds
     ``loss_scale·σ`` — soft tissue that slides past the bone, a neighbour
     entering the region — count linearly instead of quadratically (see
-    :data:`ROBUST_LOSS`).  The loss applies to the prior's terms too, which
+    ``ROBUST_LOSS``).  The loss applies to the prior's terms too, which
     only matters more than ``loss_scale`` prior widths from its centre.  Returns the transform and, from the
     posterior covariance ``σ² (JᵀJ + Λ)⁻¹``, the standard deviations of the
     rotation (largest over directions, degrees) and of the translation (mm),

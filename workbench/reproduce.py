@@ -10,7 +10,7 @@ reuses every stage that is up to date (the stage mechanism's digests), so
 
 :func:`write_table` writes one table as ``<id>.csv`` (one row per table row:
 label, kind, every column), ``<id>.md`` (the table, the definitions of its
-measures, the notes) and ``<id>.json`` (:meth:`Table.to_dict`), each
+measures, the notes) and ``<id>.json`` (``Table.to_dict()``), each
 atomically; :func:`format_markdown` is the text printed.
 """
 
@@ -228,7 +228,7 @@ def reproduce(
 
     ``workers`` > 1 (or ``scheduler``, an existing Dask cluster's address): the protocols that make their own
     studies run side by side as Dask tasks (:mod:`workbench.scale`, a ``LocalCluster`` of that many
-    processes), the biggest first, then those that reuse them (:data:`REUSES`) here; each study is one
+    processes), the biggest first, then those that reuse them (``REUSES``) here; each study is one
     task's, so the tables are the same as with one worker.  Each table is written and emitted as its task
     finishes (a failure in one cancels the others; the studies done so far are reused by a rerun).
     """

@@ -56,7 +56,7 @@ _ACTIVE = {"depth": 0, "restore": None}
 
 @contextlib.contextmanager
 def same_bits():
-    """A context in which BLAS runs on one thread and ITK on :data:`ITK_THREADS`, on any machine.
+    """A context in which BLAS runs on one thread and ITK on ``ITK_THREADS``, on any machine.
 
     A BLAS dot or matrix product sums in an order set by its thread count, so its last bits differ between a
     2-core coordinator and a 1-thread worker (seen: the surface fit's conjugate gradients and the validation's

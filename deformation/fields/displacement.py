@@ -536,7 +536,7 @@ def unfold(
     initial field (e.g. the backward map of linear-blend VBD, Rhee Eq. 2, in
     the crease of a flexed joint, where the forward blend is not one-to-one):
     it changes the field only in and next to the folded voxels.  Folds
-    farther apart than the smoothing's reach (2·4σ + ``margin`` + :data:`UNFOLD_PAD`
+    farther apart than the smoothing's reach (2·4σ + ``margin`` + ``UNFOLD_PAD``
     voxels) are repaired one cluster after the other, each on a crop of the
     grid around it (bit for bit the whole grid's repair of the folds in that
     crop: another cluster's folds inside it are repaired with it), so a
@@ -553,10 +553,10 @@ def unfold(
     unfolding did not need: the smoothing replaces every voxel of a region,
     but a fold is undone by a few of them.  Each changed voxel, in turn, goes
     back towards its input value by the largest of
-    :data:`RESTORE_FRACTIONS` that keeps ``det ≥ min_det`` at it and its six
+    ``RESTORE_FRACTIONS`` that keeps ``det ≥ min_det`` at it and its six
     face neighbours (the only determinants it enters) wherever ``mask`` is,
     the largest changes first; passes repeat until one moves nothing (at most
-    :data:`RESTORE_PASSES`).
+    ``RESTORE_PASSES``).
     No determinant of the mask drops below ``min_det`` by it, so it never
     adds a fold, and it may finish a repair the smoothing left incomplete
     (what the passes change: docs/measurements/library-choices.md).

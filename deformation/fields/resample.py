@@ -351,7 +351,7 @@ def backward_kernel(
     Each solve starts from the previous voxel's answer in the row, moved by the local inverse
     Jacobian times the step to this voxel (one Newton evaluation usually suffices); the first voxel
     of a row, and any voxel where that fails, starts from the template voxel that landed nearest
-    (``guess``, :func:`_scatter_guess`), then from the candidates (:func:`_restart`).  ``prio``
+    (``guess``, ``_scatter_guess``), then from the candidates (``_restart``).  ``prio``
     (template grid, uint8) and ``occ`` (target grid) implement the preference for body preimages:
     where ``occ`` is set and the solution found lies where ``prio`` is 0, the candidates are
     tried for a converged solution with ``prio`` 1.  Target voxels that no template voxel reaches
@@ -808,7 +808,7 @@ def _coarse_axis(i, f, n, cells):
 @nb.njit(cache=True, inline="always")
 def _blend(cx, ok, f, k0, wz, k1, kn, j0, wy, j1, jn, i0, wx, i1, inn, c):
     """Component ``c`` of a fine voxel's template index (float32, as stored): f × the trilinear blend of the
-    coarse template indices of its cell where the cell is blendable (:func:`_blendable_cells`), else f × its
+    coarse template indices of its cell where the cell is blendable (``_blendable_cells``), else f × its
     nearest coarse voxel's."""
     if ok[k0, j0, i0]:
         a00 = cx[k0, j0, i0, c] + (cx[k0, j0, i1, c] - cx[k0, j0, i0, c]) * wx
@@ -879,9 +879,9 @@ class CoarseBackwardMap:
     """A backward map solved on every ``factor``-th voxel of the grids, blended up to the fine grids on demand.
 
     ``coarse`` maps ``target.every(factor)`` to ``template.every(factor)``
-    (:meth:`GridGeometry.every`); each fine target voxel gets the trilinear
+    (:meth:`~deformation.geometry.GridGeometry.every`); each fine target voxel gets the trilinear
     blend of its 8 coarse neighbours' template positions where all of them
-    converged (ok or folded) and lie within :data:`MAX_SPREAD` coarse voxel
+    converged (ok or folded) and lie within ``MAX_SPREAD`` coarse voxel
     sides of each other, else its nearest coarse voxel's position and status.
     ``residual_mm`` is the coarse solves' (the largest of the 8), and so is
     ``summary()["max_residual_mm"]``: the blend's own error is not measured —
@@ -934,7 +934,7 @@ class CoarseBackwardMap:
 
     def unblended(self, k0: int, k1: int) -> np.ndarray:
         """Fine target voxels of the slices ``k0 ≤ k < k1`` whose cell is not blendable (its corners'
-        preimages spread or one did not converge: :func:`_blendable_cells`), which :meth:`rows` gives their
+        preimages spread or one did not converge: ``_blendable_cells``), which :meth:`rows` gives their
         nearest coarse voxel's position: bool ``(k1 − k0, ny, nx)``."""
         nx, ny, _ = self.target_geometry.size
         cz, cy, cx = self._ok.shape
@@ -948,8 +948,9 @@ class CoarseBackwardMap:
         return self.rows(0, self.target_geometry.size[2])
 
     def scan_to_template(self) -> Volume:
-        """:meth:`BackwardMap.scan_to_template` of the fine map, made a slab of :data:`SLAB_VOXELS` at a time
-        (12 bytes a fine voxel held, not the 17 of the fine map and the 24 of its world coordinates)."""
+        """:meth:`BackwardMap.scan_to_template` of the fine map, made a slab of
+        :data:`~deformation.geometry.SLAB_VOXELS` at a time (12 bytes a fine voxel held, not the 17 of the fine map
+        and the 24 of its world coordinates)."""
         g = self.target_geometry
         nx, ny, nz = g.size
         out = np.empty(g.array_shape + (3,), dtype=np.float32)
@@ -959,7 +960,7 @@ class CoarseBackwardMap:
         return Volume(out, g)
 
     def summary(self) -> dict:
-        """:meth:`BackwardMap.summary` of the coarse solves (counts of coarse voxels), with the factor."""
+        """``BackwardMap.summary()`` of the coarse solves (counts of coarse voxels), with the factor."""
         return {**self.coarse.summary(), "map_factor": self.factor}
 
     def pull(self, volume: Volume, *, labels: bool = False, fill=0.0) -> Volume:

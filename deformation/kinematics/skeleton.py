@@ -110,7 +110,7 @@ class Joint:
     def outside_limits(self, angles) -> list[str]:
         """The values of ``angles`` outside the joint's limits, as ``"knee[0] = 1000° outside [-10, 150]"``.
 
-        A joint without limits still takes its rotations within ±180° (:data:`HALF_TURN_DEG`): a larger
+        A joint without limits still takes its rotations within ±180° (``HALF_TURN_DEG``): a larger
         angle is the same rotation as one within it, and in a pose file it is a slip (1000 for 100, or
         radians × 100); its translations are not checked."""
         a = np.asarray(angles, dtype=float).reshape(-1)
@@ -223,7 +223,7 @@ class Joint:
 class Skeleton:
     """A tree of bones connected by joints, with forward kinematics.
 
-    JSON schema (``skeleton.json``, :meth:`to_dict`)::
+    JSON schema (``skeleton.json``, ``to_dict()``)::
 
         {"format": "avw-skeleton", "version": 1, "name": "knee",
          "units": "mm", "angle_units": "deg", "euler": "intrinsic XYZ in the joint frame",
@@ -422,7 +422,7 @@ class Pose:
 
     ``joint_angles`` and ``joint_centers`` (scan world, mm) are optional
     extras recorded with ground truth or estimated by pose recovery.
-    JSON schema (``pose.json``, :meth:`to_dict`)::
+    JSON schema (``pose.json``, ``to_dict()``)::
 
         {"format": "avw-pose", "version": 1, "skeleton": "knee",
          "bones": {"femur": [[4x4 rows]], ...},

@@ -5,7 +5,7 @@ for the joint centres of Kurihara Eq. 1) and the skin's.  Every isosurface of th
 
 * :func:`flying_edges` — VTK's flying edges (``vtkFlyingEdges3D``, or its
   discrete variant for one label) on a ``[z, y, x]`` array in index space.
-* :func:`isosurface` — the ``level`` surface of a :class:`Volume` in world mm
+* :func:`isosurface` — the ``level`` surface of a :class:`~deformation.geometry.Volume` in world mm
   through its full geometry (anisotropic spacing, origin, any orthonormal
   direction), triangles wound so that their normals point from the inside
   (values above ``level``) to the outside — outward for a bright object such

@@ -195,7 +195,8 @@ class TetMesh:
         return self._cached("boundary_vertices", lambda: np.unique(self.boundary_faces()[0]))
 
     def boundary_surface(self) -> SurfaceMesh:
-        """The boundary faces as a :class:`SurfaceMesh` over all vertices (interior ones unused)."""
+        """The boundary faces as a :class:`~deformation.meshes.mesh.SurfaceMesh` over all vertices (interior ones
+        unused)."""
         faces, _ = self.boundary_faces()
         return SurfaceMesh(self.vertices, faces)
 

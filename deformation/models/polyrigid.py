@@ -158,7 +158,7 @@ class PolyrigidFlow:
     def scan_to_template(self, scan_geometry: GridGeometry, *, factor: int = 1, progress=None) -> Volume:
         """The backward map as a ``scan_to_template`` displacement field on ``scan_geometry`` (float32, mm).
 
-        ``factor`` f > 1 (a big scan): see :meth:`_field`.  ``progress(done, total)`` is called as voxels are
+        ``factor`` f > 1 (a big scan): see ``_field``.  ``progress(done, total)`` is called as voxels are
         finished."""
         return self._field(scan_geometry, True, factor, progress)
 

@@ -47,8 +47,8 @@ class TemplatePoser:
     ----------
     template : Volume
     weights : SkinningWeights on the body mask's grid: the template's, or every f-th voxel of it
-        (:meth:`GridGeometry.every`; ``workbench weights --grid-factor``, for a template too big for
-        full-grid weights) — then the maps are always solved on that coarse grid (``map_factor`` f)
+        (:meth:`~deformation.geometry.GridGeometry.every`; ``workbench weights --grid-factor``, for a template
+        too big for full-grid weights) — then the maps are always solved on that coarse grid (``map_factor`` f)
     body : Volume, the template's body mask (preferred where the map is many-to-one; its outside gives the
         air value that fills voxels no tissue reaches), on the weights' grid
     labels : Volume, optional, the template's bone labels (posed too)
@@ -86,8 +86,8 @@ class TemplatePoser:
 
     def forward(self, pose, factor: int | None = None) -> np.ndarray:
         """Posed world positions ``(nz, ny, nx, 3)`` (EVD or VBD) of the template voxels — of every
-        ``factor``-th one along each axis (:meth:`GridGeometry.every`) when ``factor`` > 1 (default: the
-        weights' grid, as :attr:`body`)."""
+        ``factor``-th one along each axis (:meth:`~deformation.geometry.GridGeometry.every`) when ``factor`` > 1
+        (default: the weights' grid, as ``body``)."""
         factor = self.weights_factor if factor is None else int(factor)
         g = self.template.geometry
         weights, model = self.weights, self.model

@@ -259,7 +259,7 @@ def inverse_lbs(posed_points, weights: SkinningWeights, transforms) -> np.ndarra
     ``p = (Σ_k w_k T_k)⁻¹ p'``.  The blended matrix of a point whose weights
     mix strongly different rotations can be near singular (the "candy
     wrapper" of linear blend skinning); such points are reported by a
-    :class:`numpy.linalg.LinAlgError` from the solve only when exactly
+    ``numpy.linalg.LinAlgError`` from the solve only when exactly
     singular, so callers that need a check should compare ``lbs`` of the
     result with the input.
     """

@@ -5,14 +5,14 @@ is :mod:`workbench.study`'s job.  Scans are produced one at a time
 (:meth:`Phantom.scans` is a generator) so that paper-size studies stay well
 under a few GiB of memory.
 
-Randomness: one ``seed`` feeds a :class:`numpy.random.SeedSequence`, spawned
+Randomness: one ``seed`` feeds a ``numpy.random.SeedSequence``, spawned
 into independent streams for the texture, pose jitter, markers, and each
 image's noise and bias field, so the same seed gives identical files and
 another seed gives different noise (and jitter).
 
 Acquisition: by default (``acquisition="fixed"``) every image of a modality
 has the same tissue intensities, noise model, noise level and bias amplitude
-(:data:`~validation.phantoms.anatomy.CONTRASTS`).  ``acquisition="random"``
+(``validation.phantoms.anatomy.CONTRASTS``).  ``acquisition="random"``
 draws them instead (:func:`draw_acquisition`), from a stream of their own
 (the root sequence's sixth child, spawned into [study, image 0, image 1, ...];
 image 0 is the template): per study a tissue-intensity table and, unless the
@@ -124,10 +124,10 @@ class PhantomSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> PhantomSpec:
-        """The spec :meth:`to_dict` wrote (e.g. a study manifest's ``phantom`` entry).
+        """The spec ``to_dict()`` wrote (e.g. a study manifest's ``phantom`` entry).
 
-        Keys :meth:`to_dict` does not write are not read: a manifest's recorded ``poses`` (the poses the
-        spec drew, or its explicit ones, which :meth:`to_dict` leaves out), ``acquisition_drawn`` and the
+        Keys ``to_dict()`` does not write are not read: a manifest's recorded ``poses`` (the poses the
+        spec drew, or its explicit ones, which ``to_dict()`` leaves out), ``acquisition_drawn`` and the
         generator's notes.  ``PhantomSpec.from_dict(spec.to_dict()) == spec`` for every spec without
         explicit ``poses``.
         """
@@ -428,7 +428,7 @@ class Phantom:
         With ``scan_points`` and ``pose`` (a posed scan's voxel positions and
         its bone transforms), soft tissue is rendered at ``template_points``
         and each bone's blurred edge rigidly, in the bone's own frame (see
-        :meth:`Anatomy.intensity`).
+        :meth:`~validation.phantoms.anatomy.Anatomy.intensity`).
         """
         if scan_points is not None and pose is None:
             raise ValueError("render: scan_points need the pose whose bone transforms they were posed by")

@@ -133,7 +133,7 @@ TRANSLATION_LIMIT_MM = 10.0
 
 
 def range_key(joint: str) -> str:
-    """The :data:`RANGE_OF_MOTION` entry of a hand joint ("index_mcp" → "mcp")."""
+    """The ``RANGE_OF_MOTION`` entry of a hand joint ("index_mcp" → "mcp")."""
     if joint.startswith("thumb_") or joint == "wrist":
         return joint
     return joint.rsplit("_", 1)[1]
@@ -161,7 +161,7 @@ def digit_bone(a, b, ra, rb, axes) -> SmoothUnion:
     symmetric about its long axis, so its twist is invisible in any image and
     no registration can recover it; these widths and offsets (about 1.4:1 at
     the ends) make every rotation observable, as in real bones.  ``axes`` is
-    the digit frame of :func:`_frame` (x radio-ulnar, y dorsal, z along the
+    the digit frame of ``_frame`` (x radio-ulnar, y dorsal, z along the
     digit).  The articular ends stay where the round cone's caps were, so the
     joint spaces keep their ``GAP``.
     """

@@ -65,7 +65,7 @@ def hash_uniform(i, j, k, key: int, channel: int) -> np.ndarray:
 def cell_boundary_distance(p: np.ndarray, cell_mm: float, key: int) -> tuple[np.ndarray, np.ndarray]:
     """Distance (mm) from points ``p`` (n, 3) to the boundary of their Voronoi cell, and the cell's value in [0, 1).
 
-    The NumPy definition; :func:`validation.phantoms.kernels.intensity_map` evaluates the same per point.
+    The NumPy definition; ``validation.phantoms.kernels.intensity_map`` evaluates the same per point.
     """
     p = np.asarray(p, float)
     base = np.floor(p / cell_mm).astype(np.int64)

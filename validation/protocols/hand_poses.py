@@ -15,9 +15,9 @@ published, illustrated sets:
   thumbs-up, "OK", V, horns, call-me, counting three, pinch).
 
 The joint angles are our reading of those illustrations, composed from
-finger shapes (:data:`FINGER_SHAPES`), thumb shapes (:data:`THUMB_SHAPES`)
-and spreads (:data:`SPREADS`), each pose checked against the hand's ranges
-of motion (:data:`RANGE_OF_MOTION` in :mod:`validation.phantoms.hand`: the
+finger shapes (``FINGER_SHAPES``), thumb shapes (``THUMB_SHAPES``)
+and spreads (``SPREADS``), each pose checked against the hand's ranges
+of motion (``RANGE_OF_MOTION`` in :mod:`validation.phantoms.hand`: the
 AAOS normal active ranges, *Joint Motion: Method of Measuring and
 Recording*, 1965, widened a few degrees).  Angles are in degrees in the hand
 phantom's joint frames (intrinsic XYZ = flexion, abduction towards the
@@ -158,8 +158,8 @@ LIBRARY = (
 
 
 def hand_angles(skeleton, thumb: str, shapes, spread) -> dict:
-    """Joint angles for the hand ``skeleton`` from a :data:`THUMB_SHAPES` name, four :data:`FINGER_SHAPES`
-    names (index, middle, ring, little) and a :data:`SPREADS` name or four MCP abductions (degrees)."""
+    """Joint angles for the hand ``skeleton`` from a ``THUMB_SHAPES`` name, four ``FINGER_SHAPES``
+    names (index, middle, ring, little) and a ``SPREADS`` name or four MCP abductions (degrees)."""
     a = {j.name: np.zeros(j.dof) for j in skeleton.joints}
     abds = SPREADS[spread] if isinstance(spread, str) else tuple(float(v) for v in spread)
     for finger, shape, abd in zip(FINGERS, shapes, abds):
@@ -185,7 +185,7 @@ def library_angles(skeleton) -> list[tuple[str, str, dict]]:
 
 
 def check_range(angles: dict) -> list[str]:
-    """The joint rotations of ``angles`` outside :data:`RANGE_OF_MOTION` (empty when all are within)."""
+    """The joint rotations of ``angles`` outside ``RANGE_OF_MOTION`` (empty when all are within)."""
     bad = []
     for joint, v in angles.items():
         lims = RANGE_OF_MOTION[range_key(joint)]

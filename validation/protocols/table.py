@@ -8,7 +8,7 @@ general-purpose registration run in the same harness on the same input).
 ``definitions`` says what each column measures (over which voxels, in which
 units, bins and logarithm base), so that a table read on its own cannot be
 misread.  Formatting (Markdown, CSV) and writing belong to the workbench
-(:mod:`workbench.reproduce`); here the table is only data (:meth:`to_dict`).
+(:mod:`workbench.reproduce`); here the table is only data (``to_dict()``).
 """
 
 from __future__ import annotations

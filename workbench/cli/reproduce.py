@@ -47,7 +47,7 @@ examples:
 
 
 class TableNames(Sequence):
-    """The tables ``reproduce`` takes: the names of :data:`validation.protocols.PROTOCOLS`, in its order, then
+    """The tables ``reproduce`` takes: the names of ``validation.protocols.PROTOCOLS``, in its order, then
     "all".  Read on first use (checking the arguments, ``reproduce --help``), so that ``workbench --help`` and
     the other commands do not import the protocols."""
 

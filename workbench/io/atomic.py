@@ -297,7 +297,7 @@ def write_text_atomic(path: str | os.PathLike, text: str, *, overwrite: bool = F
     text : str
         Content to write (written as is; add the final newline yourself).
     overwrite : bool, optional
-        Replace an existing file; otherwise :class:`OutputExistsError`.
+        Replace an existing file; otherwise :class:`~workbench.errors.OutputExistsError`.
     encoding : str, optional
         Text encoding, UTF-8 by default.
 

@@ -87,7 +87,7 @@ def image_format(path: str | os.PathLike, *, for_writing: bool = False) -> str:
     Raises
     ------
     UnknownFormatError
-        The suffix is not one of :data:`SUPPORTED_SUFFIXES`.
+        The suffix is not one of :data:`~workbench.io.formats.SUPPORTED_SUFFIXES`.
     """
     p = Path(path)
     if not for_writing and p.is_dir():

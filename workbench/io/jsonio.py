@@ -98,7 +98,7 @@ def write_json(obj: Any, path: str | os.PathLike, *, overwrite: bool = False) ->
     path : str or os.PathLike
         Output file.
     overwrite : bool, optional
-        Replace an existing file; otherwise :class:`OutputExistsError`.
+        Replace an existing file; otherwise :class:`~workbench.errors.OutputExistsError`.
 
     Returns
     -------

@@ -20,8 +20,9 @@ Formats, chosen by suffix (case-insensitive):
     VTK XML PolyData through VTK, float64 points, exact.  Polygons and triangle strips are triangulated on
     reading; vertices and lines are ignored.
 
-Errors: :class:`MissingFileError`, :class:`UnknownFormatError`, and :class:`UnreadableFileError` for truncated,
-corrupt or empty meshes (no triangles).  Writers are atomic and refuse to overwrite unless ``overwrite=True``.
+Errors: :class:`~workbench.errors.MissingFileError`, :class:`~workbench.errors.UnknownFormatError`, and
+:class:`~workbench.errors.UnreadableFileError` for truncated, corrupt or empty meshes (no triangles).  Writers are
+atomic and refuse to overwrite unless ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -488,7 +489,7 @@ def write_mesh(
         Output file; the suffix chooses the format.  PLY, OBJ and VTP are
         exact; STL stores float32 corners per triangle.
     overwrite : bool, optional
-        Replace an existing file; otherwise :class:`OutputExistsError`.
+        Replace an existing file; otherwise :class:`~workbench.errors.OutputExistsError`.
     point_data : dict, optional
         Named per-vertex arrays (``.vtp`` only), e.g. skinning weights.
 

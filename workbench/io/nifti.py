@@ -226,7 +226,7 @@ def restore_nonfinite(data: np.ndarray, layout: NiftiLayout, found: NonFinite) -
 
 
 def check_nifti_written(path: Path) -> None:
-    """Raise :class:`~workbench.errors.OSError` unless the NIfTI file ``path`` holds its whole header and data.
+    """Raise :class:`OSError` unless the NIfTI file ``path`` holds its whole header and data.
 
     niftilib (ITK's NIfTI writer) reports a short write only on its own
     standard error ("NWAD: wrote only 0 of N bytes") and returns normally; the

@@ -15,8 +15,8 @@ The format:
   be looked at on its own in ParaView; :func:`weights_from_point_data`
   collects them back in file order.
 
-Errors: :class:`MissingFileError`, :class:`UnknownFormatError` (not
-``.vtu``), and :class:`UnreadableFileError` for truncated, corrupt or empty
+Errors: :class:`~workbench.errors.MissingFileError`, :class:`~workbench.errors.UnknownFormatError` (not
+``.vtu``), and :class:`~workbench.errors.UnreadableFileError` for truncated, corrupt or empty
 files and for grids holding cells other than tetrahedra.  The writer is
 atomic and refuses to overwrite unless ``overwrite=True``.
 """
@@ -103,7 +103,7 @@ def write_tetmesh(
         ``{name: array}`` with one row per vertex: ``(n,)`` scalars or
         ``(n, c)`` vectors.  Use :func:`weight_arrays` for skinning weights.
     overwrite : bool
-        Replace an existing file; otherwise :class:`OutputExistsError`.
+        Replace an existing file; otherwise :class:`~workbench.errors.OutputExistsError`.
 
     Returns
     -------

@@ -117,7 +117,7 @@ def write_volume(
         zlib/gzip compression for MetaImage and NRRD.  NIfTI follows its
         suffix (``.nii.gz`` compressed, ``.nii`` not).
     allow_nonfinite : bool, optional
-        Write NaN/inf voxels (the default refuses, because :func:`read_volume`
+        Write NaN/inf voxels (the default refuses, because :func:`~workbench.io.volumes.read_volume`
         would refuse them too).
 
     Returns

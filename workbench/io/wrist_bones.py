@@ -60,7 +60,7 @@ class WristBone:
     Attributes
     ----------
     index : int
-        Position of the bone in :attr:`WristBoneStudy.bones` (0-based; bones
+        Position of the bone in ``WristBoneStudy.bones`` (0-based; bones
         are ordered by their lowest vertex index in the source mesh, which is
         the same in every pose).
     vertex_ids : (n,) ndarray of int64

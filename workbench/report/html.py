@@ -1,6 +1,6 @@
 """A self-contained HTML page: inline CSS, a few lines of script, images as data URIs, nothing fetched.
 
-:class:`Page` collects sections; :meth:`Page.html` returns the document.  A
+:class:`Page` collects sections; ``Page.html()`` returns the document.  A
 *toggle* is two pictures in one frame (the registered template and its
 target, NiPreps-style): a button swaps them, and "flicker" alternates them
 twice a second, so that a misregistration shows as motion.

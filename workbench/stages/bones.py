@@ -11,7 +11,7 @@ Outputs (``bones/``): ``bone_frames.json`` (each bone's oriented box from the
 principal axes of its voxels, the centre of the box's base its origin),
 ``bones.json`` (voxels per bone), and when segmented
 ``template_labels.nii.gz`` and ``segmentation.json``.  The label map written
-here is the one every later stage uses (:meth:`workbench.study.Study.template_labels`).
+here is the one every later stage uses (``workbench.study.Study.template_labels()``).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A unit's digest is the SHA-256 of the stage's name and version, the workbench
 version, the settings (canonical JSON), the content of its input files and
-the ``outputs_digest`` of every needed stage's entry (:func:`unit_digest`).
+the ``outputs_digest`` of every needed stage's entry (``unit_digest``).
 A stage whose recorded digest matches and whose outputs exist is up to date
 (:func:`stage_status`); a need that has not run or is out of date raises
 :class:`~workbench.stages.stage.StageNotReady` (:func:`digests_of_needs`).
@@ -79,7 +79,8 @@ def need_units(need: Stage, scan, scans) -> list:
 
 
 def digests_of_needs(study: Study, stage: Stage, settings, scan, scans, registry) -> dict:
-    """``{need: outputs_digest}`` (per-scan needs: ``{need/scan: ...}``); raises :class:`StageNotReady`."""
+    """``{need: outputs_digest}`` (per-scan needs: ``{need/scan: ...}``); raises
+    :class:`~workbench.stages.stage.StageNotReady`."""
     out = {}
     for name in stage.needs(settings):
         need = registry[name]

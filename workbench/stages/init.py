@@ -11,7 +11,7 @@ inverted onto the scan grid by the backward map (:func:`registration.initialise.
 repairs the folds of VBD in the crease of a flexed joint (:func:`deformation.fields.displacement.unfold`).
 ``method="identity"``: no start (Rhee's Table 2 protocol).
 
-The polyrigid flow is integrated voxel by voxel; on a grid of more than :data:`POLYRIGID_VOXELS` voxels (a CT at
+The polyrigid flow is integrated voxel by voxel; on a grid of more than ``POLYRIGID_VOXELS`` voxels (a CT at
 0.5 mm) it is integrated on every f-th voxel and blended up, integrated exactly where the map jumps
 (``map_factor``, :meth:`deformation.models.polyrigid.PolyrigidFlow.scan_to_template`).
 

@@ -1,5 +1,6 @@
-"""What a stage's ``run`` returns: one object per output file, written by :func:`write_output` into the staging
-folder of :func:`workbench.stages.mechanism.execute` (re-exported there).
+"""What a stage's ``run`` returns: one object per output file, written by
+:func:`~workbench.stages.outputs.write_output` into the staging folder of :func:`workbench.stages.mechanism.execute`
+(re-exported there).
 """
 
 from __future__ import annotations

@@ -209,7 +209,7 @@ def held_bones(study, start):
 def adaptive_registration(study, sid: str, s: RegisterSettings, *, template=None, scan=None, progress=None):
     """Rhee's Algorithm 1 on scan ``sid`` as this stage runs it (``method="adaptive"``), nothing written: from the
     init stage's start (its field, or the identity), with :meth:`RegisterSettings.adaptive` for that start's
-    method and, after an articulated start, the bones :func:`held_bones` holds.  ``template``/``scan``: the
+    method and, after an articulated start, the bones ``held_bones`` holds.  ``template``/``scan``: the
     study's, when already read.  Returns the :class:`~registration.adaptive.AdaptiveResult` (its
     ``correspondence`` and ``registered`` are what the stage writes; ``workbench reproduce``'s Tables 2–4 score
     them directly)."""

@@ -1,6 +1,7 @@
 """Stage settings as JSON and back: what ``study.json`` records and the digest hashes
-(:func:`settings_dict`, :func:`settings_from_json`), and a value given on the command line checked against the
-type its settings dataclass declares (:func:`setting_value`).
+(:func:`~workbench.stages.settings.settings_dict`, :func:`~workbench.stages.settings.settings_from_json`), and a
+value given on the command line checked against the type its settings dataclass declares
+(:func:`~workbench.stages.settings.setting_value`).
 """
 
 from __future__ import annotations

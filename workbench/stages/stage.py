@@ -1,5 +1,6 @@
-"""What a stage is: its declaration (:class:`Stage`), what its ``run`` gets (:class:`StageContext`), its progress
-(:class:`Event`) and results (:class:`Outcome`), and the working grid of the stages that thin the template.
+"""What a stage is: its declaration (:class:`~workbench.stages.stage.Stage`), what its ``run`` gets
+(:class:`~workbench.stages.stage.StageContext`), its progress (:class:`~workbench.stages.stage.Event`) and results
+(:class:`~workbench.stages.stage.Outcome`), and the working grid of the stages that thin the template.
 
 :mod:`workbench.stages.mechanism` runs stages; these names are re-exported there.
 """
@@ -31,7 +32,7 @@ WORKING_VOXELS = 60_000_000
 
 def working_factor(setting, geometry) -> int:
     """The ``--grid-factor`` of a stage: the setting, or (None) the smallest that leaves at most
-    :data:`WORKING_VOXELS` of the template's grid."""
+    :data:`~workbench.stages.stage.WORKING_VOXELS` of the template's grid."""
     return geometry.factor_within(WORKING_VOXELS) if setting is None else int(setting)
 
 
@@ -79,7 +80,7 @@ class Event:
 
 @dataclass(frozen=True)
 class Outcome:
-    """What :func:`execute` did with one unit (the study, or one scan)."""
+    """What :func:`~workbench.stages.mechanism.execute` did with one unit (the study, or one scan)."""
 
     stage: str
     scan: str | None

@@ -109,8 +109,8 @@ class Study:
 
     def check_writable(self) -> None:
         """Before any work: the study folder takes new files and ``study.json`` can be replaced — else one
-        clear :class:`StudyError` naming the folder (a read-only mount, missing permissions, an immutable
-        manifest), instead of a failure after minutes of work."""
+        clear :class:`~workbench.study.StudyError` naming the folder (a read-only mount, missing permissions, an
+        immutable manifest), instead of a failure after minutes of work."""
         import tempfile
 
         try:  # a real write: os.access does not see a read-only mount for root, nor an immutable file
@@ -272,12 +272,12 @@ class Study:
         return self.has_output("pose", f"{scan_id}_pose.json")
 
     def pose(self, scan_id: str) -> Pose:
-        """The estimated pose of a scan (``workbench pose``); same schema as :meth:`truth_pose`."""
+        """The estimated pose of a scan (``workbench pose``); same schema as ``truth_pose``."""
         return Pose.from_dict(read_json(self.output("pose", f"{scan_id}_pose.json")))
 
     def pose_flagged(self, scan_id: str) -> list[str]:
         """The bones the pose stage could not place in a scan (``fits.json`` status other than ``ok``): their
-        pose follows the nearest placed ancestor (:func:`registration.pose.placed_transforms`)."""
+        pose follows the nearest placed ancestor (``registration.pose.placed_transforms``)."""
         bones = read_json(self.output("pose", "fits.json"))["scans"][scan_id]["bones"]
         return sorted(b for b, f in bones.items() if f["status"] != "ok")
 
@@ -339,7 +339,7 @@ class Study:
 
     def registration_inverse(self, scan_id: str) -> tuple[Volume, Volume]:
         """``(template_to_scan field, status labels)`` on the template grid (status 0 ok, 1 folded, 2 not
-        converged, 3 outside the scan: :data:`deformation.fields.resample.STATUS_NAMES`)."""
+        converged, 3 outside the scan: ``deformation.fields.resample.STATUS_NAMES``)."""
         return (
             read_displacement(self.output("register", "template_to_scan.mha", scan_id)),
             read_labels(self.output("register", "inverse_status.nii.gz", scan_id)),

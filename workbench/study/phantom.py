@@ -39,7 +39,7 @@ def write_phantom_study(
     ----------
     phantom : validation.phantoms.Phantom
     out : path of the study folder to create
-    overwrite : replace an existing folder (otherwise :class:`OutputExistsError`)
+    overwrite : replace an existing folder (otherwise :class:`~workbench.errors.OutputExistsError`)
     progress : callable(stage: str, done: int, total: int), optional
         Called after each file group is written.
 

@@ -13,7 +13,7 @@ __all__ = ["summarize", "recorded_times"]
 def summarize(study, stage_order=()) -> str:
     """A human-readable summary of a study folder (``workbench info``): the template's grid, the skeleton, the
     bones' sizes, each scan's flexion and, for a phantom, its generation statistics, and the stages' recorded
-    times (``stage_order`` first: :data:`workbench.stages.ORDER`)."""
+    times (``stage_order`` first: ``workbench.stages.ORDER``)."""
     m = study.manifest
     sk = study.skeleton()
     g = read_image_geometry(study.path(m["template"]))

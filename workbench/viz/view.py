@@ -129,7 +129,7 @@ class ClipPlane:
     ``keep="auto"`` (``z:0.5``) cuts away the side facing the camera, so the
     cut face — the interior — is what one sees (Rhee Fig. 10);
     ``keep="above"`` (``+z:0.5``) keeps the larger coordinates, ``"below"``
-    (``-z:0.5``) the smaller.  Parsed by :meth:`parse`.
+    (``-z:0.5``) the smaller.  Parsed by ``ClipPlane.parse``.
     """
 
     axis: str
