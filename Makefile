@@ -30,7 +30,7 @@ help:
 	@echo "make test       set up, then run the gates (make lint), build the docs (make docs) and the test suite"
 	@echo "                (slow tests excluded)"
 	@echo "make lint       ruff (lint and format) and import-linter's layering contract"
-	@echo "make docs       the documentation site, warnings as errors: open docs/_build/html/index.html"
+	@echo "make docs       the documentation site (warnings and broken references are errors): open docs/_build/html/index.html"
 	@echo "make test-slow  paper-size tests (minutes)"
 	@echo "make bench      add the benchmarks' peers to .venv (itk-elastix, psutil)"
 	@echo "make bench-ants ANTs SyN for benchmarks/bench_registration.py, in its own .venv-ants (antspyx pins an"
@@ -97,8 +97,9 @@ lint: venv
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports
 
-# The documentation site (docs/), Sphinx with warnings as errors; `make test` builds it after the gates.  The
-# generated API and results pages are made anew each time (a module that moved leaves no stale page behind).
+# The documentation site (docs/), Sphinx with warnings as errors and every cross-reference checked (-n); `make test`
+# builds it after the gates.  The generated API and results pages are made anew each time (a module that moved
+# leaves no stale page behind).
 docs: venv
 	rm -rf docs/api/generated docs/results/generated
 	$(VENV)/bin/sphinx-build -n -W --keep-going -q -b html docs docs/_build/html
