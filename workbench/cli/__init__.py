@@ -48,7 +48,7 @@ bone label map, the skeleton and the posed scans (the user guide's "Study folder
 EPILOG = """\
 examples:
   workbench phantom knee --out knee-study                 # small MRI-like knee, 4 poses
-  workbench run knee-study                                # every stage: bones ... register, model, validate
+  workbench run knee-study                                # all nine stages: bones ... register ... report
   workbench phantom hand --out hand --size paper --modality ct
   workbench phantom knee --out bend10 --posing vbd --poses-file bend10.json
   workbench info knee-study

@@ -41,7 +41,7 @@ def add_parser(subparsers) -> None:
         "--size",
         choices=["test", "paper"],
         default="test",
-        help="'test': ≤64 voxels a side, seconds; 'paper': the papers' grids (knee "
+        help="'test': ≤64 voxels a side, under a minute; 'paper': the papers' grids (knee "
         "255×255×123 at 1.25×1.25×1.2 mm, hand 255×255×90 at 0.78×0.78×1.0 mm; "
         "minutes). Default: test",
     )

@@ -46,6 +46,7 @@ examples:
   workbench render knee-study --scan pose02 --out scan.png --preset mri --camera +z
   workbench render knee-study --registered pose02 --overlay pose02 --out overlay.png
   workbench render knee-study --registered pose02 --overlay pose02 --control-points --markers --out fig9.png
+                                   # (--control-points: after `workbench register knee-study --preset paper`)
   workbench render bent.nii.gz --out bent.png --size 1280x960 --background white
   workbench render hand-study/surface/pose02_fitted.ply --out skin.png        # a mesh alone
   workbench render hand-study --scan pose02 --mesh hand-study/surface/pose02_fitted.ply --out fit.png

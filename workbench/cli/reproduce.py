@@ -131,6 +131,11 @@ def handle(args) -> int:
         print(format_markdown(table))
         print(f"({table.id}: {seconds:.0f} s; written to {args.out}/{table.id}.csv, .md, .json)\n", flush=True)
 
+    if args.with_peers:
+        from registration.baselines import elastix_available
+
+        if not elastix_available():
+            say("itk-elastix is not installed (make bench): --with-peers adds SimpleITK's B-spline only")
     try:
         workers = (
             args.workers

@@ -32,7 +32,7 @@ file is left and the next `run` resumes with the first unfinished scan.
 Settings: each stage keeps the settings it last ran with (e.g. those given to
 `workbench register`); --set STAGE.SETTING=VALUE changes one for this run and
 after (JSON values: --set register.method=adaptive,
---set register.levels=[3,4], --set weights.method=distance).  Each value is
+--set register.seed=1, --set weights.method=distance).  Each value is
 checked against the setting's type before anything runs or is recorded.
 
 Before any work the study folder and study.json must be writable; a scan

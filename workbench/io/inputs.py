@@ -64,7 +64,7 @@ def read_target_pose(path, skeleton) -> Pose:
         check_limits(skeleton, d["angles"], path)
         return pose
     raise InputFileError(
-        f'{path}: expected an avw-pose file (bone transforms) or {{"angles": {{joint: [degrees, ...]}}}}}}}}.', path
+        f'{path}: expected an avw-pose file (bone transforms) or {{"angles": {{joint: [degrees, ...]}}}}.', path
     )
 
 
