@@ -126,13 +126,16 @@ def _refuse_constant(name: str):
     raise ValueError(f"the non-standard literal {name} (NaN/infinity are not JSON numbers)")
 
 
-def read_json(path: str | os.PathLike) -> dict:
+def read_json(path: str | os.PathLike, *, expected: str = "an object ({...})") -> dict:
     """Read a JSON file whose top level is an object.
 
     Parameters
     ----------
     path : str or os.PathLike
         The file (UTF-8).
+    expected : str
+        What the file should hold, for the message when its top level is not an object (e.g. a manifest's
+        outline and where it is documented).
 
     Returns
     -------
@@ -179,8 +182,8 @@ def read_json(path: str | os.PathLike) -> dict:
         raise UnreadableFileError(f"{p}: {e}. Fix the file.", p) from e
     if not isinstance(data, dict):
         raise UnreadableFileError(
-            f"{p}: the top level is a JSON {type(data).__name__}, but an object "
-            "({...}) is expected. Check that this is the right file.",
+            f"{p}: the top level is a JSON {type(data).__name__}, but {expected} is expected. "
+            "Check that this is the right file.",
             p,
         )
     return data

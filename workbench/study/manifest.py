@@ -82,13 +82,11 @@ def read_manifest(root: Path) -> dict:
         )
     if not manifest_path.is_file():
         raise MissingFileError(f"{root}: not a study folder ({MANIFEST} is missing).", manifest_path)
-    m = read_json(manifest_path)
-    if not isinstance(m, dict):
-        raise StudyError(
-            f'{manifest_path}: a study manifest is a JSON object {{"format": "{STUDY_FORMAT}", '
-            '"template": ..., "skeleton": ..., "scans": [...]}} (docs/user-guide/study-folders.md).',
-            manifest_path,
-        )
+    m = read_json(
+        manifest_path,
+        expected=f'a study manifest, an object {{"format": "{STUDY_FORMAT}", "template": ..., "skeleton": ..., '
+        '"scans": [...]} (docs/user-guide/study-folders.md)',
+    )
     if "format" not in m:
         raise StudyError(
             f'{manifest_path}: no \'format\' key; add "format": "{STUDY_FORMAT}", "version": 1 '
