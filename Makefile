@@ -98,10 +98,10 @@ lint: venv
 	$(VENV)/bin/lint-imports
 
 # The documentation site (docs/), Sphinx with warnings as errors and every cross-reference checked (-n); `make test`
-# builds it after the gates.  The generated API and results pages are made anew each time (a module that moved
+# builds it after the gates.  The generated pages and the built site are made anew each time (a module that moved
 # leaves no stale page behind).
 docs: venv
-	rm -rf docs/api/generated docs/results/generated
+	rm -rf docs/api/generated docs/results/generated docs/_build
 	$(VENV)/bin/sphinx-build -n -W --keep-going -q -b html docs docs/_build/html
 	@echo "docs: open docs/_build/html/index.html"
 

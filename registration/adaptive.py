@@ -53,6 +53,11 @@ __all__ = [
     "control_points_from_log",
     "local_step_basis",
     "OPTIMIZERS",
+    "BlockLevel",
+    "BlockRegistration",
+    "control_points_unit",
+    "neg_mi_cost",
+    "ssd_cost",
 ]
 
 

@@ -42,6 +42,7 @@ __all__ = [
     "elastix_available",
     "ants_syn",
     "ants_available",
+    "load_itk",
 ]
 
 

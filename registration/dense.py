@@ -43,7 +43,23 @@ from deformation.geometry import GridGeometry, Volume
 
 from .metrics import air_level, cc, similarity
 
-__all__ = ["DenseSettings", "DenseResult", "register_dense"]
+__all__ = [
+    "DenseSettings",
+    "DenseResult",
+    "register_dense",
+    "TemplateSampler",
+    "bone_fit_improves",
+    "fission",
+    "jacobian_min",
+    "kernel_noise",
+    "membrane_energy",
+    "noise_correlation_factor",
+    "penalties",
+    "refine_bone",
+    "share_of_air_around",
+    "voxel_in_voxels",
+    "voxel_noise_variance",
+]
 
 log = logging.getLogger(__name__)
 
@@ -216,7 +232,7 @@ os.register_at_fork(after_in_child=POOLS.clear)
 
 
 def smooth_all(arrays, sigma_vox) -> list:
-    """Each array smoothed by the dense Gaussian (:data:`GAUSSIAN`), on as many threads as numba's setting
+    """Each array smoothed by the dense Gaussian (``GAUSSIAN``), on as many threads as numba's setting
     allows (SciPy's filters release the GIL; arrays of fewer than ``SMOOTH_SERIAL_BELOW`` voxels serially).
     Whole arrays go to the threads in turn; the ones left over (the third of three on two threads) are cut into one slab
     per thread along their longest axis, each with a halo of the kernel's reach: a Gaussian is a 1-D filter per axis,
@@ -345,7 +361,7 @@ AIR_NOISE_GROW, AIR_NOISE_VOXELS = 2, 1000
 def voxel_noise_variance(data: np.ndarray, body: np.ndarray | None) -> tuple[float, float]:
     """The variance of an image's voxel-to-voxel (white) noise in its tissue and in its air, measured in the air
     where there is enough of it: there is no anatomy there, so the pseudo-residual
-    (:func:`_pseudo_residual_variance`) is the noise's alone.  A magnitude image's air (no value below 0, mean
+    (``_pseudo_residual_variance``) is the noise's alone.  A magnitude image's air (no value below 0, mean
     over SD within 1.6-2.3 of the Rayleigh's 1.91 and median over mean within 0.03 of its 0.939) holds
     Rayleigh noise, whose variance is (2 − π/2) of the tissue's Gaussian σ² (Gudbjartsson & Patz 1995); any
     other air's noise is the tissue's (CT, a Gaussian MRI).  Without enough air that is not a constant fill (or
@@ -404,7 +420,7 @@ def fission(f: np.ndarray, body: np.ndarray | None, moving: Volume, m_body: np.n
 
 
 def kernel_noise(sigma: float) -> tuple[float, float]:
-    """White noise smoothed by the dense Gaussian (:data:`GAUSSIAN`) of ``sigma`` voxels along one axis: its variance
+    """White noise smoothed by the dense Gaussian (``GAUSSIAN``) of ``sigma`` voxels along one axis: its variance
     (as a share of the unsmoothed one) and the correlation of neighbouring voxels."""
     if sigma <= 0:
         return 1.0, 0.0

@@ -27,7 +27,7 @@ from deformation.models.evd import vbd_forward
 if TYPE_CHECKING:
     from deformation.models.polyrigid import PolyrigidFlow
 
-__all__ = ["vbd_initial_field", "polyrigid_initial_field"]
+__all__ = ["vbd_initial_field", "polyrigid_initial_field", "mapped_voxels"]
 
 
 def polyrigid_initial_field(

@@ -62,6 +62,8 @@ __all__ = [
     "contact_point",
     "moments_init",
     "flag_joint_outliers",
+    "MOVING_DEG",
+    "released_labels",
 ]
 
 METHODS = ("intensity", "surface")
@@ -601,7 +603,7 @@ def placed_transforms(fits: dict, skeleton: Skeleton) -> dict:
 def released_labels(labels: Volume, skeleton: Skeleton, flagged) -> Volume:
     """The template's label map without the bones in ``flagged`` (the pose stage could not place them): a
     registration that holds the labelled bones rigid at the pose's transforms lets these move with the soft
-    tissue instead of holding them where their nearest placed ancestor put them (see :func:`placed_transforms`)."""
+    tissue instead of holding them where their nearest placed ancestor put them (see ``placed_transforms``)."""
     ids = [skeleton.label_of(b) for b in flagged]
     if not ids:
         return labels

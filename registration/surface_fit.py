@@ -43,6 +43,9 @@ __all__ = [
     "on_mesh",
     "FEATURE_SOURCES",
     "FITS",
+    "confident_targets",
+    "raycasting_scene",
+    "triangle_normals",
 ]
 
 FEATURE_SOURCES = ("registration", "closest", "landmarks")  #: where the RBF feature points' targets come from

@@ -17,7 +17,7 @@ from workbench.io.inputs import read_target_pose
 from workbench.io.volumes import write_labels, write_volume
 from workbench.study import MANIFEST, Study, read_study
 
-__all__ = ["study_poser", "deform_study", "say_if_compiling", "METHODS"]
+__all__ = ["study_poser", "deform_study", "say_if_compiling", "METHODS", "surface_deform"]
 
 METHODS = ("auto", "vbd", "evd")
 # Folders of a study that `deform` never writes into (its inputs and the stages' outputs).

@@ -26,7 +26,7 @@ from validation.protocols import PROTOCOLS, Table
 from workbench.errors import WorkbenchError
 from workbench.scale import check_cluster_options, same_bits
 
-__all__ = ["StudyRunner", "reproduce", "write_table", "format_markdown", "format_csv", "NAMES"]
+__all__ = ["StudyRunner", "reproduce", "write_table", "format_markdown", "format_csv", "NAMES", "same_poses"]
 
 NAMES = tuple(PROTOCOLS)
 

@@ -38,6 +38,7 @@ from deformation.fields.interpolate import (
     serial_twin,
     to_index,
 )
+from deformation.filters import smooth
 from deformation.geometry import GeometryMismatchError, GridGeometry, Volume, from_every, slabs
 
 __all__ = [
@@ -750,9 +751,7 @@ def _unfold_crop(u0, m_inv, m, fz, min_det, sigma, margin, max_iterations, resto
         rb = tuple(slice(r.start + o.start, r.stop + o.start) for r, o in zip(rb, rbox))
         box = grow_box(rb, reach)
         sub = u[box]
-        sm = np.stack(
-            [ndi.gaussian_filter(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)], axis=-1
-        )
+        sm = np.stack([smooth(sub[..., c], sigma, mode="nearest", truncate=4.0) for c in range(3)], axis=-1)
         full = np.zeros(sub.shape[:3], dtype=bool)  # the region, on the smoothing box
         full[rel(rb, box)] = region[rel(rb, rbox)]
         sub[full] = sm[full]

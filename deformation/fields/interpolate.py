@@ -33,7 +33,22 @@ import numpy as np
 
 from deformation.geometry import GeometryMismatchError, GridGeometry, Volume
 
-__all__ = ["sample", "sample_array", "warp", "sample_displaced_array", "sample_shifted"]
+__all__ = [
+    "sample",
+    "sample_array",
+    "warp",
+    "sample_displaced_array",
+    "sample_shifted",
+    "SERIAL_BELOW",
+    "fill_value",
+    "flat_data",
+    "interp_scalar",
+    "interp_vector",
+    "native_order",
+    "output_dtype",
+    "serial_twin",
+    "to_index",
+]
 
 
 # -- compiled kernels -----------------------------------------------------------------------

@@ -42,6 +42,11 @@ __all__ = [
     "skin",
     "dof_bones",
     "per_bone_sq",
+    "chol_factor",
+    "chol_subst",
+    "query_kernel",
+    "rbf_width",
+    "weighted_sq",
 ]
 
 #: Floor on the WPSD DOF weights ``u_jk`` (see the module docstring).

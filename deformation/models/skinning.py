@@ -34,6 +34,7 @@ __all__ = [
     "stack_transforms",
     "distance_weights",
     "distance_voxel_weights",
+    "blend_point",
 ]
 
 #: Influences kept per point (Kurihara's meshes and GPU skinning use four).

@@ -49,6 +49,15 @@ __all__ = [
     "MODALITIES",
     "ACQUISITIONS",
     "draw_acquisition",
+    "ANISOTROPY_RANGE",
+    "BIAS_RANGE",
+    "GAIN_RANGE",
+    "MIN_AXIS_VOXELS",
+    "OFFSET_FRACTION",
+    "SNR_RANGE",
+    "TISSUES",
+    "TISSUE_JITTER",
+    "describe_acquisition",
 ]
 
 REGIONS = {"knee": knee, "hand": hand}

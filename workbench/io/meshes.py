@@ -38,7 +38,7 @@ from deformation.meshes.mesh import SurfaceMesh
 from workbench.errors import MissingFileError, UnknownFormatError, UnreadableFileError
 from workbench.io.atomic import atomic_path, split_suffix
 
-__all__ = ["MESH_SUFFIXES", "read_mesh", "write_mesh", "read_mesh_point_data"]
+__all__ = ["MESH_SUFFIXES", "read_mesh", "write_mesh", "read_mesh_point_data", "capture_vtk_output", "write_vtk_xml"]
 
 #: File suffixes understood by :func:`read_mesh` and :func:`write_mesh`.
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".vtp")

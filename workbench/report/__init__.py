@@ -36,7 +36,15 @@ import numpy as np
 from . import figures as F
 from .html import Page, esc, table_html
 
-__all__ = ["study_report", "tables_report", "study_digest", "software_versions", "RENDER_SUFFIXES"]
+__all__ = [
+    "study_report",
+    "tables_report",
+    "study_digest",
+    "software_versions",
+    "RENDER_SUFFIXES",
+    "control_points",
+    "renders_section",
+]
 
 MAX_SCANS_COMPACT = 1  # scans shown with pictures per study in a reproduce folder's report
 

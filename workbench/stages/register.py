@@ -36,7 +36,7 @@ from workbench import __version__
 from workbench.stages.mechanism import Field, Image, Json, Labels, Stage
 from workbench.stages.settings import setting_value
 
-__all__ = ["RegisterSettings", "STAGE", "PRESETS", "adaptive_registration"]
+__all__ = ["RegisterSettings", "STAGE", "PRESETS", "adaptive_registration", "held_bones"]
 
 PRESETS = ("auto", "default", "initialised", "paper")
 METHODS = ("auto", "dense", "adaptive")

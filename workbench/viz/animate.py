@@ -44,6 +44,7 @@ __all__ = [
     "camera_from",
     "animate_study",
     "FORMATS",
+    "scan_keyframes",
 ]
 
 KEYFRAMES_FORMAT = "avw-keyframes"
