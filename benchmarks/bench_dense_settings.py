@@ -214,14 +214,11 @@ def agreement_measures(d: dict, field: Volume) -> dict:
     ranking."""
     from scipy import ndimage
 
-    from deformation.fields.interpolate import warp
-    from registration.metrics import air_level, cc
+    from registration.metrics import cc, warp_template
     from registration.segmentation import segment_body
 
     f = np.asarray(d["scan"].data, np.float64)
-    w = np.asarray(
-        warp(d["template"], displacement=field, fill=air_level(d["template"]), dtype=np.float32).data, np.float64
-    )
+    w = np.asarray(warp_template(d["template"], field).data, np.float64)
     body = segment_body(d["scan"]).data > 0
     err = np.linalg.norm(np.asarray(field.data, float) - np.asarray(d["truth"].data, float), axis=-1)
     out = {

@@ -94,7 +94,6 @@ import numpy as np
 from scipy import ndimage
 
 from deformation.fields.displacement import folding_statistics
-from deformation.fields.interpolate import warp
 from deformation.geometry import Volume
 from deformation.models.skinning import stack_transforms
 from registration.adaptive import AdaptiveSettings, register_adaptive
@@ -107,7 +106,7 @@ from registration.baselines import (
     sitk_bspline,
 )
 from registration.initialise import vbd_initial_field
-from registration.metrics import air_level
+from registration.metrics import warp_template
 from validation.phantoms import make_phantom
 from validation.phantoms.generate import ACQUISITIONS, describe_acquisition
 from validation.protocols.registration import PAPER as RHEE_TABLES
@@ -198,7 +197,7 @@ def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem
     each further mask of ``regions``."""
     m = registration_measures(
         scan,
-        warp(template, displacement=fld, fill=air_level(template), dtype=np.float32),
+        warp_template(template, fld),
         fld,
         truth=truth,
         body=body,
@@ -915,14 +914,14 @@ def run_case(name, ph, articulated, args):
             m["seconds"] = seconds
             rows.setdefault(method, []).append(m)
 
-        add("source", zero, warp(template, displacement=zero, fill=air_level(template), dtype=np.float32), 0.0)
+        add("source", zero, warp_template(template, zero), 0.0)
         initial = None
         if args.from_truth:  # the intensity floor: how far each method drifts from the exact answer
             initial = truth
             add(
                 "initialised",
                 truth,
-                warp(template, displacement=truth, fill=air_level(template), dtype=np.float32),
+                warp_template(template, truth),
                 0.0,
             )
         elif articulated:
@@ -934,7 +933,7 @@ def run_case(name, ph, articulated, args):
             add(
                 "initialised",
                 initial,
-                warp(template, displacement=initial, fill=air_level(template), dtype=np.float32),
+                warp_template(template, initial),
                 time.perf_counter() - t0,
             )
         if articulated or args.from_truth:

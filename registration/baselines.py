@@ -30,10 +30,9 @@ import numpy as np
 import SimpleITK as sitk
 
 from deformation.fields.displacement import compose, from_transform
-from deformation.fields.interpolate import warp
 from deformation.geometry import Volume
 
-from .metrics import air_level
+from .metrics import warp_template
 
 __all__ = [
     "BaselineResult",
@@ -61,15 +60,13 @@ def _initialised(fixed: Volume, moving: Volume, initial: Volume | None) -> Volum
             return Volume(moving.data.astype(np.float32), fixed.geometry)
         initial = Volume(np.zeros(fixed.geometry.array_shape + (3,)), fixed.geometry)
     fixed.geometry.check_same(initial.geometry, names=("fixed image", "initial correspondence"))
-    return warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32)
+    return warp_template(moving, initial)
 
 
 def _finish(name, fixed, moving, initial, t_field: Volume, seconds, params) -> BaselineResult:
     corr = t_field if initial is None else compose(initial, t_field)
     corr = Volume(corr.data.astype(np.float32), fixed.geometry)
-    return BaselineResult(
-        name, corr, warp(moving, displacement=corr, fill=air_level(moving), dtype=np.float32), seconds, params
-    )
+    return BaselineResult(name, corr, warp_template(moving, corr), seconds, params)
 
 
 def sitk_bspline(

@@ -37,11 +37,11 @@ import numpy as np
 from scipy import ndimage
 
 from deformation.fields.displacement import folding_statistics, jacobian_determinant_components, unfold
-from deformation.fields.interpolate import sample_array, sample_displaced_array, sample_shifted, warp
+from deformation.fields.interpolate import sample_array, sample_displaced_array, sample_shifted
 from deformation.filters import smooth
 from deformation.geometry import GridGeometry, Volume
 
-from .metrics import air_level, cc, similarity
+from .metrics import air_level, cc, similarity, warp_template
 
 __all__ = [
     "DenseSettings",
@@ -1059,7 +1059,7 @@ def register_dense(
     if initial is None:
         initial = Volume(np.zeros(g.array_shape + (3,), np.float32), g)
     g.check_same(initial.geometry, names=("fixed image", "initial correspondence"))
-    m0 = warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32).data  # a new array
+    m0 = warp_template(moving, initial).data  # a new array
     f0 = np.array(fixed.data, np.float32, copy=True)  # normalised in place below: never the caller's array
     lab0 = None
     if st.bones != "free" and moving_labels is not None:
@@ -1651,7 +1651,7 @@ def register_dense(
             repair["attempts"] = [[peel, info["n_folded_after"]] for peel, (_, info) in tried.items()]
             if repair["taken"]:
                 corr = Volume(best[0].data.astype(np.float32), g)
-    registered = warp(moving, displacement=corr, fill=air_level(moving), dtype=np.float32)
+    registered = warp_template(moving, corr)
     seconds = time.perf_counter() - t0
     return DenseResult(
         corr,
@@ -1659,9 +1659,7 @@ def register_dense(
         seconds,
         levels,
         st.to_dict(),
-        similarity_before=similarity(
-            fixed.data, warp(moving, displacement=initial, fill=air_level(moving), dtype=np.float32).data
-        ),
+        similarity_before=similarity(fixed.data, warp_template(moving, initial).data),
         similarity_after=similarity(fixed.data, registered.data),
         folding={
             **folding_statistics(corr, scan_body),

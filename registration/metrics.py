@@ -30,9 +30,11 @@ import numba
 import numpy as np
 import SimpleITK as sitk
 
+from deformation.fields.interpolate import warp
 from deformation.geometry import Volume
 
 __all__ = [
+    "warp_template",
     "HistogramBins",
     "ssd",
     "cc",
@@ -95,6 +97,13 @@ def air_level(image) -> float:
     """The median of an image's outermost voxel layer: what lies beyond its field of view (air)."""
     d = np.asarray(image.data if isinstance(image, Volume) else image)
     return float(np.median(np.concatenate([d[[0, -1]].ravel(), d[:, [0, -1]].ravel(), d[:, :, [0, -1]].ravel()])))
+
+
+def warp_template(template: Volume, scan_to_template: Volume) -> Volume:
+    """The template pulled onto the scan's grid through a ``scan_to_template`` displacement field (mm), float32,
+    at its :func:`air_level` beyond its field of view: the image every similarity of a registration compares
+    (:func:`deformation.fields.interpolate.warp` does the sampling)."""
+    return warp(template, displacement=scan_to_template, fill=air_level(template), dtype=np.float32)
 
 
 def _pair(a, b, mask=None) -> tuple[np.ndarray, np.ndarray]:

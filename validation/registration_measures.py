@@ -125,15 +125,14 @@ def validation_rows(
 ) -> dict:
     """Rhee's Tables 2–4 rows for one scan: ``source`` (no deformation), ``initialised`` (when ``initial``
     is given) and ``registered``, each with the measures of the module docstring over the same body voxels."""
-    from deformation.fields.interpolate import warp
-    from registration.metrics import air_level
+    from registration.metrics import warp_template
 
     body = body_on_scan(truth, template_body)
     zero = Volume(np.zeros(truth.data.shape, np.float32), truth.geometry)
     rows = {
         "source": registration_measures(
             scan,
-            warp(template, displacement=zero, fill=air_level(template), dtype=np.float32),
+            warp_template(template, zero),
             zero,
             truth=truth,
             body=body,
@@ -143,7 +142,7 @@ def validation_rows(
     if initial is not None:
         rows["initialised"] = registration_measures(
             scan,
-            warp(template, displacement=initial, fill=air_level(template), dtype=np.float32),
+            warp_template(template, initial),
             initial,
             truth=truth,
             body=body,

@@ -166,8 +166,7 @@ def _convergence(log: dict) -> bytes | None:
 
 def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> None:
     from deformation.fields.displacement import jacobian_determinant
-    from deformation.fields.interpolate import warp
-    from registration.metrics import air_level
+    from registration.metrics import warp_template
 
     scan = study.scan(sid)
     reg = study.registered(sid)
@@ -183,7 +182,7 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
     at = F.centre_index(body if body is not None and body.any() else content)
     sp = scan.geometry.spacing
     win_t = F.robust(template.data)
-    start = warp(template, displacement=init, fill=air_level(template), dtype=np.float32) if init is not None else None
+    start = warp_template(template, init) if init is not None else None
     figs = []
     for which in F.PLANES:
         ts, px = F.plane(scan.data, sp, which, at)
