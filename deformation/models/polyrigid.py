@@ -130,14 +130,18 @@ class PolyrigidFlow:
         times = np.linspace(0.0, 1.0, 2 * n + 1)  # RK4 stage times: t_i, t_i + h/2, t_i + h
         minv, vel = self._paths(times)
         maps = np.ascontiguousarray(self.distance_maps, dtype=np.float32)
-        w2i = np.ascontiguousarray(self.geometry.world_to_index_matrix, dtype=np.float64)
+        w2i = np.asarray(self.geometry.world_to_index_matrix, dtype=np.float64)
+        # M_k(t)⁻¹ followed by the template grid's world → index, one 3x4 map per stage time and bone
+        to_index = np.ascontiguousarray(w2i[:3, :3] @ minv)
+        to_index[..., 3] += w2i[:3, 3]
+        scale = np.ascontiguousarray(self.geometry.spacing, dtype=np.float64)  # mm per index step along i, j, k
         power, falloff = float(self.power), float(self.falloff_mm)
         return lambda points: _flow(
             np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
-            minv,
+            to_index,
             vel,
             maps,
-            w2i,
+            scale,
             n,
             backward,
             power,
@@ -252,48 +256,47 @@ def max_map_factor(grid: GridGeometry) -> int:
 
 
 @nb.njit(cache=True, inline="always")
-def _sdf(maps, k, w2i, x, y, z):
-    """Bone ``k``'s distance at world (x, y, z): trilinear in its map, plus the way to the grid outside it.
+def _sdf(maps, k, ri, rj, rk, scale):
+    """Bone ``k``'s distance at the continuous template index (ri, rj, rk): trilinear in its map, plus the way to
+    the grid outside it.
 
     A point beyond the template grid (a bone turned far, its inverse motion carrying the point out) takes the
-    map's value at the nearest grid point plus its distance to that point, in mm: an upper bound of the true
-    distance (the bone lies inside the grid), continuous, and never the small edge value alone — clamping
-    alone would let a fingertip turned into a fist claim the palm's tissue (the phantom hand's strongest curl).
+    map's value at the nearest grid point plus its distance to that point, in mm (``scale``: the grid's spacing
+    along i, j, k): an upper bound of the true distance (the bone lies inside the grid), continuous, and never the
+    small edge value alone — clamping alone would let a fingertip turned into a fist claim the palm's tissue (the
+    phantom hand's strongest curl).
     """
     nz, ny, nx = maps.shape[1], maps.shape[2], maps.shape[3]
-    ri = w2i[0, 0] * x + w2i[0, 1] * y + w2i[0, 2] * z + w2i[0, 3]
-    rj = w2i[1, 0] * x + w2i[1, 1] * y + w2i[1, 2] * z + w2i[1, 3]
-    rk = w2i[2, 0] * x + w2i[2, 1] * y + w2i[2, 2] * z + w2i[2, 3]
     ci = min(max(ri, 0.0), nx - 1.0)
     cj = min(max(rj, 0.0), ny - 1.0)
     ck = min(max(rk, 0.0), nz - 1.0)
     i0, j0, k0 = min(int(ci), nx - 2), min(int(cj), ny - 2), min(int(ck), nz - 2)
     ti, tj, tk = ci - i0, cj - j0, ck - k0
-    m = maps[k]
-    c00 = m[k0, j0, i0] * (1 - ti) + m[k0, j0, i0 + 1] * ti
-    c01 = m[k0, j0 + 1, i0] * (1 - ti) + m[k0, j0 + 1, i0 + 1] * ti
-    c10 = m[k0 + 1, j0, i0] * (1 - ti) + m[k0 + 1, j0, i0 + 1] * ti
-    c11 = m[k0 + 1, j0 + 1, i0] * (1 - ti) + m[k0 + 1, j0 + 1, i0 + 1] * ti
+    c00 = maps[k, k0, j0, i0] * (1 - ti) + maps[k, k0, j0, i0 + 1] * ti
+    c01 = maps[k, k0, j0 + 1, i0] * (1 - ti) + maps[k, k0, j0 + 1, i0 + 1] * ti
+    c10 = maps[k, k0 + 1, j0, i0] * (1 - ti) + maps[k, k0 + 1, j0, i0 + 1] * ti
+    c11 = maps[k, k0 + 1, j0 + 1, i0] * (1 - ti) + maps[k, k0 + 1, j0 + 1, i0 + 1] * ti
     d = (c00 * (1 - tj) + c01 * tj) * (1 - tk) + (c10 * (1 - tj) + c11 * tj) * tk
-    if ri != ci or rj != cj or rk != ck:  # outside: index offsets → mm (row a of w2i has norm 1/spacing_a)
-        si = 1.0 / math.sqrt(w2i[0, 0] ** 2 + w2i[0, 1] ** 2 + w2i[0, 2] ** 2)
-        sj = 1.0 / math.sqrt(w2i[1, 0] ** 2 + w2i[1, 1] ** 2 + w2i[1, 2] ** 2)
-        sk = 1.0 / math.sqrt(w2i[2, 0] ** 2 + w2i[2, 1] ** 2 + w2i[2, 2] ** 2)
-        d += math.sqrt(((ri - ci) * si) ** 2 + ((rj - cj) * sj) ** 2 + ((rk - ck) * sk) ** 2)
+    if ri != ci or rj != cj or rk != ck:
+        d += math.sqrt(((ri - ci) * scale[0]) ** 2 + ((rj - cj) * scale[1]) ** 2 + ((rk - ck) * scale[2]) ** 2)
     return d
 
 
 @nb.njit(cache=True)
-def _velocity(x, y, z, s, minv, vel, maps, w2i, power, falloff, d, w, out):
-    nb_ = minv.shape[1]
+def _velocity(x, y, z, s, to_index, vel, maps, scale, power, falloff, d, w, out):
+    """The flow's velocity at world (x, y, z) and RK4 stage time ``s``: the bones' spatial velocities ``vel[s]``
+    blended by the distance weights (:func:`deformation.models.skinning.distance_weights`) of each bone's distance
+    at its template position ``M_k(t)⁻¹ x`` (``to_index[s, k]``: that map composed with the template grid's
+    world → index)."""
+    nb_ = to_index.shape[1]
     dmin = np.inf
     kmin = 0
     for k in range(nb_):
-        m = minv[s, k]
-        qx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
-        qy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
-        qz = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
-        d[k] = _sdf(maps, k, w2i, qx, qy, qz)
+        m = to_index[s, k]
+        ri = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+        rj = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+        rk = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+        d[k] = _sdf(maps, k, ri, rj, rk, scale)
         if d[k] < dmin:
             dmin, kmin = d[k], k
     if dmin <= 0.0:  # inside a bone: its weight is one (distance_weights)
@@ -303,7 +306,13 @@ def _velocity(x, y, z, s, minv, vel, maps, w2i, power, falloff, d, w, out):
     else:
         tot = 0.0
         for k in range(nb_):
-            w[k] = (dmin / d[k]) ** power * math.exp(-(d[k] - dmin) / falloff)
+            r = dmin / d[k]
+            if power == 4.0:  # the default power: two products instead of pow()
+                r *= r
+                r *= r
+            else:
+                r = r**power
+            w[k] = r * math.exp(-(d[k] - dmin) / falloff)
             tot += w[k]
         for k in range(nb_):
             w[k] /= tot
@@ -316,64 +325,74 @@ def _velocity(x, y, z, s, minv, vel, maps, w2i, power, falloff, d, w, out):
 
 
 @nb.njit(cache=True, parallel=True)
-def _flow(points, minv, vel, maps, w2i, n_steps, backward, power, falloff):
+def _flow(points, to_index, vel, maps, scale, n_steps, backward, power, falloff):
     n = points.shape[0]
-    nb_ = minv.shape[1]
+    nb_ = to_index.shape[1]
     out = np.empty((n, 3))
     h = 1.0 / n_steps
-    for i in nb.prange(n):
+    block = 256  # points per task: its work arrays made once (each point's result is its own: any block size)
+    for b in nb.prange((n + block - 1) // block):
         d = np.empty(nb_)
         w = np.empty(nb_)
         k1 = np.empty(3)
         k2 = np.empty(3)
         k3 = np.empty(3)
         k4 = np.empty(3)
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        for step in range(n_steps):
-            if backward:  # t from 1 to 0: dx/dt = v, stepping with −h
-                s0 = 2 * (n_steps - step)
-                sg = -h
-                sm, s1 = s0 - 1, s0 - 2
-            else:
-                s0 = 2 * step
-                sg = h
-                sm, s1 = s0 + 1, s0 + 2
-            _velocity(x, y, z, s0, minv, vel, maps, w2i, power, falloff, d, w, k1)
-            _velocity(
-                x + 0.5 * sg * k1[0],
-                y + 0.5 * sg * k1[1],
-                z + 0.5 * sg * k1[2],
-                sm,
-                minv,
-                vel,
-                maps,
-                w2i,
-                power,
-                falloff,
-                d,
-                w,
-                k2,
+        for i in range(b * block, min(n, (b + 1) * block)):
+            _flow_point(
+                points, i, to_index, vel, maps, scale, n_steps, backward, power, falloff, h, d, w, k1, k2, k3, k4, out
             )
-            _velocity(
-                x + 0.5 * sg * k2[0],
-                y + 0.5 * sg * k2[1],
-                z + 0.5 * sg * k2[2],
-                sm,
-                minv,
-                vel,
-                maps,
-                w2i,
-                power,
-                falloff,
-                d,
-                w,
-                k3,
-            )
-            _velocity(
-                x + sg * k3[0], y + sg * k3[1], z + sg * k3[2], s1, minv, vel, maps, w2i, power, falloff, d, w, k4
-            )
-            x += sg / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-            y += sg / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-            z += sg / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
-        out[i, 0], out[i, 1], out[i, 2] = x, y, z
     return out
+
+
+@nb.njit(cache=True)
+def _flow_point(points, i, to_index, vel, maps, scale, n_steps, backward, power, falloff, h, d, w, k1, k2, k3, k4, out):
+    """RK4 of point ``i`` from t = 0 to 1 (or back), into ``out[i]``."""
+    x, y, z = points[i, 0], points[i, 1], points[i, 2]
+    for step in range(n_steps):
+        if backward:  # t from 1 to 0: dx/dt = v, stepping with −h
+            s0 = 2 * (n_steps - step)
+            sg = -h
+            sm, s1 = s0 - 1, s0 - 2
+        else:
+            s0 = 2 * step
+            sg = h
+            sm, s1 = s0 + 1, s0 + 2
+        _velocity(x, y, z, s0, to_index, vel, maps, scale, power, falloff, d, w, k1)
+        _velocity(
+            x + 0.5 * sg * k1[0],
+            y + 0.5 * sg * k1[1],
+            z + 0.5 * sg * k1[2],
+            sm,
+            to_index,
+            vel,
+            maps,
+            scale,
+            power,
+            falloff,
+            d,
+            w,
+            k2,
+        )
+        _velocity(
+            x + 0.5 * sg * k2[0],
+            y + 0.5 * sg * k2[1],
+            z + 0.5 * sg * k2[2],
+            sm,
+            to_index,
+            vel,
+            maps,
+            scale,
+            power,
+            falloff,
+            d,
+            w,
+            k3,
+        )
+        _velocity(
+            x + sg * k3[0], y + sg * k3[1], z + sg * k3[2], s1, to_index, vel, maps, scale, power, falloff, d, w, k4
+        )
+        x += sg / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        y += sg / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        z += sg / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+    out[i, 0], out[i, 1], out[i, 2] = x, y, z
