@@ -32,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from deformation.fields.interpolate import sample_spline
 from deformation.filters import smooth
 from deformation.geometry import Volume
 from deformation.kinematics.transforms import apply, compose, rotation_angle_deg
@@ -209,18 +210,18 @@ class Sampler:
         self.order = order
         data = np.asarray(image.data, dtype=np.float64)
         self.coeffs = ndimage.spline_filter(data, order=3, mode="mirror") if order == 3 else data
-        self._size = np.asarray(image.geometry.size)
 
     def sitk_image(self):
         if getattr(self, "_sitk", None) is None:
             self._sitk = Volume(np.asarray(self.image.data, dtype=np.float32), self.image.geometry).to_sitk()
         return self._sitk
 
-    def __call__(self, points: np.ndarray) -> np.ndarray:
-        ijk = self.image.geometry.world_to_index(points)
-        out = ndimage.map_coordinates(self.coeffs, ijk[:, ::-1].T, order=self.order, mode="mirror", prefilter=False)
-        out[np.any((ijk < -0.5) | (ijk > self._size - 0.5), axis=1)] = np.nan
-        return out
+    def __call__(self, points: np.ndarray, transforms: np.ndarray | None = None) -> np.ndarray:
+        """The scan at world ``points`` ``(n, 3)``; with ``transforms`` ``(k, 4, 4)``, at each transform of the
+        points, ``(k, n)``."""
+        return sample_spline(
+            self.coeffs, self.image.geometry.world_to_index_matrix, points, order=self.order, transforms=transforms
+        )
 
 
 def ssd(a: np.ndarray, b: np.ndarray) -> float:
@@ -266,9 +267,8 @@ def _batch_ssd(
     correlation — Rhee Eq. 1 made blind to a bone-wide gain and offset (an MRI
     bias field, a different window).
     """
-    k, n = len(transforms), len(region_pts)
-    y = np.einsum("kij,nj->kni", transforms[:, :3, :3], region_pts) + transforms[:, None, :3, 3]
-    v = sampler(y.reshape(-1, 3)).reshape(k, n)
+    n = len(region_pts)
+    v = sampler(region_pts, transforms)  # (k, n)
     ok = np.isfinite(v)
     cnt = ok.sum(axis=1)
     if metric == "ssd":
@@ -721,21 +721,26 @@ def polish_with_prior(
         sigma = math.sqrt(max(float(np.mean(data_residuals(vals0[ok]) ** 2)), 1e-12))
     w = np.array([0.0 if prior_deg is None else 1 / prior_deg] * 3 + [0.0 if prior_mm is None else 1 / prior_mm] * 3)
 
-    def residuals(y):
+    def residuals(y, v=None):
         # y: the change from ``start`` (so the solver starts at exactly 0: its first trust region is sized
         # from |x0|, which is round-off small when start == init, and it then stopped after one tiny step).
+        # ``v``: the scan at the points under that pose, when already sampled.
         x = x0 + y
-        v = sampler(apply(_increment(x, init, c), pts))
+        if v is None:
+            v = sampler(pts, _increment(x, init, c)[None])[0]
         v = np.where(np.isfinite(v), v, ref)  # points leaving the grid stop contributing
         # Rhee Eq. 1 / σ² plus the prior's terms (the prior is ours: Rhee Eq. 1 has none)
         return np.concatenate([data_residuals(v) / sigma, w * x])
 
-    def jacobian(x, f0=None):
-        # Forward differences with absolute steps of 0.01° and 0.01 mm.  (SciPy's relative diff_step scales
-        # with |x|, so at the start, where x is round-off close to 0, its Jacobian was exactly zero.)
-        f0 = residuals(x) if f0 is None else f0
+    def jacobian(y, f0=None):
+        # Forward differences with absolute steps of 0.01° and 0.01 mm, the six poses sampled in one call.
+        # (SciPy's relative diff_step scales with |x|, so at the start, where x is round-off close to 0, its
+        # Jacobian was exactly zero.)
+        f0 = residuals(y) if f0 is None else f0
         h = 1e-2
-        return np.column_stack([(residuals(x + h * e) - f0) / h for e in np.eye(6)])
+        steps = y + h * np.eye(6)
+        vs = sampler(pts, np.stack([_increment(x0 + s, init, c) for s in steps]))
+        return np.column_stack([(residuals(s, v) - f0) / h for s, v in zip(steps, vs)])
 
     res = least_squares(
         residuals,

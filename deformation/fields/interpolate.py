@@ -533,3 +533,117 @@ def warp(
         )
     out = sample(volume, pos, order=order, fill=fill)
     return Volume(out if dtype is None else out.astype(dtype), target_geometry)
+
+
+# -- B-spline sampling on SciPy's convention ----------------------------------------------------------------
+# ``scipy.ndimage.map_coordinates(coefficients, ..., order, mode="mirror", prefilter=False)`` at world points,
+# compiled and parallel (SciPy's interpolation runs on one core and holds the interpreter while it does): the
+# rigid bone registration (registration.rigid.Sampler) samples a scan thousands of times per bone.
+@nb.njit(cache=True, inline="always")
+def _mirror(i, n):
+    """SciPy's ``mode="mirror"`` index: reflected about the first and last voxel centres."""
+    if n == 1:
+        return 0
+    period = 2 * (n - 1)
+    i = abs(i) % period
+    return period - i if i >= n else i
+
+
+@nb.njit(cache=True, inline="always")
+def _spline_weights(t, order):
+    """The 4 weights of the coefficients at ``floor(x) − 1 … floor(x) + 2`` (cubic B-spline, ``order=3``), or
+    of ``floor(x) … floor(x) + 1`` in the middle two (linear, ``order=1``), ``t = x − floor(x)``."""
+    if order == 1:
+        return 0.0, 1.0 - t, t, 0.0
+    s = 1.0 - t
+    return (
+        s * s * s / 6.0,
+        (3.0 * t * t * t - 6.0 * t * t + 4.0) / 6.0,
+        (3.0 * s * s * s - 6.0 * s * s + 4.0) / 6.0,
+        t * t * t / 6.0,
+    )
+
+
+@nb.njit(cache=True, inline="always")
+def _spline_row(c, k, j, i0, i1, i2, i3, w0, w1, w2, w3):
+    return w0 * c[k, j, i0] + w1 * c[k, j, i1] + w2 * c[k, j, i2] + w3 * c[k, j, i3]
+
+
+@nb.njit(cache=True, inline="always")
+def _spline_plane(c, k, j0, j1, j2, j3, i0, i1, i2, i3, wj, wi):
+    return (
+        wj[0] * _spline_row(c, k, j0, i0, i1, i2, i3, wi[0], wi[1], wi[2], wi[3])
+        + wj[1] * _spline_row(c, k, j1, i0, i1, i2, i3, wi[0], wi[1], wi[2], wi[3])
+        + wj[2] * _spline_row(c, k, j2, i0, i1, i2, i3, wi[0], wi[1], wi[2], wi[3])
+        + wj[3] * _spline_row(c, k, j3, i0, i1, i2, i3, wi[0], wi[1], wi[2], wi[3])
+    )
+
+
+@nb.njit(cache=True)
+def _spline_at(c, ci, cj, ck, order):
+    """The spline of coefficients ``c`` ``(nz, ny, nx)`` at continuous index (i, j, k); NaN outside the
+    voxel-centre box grown by half a voxel (registration.rigid.Sampler's convention).  The 4 × 4 × 4 stencil
+    (2 × 2 × 2 read for ``order=1``: the outer weights are 0) with SciPy's mirrored indices at the edges."""
+    nz, ny, nx = c.shape
+    if not (-0.5 <= ci <= nx - 0.5 and -0.5 <= cj <= ny - 0.5 and -0.5 <= ck <= nz - 0.5):
+        return np.nan
+    fi, fj, fk = math.floor(ci), math.floor(cj), math.floor(ck)
+    wi = _spline_weights(ci - fi, order)
+    wj = _spline_weights(cj - fj, order)
+    wk = _spline_weights(ck - fk, order)
+    i, j, k = int(fi), int(fj), int(fk)
+    i0, i1, i2, i3 = _mirror(i - 1, nx), _mirror(i, nx), _mirror(i + 1, nx), _mirror(i + 2, nx)
+    j0, j1, j2, j3 = _mirror(j - 1, ny), _mirror(j, ny), _mirror(j + 1, ny), _mirror(j + 2, ny)
+    if order == 1:  # the middle 2 × 2 × 2
+        return wk[1] * (
+            wj[1] * (wi[1] * c[_mirror(k, nz), j1, i1] + wi[2] * c[_mirror(k, nz), j1, i2])
+            + wj[2] * (wi[1] * c[_mirror(k, nz), j2, i1] + wi[2] * c[_mirror(k, nz), j2, i2])
+        ) + wk[2] * (
+            wj[1] * (wi[1] * c[_mirror(k + 1, nz), j1, i1] + wi[2] * c[_mirror(k + 1, nz), j1, i2])
+            + wj[2] * (wi[1] * c[_mirror(k + 1, nz), j2, i1] + wi[2] * c[_mirror(k + 1, nz), j2, i2])
+        )
+    return (
+        wk[0] * _spline_plane(c, _mirror(k - 1, nz), j0, j1, j2, j3, i0, i1, i2, i3, wj, wi)
+        + wk[1] * _spline_plane(c, _mirror(k, nz), j0, j1, j2, j3, i0, i1, i2, i3, wj, wi)
+        + wk[2] * _spline_plane(c, _mirror(k + 1, nz), j0, j1, j2, j3, i0, i1, i2, i3, wj, wi)
+        + wk[3] * _spline_plane(c, _mirror(k + 2, nz), j0, j1, j2, j3, i0, i1, i2, i3, wj, wi)
+    )
+
+
+@nb.njit(cache=True, parallel=True)
+def _spline_transformed(c, w2i, transforms, points, order, out):
+    """``out[t, p]``: the spline at ``transforms[t] · points[p]`` (world, through ``w2i`` to indices)."""
+    n_t, n_p = transforms.shape[0], points.shape[0]
+    for q in nb.prange(n_t * n_p):
+        t, p = q // n_p, q % n_p
+        m = transforms[t]
+        x, y, z = points[p, 0], points[p, 1], points[p, 2]
+        wx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+        wy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+        wz = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+        ci, cj, ck = to_index(w2i, wx, wy, wz)
+        out[t, p] = _spline_at(c, ci, cj, ck, order)
+
+
+_spline_transformed_serial = serial_twin(_spline_transformed)
+
+
+def sample_spline(coefficients, world_to_index, points, *, order: int = 3, transforms=None) -> np.ndarray:
+    """SciPy's ``map_coordinates(coefficients, …, order, mode="mirror", prefilter=False)`` at world ``points``
+    ``(n, 3)`` (NaN beyond half a voxel outside the grid), compiled and parallel.
+
+    ``coefficients`` ``(nz, ny, nx)``: B-spline coefficients (``scipy.ndimage.spline_filter(…, mode="mirror")``)
+    for ``order=3``, the voxel values for ``order=1``.  With ``transforms`` ``(k, 4, 4)`` (or ``(k, 3, 4)``) the
+    points are sampled under each of them: ``(k, n)``.  Agrees with SciPy to rounding (summation order).
+    """
+    if order not in (1, 3):
+        raise ValueError(f"order must be 1 (linear) or 3 (cubic B-spline), got {order!r}")
+    c = np.ascontiguousarray(coefficients, dtype=np.float64)
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    one = transforms is None
+    t = np.eye(4)[None] if one else np.asarray(transforms, dtype=np.float64)
+    t = np.ascontiguousarray(t[:, :3, :4])
+    out = np.empty((len(t), len(pts)))
+    kernel = _spline_transformed_serial if out.size < SERIAL_BELOW else _spline_transformed
+    kernel(c, _matrix(world_to_index, "world_to_index"), t, pts, int(order), out)
+    return out[0] if one else out
