@@ -59,6 +59,8 @@ __all__ = [
     "register_scan",
     "estimate_poses",
     "pose_scans",
+    "template_regions",
+    "TemplateRegions",
     "contact_point",
     "moments_init",
     "flag_joint_outliers",
@@ -384,6 +386,7 @@ def estimate_poses(
     outlier_factor: float | None = OUTLIER_FACTOR,
     progress=None,
     scan_poses: list[ScanPose] | None = None,
+    prepared: TemplateRegions | None = None,
 ) -> PoseResult:
     """Register every bone in every scan (:func:`pose_scans`), then estimate joint centres and angles.
 
@@ -406,6 +409,7 @@ def estimate_poses(
     progress : callable(scan_id, scan_index, n_scans, bone, done, total, fit), optional
     scan_poses : the scans' bone fits already made by :func:`pose_scans` with the same arguments (e.g. one scan
         per Dask task, :mod:`workbench.scale`); then only the pooling (Kurihara Eq. 1, outliers, angles) runs here
+    prepared : the template's regions already made by :func:`template_regions` (see :func:`pose_scans`)
     """
     results = (
         scan_poses
@@ -427,6 +431,7 @@ def estimate_poses(
             margin_mm=margin_mm,
             max_joint_gap_mm=max_joint_gap_mm,
             progress=progress,
+            prepared=prepared,
         )
     )
     voxel_mm = {s.scan_id: s.voxel_mm for s in results}
@@ -436,6 +441,44 @@ def estimate_poses(
             f"scan_poses of scans {bad} carry no voxel size (ScanPose.voxel_mm): make them with pose_scans"
         )
     return _pool(results, voxel_mm, labels, skeleton, method, hinge_ratio, hinge_sd_mm, outlier_factor)
+
+
+@dataclass
+class TemplateRegions:
+    """The template's side of the bones' registration (:func:`template_regions`), made once for many scans."""
+
+    template: Volume  #: the template, N4-corrected when ``bias_correction``
+    regions: dict  #: bone → :class:`~registration.rigid.BoneRegion` (the refinement's)
+    coarse_regions: dict | None  #: the coarse rotation search's, on a more smoothed template (None: no search)
+    bias_correction: bool  #: whether the scans are N4-corrected too
+
+
+def template_regions(
+    template: Volume,
+    labels: Volume,
+    skeleton: Skeleton,
+    *,
+    coarse: bool = True,
+    smooth_voxels: float = 0.6,
+    bias_correction: bool | None = None,
+    margin_mm: float | None = None,
+) -> TemplateRegions:
+    """The template's bone regions for :func:`pose_scans` (its arguments of the same names)."""
+    from .segmentation import guess_modality
+
+    if bias_correction is None:
+        bias_correction = guess_modality(template) == "mri"
+    if bias_correction:
+        template = correct_bias(template)
+    regions = bone_regions(smooth(template, smooth_voxels, dtype=np.float32), labels, skeleton, margin_mm=margin_mm)
+    coarse_regions = (
+        bone_regions(
+            smooth(template, max(COARSE_SMOOTH, smooth_voxels), dtype=np.float32), labels, skeleton, margin_mm=margin_mm
+        )
+        if coarse
+        else None
+    )
+    return TemplateRegions(template, regions, coarse_regions, bool(bias_correction))
 
 
 def pose_scans(
@@ -456,23 +499,23 @@ def pose_scans(
     margin_mm: float | None = None,
     max_joint_gap_mm: float | None = MAX_JOINT_GAP_MM,
     progress=None,
+    prepared: TemplateRegions | None = None,
 ) -> list[ScanPose]:
     """Every bone of every scan in ``scans`` (the first half of :func:`estimate_poses`, whose arguments these
-    are): one :class:`ScanPose` per scan, each independent of the others."""
-    from .segmentation import guess_modality
-
-    if bias_correction is None:
-        bias_correction = guess_modality(template) == "mri"
-    if bias_correction:
-        template = correct_bias(template)
-    regions = bone_regions(smooth(template, smooth_voxels, dtype=np.float32), labels, skeleton, margin_mm=margin_mm)
-    coarse_regions = (
-        bone_regions(
-            smooth(template, max(COARSE_SMOOTH, smooth_voxels), dtype=np.float32), labels, skeleton, margin_mm=margin_mm
+    are): one :class:`ScanPose` per scan, each independent of the others.  ``prepared``: the template's regions
+    already made by :func:`template_regions` with the same arguments (one scan per task: made once, shared)."""
+    if prepared is None:
+        prepared = template_regions(
+            template,
+            labels,
+            skeleton,
+            coarse=coarse,
+            smooth_voxels=smooth_voxels,
+            bias_correction=bias_correction,
+            margin_mm=margin_mm,
         )
-        if coarse
-        else None
-    )
+    template, regions, coarse_regions = prepared.template, prepared.regions, prepared.coarse_regions
+    bias_correction = prepared.bias_correction
     results = []
     ids = list(scans)
     voxel_mm = {}

@@ -33,7 +33,16 @@ from collections.abc import Callable
 
 from workbench.errors import WorkbenchError
 
-__all__ = ["Runner", "open_runner", "check_cluster_options", "SchedulerError", "same_bits", "task_reporter"]
+__all__ = [
+    "Runner",
+    "open_runner",
+    "check_cluster_options",
+    "SchedulerError",
+    "same_bits",
+    "task_reporter",
+    "local_processes",
+    "LOCAL_PROCESSES",
+]
 
 log = logging.getLogger("workbench")
 
@@ -130,7 +139,16 @@ class Runner:
         finally:
             self.client.unsubscribe_topic(topic)
 
-    def map(self, fn: Callable, items, *, shared=None, name: str = "task", on_result: Callable | None = None) -> list:
+    def map(
+        self,
+        fn: Callable,
+        items,
+        *,
+        shared=None,
+        name: str = "task",
+        on_result: Callable | None = None,
+        processes: int = 1,
+    ) -> list:
         """``[fn(item)]`` (``fn(shared, item)`` when ``shared`` is given), in the items' order.
 
         ``fn`` must be a module-level function (it is pickled to the
@@ -138,9 +156,14 @@ class Runner:
         ``on_result(index, result)`` runs in this process as each result
         arrives (in completion order on a cluster).  The first task to fail
         cancels the others and its exception is raised here; so does Ctrl-C.
+        Without a cluster, ``processes`` > 1 spreads the items over that many
+        processes of this machine (:func:`local_processes`), each task the
+        same code as here: the same results.
         """
         items = list(items)
         call = (lambda it: _task(fn, it)) if shared is None else (lambda it: _task(fn, shared, it))
+        if self.client is None and processes > 1 and len(items) > 1:
+            return _map_processes(fn, items, shared, min(int(processes), len(items)), on_result)
         if self.client is None:
             out = []
             for i, it in enumerate(items):
@@ -168,6 +191,71 @@ class Runner:
             client.cancel(futures)
             raise
         return [results[i] for i in range(len(items))]
+
+
+#: the most processes a run without a cluster spreads a stage's per-scan tasks over (:func:`local_processes`)
+LOCAL_PROCESSES = 2
+_PROCESS_SHARED: dict = {}  #: in a pool's worker: whether the tasks get a shared value, and the value
+
+
+def local_processes() -> int:
+    """How many processes of this machine a run without a cluster may use for tasks that run mostly on one core
+    (the pose stage's bone registrations): the cores, at most ``LOCAL_PROCESSES``; one inside a Dask task or a
+    process pool's worker (a worker of ``workbench reproduce`` already shares the cores with the others)."""
+    import multiprocessing
+
+    if multiprocessing.current_process().name != "MainProcess":
+        return 1
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return 1  # inside a Dask task
+    except (ImportError, ValueError):
+        pass
+    return max(1, min(LOCAL_PROCESSES, os.cpu_count() or 1))
+
+
+def _start_process(has_shared: bool, shared, threads: int) -> None:
+    import signal
+
+    import numba
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the coordinator's: it stops the pool (_map_processes)
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # the cores shared out
+    _PROCESS_SHARED.update(has=has_shared, value=shared)
+
+
+def _process_task(job):
+    fn, index, item = job
+    if _PROCESS_SHARED["has"]:
+        return index, _task(fn, _PROCESS_SHARED["value"], item)
+    return index, _task(fn, item)
+
+
+def _map_processes(fn, items: list, shared, n: int, on_result) -> list:
+    """:meth:`Runner.map` over ``n`` new processes of this machine (spawned: no thread state is copied);
+    ``shared`` is sent to each once; results handed to ``on_result`` as they arrive; the first failure (or
+    Ctrl-C, which the processes leave to this one) stops the processes and is raised here."""
+    import multiprocessing
+
+    threads = max(1, (os.cpu_count() or 1) // n)
+    pool = multiprocessing.get_context("spawn").Pool(
+        n, initializer=_start_process, initargs=(shared is not None, shared, threads)
+    )
+    results: dict = {}
+    try:
+        for i, r in pool.imap_unordered(_process_task, [(fn, i, it) for i, it in enumerate(items)]):
+            results[i] = r  # a task's exception is raised by the iterator, here
+            if on_result is not None:
+                on_result(i, r)
+        pool.close()
+    except BaseException:
+        pool.terminate()
+        raise
+    finally:
+        pool.join()
+    return [results[i] for i in range(len(items))]
 
 
 def task_reporter(topic: str | None, *, every_s: float = 2.0) -> Callable:

@@ -33,7 +33,11 @@ from workbench.io.inputs import read_initial_poses
 from workbench.io.volumes import read_image_geometry
 from workbench.stages.mechanism import Json, Stage, Text, working_factor, working_labels
 
-__all__ = ["PoseSettings", "STAGE", "finite"]
+__all__ = ["PoseSettings", "STAGE", "finite", "LOCAL_VOXELS"]
+
+#: the most voxels of the working template for which the scans' bones are registered in several processes of this
+#: machine (each holds the template's bone regions and its scan; above it, one scan after the other)
+LOCAL_VOXELS = 16_000_000
 
 
 @dataclass(frozen=True)
@@ -185,18 +189,21 @@ def _working(study, f: int):
 
 
 def _scan_task(shared, sid: str):
-    """One scan's bones, on a Dask worker (:mod:`workbench.scale`): the study's folder in, the fits out."""
+    """One scan's bones in a task (:mod:`workbench.scale`): the study's folder and the template's regions in,
+    the fits out."""
     from registration.pose import pose_scans
     from workbench.study import read_study
 
-    root, f, kwargs = shared
-    template, labels, scan = _working(read_study(root), f)
-    return pose_scans(template, labels, {sid: scan(sid)}, read_study(root).skeleton(), **kwargs)[0]
+    root, f, kwargs, prepared = shared
+    study = read_study(root)
+    scan = study.scan(sid).every(f, smooth=True)  # as _working's reader
+    return pose_scans(None, None, {sid: scan}, study.skeleton(), prepared=prepared, **kwargs)[0]
 
 
 def _run(ctx) -> dict:
-    from registration.pose import estimate_poses
+    from registration.pose import estimate_poses, template_regions
     from registration.report import format_fits
+    from workbench.scale import local_processes
 
     study, s = ctx.study, ctx.settings
     skeleton = study.skeleton()
@@ -229,18 +236,38 @@ def _run(ctx) -> dict:
 
     t0 = time.perf_counter()
     kwargs = _fit_arguments(s, root_init)
+    # the template's side once (N4, the bone regions), shared by every scan's task
+    prepared = template_regions(template, labels, skeleton, bias_correction=s.bias_correction, margin_mm=s.margin_mm)
+    fit_kwargs = {k: v for k, v in kwargs.items() if k not in ("bias_correction", "margin_mm")}
+    distributed = ctx.runner is not None and ctx.runner.distributed
+    # each scan's bones as a task (a Dask task on a cluster; else, with several scans, one of a few processes of
+    # this machine: most of a bone's registration runs on one core); Kurihara Eq. 1 pools them here
+    processes = 1 if distributed or template.geometry.n_voxels > LOCAL_VOXELS else local_processes()
     per_scan = None
-    # each scan's bones as a Dask task; Kurihara Eq. 1 pools them here
-    if ctx.runner is not None and ctx.runner.distributed:
+    if len(ids) > 1 and (distributed or processes > 1):
         finished = []
 
         def done(k, r):
             finished.append(r.scan_id)
             ctx.report(len(finished), len(ids), f"{r.scan_id}: bones fitted in {r.seconds:.1f} s")
 
-        per_scan = ctx.map_scans(_scan_task, ids, shared=(str(study.root.resolve()), f, kwargs), on_result=done)
+        per_scan = ctx.map_scans(
+            _scan_task,
+            ids,
+            shared=(str(study.root.resolve()), f, fit_kwargs, prepared),
+            on_result=done,
+            processes=processes,
+        )
     result = estimate_poses(
-        template, labels, scans, skeleton, outlier_factor=s.outlier_factor, progress=cb, scan_poses=per_scan, **kwargs
+        template,
+        labels,
+        scans,
+        skeleton,
+        outlier_factor=s.outlier_factor,
+        progress=cb,
+        scan_poses=per_scan,
+        prepared=prepared,
+        **fit_kwargs,
     )
     _require_placed(study, result)
     total = time.perf_counter() - t0

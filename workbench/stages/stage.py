@@ -106,11 +106,14 @@ class StageContext:
     #: entry's ``timings``: a stage's files hold no time, so the same inputs and settings give the same bytes
     timings: dict = field(default_factory=dict)
 
-    def map_scans(self, fn, items, *, shared=None, on_result=None) -> list:
-        """``fn`` over ``items`` here, or as Dask tasks when the run has a cluster (:mod:`workbench.scale`)."""
+    def map_scans(self, fn, items, *, shared=None, on_result=None, processes: int = 1) -> list:
+        """``fn`` over ``items`` here (over ``processes`` processes of this machine), or as Dask tasks when the
+        run has a cluster (:mod:`workbench.scale`)."""
         from workbench.scale import Runner
 
-        return (self.runner or Runner()).map(fn, items, shared=shared, name=self.stage_name, on_result=on_result)
+        return (self.runner or Runner()).map(
+            fn, items, shared=shared, name=self.stage_name, on_result=on_result, processes=processes
+        )
 
     def say(self, message: str) -> None:
         """A message worth every line (always shown, unlike ``report``'s rate-limited progress)."""
