@@ -180,8 +180,13 @@ def _run(ctx) -> dict:
             f"target, mean distance {d['mean']:.2f} mm",
         )
 
-    # each scan's meshes: here, one after the other, or one Dask task per scan (workbench.scale)
-    for sid, entry, meshes, _ in ctx.map_scans(_fit_scan, ids, shared=shared, on_result=done):
+    # each scan's meshes: one Dask task per scan on a cluster, else over a few processes of this machine (most of a
+    # fit runs on one core), or one after the other (workbench.scale)
+    from workbench.scale import local_processes
+
+    distributed = ctx.runner is not None and ctx.runner.distributed
+    processes = 1 if distributed else local_processes()
+    for sid, entry, meshes, _ in ctx.map_scans(_fit_scan, ids, shared=shared, on_result=done, processes=processes):
         doc["per_scan"][sid] = entry
         for name in ("ssd", "rbf", "fitted"):
             out[f"{sid}_{name}.ply"] = MeshFile(meshes[name])
