@@ -16,7 +16,13 @@ import logging
 import sys
 import time
 
-__all__ = ["ProgressPrinter", "setup_logging", "compile_note", "tolerate_kernel_cache_failures"]
+__all__ = [
+    "ProgressPrinter",
+    "setup_logging",
+    "compile_note",
+    "announce_compilation",
+    "tolerate_kernel_cache_failures",
+]
 
 
 def compile_note(*kernels) -> str | None:
@@ -39,6 +45,37 @@ def compile_note(*kernels) -> str | None:
     if not missing:
         return None
     return f"compiling {len(missing)} numba kernel(s) on first use (about 30 s, once; they are cached for later runs)"
+
+
+def announce_compilation(stream=None) -> None:
+    """One line on ``stream`` (standard error) the first time in this process that numba compiles a kernel it
+    could not load from its on-disk cache — the first run after installing or upgrading, when a command spends a
+    minute or so compiling with nothing else to show; later runs load the kernels from ``__pycache__`` and say
+    nothing.  Listens to numba's ``numba:compile`` event, which fires on a cache miss only."""
+    try:
+        from numba.core import event
+    except ImportError:  # numba's internals moved: nothing to say
+        return
+    if getattr(announce_compilation, "_registered", False):
+        return
+    said = []
+
+    class _FirstCompile(event.Listener):
+        def on_start(self, ev):
+            if not said:
+                said.append(True)
+                print(
+                    "compiling the numba kernels this command needs (first run after installing: a minute or "
+                    "so, once; later runs load them from the cache)",
+                    file=stream or sys.stderr,
+                    flush=True,
+                )
+
+        def on_end(self, ev):
+            pass
+
+    event.register("numba:compile", _FirstCompile())
+    announce_compilation._registered = True
 
 
 def tolerate_kernel_cache_failures() -> None:

@@ -75,3 +75,46 @@ def test_a_kernel_cache_that_cannot_be_written_does_not_fail_the_command(tmp_pat
     assert guarded.returncode == 0 and guarded.stdout.strip() == "42", guarded.stderr
     warnings = [ln for ln in guarded.stderr.splitlines() if ln.startswith("warning: could not save compiled")]
     assert len(warnings) == 1 and str(tmp_path / "guarded") in warnings[0], guarded.stderr
+
+
+def test_the_first_kernel_compiled_in_a_process_is_announced_once():
+    """announce_compilation: numba's first compile in the process (a cache miss) prints one line; later compiles
+    and calls print nothing more (run in a fresh interpreter: the listener is process-wide)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numba\n"
+        "from workbench.progress import announce_compilation\n"
+        "announce_compilation()\n"
+        "announce_compilation()\n"  # a second call registers nothing more
+        "f = numba.njit(lambda x: x + 1)\n"
+        "g = numba.njit(lambda x: x * 2)\n"
+        "assert f(1) == 2 and f(2) == 3 and g(3) == 6 and g(1.5) == 3.0\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("compiling the numba kernels"), proc.stderr
+
+
+def test_a_kernel_loaded_from_the_cache_is_not_announced(tmp_path):
+    """The second run of a cached kernel loads it from __pycache__: no compile, no line."""
+    import subprocess
+    import sys
+
+    (tmp_path / "cached_kernel.py").write_text(
+        "import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n"
+    )
+    code = (
+        "import sys\n"
+        f"sys.path.insert(0, {str(tmp_path)!r})\n"
+        "from workbench.progress import announce_compilation\n"
+        "announce_compilation()\n"
+        "import cached_kernel\n"
+        "assert cached_kernel.twice(21) == 42\n"
+    )
+    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120) for _ in (1, 2)]
+    assert all(r.returncode == 0 for r in runs), runs[0].stderr + runs[1].stderr
+    assert "compiling the numba kernels" in runs[0].stderr  # the first run compiled it
+    assert runs[1].stderr.strip() == ""  # the second loaded it

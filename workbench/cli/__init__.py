@@ -111,9 +111,10 @@ def main(argv=None) -> int:
     def terminate(signum, frame):  # SIGTERM: unwind like Ctrl-C, so staging folders are removed
         raise KeyboardInterrupt
 
-    from workbench.progress import tolerate_kernel_cache_failures
+    from workbench.progress import announce_compilation, tolerate_kernel_cache_failures
 
     tolerate_kernel_cache_failures()
+    announce_compilation()
     previous = signal.signal(signal.SIGTERM, terminate)
     try:
         return args.func(args)
