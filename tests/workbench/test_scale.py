@@ -57,6 +57,9 @@ def test_pose_stage_same_bits_in_two_processes_as_in_one(knee_ct_study, tmp_path
     outs, pooled = {}, []
     real = scale._map_processes
     monkeypatch.setattr(scale, "_map_processes", lambda *a: pooled.append(a[3]) or real(*a))
+    from workbench.stages import pose
+
+    monkeypatch.setattr(pose, "LOCAL_VOXELS", (0, 10**9))  # the test knee is smaller than a pool pays for
     for n in (1, 2):
         root = tmp_path / f"p{n}"
         shutil.copytree(knee_ct_study.root, root, ignore=shutil.ignore_patterns(".locks"))

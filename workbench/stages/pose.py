@@ -35,9 +35,10 @@ from workbench.stages.mechanism import Json, Stage, Text, working_factor, workin
 
 __all__ = ["PoseSettings", "STAGE", "finite", "LOCAL_VOXELS"]
 
-#: the most voxels of the working template for which the scans' bones are registered in several processes of this
-#: machine (each holds the template's bone regions and its scan; above it, one scan after the other)
-LOCAL_VOXELS = 16_000_000
+#: the working template's voxels between which the scans' bones are registered in several processes of this
+#: machine: below, a process's start (a few seconds of imports) costs more than a scan's bones; above, each
+#: process would hold a big template's regions and scan — one scan after the other then
+LOCAL_VOXELS = (300_000, 16_000_000)
 
 
 @dataclass(frozen=True)
@@ -242,7 +243,8 @@ def _run(ctx) -> dict:
     distributed = ctx.runner is not None and ctx.runner.distributed
     # each scan's bones as a task (a Dask task on a cluster; else, with several scans, one of a few processes of
     # this machine: most of a bone's registration runs on one core); Kurihara Eq. 1 pools them here
-    processes = 1 if distributed or template.geometry.n_voxels > LOCAL_VOXELS else local_processes()
+    lo, hi = LOCAL_VOXELS
+    processes = 1 if distributed or not lo <= template.geometry.n_voxels <= hi else local_processes()
     per_scan = None
     if len(ids) > 1 and (distributed or processes > 1):
         finished = []

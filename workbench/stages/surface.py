@@ -183,9 +183,11 @@ def _run(ctx) -> dict:
     # each scan's meshes: one Dask task per scan on a cluster, else over a few processes of this machine (most of a
     # fit runs on one core), or one after the other (workbench.scale)
     from workbench.scale import local_processes
+    from workbench.stages.pose import LOCAL_VOXELS
 
     distributed = ctx.runner is not None and ctx.runner.distributed
-    processes = 1 if distributed else local_processes()
+    lo, hi = LOCAL_VOXELS  # the pose stage's rule, on the template's grid (the skin mesh follows its voxels)
+    processes = 1 if distributed or not lo <= template.geometry.n_voxels <= hi else local_processes()
     for sid, entry, meshes, _ in ctx.map_scans(_fit_scan, ids, shared=shared, on_result=done, processes=processes):
         doc["per_scan"][sid] = entry
         for name in ("ssd", "rbf", "fitted"):
