@@ -451,6 +451,8 @@ class TemplateRegions:
     regions: dict  #: bone → :class:`~registration.rigid.BoneRegion` (the refinement's)
     coarse_regions: dict | None  #: the coarse rotation search's, on a more smoothed template (None: no search)
     bias_correction: bool  #: whether the scans are N4-corrected too
+    coarse: bool  #: the arguments it was made with that the scans' fits use again
+    smooth_voxels: float
 
 
 def template_regions(
@@ -478,7 +480,7 @@ def template_regions(
         if coarse
         else None
     )
-    return TemplateRegions(template, regions, coarse_regions, bool(bias_correction))
+    return TemplateRegions(template, regions, coarse_regions, bool(bias_correction), bool(coarse), float(smooth_voxels))
 
 
 def pose_scans(
@@ -513,6 +515,11 @@ def pose_scans(
             smooth_voxels=smooth_voxels,
             bias_correction=bias_correction,
             margin_mm=margin_mm,
+        )
+    elif (prepared.coarse, prepared.smooth_voxels) != (bool(coarse), float(smooth_voxels)):
+        raise ValueError(
+            f"the template's regions were made with coarse={prepared.coarse}, smooth_voxels={prepared.smooth_voxels}; "
+            f"these fits ask for coarse={coarse}, smooth_voxels={smooth_voxels}"
         )
     template, regions, coarse_regions = prepared.template, prepared.regions, prepared.coarse_regions
     bias_correction = prepared.bias_correction

@@ -69,6 +69,9 @@ class InputFileError(WorkbenchError, ValueError):
         super().__init__(message)
         self.path = Path(path)
 
+    def __reduce__(self):  # pickled whole (a task's error reaches the coordinator: workbench.scale)
+        return type(self), (self.args[0], self.path)
+
 
 class MissingFileError(InputFileError, FileNotFoundError):
     """The input file (or a data file its header refers to) does not exist."""
@@ -136,6 +139,9 @@ class OutputExistsError(WorkbenchError, FileExistsError):
     def __str__(self) -> str:
         return self.args[0]
 
+    def __reduce__(self):
+        return type(self), (self.path, self.args[0])
+
 
 class OutputFolderError(WorkbenchError, OSError):
     """An output's folder is missing or not writable: said before any work (no output is half-written)."""
@@ -168,6 +174,9 @@ class OutputWriteError(WorkbenchError, OSError):
 
     def __str__(self) -> str:
         return self.args[0]
+
+    def __reduce__(self):
+        return type(self), (self.path, self.reason)
 
     @classmethod
     def of(cls, path: str | os.PathLike, error: BaseException) -> OutputWriteError:

@@ -201,10 +201,11 @@ _PROCESS_SHARED: dict = {}  #: in a pool's worker: whether the tasks get a share
 def local_processes() -> int:
     """How many processes of this machine a run without a cluster may use for tasks that run mostly on one core
     (the pose stage's bone registrations): the cores, at most ``LOCAL_PROCESSES``; one inside a Dask task or a
-    process pool's worker (a worker of ``workbench reproduce`` already shares the cores with the others)."""
+    process pool's worker (a worker of ``workbench reproduce`` already shares the cores with the others), and one
+    in a script without the ``if __name__ == "__main__":`` guard (a spawned process would run it again)."""
     import multiprocessing
 
-    if multiprocessing.current_process().name != "MainProcess":
+    if multiprocessing.current_process().name != "MainProcess" or not _main_guarded():
         return 1
     try:
         from distributed import get_worker
@@ -214,6 +215,24 @@ def local_processes() -> int:
     except (ImportError, ValueError):
         pass
     return max(1, min(LOCAL_PROCESSES, os.cpu_count() or 1))
+
+
+def _main_guarded() -> bool:
+    """Whether a spawned process may import this program's main module: a spawned process imports it again, and a
+    script whose work is not under ``if __name__ == "__main__":`` would run it again there (the workbench's command,
+    ``python -m``, pytest, an interpreter or ``-c`` are safe)."""
+    import sys
+
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if path is None or getattr(main, "__spec__", None) is not None:  # interactive, -c, or python -m: safe
+        return True
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read()
+    except OSError:
+        return False
+    return "__name__" in text and "__main__" in text
 
 
 def _start_process(has_shared: bool, shared, threads: int) -> None:
@@ -227,10 +246,19 @@ def _start_process(has_shared: bool, shared, threads: int) -> None:
 
 
 def _process_task(job):
+    import pickle
+
     fn, index, item = job
-    if _PROCESS_SHARED["has"]:
-        return index, _task(fn, _PROCESS_SHARED["value"], item)
-    return index, _task(fn, item)
+    try:
+        if _PROCESS_SHARED["has"]:
+            return index, _task(fn, _PROCESS_SHARED["value"], item)
+        return index, _task(fn, item)
+    except Exception as e:
+        try:  # an error that does not survive pickling would stop the pool's result thread: the pool would hang
+            pickle.loads(pickle.dumps(e))
+        except Exception:
+            raise WorkbenchError(f"{type(e).__name__}: {e}") from None
+        raise
 
 
 def _map_processes(fn, items: list, shared, n: int, on_result) -> list:
@@ -238,12 +266,21 @@ def _map_processes(fn, items: list, shared, n: int, on_result) -> list:
     ``shared`` is sent to each once; results handed to ``on_result`` as they arrive; the first failure (or
     Ctrl-C, which the processes leave to this one) stops the processes and is raised here."""
     import multiprocessing
+    import signal
 
     threads = max(1, (os.cpu_count() or 1) // n)
-    pool = multiprocessing.get_context("spawn").Pool(
-        n, initializer=_start_process, initargs=(shared is not None, shared, threads)
-    )
     results: dict = {}
+    # the processes start with Ctrl-C ignored (inherited through the spawn; their initializer keeps it so): it is
+    # this process's to handle
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    try:
+        pool = multiprocessing.get_context("spawn").Pool(
+            n, initializer=_start_process, initargs=(shared is not None, shared, threads)
+        )
+    finally:
+        if main:  # a handler set outside Python reads as None: Python's own then
+            signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
     try:
         for i, r in pool.imap_unordered(_process_task, [(fn, i, it) for i, it in enumerate(items)]):
             results[i] = r  # a task's exception is raised by the iterator, here

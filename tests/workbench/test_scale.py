@@ -71,3 +71,71 @@ def test_pose_stage_same_bits_in_two_processes_as_in_one(knee_ct_study, tmp_path
     assert len(outs[1]) >= 6 and outs[1] == outs[2]
     scans = read_study(tmp_path / "p2").stage_entry("pose")["timings"]["scans"]
     assert len(scans) == 3 and all(np.isfinite(v["seconds"]) for v in scans.values())
+
+
+class _Unpicklable(Exception):
+    def __init__(self, message, extra):
+        super().__init__(message)
+        self.extra = extra
+
+
+def _raise_study_error(x):
+    from workbench.study import StudyError
+
+    if x == 1:
+        raise StudyError("scan 1 could not be read", "/nowhere/study.json")
+    return x
+
+
+def _raise_unpicklable(x):
+    if x == 1:
+        raise _Unpicklable("odd failure", extra=3)
+    return x
+
+
+def test_the_workbench_errors_survive_pickling():
+    """A task's error reaches the coordinator pickled (Dask, the process pool): each keeps its class, message and
+    path."""
+    import pickle
+
+    from workbench.errors import InputFileError, MissingFileError, OutputExistsError, OutputWriteError
+    from workbench.study import StudyError
+
+    for e in (
+        InputFileError("bad file", "/a/b.nii"),
+        MissingFileError("no file", "/a/c.nii"),
+        StudyError("bad study", "/a/study.json"),
+        OutputExistsError("/a/out.nii"),
+        OutputWriteError("/a/out.nii", "[Errno 28] No space left on device"),
+    ):
+        back = pickle.loads(pickle.dumps(e))
+        assert type(back) is type(e) and str(back) == str(e) and back.path == e.path
+
+
+def test_a_task_error_the_pool_could_not_return_is_raised_not_hung():
+    """An error that does not survive pickling (the pool's result thread would die on it and the map hang) comes
+    back as a WorkbenchError naming it; the workbench's own errors come back as themselves."""
+    from workbench.errors import WorkbenchError
+    from workbench.study import StudyError
+
+    with pytest.raises(StudyError, match="scan 1 could not be read"):
+        Runner().map(_raise_study_error, range(3), processes=2)
+    with pytest.raises(WorkbenchError, match="_Unpicklable: odd failure"):
+        Runner().map(_raise_unpicklable, range(3), processes=2)
+
+
+def test_a_script_without_the_main_guard_gets_one_process(tmp_path):
+    """A spawned process imports the main module again: a script whose work is not under the __main__ guard would
+    run it again there, so it gets one process; a guarded script gets the pool."""
+    import subprocess
+    import sys
+
+    probe = "from workbench.scale import local_processes\n"
+    for name, body, want in (
+        ("bare.py", probe + "print(local_processes())\n", 1),
+        ("guarded.py", probe + 'if __name__ == "__main__":\n    print(local_processes())\n', 2),
+    ):
+        (tmp_path / name).write_text(body)
+        out = subprocess.run([sys.executable, str(tmp_path / name)], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        assert int(out.stdout.strip()) == min(want, scale.LOCAL_PROCESSES, __import__("os").cpu_count() or 1)
