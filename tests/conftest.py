@@ -8,7 +8,16 @@ never modify their inputs, and the scans a test asks for are new arrays).  Tests
 
 from __future__ import annotations
 
+import os
+
 import pytest
+
+# OpenMP threads that finish their share of a parallel loop wait for the next one by sleeping, not spinning.
+# `make test` runs two workers on two cores, each with numba's OpenMP pool of two threads (and the stages'
+# subprocesses inherit the setting): libgomp's default spin-wait burned the cores the other worker needed.
+# Scheduling only: the same bits (each thread's share of a loop does not depend on how it waits).  Set before
+# any test module loads libgomp (it reads the variable once); a value the user set is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 @pytest.fixture(scope="session")
