@@ -27,14 +27,31 @@ def study(tmp_path_factory):
     return root
 
 
-def _unregistered_copy(study, d):
-    """``study`` copied to ``d`` as if never registered: no init, register or validate outputs nor recorded
-    settings (the defaults apply, not the settings an earlier test ran with)."""
-    shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
+def _unregistered_copy(study, d, *, keep_init: bool = False):
+    """``study`` copied to ``d`` as if never registered: no register or validate outputs nor recorded settings
+    (the defaults apply, not the settings an earlier test ran with), and no init either unless ``keep_init``."""
+    drop = ("registration", "validation") if keep_init else ("registration", "init", "validation")
+    shutil.copytree(study, d, ignore=shutil.ignore_patterns(*drop))
     m = json.loads((d / "study.json").read_text())
-    for stage in ("init", "register", "validate"):
+    for stage in ("register", "validate") if keep_init else ("init", "register", "validate"):
         m.get("stages", {}).pop(stage, None)
     (d / "study.json").write_text(json.dumps(m))
+
+
+def _tree(root):
+    """Every file under ``root`` with its bytes (what a refused command must leave as it was)."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def default_registered(study, tmp_path_factory):
+    """``study`` after the default `workbench register --scan pose01 --pose truth` (the polyrigid start, dense
+    steps), run once: its test checks it, and the --dense test starts from its init stage's output (the same
+    default start, up to date, so it is not made a second time)."""
+    d = tmp_path_factory.mktemp("reg-default") / "knee"
+    _unregistered_copy(study, d)
+    assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", "--quiet"]) == 0
+    return d
 
 
 def test_register_writes_fields_in_the_truth_convention(study, capsys):
@@ -199,7 +216,7 @@ def test_register_unfold_init_repairs_the_folds_of_the_map(tmp_path, study, caps
     assert "--init vbd" in capsys.readouterr().err
 
 
-def test_default_registration_is_the_polyrigid_start_and_dense_steps(tmp_path, study, capsys):
+def test_default_registration_is_the_polyrigid_start_and_dense_steps(tmp_path, default_registered, capsys):
     """The default: a one-to-one polyrigid start, dense LNCC steps with the bones held; no fold anywhere, the
     bones where the start put them, MED below the start's, and the inverse through the start's forward map."""
     from deformation.fields.displacement import folding_statistics
@@ -207,8 +224,7 @@ def test_default_registration_is_the_polyrigid_start_and_dense_steps(tmp_path, s
     from workbench.io.volumes import read_labels
 
     d = tmp_path / "dense"
-    _unregistered_copy(study, d)
-    assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", "--quiet"]) == 0
+    shutil.copytree(default_registered, d)  # the module's default registration (validate below writes into it)
     st = read_study(d)
     assert st.stage_entry("init", "pose01")["settings"]["method"] == "polyrigid"
     assert st.stage_entry("register", "pose01")["settings"]["method"] == "auto"
@@ -346,12 +362,15 @@ def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path
     assert register_settings(read_study(d), vars(args))["register"].resolved_method == "adaptive"
 
 
-def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tmp_path, study, capsys):
+def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tmp_path, default_registered, capsys):
     """``--dense NAME=VALUE`` sets a DenseSettings field (JSON value), recorded with the stage's settings so that
     a rerun with the same ones is skipped; a wrong name, type, range, the bones' own option or Algorithm 1 get
     one line naming the option, before anything is written."""
+    # from the default start (the module's default registration's init, up to date for these options too:
+    # --dense changes the register stage's settings only), nothing registered
     d = tmp_path / "ds"
-    _unregistered_copy(study, d)
+    _unregistered_copy(default_registered, d, keep_init=True)
+    init_before, manifest = _tree(d / "init"), (d / "study.json").read_bytes()
     bad = [
         (["--dense", "window=4"], "no setting 'window'"),
         (["--dense", "window_mm=four"], "--dense window_mm: the setting is a number (float), got the text 'four'"),
@@ -369,11 +388,14 @@ def test_dense_settings_reach_the_registration_and_bad_ones_are_refused_first(tm
         assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", *extra, "--quiet"]) == 1, extra
         err = capsys.readouterr().err
         assert words in err and len(err.strip().splitlines()) == 1, (extra, err)
-        assert not (d / "registration").exists() and not (d / "init").exists()
+        assert not (d / "registration").exists() and _tree(d / "init") == init_before
+        assert (d / "study.json").read_bytes() == manifest
     # three short levels (2 trials each: a fast run) and a wider window, given as JSON
     opts = ["--dense", "iterations=[2, 2, 2]", "--dense", "window_mm=4", "--dense", "refine_bones=false"]
+    init_entry = read_study(d).stage_entry("init", "pose01")
     assert main(["register", str(d), "--scan", "pose01", "--pose", "truth", *opts, "--quiet"]) == 0
     st = read_study(d)
+    assert st.stage_entry("init", "pose01") == init_entry and _tree(d / "init") == init_before  # the start: reused
     ds = st.registration_log("pose01")["dense_settings"]
     assert ds["iterations"] == [2, 2, 2] and ds["window_mm"] == 4.0 and ds["refine_bones"] is False
     assert ds["bones"] == "fixed" and ds["fluid_voxels"] == 3.0  # the rest: the defaults
