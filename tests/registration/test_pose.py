@@ -203,12 +203,14 @@ def test_released_labels_drop_only_the_flagged_bones(knee_ct_study):
     assert out.geometry == lab.geometry and out.data.dtype == lab.data.dtype
 
 
-def test_a_joint_that_barely_moves_keeps_the_skeleton_centre_and_is_not_scored(knee_ct_study):
+def test_a_joint_that_barely_moves_keeps_the_skeleton_centre_and_is_not_scored(knee_ct_study, knee_fits):
     """The straight-leg scan alone: no joint turns 5°, so Kurihara Eq. 1 is not solved; the skeleton's centres are
     kept, marked as not estimated, and left out of the centre-error statistics (they would score 0 mm)."""
     st = knee_ct_study
     sk, tpl, lab = st.skeleton(), st.template(), st.template_labels()
-    res = estimate_poses(tpl, lab, {"pose00": st.scan("pose00")}, sk)
+    # the scan's bone fits are the module's (pose_scans fits each scan on its own, with the same arguments)
+    fits = [copy.deepcopy(f) for f in knee_fits if f.scan_id == "pose00"]
+    res = estimate_poses(tpl, lab, {"pose00": st.scan("pose00")}, sk, scan_poses=fits)
     for j in sk.joints:
         r = res.joints[j.name]
         assert not r.estimated and not res.joints_dict()[j.name]["estimated"]
