@@ -229,7 +229,7 @@ class Anatomy:
             tubes, info = tissue.tube_table()
             sites = tissue.site_tables(p) if len(p) else tissue.site_tables(np.zeros((1, 3)))
         return kernels.intensity_map(
-            p,
+            kernels.points(p),
             self.tables,
             len(self.bone_names),
             c,
@@ -250,10 +250,12 @@ class Anatomy:
 
     def _bone_frames(self, p: np.ndarray, bone_frames) -> tuple[np.ndarray, np.ndarray]:
         """``(scan points (n, 3), scan → bone template frames (n_bones, 3, 4))``; empty when not given."""
+        from . import kernels
+
         if bone_frames is None:
-            return np.zeros((0, 3)), np.zeros((0, 3, 4))
+            return kernels.points(np.zeros((0, 3))), np.zeros((0, 3, 4))
         scan, transforms = bone_frames
-        scan = np.ascontiguousarray(scan, dtype=float)
+        scan = kernels.points(scan)
         if scan.shape != p.shape:
             raise ValueError(f"bone_frames scan points {scan.shape} must match the template points {p.shape}")
         missing = set(self.bone_names) - set(transforms)
@@ -266,7 +268,7 @@ class Anatomy:
         """Compiled signed distances ``(n, n_bones + 1)``: every bone, then the body."""
         from . import kernels
 
-        return kernels.distances_map(np.ascontiguousarray(p, dtype=float), self.tables, len(self.bone_names) + 1)
+        return kernels.distances_map(kernels.points(p), self.tables, len(self.bone_names) + 1)
 
     def intensity(
         self,

@@ -25,10 +25,21 @@ import numpy as np
 
 from .shapes import Ellipsoid, RoundCone, SmoothUnion
 
-__all__ = ["compile_shapes", "prim_row", "PRIM_WIDTH"]
+__all__ = ["compile_shapes", "prim_row", "PRIM_WIDTH", "points"]
 
 
 PRIM_WIDTH = 18
+
+
+def points(a) -> np.ndarray:
+    """``a`` as the kernels take arrays of points: C-contiguous float64 and read-only (a view, no copy, when it
+    already is C-contiguous float64).  numba compiles a kernel once per argument type, and a writable and a
+    read-only array are two types: one kind for every caller is one compilation on the first run, not two."""
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
 
 
 # -- compiling shape objects into tables -------------------------------------------------

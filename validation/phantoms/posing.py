@@ -241,7 +241,7 @@ class PosingModel:
 
     def forward(self, p: np.ndarray) -> np.ndarray:
         """``F(p)`` for template points ``(n, 3)`` (compiled, parallel)."""
-        return kernels.forward_map(np.ascontiguousarray(p, dtype=float), self.anatomy.tables, self._params())
+        return kernels.forward_map(kernels.points(p), self.anatomy.tables, self._params())
 
     def inverse(
         self,
@@ -258,11 +258,9 @@ class PosingModel:
         posed-bone weights; Newton steps use the blended rotation as the
         Jacobian, or finite differences with ``fd_jacobian=True``.
         """
-        x = np.ascontiguousarray(x, dtype=float)
-        g = np.zeros((1, 3)) if guess is None else np.ascontiguousarray(guess, dtype=float)
         return kernels.inverse_map(
-            x,
-            g,
+            kernels.points(x),
+            kernels.points(np.zeros((1, 3)) if guess is None else guess),
             guess is not None,
             self.anatomy.tables,
             self._params(),
