@@ -33,9 +33,6 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
-from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
 
 from deformation.fields.interpolate import fill_value, flat_data, interp_scalar, output_dtype
 from deformation.geometry import SLAB_VOXELS, GridGeometry, Volume, every_nth, slabs
@@ -182,35 +179,6 @@ def _newton(fwd, y0, y1, y2, x0, x1, x2, tol, max_iter, max_step):
     return res, det, x0, x1, x2, j00, j01, j02, j10, j11, j12, j20, j21, j22
 
 
-@intrinsic
-def _atomic_max(typingctx, ary, i, v):
-    """``ary[i] = max(ary[i], v)`` as one atomic operation (LLVM's ``atomicrmw max``) on a 1-d int64 array: the
-    result does not depend on which thread writes first."""
-    if not (isinstance(ary, types.Array) and ary.ndim == 1 and ary.dtype == types.int64):
-        return None
-    sig = types.void(ary, types.intp, types.int64)
-
-    def codegen(context, builder, signature, args):
-        aryty = signature.args[0]
-        arr = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, arr, [args[1]], wraparound=False)
-        builder.atomic_rmw("max", ptr, args[2], "monotonic")
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
-@nb.njit(cache=True, inline="always")
-def _target_row(fwd, tgt_w, k, j, t):
-    """Continuous target index of the forward position of every template voxel of row (j, k), float32."""
-    for i in range(fwd.shape[2]):
-        p0 = fwd[k, j, i, 0]
-        p1 = fwd[k, j, i, 1]
-        p2 = fwd[k, j, i, 2]
-        for q in range(3):
-            t[i, q] = tgt_w[q, 0] * p0 + tgt_w[q, 1] * p1 + tgt_w[q, 2] * p2 + tgt_w[q, 3]
-
-
 @nb.njit(cache=True, inline="always")
 def _mark8(a, b, c, mask):
     """Set the 8 voxels (a..a+1, b..b+1, c..c+1) of ``mask`` that lie in it."""
@@ -280,18 +248,22 @@ def _face_plane(fwd, k, j, i, axis, side):
 
 @nb.njit(cache=True, inline="always")
 def _mark_box(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1):
-    """Set ``cover`` (flat, with one spare byte at the end) over the target voxels a0..a1 × b0..b1 × c0..c1 (inclusive,
-    already clipped to the grid).  A box of at most 2 voxels a side is written without a branch: a voxel outside it
-    writes the spare byte instead."""
+    """Set ``cover`` (flat, a ``tx × ty × tz`` grid) over the target voxels a0..a1 × b0..b1 × c0..c1 (inclusive,
+    clipped to the grid).  A box at most 2 voxels a side — nearly every cell's — is written without a branch: 8
+    writes, the same voxel twice along an axis where the box is 1 voxel wide."""
     if a1 - a0 <= 1 and b1 - b0 <= 1 and c1 - c0 <= 1:
-        spare = tx * ty * tz
-        for dc in range(2):
-            for db in range(2):
-                for da in range(2):
-                    a = a0 + da
-                    b = b0 + db
-                    c = c0 + dc
-                    cover[(c * ty + b) * tx + a if a <= a1 and b <= b1 and c <= c1 else spare] = 1
+        da = a1 - a0
+        db = (b1 - b0) * tx
+        dc = (c1 - c0) * tx * ty
+        base = (c0 * ty + b0) * tx + a0
+        cover[base] = 1
+        cover[base + da] = 1
+        cover[base + db] = 1
+        cover[base + db + da] = 1
+        cover[base + dc] = 1
+        cover[base + dc + da] = 1
+        cover[base + dc + db] = 1
+        cover[base + dc + db + da] = 1
     else:
         for c in range(c0, c1 + 1):
             for b in range(b0, b1 + 1):
@@ -327,17 +299,18 @@ def _mark_box_planes(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1, tgt_a, planes, n
 
 
 @nb.njit(cache=True)
-def _mark_prio_octants(t, cur, nxt, i, k, j, prio, g0, g1, g2, tx, ty, tz, priocov):
+def _mark_prio_octants(ta, tb, i, j, k, prio, g0, g1, g2, tx, ty, tz, priocov, hp):
     """Mark in ``priocov`` the target voxels within the grown bounding box of the image of each octant of the cell
-    (lower corner (i, j, k)) that belongs to a corner with ``prio`` set — the part of the cell whose nearest
-    template voxel is preferred (as :func:`_prio_at` rounds)."""
+    (lower corner (i, j, k); ``ta``, ``tb`` the target indices of slabs k and k + 1) that belongs to a corner with
+    ``prio`` set — the part of the cell whose nearest template voxel is preferred (as :func:`_prio_at` rounds).
+    ``hp`` is scratch, (3, 3, 3, 3)."""
     # the trilinear target index at the cell's fractions {0, 1/2, 1}³, one axis at a time
-    hp = np.empty((3, 3, 3, 3))
     for q in range(3):
         for dk in range(2):
+            t = ta if dk == 0 else tb
             for dj in range(2):
-                u = np.float64(t[dk, cur if dj == 0 else nxt, i, q])
-                v = np.float64(t[dk, cur if dj == 0 else nxt, i + 1, q])
+                u = np.float64(t[j + dj, i, q])
+                v = np.float64(t[j + dj, i + 1, q])
                 hp[2 * dk, 2 * dj, 0, q] = u
                 hp[2 * dk, 2 * dj, 1, q] = 0.5 * (u + v)
                 hp[2 * dk, 2 * dj, 2, q] = v
@@ -377,13 +350,154 @@ def _mark_prio_octants(t, cur, nxt, i, k, j, prio, g0, g1, g2, tx, ty, tz, prioc
                             priocov[(c * ty + b) * tx + a] = 1
 
 
+@nb.njit(cache=True)
+def _scatter_guess(fwd, tgt_w, prio, use_prio, tshape, guess):
+    """For each target voxel (flat ``guess``, initialised to -1), a template voxel whose forward position rounds to
+    it (a Newton start): serial and in template order, the last writer winning, so deterministic; with ``use_prio``
+    a second pass lets the preferred (``prio``) voxels overwrite the others."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    tz, ty, tx = tshape
+    for rep in range(2 if use_prio else 1):
+        for k in range(nz):
+            for j in range(ny):
+                for i in range(nx):
+                    if rep == 1 and prio[k, j, i] == 0:
+                        continue
+                    p0 = fwd[k, j, i, 0]
+                    p1 = fwd[k, j, i, 1]
+                    p2 = fwd[k, j, i, 2]
+                    # the target index in float32, as the cover sees it
+                    a = int(
+                        np.floor(np.float32(tgt_w[0, 0] * p0 + tgt_w[0, 1] * p1 + tgt_w[0, 2] * p2 + tgt_w[0, 3]) + 0.5)
+                    )
+                    b = int(
+                        np.floor(np.float32(tgt_w[1, 0] * p0 + tgt_w[1, 1] * p1 + tgt_w[1, 2] * p2 + tgt_w[1, 3]) + 0.5)
+                    )
+                    c = int(
+                        np.floor(np.float32(tgt_w[2, 0] * p0 + tgt_w[2, 1] * p1 + tgt_w[2, 2] * p2 + tgt_w[2, 3]) + 0.5)
+                    )
+                    if 0 <= a < tx and 0 <= b < ty and 0 <= c < tz:
+                        guess[(c * ty + b) * tx + a] = (k * ny + j) * nx + i
+
+
+@nb.njit(cache=True)
+def _target_slab(fwd, tgt_w, k, t):
+    """Continuous target index (float32) of the forward position of every template voxel of slab ``k``."""
+    for j in range(fwd.shape[1]):
+        for i in range(fwd.shape[2]):
+            p0 = fwd[k, j, i, 0]
+            p1 = fwd[k, j, i, 1]
+            p2 = fwd[k, j, i, 2]
+            for q in range(3):
+                t[j, i, q] = tgt_w[q, 0] * p0 + tgt_w[q, 1] * p1 + tgt_w[q, 2] * p2 + tgt_w[q, 3]
+
+
+@nb.njit(cache=True)
+def _cover_slabs(fwd, tgt_w, tgt_a, prio, use_prio, max_extent, tol, k_lo, k_hi, tshape, cover, occ, priocov):
+    """:func:`_landing`'s ``cover``, ``occ`` and ``priocov`` from the template slabs ``k_lo ≤ k < k_hi`` (cells
+    with their lower corner there)."""
+    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
+    tz, ty, tx = tshape
+    # tol in target index units along each axis (|Δ index_a| ≤ |row a of world → index| · |Δ world|), with a
+    # margin for the float32 rounding of the target indices
+    g0 = tol * np.sqrt(tgt_w[0, 0] ** 2 + tgt_w[0, 1] ** 2 + tgt_w[0, 2] ** 2) + 1e-4
+    g1 = tol * np.sqrt(tgt_w[1, 0] ** 2 + tgt_w[1, 1] ** 2 + tgt_w[1, 2] ** 2) + 1e-4
+    g2 = tol * np.sqrt(tgt_w[2, 0] ** 2 + tgt_w[2, 1] ** 2 + tgt_w[2, 2] ** 2) + 1e-4
+    ts = np.empty((2, ny, nx, 3), dtype=np.float32)  # the target indices of slabs k and k + 1
+    col = np.empty((6, nx), dtype=np.float32)  # bounds of the 4 voxels (j, j + 1) × (k, k + 1) at each i
+    pcol = np.zeros(nx, dtype=np.int64)  # how many of them are preferred
+    planes = np.empty((6, 4))
+    hp = np.empty((3, 3, 3, 3))
+    _target_slab(fwd, tgt_w, k_lo, ts[k_lo % 2])
+    for k in range(k_lo, k_hi):
+        ta = ts[k % 2]
+        tb = ts[(k + 1) % 2]
+        if k < nz - 1:
+            _target_slab(fwd, tgt_w, k + 1, tb)
+        if use_prio:
+            for j in range(ny):
+                for i in range(nx):
+                    if prio[k, j, i] != 0:
+                        _mark8(int(np.floor(ta[j, i, 0])), int(np.floor(ta[j, i, 1])), int(np.floor(ta[j, i, 2])), occ)
+        if k == nz - 1:
+            continue
+        for j in range(ny - 1):
+            for i in range(nx):
+                for q in range(3):
+                    u = ta[j, i, q]
+                    v = ta[j + 1, i, q]
+                    w = tb[j, i, q]
+                    z = tb[j + 1, i, q]
+                    lo = u if u < v else v
+                    lo = lo if lo < w else w
+                    lo = lo if lo < z else z
+                    hi = u if u > v else v
+                    hi = hi if hi > w else w
+                    hi = hi if hi > z else z
+                    col[q, i] = lo
+                    col[3 + q, i] = hi
+                if use_prio:
+                    pcol[i] = (
+                        (prio[k, j, i] != 0)
+                        + (prio[k, j + 1, i] != 0)
+                        + (prio[k + 1, j, i] != 0)
+                        + (prio[k + 1, j + 1, i] != 0)
+                    )
+            border_jk = j == 0 or k == 0 or j == ny - 2 or k == nz - 2
+            for i in range(nx - 1):
+                # the cell whose lower corner is (i, j, k): its corners' bounding box, grown by tol
+                lo0 = min(col[0, i], col[0, i + 1])
+                lo1 = min(col[1, i], col[1, i + 1])
+                lo2 = min(col[2, i], col[2, i + 1])
+                hi0 = max(col[3, i], col[3, i + 1])
+                hi1 = max(col[4, i], col[4, i + 1])
+                hi2 = max(col[5, i], col[5, i + 1])
+                a0 = max(int(np.ceil(lo0 - g0)), 0)
+                a1 = min(int(np.floor(hi0 + g0)), tx - 1)
+                b0 = max(int(np.ceil(lo1 - g1)), 0)
+                b1 = min(int(np.floor(hi1 + g1)), ty - 1)
+                c0 = max(int(np.ceil(lo2 - g2)), 0)
+                c1 = min(int(np.floor(hi2 + g2)), tz - 1)
+                if a1 < a0 or b1 < b0 or c1 < c0:
+                    continue
+                if a1 - a0 > max_extent or b1 - b0 > max_extent or c1 - c0 > max_extent:
+                    for dj in range(2):
+                        for di in range(2):
+                            for t in (ta, tb):
+                                v = t[j + dj, i + di]
+                                _mark8_flat(
+                                    int(np.floor(v[0])), int(np.floor(v[1])), int(np.floor(v[2])), cover, tx, ty, tz
+                                )
+                    continue
+                if border_jk or i == 0 or i == nx - 2:
+                    n_planes = 0
+                    for axis in range(3):
+                        at = i if axis == 0 else (j if axis == 1 else k)
+                        last = (nx if axis == 0 else (ny if axis == 1 else nz)) - 2
+                        for side in range(2):
+                            if at == (last if side else 0):
+                                n0, n1, n2, h = _face_plane(fwd, k, j, i, axis, side)
+                                planes[n_planes, 0] = n0
+                                planes[n_planes, 1] = n1
+                                planes[n_planes, 2] = n2
+                                planes[n_planes, 3] = h + tol
+                                n_planes += 1
+                    _mark_box_planes(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1, tgt_a, planes, n_planes)
+                else:
+                    _mark_box(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1)
+                if use_prio:
+                    n_prio = pcol[i] + pcol[i + 1]
+                    if n_prio == 8:
+                        _mark_box(priocov, tx, ty, tz, a0, a1, b0, b1, c0, c1)
+                    elif n_prio:
+                        _mark_prio_octants(ta, tb, i, j, k, prio, g0, g1, g2, tx, ty, tz, priocov, hp)
+
+
 @nb.njit(cache=True, parallel=True)
 def _landing(fwd, tgt_w, tgt_a, prio, use_prio, max_extent, tol, n_chunks, tshape, cover, occ, priocov, guess):
-    """Where the template voxels land on the target grid, in one pass (template slabs in parallel).
+    """Where the template voxels land on the target grid (``tshape``): the arrays the solver starts from.
 
-    ``tshape`` is the target grid's array shape.
-
-    * ``cover`` (flat, one spare byte at the end): every target voxel within ``tol`` (mm) of a template cell's
+    * ``cover`` (flat): every target voxel within ``tol`` (mm) of a template cell's
       forward image — a superset of the trilinear forward map's image, so a voxel left unmarked has no preimage,
       and every voxel whose Newton solve can converge (``|F(x) − y| ≤ tol``) is marked.  A cell's image lies in
       its 8 forward-mapped corners' convex hull: the cell marks the voxels of that hull's bounding box grown by
@@ -393,130 +507,35 @@ def _landing(fwd, tgt_w, tgt_a, prio, use_prio, max_extent, tol, n_chunks, tshap
       instead.
     * ``occ`` (with ``use_prio``): the 8 target voxels around the forward position of every template voxel with
       ``prio`` set.
-    * ``priocov`` (with ``use_prio``; flat, one spare byte): every target voxel within ``tol`` of the image of the
+    * ``priocov`` (with ``use_prio``; flat): every target voxel within ``tol`` of the image of the
       template points whose nearest voxel has ``prio`` set (the octants of the cells' preferred corners,
       ``_mark_prio_octants``): outside it no preferred preimage can converge.
-    * ``guess`` (flat, initialised to -1): for each target voxel, the last template voxel in array order whose
-      forward position rounds to it, a voxel with ``prio`` set winning over the others (key ``flat index +
-      prio · n_voxels``, an atomic maximum).
+    * ``guess`` (flat, -1 where no template voxel lands): :func:`_scatter_guess`.
 
-    The template's slabs are cut into ``n_chunks`` runs (in parallel); every write is a 1 or an atomic maximum,
-    so the result does not depend on that number nor on the order the runs take.
+    Task 0 is the serial guess; tasks 1 … ``n_chunks`` cut the template's slabs into runs for the rest, every
+    write of which is a 1: the result does not depend on the number of tasks nor on the order they run in.
     """
-    nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
-    tz, ty, tx = tshape
-    n_vox = nz * ny * nx
-    # tol in target index units along each axis (|Δ index_a| ≤ |row a of world → index| · |Δ world|), with a
-    # margin for the float32 rounding of the target indices
-    g0 = tol * np.sqrt(tgt_w[0, 0] ** 2 + tgt_w[0, 1] ** 2 + tgt_w[0, 2] ** 2) + 1e-4
-    g1 = tol * np.sqrt(tgt_w[1, 0] ** 2 + tgt_w[1, 1] ** 2 + tgt_w[1, 2] ** 2) + 1e-4
-    g2 = tol * np.sqrt(tgt_w[2, 0] ** 2 + tgt_w[2, 1] ** 2 + tgt_w[2, 2] ** 2) + 1e-4
-    for chunk in nb.prange(n_chunks):
-        k_lo = chunk * nz // n_chunks
-        k_hi = (chunk + 1) * nz // n_chunks
-        # the target indices of two template rows, (j, k) and (j, k + 1), and of the next row (j + 1) of each;
-        # the bounds of each column of 4 (the rows' voxels at i) of the cells between them
-        t = np.empty((2, 2, nx, 3), dtype=np.float32)
-        col = np.empty((6, nx), dtype=np.float32)
-        planes = np.empty((6, 4))
-        for k in range(k_lo, k_hi):
-            cell_k = k < nz - 1
-            _target_row(fwd, tgt_w, k, 0, t[0, 0])
-            if cell_k:
-                _target_row(fwd, tgt_w, k + 1, 0, t[1, 0])
-            for j in range(ny):
-                cur = j % 2
-                nxt = 1 - cur
-                cell_j = cell_k and j < ny - 1
-                if j < ny - 1:
-                    _target_row(fwd, tgt_w, k, j + 1, t[0, nxt])
-                    if cell_k:
-                        _target_row(fwd, tgt_w, k + 1, j + 1, t[1, nxt])
-                for i in range(nx):
-                    t0 = t[0, cur, i, 0]
-                    t1 = t[0, cur, i, 1]
-                    t2 = t[0, cur, i, 2]
-                    p = use_prio and prio[k, j, i] != 0
-                    a = int(np.floor(t0 + 0.5))
-                    b = int(np.floor(t1 + 0.5))
-                    c = int(np.floor(t2 + 0.5))
-                    if 0 <= a < tx and 0 <= b < ty and 0 <= c < tz:
-                        _atomic_max(guess, (c * ty + b) * tx + a, (k * ny + j) * nx + i + (n_vox if p else 0))
-                    if p:
-                        _mark8(int(np.floor(t0)), int(np.floor(t1)), int(np.floor(t2)), occ)
-                if not cell_j:
-                    continue
-                for i in range(nx):
-                    for q in range(3):
-                        u = t[0, cur, i, q]
-                        v = t[0, nxt, i, q]
-                        w = t[1, cur, i, q]
-                        z = t[1, nxt, i, q]
-                        lo = u if u < v else v
-                        lo = lo if lo < w else w
-                        lo = lo if lo < z else z
-                        hi = u if u > v else v
-                        hi = hi if hi > w else w
-                        hi = hi if hi > z else z
-                        col[q, i] = lo
-                        col[3 + q, i] = hi
-                border_jk = j == 0 or k == 0 or j == ny - 2 or k == nz - 2
-                for i in range(nx - 1):
-                    # the cell whose lower corner is (i, j, k): its corners' bounding box, grown by tol
-                    lo0 = min(col[0, i], col[0, i + 1])
-                    lo1 = min(col[1, i], col[1, i + 1])
-                    lo2 = min(col[2, i], col[2, i + 1])
-                    hi0 = max(col[3, i], col[3, i + 1])
-                    hi1 = max(col[4, i], col[4, i + 1])
-                    hi2 = max(col[5, i], col[5, i + 1])
-                    a0 = max(int(np.ceil(lo0 - g0)), 0)
-                    a1 = min(int(np.floor(hi0 + g0)), tx - 1)
-                    b0 = max(int(np.ceil(lo1 - g1)), 0)
-                    b1 = min(int(np.floor(hi1 + g1)), ty - 1)
-                    c0 = max(int(np.ceil(lo2 - g2)), 0)
-                    c1 = min(int(np.floor(hi2 + g2)), tz - 1)
-                    if a1 < a0 or b1 < b0 or c1 < c0:
-                        continue
-                    if a1 - a0 > max_extent or b1 - b0 > max_extent or c1 - c0 > max_extent:
-                        for dk in range(2):
-                            for dj in (cur, nxt):
-                                for di in range(2):
-                                    _mark8_flat(
-                                        int(np.floor(t[dk, dj, i + di, 0])),
-                                        int(np.floor(t[dk, dj, i + di, 1])),
-                                        int(np.floor(t[dk, dj, i + di, 2])),
-                                        cover,
-                                        tx,
-                                        ty,
-                                        tz,
-                                    )
-                        continue
-                    if border_jk or i == 0 or i == nx - 2:
-                        n_planes = 0
-                        for axis in range(3):
-                            at = i if axis == 0 else (j if axis == 1 else k)
-                            last = (nx if axis == 0 else (ny if axis == 1 else nz)) - 2
-                            for side in range(2):
-                                if at == (last if side else 0):
-                                    n0, n1, n2, h = _face_plane(fwd, k, j, i, axis, side)
-                                    planes[n_planes, 0] = n0
-                                    planes[n_planes, 1] = n1
-                                    planes[n_planes, 2] = n2
-                                    planes[n_planes, 3] = h + tol
-                                    n_planes += 1
-                        _mark_box_planes(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1, tgt_a, planes, n_planes)
-                    else:
-                        _mark_box(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1)
-                    if use_prio:
-                        n_prio = 0
-                        for dk in range(2):
-                            for dj in range(2):
-                                for di in range(2):
-                                    n_prio += prio[k + dk, j + dj, i + di] != 0
-                        if n_prio == 8:
-                            _mark_box(priocov, tx, ty, tz, a0, a1, b0, b1, c0, c1)
-                        elif n_prio:
-                            _mark_prio_octants(t, cur, nxt, i, k, j, prio, g0, g1, g2, tx, ty, tz, priocov)
+    nz = fwd.shape[0]
+    for task in nb.prange(n_chunks + 1):
+        if task == 0:
+            _scatter_guess(fwd, tgt_w, prio, use_prio, tshape, guess)
+        else:
+            chunk = task - 1
+            _cover_slabs(
+                fwd,
+                tgt_w,
+                tgt_a,
+                prio,
+                use_prio,
+                max_extent,
+                tol,
+                chunk * nz // n_chunks,
+                (chunk + 1) * nz // n_chunks,
+                tshape,
+                cover,
+                occ,
+                priocov,
+            )
 
 
 @nb.njit(cache=True, inline="always")
@@ -593,7 +612,6 @@ def backward_kernel(
     nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     tz, ty, tx = out_x.shape[0], out_x.shape[1], out_x.shape[2]
     nc = cands.shape[0]
-    n_vox = nz * ny * nx
     use_prio = prio.shape[0] == fwd.shape[0]
     s0 = tgt_a[0, 0]  # the step Δy along a row
     s1 = tgt_a[1, 0]
@@ -641,8 +659,6 @@ def backward_kernel(
                 )
             if res > tol and guess[kk, jj, ii] >= 0:
                 g = guess[kk, jj, ii]
-                if g >= n_vox:  # a preferred voxel's key (_landing)
-                    g -= n_vox
                 r2, d2, b0, b1, b2, j00, j01, j02, j10, j11, j12, j20, j21, j22 = _newton(
                     fwd,
                     y0,
@@ -913,33 +929,37 @@ def backward_map(
                 f"prefer must be a mask on the template grid {template_geometry.array_shape}, got {prio.shape}"
             )
         occ = np.zeros(shape, dtype=np.uint8)
-        priocov = np.zeros(int(np.prod(shape)) + 1, dtype=np.uint8)  # one spare byte (_mark_box)
+        priocov = np.zeros(shape, dtype=np.uint8)
     else:
         prio = np.zeros((1, 1, 1), dtype=np.uint8)
         occ = np.zeros((1, 1, 1), dtype=np.uint8)
-        priocov = np.zeros(2, dtype=np.uint8)
-    cover = np.zeros(int(np.prod(shape)) + 1, dtype=np.uint8)  # one spare byte (_mark_box)
-    guess = np.full(shape, -1, dtype=np.int64)
+        priocov = np.zeros((1, 1, 1), dtype=np.uint8)
+    cover = np.zeros(shape, dtype=np.uint8)
+    # a template voxel's flat index (int32 when it fits: half the memory traffic)
+    guess = np.full(shape, -1, dtype=np.int32 if template_geometry.n_voxels < 2**31 else np.int64)
     # a cell torn wider than this (across a fold) is skipped; scaled by the resolution ratio so that an
     # upsampling target (fine grid) still sees its undeformed cells
     ratio = max(template_geometry.spacing) / min(target.spacing)
-    _landing(
-        fwd,
-        tgt_w,
-        tgt_a,
-        prio,
-        prefer is not None,
-        int(np.ceil(16 * max(1.0, ratio))),
-        tol,
-        min(fwd.shape[0], 4 * nb.get_num_threads()),
-        shape,
-        cover,
-        occ,
-        priocov,
-        guess.reshape(-1),
-    )
-    cover = cover[:-1].reshape(shape)
-    priocov = priocov[:-1].reshape(shape) if prefer is not None else priocov[:1].reshape(1, 1, 1)
+    # tasks of uneven cost (the serial guess, runs of slabs): threads take one at a time
+    chunk = nb.set_parallel_chunksize(1)
+    try:
+        _landing(
+            fwd,
+            tgt_w,
+            tgt_a,
+            prio,
+            prefer is not None,
+            int(np.ceil(16 * max(1.0, ratio))),
+            tol,
+            min(fwd.shape[0], 4 * nb.get_num_threads()),
+            shape,
+            cover.reshape(-1),
+            occ,
+            priocov.reshape(-1),
+            guess.reshape(-1),
+        )
+    finally:
+        nb.set_parallel_chunksize(chunk)
     # rows cost unevenly (the body is not spread evenly over the grid): threads take 8 rows at a time
     chunk = nb.set_parallel_chunksize(8)
     try:
