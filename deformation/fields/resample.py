@@ -11,8 +11,8 @@ Newton's method on that map (its Jacobian is exact inside a cell), walking
 along each row of the target grid: every solve starts from its neighbour's
 answer moved by ``J⁻¹ Δy``.  The first voxel of a row, and any voxel where
 that fails, starts from the template voxel whose forward position landed
-nearest (the last in array order, found with an atomic maximum, hence the same
-for any number of threads), then from the candidates ``T_b⁻¹ y`` (each bone's
+nearest (the last in array order: a serial scatter, hence deterministic, run
+beside the parallel passes), then from the candidates ``T_b⁻¹ y`` (each bone's
 inverse rigid transform, exact wherever tissue moves with a bone).  Target
 voxels farther than the tolerance from every template cell's image (the
 bounding boxes of the cells' forward-mapped corners, cut by the planes of the
@@ -923,7 +923,9 @@ def backward_map(
     tgt_a = np.ascontiguousarray(target.index_to_world_matrix[:3])
     tgt_w = np.ascontiguousarray(target.world_to_index_matrix[:3])
     if prefer is not None:
-        prio = np.ascontiguousarray(prefer, dtype=np.uint8)
+        prio = np.ascontiguousarray(prefer)
+        # a bool or uint8 mask is not copied
+        prio = prio.view(np.uint8) if prio.dtype == np.bool_ else prio.astype(np.uint8, copy=False)
         if prio.shape != template_geometry.array_shape:
             raise ValueError(
                 f"prefer must be a mask on the template grid {template_geometry.array_shape}, got {prio.shape}"

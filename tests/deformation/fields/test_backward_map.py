@@ -149,17 +149,18 @@ def test_the_pull_is_sample_array_through_the_map_with_fill_outside(hand, kind):
     the template index (the identity world → index map), bit for bit, and the fill elsewhere."""
     g, fwd, t, body, template = hand
     bm = R.backward_map(fwd, g, transforms=t, prefer=body)
-    data = np.asarray(template.data, np.float32)
+    intensity = np.asarray(template.data, np.float32)
     labels = kind in ("labels", "bool")
     src = {
-        "float32": data,
-        "labels": (data > np.median(data)).astype(np.uint8) * 3,
+        "float32": intensity,
+        "labels": (intensity > np.median(intensity)).astype(np.uint8) * 3,
         "bool": body,
-        "int16": data.astype(np.int16),
+        "int16": intensity.astype(np.int16),
     }[kind]
     fill = {"float32": -7.5, "labels": 2, "bool": True, "int16": 1.0}[kind]
     got = R.resample_forward(bm, Volume(src, g), labels=labels, fill=fill).data
-    ref = sample_array(src if labels else src.astype(np.float32), np.eye(4), bm.template_index, order=0 if labels else 1)
+    data = src if labels else src.astype(np.float32)
+    ref = sample_array(data, np.eye(4), bm.template_index, order=0 if labels else 1)
     ref[bm.status == R.OUTSIDE] = fill
     assert got.dtype == ref.dtype
     np.testing.assert_array_equal(got, ref)
