@@ -16,7 +16,8 @@ beside the parallel passes), then from the candidates ``T_b⁻¹ y`` (each bone'
 inverse rigid transform, exact wherever tissue moves with a bone).  Target
 voxels farther than the tolerance from every template cell's image (the
 bounding boxes of the cells' forward-mapped corners, cut by the planes of the
-template box's faces) are outside without a solve.  Rows are independent: they
+template box's faces; a cell torn apart across a fold counts only near its
+corners) are outside without a solve.  Rows are independent: they
 run in parallel, deterministically.
 Rasterising the deformed cells as tetrahedra instead would invert a
 piecewise-linear map (not the trilinear one the forward pass defines) and
@@ -56,8 +57,9 @@ __all__ = [
 #: Status of a target voxel: ``OK`` converged, ``|F(x) − y| ≤ tol``; ``FOLDED`` converged but
 #: ``det ∂F/∂x ≤ 0`` at the solution (several template points land on ``y``, one is returned);
 #: ``NOT_CONVERGED`` no candidate converged (the best iterate is returned); ``OUTSIDE`` the preimage lies
-#: outside the template grid, or ``y`` lies in no template cell's forward bounding box (outside the forward
-#: map's image, as where linear blending shrinks the air around a fist): the voxel gets the fill value.
+#: outside the template grid, or ``y`` is farther than the tolerance from every template cell's (cut) forward
+#: bounding box (outside the forward map's image, as where linear blending shrinks the air around a fist; a
+#: cell torn apart across a fold counts only near its corners): the voxel gets the fill value.
 OK, FOLDED, NOT_CONVERGED, OUTSIDE = 0, 1, 2, 3
 STATUS_NAMES = {OK: "ok", FOLDED: "folded", NOT_CONVERGED: "not_converged", OUTSIDE: "outside"}
 
@@ -249,8 +251,8 @@ def _face_plane(fwd, k, j, i, axis, side):
 @nb.njit(cache=True, inline="always")
 def _mark_box(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1):
     """Set ``cover`` (flat, a ``tx × ty × tz`` grid) over the target voxels a0..a1 × b0..b1 × c0..c1 (inclusive,
-    clipped to the grid).  A box at most 2 voxels a side — nearly every cell's — is written without a branch: 8
-    writes, the same voxel twice along an axis where the box is 1 voxel wide."""
+    clipped to the grid).  A box at most 2 voxels a side is written without a branch: 8 writes, the same voxel
+    twice along an axis where the box is 1 voxel wide."""
     if a1 - a0 <= 1 and b1 - b0 <= 1 and c1 - c0 <= 1:
         da = a1 - a0
         db = (b1 - b0) * tx
@@ -399,10 +401,12 @@ def _cover_slabs(fwd, tgt_w, tgt_a, prio, use_prio, max_extent, tol, k_lo, k_hi,
     nz, ny, nx = fwd.shape[0], fwd.shape[1], fwd.shape[2]
     tz, ty, tx = tshape
     # tol in target index units along each axis (|Δ index_a| ≤ |row a of world → index| · |Δ world|), with a
-    # margin for the float32 rounding of the target indices
-    g0 = tol * np.sqrt(tgt_w[0, 0] ** 2 + tgt_w[0, 1] ** 2 + tgt_w[0, 2] ** 2) + 1e-4
-    g1 = tol * np.sqrt(tgt_w[1, 0] ** 2 + tgt_w[1, 1] ** 2 + tgt_w[1, 2] ** 2) + 1e-4
-    g2 = tol * np.sqrt(tgt_w[2, 0] ** 2 + tgt_w[2, 1] ** 2 + tgt_w[2, 2] ** 2) + 1e-4
+    # margin for the float32 rounding of the target indices (half an ulp, |index| · 2⁻²⁴, where a bound can still
+    # fall inside the grid: |index| up to the grid's size plus the margin)
+    eps = 1e-4 + 2.0**-22 * (max(tx, ty, tz) + 2)
+    g0 = tol * np.sqrt(tgt_w[0, 0] ** 2 + tgt_w[0, 1] ** 2 + tgt_w[0, 2] ** 2) + eps
+    g1 = tol * np.sqrt(tgt_w[1, 0] ** 2 + tgt_w[1, 1] ** 2 + tgt_w[1, 2] ** 2) + eps
+    g2 = tol * np.sqrt(tgt_w[2, 0] ** 2 + tgt_w[2, 1] ** 2 + tgt_w[2, 2] ** 2) + eps
     ts = np.empty((2, ny, nx, 3), dtype=np.float32)  # the target indices of slabs k and k + 1
     col = np.empty((6, nx), dtype=np.float32)  # bounds of the 4 voxels (j, j + 1) × (k, k + 1) at each i
     pcol = np.zeros(nx, dtype=np.int64)  # how many of them are preferred
@@ -468,6 +472,12 @@ def _cover_slabs(fwd, tgt_w, tgt_a, prio, use_prio, max_extent, tol, k_lo, k_hi,
                                 _mark8_flat(
                                     int(np.floor(v[0])), int(np.floor(v[1])), int(np.floor(v[2])), cover, tx, ty, tz
                                 )
+                    if use_prio and pcol[i] + pcol[i + 1] > 0:
+                        # a preferred preimage may lie anywhere in the torn cell: its whole grown box may restart
+                        for c in range(c0, c1 + 1):
+                            for b in range(b0, b1 + 1):
+                                for a in range(a0, a1 + 1):
+                                    priocov[(c * ty + b) * tx + a] = 1
                     continue
                 if border_jk or i == 0 or i == nx - 2:
                     n_planes = 0
@@ -480,7 +490,7 @@ def _cover_slabs(fwd, tgt_w, tgt_a, prio, use_prio, max_extent, tol, k_lo, k_hi,
                                 planes[n_planes, 0] = n0
                                 planes[n_planes, 1] = n1
                                 planes[n_planes, 2] = n2
-                                planes[n_planes, 3] = h + tol
+                                planes[n_planes, 3] = h + tol * (1.0 + 1e-9) + 1e-9 * abs(h)  # float64 rounding
                                 n_planes += 1
                     _mark_box_planes(cover, tx, ty, tz, a0, a1, b0, b1, c0, c1, tgt_a, planes, n_planes)
                 else:
@@ -499,12 +509,13 @@ def _landing(fwd, tgt_w, tgt_a, prio, use_prio, max_extent, tol, n_chunks, tshap
 
     * ``cover`` (flat): every target voxel within ``tol`` (mm) of a template cell's
       forward image — a superset of the trilinear forward map's image, so a voxel left unmarked has no preimage,
-      and every voxel whose Newton solve can converge (``|F(x) − y| ≤ tol``) is marked.  A cell's image lies in
+      and every voxel whose Newton solve can converge (``|F(x) − y| ≤ tol``) is marked, except inside the
+      image of a torn cell (below).  A cell's image lies in
       its 8 forward-mapped corners' convex hull: the cell marks the voxels of that hull's bounding box grown by
       ``tol``, and a cell on the template box's border only those on the inner side (within ``tol``) of the
       plane of each border face (``_face_plane``), which keeps the posed box's outside unmarked.  A cell wider
       than ``max_extent`` voxels (torn apart across a fold) marks the 8 target voxels around each of its corners
-      instead.
+      instead, and, with ``use_prio`` and a preferred corner, its whole grown box in ``priocov``.
     * ``occ`` (with ``use_prio``): the 8 target voxels around the forward position of every template voxel with
       ``prio`` set.
     * ``priocov`` (with ``use_prio``; flat): every target voxel within ``tol`` of the image of the
@@ -602,7 +613,7 @@ def backward_kernel(
     Each solve starts from the previous voxel's answer in the row, moved by the local inverse
     Jacobian times the step to this voxel (one Newton evaluation usually suffices); the first voxel
     of a row, and any voxel where that fails, starts from the template voxel that landed nearest
-    (``guess``, :func:`_landing`'s keys), then from the candidates (``_restart``).  ``prio``
+    (``guess``, flat template indices from :func:`_landing`), then from the candidates (``_restart``).  ``prio``
     (template grid, uint8) and ``occ`` (target grid) implement the preference for body preimages:
     where ``occ`` is set and the solution found lies where ``prio`` is 0, the candidates are
     tried for a converged solution with ``prio`` 1 — unless ``priocov`` says none can converge there.
@@ -631,7 +642,7 @@ def backward_kernel(
             y1 = tgt_a[1, 0] * ii + tgt_a[1, 1] * jj + tgt_a[1, 2] * kk + tgt_a[1, 3]
             y2 = tgt_a[2, 0] * ii + tgt_a[2, 1] * jj + tgt_a[2, 2] * kk + tgt_a[2, 3]
             if cover[kk, jj, ii] == 0:
-                # no template voxel lands in the cells around y: no preimage (the fill value)
+                # no cell's image comes within tol of y: no preimage (the fill value)
                 b0, b1, b2 = _cand_point(cands, 0, ii, jj, kk, nx, ny, nz)
                 out_x[kk, jj, ii, 0] = b0
                 out_x[kk, jj, ii, 1] = b1
@@ -899,7 +910,9 @@ def backward_map(
         template's body mask), a target voxel reached by a preferred voxel
         (its forward position splatted to the 8 surrounding target voxels)
         takes a preferred preimage when Newton finds
-        one from the candidates: tissue, not air, fills the posed body.
+        one from the candidates: tissue, not air, fills the posed body.  The
+        candidates are tried only where a preferred part of a cell's image
+        comes within the tolerance (``priocov``).
     tol_voxels : float
         Convergence tolerance on ``|F(x) − y|``, in units of the smallest
         template spacing.
@@ -939,9 +952,6 @@ def backward_map(
     cover = np.zeros(shape, dtype=np.uint8)
     # a template voxel's flat index (int32 when it fits: half the memory traffic)
     guess = np.full(shape, -1, dtype=np.int32 if template_geometry.n_voxels < 2**31 else np.int64)
-    # a cell torn wider than this (across a fold) is skipped; scaled by the resolution ratio so that an
-    # upsampling target (fine grid) still sees its undeformed cells
-    ratio = max(template_geometry.spacing) / min(target.spacing)
     # tasks of uneven cost (the serial guess, runs of slabs): threads take one at a time
     chunk = nb.set_parallel_chunksize(1)
     try:
@@ -951,7 +961,7 @@ def backward_map(
             tgt_a,
             prio,
             prefer is not None,
-            int(np.ceil(16 * max(1.0, ratio))),
+            _max_extent(template_geometry, target),
             tol,
             min(fwd.shape[0], 4 * nb.get_num_threads()),
             shape,
@@ -986,6 +996,13 @@ def backward_map(
         nb.set_parallel_chunksize(chunk)
     _orient_status(out_status, template_geometry)
     return BackwardMap(template_geometry, target, out_x, out_res, out_status)
+
+
+def _max_extent(template: GridGeometry, target: GridGeometry) -> int:
+    """The widest cell image (target voxels a side) :func:`_landing` covers whole: a cell torn wider (across a
+    fold) marks only the voxels around its corners.  Scaled by the resolution ratio, so that an upsampling target
+    (a fine grid) still covers the undeformed cells whole."""
+    return int(np.ceil(16 * max(1.0, max(template.spacing) / min(target.spacing))))
 
 
 @nb.njit(cache=True, parallel=True)

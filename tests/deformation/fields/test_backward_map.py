@@ -29,20 +29,20 @@ def hand():
     return g, vbd_forward(g, w, t), t, body, ph.template()[0]
 
 
-def _landing(fwd, g, target, prio, n_chunks, tol):
+def _landing(fwd, g, target, prio, n_chunks, tol, guess_dtype=np.int32):
     """``_landing``'s arrays as backward_map allocates them (cover, occ, priocov, guess on the target grid)."""
     shape = target.array_shape
     cover = np.zeros(shape, np.uint8)
     occ = np.zeros(shape, np.uint8)
     priocov = np.zeros(shape, np.uint8)
-    guess = np.full(shape, -1, np.int32)
+    guess = np.full(shape, -1, guess_dtype)
     R._landing(
         np.ascontiguousarray(fwd, np.float32),
         np.ascontiguousarray(target.world_to_index_matrix[:3]),
         np.ascontiguousarray(target.index_to_world_matrix[:3]),
         prio,
-        True,
-        16,
+        prio.shape == g.array_shape,  # backward_map's use_prio: a (1, 1, 1) placeholder without a mask
+        R._max_extent(g, target),
         tol,
         n_chunks,
         shape,
@@ -55,6 +55,8 @@ def _landing(fwd, g, target, prio, n_chunks, tol):
 
 
 def test_backward_map_gives_the_same_bits_on_one_and_two_threads(hand):
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread here (NUMBA_NUM_THREADS): nothing to compare")
     g, fwd, t, body, _ = hand
     n_threads = numba.get_num_threads()
     out = []
@@ -101,20 +103,70 @@ def test_landing_guess_is_the_last_landing_voxel_a_preferred_one_first(hand):
     np.testing.assert_array_equal(guess.reshape(-1), np.where(expect >= n, expect - n, expect))
 
 
-def test_cover_holds_every_converged_voxel_and_the_preferred_cover_every_preferred_solution(hand):
-    """The two promises the solver relies on to skip work: a voxel the cover leaves out could not converge, and
-    a voxel ``priocov`` leaves out has no converged preimage in the preferred region."""
+def _kernel(fwd, g, t, prio, occ, priocov, cover, guess, tol):
+    """``backward_kernel`` on the template grid as backward_map calls it, with the given cover arrays; returns
+    (template index, status) before ``_orient_status``."""
+    shape = g.array_shape
+    out_x = np.empty(shape + (3,), np.float32)
+    out_res = np.empty(shape, np.float32)
+    out_status = np.empty(shape, np.uint8)
+    R.backward_kernel(
+        np.ascontiguousarray(fwd, np.float32),
+        np.ascontiguousarray(g.index_to_world_matrix[:3]),
+        R._candidates(g, g, t),
+        tol,
+        12,  # backward_map's max_iter, max_step and n_restarts
+        2.0,
+        4,
+        prio,
+        occ,
+        priocov,
+        cover,
+        guess,
+        out_x,
+        out_res,
+        out_status,
+    )
+    return out_x, out_status
+
+
+def test_cover_holds_every_voxel_that_converges_without_it(hand):
+    """The two promises the solver relies on to skip work, against the solver without them (every voxel solved,
+    the preferred restarts tried wherever a preferred voxel lands): a voxel that converges there is in the cover,
+    and a voxel whose preimage there is preferred is in ``priocov``."""
     g, fwd, t, body, _ = hand
-    cover, _, priocov, _ = _landing(fwd, g, g, body.astype(np.uint8), 4, 0.01 * min(g.spacing))
-    bm = R.backward_map(fwd, g, transforms=t, prefer=body)
-    converged = bm.status <= R.FOLDED
-    assert np.all(cover[converged])
-    assert np.all(bm.status[cover == 0] == R.OUTSIDE)
+    tol = 0.01 * min(g.spacing)
+    prio = body.astype(np.uint8)
+    cover, occ, priocov, guess = _landing(fwd, g, g, prio, 4, tol)
+    everywhere = np.ones(g.array_shape, np.uint8)
+    x, status = _kernel(fwd, g, t, prio, occ, everywhere, everywhere, guess, tol)
+    converged = status <= R.FOLDED
+    assert np.all(cover[converged]), int(np.sum(converged & (cover == 0)))
     nx, ny, nz = g.size
-    near = np.clip(np.floor(bm.template_index.astype(np.float64) + 0.5).astype(int), 0, [nx - 1, ny - 1, nz - 1])
+    near = np.clip(np.floor(x.astype(np.float64) + 0.5).astype(int), 0, [nx - 1, ny - 1, nz - 1])
     preferred = converged & body[near[..., 2], near[..., 1], near[..., 0]]
     assert preferred.sum() > 1000
-    assert np.all(priocov[preferred])
+    assert np.all(priocov[preferred]), int(np.sum(preferred & (priocov == 0)))
+    # and the cover only skips work: the solver with it gives the same answers
+    x2, status2 = _kernel(fwd, g, t, prio, occ, priocov, cover, guess, tol)
+    solved = cover == 1
+    np.testing.assert_array_equal(status2[solved], status[solved])
+    np.testing.assert_array_equal(x2[solved], x[solved])
+
+
+def test_an_int64_guess_gives_the_int32_guess_bits(hand):
+    """Templates of 2³¹ voxels or more index their guesses in int64: the same kernels, the same answers."""
+    g, fwd, t, body, _ = hand
+    tol = 0.01 * min(g.spacing)
+    prio = body.astype(np.uint8)
+    a = _landing(fwd, g, g, prio, 4, tol)
+    b = _landing(fwd, g, g, prio, 4, tol, guess_dtype=np.int64)
+    for u, v in zip(a, b):
+        np.testing.assert_array_equal(u, v)
+    for u, v in zip(
+        _kernel(fwd, g, t, prio, *a[1:3], a[0], a[3], tol), _kernel(fwd, g, t, prio, *b[1:3], b[0], b[3], tol)
+    ):
+        np.testing.assert_array_equal(u, v)
 
 
 def test_cover_stops_at_the_posed_faces_of_the_template_box():
