@@ -613,7 +613,7 @@ def backward_kernel(
     Each solve starts from the previous voxel's answer in the row, moved by the local inverse
     Jacobian times the step to this voxel (one Newton evaluation usually suffices); the first voxel
     of a row, and any voxel where that fails, starts from the template voxel that landed nearest
-    (``guess``, flat template indices from :func:`_landing`), then from the candidates (``_restart``).  ``prio``
+    (``guess``, flat template indices from ``_landing``), then from the candidates (``_restart``).  ``prio``
     (template grid, uint8) and ``occ`` (target grid) implement the preference for body preimages:
     where ``occ`` is set and the solution found lies where ``prio`` is 0, the candidates are
     tried for a converged solution with ``prio`` 1 — unless ``priocov`` says none can converge there.
