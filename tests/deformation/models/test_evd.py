@@ -462,6 +462,27 @@ def test_a_poser_with_weights_on_every_other_voxel_solves_its_maps_there(knee):
         TemplatePoser(tmpl, w.take(sub), Volume(np.ones(other.array_shape, np.uint8), other))
 
 
+def test_a_vbd_start_continues_the_field_where_the_map_has_no_preimage(knee):
+    """Every bone moved by one translation t: VBD is that translation, and the scan voxels whose preimage lies
+    beyond the template's box (the map finds none there: OUTSIDE) take the displacement of the nearest voxel
+    that has one, so the whole field is −t (up to the solves' 0.01-voxel tolerance), not a clamped position."""
+    from deformation.fields.resample import OUTSIDE
+    from registration.initialise import vbd_initial_field
+
+    ph, w = knee
+    g = ph.geometry
+    t = np.eye(4)
+    t[:3, 3] = [3.0 * g.spacing[0], -2.0 * g.spacing[1], 1.0 * g.spacing[2]]  # whole voxels off the box
+    ts = np.repeat(t[None], len(w.bones), axis=0)
+    field, summary = vbd_initial_field(g, g, w, ts)
+    bm = backward_map(vbd_forward(g, w, ts), g, transforms=ts)
+    assert (bm.status == OUTSIDE).sum() > 1000  # the slabs the translation leaves without a preimage
+    # 0.01 voxel of the smallest spacing (the solves' tolerance) with float32 storage
+    np.testing.assert_allclose(
+        field.data.reshape(-1, 3), np.broadcast_to(-t[:3, 3], (g.n_voxels, 3)), atol=0.01 * min(g.spacing) + 1e-4
+    )
+
+
 def test_a_vbd_start_from_weights_on_every_other_voxel(knee, monkeypatch):
     """registration.initialise.vbd_initial_field with weights on every 2nd template voxel (the init stage on a
     big template): the maps solved there, the scan_to_template field on the scan's full grid, made a slab at a
