@@ -111,11 +111,11 @@ def _refuse_study_files(study, paths, what: str) -> None:
 
 def say_if_compiling(say) -> None:
     """Tell the user when the deformation kernels are compiled on this first use (tens of seconds otherwise silent)."""
-    from deformation.fields.resample import backward_kernel
+    from deformation.fields.resample import _landing, _pull_exact_kernel, backward_kernel
     from deformation.models.evd import forward_kernel
     from workbench.progress import compile_note
 
-    note = compile_note(forward_kernel, backward_kernel)
+    note = compile_note(forward_kernel, _landing, backward_kernel, _pull_exact_kernel)
     if note:
         say(note)
 
