@@ -102,15 +102,15 @@ def vbd_initial_field(
     (on a fraction of a percent of the body's voxels: registration-settings.md, "initialise").
     ``unfold=True`` repairs those voxels with :func:`deformation.fields.displacement.unfold`
     (the summary gains an ``unfold`` entry) wherever the map sends a voxel
-    into the template (see below for the others, whose determinant is ~0 without
-    a fold: those are left as they are); this makes the field one-to-one there
+    into the template (the others, below, are left as they are); this makes the field one-to-one there
     at a cost in accuracy, since the repaired band maps to tissue between the
     two sheets (most where the creases lie between thin fingers; the
     measurements: docs/measurements/pose-and-initialisation.md).
 
     Scan voxels the map finds no preimage for (status OUTSIDE: beyond the posed template's box, or in a gap of
-    the blend's image) take the displacement of the nearest voxel that has one (Euclidean distance in mm,
-    SciPy's distance transform), not the position a search happened to end at.
+    the blend's image) take the displacement of the nearest voxel it did not leave outside (Euclidean distance in
+    mm, SciPy's distance transform), not the position a search happened to end at; with ``factor`` f > 1 they
+    keep the coarse map's clamped positions.
 
     ``factor`` f > 1: ``weights`` and ``body`` are on every f-th template voxel
     (``workbench weights --grid-factor``, a big template); the maps are solved
@@ -134,30 +134,31 @@ def vbd_initial_field(
 
         bm = CoarseBackwardMap(bm, f, template_geometry, scan_geometry)
     field, summary = bm.scan_to_template(), bm.summary()
-    _extend_outside(field, coarse, f)
+    if f == 1:  # on every f-th voxel the coarse map's blend decides the fine voxels' status: not extended there
+        _extend_outside(field, bm.status)
     if unfold:
-        # the folds repaired are those of the map: where it has no preimage in the template (status OUTSIDE,
-        # the nearest solved voxel's displacement, constant along the way) and next to such voxels the
-        # determinant is ~0 without a fold (registration-settings.md, "initialise")
+        # the folds repaired are those of the map where it has a preimage: where it has none (status OUTSIDE,
+        # extended from the nearest voxel that has one, or clamped at f > 1) and next to such voxels the field
+        # is not the blend's (registration-settings.md, "initialise")
         mapped = mapped_voxels(coarse, f, scan_geometry)
         del bm, coarse  # the map (17 B a voxel at f = 1) is not needed by the repair
         field, summary["unfold"] = unfold_field(field, mask=mapped)
     return field, summary
 
 
-def _extend_outside(field: Volume, coarse_map, f: int) -> None:
-    """Where the backward map found no preimage in the template (status OUTSIDE: beyond the posed template's
-    box, or in a gap of the blend's image), the field takes the displacement of the nearest scan voxel that has
-    one (in place): the start continues the map it knows instead of whatever position a search ended at."""
+def _extend_outside(field: Volume, status: np.ndarray) -> None:
+    """Where the backward map left a scan voxel OUTSIDE (no preimage in the template: beyond the posed template's
+    box, or in a gap of the blend's image), the field takes the displacement of the nearest voxel it did not
+    (Euclidean distance in mm; in place): the start continues the map it knows instead of whatever position a
+    search ended at."""
     from scipy import ndimage as ndi
 
     from deformation.fields.resample import OUTSIDE
 
-    outside = coarse_map.status == OUTSIDE
-    if f > 1:
-        outside = from_every(outside, f, field.geometry.array_shape)
+    outside = status == OUTSIDE
     if not outside.any() or outside.all():
         return
+    # sampling in the array's axis order (z, y, x)
     idx = ndi.distance_transform_edt(
         outside, sampling=field.geometry.spacing[::-1], return_distances=False, return_indices=True
     )

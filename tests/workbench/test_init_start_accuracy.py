@@ -41,11 +41,11 @@ def vbd_started(knee_ct_study, tmp_path_factory):
 
 def test_the_vbd_start_puts_the_body_near_its_true_template_position(vbd_started):
     """VBD with the true poses is exact at the straight pose and off by the blend's error where the knee bends.
-    The bounds are the start's measured MED over the scan's body (1.61 and 3.94 mm, 2026-12-06) plus 0.1 mm, and
-    its folded fraction (0.0016, 0.0010) under 0.002: a change to the backward map that gave the voxels it cannot
-    invert other positions raised them to 2.05 and 4.49 mm and 0.0022 / 0.0067 (reverted, b92ae57), a change of
-    a few hundredths of a millimetre passes."""
+    The bounds sit 0.1 mm MED and 0.001 folded fraction above the start's figures on this study
+    (docs/measurements/pipeline-benchmarks.md, "Deformation speed"): a change that moved the start by a few
+    hundredths of a millimetre passes, the backward map that gave the voxels it cannot invert other positions
+    (reverted in b92ae57, +0.4–0.5 mm) does not."""
     r = vbd_started
     assert r["pose00"]["med_mm"] < 1e-3 and r["pose00"]["folded_fraction"] == 0.0  # the rest pose: VBD is exact
-    assert r["pose01"]["med_mm"] < 1.61 + 0.1 and r["pose02"]["med_mm"] < 3.94 + 0.1
-    assert r["pose01"]["folded_fraction"] < 0.002 and r["pose02"]["folded_fraction"] < 0.002
+    assert r["pose01"]["med_mm"] < 1.62 + 0.1 and r["pose02"]["med_mm"] < 3.97 + 0.1
+    assert r["pose01"]["folded_fraction"] < 0.001 and r["pose02"]["folded_fraction"] < 0.0012 + 0.001
