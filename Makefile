@@ -71,7 +71,8 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	@# --no-compile: Python byte-compiles a module when it is first imported; pip would compile every module of every
-	@# package (VTK's, Open3D's, Sphinx's ...), most of which the workbench never imports (12 s of the ~42 s install)
+	@# package (VTK's, Open3D's, Sphinx's ...), most of which the workbench never imports (docs/measurements/
+	@# pipeline-benchmarks.md, "On a quiet machine")
 	$(PY) -m pip install --quiet --no-compile -e '.[test,docs]'
 	@touch $(STAMP)
 
