@@ -21,6 +21,7 @@ __all__ = [
     "setup_logging",
     "compile_note",
     "announce_compilation",
+    "compilation_announced",
     "tolerate_kernel_cache_failures",
 ]
 
@@ -76,6 +77,12 @@ def announce_compilation(stream=None) -> None:
 
     event.register("numba:compile", _FirstCompile())
     announce_compilation._registered = True
+
+
+def compilation_announced() -> bool:
+    """Whether :func:`announce_compilation` listens in this process (every ``workbench`` command): a first
+    compile is then announced once, whatever compiles it, and a note of one's own would say it twice."""
+    return bool(getattr(announce_compilation, "_registered", False))
 
 
 def tolerate_kernel_cache_failures() -> None:

@@ -118,3 +118,29 @@ def test_a_kernel_loaded_from_the_cache_is_not_announced(tmp_path):
     assert all(r.returncode == 0 for r in runs), runs[0].stderr + runs[1].stderr
     assert "compiling the numba kernels" in runs[0].stderr  # the first run compiled it
     assert runs[1].stderr.strip() == ""  # the second loaded it
+
+
+def test_deform_leaves_its_own_compile_note_to_the_command_wide_announcement(tmp_path):
+    """`workbench deform` printed two lines on a first run: its note on the deformation kernels and the command's
+    announcement.  With the announcement listening, the note says nothing; without it (a library caller), it
+    still speaks (an empty NUMBA_CACHE_DIR: no kernel cached)."""
+    import os
+    import subprocess
+
+    code = (
+        "import sys\n"
+        "from workbench.progress import announce_compilation\n"
+        "if sys.argv[1] == 'announced':\n"
+        "    announce_compilation()\n"
+        "from workbench.deform import say_if_compiling\n"
+        "said = []\n"
+        "say_if_compiling(said.append)\n"
+        "print(len(said))\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    out = {
+        mode: subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True, timeout=120, env=env)
+        for mode in ("announced", "library")
+    }
+    assert all(p.returncode == 0 for p in out.values()), [p.stderr for p in out.values()]
+    assert out["announced"].stdout.strip() == "0" and out["library"].stdout.strip() == "1"
