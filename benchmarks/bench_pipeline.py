@@ -173,8 +173,8 @@ def run_case(case: str, source: Path, out: Path, args) -> dict:
         print(f"  the pose stage could not place (their pose follows their parent's): {flagged}")
     per_scan = {n: {sid: _unit_seconds(study, n, sid) for sid in scans} for n in PER_SCAN if n in seconds}
     pose_scans = _pose_scan_seconds(study)
-    first = scans[-1]  # the demo's most flexed scan (knee125 has one)
-    el = None if args.no_elastix else _elastix(study, first)
+    scan = scans[-1]  # the demo's most flexed scan (knee125 has one)
+    el = None if args.no_elastix else _elastix(study, scan)
     total = sum(seconds.values())
     print(f"\n  stage      seconds  share   (total {total:.1f} s)")
     for name, s in seconds.items():
@@ -192,24 +192,24 @@ def run_case(case: str, source: Path, out: Path, args) -> dict:
         print(_top(stats, args.top))
     result = {"case": case, "seconds": seconds, "per_scan": per_scan, "pose_per_scan": pose_scans}
     one_scan = (
-        _pose_share(seconds, pose_scans, first)
+        _pose_share(seconds, pose_scans, scan)
         + sum(seconds.get(n, 0.0) for n in ("bones", "weights", "model"))
-        + sum(per_scan[n][first] for n in ("init", "register") if n in per_scan)
+        + sum(per_scan[n][scan] for n in ("init", "register") if n in per_scan)
     )
-    added = _pose_share(seconds, pose_scans, first) + sum(
-        per_scan[n][first] for n in ("init", "register") if n in per_scan
+    added = _pose_share(seconds, pose_scans, scan) + sum(
+        per_scan[n][scan] for n in ("init", "register") if n in per_scan
     )
     result.update(one_scan_seconds=one_scan, added_scan_seconds=added)
     if el is not None:
         seconds_el, med = el
         result["elastix"] = seconds_el
-        print(f"\n  elastix B-spline on {first}'s pair from the same start: {seconds_el:.1f} s")
+        print(f"\n  elastix B-spline on {scan}'s pair from the same start: {seconds_el:.1f} s")
         if med:
             print(
                 "  MED over the scan's body against the truth, mm: " + ", ".join(f"{k} {v:.2f}" for k, v in med.items())
             )
-        print(f"  whole pipeline for one scan ({first}): {one_scan:.1f} s = {one_scan / seconds_el:.2f} x elastix")
-        print(f"  an added scan ({first}: pose + init + register): {added:.1f} s = {added / seconds_el:.2f} x elastix")
+        print(f"  whole pipeline for one scan ({scan}): {one_scan:.1f} s = {one_scan / seconds_el:.2f} x elastix")
+        print(f"  an added scan ({scan}: pose + init + register): {added:.1f} s = {added / seconds_el:.2f} x elastix")
     return result
 
 

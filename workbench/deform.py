@@ -112,13 +112,13 @@ def _refuse_study_files(study, paths, what: str) -> None:
 def say_if_compiling(say) -> None:
     """Tell the user when the deformation kernels are compiled on this first use (tens of seconds otherwise silent),
     unless the process announces every first compile itself (:func:`workbench.progress.compilation_announced`)."""
-    from deformation.fields.resample import _landing, _pull_exact_kernel, backward_kernel
+    from deformation.fields.resample import backward_kernel
     from deformation.models.evd import forward_kernel
     from workbench.progress import compilation_announced, compile_note
 
     if compilation_announced():
         return
-    note = compile_note(forward_kernel, _landing, backward_kernel, _pull_exact_kernel)
+    note = compile_note(forward_kernel, backward_kernel)  # a cold cache shows in these two as in the others
     if note:
         say(note)
 

@@ -218,7 +218,7 @@ class Anatomy:
             contrast.tendon,
             contrast.vessel,
         )
-        p = np.ascontiguousarray(p, dtype=float)
+        p = kernels.points(p)
         scan, frames = self._bone_frames(p, bone_frames)
         if tissue is None:
             tparams, keys, tubes, info = np.zeros(0), np.zeros(2, np.uint64), np.zeros((0, 18)), np.zeros((0, 2))
@@ -229,7 +229,7 @@ class Anatomy:
             tubes, info = tissue.tube_table()
             sites = tissue.site_tables(p) if len(p) else tissue.site_tables(np.zeros((1, 3)))
         return kernels.intensity_map(
-            kernels.points(p),
+            p,
             self.tables,
             len(self.bone_names),
             c,
