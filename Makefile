@@ -66,13 +66,19 @@ test-deps:
 	  fi; \
 	fi
 
+# Python byte-compiles a module when it first imports it and keeps the result in __pycache__; an environment
+# with PYTHONDONTWRITEBYTECODE set (some images and CI runners set it) would compile every module again in every
+# process (about 2.5 s of VTK, SciPy, Open3D ... a process, and the demo and the suite start dozens). The venv is
+# the project's own, so its recipes write the cache.
+unexport PYTHONDONTWRITEBYTECODE
+
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "$(PYTHON) not found: install Python 3.11 (python3.11, python3.11-venv) or run make PYTHON=/path/to/python3.11"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	@# --no-compile: Python byte-compiles a module when it is first imported; pip would compile every module of every
-	@# package (VTK's, Open3D's, Sphinx's ...), most of which the workbench never imports (docs/measurements/
-	@# pipeline-benchmarks.md, "On a quiet machine")
+	@# --no-compile: Python byte-compiles a module when it is first imported (above); pip would compile every module
+	@# of every package (VTK's, Open3D's, Sphinx's ...), most of which the workbench never imports
+	@# (docs/measurements/pipeline-benchmarks.md, "On a quiet machine")
 	$(PY) -m pip install --quiet --no-compile -e '.[test,docs]'
 	@touch $(STAMP)
 
@@ -81,8 +87,13 @@ venv: system-deps $(STAMP)
 demo: venv
 	@start=$$(date +%s); set -e; \
 	$(VENV)/bin/workbench phantom knee --out $(DEMO_DIR) --spacing $(DEMO_SPACING) --force; \
+	$(VENV)/bin/workbench run $(DEMO_DIR) --until model; \
+	echo "deform: the model posed to a 45 deg bend, beside the remaining stages (its output follows them)"; \
+	$(VENV)/bin/workbench deform $(DEMO_DIR) --pose examples/knee_bend45.json --out $(DEMO_DIR)/bend45.nii.gz --grow \
+	  --force > $(DEMO_DIR)/bend45.log 2>&1 & deform=$$!; \
 	$(VENV)/bin/workbench run $(DEMO_DIR); \
-	$(VENV)/bin/workbench deform $(DEMO_DIR) --pose examples/knee_bend45.json --out $(DEMO_DIR)/bend45.nii.gz --grow --force; \
+	if ! wait $$deform; then cat $(DEMO_DIR)/bend45.log; echo "workbench deform failed"; exit 1; fi; \
+	cat $(DEMO_DIR)/bend45.log; \
 	$(VENV)/bin/workbench render $(DEMO_DIR)/bend45.nii.gz --labels $(DEMO_DIR)/bend45_labels.nii.gz --clip z:0.5 \
 	  --zoom 1.15 --out $(DEMO_DIR)/bend45.png --size 960x720 --force; \
 	$(VENV)/bin/workbench animate $(DEMO_DIR) --out $(DEMO_DIR)/knee.mp4 --force; \
