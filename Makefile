@@ -13,9 +13,9 @@ DEMO_DIR ?= demo-study
 DEMO_SPACING ?= 2.5
 # Debian packages Open3D (libusb, libgomp) and off-screen VTK (GL, EGL, OSMesa) load at run time.
 DEB_PACKAGES := libusb-1.0-0 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libgomp1
-# The test set-up adds headless Chromium: a test opens the HTML report in it and checks its screenshot (skipped,
-# with the reason, where Chromium cannot be installed).
-TEST_DEB_PACKAGES := chromium
+# The test set-up adds headless Chromium: a test opens the HTML report in it and checks its screenshot, and the
+# viewer's tests drive it through chromedriver (Selenium); skipped, with the reason, where they cannot be installed.
+TEST_DEB_PACKAGES := chromium chromium-driver
 
 # Shell: the packages of $(1) that dpkg does not list as installed, in $$missing.
 missing_of = missing=""; for p in $(1); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; done
@@ -60,9 +60,9 @@ test-deps:
 	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
 	    echo "Installing Debian packages for the tests:$$missing"; \
 	    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing; } \
-	      || echo "Could not install$$missing: the browser test of the HTML report will be skipped"; \
+	      || echo "Could not install$$missing: the browser tests (HTML report, viewer) will be skipped"; \
 	  else \
-	    echo "Not installed:$$missing (sudo apt-get install$$missing); the browser test of the HTML report will be skipped"; \
+	    echo "Not installed:$$missing (sudo apt-get install$$missing); the browser tests (HTML report, viewer) will be skipped"; \
 	  fi; \
 	fi
 

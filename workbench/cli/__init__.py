@@ -30,6 +30,7 @@ from workbench.cli import (
     surface,
     surface_deform,
     validate,
+    view,
     weights,
 )
 
@@ -60,6 +61,7 @@ examples:
   workbench register knee-study                           # polyrigid start + dense registration
   workbench render knee-study --out knee.png --clip z:0.5 --bones
   workbench animate knee-study --out knee.mp4             # bend and straighten (ready keyframes)
+  workbench view knee-study                               # pose it live in the browser
   workbench reproduce all --out tables                    # the papers' tables on phantoms
   workbench report knee-study --out report.html           # HTML validation report
 """
@@ -77,6 +79,7 @@ COMMANDS = (
     deform,
     render,
     animate,
+    view,
     register,
     bones,
     validate,

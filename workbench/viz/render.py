@@ -63,6 +63,7 @@ __all__ = [
     "render_volume",
     "render_overlay",
     "render_difference",
+    "resampled_onto",
     "write_png",
     "parse_size",
     "label_colour",
@@ -160,6 +161,7 @@ class VolumeRenderer:
         self._ren = vtkRenderer()
         self._ren.SetBackground(*(float(c) for c in background))
         self._plane = vtkPlane() if clip is not None else None
+        self._clipping = clip is not None
         if geometry is not None:
             self._volume_actor(geometry, tfs, sample_mm)
         self._win = getattr(gl, self.backend.window_class)()
@@ -355,7 +357,7 @@ class VolumeRenderer:
         mp = vtkPolyDataMapper()
         mp.SetInputData(polydata)
         mp.ScalarVisibilityOff()
-        if self._plane is not None:
+        if self._plane is not None and self._clipping:
             mp.AddClippingPlane(self._plane)
         act = vtkActor()
         act.SetMapper(mp)
@@ -366,6 +368,17 @@ class VolumeRenderer:
         act.GetProperty().SetSpecular(0.2)
         self._ren.AddActor(act)
         self._surfaces.append(act)
+
+    def set_clipping(self, on: bool) -> None:
+        """Cut by the clipping plane given at construction (``clip``), or show the whole volume; no plane, no-op."""
+        if self._plane is None:
+            return
+        self._clipping = bool(on)
+        volume = [self._mapper] if self.geometry is not None else []
+        for m in volume + [a.GetMapper() for a in self._surfaces]:
+            m.RemoveAllClippingPlanes()
+            if self._clipping:
+                m.AddClippingPlane(self._plane)
 
     def clear_surfaces(self) -> None:
         """Remove every label surface, mesh and point set added so far (an animation's bones or skin, frame by
@@ -429,6 +442,11 @@ class VolumeRenderer:
         px = vtk_to_numpy(out.GetPointData().GetScalars()).reshape(h, w, -1)[::-1, :, :3]
         return np.ascontiguousarray(px)
 
+    @property
+    def window(self):
+        """The off-screen VTK render window (for a view that streams its images, e.g. ``workbench view``)."""
+        return self._win
+
     def close(self) -> None:
         self._win.Finalize()
 
@@ -466,7 +484,7 @@ def _add_point_sets(r: VolumeRenderer, points) -> None:
         r.add_points(pts, colour=colour, radius_mm=item[2] if len(item) > 2 else None)
 
 
-def _on_grid(vol: Volume, g: GridGeometry) -> Volume:
+def resampled_onto(vol: Volume, g: GridGeometry) -> Volume:
     """``vol`` resampled (linear, world coordinates) onto ``g``; itself when it is already on ``g``."""
     if vol.geometry.is_close(g):
         return vol
@@ -491,7 +509,7 @@ def render_overlay(a: Volume, b: Volume, *, colours=CONTRAST_COLOURS, transfer="
     Fig. 9: the registration's control points over the overlay).
     """
     tf = transfer_function(transfer)
-    b = _on_grid(b, a.geometry)
+    b = resampled_onto(b, a.geometry)
     with VolumeRenderer(
         a.geometry, transfers=[tf.tinted(colours[0]), tf.tinted(colours[1])], reference=[a, b], **kw
     ) as r:
@@ -523,7 +541,7 @@ def render_difference(a: Volume, b: Volume, *, transfer="mri", **kw) -> np.ndarr
     camera is fitted to the tissue of both volumes as ``transfer`` shows it,
     so the view matches :func:`render_volume` and :func:`render_overlay`.
     """
-    b = _on_grid(b, a.geometry)
+    b = resampled_onto(b, a.geometry)
     lo, hi = robust_range(a.data)
     d = (np.asarray(a.data, np.float64) - np.asarray(b.data, np.float64)) / (hi - lo)
     diff = Volume(np.clip(d, -1.0, 1.0).astype(np.float32), a.geometry)

@@ -1,0 +1,297 @@
+"""``workbench view``'s web page: trame (Kitware's framework for VTK applications in the browser) around a
+:class:`workbench.viz.viewer.PoseSession`.
+
+The server renders (off-screen VTK, as ``workbench render``) and streams images to the page
+(``VtkRemoteView``); the page's client ships inside the trame packages, nothing is fetched at run time.  One
+slider (with a number field) per degree of freedom, grouped by joint, within the skeleton's limits; a menu
+of poses; reset; save the pose, a PNG, keyframes and their animation.  While a slider moves each change is
+posed with the coarse maps (every 2nd voxel); :data:`SETTLE_S` after the last change the exact maps redo it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+import time
+
+__all__ = ["build_app", "SETTLE_S"]
+
+SETTLE_S = 0.3  # seconds without a change after which the exact pose replaces the coarse one
+SHOWN_DIGITS = 2  # the number fields show a preset's angles rounded to this many decimals
+SHOWN_DIGITS_TOLERANCE = 0.6 * 10**-SHOWN_DIGITS  # a value within this of the pose's is its rounded echo
+FLICKER_S = 0.8  # the compare view's flicker: seconds each of the model and the scan stays on screen
+
+
+def build_app(session, *, name: str = "workbench view"):
+    """The trame server of ``session`` (not started)."""
+    import vtkmodules.vtkInteractionStyle  # noqa: F401 - registers the interactor styles
+    from trame.app import get_server
+    from trame.ui.vuetify3 import SinglePageWithDrawerLayout
+    from trame.widgets import html
+    from trame.widgets import vtk as vtk_widgets
+    from trame.widgets import vuetify3 as v3
+    from vtkmodules.vtkRenderingCore import vtkRenderWindowInteractor
+
+    from workbench.report.html import data_uri
+
+    win = session.window
+    if win.GetInteractor() is None:  # the remote view turns the camera through the window's interactor
+        interactor = vtkRenderWindowInteractor()
+        interactor.SetRenderWindow(win)
+        interactor.GetInteractorStyle().SetCurrentStyleToTrackballCamera()
+    server = get_server(name, client_type="vue3")
+    state, ctrl = server.state, server.controller
+    dofs = session.dofs
+    keys = [d.key for d in dofs]
+    for d in dofs:
+        state[d.key] = session.value(d)
+    poses = session.presets()
+    state.update(
+        {
+            "pose_choice": poses[0],
+            "status": "",
+            "saved": "",
+            "n_keyframes": 0,
+            "method_line": (
+                "EVD (Rhee Eq. 6–7): the study's example-based model"
+                if session.method == "evd"
+                else "VBD (Rhee Eq. 2): the study has no EVD model (workbench model builds one)"
+            ),
+        }
+    )
+    state.update(
+        {
+            "clip_on": session.renderer.clip is not None,
+            "has_clip": session.renderer.clip is not None,
+            "compare": "model",
+            "compare_scan": "",
+            "showing": "model",
+            "slice_xy": "",
+            "slice_xz": "",
+            "slice_yz": "",
+        }
+    )
+    pending = {"generation": 0, "syncing": False, "flicker": None}
+
+    def refresh_slices() -> None:
+        for which, png in session.slices().items():
+            state[f"slice_{which}"] = data_uri(png, "image/png")
+
+    def show(exact: bool) -> None:
+        if state.compare != "model":
+            state.compare = "model"  # a new pose: the model again
+        session.update(exact=exact)
+        t = session.last
+        state.showing = "model"
+        state.status = (
+            f"{'exact' if exact else 'coarse (every 2nd voxel)'} map: deform {t['deform_s']:.2f} s, "
+            f"render {t['render_s']:.2f} s"
+        )
+        if exact:
+            refresh_slices()
+        ctrl.view_update()
+
+    def show_what(what: str) -> None:
+        session.show(what)
+        state.showing = "model" if what == "model" else f"scan {what}"
+        refresh_slices()
+        ctrl.view_update()
+
+    async def flicker() -> None:
+        what = state.compare_scan
+        try:
+            while state.compare == "flicker":
+                with state:
+                    show_what(what if session.showing == "model" else "model")
+                await asyncio.sleep(FLICKER_S)
+        finally:
+            pending["flicker"] = None
+
+    @state.change("compare")
+    def on_compare(compare, **_):
+        if compare == "flicker":
+            if pending["flicker"] is None:
+                pending["flicker"] = asyncio.ensure_future(flicker())
+        elif compare in ("model", "scan"):
+            want = "model" if compare == "model" or not state.compare_scan else state.compare_scan
+            if session.showing != want:
+                show_what(want)
+
+    @state.change("clip_on")
+    def on_clip(clip_on, **_):
+        session.set_clipping(bool(clip_on))
+        show_what(session.showing)
+
+    def settle(generation: int) -> None:
+        if generation == pending["generation"]:  # no change since: the exact pose
+            with state:
+                show(True)
+
+    @state.change(*keys)
+    def on_angles(**values):
+        if pending["syncing"]:
+            return
+        changed = False
+        for d in dofs:
+            v = values.get(d.key)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                continue  # a number field being typed into
+            if abs(v - session.value(d)) > SHOWN_DIGITS_TOLERANCE:  # not the echo of a preset shown rounded
+                session.set(d.joint, d.index, v)
+                changed = True
+        if not changed:
+            return
+        pending["generation"] += 1
+        state.compare_scan = ""
+        show(False)
+        asyncio.get_event_loop().call_later(SETTLE_S, settle, pending["generation"])
+
+    def sync_sliders() -> None:
+        pending["syncing"] = True
+        try:
+            for d in dofs:
+                state[d.key] = round(session.value(d), SHOWN_DIGITS)
+            state.flush()
+        finally:
+            pending["syncing"] = False
+
+    @state.change("pose_choice")
+    def on_pose(pose_choice, **_):
+        if pose_choice not in poses:
+            return
+        session.use(pose_choice)
+        state.compare_scan = pose_choice[len("scan ") :] if pose_choice.startswith("scan ") else ""
+        sync_sliders()
+        show(True)
+
+    def reset():
+        state.pose_choice = poses[0]
+        state.compare_scan = ""
+        session.use(poses[0])
+        sync_sliders()
+        show(True)
+
+    def report(what: str, fn):
+        try:
+            state.saved = f"{what}: {fn()}"
+        except Exception as e:  # noqa: BLE001 - shown on the page, the server goes on
+            state.saved = f"{what} failed: {e}"
+
+    def save_pose():
+        report("pose saved", session.save_pose)
+
+    def save_png():
+        report("PNG saved", session.save_png)
+
+    def add_keyframe():
+        state.n_keyframes = session.add_keyframe()
+        state.saved = f"keyframe {state.n_keyframes} added"
+
+    def export():
+        def run():
+            t0 = time.perf_counter()
+            k, a = session.export_animation()
+            return f"{k} and {a} ({time.perf_counter() - t0:.0f} s)"
+
+        report("animation written", run)
+
+    state.trame__title = f"workbench view: {session.study.root.name}"
+    with SinglePageWithDrawerLayout(server) as layout:
+        layout.title.set_text(f"{session.study.root.name} — {session.method.upper()}")
+        with layout.drawer as drawer:
+            drawer.width = 380
+            with v3.VContainer(classes="pa-2"):
+                html.Div("{{ method_line }}", classes="text-caption mb-2", id="method")
+                v3.VSelect(
+                    label="pose", items=("poses", poses), v_model=("pose_choice",), density="compact", id="pose-menu"
+                )
+                v3.VBtn("reset to rest", click=reset, size="small", classes="mb-2", id="reset")
+                v3.VCheckbox(
+                    v_model=("clip_on",),
+                    label="cut open (clipping plane)",
+                    v_if=("has_clip",),
+                    density="compact",
+                    hide_details=True,
+                    id="clip",
+                )
+                html.Div("compare with the scan (at a scan's pose):", classes="text-caption mt-1")
+                with v3.VBtnToggle(
+                    v_model=("compare",),
+                    mandatory=True,
+                    density="compact",
+                    disabled=("!compare_scan",),
+                    id="compare",
+                ):
+                    v3.VBtn("model", value="model", size="small", id="compare-model")
+                    v3.VBtn("scan", value="scan", size="small", id="compare-scan")
+                    v3.VBtn("flicker", value="flicker", size="small", id="compare-flicker")
+                joints = []
+                for d in dofs:
+                    if d.joint not in joints:
+                        joints.append(d.joint)
+                for j in joints:
+                    html.Div(j, classes="text-subtitle-2 mt-2")
+                    for d in (d for d in dofs if d.joint == j):
+                        with v3.VRow(dense=True, align="center", classes="ma-0"):
+                            v3.VSlider(
+                                v_model=(d.key,),
+                                min=d.low,
+                                max=d.high,
+                                step=0.5,
+                                label=d.label,
+                                hide_details=True,
+                                density="compact",
+                                id=f"slider-{d.key}",
+                                style="flex: 3",
+                            )
+                            v3.VTextField(
+                                v_model_number=(d.key,),
+                                type="number",
+                                step=0.5,
+                                hide_details=True,
+                                density="compact",
+                                id=f"value-{d.key}",
+                                style="flex: 1; min-width: 70px",
+                            )
+                with v3.VRow(dense=True, classes="mt-3 ma-0"):
+                    v3.VBtn("save pose", click=save_pose, size="small", id="save-pose", classes="mr-1 mb-1")
+                    v3.VBtn("save PNG", click=save_png, size="small", id="save-png", classes="mr-1 mb-1")
+                    v3.VBtn("add keyframe", click=add_keyframe, size="small", id="add-keyframe", classes="mr-1 mb-1")
+                    v3.VBtn(
+                        "export animation",
+                        click=export,
+                        size="small",
+                        id="export",
+                        disabled=("n_keyframes < 2",),
+                        classes="mb-1",
+                    )
+                html.Div("{{ saved }}", classes="text-caption mt-2", id="saved")
+                html.Div("{{ status }}", classes="text-caption mt-1", id="status")
+        with layout.content:
+            with html.Div(style="display: flex; flex-direction: column; height: 100%"):
+                html.Div("showing: {{ showing }}", classes="text-caption px-2", id="showing")
+                with html.Div(style="flex: 1; position: relative; min-height: 300px"):
+                    view = vtk_widgets.VtkRemoteView(session.window, interactive_ratio=1, id="view")
+                    ctrl.view_update = view.update
+                with html.Div(style="display: flex; gap: 4px; height: 180px; background: #000", id="slices"):
+                    for which in ("xy", "xz", "yz"):
+                        html.Img(
+                            src=(f"slice_{which}",),
+                            title=f"{which} plane through the grid's centre",
+                            style="height: 100%; object-fit: contain; flex: 1",
+                            id=f"slice-{which}",
+                        )
+    show(True)
+    return server
+
+
+def serve(server, *, host: str, port: int, open_browser: bool) -> None:
+    """Run ``server`` until Ctrl-C (trame's own command-line parsing kept away from the workbench's)."""
+    argv = sys.argv
+    sys.argv = argv[:1]
+    try:
+        server.start(host=host, port=port, open_browser=open_browser, show_connection_info=False, timeout=0)
+    finally:
+        sys.argv = argv
