@@ -4,8 +4,9 @@ A :class:`PoseSession` holds one study's poser (EVD, Rhee Eq. 6–7, when the st
 Eq. 2, otherwise — :func:`workbench.deform.study_poser` says which), the skeleton's joint angles, and one
 reused off-screen :class:`~workbench.viz.render.VolumeRenderer`.  Setting an angle and calling
 :meth:`PoseSession.update` poses the template by forward kinematics and renders it: ``exact=False`` solves the
-backward maps on every second voxel and blends them up (``workbench deform --map-factor 2``), for a slider
-being dragged; ``exact=True`` solves every voxel, once the slider stops.
+backward maps on every second voxel and blends them up (``workbench deform --map-factor 2``) and renders a
+draft (a ray every 2nd pixel), for a slider being dragged; ``exact=True`` solves every voxel and renders in
+full, once the slider stops.
 
 The poses offered (:meth:`PoseSession.presets`): the template at rest, each scan's estimated pose (the pose
 stage's joint angles), and the eigenposes of the scans' poses (Rhee §5: the principal components of the
@@ -128,7 +129,7 @@ class PoseSession:
             bounds=self.bounds,
             mapper=mapper,
         )
-        self.image = None
+        self._image = None
         self.posed = None
         self.showing = "model"
         self._scans = {}
@@ -200,10 +201,11 @@ class PoseSession:
             map_factor=1 if exact else COARSE_FACTOR,
         )
         t1 = time.perf_counter()
+        self.renderer.set_draft(not exact)  # a moving slider: a quarter of the rays too
         self.show("model")
         t2 = time.perf_counter()
         self.last = {"exact": exact, "deform_s": t1 - t0, "render_s": t2 - t1, "total_s": t2 - t0}
-        return self.image
+        return self._image
 
     def training_scans(self) -> list[str]:
         """The scans whose estimated pose is a preset (the compare view's)."""
@@ -223,20 +225,38 @@ class PoseSession:
         if self.posed is None:
             self.update(exact=True)
             if what == "model":
-                return self.image
+                return self._image
         r = self.renderer
         r.clear_surfaces()
         if what == "model":
             if self.bones and self.posed.labels is not None:
                 r.add_labels(self.posed.labels)
-            self.image = r.render(self.posed.volume)
+            self._image = r.render(self.posed.volume)
         else:
-            self.image = r.render(self.scan_on_grid(what))
+            self._image = r.render(self.scan_on_grid(what))
         self.showing = what
-        return self.image
+        return self._image
+
+    @property
+    def image(self) -> np.ndarray:
+        """The view as shown now, ``(h, w, 3)`` uint8 (rendered and read when the last update did not)."""
+        if self.posed is None:
+            self.update(exact=True)
+        if self._image is None:
+            self._image = self.renderer.capture()
+        return self._image
+
+    def set_camera(self, **change) -> None:
+        """Turn or zoom the camera (``azimuth``, ``elevation`` degrees, ``zoom``: fields of
+        :class:`~workbench.viz.view.Camera`), on the same anatomy box."""
+        from dataclasses import replace
+
+        self.renderer.set_camera(replace(self.renderer.camera, **change))
+        self._image = None
 
     def set_clipping(self, on: bool) -> None:
         self.renderer.set_clipping(on)
+        self._image = None
 
     def slices(self) -> dict[str, bytes]:
         """Three orthogonal planes (``xy``, ``xz``, ``yz``) of the shown volume through the grid's centre, as
@@ -251,11 +271,6 @@ class PoseSession:
             sl, px = plane(data, self.grid.spacing, which, at)
             out[which] = encode_png(grey(sl, px, self.window_range))
         return out
-
-    @property
-    def window(self):
-        """The renderer's VTK window (a web view streams its images)."""
-        return self.renderer.window
 
     # -- keeping what was made ---------------------------------------------------------------------------
     def _path(self, stem: str, suffix: str) -> Path:
@@ -279,8 +294,6 @@ class PoseSession:
     def save_png(self, path=None) -> Path:
         from workbench.viz.render import write_png
 
-        if self.image is None:
-            self.update(exact=True)
         path = Path(path) if path is not None else self._path("view", ".png")
         write_png(self.image, path, overwrite=True)
         return path

@@ -1,11 +1,16 @@
 """``workbench view``'s web page: trame (Kitware's framework for VTK applications in the browser) around a
 :class:`workbench.viz.viewer.PoseSession`.
 
-The server renders (off-screen VTK, as ``workbench render``) and streams images to the page
-(``VtkRemoteView``); the page's client ships inside the trame packages, nothing is fetched at run time.  One
-slider (with a number field) per degree of freedom, grouped by joint, within the skeleton's limits; a menu
-of poses; reset; save the pose, a PNG, keyframes and their animation.  While a slider moves each change is
-posed with the coarse maps (every 2nd voxel); :data:`SETTLE_S` after the last change the exact maps redo it.
+The server renders (off-screen VTK, as ``workbench render``) and sends each image to the page as a JPEG; the
+page's client ships inside the trame packages, nothing is fetched at run time.  One slider (with a number
+field) per degree of freedom, grouped by joint, within the skeleton's limits; a menu of poses; reset; the
+camera's azimuth, elevation and zoom; the clipping plane; compare with a scan; three orthogonal slices; save
+the pose, a PNG, keyframes and their animation.  While a slider moves each change is posed with the coarse
+maps (every 2nd voxel); :data:`SETTLE_S` after the last change the exact maps redo it.
+
+The images go through the page's state, not trame-vtk's remote view: that view renders the window again when
+its JPEG is not ready yet, half a second later (``delta_stale_time_before_render``), which made a slider
+move's image arrive about 1 s after the move at the demo's size (docs: viewer measurements).
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ import time
 
 __all__ = ["build_app", "SETTLE_S"]
 
+JPEG_QUALITY = 90  # the images sent to the page
+COALESCE_S = 0.01  # a slider's changes arriving within this are posed once
 SETTLE_S = 0.3  # seconds without a change after which the exact pose replaces the coarse one
 SHOWN_DIGITS = 2  # the number fields show a preset's angles rounded to this many decimals
 SHOWN_DIGITS_TOLERANCE = 0.6 * 10**-SHOWN_DIGITS  # a value within this of the pose's is its rounded echo
@@ -24,23 +31,17 @@ FLICKER_S = 0.8  # the compare view's flicker: seconds each of the model and the
 
 def build_app(session, *, name: str = "workbench view"):
     """The trame server of ``session`` (not started)."""
-    import vtkmodules.vtkInteractionStyle  # noqa: F401 - registers the interactor styles
+    from PIL import Image
     from trame.app import get_server
     from trame.ui.vuetify3 import SinglePageWithDrawerLayout
     from trame.widgets import html
-    from trame.widgets import vtk as vtk_widgets
     from trame.widgets import vuetify3 as v3
-    from vtkmodules.vtkRenderingCore import vtkRenderWindowInteractor
 
+    from workbench.report.figures import encode_jpeg
     from workbench.report.html import data_uri
 
-    win = session.window
-    if win.GetInteractor() is None:  # the remote view turns the camera through the window's interactor
-        interactor = vtkRenderWindowInteractor()
-        interactor.SetRenderWindow(win)
-        interactor.GetInteractorStyle().SetCurrentStyleToTrackballCamera()
     server = get_server(name, client_type="vue3")
-    state, ctrl = server.state, server.controller
+    state = server.state
     dofs = session.dofs
     keys = [d.key for d in dofs]
     for d in dofs:
@@ -66,12 +67,28 @@ def build_app(session, *, name: str = "workbench view"):
             "compare": "model",
             "compare_scan": "",
             "showing": "model",
+            "image": "",
+            "azimuth": session.renderer.camera.azimuth,
+            "elevation": session.renderer.camera.elevation,
+            "zoom": session.renderer.camera.zoom,
             "slice_xy": "",
             "slice_xz": "",
             "slice_yz": "",
         }
     )
-    pending = {"generation": 0, "syncing": False, "flicker": None}
+    pending = {"generation": 0, "syncing": False, "flicker": None, "scheduled": False}
+
+    def push_image() -> None:
+        state.image = data_uri(encode_jpeg(Image.fromarray(session.image), quality=JPEG_QUALITY), "image/jpeg")
+
+    @state.change("azimuth", "elevation", "zoom")
+    def on_camera(azimuth, elevation, zoom, **_):
+        try:
+            session.set_camera(azimuth=float(azimuth), elevation=float(elevation), zoom=float(zoom))
+        except (TypeError, ValueError):
+            return  # a field being typed into
+        session.show(session.showing)
+        push_image()
 
     def refresh_slices() -> None:
         for which, png in session.slices().items():
@@ -83,19 +100,18 @@ def build_app(session, *, name: str = "workbench view"):
         session.update(exact=exact)
         t = session.last
         state.showing = "model"
-        state.status = (
-            f"{'exact' if exact else 'coarse (every 2nd voxel)'} map: deform {t['deform_s']:.2f} s, "
-            f"render {t['render_s']:.2f} s"
-        )
+        state.status = f"{'exact' if exact else 'coarse (every 2nd voxel)'} map: deform {t['deform_s']:.2f} s"
+        push_image()
         if exact:
+            state.flush()  # the image first; the slices follow
             refresh_slices()
-        ctrl.view_update()
 
     def show_what(what: str) -> None:
         session.show(what)
         state.showing = "model" if what == "model" else f"scan {what}"
+        push_image()
+        state.flush()
         refresh_slices()
-        ctrl.view_update()
 
     async def flicker() -> None:
         what = state.compare_scan
@@ -145,8 +161,16 @@ def build_app(session, *, name: str = "workbench view"):
             return
         pending["generation"] += 1
         state.compare_scan = ""
-        show(False)
-        asyncio.get_event_loop().call_later(SETTLE_S, settle, pending["generation"])
+        if not pending["scheduled"]:  # the changes that arrive meanwhile (a drag) are posed once, the latest
+            pending["scheduled"] = True
+            asyncio.get_event_loop().call_later(COALESCE_S, coarse)
+
+    def coarse() -> None:
+        pending["scheduled"] = False
+        generation = pending["generation"]
+        with state:
+            show(False)
+        asyncio.get_event_loop().call_later(SETTLE_S, settle, generation)
 
     def sync_sliders() -> None:
         pending["syncing"] = True
@@ -216,6 +240,23 @@ def build_app(session, *, name: str = "workbench view"):
                     hide_details=True,
                     id="clip",
                 )
+                html.Div("camera", classes="text-subtitle-2 mt-2")
+                for key, label, lo, hi, step in (
+                    ("azimuth", "azimuth °", -180, 180, 5),
+                    ("elevation", "elevation °", -85, 85, 5),
+                    ("zoom", "zoom", 0.5, 4.0, 0.1),
+                ):
+                    v3.VSlider(
+                        v_model=(key,),
+                        min=lo,
+                        max=hi,
+                        step=step,
+                        label=label,
+                        hide_details=True,
+                        density="compact",
+                        thumb_label=True,
+                        id=f"camera-{key}",
+                    )
                 html.Div("compare with the scan (at a scan's pose):", classes="text-caption mt-1")
                 with v3.VBtnToggle(
                     v_model=("compare",),
@@ -273,8 +314,8 @@ def build_app(session, *, name: str = "workbench view"):
             with html.Div(style="display: flex; flex-direction: column; height: 100%"):
                 html.Div("showing: {{ showing }}", classes="text-caption px-2", id="showing")
                 with html.Div(style="flex: 1; position: relative; min-height: 300px"):
-                    view = vtk_widgets.VtkRemoteView(session.window, interactive_ratio=1, id="view")
-                    ctrl.view_update = view.update
+                    with html.Div(id="view", style="position: absolute; inset: 0; background: #000"):
+                        html.Img(src=("image",), style="width: 100%; height: 100%; object-fit: contain")
                 with html.Div(style="display: flex; gap: 4px; height: 180px; background: #000", id="slices"):
                     for which in ("xy", "xz", "yz"):
                         html.Img(
