@@ -49,8 +49,8 @@ class Dof:
 
     @property
     def label(self) -> str:
-        axes = ("flexion", "abduction", "rotation", "x mm", "y mm", "z mm")
-        return f"{axes[self.index]}"
+        """The joint frame's name for it (deformation.kinematics.skeleton: flex, abd, twist, then mm)."""
+        return ("flexion °", "abduction °", "twist °", "x mm", "y mm", "z mm")[self.index]
 
 
 def _limits(joint, k: int) -> tuple[float, float]:
@@ -172,6 +172,7 @@ class PoseSession:
         return angles
 
     def presets(self) -> list[str]:
+        """The poses' names: ``rest (template)``, ``scan ID`` for each scan, ``eigenpose C ±1.5σ``."""
         return list(self._presets)
 
     def use(self, name: str) -> None:
@@ -188,6 +189,7 @@ class PoseSession:
         self.angles[joint][index] = float(np.clip(float(value), d.low, d.high))
 
     def value(self, d: Dof) -> float:
+        """The current value of one degree of freedom."""
         return float(self.angles[d.joint][d.index])
 
     # -- the work ----------------------------------------------------------------------------------------
@@ -281,6 +283,7 @@ class PoseSession:
         return self.out / f"{stem}-{n:03d}{suffix}"
 
     def pose_document(self) -> dict:
+        """The current angles as a pose file's content, ``{"angles": {joint: [values]}}``."""
         return {"angles": {k: [round(float(x), 4) for x in v] for k, v in self.angles.items()}}
 
     def save_pose(self, path=None) -> Path:
@@ -305,6 +308,7 @@ class PoseSession:
         return len(self.keyframes)
 
     def keyframes_document(self) -> dict:
+        """The keyframes added so far as an ``avw-keyframes`` document (``workbench animate --keyframes``)."""
         from workbench.viz.animate import KEYFRAMES_FORMAT
 
         return {

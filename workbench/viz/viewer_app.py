@@ -6,7 +6,7 @@ page's client ships inside the trame packages, nothing is fetched at run time.  
 field) per degree of freedom, grouped by joint, within the skeleton's limits; a menu of poses; reset; the
 camera's azimuth, elevation and zoom; the clipping plane; compare with a scan; three orthogonal slices; save
 the pose, a PNG, keyframes and their animation.  While a slider moves each change is posed with the coarse
-maps (every 2nd voxel); :data:`SETTLE_S` after the last change the exact maps redo it.
+maps (every 2nd voxel); ``SETTLE_S`` after the last change the exact maps redo it.
 
 The images go through the page's state, not trame-vtk's remote view: that view renders the window again when
 its JPEG is not ready yet, half a second later (``delta_stale_time_before_render``), which made a slider

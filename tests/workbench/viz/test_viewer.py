@@ -366,3 +366,14 @@ def test_ctrl_c_stops_the_server_cleanly(server):
     reader.join(timeout=10)
     assert p.returncode == 0, "".join(lines)
     assert "workbench view: stopped" in "".join(lines)
+
+
+def test_view_refuses_a_broken_model_file_before_serving(study, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "study"
+    shutil.copytree(study, copy)
+    (copy / "model" / "evd_displacements.mha").write_bytes(b"not an image")
+    assert main(["view", str(copy), "--no-browser", "--port", "0"]) == 1
+    err = capsys.readouterr().err
+    assert "evd_displacements.mha" in err and "serving" not in err
