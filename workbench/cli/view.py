@@ -111,6 +111,12 @@ def handle(args) -> int:
     if not 0 <= args.port <= 65535:
         raise WorkbenchError(f"--port {args.port}: expected 0 (any free port) to 65535")
     clip = None if args.clip.lower() == "none" else ClipPlane.parse(args.clip)
+    if args.host not in LOCAL_HOSTS:
+        print(
+            f"warning: --host {args.host} exposes the viewer beyond this machine: anyone who can reach port "
+            f"{args.port} can pose the study and save files into --out. An SSH tunnel keeps it private "
+            "(workbench view --help)."
+        )
     if args.port:
         why = _port_free(args.host, args.port)
         if why:
@@ -118,12 +124,6 @@ def handle(args) -> int:
                 f"--port {args.port} on {args.host}: cannot listen there ({why}); another viewer may be running: "
                 "choose another --port (or 0 for any free one)"
             )
-    if args.host not in LOCAL_HOSTS:
-        print(
-            f"warning: --host {args.host} exposes the viewer beyond this machine: anyone who can reach port "
-            f"{args.port} can pose the study and save files into --out. An SSH tunnel keeps it private "
-            "(workbench view --help)."
-        )
     from workbench.viz.viewer import PoseSession
     from workbench.viz.viewer_app import build_app, serve
 

@@ -379,6 +379,24 @@ class VolumeRenderer:
         self._mapper.SetImageSampleDistance(f)
         self._mapper.SetSampleDistance(f * self._sample_mm)
 
+    def move_clip(self, clip: ClipPlane) -> None:
+        """Put the clipping plane at ``clip`` (axis, fraction, side) on the same anatomy box; a renderer made
+        without a plane gets one (turned on by :meth:`set_clipping`)."""
+        from vtkmodules.vtkCommonDataModel import vtkPlane
+
+        if self._plane is None:
+            self._plane = vtkPlane()
+        self.clip = clip
+        if self.bounds is not None:
+            o, nrm = clip.plane(self.bounds, self._ren.GetActiveCamera().GetPosition())
+            self._plane.SetOrigin(*o)
+            self._plane.SetNormal(*nrm)
+
+    @property
+    def clipping(self) -> bool:
+        """Whether the view is cut by the clipping plane now."""
+        return self._plane is not None and self._clipping
+
     def set_clipping(self, on: bool) -> None:
         """Cut by the clipping plane given at construction (``clip``), or show the whole volume; no plane, no-op."""
         if self._plane is None:

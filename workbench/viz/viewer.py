@@ -120,15 +120,9 @@ class PoseSession:
 
         self.bounds = union_bounds(boxes)
         self.grid = covering_grid(g, self.bounds)
-        self.renderer = VolumeRenderer(
-            self.grid,
-            size=size,
-            transfer=tf,
-            reference=template,
-            clip=clip,
-            bounds=self.bounds,
-            mapper=mapper,
-        )
+        self.transfer = transfer
+        self._render_args = dict(size=size, reference=template, bounds=self.bounds, mapper=mapper)
+        self.renderer = VolumeRenderer(self.grid, transfer=tf, clip=clip, **self._render_args)
         self._image = None
         self.posed = None
         self.showing = "model"
@@ -257,8 +251,34 @@ class PoseSession:
         self._image = None
 
     def set_clipping(self, on: bool) -> None:
+        """Cut the view by the clipping plane (``on``) or show the whole volume."""
         self.renderer.set_clipping(on)
         self._image = None
+
+    def move_clip(self, axis: str, fraction: float) -> None:
+        """The clipping plane across world ``axis`` at ``fraction`` of the anatomy's extent, the side facing
+        the camera cut away (``workbench render --clip AXIS:FRACTION``)."""
+        from workbench.viz.view import ClipPlane
+
+        on = self.renderer.clipping
+        self.renderer.move_clip(ClipPlane(axis, float(fraction)))
+        self.renderer.set_clipping(on)
+        self._image = None
+
+    def set_transfer(self, transfer) -> None:
+        """Another transfer function (a preset name or a JSON file, ``workbench render --preset``): the
+        renderer is made again with the same camera and clipping."""
+        from workbench.viz.render import VolumeRenderer, transfer_function
+
+        old = self.renderer
+        new = VolumeRenderer(
+            self.grid, transfer=transfer_function(transfer), clip=old.clip, camera=old.camera, **self._render_args
+        )
+        new.set_clipping(old.clipping)
+        old.close()
+        self.renderer, self.transfer, self._image = new, transfer, None
+        if self.posed is not None:
+            self.show(self.showing)
 
     def slices(self) -> dict[str, bytes]:
         """Three orthogonal planes (``xy``, ``xz``, ``yz``) of the shown volume through the grid's centre, as

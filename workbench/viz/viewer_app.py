@@ -39,6 +39,7 @@ def build_app(session, *, name: str = "workbench view"):
 
     from workbench.report.figures import encode_jpeg
     from workbench.report.html import data_uri
+    from workbench.viz.render import PRESETS
 
     server = get_server(name, client_type="vue3")
     state = server.state
@@ -62,8 +63,10 @@ def build_app(session, *, name: str = "workbench view"):
     )
     state.update(
         {
-            "clip_on": session.renderer.clip is not None,
-            "has_clip": session.renderer.clip is not None,
+            "clip_on": session.renderer.clipping,
+            "clip_axis": (session.renderer.clip.axis if session.renderer.clip is not None else "z"),
+            "clip_fraction": (session.renderer.clip.fraction if session.renderer.clip is not None else 0.5),
+            "preset": str(session.transfer),
             "compare": "model",
             "compare_scan": "",
             "showing": "model",
@@ -133,10 +136,25 @@ def build_app(session, *, name: str = "workbench view"):
             if session.showing != want:
                 show_what(want)
 
-    @state.change("clip_on")
-    def on_clip(clip_on, **_):
+    @state.change("clip_on", "clip_axis", "clip_fraction")
+    def on_clip(clip_on, clip_axis, clip_fraction, **_):
+        try:
+            fraction = min(max(float(clip_fraction), 0.0), 1.0)
+        except (TypeError, ValueError):
+            return
+        if session.renderer.clip is None or (session.renderer.clip.axis, session.renderer.clip.fraction) != (
+            clip_axis,
+            fraction,
+        ):
+            session.move_clip(clip_axis, fraction)
         session.set_clipping(bool(clip_on))
         show_what(session.showing)
+
+    @state.change("preset")
+    def on_preset(preset, **_):
+        if preset and preset != str(session.transfer):
+            session.set_transfer(preset)
+            show_what(session.showing)
 
     def settle(generation: int) -> None:
         if generation == pending["generation"]:  # no change since: the exact pose
@@ -232,13 +250,42 @@ def build_app(session, *, name: str = "workbench view"):
                     label="pose", items=("poses", poses), v_model=("pose_choice",), density="compact", id="pose-menu"
                 )
                 v3.VBtn("reset to rest", click=reset, size="small", classes="mb-2", id="reset")
-                v3.VCheckbox(
-                    v_model=("clip_on",),
-                    label="cut open (clipping plane)",
-                    v_if=("has_clip",),
+                presets = sorted({*PRESETS, str(session.transfer)})
+                v3.VSelect(
+                    label="transfer function",
+                    items=("presets", presets),
+                    v_model=("preset",),
                     density="compact",
                     hide_details=True,
-                    id="clip",
+                    id="preset",
+                )
+                with v3.VRow(dense=True, align="center", classes="ma-0"):
+                    v3.VCheckbox(
+                        v_model=("clip_on",),
+                        label="cut open",
+                        density="compact",
+                        hide_details=True,
+                        id="clip",
+                        style="flex: 2",
+                    )
+                    v3.VSelect(
+                        items=("clip_axes", ["x", "y", "z"]),
+                        v_model=("clip_axis",),
+                        density="compact",
+                        hide_details=True,
+                        id="clip-axis",
+                        style="flex: 1",
+                    )
+                v3.VSlider(
+                    v_model=("clip_fraction",),
+                    min=0.05,
+                    max=0.95,
+                    step=0.05,
+                    label="cut at",
+                    hide_details=True,
+                    density="compact",
+                    thumb_label=True,
+                    id="clip-fraction",
                 )
                 html.Div("camera", classes="text-subtitle-2 mt-2")
                 for key, label, lo, hi, step in (

@@ -142,6 +142,27 @@ def test_the_clipping_toggle_changes_the_view(session):
     assert not np.array_equal(cut, whole)
 
 
+def test_another_transfer_function_keeps_the_camera(session):
+    session.use("rest (template)")
+    mri = session.update(exact=True).copy()
+    session.set_transfer("ct")
+    ct = session.image.copy()
+    session.set_transfer("mri")
+    np.testing.assert_array_equal(session.image, mri)  # the same camera and plane: the same pixels
+    assert not np.array_equal(ct, mri)
+
+
+def test_the_clipping_plane_moves(session):
+    session.use("rest (template)")
+    half = session.update(exact=True).copy()
+    session.move_clip("z", 0.3)
+    low = session.image.copy()
+    session.move_clip("z", 0.5)
+    np.testing.assert_array_equal(session.image, half)
+    assert not np.array_equal(low, half)
+    assert session.renderer.clipping
+
+
 def test_slices_are_three_planes_of_the_shown_volume(session):
     session.use("rest (template)")
     session.update(exact=True)
@@ -174,6 +195,19 @@ def test_view_refuses_a_study_without_weights_before_serving(phantom, tmp_path, 
     assert main(["view", str(root), "--no-browser", "--port", "0"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "weights" in err[0] and "serving" not in err[0]
+
+
+def test_view_warns_when_exposed_beyond_localhost(study, capsys):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("0.0.0.0", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        assert main(["view", str(study), "--no-browser", "--host", "0.0.0.0", "--port", str(port)]) == 1
+    out = capsys.readouterr()
+    assert "--host 0.0.0.0 exposes the viewer" in out.out and "SSH tunnel" in out.out
+    assert f"--port {port}" in out.err  # and the busy port still stops it before anything is served
 
 
 def test_view_refuses_a_busy_port_before_loading(study, capsys):
@@ -340,6 +374,17 @@ def test_the_page_poses_the_model_and_compares_it_with_a_scan(server):
         path = Path(d.find_element(By.ID, "saved").text.split(": ", 1)[1].strip())
         assert path.parent == out
         assert json.loads(path.read_text(encoding="utf-8"))["angles"]["knee"][0] == 45.0
+        # the slider itself, by its keyboard (10 steps of 0.5° to the right, as a drag would set them)
+        slider = d.find_element(By.ID, "slider-dof_knee_0")
+        thumb = slider.find_element(By.XPATH, "./ancestor::div[contains(@class,'v-slider')][1]//*[@role='slider']")
+        thumb.click()
+        thumb.send_keys(*[Keys.ARROW_RIGHT] * 10)
+        _wait(lambda: d.find_element(By.ID, "value-dof_knee_0").get_attribute("value") == "50", "the slider at 50°")
+        _wait(lambda: "exact" in d.find_element(By.ID, "status").text, "the exact pose")
+        bent = _changed(d, bent, "the render at 50°", 0.002)
+        d.find_element(By.ID, "save-pose").click()
+        _wait(lambda: "pose-002.json" in d.find_element(By.ID, "saved").text, "the second pose file")
+        assert json.loads((out / "pose-002.json").read_text(encoding="utf-8"))["angles"]["knee"][0] == 50.0
         # a scan's pose, then the scan itself in the same view (the compare view)
         menu = d.find_element(By.ID, "pose-menu")
         menu.find_element(By.XPATH, "./ancestor::div[contains(@class,'v-field')][1]").click()
@@ -353,6 +398,12 @@ def test_the_page_poses_the_model_and_compares_it_with_a_scan(server):
         _shot(d, "view-compare")
         # the scan has no bone surfaces: the model's strong bone colours are gone from the view
         assert _saturated(scan) < 0.2 * _saturated(model)
+        # flicker: the view alternates the model and the scan by itself
+        d.find_element(By.ID, "compare-flicker").click()
+        _wait(lambda: d.find_element(By.ID, "showing").text == "showing: model", "the flicker's model")
+        _wait(lambda: d.find_element(By.ID, "showing").text == "showing: scan pose01", "the flicker's scan")
+        d.find_element(By.ID, "compare-model").click()
+        _wait(lambda: d.find_element(By.ID, "showing").text == "showing: model", "the model again")
     finally:
         d.quit()
 
