@@ -91,8 +91,10 @@ demo: venv
 	echo "deform: the model posed to a 45 deg bend, beside the remaining stages (its output follows them)"; \
 	$(VENV)/bin/workbench deform $(DEMO_DIR) --pose examples/knee_bend45.json --out $(DEMO_DIR)/bend45.nii.gz --grow \
 	  --force > $(DEMO_DIR)/bend45.log 2>&1 & deform=$$!; \
+	trap 'kill $$deform 2>/dev/null' EXIT INT TERM; \
 	$(VENV)/bin/workbench run $(DEMO_DIR); \
 	if ! wait $$deform; then cat $(DEMO_DIR)/bend45.log; echo "workbench deform failed"; exit 1; fi; \
+	trap - EXIT INT TERM; \
 	cat $(DEMO_DIR)/bend45.log; \
 	$(VENV)/bin/workbench render $(DEMO_DIR)/bend45.nii.gz --labels $(DEMO_DIR)/bend45_labels.nii.gz --clip z:0.5 \
 	  --zoom 1.15 --out $(DEMO_DIR)/bend45.png --size 960x720 --force; \

@@ -2,7 +2,9 @@
 half-written and no input changed; input that cannot work is refused before the work, in one line.
 
 Writes are cut short by a file-size limit (``RLIMIT_FSIZE``, set in the child process only: Python ignores the
-SIGXFSZ the kernel sends, so each write past the limit fails with EFBIG, as on a full disk).
+SIGXFSZ the kernel sends, so each write past the limit fails with EFBIG, as on a full disk).  The children run
+with ``python -B``: under the limit, Python's own bytecode cache would be written short (it does not check the
+length a write returned) and every later process importing that module would fail reading it.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ def _workbench(*args, limit_bytes: int | None = None, timeout: float = 300) -> s
             resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
 
     return subprocess.run(
-        [sys.executable, "-m", "workbench", *map(str, args)],
+        [sys.executable, "-B", "-m", "workbench", *map(str, args)],
         capture_output=True,
         text=True,
         encoding="utf-8",
@@ -134,7 +136,12 @@ def test_the_manifest_write_cut_short_names_study_json(study, tmp_path):
         resource.setrlimit(resource.RLIMIT_FSIZE, (size // 2, size // 2))
 
     r = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", preexec_fn=cap, timeout=120
+        [sys.executable, "-B", "-c", code],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        preexec_fn=cap,
+        timeout=120,
     )
     assert r.returncode != 0
     assert f"{copy / 'study.json'}: the file could not be written completely" in r.stderr, r.stderr
@@ -161,7 +168,9 @@ else:
     t = np.array([[i, i + 1, i + 2] for i in range(0, 3998)])
     write_mesh(SurfaceMesh(v, t), {str(tmp_path / ("m" + suffix))!r})
 """
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-B", "-c", code], capture_output=True, text=True, encoding="utf-8", timeout=120
+    )
     assert r.returncode == 1, (r.returncode, r.stderr)  # 1: a Python exception, not a crash (-11)
     assert "OutputWriteError" in r.stderr and f"m{suffix}: the file could not be written completely" in r.stderr
     assert list(tmp_path.iterdir()) == []

@@ -12,12 +12,13 @@ DESCRIPTION = """Pose the study's model with sliders and watch the volume follow
 Starts a local web application (trame) and opens the browser on it.  One slider per
 degree of freedom of the study's skeleton, grouped by joint, within its range of
 motion (skeleton.json 'limits'); a menu of poses: the template at rest, each
-scan's estimated pose, and the eigenposes of the scans' poses (Rhee §5).  The
+scan's estimated pose, and the eigenposes of the scans' poses (Rhee §6.2).  The
 volume is the template posed by EVD (Rhee Eq. 6-7) when the study has a model,
 else by VBD (Rhee Eq. 2; the page says so), rendered as `workbench render` does,
 the bones as surfaces.  While a slider moves, the maps are solved on every 2nd
 voxel (as `workbench deform --map-factor 2`); when it stops, on every voxel.
-Drag in the view to turn the camera.
+The camera turns and zooms by its sliders; a menu picks the transfer function, and
+the clipping plane's axis and place are set on the page.
 
 What you make is saved into --out (made on the first save): pose-NNN.json (a
 pose file: `workbench deform --pose`), view-NNN.png, and keyframes-NNN.json with
@@ -62,7 +63,7 @@ def add_parser(subparsers) -> None:
         "--out",
         type=Path,
         metavar="DIR",
-        help="folder for saved poses, PNGs, keyframes and animations. Default: STUDY-view beside the current folder",
+        help="folder for saved poses, PNGs, keyframes and animations. Default: STUDY-view in the current folder",
     )
     p.add_argument(
         "--method",
@@ -91,7 +92,8 @@ def _port_free(host: str, port: int) -> str | None:
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as s:
-        try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: a just-stopped viewer's
+        try:  # connections in TIME_WAIT do not hold the port
             s.bind((host, port))
         except OSError as e:
             return e.strerror or str(e)

@@ -9,8 +9,8 @@ draft (a ray every 2nd pixel), for a slider being dragged; ``exact=True`` solves
 full, once the slider stops.
 
 The poses offered (:meth:`PoseSession.presets`): the template at rest, each scan's estimated pose (the pose
-stage's joint angles), and the eigenposes of the scans' poses (Rhee §5: the principal components of the
-joint-angle vectors; the mean pose ± 1.5 standard deviations along each of the first three).  What a user
+stage's joint angles), and the eigenposes of the scans' poses (Rhee §6.2: the principal components of the
+joint-rotation vectors in degrees; the mean pose ± 1.5 standard deviations along each of the first three).  What a user
 makes is kept as files the command line reads: a pose file (``workbench deform --pose``), a PNG, and keyframes
 (``workbench animate --keyframes``) with their animation.
 """
@@ -144,9 +144,11 @@ class PoseSession:
                 continue  # the pose stage has not run for this scan
             if a:
                 scans[sid] = {k: np.asarray(a.get(k, rest[k]), float) for k in rest}
+        for sid in scans:  # the compare view reads them later: a broken file is said now, before serving
+            self._check_readable(sid)
         out.update({f"scan {sid}": a for sid, a in scans.items()})
-        if len(scans) >= 2:  # Rhee §5: the principal components of the scans' joint-angle vectors
-            keys = [(k, i) for k in rest for i in range(rest[k].size)]
+        if len(scans) >= 2:  # Rhee §6.2: the principal components of the scans' joint-angle vectors
+            keys = [(k, i) for k in rest for i in range(min(3, rest[k].size))]  # rotations (degrees) only
             x = np.array([[a[k][i] for k, i in keys] for a in scans.values()])
             mean = x.mean(axis=0)
             _, s, vt = np.linalg.svd(x - mean, full_matrices=False)
@@ -159,6 +161,21 @@ class PoseSession:
                         a[k][i] = val
                     out[f"eigenpose {c + 1} {'+' if sign > 0 else '−'}{EIGEN_SIGMAS:g}σ"] = self._clamped(a)
         return out
+
+    def _check_readable(self, scan_id: str) -> None:
+        import SimpleITK as sitk
+
+        path = self.study.scan_path(scan_id)
+        try:
+            r = sitk.ImageFileReader()
+            r.SetFileName(str(path))
+            r.ReadImageInformation()
+        except RuntimeError:
+            raise InputFileError(
+                f"{path}: scan {scan_id!r} cannot be read (missing, truncated or not an image); restore it or "
+                "remove the scan from the study",
+                path,
+            ) from None
 
     def _clamped(self, angles: dict) -> dict:
         for d in self.dofs:
@@ -327,6 +344,10 @@ class PoseSession:
         self.keyframes.append({"time": t, "angles": self.pose_document()["angles"]})
         return len(self.keyframes)
 
+    @property
+    def keyframe_count(self) -> int:
+        return len(self.keyframes)
+
     def keyframes_document(self) -> dict:
         """The keyframes added so far as an ``avw-keyframes`` document (``workbench animate --keyframes``)."""
         from workbench.viz.animate import KEYFRAMES_FORMAT
@@ -350,13 +371,17 @@ class PoseSession:
         kpath = self._path("keyframes", ".json")
         write_json(self.keyframes_document(), kpath, overwrite=True)
         out = Path(out) if out is not None else kpath.with_name(kpath.stem.replace("keyframes", "animation") + ".mp4")
-        animate_study(
+        r = self.renderer
+        animate_study(  # as the view looks: its transfer function, camera and clipping plane
             self.study.root,
             out,
             keyframes=kpath,
             method=self.method,
             fps=fps,
-            size=self.renderer.size,
+            size=r.size,
+            transfer=self.transfer,
+            camera=r.camera,
+            clip=r.clip if r.clipping else None,
             bones=self.bones,
             progress=progress,
         )

@@ -79,7 +79,7 @@ def build_app(session, *, name: str = "workbench view"):
             "slice_yz": "",
         }
     )
-    pending = {"generation": 0, "syncing": False, "flicker": None, "scheduled": False}
+    pending = {"generation": 0, "flicker": None, "scheduled": False}
 
     def push_image() -> None:
         state.image = data_uri(encode_jpeg(Image.fromarray(session.image), quality=JPEG_QUALITY), "image/jpeg")
@@ -94,8 +94,12 @@ def build_app(session, *, name: str = "workbench view"):
         push_image()
 
     def refresh_slices() -> None:
-        for which, png in session.slices().items():
-            state[f"slice_{which}"] = data_uri(png, "image/png")
+        with state:  # its own flush: the image has gone to the page first
+            for which, png in session.slices().items():
+                state[f"slice_{which}"] = data_uri(png, "image/png")
+
+    def slices_next() -> None:
+        asyncio.get_event_loop().call_soon(refresh_slices)
 
     def show(exact: bool) -> None:
         if state.compare != "model":
@@ -106,22 +110,23 @@ def build_app(session, *, name: str = "workbench view"):
         state.status = f"{'exact' if exact else 'coarse (every 2nd voxel)'} map: deform {t['deform_s']:.2f} s"
         push_image()
         if exact:
-            state.flush()  # the image first; the slices follow
-            refresh_slices()
+            slices_next()
 
     def show_what(what: str) -> None:
-        session.show(what)
+        try:
+            session.show(what)
+        except Exception as e:  # noqa: BLE001 - said on the page; the server goes on
+            state.saved = f"could not show {what}: {e}"
+            return
         state.showing = "model" if what == "model" else f"scan {what}"
         push_image()
-        state.flush()
-        refresh_slices()
+        slices_next()
 
     async def flicker() -> None:
-        what = state.compare_scan
         try:
-            while state.compare == "flicker":
-                with state:
-                    show_what(what if session.showing == "model" else "model")
+            while state.compare == "flicker" and state.compare_scan:
+                with state:  # the scan chosen now (the menu may have changed it since the last pass)
+                    show_what(state.compare_scan if session.showing == "model" else "model")
                 await asyncio.sleep(FLICKER_S)
         finally:
             pending["flicker"] = None
@@ -163,8 +168,6 @@ def build_app(session, *, name: str = "workbench view"):
 
     @state.change(*keys)
     def on_angles(**values):
-        if pending["syncing"]:
-            return
         changed = False
         for d in dofs:
             v = values.get(d.key)
@@ -175,10 +178,13 @@ def build_app(session, *, name: str = "workbench view"):
             if abs(v - session.value(d)) > SHOWN_DIGITS_TOLERANCE:  # not the echo of a preset shown rounded
                 session.set(d.joint, d.index, v)
                 changed = True
+                if session.value(d) != v:  # beyond the joint's limits: show where it stopped
+                    state[d.key] = session.value(d)
         if not changed:
             return
         pending["generation"] += 1
         state.compare_scan = ""
+        state.pose_choice = None  # no longer the menu's pose: choosing it again applies it
         if not pending["scheduled"]:  # the changes that arrive meanwhile (a drag) are posed once, the latest
             pending["scheduled"] = True
             asyncio.get_event_loop().call_later(COALESCE_S, coarse)
@@ -191,13 +197,9 @@ def build_app(session, *, name: str = "workbench view"):
         asyncio.get_event_loop().call_later(SETTLE_S, settle, generation)
 
     def sync_sliders() -> None:
-        pending["syncing"] = True
-        try:
-            for d in dofs:
-                state[d.key] = round(session.value(d), SHOWN_DIGITS)
-            state.flush()
-        finally:
-            pending["syncing"] = False
+        # their change handler sees the values as the pose's own (within SHOWN_DIGITS_TOLERANCE) and does nothing
+        for d in dofs:
+            state[d.key] = round(session.value(d), SHOWN_DIGITS)
 
     @state.change("pose_choice")
     def on_pose(pose_choice, **_):
@@ -209,11 +211,7 @@ def build_app(session, *, name: str = "workbench view"):
         show(True)
 
     def reset():
-        state.pose_choice = poses[0]
-        state.compare_scan = ""
-        session.use(poses[0])
-        sync_sliders()
-        show(True)
+        state.pose_choice = poses[0]  # its change handler poses it (after a slider moved, the menu is empty)
 
     def report(what: str, fn):
         try:
@@ -231,13 +229,17 @@ def build_app(session, *, name: str = "workbench view"):
         state.n_keyframes = session.add_keyframe()
         state.saved = f"keyframe {state.n_keyframes} added"
 
-    def export():
-        def run():
-            t0 = time.perf_counter()
-            k, a = session.export_animation()
-            return f"{k} and {a} ({time.perf_counter() - t0:.0f} s)"
-
-        report("animation written", run)
+    async def export():
+        # in a worker thread (its own render window): the page stays live while the frames are made
+        state.saved = f"exporting {session.keyframe_count} keyframes ..."
+        state.flush()
+        t0 = time.perf_counter()
+        try:
+            k, a = await asyncio.get_event_loop().run_in_executor(None, session.export_animation)
+            state.saved = f"animation written: {k} and {a} ({time.perf_counter() - t0:.0f} s)"
+        except Exception as e:  # noqa: BLE001 - said on the page; the server goes on
+            state.saved = f"animation failed: {e}"
+        state.flush()
 
     state.trame__title = f"workbench view: {session.study.root.name}"
     with SinglePageWithDrawerLayout(server) as layout:

@@ -4,6 +4,7 @@ tests/workbench/viz/test_view_browser.py."""
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 import pytest
@@ -53,7 +54,7 @@ def test_the_presets_are_rest_the_scans_poses_and_their_eigenposes(session, stud
         session.use(f"scan {sid}")
         for k, v in st.pose(sid).joint_angles.items():
             np.testing.assert_array_equal(session.angles[k], np.asarray(v, float))
-    # Rhee §5's eigenposes of the scans' poses, against an independent reference: the sample covariance's
+    # Rhee §6.2's eigenposes of the scans' poses, against an independent reference: the sample covariance's
     # eigenvectors (np.linalg.eigh). Eigenpose c ± is the mean pose ± 1.5 sd_c v_c, clamped to the joints' limits
     # (a bend's straight end lies at the knee's 0°); v_c's sign is free, so either order of ± matches. Float
     # arithmetic only: 1e-9.
@@ -89,13 +90,17 @@ def test_a_saved_pose_is_the_pose_deform_reads(session):
     from workbench.io.inputs import read_target_pose
 
     session.use("rest (template)")
-    session.set("knee", 0, 37.5)
+    session.set("knee", 0, 37.123456)
     path = session.save_pose()
     assert path.parent == session.out and path.name == "pose-001.json"
+    assert json.loads(path.read_text(encoding="utf-8"))["angles"]["knee"][0] == 37.1235  # written to 1e-4°
     pose = read_target_pose(path, session.skeleton)
     want = session.skeleton.pose(session.angles)
-    for b in session.skeleton.bone_names:  # angles written to 1e-4°: transforms to ~1e-6 mm at 100 mm
-        np.testing.assert_allclose(pose.transforms[b], want.transforms[b], atol=1e-5)
+    # 0.5e-4° of rounding per joint value, through at most a few joints: rotations differ by < 2e-6 (rad), and
+    # positions by that times the distance from the joint centres (< 1 m here): < 2e-3 mm
+    for b in session.skeleton.bone_names:
+        np.testing.assert_allclose(pose.transforms[b][:3, :3], want.transforms[b][:3, :3], atol=2e-6)
+        np.testing.assert_allclose(pose.transforms[b][:3, 3], want.transforms[b][:3, 3], atol=2e-3)
     assert session.save_pose().name == "pose-002.json"  # never replaces an earlier one
 
 
@@ -110,10 +115,12 @@ def test_moving_a_joint_changes_the_image_and_the_coarse_map_stays_close(session
     assert session.last["exact"] and session.last["total_s"] > 0
     # the bend moves the tibia across the picture: many pixels change (a tenth, where the tissue is)
     assert np.mean(np.any(rest != bent, axis=-1)) > 0.02
-    # the coarse maps deviate by a fraction of a voxel (docs: 0.06 mm mean on the paper-size hand), so the
-    # intensities differ at edges only: their mean difference is a few percent of the template's range
-    lo, hi = session.window_range
-    assert np.mean(np.abs(coarse - exact)) < 0.05 * (hi - lo)
+    # the coarse maps deviate by a fraction of a voxel (docs: 0.06 mm mean on the paper-size hand), the bend
+    # moves the tibia by centimetres: coarse and exact differ by a small part of what the bend changes
+    session.use("rest (template)")
+    session.update(exact=True)
+    unbent = np.asarray(session.posed.volume.data, float)
+    assert np.mean(np.abs(coarse - exact)) < 0.2 * np.mean(np.abs(unbent - exact))
     assert coarse_img.shape == bent.shape == (120, 160, 3)
 
 
@@ -347,11 +354,13 @@ def _saturated(img: np.ndarray) -> int:
 
 
 def test_the_page_poses_the_model_and_compares_it_with_a_scan(server):
-    import json
+    import time
     from pathlib import Path
 
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
+
+    from workbench.viz.viewer_app import FLICKER_S
 
     _, url, out, _, _ = server
     d = _browser()
@@ -404,6 +413,10 @@ def test_the_page_poses_the_model_and_compares_it_with_a_scan(server):
         _wait(lambda: d.find_element(By.ID, "showing").text == "showing: scan pose01", "the flicker's scan")
         d.find_element(By.ID, "compare-model").click()
         _wait(lambda: d.find_element(By.ID, "showing").text == "showing: model", "the model again")
+        still = _settled(d)  # and the flicker has stopped: two of its periods later, still the model
+        time.sleep(2.5 * FLICKER_S)
+        assert d.find_element(By.ID, "showing").text == "showing: model"
+        np.testing.assert_array_equal(_view_pixels(d), still)
     finally:
         d.quit()
 
