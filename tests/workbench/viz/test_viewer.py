@@ -195,6 +195,24 @@ def test_keyframes_export_an_animation_the_cli_reads(session):
     assert video.exists() and video.stat().st_size > 0 and video.suffix == ".mp4"
 
 
+def test_a_study_without_a_model_is_posed_by_vbd_and_says_so(phantom, tmp_path):
+    from workbench.study import write_phantom_study
+    from workbench.viz.viewer import PoseSession
+
+    root = write_phantom_study(phantom("knee", size="test", n_poses=2, seed=3, noise=False), tmp_path / "s").root
+    assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
+    said = []
+    s = PoseSession(root, out=tmp_path / "out", size=(96, 72), progress=said.append)
+    try:
+        assert s.method == "vbd"
+        assert any("no EVD model" in line and "VBD" in line for line in said), said
+        assert s.presets() == ["rest (template)"]  # no pose stage yet: no scan poses, no eigenposes
+        s.set("knee", 0, 30.0)
+        assert s.update(exact=True).shape == (72, 96, 3)
+    finally:
+        s.close()
+
+
 def test_view_refuses_a_study_without_weights_before_serving(phantom, tmp_path, capsys):
     from workbench.study import write_phantom_study
 
