@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from workbench.cli.options import add_common, add_render_options, parse_background, positive_int
+from workbench.cli.options import add_common, add_deform_method, add_render_options, parse_background, positive_int
 from workbench.cli.running import line_printer
 
 DESCRIPTION = """Animate the study's template through keyframe poses and write a video.
@@ -61,12 +61,7 @@ def add_parser(subparsers) -> None:
         help="keyframe poses (default: the ready ones); 'scans': rest, each scan's estimated pose, "
         "rest (Kurihara Fig. 9's interpolation between the example poses)",
     )
-    p.add_argument(
-        "--method",
-        choices=["auto", "vbd", "evd"],
-        default="auto",
-        help="'auto': EVD when the study has a model, else VBD. Default: auto",
-    )
+    add_deform_method(p)
     p.add_argument("--weighting", choices=["psd", "wpsd"], default="psd", help="EVD pose weights. Default: psd")
     p.add_argument(
         "--map-factor",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from workbench.cli.options import add_common, positive_int
+from workbench.cli.options import add_common, add_deform_method, positive_int
 from workbench.cli.running import line_printer
 
 DESCRIPTION = """Deform the template to a pose and write the posed volume and its label map
@@ -48,12 +48,7 @@ def add_parser(subparsers) -> None:
         help="write the posed volume on the template's grid extended (same spacing and direction) to "
         "hold the whole posed body, instead of the template's grid itself",
     )
-    p.add_argument(
-        "--method",
-        choices=["auto", "vbd", "evd"],
-        default="auto",
-        help="'auto': EVD when the study has a model, else VBD. Default: auto",
-    )
+    add_deform_method(p)
     p.add_argument(
         "--map-factor",
         type=positive_int,

@@ -44,6 +44,16 @@ def parse_background(text: str) -> tuple:
     return rgb
 
 
+def add_deform_method(p) -> None:
+    """--method auto|vbd|evd: how a command that poses the study's template deforms it (deform, animate, view)."""
+    p.add_argument(
+        "--method",
+        choices=["auto", "vbd", "evd"],
+        default="auto",
+        help="'auto': EVD when the study has a model, else VBD. Default: auto",
+    )
+
+
 def add_common(p) -> None:
     """--quiet / -v on every subcommand."""
     p.add_argument("--quiet", action="store_true", help="no progress lines (warnings still show)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from workbench.cli.options import add_common
+from workbench.cli.options import add_common, add_deform_method
 
 DESCRIPTION = """Pose the study's model with sliders and watch the volume follow, in a web browser.
 
@@ -65,12 +65,7 @@ def add_parser(subparsers) -> None:
         metavar="DIR",
         help="folder for saved poses, PNGs, keyframes and animations. Default: STUDY-view in the current folder",
     )
-    p.add_argument(
-        "--method",
-        choices=["auto", "vbd", "evd"],
-        default="auto",
-        help="'auto': EVD when the study has a model, else VBD. Default: auto",
-    )
+    add_deform_method(p)
     p.add_argument(
         "--preset", default="mri", metavar="mri|ct|FILE.json", help="transfer function (workbench render). Default: mri"
     )
