@@ -45,6 +45,7 @@ __all__ = [
     "animate_study",
     "FORMATS",
     "scan_keyframes",
+    "motion_bounds",
 ]
 
 KEYFRAMES_FORMAT = "avw-keyframes"
@@ -397,9 +398,9 @@ def _sweep_times(keyframes: Keyframes, per_segment: int = 4) -> np.ndarray:
     return np.unique(np.concatenate([np.linspace(a, b, per_segment + 1) for a, b in zip(ts, ts[1:])]))
 
 
-def _camera_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, margin_mm: float) -> tuple:
+def motion_bounds(poser, skeleton, keyframes: Keyframes, mask: np.ndarray, margin_mm: float) -> tuple:
     """World box of the visible template tissue over the motion (forward maps only, no resampling), sampled
-    at :func:`_sweep_times`."""
+    at ``_sweep_times``."""
     from workbench.viz.render import points_bounds, union_bounds
 
     return union_bounds(
@@ -508,7 +509,7 @@ def animate_study(
             thr = first_visible(tf.resolved(lo, hi))
             mask = content_mask(template.data, thr)
             wf = poser.weights_factor  # the forward map lies on the weights' grid
-            bounds = _camera_bounds(poser, sk, kf, mask[::wf, ::wf, ::wf], 2.0 * max(g.spacing))
+            bounds = motion_bounds(poser, sk, kf, mask[::wf, ::wf, ::wf], 2.0 * max(g.spacing))
             # frames on a grid the whole motion fits in: curling fingers pass below a flat hand's slab
             g = covering_grid(g, bounds)
             renderer = VolumeRenderer(

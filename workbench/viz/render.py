@@ -398,7 +398,8 @@ class VolumeRenderer:
         return self._plane is not None and self._clipping
 
     def set_clipping(self, on: bool) -> None:
-        """Cut by the clipping plane given at construction (``clip``), or show the whole volume; no plane, no-op."""
+        """Cut by the clipping plane (given at construction or by :meth:`move_clip`), or show the whole volume;
+        without a plane, nothing to do."""
         if self._plane is None:
             return
         self._clipping = bool(on)

@@ -78,7 +78,7 @@ class PoseSession:
     ):
         from workbench.deform import say_if_compiling, study_poser
         from workbench.study import read_study
-        from workbench.viz.animate import Keyframes, _camera_bounds, builtin_keyframes
+        from workbench.viz.animate import Keyframes, builtin_keyframes, motion_bounds
         from workbench.viz.render import VolumeRenderer, content_mask, first_visible, robust_range, transfer_function
 
         self._talk = True  # the set-up's lines; the poser's per-pose lines are not a viewer's business
@@ -111,9 +111,9 @@ class PoseSession:
         kf = Keyframes(times=np.arange(len(sweep), dtype=float), angles=sweep, interpolation="linear")
         g = template.geometry
         margin = 2.0 * max(g.spacing)
-        boxes = [_camera_bounds(self.poser, sk, kf, mask[::wf, ::wf, ::wf], margin)]
+        boxes = [motion_bounds(self.poser, sk, kf, mask[::wf, ::wf, ::wf], margin)]
         try:
-            boxes.append(_camera_bounds(self.poser, sk, builtin_keyframes(sk), mask[::wf, ::wf, ::wf], margin))
+            boxes.append(motion_bounds(self.poser, sk, builtin_keyframes(sk), mask[::wf, ::wf, ::wf], margin))
         except InputFileError:
             pass  # a skeleton without ready keyframes: the presets alone
         from workbench.viz.render import union_bounds
@@ -134,6 +134,8 @@ class PoseSession:
 
     # -- poses -------------------------------------------------------------------------------------------
     def _make_presets(self) -> dict[str, dict]:
+        from workbench.io.volumes import read_image_geometry
+
         rest = self.rest
         out = {"rest (template)": {k: v.copy() for k, v in rest.items()}}
         scans = {}
@@ -144,8 +146,8 @@ class PoseSession:
                 continue  # the pose stage has not run for this scan
             if a:
                 scans[sid] = {k: np.asarray(a.get(k, rest[k]), float) for k in rest}
-        for sid in scans:  # the compare view reads them later: a broken file is said now, before serving
-            self._check_readable(sid)
+        for sid in scans:  # the compare view reads them later: a broken header is said now, before serving
+            read_image_geometry(self.study.scan_path(sid))
         out.update({f"scan {sid}": a for sid, a in scans.items()})
         if len(scans) >= 2:  # Rhee §6.2: the principal components of the scans' joint-angle vectors
             keys = [(k, i) for k in rest for i in range(min(3, rest[k].size))]  # rotations (degrees) only
@@ -161,21 +163,6 @@ class PoseSession:
                         a[k][i] = val
                     out[f"eigenpose {c + 1} {'+' if sign > 0 else '−'}{EIGEN_SIGMAS:g}σ"] = self._clamped(a)
         return out
-
-    def _check_readable(self, scan_id: str) -> None:
-        import SimpleITK as sitk
-
-        path = self.study.scan_path(scan_id)
-        try:
-            r = sitk.ImageFileReader()
-            r.SetFileName(str(path))
-            r.ReadImageInformation()
-        except RuntimeError:
-            raise InputFileError(
-                f"{path}: scan {scan_id!r} cannot be read (missing, truncated or not an image); restore it or "
-                "remove the scan from the study",
-                path,
-            ) from None
 
     def _clamped(self, angles: dict) -> dict:
         for d in self.dofs:

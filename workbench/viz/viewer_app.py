@@ -19,7 +19,7 @@ import asyncio
 import sys
 import time
 
-__all__ = ["build_app", "SETTLE_S"]
+__all__ = ["build_app", "serve", "SETTLE_S"]
 
 JPEG_QUALITY = 90  # the images sent to the page
 COALESCE_S = 0.01  # a slider's changes arriving within this are posed once

@@ -96,8 +96,8 @@ def test_a_saved_pose_is_the_pose_deform_reads(session):
     assert json.loads(path.read_text(encoding="utf-8"))["angles"]["knee"][0] == 37.1235  # written to 1e-4°
     pose = read_target_pose(path, session.skeleton)
     want = session.skeleton.pose(session.angles)
-    # 0.5e-4° of rounding per joint value, through at most a few joints: rotations differ by < 2e-6 (rad), and
-    # positions by that times the distance from the joint centres (< 1 m here): < 2e-3 mm
+    # only knee[0] is rounded, by 4.4e-6° (7.7e-8 rad): rotations differ by less than 2e-6 and positions by that
+    # times the distance from the knee's centre (< 1 m on this grid), < 2e-3 mm
     for b in session.skeleton.bone_names:
         np.testing.assert_allclose(pose.transforms[b][:3, :3], want.transforms[b][:3, :3], atol=2e-6)
         np.testing.assert_allclose(pose.transforms[b][:3, 3], want.transforms[b][:3, 3], atol=2e-3)
@@ -459,3 +459,17 @@ def test_view_refuses_a_broken_model_file_before_serving(study, tmp_path, capsys
     assert main(["view", str(copy), "--no-browser", "--port", "0"]) == 1
     err = capsys.readouterr().err
     assert "evd_displacements.mha" in err and "serving" not in err
+
+
+def test_view_refuses_an_unreadable_scan_before_serving(study, tmp_path, capsys):
+    import shutil
+
+    from workbench.study import read_study
+
+    copy = tmp_path / "study"
+    shutil.copytree(study, copy)
+    scan = read_study(copy).scan_path("pose01")
+    scan.write_bytes(b"not an image")
+    assert main(["view", str(copy), "--no-browser", "--port", "0"]) == 1
+    err = capsys.readouterr().err
+    assert scan.name in err and "serving" not in err
