@@ -26,6 +26,7 @@ Usage::
     .venv/bin/python benchmarks/bench_registration.py --cases flex --split held-out   # issue I's protocol
     .venv/bin/python benchmarks/bench_registration.py --cases flex --start vbd         # every method from VBD
     .venv/bin/python benchmarks/bench_registration.py --cases flex --start perturbed   # poses off 2-5 deg, 2 mm
+    .venv/bin/python benchmarks/bench_registration.py --cases flex --start skinning-truth   # from the true poses
     nice .venv/bin/python benchmarks/bench_registration.py --cases external          # the external set (tens of
     minutes)
     nice .venv/bin/python benchmarks/bench_registration.py --cases suite --no-sitk --no-adaptive --no-vbd-starts \
@@ -35,8 +36,18 @@ Usage::
 held-out seeds (``--acquisition``, ``--start`` apply to both), then the
 external set; at the end one table per set: per case the start's, ours' and
 elastix's MED, ours / elastix for MED, soft tissue, P95, markers, CC, time
-and peak memory, both bone MEDs, ours' folded voxels beside the start's,
-ours / start, and a last row with the worst case of each column.
+and peak memory, both bone MEDs, the best peer (the lowest MED among the
+peers that ran) with ours / its MED and ours' marker MED / the lowest of any
+peer, ours' folded voxels beside the start's, ours / start, and a last row
+with the worst case of each column (for the best peer: how often each was).
+
+Peers (issue R part 3), each from the same start as ours (the template
+resampled through it, their field composed with it): elastix's B-spline
+(and, in ``flex``, with the rigidity penalty on the bones), PICSL greedy
+(``picsl-greedy``, NCC; ``--no-greedy``) and SimpleITK's fast
+symmetric-forces demons (``--no-demons``), their settings those of
+:mod:`registration.baselines` (``--greedy-settings`` / ``--demons-settings``
+override them, for ``--split tuning`` only).
 
 ``flex`` (issue I): the knee flexed 10°, 45° and 70° and the hand's strongest
 curl, on phantoms with structured soft tissue and an uneven soft-tissue
@@ -45,7 +56,10 @@ motion, at 2.5 mm (knee) / 1.6 mm (hand) voxels.  Poses are *estimated*
 same one-to-one initialisation (the polyrigid flow of those poses,
 :mod:`deformation.models.polyrigid`).  ``--split tuning`` uses the seeds settings
 were chosen on (:data:`TUNING_SEEDS`), ``--split held-out`` the others
-(:data:`HELD_OUT_SEEDS`), never looked at while tuning.  Printed per case:
+(:data:`HELD_OUT_SEEDS`), never looked at while tuning.  ``--start`` changes
+the start: VBD of the same poses, the poses perturbed, or (``skinning-truth``)
+the polyrigid flow of the phantom's true bone poses, every bone held rigid.
+Printed per case:
 MED over body, bone and soft-tissue voxels, P95, marker MED, CC, folded
 fraction, time and peak memory above the process's baseline (RSS sampled
 every 20 ms), and each method's MED and time relative to the best peer.  The
@@ -68,9 +82,10 @@ run COPY --until register`` in steps (``--until weights`` for the study's
 stages before it, then ``--until init`` and ``--until register`` with
 ``--scan`` for each scan, so that each scan's peak memory is its own).
 From the init stage's start field of each scan, read from the copy,
-elastix's B-spline runs when itk-elastix is installed.  Each scan's table has the flex case's columns
-(its skin and 200-marker columns aside), over the validate stage's body: the
-template's body as the weights stage segments it
+elastix's B-spline runs when itk-elastix is installed, greedy and demons
+beside it.  Each scan's table has the flex case's columns (its skin and
+200-marker columns aside), over the validate stage's body: the template's
+body as the weights stage segments it
 (:func:`registration.segmentation.segment_body` with the bone labels),
 pulled onto the scan through the truth (:func:`body_on_scan`); bone voxels
 are those whose true template position is in ``template_labels``.  Times:
@@ -102,8 +117,11 @@ from registration.baselines import (
     ants_syn,
     elastix_available,
     elastix_bspline,
+    greedy_available,
+    greedy_register,
     load_itk,
     sitk_bspline,
+    sitk_demons,
 )
 from registration.initialise import vbd_initial_field
 from registration.metrics import warp_template
@@ -128,8 +146,14 @@ START_ROWS = {
     "polyrigid": "initialised (polyrigid, estimated poses)",
     "vbd": "initialised (VBD, distance weights, estimated poses)",
     "perturbed": "initialised (polyrigid, estimated poses off by 2-5 deg and 2 mm)",
+    "skinning-truth": "initialised (polyrigid, true poses)",
 }
 ELASTIX = "elastix B-spline"
+ELASTIX_RIGIDITY = "elastix B-spline + rigidity penalty"
+GREEDY = "greedy (NCC)"
+DEMONS = "SimpleITK demons"
+#: the set tables' short names of the peers (a peer not listed keeps its row name)
+PEER_SHORT = {ELASTIX: "elastix", ELASTIX_RIGIDITY: "elastix + rigidity", GREEDY: "greedy", DEMONS: "demons"}
 TRUTH = "ground truth (sampled on the scan grid)"
 TUNING_SEEDS = (0, 1)
 HELD_OUT_SEEDS = (100, 101)
@@ -275,6 +299,21 @@ def perturbed_transforms(
     return out
 
 
+def _other_peers(args, scan, template, init, add):
+    """greedy and SimpleITK's demons (issue R part 3) from the start ``init`` every method starts from, as elastix
+    (the template resampled through it, their field composed with it; registration.baselines), each measured by
+    ``add(method, field, seconds, peak MiB)``; left out by ``--no-greedy`` / ``--no-demons`` (greedy also when
+    picsl-greedy is not installed)."""
+    if greedy_available() and not args.no_greedy:
+        with PeakMemory() as pm:
+            b = greedy_register(scan, template, initial=init, seed=args.seed, **args.greedy)
+        add(GREEDY, b.correspondence, b.seconds, pm.mib)
+    if not args.no_demons:
+        with PeakMemory() as pm:
+            b = sitk_demons(scan, template, initial=init, seed=args.seed, **args.demons)
+        add(DEMONS, b.correspondence, b.seconds, pm.mib)
+
+
 def run_flex(args):
     """Issue I's protocol (module docstring): one table per case, methods side by side on the same start."""
     from registration.dense import DenseSettings, register_dense
@@ -355,6 +394,10 @@ def run_flex(args):
                 # tissue below the voxel: its row says how many of a method's folded voxels any exact field has
                 add(TRUTH, truth, 0.0, 0.0)
                 transforms = poses[sid].transforms
+                # the bones every method holds rigid: those the pose stage placed (all of them from the true poses)
+                hold = held[sid]
+                if args.start == "skinning-truth":  # the same polyrigid start from the phantom's true bone poses
+                    transforms, hold = sc.pose.transforms, labels
                 if args.start == "perturbed":  # the estimated poses, each bone off by 2-5 degrees and 2 mm
                     # its own draw per study seed, region and scan
                     transforms = perturbed_transforms(
@@ -394,7 +437,7 @@ def run_flex(args):
                         sc.image,
                         template,
                         initial=init,
-                        moving_labels=held[sid],
+                        moving_labels=hold,
                         settings=getattr(args, "dense", None) or DenseSettings(),
                     )
                 add(OURS, r.correspondence, r.seconds, pm.mib)
@@ -406,7 +449,7 @@ def run_flex(args):
                             sc.image,
                             template,
                             initial=init,
-                            rigid_mask=held[sid],
+                            rigid_mask=hold,
                             settings=AdaptiveSettings.initialised(seed=args.seed),
                         )
                     add("ours (Rhee Alg. 1, initialised preset)", r.correspondence, r.seconds, pm.mib)
@@ -417,9 +460,10 @@ def run_flex(args):
                     if not args.no_elastix_rigidity:
                         with PeakMemory() as pm:
                             b = elastix_bspline(
-                                sc.image, template, initial=init, metric="mi", seed=args.seed, rigidity_labels=held[sid]
+                                sc.image, template, initial=init, metric="mi", seed=args.seed, rigidity_labels=hold
                             )
-                        add("elastix B-spline + rigidity penalty", b.correspondence, b.seconds, pm.mib)
+                        add(ELASTIX_RIGIDITY, b.correspondence, b.seconds, pm.mib)
+                _other_peers(args, sc.image, template, init, add)
                 if not args.no_sitk:
                     with PeakMemory() as pm:
                         b = sitk_bspline(sc.image, template, initial=init, metric="mi", seed=args.seed)
@@ -447,12 +491,50 @@ def _start_row(rows):
     return next(v for m, v in rows.items() if m.startswith("initialised"))
 
 
+def _peers(rows):
+    """The peers that ran on a case: every method but ours (and Rhee's Algorithm 1), the starts and the truth —
+    elastix, elastix + rigidity penalty, greedy, demons, and SimpleITK's B-spline and ANTs SyN when they ran."""
+    return {m: v for m, v in rows.items() if not m.startswith(("ours", "initialised")) and m != TRUTH}
+
+
+def _lowest(peers, key):
+    """The lowest finite ``key`` among ``peers``' rows (NaN if none)."""
+    vals = [v[key] for v in peers.values() if key in v and np.isfinite(v[key])]
+    return min(vals) if vals else float("nan")
+
+
+def best_peer(rows):
+    """A case's best peer (issue R part 3): ``(name, ours' MED / its MED, ours' marker MED / the lowest marker MED
+    among the peers)`` — the marker ratio is over the lowest of any peer, not necessarily the best-MED one's;
+    ``(None, nan, nan)`` without ours or a peer."""
+    peers, ours = _peers(rows), rows.get(OURS)
+    if not peers or not ours:
+        return None, float("nan"), float("nan")
+    best = min(peers, key=lambda m: peers[m]["med_mm"])
+    return best, ours["med_mm"] / peers[best]["med_mm"], ours["marker_med_mm"] / _lowest(peers, "marker_med_mm")
+
+
+def _short(method):
+    return "–" if method is None else PEER_SHORT.get(method, method)
+
+
+def _name_counts(names):
+    """The worst row's cell of a column of names: how often each was the one (most often first)."""
+    counts = {}
+    for n in names:
+        counts[n] = counts.get(n, 0) + 1
+    return ", ".join(f"{n} ×{k}" for n, k in sorted(counts.items(), key=lambda t: (-t[1], t[0])))
+
+
 #: the one table per set (set_table): (header, value from a case's rows, the worse of two, cell format)
 SET_COLUMNS = (
     ("start MED", lambda r: _start_row(r)["med_mm"], max, "{:.2f}"),
     ("ours MED", lambda r: r[OURS]["med_mm"], max, "{:.2f}"),
     ("elastix MED", lambda r: r[ELASTIX]["med_mm"] if ELASTIX in r else float("nan"), max, "{:.2f}"),
     ("MED ours / elastix", _ratio("med_mm"), max, "{:.2f}"),
+    ("best peer", lambda r: _short(best_peer(r)[0]), "names", "{}"),
+    ("MED ours / best peer", lambda r: best_peer(r)[1], max, "{:.2f}"),
+    ("markers ours / lowest peer's", lambda r: best_peer(r)[2], max, "{:.2f}"),
     (
         "bone ours / elastix mm",
         lambda r: (r[OURS]["bone_mm"], r[ELASTIX]["bone_mm"] if ELASTIX in r else float("nan")),
@@ -471,11 +553,12 @@ SET_COLUMNS = (
 
 
 def set_table(name, summary):
-    """One set's table (issue M part 5): per case ours against elastix from the same start and against the start,
-    then the worst case of each column (the largest ratio, the smallest CC ratio; bone: ours' largest; folded:
-    ours' most added to the start's) naming the case."""
+    """One set's table (issue M part 5): per case ours against elastix from the same start, against the best peer
+    (:func:`best_peer`: the lowest MED of the peers that ran; markers: over the lowest marker MED of any peer) and
+    against the start, then the worst case of each column (the largest ratio, the smallest CC ratio; bone: ours'
+    largest; folded: ours' most added to the start's) naming the case; for the best peer, how often each was."""
     items = [(s["label"], s["rows"]) for s in summary if OURS in s.get("rows", {})]
-    print(f"\n## {name}: ours (dense) against elastix from the same start ({len(items)} cases)\n")
+    print(f"\n## {name}: ours (dense) against elastix and the best peer from the same start ({len(items)} cases)\n")
     if not items:
         print("(no case ran)")
         return
@@ -494,6 +577,9 @@ def set_table(name, summary):
     worst = []
     for _, f, worse, fmt in SET_COLUMNS:
         vals = [(label, f(rows)) for label, rows in items]
+        if worse == "names":  # which peer was best: how often each
+            worst.append(_name_counts(v for _, v in vals))
+            continue
         if worse is None:  # a pair: ours' value decides (bone: the largest; folded: the most added)
             key = (lambda v: v[0]) if "{:.3f}" in fmt else (lambda v: v[0] - v[1])
             finite = [t for t in vals if np.isfinite(key(t[1]))]
@@ -510,25 +596,40 @@ def set_table(name, summary):
 
 
 def flex_summary(summary, split):
-    """One line per case: issue I's acceptance figures for ours against the best peer of the same run."""
+    """One line per case: issue I's acceptance figures for ours against the best peer of the same run (the lowest
+    MED; the marker and skin columns: over the lowest of any peer, not necessarily the best-MED one's), and a last
+    row with the worst case of each column (the largest; best peer: how often each was)."""
     summary = [s for s in summary if s]
     if not summary:
         return
     print(f"\n## summary ({split} seeds): ours (dense) against the best peer per case\n")
     print(
-        f"| case | best peer | MED ours / best | marker MED ours / best | {MARKER_SAMPLE} markers ours / best | "
-        "skin MED ours / lowest peer's | skin near joints ours / lowest peer's | folded voxels ours (truth's) | "
-        "bone MED ours mm | time ours / elastix |"
+        f"| case | best peer | MED ours / best | marker MED ours / lowest peer's | {MARKER_SAMPLE} markers ours / "
+        "lowest peer's | skin MED ours / lowest peer's | skin near joints ours / lowest peer's | folded voxels ours "
+        "(truth's) | bone MED ours mm | time ours / elastix |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
+    nan = float("nan")
+    keys = ("med_ratio", "marker_ratio", "many_ratio", "skin_ratio", "skin_joint_ratio")
     for s in summary:
         print(
-            f"| {s['case']} | {s['best']} | {s['med_ratio']:.2f} | {s['marker_ratio']:.2f} | "
-            f"{s['many_ratio']:.2f} | {s['skin_ratio']:.2f} | "
-            f"{s['skin_joint_ratio']:.2f} | {s['n_folded']} "
-            f"({s['n_folded_truth']}) | "
-            f"{s['bone_mm']:.3f} | {s['time_ratio']:.2f} |"
+            f"| {s['case']} | {_short(s['best'])} | "
+            + " | ".join(f"{s.get(k, nan):.2f}" for k in keys)
+            + f" | {s['n_folded']} ({s['n_folded_truth']}) | {s['bone_mm']:.3f} | {s['time_ratio']:.2f} |"
         )
+
+    def worst(key, fmt):
+        finite = [(s.get("label", s["case"]), s.get(key, nan)) for s in summary if np.isfinite(s.get(key, nan))]
+        if not finite:
+            return "–"
+        case, v = max(finite, key=lambda t: t[1])
+        return f"{fmt.format(v)} [{case}]"
+
+    print(
+        f"| **worst** | {_name_counts(_short(s['best']) for s in summary)} | "
+        + " | ".join(worst(k, "{:.2f}") for k in keys)
+        + f" | {worst('n_folded', '{}')} | {worst('bone_mm', '{:.3f}')} | {worst('time_ratio', '{:.2f}')} |"
+    )
     print(
         "\n(issue I asks: MED ratio ≤ 0.8, marker ratio ≤ 1, 0 folded, bone ≤ 0.1 mm, time ratio ≤ 2; the skin MED is "
         f"the markers' measure over the body's outer voxel layer, near the joints its part where the markers "
@@ -562,38 +663,37 @@ def _columns(rows):
 
 
 def flex_report(title, rows):
-    """One case's table (the columns its rows have) and ours against the best peer; returns the summary's
-    figures (``None`` without ours or a peer)."""
+    """One case's table (the columns its rows have) and ours against the best peer (:func:`best_peer`; the marker,
+    200-marker and skin ratios over the lowest of any peer); returns the summary's figures (``None`` without ours
+    or a peer)."""
     cols = _columns(rows.values())
     print(f"\n### {title}\n")
     print("| method | " + " | ".join(c[0] for c in cols) + " |")
     print("|---" * (len(cols) + 1) + "|")
     for m, v in rows.items():
         print(f"| {m} | " + " | ".join(c[2](v) for c in cols) + " |")
-    peers = {m: v for m, v in rows.items() if not m.startswith(("ours", "initialised")) and m != TRUTH}
+    peers = _peers(rows)
     ours = rows.get(OURS)
     if peers and ours:
-        best = min(peers, key=lambda m: peers[m]["med_mm"])
+        best, med_ratio, marker_ratio = best_peer(rows)
         el = peers.get(ELASTIX)
         out = {
             "case": title,
             "best": best,
             "rows": rows,
-            "med_ratio": ours["med_mm"] / peers[best]["med_mm"],
-            "marker_ratio": ours["marker_med_mm"] / peers[best]["marker_med_mm"],
+            "med_ratio": med_ratio,
+            "marker_ratio": marker_ratio,
             "n_folded": ours["n_folded"],
             "n_folded_truth": rows[TRUTH]["n_folded"] if TRUTH in rows else None,
             "bone_mm": ours["bone_mm"],
             "time_ratio": ours["seconds"] / el["seconds"] if el else float("nan"),
         }
-        if "markers_many_mm" in ours:
-            out["many_ratio"] = ours["markers_many_mm"] / peers[best]["markers_many_mm"]
-        for k in ("skin", "skin_joint"):
+        for k in ("markers_many", "skin", "skin_joint"):  # over the lowest of any peer, as the markers
             if f"{k}_mm" in ours:
-                out[f"{k}_ratio"] = ours[f"{k}_mm"] / min(v[f"{k}_mm"] for v in peers.values())
+                out["many_ratio" if k == "markers_many" else f"{k}_ratio"] = ours[f"{k}_mm"] / _lowest(peers, f"{k}_mm")
         print(
-            f"\nours / best peer ({best}): MED {out['med_ratio']:.2f}, marker MED {out['marker_ratio']:.2f}"
-            + (f"; time / elastix {out['time_ratio']:.2f}" if el else ""),
+            f"\nours / best peer ({best}): MED {out['med_ratio']:.2f}; marker MED ours / lowest peer's "
+            f"{out['marker_ratio']:.2f}" + (f"; time / elastix {out['time_ratio']:.2f}" if el else ""),
             flush=True,
         )
         return out
@@ -739,6 +839,7 @@ def run_external(args):
                 with PeakMemory() as pm:
                     b = elastix_bspline(scan, template, initial=init, metric="mi", seed=args.seed)
                 add(ELASTIX, b.correspondence, b.seconds, pm.mib)
+            _other_peers(args, scan, template, init, add)
             out = flex_report(f"{d.name} / {sid} (external, held out)", rows) or {"case": d.name, "rows": rows}
             out["label"] = f"{d.name}/{sid}"
             summary.append(out)
@@ -760,9 +861,14 @@ def run_external(args):
 
 
 def external_summary(summary, failures, elastix):
-    """The external set's summary: per scan ours against elastix and against its own start, the worst scan of
-    every column, and the scans where ours is worse than its start."""
-    print("\n## summary: the external set (held out), ours (dense) against elastix from the same start\n")
+    """The external set's summary: per scan ours against elastix, against the best peer (:func:`best_peer`: the
+    lowest MED of the peers that ran; markers: over the lowest marker MED of any peer) and against its own start,
+    the worst scan of every column (for the best peer: how often each was), and the scans where ours is worse than
+    its start."""
+    print(
+        "\n## summary: the external set (held out), ours (dense) against elastix and the best peer from the same "
+        "start\n"
+    )
     if not elastix:
         print("(elastix unavailable: itk-elastix not installed, `make bench`, or --no-elastix)")
     for name, argv, rc, error in failures:
@@ -771,38 +877,44 @@ def external_summary(summary, failures, elastix):
         return
     start_of = {s["label"]: next(m for m in s["rows"] if m.startswith("initialised")) for s in summary}
     print(
-        "| scan | MED ours / elastix | marker MED ours / elastix | time ours / elastix | MED ours / start | "
-        "marker MED ours / start |"
+        "| scan | MED ours / elastix | marker MED ours / elastix | best peer | MED ours / best peer | markers ours / "
+        "lowest peer's | time ours / elastix | MED ours / start | marker MED ours / start |"
     )
-    print("|---|---|---|---|---|---|")
-    nan = float("nan")
+    print("|---|---|---|---|---|---|---|---|---|")
     table = []
     for s in summary:
-        o, i = s["rows"][OURS], s["rows"][start_of[s["label"]]]
+        rows = s["rows"]
+        o, i = rows[OURS], rows[start_of[s["label"]]]
+        best, med_best, markers_lowest = best_peer(rows)
         table.append(
             (
                 s["label"],
-                s.get("med_ratio", nan),
-                s.get("marker_ratio", nan),
-                s.get("time_ratio", nan),
+                _ratio("med_mm")(rows),  # elastix's own row (the best peer's ratios are the next columns)
+                _ratio("marker_med_mm")(rows),
+                _short(best),
+                med_best,
+                markers_lowest,
+                _ratio("seconds")(rows),
                 o["med_mm"] / i["med_mm"],
                 o["marker_med_mm"] / i["marker_med_mm"],
             )
         )
     for r in table:
-        print(f"| {r[0]} | " + " | ".join(f"{v:.2f}" for v in r[1:]) + " |")
+        print(f"| {r[0]} | " + " | ".join(v if isinstance(v, str) else f"{v:.2f}" for v in r[1:]) + " |")
 
     def worst(k):
+        if isinstance(table[0][k], str):  # the best peer: how often each
+            return _name_counts(r[k] for r in table)
         finite = [r for r in table if np.isfinite(r[k])]
         if not finite:
             return "–"
         r = max(finite, key=lambda r: r[k])
         return f"{r[k]:.2f} [{r[0]}]"
 
-    print("| **worst** | " + " | ".join(worst(k) for k in range(1, 6)) + " |")
+    print("| **worst** | " + " | ".join(worst(k) for k in range(1, len(table[0]))) + " |")
 
     print("\n### worst scan of each column over the external set\n")
-    methods = [TRUTH, "start (init stage)", OURS, ELASTIX]
+    methods = [TRUTH, "start (init stage)", OURS, ELASTIX, GREEDY, DEMONS]
     per_method = {
         m: [
             (s["label"], s["rows"][start_of[s["label"]]] if m == "start (init stage)" else s["rows"][m])
@@ -1052,7 +1164,9 @@ def main(argv=None) -> int:
         default="polyrigid",
         help="flex: the start every method registers from (issue M part 3): the polyrigid flow of the "
         "estimated poses (the workbench's default), VBD of the same poses (it folds in the crease), "
-        "or the polyrigid flow of the estimated poses with every bone off by 2-5 degrees and 2 mm",
+        "the polyrigid flow of the estimated poses with every bone off by 2-5 degrees and 2 mm, "
+        "or the polyrigid flow of the phantom's true bone poses (skinning-truth: no pose error; every bone "
+        "held rigid)",
     )
     p.add_argument(
         "--acquisition",
@@ -1093,6 +1207,25 @@ def main(argv=None) -> int:
         action="store_true",
         help="flex: leave out elastix with the rigidity penalty on the bones (the slowest peer)",
     )
+    p.add_argument(
+        "--no-greedy",
+        action="store_true",
+        help="flex, external: leave out PICSL greedy (registration.baselines.greedy_register; also left out "
+        "without picsl-greedy)",
+    )
+    p.add_argument(
+        "--no-demons",
+        action="store_true",
+        help="flex, external: leave out SimpleITK's demons (registration.baselines.sitk_demons)",
+    )
+    for peer, fn in (("greedy", "greedy_register"), ("demons", "sitk_demons")):
+        p.add_argument(
+            f"--{peer}-settings",
+            metavar="JSON",
+            default="{}",
+            help=f"flex, external: keyword arguments of registration.baselines.{fn} as a JSON object (default: its "
+            "defaults); choose them on --split tuning only",
+        )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--dense-settings",
@@ -1112,6 +1245,15 @@ def main(argv=None) -> int:
         args.dense = DenseSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()})
     except (ValueError, TypeError) as e:
         p.error(f"--dense-settings {args.dense_settings!r}: {e}")
+    for peer in ("greedy", "demons"):
+        text = getattr(args, f"{peer}_settings")
+        try:
+            peer_kw = json.loads(text)
+            if not isinstance(peer_kw, dict):
+                raise ValueError("not a JSON object")
+        except ValueError as e:
+            p.error(f"--{peer}-settings {text!r}: {e}")
+        setattr(args, peer, {k: tuple(v) if isinstance(v, list) else v for k, v in peer_kw.items()})
     if kw and any(c in args.cases for c in ("external", "suite", "table2", "knee", "hand")):
         p.error(
             "--dense-settings applies to --cases flex only (the external set runs the workbench's own chain, "
@@ -1122,6 +1264,10 @@ def main(argv=None) -> int:
     if args.from_truth and args.unfold_init:
         p.error("--from-truth starts from the ground truth, --unfold-init repairs the VBD start: give one of them")
     elx = "available" if elastix_available() else "not installed (pip install -e .[bench])"
+    elx += "; greedy " + (
+        "off" if args.no_greedy else "available" if greedy_available() else "not installed (pip install -e .[bench])"
+    )
+    elx += "; demons " + ("off" if args.no_demons else "on")
     if args.cases == ["flex"]:  # its own seeds and start (run_flex prints them per case)
         print(
             f"registration benchmark, issue I's flex cases ({args.split} seeds), start: "
@@ -1155,8 +1301,10 @@ def main(argv=None) -> int:
         for name, summary in sets:
             set_table(name, summary)
         print(
-            "\n(ratios > 1: ours is worse; CC ratio < 1: ours is worse; bone: ours' and elastix's bone MED; folded: "
-            "ours' folded voxels of the body (the start's); times on a shared machine in one run: compare ratios)"
+            "\n(ratios > 1: ours is worse; CC ratio < 1: ours is worse; bone: ours' and elastix's bone MED; best "
+            "peer: the peer with the lowest MED of those that ran (elastix, + rigidity penalty, greedy, demons, ...); "
+            "markers ours / lowest peer's: over the lowest marker MED of any peer; folded: ours' folded voxels of "
+            "the body (the start's); times on a shared machine in one run: compare ratios)"
         )
         return 1 if failed else 0
     if "flex" in args.cases:

@@ -1,4 +1,4 @@
-"""General-purpose B-spline registrations, run in the same harness as the adaptive one.
+"""General-purpose deformable registrations (B-splines, greedy, demons), run in the same harness as the adaptive one.
 
 The peers a researcher would otherwise reach for, on the same inputs and
 returning the same thing — a ``scan_to_template`` field on the scan grid — so
@@ -10,7 +10,12 @@ that every comparison (``benchmarks/bench_registration.py``,
   refined ×2 per level);
 * :func:`elastix_bspline` — elastix's B-spline registration through
   ``itk-elastix`` (the optional ``bench`` extra: ``pip install -e '.[bench]'``),
-  its default B-spline parameter map with a stated final grid spacing.
+  its default B-spline parameter map with a stated final grid spacing;
+* :func:`greedy_register` — PICSL greedy (``picsl-greedy``, the ``bench``
+  extra), Yushkevich's fast greedy deformable registration: local NCC, three
+  levels, its documented update and field smoothing;
+* :func:`sitk_demons` — SimpleITK's fast symmetric-forces demons on a shrink
+  pyramid, the moving image histogram-matched to the fixed first.
 
 With an initial field ``φ₀`` (e.g. VBD), the template is first resampled onto
 the scan grid through ``φ₀``; the baseline registers the scan to that image,
@@ -39,6 +44,9 @@ __all__ = [
     "sitk_bspline",
     "elastix_bspline",
     "elastix_available",
+    "greedy_register",
+    "greedy_available",
+    "sitk_demons",
     "ants_syn",
     "ants_available",
     "load_itk",
@@ -260,6 +268,167 @@ def elastix_bspline(
     }
     name = "elastix-bspline" if rigidity_labels is None else "elastix-bspline-rigidity"
     return _finish(name, fixed, moving, initial, t_field, time.perf_counter() - t0, params)
+
+
+def greedy_available() -> bool:
+    """Whether picsl-greedy is installed (found without importing it)."""
+    from importlib.util import find_spec
+
+    return find_spec("picsl_greedy") is not None
+
+
+def greedy_register(
+    fixed: Volume,
+    moving: Volume,
+    *,
+    initial: Volume | None = None,
+    ncc_radius: int = 2,
+    iterations=(100, 50, 20),
+    smoothing_voxels=(2.0, 0.5),
+    step: float = 1.0,
+    threads: int | None = None,
+    seed: int = 0,
+) -> BaselineResult:
+    """PICSL greedy's deformable registration (``picsl-greedy``) of the template to a scan.
+
+    The settings of greedy's documentation and its Python package's example:
+    ``-m NCC 2x2x2`` (local normalised cross-correlation, ``ncc_radius`` voxels
+    each way), ``-n 100x50x20`` (``iterations`` per level, coarsest first: 4×,
+    2× and 1× shrink), ``-s 2.0vox 0.5vox`` (``smoothing_voxels``: the
+    Gaussian σ of the update (fluid-like) and of the total field (elastic-like),
+    in voxels) and step ``-e 1.0``.  The images are passed and the warp taken
+    back in memory (SimpleITK images, ITK's physical frame, as ours): greedy's
+    warp maps a fixed point ``x`` to ``x + w(x)`` in the moving image, in mm —
+    the scan → template convention — saved at full precision (``-wp 0``, not its
+    default 0.1-voxel quantisation).  ``threads`` (default: ITK's global default,
+    as the other in-process peers) is ``-threads``; greedy's random generator
+    (the small noise its NCC adds) is seeded ``-seed seed + 1`` (its 0 means
+    unseeded).
+
+    Raises ``ImportError`` naming the extra to install when picsl-greedy is absent.
+    """
+    if not greedy_available():
+        raise ImportError(
+            "the greedy baseline needs picsl-greedy: pip install -e '.[bench]' (or pip install picsl-greedy)"
+        )
+    from picsl_greedy import Greedy3D
+
+    if len(smoothing_voxels) != 2:
+        raise ValueError("smoothing_voxels is greedy's pair (update sigma, field sigma), in voxels")
+    threads = int(threads or sitk.ProcessObject.GetGlobalDefaultNumberOfThreads())
+    t0 = time.perf_counter()
+    f = sitk.Cast(fixed.to_sitk(), sitk.sitkFloat32)
+    m = sitk.Cast(_initialised(fixed, moving, initial).to_sitk(), sitk.sitkFloat32)
+    r = int(ncc_radius)
+    cmd = (
+        f"-d 3 -i fixed moving -m NCC {r}x{r}x{r} -n {'x'.join(str(int(n)) for n in iterations)} "
+        f"-s {float(smoothing_voxels[0])}vox {float(smoothing_voxels[1])}vox -e {float(step)} -wp 0 "
+        f"-threads {threads} -seed {int(seed) + 1} -V 0 -o warp"
+    )
+    g = Greedy3D()
+    g.execute(cmd, fixed=f, moving=m, warp=None)  # raises RuntimeError with greedy's message when it fails
+    warp = g["warp"]  # a vector image on the fixed grid: x -> x + w(x) in the moving image, mm
+    Volume.from_sitk(warp).geometry.check_same(fixed.geometry, names=("greedy's warp", "fixed image"))
+    t_field = Volume(sitk.GetArrayFromImage(warp), fixed.geometry)
+    params = {
+        "metric": f"NCC {r}x{r}x{r}",
+        "iterations": list(iterations),
+        "smoothing_voxels": list(smoothing_voxels),
+        "step": step,
+        "threads": threads,
+        "seed": seed,
+        "command": cmd,
+    }
+    return _finish("greedy", fixed, moving, initial, t_field, time.perf_counter() - t0, params)
+
+
+def _shrunk(img, factor: int, sigma_voxels: float):
+    """``img`` smoothed by a Gaussian of ``sigma_voxels`` (its own voxels, per axis) and resampled ``factor``×
+    coarser over the same physical extent (SimpleITK's demons examples' ``smooth_and_resample``)."""
+    if factor == 1 and sigma_voxels == 0:
+        return img
+    spacing = np.asarray(img.GetSpacing())
+    if sigma_voxels > 0:
+        img = sitk.SmoothingRecursiveGaussian(img, [float(v) for v in sigma_voxels * spacing])
+    size = [max(2, int(n / factor + 0.5)) for n in img.GetSize()]
+    new_spacing = [(n - 1) * s / (k - 1) for n, s, k in zip(img.GetSize(), spacing, size)]
+    return sitk.Resample(
+        img,
+        size,
+        sitk.Transform(),
+        sitk.sitkLinear,
+        img.GetOrigin(),
+        new_spacing,
+        img.GetDirection(),
+        0.0,
+        img.GetPixelID(),
+    )
+
+
+def sitk_demons(
+    fixed: Volume,
+    moving: Volume,
+    *,
+    initial: Volume | None = None,
+    shrink=(4, 2, 1),
+    smoothing_voxels=(2.0, 1.0, 0.0),
+    iterations=(100, 100, 50),
+    field_sd_voxels: float = 1.5,
+    histogram_match: bool = True,
+    seed: int = 0,
+) -> BaselineResult:
+    """SimpleITK's fast symmetric-forces demons (Vercauteren et al.'s ESM forces) of the template to a scan.
+
+    As SimpleITK's demons examples: the moving image first histogram-matched
+    to the fixed (1024 levels, 7 match points, voxels below the mean left
+    out; demons' force is a difference of intensities), then a pyramid of
+    ``shrink`` levels, each image smoothed by ``smoothing_voxels`` (σ in the
+    full grid's voxels) and resampled over the same extent; at each level
+    ``iterations`` demons iterations with the displacement field smoothed by a
+    Gaussian of ``field_sd_voxels`` (that level's voxels) after each, the
+    field carried to the next level by linear resampling.  The field is ITK's
+    physical displacement (mm), fixed ``x`` → moving ``x + u(x)``.  Demons is
+    deterministic: ``seed`` is accepted for the peers' common signature and
+    recorded.
+    """
+    if len(shrink) != len(smoothing_voxels) or len(shrink) != len(iterations):
+        raise ValueError("shrink, smoothing_voxels and iterations need one entry per level")
+    t0 = time.perf_counter()
+    f = sitk.Cast(fixed.to_sitk(), sitk.sitkFloat32)
+    m = sitk.Cast(_initialised(fixed, moving, initial).to_sitk(), sitk.sitkFloat32)
+    if histogram_match:
+        m = sitk.HistogramMatching(
+            m, f, numberOfHistogramLevels=1024, numberOfMatchPoints=7, thresholdAtMeanIntensity=True
+        )
+    demons = sitk.FastSymmetricForcesDemonsRegistrationFilter()
+    demons.SetSmoothDisplacementField(True)
+    demons.SetStandardDeviations(float(field_sd_voxels))
+    field, levels = None, []
+    for factor, sigma, n in zip(shrink, smoothing_voxels, iterations):
+        fs, ms = _shrunk(f, int(factor), float(sigma)), _shrunk(m, int(factor), float(sigma))
+        if field is None:
+            field = sitk.Image(fs.GetSize(), sitk.sitkVectorFloat64)
+            field.CopyInformation(fs)
+        else:
+            field = sitk.Resample(field, fs)  # physical displacements: the values carry over unscaled
+        demons.SetNumberOfIterations(int(n))
+        field = demons.Execute(fs, ms, field)
+        levels.append(
+            {"shrink": int(factor), "iterations": demons.GetElapsedIterations(), "metric": demons.GetMetric()}
+        )
+    if not Volume.from_sitk(field).geometry.is_close(fixed.geometry):  # a last level coarser than the scan
+        field = sitk.Resample(field, f)
+    t_field = Volume(sitk.GetArrayFromImage(field), fixed.geometry)
+    params = {
+        "shrink": list(shrink),
+        "smoothing_voxels": list(smoothing_voxels),
+        "iterations": list(iterations),
+        "field_sd_voxels": field_sd_voxels,
+        "histogram_match": histogram_match,
+        "seed": seed,
+        "levels": levels,
+    }
+    return _finish("sitk-demons", fixed, moving, initial, t_field, time.perf_counter() - t0, params)
 
 
 def _ants_python() -> str | None:
