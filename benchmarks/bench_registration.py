@@ -134,6 +134,7 @@ from validation.registration_measures import (
     error_map,
     marker_med,
     registration_measures,
+    uncertainty_calibration,
 )
 
 # Rhee Tables 2-4, one home (validation.protocols.registration); the benchmark's case names
@@ -214,7 +215,7 @@ class PeakMemory:
         self.mib = (self.peak - self.base) / 2**20
 
 
-def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem, **regions):
+def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem, sigma=None, **regions):
     """One row of a flex or external table: :func:`registration_measures` of ``fld`` (CC of the template warped
     through it), its MED over the ``bone`` voxels of the body and over the rest of the body (soft tissue), its
     P95 over the body, the body's folded voxels, ``seconds`` and ``mem`` (MiB), and ``<name>_mm``: its MED over
@@ -237,6 +238,8 @@ def field_measures(scan, template, fld, truth, body, bone, markers, seconds, mem
         mem_mib=mem,
     )
     m.update({f"{name}_mm": float(err[mask].mean()) for name, mask in regions.items()})
+    if sigma is not None:  # the method's expected error (ours: registration.posterior) against the true one
+        m["calibration"] = uncertainty_calibration(err, np.asarray(sigma.data), body)
     return m
 
 
@@ -374,7 +377,7 @@ def run_flex(args):
                 skin_joint = skin & near
                 rows = {}
 
-                def add(method, fld, seconds, mem):
+                def add(method, fld, seconds, mem, sigma=None):
                     rows[method] = field_measures(
                         sc.image,
                         template,
@@ -440,7 +443,7 @@ def run_flex(args):
                         moving_labels=hold,
                         settings=getattr(args, "dense", None) or DenseSettings(),
                     )
-                add(OURS, r.correspondence, r.seconds, pm.mib)
+                add(OURS, r.correspondence, r.seconds, pm.mib, sigma=r.uncertainty)
                 if r.unfold:
                     print(_unfold_line(r.unfold), flush=True)
                 if not args.no_adaptive:
@@ -549,7 +552,23 @@ SET_COLUMNS = (
     ("time ours / elastix", _ratio("seconds"), max, "{:.2f}"),
     ("peak MiB ours / elastix", _ratio("mem_mib"), max, "{:.2f}"),
     ("MED ours / start", lambda r: r[OURS]["med_mm"] / _start_row(r)["med_mm"], max, "{:.2f}"),
+    # issue R's calibration of ours' expected error σ over the body: the share within 2σ (≥ 0.85 asked), RMS error /
+    # RMS σ (0.67-1.5; worst: the farthest from 1 by ratio) and the rank correlation of σ and the error (≥ 0.4)
+    ("within 2σ", lambda r: _cal(r, "within_2sigma"), min, "{:.2f}"),
+    (
+        "RMS error / σ",
+        lambda r: _cal(r, "rms_ratio"),
+        lambda seq, key: max(seq, key=lambda t: abs(np.log(key(t)))),
+        "{:.2f}",
+    ),
+    ("σ rank corr.", lambda r: _cal(r, "spearman"), min, "{:.2f}"),
 )
+
+
+def _cal(rows, key):
+    """Ours' calibration measure ``key`` (field_measures' "calibration"), NaN when it has none."""
+    v = (rows[OURS].get("calibration") or {}).get(key)
+    return float("nan") if v is None else float(v)
 
 
 def set_table(name, summary):
@@ -696,6 +715,13 @@ def flex_report(title, rows):
             f"{out['marker_ratio']:.2f}" + (f"; time / elastix {out['time_ratio']:.2f}" if el else ""),
             flush=True,
         )
+        cal = ours.get("calibration")
+        if cal:
+            print(
+                f"ours' expected error σ against the true error over the body: {100 * cal['within_2sigma']:.0f} % "
+                f"within 2σ, RMS error / RMS σ {cal['rms_ratio']:.2f}, rank correlation {cal['spearman']:.2f}",
+                flush=True,
+            )
         return out
     return None
 
@@ -824,8 +850,8 @@ def run_external(args):
                 print(_unfold_line(unfold), flush=True)
             rows = {}
 
-            def add(method, fld, seconds, mib):
-                rows[method] = field_measures(scan, template, fld, truth, body, bone, markers, seconds, mib)
+            def add(method, fld, seconds, mib, sigma=None):
+                rows[method] = field_measures(scan, template, fld, truth, body, bone, markers, seconds, mib, sigma)
 
             add(TRUTH, truth, 0.0, 0.0)
             add(
@@ -834,7 +860,13 @@ def run_external(args):
                 e_init["seconds"],
                 mem["init", sid],
             )
-            add(OURS, ours, t_reg.get("registration", e_reg["seconds"]), mem["register", sid])
+            add(
+                OURS,
+                ours,
+                t_reg.get("registration", e_reg["seconds"]),
+                mem["register", sid],
+                st.registration_uncertainty(sid),
+            )
             if elastix_available() and not args.no_elastix:
                 with PeakMemory() as pm:
                     b = elastix_bspline(scan, template, initial=init, metric="mi", seed=args.seed)

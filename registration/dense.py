@@ -135,6 +135,17 @@ class DenseSettings:
     holdout_share: float = 0.35
     holdout_patience: int = 10  #: a level stops after this many taken steps without a new highest held-out LNCC
     holdout_seed: int = 0  #: the draw of the fission's noise (same inputs and seed, same bits)
+    #: the correction weighed against the start by what the images measure (:mod:`registration.posterior`): where
+    #: the scan is silent the start stands, and the result carries its expected error at each voxel
+    #: (``DenseResult.uncertainty``); False: the steps' own correction, no uncertainty
+    posterior: bool = True
+    #: σ (voxels of the finest level) of the kernel over which the correction is measured (the resolution of the
+    #: field); None: the finest level's fluid smoothing (``fluid_voxels``, or ``fluid_mm`` in its voxels)
+    posterior_pool_voxels: float | None = None
+    #: the registration's own error (its smoothing's bias, a motion it recovered in part) as a share of the
+    #: correction it made, added to the posterior's σ in quadrature: the noise alone leaves σ several times too
+    #: small where a large motion was corrected (registration-settings.md, "posterior")
+    posterior_relative_error: float = 0.4
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -187,6 +198,10 @@ class DenseSettings:
                 f"holdout_share must be > 0 and holdout_patience a whole number ≥ 1, got "
                 f"{self.holdout_share}, {self.holdout_patience}"
             )
+        if not (np.isfinite(self.posterior_relative_error) and self.posterior_relative_error >= 0):
+            raise ValueError(f"posterior_relative_error must be ≥ 0, got {self.posterior_relative_error}")
+        if self.posterior_pool_voxels is not None and not self.posterior_pool_voxels > 0:
+            raise ValueError(f"posterior_pool_voxels must be > 0 or None, got {self.posterior_pool_voxels}")
         if not 0 < self.air_weight <= 1:
             raise ValueError(f"air_weight must be in (0, 1], got {self.air_weight}")
 
@@ -209,6 +224,10 @@ class DenseResult:
     unfold: dict | None = (
         None  #: what the final repair changed (deformation.fields.displacement.unfold), None if nothing
     )
+    #: settings.posterior: the expected error of the map at each scan voxel, σ = √tr C (mm), None when off
+    uncertainty: Volume | None = None
+    #: settings.posterior: the prior's SD, the noise, the pooling and the share of the correction kept
+    posterior: dict | None = None
 
 
 #: the bones' significance test compares images smoothed by at least this σ in scan voxels and in template voxels
@@ -934,6 +953,91 @@ def penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffne
     return (membrane_penalty, skin_penalty), skin, membrane
 
 
+def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissue, st, u_in=None) -> tuple:
+    """settings.posterior on a level (:mod:`registration.posterior`): ``(û, σ, record)`` for the level's change
+    ``u`` of its input ``u_in``.  The soft tissue's change is weighed against the input by the information pooled
+    at the level's scale; the prior's variance, ``σ₀² + β² |u_in|²``, is the evidence's over the scan's tissue
+    away from the bones (every 2nd voxel along each axis); a bone (``labl`` pulled through ``u_in + u``) keeps its
+    rigid motion, its ``σ`` that of its rigid pose, blended into the tissue's over its fade (``bone_margin_mm``,
+    as the steps hold it)."""
+    from . import posterior as bayes
+
+    shape = fl.shape
+    mask = None if regl is None else regl > 0
+    # the local intensity fit over at least 2 voxels of the level (a coarse level's LNCC window is under one)
+    info = bayes.information(fl, w, sp, np.maximum(win, 2.0), noise_var, per_sample, mask)
+    prec = bayes.pooled_precision(info, pool, sp)
+    keep = np.ones(shape, np.float32)  # 1 − the nearest bone's weight (1 away from every bone)
+    bone_w = []
+    if labl is not None:
+        u_all = u if u_in is None else u_in + u
+        lab_now = sample_shifted(labl.astype(np.float32), u_all, 1.0 / sp, order=0).astype(np.int32)
+        bones = [int(b) for b in np.unique(lab_now) if b != 0]
+        bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
+        for _, box, _, wgt in bone_w:
+            keep[box] = np.minimum(keep[box], 1.0 - wgt)
+    soft = keep >= 1.0
+    if tissue is not None:
+        soft &= tissue > 0.5
+    elif mask is not None:
+        soft &= mask
+    sub = np.zeros(shape, bool)
+    sub[::2, ::2, ::2] = True
+    # the prior of the level's change: its variance grows with the correction the coarser levels made (none on the
+    # first level), both parts chosen by the evidence
+    motion_share = None
+    if u_in is not None and np.any(u_in):
+        m2 = (u_in**2).sum(axis=0)
+        s0, b = bayes.prior_variance_with_motion(u, prec, soft & sub, m2)
+        prior_var = s0 + b * m2
+        motion_share = float(np.sqrt(b))
+    else:
+        prior_var = bayes.prior_variance(u, prec, soft & sub)
+    post = bayes.posterior_correction(u, prec, prior_var)
+    k = keep[None]
+    u_new = (k * post.u + (1.0 - k) * u).astype(np.float32)
+
+    var = post.sigma.astype(np.float64) ** 2
+    if bone_w:
+        grid_mm = [g * np.float32(h) for g, h in zip(np.indices(shape, dtype=np.float32), sp)]
+        prior_sd = np.r_[np.full(3, st.refine_mm), np.full(3, np.deg2rad(st.refine_deg))]
+        nearest = np.zeros(shape, np.float32)  # the largest bone weight so far
+        bone_var = np.zeros(shape, np.float64)
+        bone_sd = {}
+        for b, box, m, wgt in bone_w:
+            g_box = [g[box] for g in grid_mm]
+            centre = [float(g[m].mean()) for g in g_box]
+            grown = ndimage.binary_dilation(m)
+            cov, sd = bayes.rigid_pose_variance(info[(slice(None),) + box], grown, g_box, centre, prior_sd)
+            take = wgt > nearest[box]
+            bone_var[box][take] = sd[take].astype(np.float64) ** 2
+            nearest[box][take] = wgt[take]
+            bone_sd[str(b)] = [
+                round(float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:]).max()))), 4),
+                round(float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3]).max())), 4),
+            ]
+        var = keep * var + (1.0 - keep) * bone_var
+    sigma = np.sqrt(var).astype(np.float32)
+    tis = soft if soft.any() else np.ones(shape, bool)
+    rec = {
+        "prior_sd_mm": round(post.prior_sd, 4),
+        "prior_motion_share": None if motion_share is None else round(motion_share, 4),
+        # the evidence found no correction the images measure: σ_p at its lower bound (σ then says little)
+        "prior_at_bound": bool(post.prior_sd**2 <= 1.01 * bayes.PRIOR_VARIANCE_BOUNDS[0]),
+        "pool_voxels": [round(float(v), 3) for v in np.broadcast_to(np.asarray(pool, float), (3,))],
+        # the share of the correction kept over the tissue away from the bones (0: the start, 1: the steps' own)
+        "kept": round(float(post.gain[tis].mean(dtype=np.float64)), 4),
+        "correction_mm": [
+            round(float(np.linalg.norm(u[:, tis], axis=0).mean(dtype=np.float64)), 4),
+            round(float(np.linalg.norm(u_new[:, tis], axis=0).mean(dtype=np.float64)), 4),
+        ],
+        "sigma_median_mm": round(float(np.median(sigma[tis])), 4),
+        # each bone's largest rotation SD (°) and translation SD (mm) of its rigid pose
+        "bone_sd": bone_sd if bone_w else None,
+    }
+    return u_new, sigma, rec
+
+
 def register_dense(
     fixed: Volume,
     moving: Volume,
@@ -1102,7 +1206,7 @@ def register_dense(
         held_out = (held_out[0][crop], TemplateSampler(held_out[1], initial, scale, crop), held_out[2])
     # settings.stiffness: the voxel noise variance of the scan the steps see (normalised; with holdout, its steps'
     # copy), measured in its air
-    noise_var = voxel_noise_variance(f0, scan_body)[0] if st.stiffness > 0 else None
+    noise_var = voxel_noise_variance(f0, scan_body)[0] if (st.stiffness > 0 or st.posterior) else None
     f0 = f0[crop]
     template = TemplateSampler(moving_steps, initial, scale, crop, template_body if st.interpolation_noise else False)
     tissue0 = None  # the scan's tissue (settings.tissue_only), when air surrounds the body
@@ -1147,6 +1251,7 @@ def register_dense(
                     [(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a] for a in range(3)]
                 )
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
+    var_post = None  # settings.posterior: the expected squared error of u so far (the levels' posteriors' sum)
     prev_s = None  # the previous level's shrink factor
     levels = []
     for lv, (s, iters) in enumerate(zip(st.shrink, st.iterations)):
@@ -1166,6 +1271,9 @@ def register_dense(
             coords = grid * ratio
             coords = [np.minimum(coords[a], u.shape[a + 1] - 1) for a in range(3)]
             u = np.stack([_sample(u[a], coords) for a in range(3)]).astype(np.float32)
+            if var_post is not None:
+                var_post = _sample(var_post, coords).astype(np.float32)
+        u_in = u.copy()  # settings.posterior weighs this level's change of u
         labl = lab0[::s, ::s, ::s] if lab0 is not None else None
         regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
         win = st.window_mm / sp
@@ -1176,7 +1284,7 @@ def register_dense(
         # noise makes up, the bones and beyond the region 0) and the mean's denominator (the LNCC's: the region)
         membrane_w = None
         n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
-        if noise_var is not None and noise_var > 0:
+        if st.stiffness > 0 and noise_var is not None and noise_var > 0:
             level_noise = np.float32(noise_var * kernel_noise(sig_pre)[0] ** 3)  # the pre-smoothing thins it
             membrane_w = np.clip(level_noise / np.maximum(f_stats[1], np.float32(1e-12)), 0.0, 1.0).astype(np.float32)
             if regl is not None:
@@ -1524,6 +1632,37 @@ def register_dense(
                 "best_step": held_best[1] - 1,
                 "noise_sd": [round(held_out[2][0] * scale, 6), round(held_out[2][1], 6)],
             }
+        # settings.posterior: the level's change of u weighed against its input (registration.posterior), with the
+        # information pooled at the level's own scale: a coarse level measures the smooth part of the correction
+        # over a large region, the finest the detail; the next level starts from the result
+        post_rec = None
+        if st.posterior:
+            t_post = time.perf_counter()
+            w_last = warp_w(u)[0]
+            level_noise = float(noise_var or 0.0) * kernel_noise(sig_pre)[0] ** 3
+            air = regl == 0 if (regl is not None and air_around) else None
+            per_sample = noise_correlation_factor(fl, w_last, air, sig_pre / s, template.air)
+            pool = (
+                st.posterior_pool_voxels
+                if st.posterior_pool_voxels is not None
+                else (float(st.fluid_voxels) if st.fluid_voxels is not None else st.fluid_mm / sp)
+            )
+            du, sigma_l, post_rec = _posterior(
+                u - u_in, fl, w_last, sp, win, level_noise, per_sample, pool, labl, regl, tissue, st, u_in
+            )
+            u = u_in + du
+            var_post = sigma_l**2 if var_post is None else var_post + sigma_l**2
+            post_rec.update(
+                noise_sd=round(float(np.sqrt(level_noise)) * scale, 6),
+                per_sample=round(per_sample, 3),
+                seconds=round(time.perf_counter() - t_post, 2),
+            )
+            log.info(
+                "dense posterior: prior SD %.3f mm, %.0f %% of the correction kept in the tissue, median sigma %.3f mm",
+                post_rec["prior_sd_mm"],
+                100.0 * post_rec["kept"],
+                post_rec["sigma_median_mm"],
+            )
         before = rounds[0]["lncc_before"] if rounds else history[0]
         rec = {
             "level": lv,
@@ -1550,6 +1689,7 @@ def register_dense(
             # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
             # its first bones' round) and the two images' noise SDs (their units), None when off
             "held_out": held_rec,
+            "posterior": post_rec,  # settings.posterior: the level's change weighed against its input, None when off
             "seconds": round(time.perf_counter() - t_level, 2),
         }
         levels.append(rec)
@@ -1566,14 +1706,32 @@ def register_dense(
         if progress is not None:
             progress(rec)
         prev_s = s
+    sigma = post_rec = None
+    if var_post is not None:
+        # σ: the levels' posteriors and the registration's own error, a share of the correction it made
+        sigma = np.sqrt(var_post + (st.posterior_relative_error * np.linalg.norm(u, axis=0)) ** 2).astype(np.float32)
+        post_rec = dict(levels[-1]["posterior"])
+        post_rec.update(
+            prior_sd_levels_mm=[lv_["posterior"]["prior_sd_mm"] for lv_ in levels if lv_["posterior"]],
+            kept_levels=[lv_["posterior"]["kept"] for lv_ in levels if lv_["posterior"]],
+        )
     # u (array axes, mm) → world displacement on the scan grid, then φ = φ₀ ∘ U
     box_shape = f0.shape
     if u.shape[1:] != box_shape:
         grid = np.indices(box_shape, dtype=np.float32)
         coords = [np.minimum(grid[a] / prev_s, u.shape[a + 1] - 1) for a in range(3)]
         u = np.stack([_sample(u[a], coords) for a in range(3)])
+        if sigma is not None:
+            sigma = _sample(sigma, coords).astype(np.float32)
+    if sigma is not None:  # its median over the scan's body (the levels' records hold their own parts)
+        inside = scan_body[crop] if scan_body is not None else np.ones(box_shape, bool)
+        post_rec["sigma_median_mm"] = round(float(np.median(sigma[inside])), 4) if inside.any() else None
     if box_shape != g.array_shape:  # beyond the box (air), U's edge values: the levels' "nearest" padding
-        u = np.pad(u, [(0, 0)] + [(c.start, n - c.stop) for c, n in zip(crop, g.array_shape)], mode="edge")
+        pad = [(c.start, n - c.stop) for c, n in zip(crop, g.array_shape)]
+        u = np.pad(u, [(0, 0)] + pad, mode="edge")
+        if sigma is not None:  # beyond the box the images say nothing: the prior's expected error
+            outside = np.sqrt(3.0 * sum(v**2 for v in post_rec["prior_sd_levels_mm"]))
+            sigma = np.pad(sigma, pad, constant_values=np.float32(outside))
     lab0 = lab_full
     u_ijk = (u[2], u[1], u[0])  # along index axes i, j, k
     d = np.asarray(g.direction_matrix)
@@ -1667,4 +1825,6 @@ def register_dense(
             "n_folded_u": u_folds,
         },
         unfold=repair,
+        uncertainty=None if sigma is None else Volume(sigma, g),
+        posterior=post_rec,
     )

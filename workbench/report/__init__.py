@@ -230,6 +230,18 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
             f"{int(folded.sum())} voxels of the grid with det ≤ 0",
         )
     )
+    sigma = study.registration_uncertainty(sid)
+    if sigma is not None:  # the dense registration's expected error (registration.posterior)
+        sv = np.asarray(sigma.data, np.float64)
+        smax = float(max(np.percentile(sv, 99.5), 1e-3))
+        ss, px = F.plane(sv, sp, "yz", at)
+        figs.append(
+            page.image(
+                F.encode_png(F.colour_map(ss, px, 0.0, smax, cmap="magma")),
+                f"{sid}, yz plane: the registration's expected error σ, 0–{smax:.2f} mm (where the images measured "
+                "the correction it is small; where they are silent it is the prior's and the start stands)",
+            )
+        )
     if truth:
         emax = float(max(np.percentile(err[body], 99), 0.5)) if body.any() else 1.0
         for which in ("xy", "yz"):
@@ -241,6 +253,23 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
                     F.encode_png(F.colour_map(es, px, 0.0, emax, mask=bs, background=ts, window=lo_hi)),
                     f"{sid}, {which}: error |recovered − true| template position over the body, "
                     f"0–{emax:.1f} mm (magma; grey outside the body)",
+                )
+            )
+    if truth and sigma is not None:
+        cal = (study.validation(sid) or {}).get("uncertainty") or {}
+        if cal.get("bins"):
+            b = np.asarray(cal["bins"], float)
+            top = float(max(b.max(), 1e-3)) * 1.05
+            figs.append(
+                page.image(
+                    F.line_plot(
+                        {"per σ decile": (b[:, 0], b[:, 1]), "calibrated (error = σ)": ([0.0, top], [0.0, top])},
+                        xlabel="expected error σ (mm), decile mean",
+                        ylabel="true error (mm), decile RMS",
+                        title=f"calibration: {100 * cal['within_2sigma']:.0f} % within 2σ, RMS error / RMS σ "
+                        f"{cal['rms_ratio']:.2f}, rank correlation {cal['spearman']:.2f}",
+                    ),
+                    f"{sid}: the expected error against the true error over the body, binned by σ",
                 )
             )
     parts.append('<div class="figs">' + "".join(figs) + "</div>")

@@ -17,6 +17,7 @@ Outputs (``registration/<scan>/``)::
     correspondence.mha     scan_to_template on the scan grid (template position − voxel, mm; the convention
                            of truth/<id>_correspondence.mha, usable by sitk.DisplacementFieldTransform)
     template_to_scan.mha   its inverse on the template grid (scan position − voxel, mm)
+    uncertainty.mha        (dense) the map's expected error at each scan voxel, σ in mm (registration.posterior)
     inverse_status.nii.gz  where the inverse was found: 0 ok, 1 folded, 2 not found, 3 outside the scan
     registered.nii.gz      the template resampled onto the scan grid through the field
     log.json               settings, per-level and per-step log, similarity before/after, folding
@@ -310,7 +311,7 @@ def _outputs(result, bm, template, log: dict) -> dict:
     """The register stage's files, the same for both methods; ``log`` fills log.json beside the conventions."""
     from deformation.geometry import Volume
 
-    return {
+    out = {
         "correspondence.mha": Field(result.correspondence),
         "template_to_scan.mha": Field(bm.scan_to_template()),
         "inverse_status.nii.gz": Labels(Volume(bm.status.astype(np.uint8), template.geometry)),
@@ -326,6 +327,9 @@ def _outputs(result, bm, template, log: dict) -> dict:
             }
         ),
     }
+    if getattr(result, "uncertainty", None) is not None:  # the dense registration's expected error (mm)
+        out["uncertainty.mha"] = Image(result.uncertainty)
+    return out
 
 
 def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
@@ -368,7 +372,22 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
         "unfold": result.unfold,
         "similarity_before": result.similarity_before,
         "similarity_after": result.similarity_after,
+        # settings.posterior: the prior's SD, the share of the correction kept, the median expected error
+        # (registration.posterior); None when off
+        "posterior": result.posterior,
     }
+    if result.posterior is not None:
+        p = result.posterior
+        ctx.say(
+            f"{sid}: the correction weighed against the start: {100 * p['kept']:.0f} % kept over the soft tissue "
+            f"(prior SD {p['prior_sd_mm']:.2f} mm); expected error σ median {p['sigma_median_mm']:.2f} mm "
+            "(uncertainty.mha)"
+            + (
+                "; the images measured no correction (the prior's SD at its lower bound): σ there is not checked"
+                if p.get("prior_at_bound")
+                else ""
+            )
+        )
     return _outputs(
         result,
         bm,
@@ -390,5 +409,5 @@ STAGE = Stage(
     run=_run,
     needs=lambda s: ("init", "bones"),
     inputs=_inputs,
-    version=18,  # what each version changed: docs/measurements/workbench.md
+    version=19,  # what each version changed: docs/measurements/workbench.md
 )

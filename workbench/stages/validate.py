@@ -92,12 +92,18 @@ def _run(ctx) -> dict:
         }
         doc["pose"] = pose_errors(study.pose(sid), study.truth_pose(sid), centroids)
     g = truth.geometry
+    err = error_map(field, truth, body_scan)
+    sigma = study.registration_uncertainty(sid)
+    if sigma is not None:  # the dense registration's expected error against the true one (issue R's calibration)
+        from validation.registration_measures import uncertainty_calibration
+
+        doc["uncertainty"] = uncertainty_calibration(err, sigma.data, body_scan)
     from workbench.stages.pose import finite
 
     # a measure with nothing to measure (no markers) is written as null
     return {
         "measures.json": Json(finite(doc)),
-        "error_mm.nii.gz": Image(Volume(error_map(field, truth, body_scan), g)),
+        "error_mm.nii.gz": Image(Volume(err, g)),
         "body.nii.gz": Labels(Volume(body_scan.astype(np.uint8), g)),
     }
 
@@ -111,5 +117,5 @@ STAGE = Stage(
     needs=lambda s: ("register", "weights"),
     inputs=_inputs,
     applies=_applies,
-    version=2,  # what each version changed: docs/measurements/workbench.md
+    version=3,  # what each version changed: docs/measurements/workbench.md
 )

@@ -358,6 +358,13 @@ class Study:
         )
         return inv.data + inv.geometry.world_coordinates(), np.asarray(status.data) <= FOLDED
 
+    def registration_uncertainty(self, scan_id: str) -> Volume | None:
+        """The dense registration's expected error σ (mm) at each scan voxel (``uncertainty.mha``), or ``None``
+        (Rhee's Algorithm 1, or the posterior off)."""
+        if not self.has_output("register", "uncertainty.mha", scan_id):
+            return None
+        return read_volume(self.output("register", "uncertainty.mha", scan_id))
+
     def registered(self, scan_id: str) -> Volume:
         return read_volume(self.output("register", "registered.nii.gz", scan_id))
 
