@@ -25,6 +25,7 @@ NeuroImage 45 (2009) S61–S72. https://doi.org/10.1016/j.neuroimage.2008.10.040
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import threading
@@ -1038,6 +1039,617 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
     return u_new, sigma, rec
 
 
+def _held_out_score(flv, warp_v, win, fv_stats, regl, u_now) -> float:
+    """settings.holdout: the held-out copy's LNCC of the map ``u_now`` (the template at its nearest voxel)."""
+    return lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl)[0]
+
+
+@dataclass
+class _Registration:
+    """What every level of :func:`register_dense` shares: the settings, the scan on the force's box (``f0``,
+    normalised by ``scale``), the template's sampler, the masks, the bones (their labels on the box, centroids and
+    refined poses ``params``, which the levels carry on), the held-out copy and the noise."""
+
+    st: DenseSettings
+    f0: np.ndarray
+    template: TemplateSampler
+    tissue0: np.ndarray | None
+    skin: tuple | None
+    lab0: np.ndarray | None
+    region: np.ndarray | None
+    centres: dict
+    params: dict
+    tested: set
+    held_out: tuple | None
+    noise_var: float | None
+    air_around: bool
+    template_voxel: float
+    scale: float
+    sp_full: np.ndarray
+    crop: tuple
+    var_post: np.ndarray | None = None  #: settings.posterior: the expected squared error of u so far
+
+
+class _Level:
+    """One level of :func:`register_dense`: its images and masks, the map ``u`` (mm along the array axes) and what
+    the steps keep of it, and the level's parts as methods: the objective (:meth:`score`), a step's direction and
+    candidate, the bones' hold and refinement (:meth:`bone_hold`, :meth:`refine`, :meth:`bone_round`), and the
+    trust region with the posterior (:meth:`run`)."""
+
+    def __init__(self, reg, lv, s, u, prev_s):
+        """Level ``lv`` of shrink ``s`` of the registration ``reg`` (:class:`_Registration`), from the map ``u`` of
+        the previous level (of shrink ``prev_s``; None on the first)."""
+        self.reg, self.st, self.lv = reg, reg.st, lv
+        sp_full, skin, held_out, template, lab0, region, st, tissue0, noise_var, f0 = (
+            reg.sp_full,
+            reg.skin,
+            reg.held_out,
+            reg.template,
+            reg.lab0,
+            reg.region,
+            reg.st,
+            reg.tissue0,
+            reg.noise_var,
+            reg.f0,
+        )
+        var_post = reg.var_post
+        t_level = time.perf_counter()
+        s = int(s)
+        sp = sp_full * s
+        sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
+        fl = smooth(f0, sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
+        shape = fl.shape
+        warp_w, sample_w = template.level(s, sig_pre, shape)
+        grid = np.indices(shape, dtype=np.float32)
+        grid_mm = [grid[a] * sp[a] for a in range(3)]
+        if u is None:
+            u = np.zeros((3,) + shape, np.float32)
+        else:  # carry u up: coarse index = fine index · (s_fine / s_coarse)
+            ratio = s / prev_s
+            coords = grid * ratio
+            coords = [np.minimum(coords[a], u.shape[a + 1] - 1) for a in range(3)]
+            u = np.stack([_sample(u[a], coords) for a in range(3)]).astype(np.float32)
+            if var_post is not None:
+                var_post = _sample(var_post, coords).astype(np.float32)
+        u_in = u.copy()  # settings.posterior weighs this level's change of u
+        labl = lab0[::s, ::s, ::s] if lab0 is not None else None
+        regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
+        win = st.window_mm / sp
+        # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
+        tissue = None if tissue0 is None else smooth(tissue0, sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
+        f_stats = local_stats(fl, win, tissue)
+        # settings.stiffness: each voxel's weight in the membrane energy (the share of the scan's local variance its
+        # noise makes up, the bones and beyond the region 0) and the mean's denominator (the LNCC's: the region)
+        membrane_w = None
+        n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
+        if st.stiffness > 0 and noise_var is not None and noise_var > 0:
+            level_noise = np.float32(noise_var * kernel_noise(sig_pre)[0] ** 3)  # the pre-smoothing thins it
+            membrane_w = np.clip(level_noise / np.maximum(f_stats[1], np.float32(1e-12)), 0.0, 1.0).astype(np.float32)
+            if regl is not None:
+                membrane_w *= regl > 0
+            if labl is not None:
+                membrane_w[labl > 0] = 0.0
+        skin_warp = skin_l = skin_band = None
+        if skin is not None:
+            skin_warp = skin[0].level(s, sig_pre, shape)[0]
+            skin_l = smooth(skin[1], sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
+            # the term counts where the scan shows an outline: 1 at its skin, falling to 0 a few windows inside and
+            # outside.  Deep in the scan's body the template's air is a crease whose skins touch in the scan
+            # (contact), which no map of one outline onto the other can mend
+            skin_band = (4.0 * skin_l * (1.0 - skin_l)).astype(np.float32)
+        held_score = None  # settings.holdout: the held-out LNCC of a map (the template at its nearest voxel)
+        if held_out is not None:
+            flv = smooth(held_out[0], sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
+            fv_stats = local_stats(flv, win, tissue)
+            warp_v = held_out[1].level(s, sig_pre, shape)[0]
+
+            held_score = functools.partial(_held_out_score, flv, warp_v, win, fv_stats, regl)
+
+        fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
+        elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
+        force_norm = u_weight = u_norm = None
+        if tissue is not None:  # the normalised convolutions' denominators (settings.tissue_only)
+            force_norm = 1.0 / np.maximum(smooth(tissue, fluid, **GAUSSIAN), 0.5)
+            u_weight = tissue + np.float32(st.air_weight) * (1.0 - tissue)
+            u_norm = 1.0 / smooth(u_weight, elastic, **GAUSSIAN)
+        step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
+        bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
+        inv_sp = 1.0 / sp
+        reg.var_post = var_post
+        self.u = u
+        self.t_level = t_level
+        self.sp = sp
+        self.sig_pre = sig_pre
+        self.fl = fl
+        self.shape = shape
+        self.grid = grid
+        self.grid_mm = grid_mm
+        self.u_in = u_in
+        self.labl = labl
+        self.regl = regl
+        self.win = win
+        self.tissue = tissue
+        self.f_stats = f_stats
+        self.membrane_w = membrane_w
+        self.n_region = n_region
+        self.skin_warp = skin_warp
+        self.skin_l = skin_l
+        self.skin_band = skin_band
+        self.held_score = held_score
+        self.fluid = fluid
+        self.elastic = elastic
+        self.force_norm = force_norm
+        self.u_weight = u_weight
+        self.u_norm = u_norm
+        self.step = step
+        self.bones = bones
+        self.inv_sp = inv_sp
+        self.warp_w = warp_w
+        self.sample_w = sample_w
+        self.s = s
+        self.test = None  # the bones' significance test's images (bone_fit_improves), made when first needed
+        self.bone_w = []  # the bones' weights: (label, box, mask, weight) each
+        self.hold = (None, None)  # bone_hold() of the current bone_w
+
+    def bone_hold(self):
+        """Where U is held (0 on a bone, rising to 1 past its margin) and the held value there: each
+        refined bone's rigid displacement (the nearest bone's where margins meet), None before any."""
+        keep = np.ones(self.shape, np.float32)
+        held = np.zeros((3,) + self.shape, np.float32) if self.reg.params else None
+        for b, box, _, wgt in self.bone_w:
+            kb = 1.0 - wgt
+            if held is not None:  # where this bone is the nearest: its rigid displacement, or 0 if not refined
+                take = kb < keep[box]
+                hb = held[(slice(None),) + box]
+                hb[:, take] = (
+                    _rigid_displacement(self.reg.params[b], self.reg.centres[b], self.grid_mm, box)[:, take]
+                    if b in self.reg.params
+                    else 0.0
+                )
+            keep[box] = np.minimum(keep[box], kb)
+        return keep, held
+
+    def refine(self, u_now, test_all):
+        """settings.refine_bones: each held bone's pose refined in turn (:func:`refine_bone`), only those
+        already moved unless ``test_all``; returns the new ``u`` (``u_now`` untouched) and the record."""
+        u_now = u_now.copy()
+        lab_now = sample_shifted(self.labl.astype(np.float32), u_now, self.inv_sp, order=0).astype(np.int32)
+        # the candidate's fade: refine_margin_voxels of the level's largest spacing (at least that many voxels
+        # along every axis)
+        margin = (
+            self.st.bone_margin_mm
+            if self.st.refine_margin_voxels is None
+            else self.st.refine_margin_voxels * float(self.sp.max())
+        )
+        self.bone_w = _bone_weights(lab_now, self.bones, self.sp, margin)
+        evaluations, moved, folded, unseen = 0, {}, 0, 0
+        finest = self.lv == len(self.st.shrink) - 1
+        for b, box, m, wgt in self.bone_w:
+            if b not in self.reg.centres:
+                continue
+            if b not in self.reg.params:  # not moved so far: tested on a level's first round where it is thick enough
+                # voxels across at its thickest (a single voxel: 1): a pose is read from two opposite edges
+                thick = 2.0 * float(ndimage.distance_transform_edt(m).max()) - 1.0
+                if not test_all or thick < self.st.refine_min_voxels or (finest and b in self.reg.tested):
+                    continue
+                self.reg.tested.add(b)
+            lb = lab_now[box]
+            wgt = np.where((lb == 0) | (lb == b), wgt, np.float32(0.0))  # a bone's move moves no other bone
+            p, gain, n = refine_bone(
+                self.reg.params.get(b, np.zeros(6)),
+                self.reg.centres[b],
+                box,
+                wgt,
+                u_now,
+                self.fl,
+                self.sample_w,
+                self.win,
+                self.tissue,
+                self.regl,
+                self.grid_mm,
+                self.sp,
+                self.st,
+            )
+            evaluations += n
+            if gain > 0 and b not in self.reg.params:  # the start's pose stands unless the image shows it off
+                with np.errstate(invalid="ignore"):
+                    move = np.sqrt(
+                        (_rigid_displacement(p, self.reg.centres[b], self.grid_mm, box)[:, m] ** 2).sum(axis=0)
+                    ).max()
+                if move <= self.st.refine_min_move_voxels * float(self.reg.sp_full.min()):
+                    continue
+                if self.test is None:  # smoothed by at least one scan voxel: see bone_fit_improves
+                    # at least a scan voxel and a template voxel (in mm, as scan voxels)
+                    sig_t = max(self.sig_pre, TEST_SMOOTH_VOXELS, TEST_SMOOTH_VOXELS * self.reg.template_voxel)
+                    fl_t, sample_t = self.fl, self.sample_w
+                    if sig_t > self.sig_pre:
+                        fl_t = smooth(self.reg.f0, sig_t, **GAUSSIAN)[:: self.s, :: self.s, :: self.s].astype(
+                            np.float32
+                        )
+                        warp_t, sample_t = self.reg.template.level(self.s, sig_t, self.shape)
+                    else:
+                        warp_t = self.warp_w
+                    # the air: beyond the bodies grown by two windows, where air surrounds the scan's body
+                    air = self.regl == 0 if (self.regl is not None and self.reg.air_around) else None
+                    self.test = (
+                        fl_t,
+                        sample_t,
+                        noise_correlation_factor(fl_t, warp_t(u_now)[0], air, sig_t / self.s, self.reg.template.air),
+                    )
+                if not bone_fit_improves(
+                    p,
+                    b,
+                    box,
+                    m,
+                    wgt,
+                    u_now,
+                    self.test[0],
+                    self.test[1],
+                    self.reg.centres[b],
+                    self.grid_mm,
+                    self.sp,
+                    self.st,
+                    self.test[2],
+                ):
+                    unseen += 1
+                    continue
+            if gain > 0:
+                # the move must keep U one-to-one as every step does: det(I + ∇u) on the box (grown by a
+                # voxel) above min_jacobian, or not below its value before where it already was
+                grown = (slice(None),) + tuple(
+                    slice(max(c.start - 1, 0), min(c.stop + 1, n)) for c, n in zip(box, self.shape)
+                )
+                det_before = jacobian_min(u_now[grown], self.sp)
+                sub = u_now[(slice(None),) + box]  # a view
+                kept_sub = sub.copy()
+                sub += wgt[None] * (_rigid_displacement(p, self.reg.centres[b], self.grid_mm, box) - sub)
+                if jacobian_min(u_now[grown], self.sp) < min(self.st.min_jacobian, det_before):
+                    sub[...] = kept_sub
+                    folded += 1
+                    continue
+                self.reg.params[b] = p
+                moved[b] = p
+        return u_now, {
+            "evaluations": evaluations,
+            "bones_moved": len(moved),
+            "refused_folding": folded,
+            "refused_not_significant": unseen,
+        }
+
+    def score(self, u_now):
+        """``(w, objective, (dcc, skin, membrane))`` at ``u_now``: the template through the map, the level's
+        objective (the mean LNCC over the region, less settings.skin_weight times the bodies' weighted mean
+        squared difference and settings.stiffness times the membrane energy's mean) and its derivatives: the
+        LNCC's with respect to ``w``; with the skin's term ``(b, d)``, the template's smoothed body through the
+        map and the term's derivative with respect to it; with the energy, its ascent along ``u``."""
+        w_now, v_now = self.warp_w(u_now)
+        cc_now, dcc_now = lncc_force(self.fl, w_now, self.win, self.f_stats, self.regl, v_now)
+        b = None
+        if self.skin_warp is not None:
+            # beyond the template's grid (its body unknown there: a limb leaving the field of view; any
+            # trilinear share of it reads far below 0) the template's body is taken as the scan's: no cost
+            b = self.skin_warp(u_now)[0]
+            b = np.where(b >= 0.0, b, self.skin_l)
+        penalty, skin_d, membrane = penalties(
+            b,
+            self.skin_l,
+            self.skin_band,
+            self.regl,
+            self.st.skin_weight,
+            u_now,
+            self.membrane_w,
+            self.sp,
+            self.st.stiffness,
+            self.n_region,
+        )
+        return w_now, cc_now - penalty[0] - penalty[1], (dcc_now, None if b is None else (b, skin_d), membrane)
+
+    def direction(self, u_now, dcc, w, refresh_bones):
+        """The smoothed gradient of the level's objective at ``u_now`` (mm, array axes; ``dcc`` is
+        :func:`score`'s derivatives: the LNCC's, the skin's term's and the membrane energy's) and its largest
+        magnitude (the trust
+        radius bounds every voxel's move).  The interpolation's noise term (settings.interpolation_noise)
+        enters through ``dcc`` (the local variance it is added to) but its own derivative with respect to
+        the map is left out: the central differences of ``w`` are uncorrelated with the noise ``w`` keeps at
+        the voxel itself (with trilinear sampling on a grid aligned with the template's, the two
+        neighbours' shares of it cancel; approximately on a rotated one), so the force carries no pull
+        towards any sub-voxel position for a derivative to undo; the term corrects the objective that
+        decides whether a step is taken."""
+        dcc, skin, membrane = dcc
+        gw = np.gradient(w)
+        parts = [dcc * gw[a] / self.sp[a] for a in range(3)]
+        if skin is not None:  # the skin's term: its derivative times the template body's gradient
+            gm = np.gradient(skin[0])
+            parts = [parts[a] + skin[1] * gm[a] / self.sp[a] for a in range(3)]
+        if membrane is not None:  # settings.stiffness: the energy's descent, on u itself
+            parts = [parts[a] + membrane[a] for a in range(3)]
+        if self.regl is not None:
+            parts = [p * self.regl for p in parts]
+        force = np.stack(smooth_all(parts, self.fluid))
+        if self.tissue is not None:
+            force *= self.force_norm[None]
+        if self.bones and (refresh_bones or not self.bone_w):  # the bones' regions follow the map
+            lab_now = sample_shifted(self.labl.astype(np.float32), u_now, self.inv_sp, order=0).astype(np.int32)
+            self.bone_w = _bone_weights(lab_now, self.bones, self.sp, self.st.bone_margin_mm)
+            self.hold = self.bone_hold() if self.st.bones == "fixed" else (None, None)
+        return force, float(np.sqrt((force**2).sum(axis=0)).max())
+
+    def candidate(self, u_now, force, fmax, radius):
+        """``u_now`` after one step of at most ``radius`` mm per voxel along ``force`` (composed, smoothed,
+        bones held), and the number of halvings that kept the step one-to-one."""
+        fstep = force * np.float32(radius / fmax)
+        for _, box, m, wgt in self.bone_w:
+            sub = fstep[(slice(None),) + box]  # a view: changed in place
+            if self.st.bones == "rigid":
+                _rigid_project(sub, m, [gm[box] for gm in self.grid_mm], wgt)
+            else:
+                sub *= (1.0 - wgt)[None]
+        halved = 0
+        for _ in range(60):  # 2⁻⁶⁰: a step that still folds is then nothing
+            if jacobian_min(fstep, self.sp) > self.st.min_jacobian:
+                break
+            fstep *= 0.5
+            halved += 1
+        # compose: u ← f + u ∘ (id + f)
+        u_new = (fstep + sample_shifted(u_now, fstep, self.inv_sp)).astype(np.float32)
+        # U's smoothing and the bones' self.hold act in proportion to the step: a step of half the radius is half
+        # of a full one (the composed update and the regularisation alike), so a small enough step follows
+        # the ascent direction and the level's objective can rise until a real balance is reached
+        share = np.float32(radius / self.step)
+        if np.any(self.elastic > 0):
+            if self.tissue is not None:
+                smoothed = weighted_smooth(list(u_new), self.u_weight, self.u_norm, self.elastic)
+            else:
+                smoothed = np.stack(smooth_all(list(u_new), self.elastic))
+            u_new = u_new + share * (smoothed - u_new) if share < 1 else smoothed
+            if self.bone_w and self.st.bones == "fixed":
+                keep, held = self.hold
+                # the bones themselves are held at every step (at their refined rigid motion, 0 before any
+                # refinement); their margins fade in proportion
+                factor = np.where(keep > 0, 1.0 - share * (1.0 - keep), 0.0).astype(np.float32)[None]
+                u_new = u_new * factor if held is None else held + (u_new - held) * factor
+            elif self.bone_w:  # smoothing bent the bones: back to each one's rigid motion
+                for _, box, m, wgt in self.bone_w:
+                    _rigid_project(u_new[(slice(None),) + box], m, [gm[box] for gm in self.grid_mm], wgt)
+        return u_new, halved
+
+    def bone_round(self, u, w, cc, dcc, rounds):
+        """The held bones refined as rigid bodies, each on its own part of the objective; the round is taken
+        only if the level's objective rises.  Returns ``(taken, u, w, cc, dcc)``, the map and its objective after
+        the round; its record goes to ``rounds``."""
+        t_b = time.perf_counter()
+        kept = dict(self.reg.params)
+        # a level's first recorded round tests the bones not moved so far (refine() says which); every round
+        # refines the bones already moved
+        u_b, rec_b = self.refine(u, test_all=not rounds)
+        if not rec_b["evaluations"]:  # no bone to test or refine on this round
+            self.bone_w = []  # refine() made them with its own margin: recomputed at the next step
+            return False, u, w, cc, dcc
+        w_b, cc_b, dcc_b = self.score(u_b)
+        rec_b.update(
+            lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc), seconds=round(time.perf_counter() - t_b, 2)
+        )
+        if not rec_b["taken"]:
+            rec_b["bones_moved"] = 0
+        if cc_b > cc:
+            u, w, cc, dcc = u_b, w_b, cc_b, dcc_b
+        else:
+            self.reg.params.clear()
+            self.reg.params.update(kept)
+        self.bone_w = []  # recomputed (with the hold) from the map at the next step
+        # each bone's rotation (°) and shift (mm) from the start's pose, so far
+        rec_b["poses"] = {
+            str(b): [round(float(np.linalg.norm(p[:3])), 3), round(float(np.linalg.norm(p[3:])), 3)]
+            for b, p in sorted(self.reg.params.items())
+        }
+        rounds.append(rec_b)
+        return rec_b["taken"], u, w, cc, dcc
+
+    def weigh(self) -> dict:
+        """settings.posterior: the level's change of ``u`` weighed against its input (:func:`_posterior`,
+        :mod:`registration.posterior`), the information pooled at the level's own scale: a coarse level measures the
+        smooth part of the correction over a large region, the finest the detail; the next level starts from the
+        result.  Adds the level's posterior variance to ``reg.var_post`` and returns its record."""
+        t_post = time.perf_counter()
+        w_last = self.warp_w(self.u)[0]
+        level_noise = float(self.reg.noise_var or 0.0) * kernel_noise(self.sig_pre)[0] ** 3
+        air = self.regl == 0 if (self.regl is not None and self.reg.air_around) else None
+        per_sample = noise_correlation_factor(self.fl, w_last, air, self.sig_pre / self.s, self.reg.template.air)
+        pool = (
+            self.st.posterior_pool_voxels
+            if self.st.posterior_pool_voxels is not None
+            else (float(self.st.fluid_voxels) if self.st.fluid_voxels is not None else self.st.fluid_mm / self.sp)
+        )
+        du, sigma_l, post_rec = _posterior(
+            self.u - self.u_in,
+            self.fl,
+            w_last,
+            self.sp,
+            self.win,
+            level_noise,
+            per_sample,
+            pool,
+            self.labl,
+            self.regl,
+            self.tissue,
+            self.st,
+            self.u_in,
+        )
+        self.u = self.u_in + du
+        self.reg.var_post = sigma_l**2 if self.reg.var_post is None else self.reg.var_post + sigma_l**2
+        post_rec.update(
+            noise_sd=round(float(np.sqrt(level_noise)) * self.reg.scale, 6),
+            per_sample=round(per_sample, 3),
+            seconds=round(time.perf_counter() - t_post, 2),
+        )
+        log.info(
+            "dense posterior: prior SD %.3f mm, %.0f %% of the correction kept in the tissue, median sigma %.3f mm",
+            post_rec["prior_sd_mm"],
+            100.0 * post_rec["kept"],
+            post_rec["sigma_median_mm"],
+        )
+        return post_rec
+
+    def run(self, iters):
+        """The level's trust region, the bones' rounds, the held-out copy and the posterior; returns the level's
+        record and leaves the map in ``self.u``."""
+        # A trust region on the level's objective (score()): a step is taken only when it
+        # raises the objective; otherwise the radius (each voxel's largest move) halves and the step is tried
+        # again from the same direction; after a taken step the radius grows by radius_growth, up to ``step``.
+        # The level stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or
+        # when the last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps
+        # the trials.  With settings.holdout it also stops after holdout_patience taken steps without a new highest
+        # held-out LNCC, and returns the map of that highest (possibly an earlier one).
+        w, cc, dcc = self.score(self.u)
+        rounds = []  # the bones' refinements (settings.refine_bones)
+
+        # Block-coordinate ascent: the held bones as rigid bodies, then the dense steps until they stop, then
+        # the bones again, ... until a round of the bones no longer raises the objective (or refine_rounds).
+        refining = bool(self.bones and self.reg.centres)
+
+        if refining:
+            _, self.u, w, cc, dcc = self.bone_round(self.u, w, cc, dcc, rounds)
+        history = [cc]
+        # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses, bones tested, bones' rounds) of
+        # the best map; step 0 is the level's input after its first bones' round (which no held-out score judges)
+        held_best = None
+        if self.held_score is not None:
+            held = [self.held_score(self.u)]
+            held_best = (
+                held[0],
+                len(history),
+                self.u,
+                w,
+                cc,
+                dcc,
+                dict(self.reg.params),
+                set(self.reg.tested),
+                len(rounds),
+            )
+            since = len(history)  # the patience counts from the best map or the last bones' round
+        radius = self.step
+        halvings = rejected = 0
+        stop = "cap"
+        force = None
+        trials = 0
+        while trials < int(iters):
+            trials += 1
+            if force is None:
+                force, fmax = self.direction(self.u, dcc, w, refresh_bones=len(history) % 5 == 1)
+                if fmax <= 0:
+                    stop = "no force"
+                    break
+            u_c, halved = self.candidate(self.u, force, fmax, radius)
+            halvings += halved
+            w_c, cc_c, dcc_c = self.score(u_c)
+            stopped = None
+            if cc_c > cc:  # taken
+                self.u, w, cc, dcc = u_c, w_c, cc_c, dcc_c
+                history.append(cc)
+                force = None
+                radius = min(self.st.radius_growth * radius, self.step)
+                if len(history) > 10 and history[-1] - history[-11] < self.st.tolerance:
+                    stopped = "converged"
+                if held_best is not None:
+                    held.append(self.held_score(self.u))
+                    if held[-1] > held_best[0]:
+                        held_best = (
+                            held[-1],
+                            len(history),
+                            self.u,
+                            w,
+                            cc,
+                            dcc,
+                            dict(self.reg.params),
+                            set(self.reg.tested),
+                            len(rounds),
+                        )
+                    elif len(history) - max(held_best[1], since) >= self.st.holdout_patience:
+                        stopped = "held-out"
+            else:
+                rejected += 1
+                radius *= 0.5
+                if radius < self.step * 0.5**self.st.max_halvings:
+                    stopped = "no better step"
+            if stopped:
+                stop = stopped
+                taken = False
+                if refining and len(rounds) < self.st.refine_rounds:
+                    taken, self.u, w, cc, dcc = self.bone_round(self.u, w, cc, dcc, rounds)
+                if taken:
+                    history.append(cc)  # the bones' round raised the objective: the steps go on from there
+                    if held_best is not None:
+                        held.append(self.held_score(self.u))
+                        since = len(history)
+                        if held[-1] > held_best[0]:
+                            held_best = (
+                                held[-1],
+                                len(history),
+                                self.u,
+                                w,
+                                cc,
+                                dcc,
+                                dict(self.reg.params),
+                                set(self.reg.tested),
+                                len(rounds),
+                            )
+                    force, radius, stop = None, self.step, "cap"
+                    continue
+                break
+        held_rec = None
+        if held_best is not None:
+            if held_best[2] is not self.u:  # back to the map the held-out copy scored highest
+                self.u, w, cc, dcc = held_best[2:6]
+                self.reg.params.clear()
+                self.reg.params.update(held_best[6])
+                self.reg.tested.clear()  # a bone first tested after the best map may be tested again
+                self.reg.tested.update(held_best[7])
+                for r in rounds[held_best[8] :]:  # the bones' rounds after it are undone with it
+                    r["discarded"] = True
+            held_rec = {
+                "lncc": [round(float(h), 6) for h in held],
+                "best_step": held_best[1] - 1,
+                "noise_sd": [round(self.reg.held_out[2][0] * self.reg.scale, 6), round(self.reg.held_out[2][1], 6)],
+            }
+        post_rec = self.weigh() if self.st.posterior else None
+        before = rounds[0]["lncc_before"] if rounds else history[0]
+        rec = {
+            "level": self.lv,
+            "shrink": self.s,
+            "shape": list(self.shape),
+            "iterations": len(history) - 1,
+            "lncc_before": before,
+            "lncc_after": cc,
+            "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
+            "rejected": rejected,
+            "stop": stop,
+            "halvings": halvings,
+            # the level's objective (the LNCC, less the skin's term when "skin_term" and the membrane energy when
+            # "noise_share") per taken step (and bones' round): never falls; lncc_before / lncc_after are its
+            "lncc": [round(float(h), 6) for h in history],
+            "tissue_only": self.tissue is not None,  # the windows and smoothing kept to the scan's tissue
+            "skin_term": self.skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
+            # settings.stiffness: the membrane energy's mean weight over the region (the noise's share of the
+            # scan's local variance), None when off
+            "noise_share": None
+            if self.membrane_w is None
+            else round(float(self.membrane_w.sum(dtype=np.float64) / self.n_region), 4),
+            # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
+            "template_noise_sd": None
+            if self.reg.template.noise_var is None
+            else float(np.sqrt(self.reg.template.noise_var) * self.reg.scale),
+            "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
+            # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
+            # its first bones' round) and the two images' noise SDs (their units), None when off
+            "held_out": held_rec,
+            "posterior": post_rec,  # settings.posterior: the level's change weighed against its input, None when off
+            "seconds": round(time.perf_counter() - self.t_level, 2),
+        }
+        self.u = self.u
+        self.reg.var_post = self.reg.var_post
+        return rec
+
+
 def register_dense(
     fixed: Volume,
     moving: Volume,
@@ -1251,461 +1863,46 @@ def register_dense(
                     [(np.nonzero(lab0[sl] == b)[a] + sl[a].start).mean() * sp_full[a] for a in range(3)]
                 )
     u = None  # (3, nz, ny, nx) mm along array axes, on the current level's grid
-    var_post = None  # settings.posterior: the expected squared error of u so far (the levels' posteriors' sum)
     prev_s = None  # the previous level's shrink factor
     levels = []
+    reg = _Registration(
+        st,
+        f0,
+        template,
+        tissue0,
+        skin,
+        lab0,
+        region,
+        centres,
+        params,
+        tested,
+        held_out,
+        noise_var,
+        air_around,
+        template_voxel,
+        scale,
+        sp_full,
+        crop,
+    )
     for lv, (s, iters) in enumerate(zip(st.shrink, st.iterations)):
-        t_level = time.perf_counter()
-        s = int(s)
-        sp = sp_full * s
-        sig_pre = 0.5 * (s - 1) if s > 1 else 0.0
-        fl = smooth(f0, sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
-        shape = fl.shape
-        warp_w, sample_w = template.level(s, sig_pre, shape)
-        grid = np.indices(shape, dtype=np.float32)
-        grid_mm = [grid[a] * sp[a] for a in range(3)]
-        if u is None:
-            u = np.zeros((3,) + shape, np.float32)
-        else:  # carry u up: coarse index = fine index · (s_fine / s_coarse)
-            ratio = s / prev_s
-            coords = grid * ratio
-            coords = [np.minimum(coords[a], u.shape[a + 1] - 1) for a in range(3)]
-            u = np.stack([_sample(u[a], coords) for a in range(3)]).astype(np.float32)
-            if var_post is not None:
-                var_post = _sample(var_post, coords).astype(np.float32)
-        u_in = u.copy()  # settings.posterior weighs this level's change of u
-        labl = lab0[::s, ::s, ::s] if lab0 is not None else None
-        regl = None if region is None else ndimage.maximum_filter(region, size=s)[::s, ::s, ::s]
-        win = st.window_mm / sp
-        # the scan's tissue on this level (a fraction where the pre-smoothing mixes it with air)
-        tissue = None if tissue0 is None else smooth(tissue0, sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
-        f_stats = local_stats(fl, win, tissue)
-        # settings.stiffness: each voxel's weight in the membrane energy (the share of the scan's local variance its
-        # noise makes up, the bones and beyond the region 0) and the mean's denominator (the LNCC's: the region)
-        membrane_w = None
-        n_region = float(np.count_nonzero(regl > 0)) if regl is not None else float(np.prod(shape))
-        if st.stiffness > 0 and noise_var is not None and noise_var > 0:
-            level_noise = np.float32(noise_var * kernel_noise(sig_pre)[0] ** 3)  # the pre-smoothing thins it
-            membrane_w = np.clip(level_noise / np.maximum(f_stats[1], np.float32(1e-12)), 0.0, 1.0).astype(np.float32)
-            if regl is not None:
-                membrane_w *= regl > 0
-            if labl is not None:
-                membrane_w[labl > 0] = 0.0
-        skin_warp = skin_l = skin_band = None
-        if skin is not None:
-            skin_warp = skin[0].level(s, sig_pre, shape)[0]
-            skin_l = smooth(skin[1], sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
-            # the term counts where the scan shows an outline: 1 at its skin, falling to 0 a few windows inside and
-            # outside.  Deep in the scan's body the template's air is a crease whose skins touch in the scan
-            # (contact), which no map of one outline onto the other can mend
-            skin_band = (4.0 * skin_l * (1.0 - skin_l)).astype(np.float32)
-        held_score = None  # settings.holdout: the held-out LNCC of a map (the template at its nearest voxel)
-        if held_out is not None:
-            flv = smooth(held_out[0], sig_pre, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
-            fv_stats = local_stats(flv, win, tissue)
-            warp_v = held_out[1].level(s, sig_pre, shape)[0]
-
-            def held_score(u_now):
-                return lncc_force(flv, warp_v(u_now, order=0)[0], win, fv_stats, regl)[0]
-
-        fluid = st.fluid_mm / sp if st.fluid_voxels is None else np.full(3, float(st.fluid_voxels))
-        elastic = st.elastic_mm / sp if st.elastic_voxels is None else np.full(3, float(st.elastic_voxels))
-        if tissue is not None:  # the normalised convolutions' denominators (settings.tissue_only)
-            force_norm = 1.0 / np.maximum(smooth(tissue, fluid, **GAUSSIAN), 0.5)
-            u_weight = tissue + np.float32(st.air_weight) * (1.0 - tissue)
-            u_norm = 1.0 / smooth(u_weight, elastic, **GAUSSIAN)
-        step = st.step_mm * (float(sp.min()) if st.step_voxels else 1.0)
-        bones = [int(b) for b in np.unique(labl) if b != 0] if labl is not None else []
-        test = None  # the bones' significance test's images (bone_fit_improves), made when first needed
-        bone_w = []
-        hold = (None, None)  # bone_hold() of the current bone_w
-        inv_sp = 1.0 / sp
-
-        def bone_hold():
-            """Where U is held (0 on a bone, rising to 1 past its margin) and the held value there: each
-            refined bone's rigid displacement (the nearest bone's where margins meet), None before any."""
-            keep = np.ones(shape, np.float32)
-            held = np.zeros((3,) + shape, np.float32) if params else None
-            for b, box, _, wgt in bone_w:
-                kb = 1.0 - wgt
-                if held is not None:  # where this bone is the nearest: its rigid displacement, or 0 if not refined
-                    take = kb < keep[box]
-                    hb = held[(slice(None),) + box]
-                    hb[:, take] = (
-                        _rigid_displacement(params[b], centres[b], grid_mm, box)[:, take] if b in params else 0.0
-                    )
-                keep[box] = np.minimum(keep[box], kb)
-            return keep, held
-
-        def refine(u_now, test_all):
-            """settings.refine_bones: each held bone's pose refined in turn (:func:`refine_bone`), only those
-            already moved unless ``test_all``; returns the new ``u`` (``u_now`` untouched) and the record."""
-            nonlocal bone_w, test
-            u_now = u_now.copy()
-            lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
-            # the candidate's fade: refine_margin_voxels of the level's largest spacing (at least that many voxels
-            # along every axis)
-            margin = st.bone_margin_mm if st.refine_margin_voxels is None else st.refine_margin_voxels * float(sp.max())
-            bone_w = _bone_weights(lab_now, bones, sp, margin)
-            evaluations, moved, folded, unseen = 0, {}, 0, 0
-            finest = lv == len(st.shrink) - 1
-            for b, box, m, wgt in bone_w:
-                if b not in centres:
-                    continue
-                if b not in params:  # not moved so far: tested on a level's first round where it is thick enough
-                    # voxels across at its thickest (a single voxel: 1): a pose is read from two opposite edges
-                    thick = 2.0 * float(ndimage.distance_transform_edt(m).max()) - 1.0
-                    if not test_all or thick < st.refine_min_voxels or (finest and b in tested):
-                        continue
-                    tested.add(b)
-                lb = lab_now[box]
-                wgt = np.where((lb == 0) | (lb == b), wgt, np.float32(0.0))  # a bone's move moves no other bone
-                p, gain, n = refine_bone(
-                    params.get(b, np.zeros(6)),
-                    centres[b],
-                    box,
-                    wgt,
-                    u_now,
-                    fl,
-                    sample_w,
-                    win,
-                    tissue,
-                    regl,
-                    grid_mm,
-                    sp,
-                    st,
-                )
-                evaluations += n
-                if gain > 0 and b not in params:  # the start's pose stands unless the image shows it off
-                    with np.errstate(invalid="ignore"):
-                        move = np.sqrt((_rigid_displacement(p, centres[b], grid_mm, box)[:, m] ** 2).sum(axis=0)).max()
-                    if move <= st.refine_min_move_voxels * float(sp_full.min()):
-                        continue
-                    if test is None:  # smoothed by at least one scan voxel: see bone_fit_improves
-                        # at least a scan voxel and a template voxel (in mm, as scan voxels)
-                        sig_t = max(sig_pre, TEST_SMOOTH_VOXELS, TEST_SMOOTH_VOXELS * template_voxel)
-                        fl_t, sample_t = fl, sample_w
-                        if sig_t > sig_pre:
-                            fl_t = smooth(f0, sig_t, **GAUSSIAN)[::s, ::s, ::s].astype(np.float32)
-                            warp_t, sample_t = template.level(s, sig_t, shape)
-                        else:
-                            warp_t = warp_w
-                        # the air: beyond the bodies grown by two windows, where air surrounds the scan's body
-                        air = regl == 0 if (regl is not None and air_around) else None
-                        test = (
-                            fl_t,
-                            sample_t,
-                            noise_correlation_factor(fl_t, warp_t(u_now)[0], air, sig_t / s, template.air),
-                        )
-                    if not bone_fit_improves(
-                        p, b, box, m, wgt, u_now, test[0], test[1], centres[b], grid_mm, sp, st, test[2]
-                    ):
-                        unseen += 1
-                        continue
-                if gain > 0:
-                    # the move must keep U one-to-one as every step does: det(I + ∇u) on the box (grown by a
-                    # voxel) above min_jacobian, or not below its value before where it already was
-                    grown = (slice(None),) + tuple(
-                        slice(max(c.start - 1, 0), min(c.stop + 1, n)) for c, n in zip(box, shape)
-                    )
-                    det_before = jacobian_min(u_now[grown], sp)
-                    sub = u_now[(slice(None),) + box]  # a view
-                    kept_sub = sub.copy()
-                    sub += wgt[None] * (_rigid_displacement(p, centres[b], grid_mm, box) - sub)
-                    if jacobian_min(u_now[grown], sp) < min(st.min_jacobian, det_before):
-                        sub[...] = kept_sub
-                        folded += 1
-                        continue
-                    params[b] = p
-                    moved[b] = p
-            return u_now, {
-                "evaluations": evaluations,
-                "bones_moved": len(moved),
-                "refused_folding": folded,
-                "refused_not_significant": unseen,
-            }
-
-        def score(u_now):
-            """``(w, objective, (dcc, skin, membrane))`` at ``u_now``: the template through the map, the level's
-            objective (the mean LNCC over the region, less settings.skin_weight times the bodies' weighted mean
-            squared difference and settings.stiffness times the membrane energy's mean) and its derivatives: the
-            LNCC's with respect to ``w``; with the skin's term ``(b, d)``, the template's smoothed body through the
-            map and the term's derivative with respect to it; with the energy, its ascent along ``u``."""
-            w_now, v_now = warp_w(u_now)
-            cc_now, dcc_now = lncc_force(fl, w_now, win, f_stats, regl, v_now)
-            b = None
-            if skin_warp is not None:
-                # beyond the template's grid (its body unknown there: a limb leaving the field of view; any
-                # trilinear share of it reads far below 0) the template's body is taken as the scan's: no cost
-                b = skin_warp(u_now)[0]
-                b = np.where(b >= 0.0, b, skin_l)
-            penalty, skin_d, membrane = penalties(
-                b, skin_l, skin_band, regl, st.skin_weight, u_now, membrane_w, sp, st.stiffness, n_region
-            )
-            return w_now, cc_now - penalty[0] - penalty[1], (dcc_now, None if b is None else (b, skin_d), membrane)
-
-        def direction(u_now, dcc, w, refresh_bones):
-            """The smoothed gradient of the level's objective at ``u_now`` (mm, array axes; ``dcc`` is
-            :func:`score`'s derivatives: the LNCC's, the skin's term's and the membrane energy's) and its largest
-            magnitude (the trust
-            radius bounds every voxel's move).  The interpolation's noise term (settings.interpolation_noise)
-            enters through ``dcc`` (the local variance it is added to) but its own derivative with respect to
-            the map is left out: the central differences of ``w`` are uncorrelated with the noise ``w`` keeps at
-            the voxel itself (with trilinear sampling on a grid aligned with the template's, the two
-            neighbours' shares of it cancel; approximately on a rotated one), so the force carries no pull
-            towards any sub-voxel position for a derivative to undo; the term corrects the objective that
-            decides whether a step is taken."""
-            nonlocal bone_w
-            dcc, skin, membrane = dcc
-            gw = np.gradient(w)
-            parts = [dcc * gw[a] / sp[a] for a in range(3)]
-            if skin is not None:  # the skin's term: its derivative times the template body's gradient
-                gm = np.gradient(skin[0])
-                parts = [parts[a] + skin[1] * gm[a] / sp[a] for a in range(3)]
-            if membrane is not None:  # settings.stiffness: the energy's descent, on u itself
-                parts = [parts[a] + membrane[a] for a in range(3)]
-            if regl is not None:
-                parts = [p * regl for p in parts]
-            force = np.stack(smooth_all(parts, fluid))
-            if tissue is not None:
-                force *= force_norm[None]
-            nonlocal hold
-            if bones and (refresh_bones or not bone_w):  # the bones' regions follow the map
-                lab_now = sample_shifted(labl.astype(np.float32), u_now, inv_sp, order=0).astype(np.int32)
-                bone_w = _bone_weights(lab_now, bones, sp, st.bone_margin_mm)
-                hold = bone_hold() if st.bones == "fixed" else (None, None)
-            return force, float(np.sqrt((force**2).sum(axis=0)).max())
-
-        def candidate(u_now, force, fmax, radius):
-            """``u_now`` after one step of at most ``radius`` mm per voxel along ``force`` (composed, smoothed,
-            bones held), and the number of halvings that kept the step one-to-one."""
-            fstep = force * np.float32(radius / fmax)
-            for _, box, m, wgt in bone_w:
-                sub = fstep[(slice(None),) + box]  # a view: changed in place
-                if st.bones == "rigid":
-                    _rigid_project(sub, m, [gm[box] for gm in grid_mm], wgt)
-                else:
-                    sub *= (1.0 - wgt)[None]
-            halved = 0
-            for _ in range(60):  # 2⁻⁶⁰: a step that still folds is then nothing
-                if jacobian_min(fstep, sp) > st.min_jacobian:
-                    break
-                fstep *= 0.5
-                halved += 1
-            # compose: u ← f + u ∘ (id + f)
-            u_new = (fstep + sample_shifted(u_now, fstep, inv_sp)).astype(np.float32)
-            # U's smoothing and the bones' hold act in proportion to the step: a step of half the radius is half
-            # of a full one (the composed update and the regularisation alike), so a small enough step follows
-            # the ascent direction and the level's objective can rise until a real balance is reached
-            share = np.float32(radius / step)
-            if np.any(elastic > 0):
-                if tissue is not None:
-                    smoothed = weighted_smooth(list(u_new), u_weight, u_norm, elastic)
-                else:
-                    smoothed = np.stack(smooth_all(list(u_new), elastic))
-                u_new = u_new + share * (smoothed - u_new) if share < 1 else smoothed
-                if bone_w and st.bones == "fixed":
-                    keep, held = hold
-                    # the bones themselves are held at every step (at their refined rigid motion, 0 before any
-                    # refinement); their margins fade in proportion
-                    factor = np.where(keep > 0, 1.0 - share * (1.0 - keep), 0.0).astype(np.float32)[None]
-                    u_new = u_new * factor if held is None else held + (u_new - held) * factor
-                elif bone_w:  # smoothing bent the bones: back to each one's rigid motion
-                    for _, box, m, wgt in bone_w:
-                        _rigid_project(u_new[(slice(None),) + box], m, [gm[box] for gm in grid_mm], wgt)
-            return u_new, halved
-
-        # A trust region on the level's objective (score()): a step is taken only when it
-        # raises the objective; otherwise the radius (each voxel's largest move) halves and the step is tried
-        # again from the same direction; after a taken step the radius grows by radius_growth, up to ``step``.
-        # The level stops when no step of radius step·2⁻ᵏ (k = settings.max_halvings) raises the objective, or
-        # when the last 10 taken steps together gained less than settings.tolerance; ``iterations`` only caps
-        # the trials.  With settings.holdout it also stops after holdout_patience taken steps without a new highest
-        # held-out LNCC, and returns the map of that highest (possibly an earlier one).
-        w, cc, dcc = score(u)
-        rounds = []  # the bones' refinements (settings.refine_bones)
-
-        def bone_round():
-            """The held bones refined as rigid bodies, each on its own part of the objective; the round is
-            taken only if the level's objective rises.  True when taken."""
-            nonlocal u, w, cc, dcc, bone_w
-            t_b = time.perf_counter()
-            kept = dict(params)
-            # a level's first recorded round tests the bones not moved so far (refine() says which); every round
-            # refines the bones already moved
-            u_b, rec_b = refine(u, test_all=not rounds)
-            if not rec_b["evaluations"]:  # no bone to test or refine on this round
-                bone_w = []  # refine() made them with its own margin: recomputed at the next step
-                return False
-            w_b, cc_b, dcc_b = score(u_b)
-            rec_b.update(
-                lncc_before=cc, lncc_after=cc_b, taken=bool(cc_b > cc), seconds=round(time.perf_counter() - t_b, 2)
-            )
-            if not rec_b["taken"]:
-                rec_b["bones_moved"] = 0
-            if cc_b > cc:
-                u, w, cc, dcc = u_b, w_b, cc_b, dcc_b
-            else:
-                params.clear()
-                params.update(kept)
-            bone_w = []  # recomputed (with the hold) from the map at the next step
-            # each bone's rotation (°) and shift (mm) from the start's pose, so far
-            rec_b["poses"] = {
-                str(b): [round(float(np.linalg.norm(p[:3])), 3), round(float(np.linalg.norm(p[3:])), 3)]
-                for b, p in sorted(params.items())
-            }
-            rounds.append(rec_b)
-            return rec_b["taken"]
-
-        # Block-coordinate ascent: the held bones as rigid bodies, then the dense steps until they stop, then
-        # the bones again, ... until a round of the bones no longer raises the objective (or refine_rounds).
-        refining = bool(bones and centres)
-
-        if refining:
-            bone_round()
-        history = [cc]
-        # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses, bones tested, bones' rounds) of
-        # the best map; step 0 is the level's input after its first bones' round (which no held-out score judges)
-        held_best = None
-        if held_score is not None:
-            held = [held_score(u)]
-            held_best = (held[0], len(history), u, w, cc, dcc, dict(params), set(tested), len(rounds))
-            since = len(history)  # the patience counts from the best map or the last bones' round
-        radius = step
-        halvings = rejected = 0
-        stop = "cap"
-        force = None
-        trials = 0
-        while trials < int(iters):
-            trials += 1
-            if force is None:
-                force, fmax = direction(u, dcc, w, refresh_bones=len(history) % 5 == 1)
-                if fmax <= 0:
-                    stop = "no force"
-                    break
-            u_c, halved = candidate(u, force, fmax, radius)
-            halvings += halved
-            w_c, cc_c, dcc_c = score(u_c)
-            stopped = None
-            if cc_c > cc:  # taken
-                u, w, cc, dcc = u_c, w_c, cc_c, dcc_c
-                history.append(cc)
-                force = None
-                radius = min(st.radius_growth * radius, step)
-                if len(history) > 10 and history[-1] - history[-11] < st.tolerance:
-                    stopped = "converged"
-                if held_best is not None:
-                    held.append(held_score(u))
-                    if held[-1] > held_best[0]:
-                        held_best = (held[-1], len(history), u, w, cc, dcc, dict(params), set(tested), len(rounds))
-                    elif len(history) - max(held_best[1], since) >= st.holdout_patience:
-                        stopped = "held-out"
-            else:
-                rejected += 1
-                radius *= 0.5
-                if radius < step * 0.5**st.max_halvings:
-                    stopped = "no better step"
-            if stopped:
-                stop = stopped
-                if refining and len(rounds) < st.refine_rounds and bone_round():
-                    history.append(cc)  # the bones' round raised the objective: the steps go on from there
-                    if held_best is not None:
-                        held.append(held_score(u))
-                        since = len(history)
-                        if held[-1] > held_best[0]:
-                            held_best = (held[-1], len(history), u, w, cc, dcc, dict(params), set(tested), len(rounds))
-                    force, radius, stop = None, step, "cap"
-                    continue
-                break
-        held_rec = None
-        if held_best is not None:
-            if held_best[2] is not u:  # back to the map the held-out copy scored highest
-                u, w, cc, dcc = held_best[2:6]
-                params.clear()
-                params.update(held_best[6])
-                tested.clear()  # a bone first tested after the best map may be tested again
-                tested.update(held_best[7])
-                for r in rounds[held_best[8] :]:  # the bones' rounds after it are undone with it
-                    r["discarded"] = True
-            held_rec = {
-                "lncc": [round(float(h), 6) for h in held],
-                "best_step": held_best[1] - 1,
-                "noise_sd": [round(held_out[2][0] * scale, 6), round(held_out[2][1], 6)],
-            }
-        # settings.posterior: the level's change of u weighed against its input (registration.posterior), with the
-        # information pooled at the level's own scale: a coarse level measures the smooth part of the correction
-        # over a large region, the finest the detail; the next level starts from the result
-        post_rec = None
-        if st.posterior:
-            t_post = time.perf_counter()
-            w_last = warp_w(u)[0]
-            level_noise = float(noise_var or 0.0) * kernel_noise(sig_pre)[0] ** 3
-            air = regl == 0 if (regl is not None and air_around) else None
-            per_sample = noise_correlation_factor(fl, w_last, air, sig_pre / s, template.air)
-            pool = (
-                st.posterior_pool_voxels
-                if st.posterior_pool_voxels is not None
-                else (float(st.fluid_voxels) if st.fluid_voxels is not None else st.fluid_mm / sp)
-            )
-            du, sigma_l, post_rec = _posterior(
-                u - u_in, fl, w_last, sp, win, level_noise, per_sample, pool, labl, regl, tissue, st, u_in
-            )
-            u = u_in + du
-            var_post = sigma_l**2 if var_post is None else var_post + sigma_l**2
-            post_rec.update(
-                noise_sd=round(float(np.sqrt(level_noise)) * scale, 6),
-                per_sample=round(per_sample, 3),
-                seconds=round(time.perf_counter() - t_post, 2),
-            )
-            log.info(
-                "dense posterior: prior SD %.3f mm, %.0f %% of the correction kept in the tissue, median sigma %.3f mm",
-                post_rec["prior_sd_mm"],
-                100.0 * post_rec["kept"],
-                post_rec["sigma_median_mm"],
-            )
-        before = rounds[0]["lncc_before"] if rounds else history[0]
-        rec = {
-            "level": lv,
-            "shrink": s,
-            "shape": list(shape),
-            "iterations": len(history) - 1,
-            "lncc_before": before,
-            "lncc_after": cc,
-            "input_kept": cc == before and not any(r["taken"] and not r.get("discarded") for r in rounds),
-            "rejected": rejected,
-            "stop": stop,
-            "halvings": halvings,
-            # the level's objective (the LNCC, less the skin's term when "skin_term" and the membrane energy when
-            # "noise_share") per taken step (and bones' round): never falls; lncc_before / lncc_after are its
-            "lncc": [round(float(h), 6) for h in history],
-            "tissue_only": tissue is not None,  # the windows and smoothing kept to the scan's tissue
-            "skin_term": skin_warp is not None,  # settings.skin_weight: the objective less the bodies' difference
-            # settings.stiffness: the membrane energy's mean weight over the region (the noise's share of the
-            # scan's local variance), None when off
-            "noise_share": None if membrane_w is None else round(float(membrane_w.sum(dtype=np.float64) / n_region), 4),
-            # settings.interpolation_noise: the template's noise SD in its tissue (its units), None when off
-            "template_noise_sd": None if template.noise_var is None else float(np.sqrt(template.noise_var) * scale),
-            "bone_refinement": rounds or None,  # settings.refine_bones: each round's record, None when off
-            # settings.holdout: the held-out LNCC per taken step, the step returned (0: the level's input, after
-            # its first bones' round) and the two images' noise SDs (their units), None when off
-            "held_out": held_rec,
-            "posterior": post_rec,  # settings.posterior: the level's change weighed against its input, None when off
-            "seconds": round(time.perf_counter() - t_level, 2),
-        }
+        level = _Level(reg, lv, int(s), u, prev_s)
+        rec = level.run(iters)
+        u = level.u
         levels.append(rec)
         log.info(
             "dense level %d (shrink %d): %d steps taken, %d refused, stopped: %s; objective %.4f -> %.4f",
             lv,
-            s,
+            int(s),
             rec["iterations"],
-            rejected,
-            stop,
+            rec["rejected"],
+            rec["stop"],
             rec["lncc_before"] or 0,
             rec["lncc_after"] or 0,
         )
         if progress is not None:
             progress(rec)
-        prev_s = s
+        prev_s = int(s)
+    var_post = reg.var_post
     sigma = post_rec = None
     if var_post is not None:
         # σ: the levels' posteriors and the registration's own error, a share of the correction it made
