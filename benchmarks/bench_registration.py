@@ -388,6 +388,7 @@ def run_flex(args):
                         sc.markers,
                         seconds,
                         mem,
+                        sigma,
                         skin=skin,
                         skin_joint=skin_joint,
                     )
