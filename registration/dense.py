@@ -954,7 +954,7 @@ def penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffne
     return (membrane_penalty, skin_penalty), skin, membrane
 
 
-def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissue, st, u_in=None) -> tuple:
+def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissue, st, u_in=None, finest=True) -> tuple:
     """settings.posterior on a level (:mod:`registration.posterior`): ``(û, σ, record)`` for the level's change
     ``u`` of its input ``u_in``.  The soft tissue's change is weighed against the input by the information pooled
     at the level's scale; the prior's variance, ``σ₀² + β² |u_in|²``, is the evidence's over the scan's tissue
@@ -999,7 +999,9 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
     u_new = (k * post.u + (1.0 - k) * u).astype(np.float32)
 
     var = post.sigma.astype(np.float64) ** 2
-    if bone_w:
+    if bone_w and not finest:  # a held bone's pose is judged once, on the finest level
+        var = keep * var
+    elif bone_w:
         grid_mm = [g * np.float32(h) for g, h in zip(np.indices(shape, dtype=np.float32), sp)]
         prior_sd = np.r_[np.full(3, st.refine_mm), np.full(3, np.deg2rad(st.refine_deg))]
         nearest = np.zeros(shape, np.float32)  # the largest bone weight so far
@@ -1034,9 +1036,9 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
         ],
         "sigma_median_mm": round(float(np.median(sigma[tis])), 4),
         # each bone's largest rotation SD (°) and translation SD (mm) of its rigid pose
-        "bone_sd": bone_sd if bone_w else None,
+        "bone_sd": bone_sd if (bone_w and finest) else None,
     }
-    return u_new, sigma, rec
+    return u_new, sigma, rec, keep
 
 
 def _held_out_score(flv, warp_v, win, fv_stats, regl, u_now) -> float:
@@ -1460,7 +1462,7 @@ class _Level:
             if self.st.posterior_pool_voxels is not None
             else (float(self.st.fluid_voxels) if self.st.fluid_voxels is not None else self.st.fluid_mm / self.sp)
         )
-        du, sigma_l, post_rec = _posterior(
+        du, sigma_l, post_rec, self.keep = _posterior(
             self.u - self.u_in,
             self.fl,
             w_last,
@@ -1474,6 +1476,7 @@ class _Level:
             self.tissue,
             self.st,
             self.u_in,
+            finest=self.lv == len(self.st.shrink) - 1,
         )
         self.u = self.u_in + du
         self.reg.var_post = sigma_l**2 if self.reg.var_post is None else self.reg.var_post + sigma_l**2
@@ -1905,8 +1908,10 @@ def register_dense(
     var_post = reg.var_post
     sigma = post_rec = None
     if var_post is not None:
-        # σ: the levels' posteriors and the registration's own error, a share of the correction it made
-        sigma = np.sqrt(var_post + (st.posterior_relative_error * np.linalg.norm(u, axis=0)) ** 2).astype(np.float32)
+        # σ: the levels' posteriors and, in the soft tissue, the registration's own error, a share of the correction
+        # it made (a held bone's error is its rigid pose's, in the finest level's posterior)
+        own = (st.posterior_relative_error * np.linalg.norm(u, axis=0)) ** 2
+        sigma = np.sqrt(var_post + level.keep * own).astype(np.float32)
         post_rec = dict(levels[-1]["posterior"])
         post_rec.update(
             prior_sd_levels_mm=[lv_["posterior"]["prior_sd_mm"] for lv_ in levels if lv_["posterior"]],
