@@ -114,6 +114,14 @@ def test_run_goes_through_every_stage_with_truth_only_in_validate(done):
     # the polyrigid start from estimated poses is far better than no deformation at the 35° bend (a quarter: the
     # source is off by the whole bend, the start by the blend's and the pose estimate's errors, a few mm at most)
     assert rows["initialised"]["med_mm"] < 0.25 * rows["source"]["med_mm"]
+    # the dense registration's expected error (issue R) on the scan's grid, and the validate stage's calibration of
+    # it: one point per σ decile, RMS errors and σ in mm, a share and a rank correlation in range
+    sigma = st.registration_uncertainty("pose02")
+    assert sigma is not None and sigma.geometry.is_close(st.scan("pose02").geometry)
+    assert np.all(np.isfinite(sigma.data)) and float(np.min(sigma.data)) > 0
+    cal = st.validation("pose02")["uncertainty"]
+    assert 0.0 <= cal["within_2sigma"] <= 1.0 and cal["rms_ratio"] > 0 and -1.0 <= cal["spearman"] <= 1.0
+    assert len(cal["bins"]) == 10 and all(b[0] > 0 and b[1] >= 0 for b in cal["bins"])
 
 
 def test_second_run_skips_every_stage(done, tmp_path):
@@ -244,7 +252,7 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
     assert "register pose00: up to date, skipped" in again.stderr
     assert "validate pose00: nothing to do (no ground truth)" in again.stderr
     for sid in read_study(root).scan_ids:
-        for name in ("correspondence.mha", "template_to_scan.mha", "registered.nii.gz"):
+        for name in ("correspondence.mha", "template_to_scan.mha", "registered.nii.gz", "uncertainty.mha"):
             assert (bare / "registration" / sid / name).read_bytes() == (
                 root / "registration" / sid / name
             ).read_bytes(), (sid, name)
@@ -558,6 +566,9 @@ def test_every_table_and_picture_of_a_study_with_truth(done, report):
         assert a.size > 100 and a.std() > 1.0
     assert p.toggles == 3 * len(scans)  # three planes per scan
     text = report.read_text(encoding="utf-8")
+    # the expected error's map and, with truth, its calibration plot, per scan (each caption is also its alt text)
+    assert text.count("the registration&#x27;s expected error σ") == 2 * len(scans)
+    assert text.count("the expected error against the true error") == 2 * len(scans)
     assert "Study digest" in text and "SimpleITK" in text
 
 

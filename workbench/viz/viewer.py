@@ -127,6 +127,8 @@ class PoseSession:
         self.posed = None
         self.showing = "model"
         self._scans = {}
+        self._sigmas = {}
+        self.sigma_overlay = False  # the slices of a scan shown with its registration's expected error over it
         self.window_range = (float(lo), float(hi))
         self.last = {}
         self.keyframes: list[dict] = []
@@ -219,6 +221,16 @@ class PoseSession:
             self._scans[scan_id] = resampled_onto(self.study.scan(scan_id), self.grid)
         return self._scans[scan_id]
 
+    def uncertainty_on_grid(self, scan_id: str):
+        """The scan's registration's expected error σ (mm, ``uncertainty.mha``) resampled onto the view's grid, read
+        once; None when the registration wrote none (Rhee's Algorithm 1, or the posterior off)."""
+        from workbench.viz.render import resampled_onto
+
+        if scan_id not in self._sigmas:
+            sigma = self.study.registration_uncertainty(scan_id) if self.study.has_registration(scan_id) else None
+            self._sigmas[scan_id] = None if sigma is None else resampled_onto(sigma, self.grid)
+        return self._sigmas[scan_id]
+
     def show(self, what: str = "model") -> np.ndarray:
         """Render the posed model (``"model"``, its bones as surfaces) or a scan (its id) with the same
         transfer function, camera and clipping: the report's validation view, live."""
@@ -287,15 +299,28 @@ class PoseSession:
     def slices(self) -> dict[str, bytes]:
         """Three orthogonal planes (``xy``, ``xz``, ``yz``) of the shown volume through the grid's centre, as
         PNG bytes (grey, windowed to the template's robust range)."""
-        from workbench.report.figures import encode_png, grey, plane
+        from workbench.report.figures import colour_map, encode_png, grey, plane
 
         vol = self.posed.volume if self.showing == "model" else self.scan_on_grid(self.showing)
         data = np.asarray(vol.data)
         at = tuple(int(n // 2) for n in data.shape)
+        sigma = None
+        if self.sigma_overlay and self.showing != "model":
+            sigma = self.uncertainty_on_grid(self.showing)
         out = {}
         for which in ("xy", "xz", "yz"):
             sl, px = plane(data, self.grid.spacing, which, at)
-            out[which] = encode_png(grey(sl, px, self.window_range))
+            if sigma is None:
+                out[which] = encode_png(grey(sl, px, self.window_range))
+                continue
+            # σ over the scan where the scan shows tissue (the template's robust range's lower tenth and up)
+            ss, _ = plane(np.asarray(sigma.data), self.grid.spacing, which, at)
+            lo, hi = self.window_range
+            smax = float(max(np.percentile(np.asarray(sigma.data), 99.5), 1e-3))
+            tissue = sl > lo + 0.1 * (hi - lo)
+            out[which] = encode_png(
+                colour_map(ss, px, 0.0, smax, cmap="magma", mask=tissue, background=sl, window=self.window_range)
+            )
         return out
 
     # -- keeping what was made ---------------------------------------------------------------------------

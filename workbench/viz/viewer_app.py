@@ -68,6 +68,7 @@ def build_app(session, *, name: str = "workbench view"):
             "clip_fraction": (session.renderer.clip.fraction if session.renderer.clip is not None else 0.5),
             "preset": str(session.transfer),
             "compare": "model",
+            "sigma_overlay": False,
             "compare_scan": "",
             "showing": "model",
             "image": "",
@@ -130,6 +131,11 @@ def build_app(session, *, name: str = "workbench view"):
                 await asyncio.sleep(FLICKER_S)
         finally:
             pending["flicker"] = None
+
+    @state.change("sigma_overlay")
+    def on_sigma_overlay(sigma_overlay, **_):
+        session.sigma_overlay = bool(sigma_overlay)
+        slices_next()
 
     @state.change("compare")
     def on_compare(compare, **_):
@@ -317,6 +323,14 @@ def build_app(session, *, name: str = "workbench view"):
                     v3.VBtn("model", value="model", size="small", id="compare-model")
                     v3.VBtn("scan", value="scan", size="small", id="compare-scan")
                     v3.VBtn("flicker", value="flicker", size="small", id="compare-flicker")
+                v3.VCheckbox(
+                    v_model=("sigma_overlay",),
+                    label="the scan's slices: its registration's expected error σ over it",
+                    density="compact",
+                    hide_details=True,
+                    disabled=("!compare_scan",),
+                    id="sigma-overlay",
+                )
                 joints = []
                 for d in dofs:
                     if d.joint not in joints:

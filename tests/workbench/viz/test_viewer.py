@@ -180,6 +180,36 @@ def test_slices_are_three_planes_of_the_shown_volume(session):
         assert a.ndim == 2 and a.std() > 5  # grey, with anatomy (not one flat value)
 
 
+def test_the_sigma_overlay_colours_a_scans_slices_where_it_shows_tissue(session, monkeypatch):
+    """With the overlay on and a scan shown, each slice is the scan's registration's σ in colour over the scan's
+    tissue (grey elsewhere); off, or with the model shown, the grey slices.  σ here is a ramp along the grid's x
+    axis (the study's registrations are not run in this module), so the xy plane's colour varies along x."""
+    from deformation.geometry import Volume
+
+    sid = session.training_scans()[0]
+    g = session.grid
+    ramp = np.broadcast_to(np.linspace(0.0, 2.0, g.size[0], dtype=np.float32), g.array_shape)
+    monkeypatch.setattr(session, "uncertainty_on_grid", lambda scan_id: Volume(np.ascontiguousarray(ramp), g))
+    session.use(f"scan {sid}")
+    session.update(exact=True)
+    session.show(sid)
+    grey = {k: _png(v) for k, v in session.slices().items()}
+    session.sigma_overlay = True
+    try:
+        coloured = {k: _png(v) for k, v in session.slices().items()}
+        session.show("model")
+        model = {k: _png(v) for k, v in session.slices().items()}
+    finally:
+        session.sigma_overlay = False
+    assert all(a.ndim == 2 for a in grey.values()) and all(a.ndim == 2 for a in model.values())
+    xy = coloured["xy"]
+    assert xy.ndim == 3 and xy.shape[-1] == 3
+    spread = xy.astype(int).max(axis=-1) - xy.astype(int).min(axis=-1)
+    assert (spread > 30).mean() > 0.1  # magma's colours over the tissue, not grey
+    cols = xy.astype(float).mean(axis=(0, 2))
+    assert cols[-len(cols) // 4 :].mean() != cols[: len(cols) // 4].mean()
+
+
 def test_keyframes_export_an_animation_the_cli_reads(session):
     from workbench.viz.animate import read_keyframes
 
