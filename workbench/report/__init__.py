@@ -235,11 +235,14 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
         sv = np.asarray(sigma.data, np.float64)
         smax = float(max(np.percentile(sv, 99.5), 1e-3))
         ss, px = F.plane(sv, sp, "yz", at)
+        cs, _ = F.plane(content, sp, "yz", at)
+        ts, _ = F.plane(scan.data, sp, "yz", at)
         figs.append(
             page.image(
-                F.encode_png(F.colour_map(ss, px, 0.0, smax, cmap="magma")),
-                f"{sid}, yz plane: the registration's expected error σ, 0–{smax:.2f} mm (where the images measured "
-                "the correction it is small; where they are silent it is the prior's and the start stands)",
+                F.encode_png(F.colour_map(ss, px, 0.0, smax, cmap="magma", mask=cs, background=ts, window=lo_hi)),
+                f"{sid}, yz plane: the registration's expected error σ over the scan's tissue, 0–{smax:.2f} mm "
+                "(magma; where the images measured the correction it is small, where they are silent it is the "
+                "prior's and the start stands)",
             )
         )
     if truth:
@@ -266,7 +269,7 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
                         {"per σ decile": (b[:, 0], b[:, 1]), "calibrated (error = σ)": ([0.0, top], [0.0, top])},
                         xlabel="expected error σ (mm), decile mean",
                         ylabel="true error (mm), decile RMS",
-                        title=f"calibration: {100 * cal['within_2sigma']:.0f} % within 2σ, RMS error / RMS σ "
+                        title=f"calibration: {100 * cal['within_2sigma']:.0f} % within 2σ,\nRMS error / RMS σ "
                         f"{cal['rms_ratio']:.2f}, rank correlation {cal['spearman']:.2f}",
                     ),
                     f"{sid}: the expected error against the true error over the body, binned by σ",
