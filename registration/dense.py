@@ -42,6 +42,7 @@ from deformation.fields.interpolate import sample_array, sample_displaced_array,
 from deformation.filters import smooth
 from deformation.geometry import GridGeometry, Volume
 
+from . import posterior as bayes
 from .metrics import air_level, cc, similarity, warp_template
 
 __all__ = [
@@ -589,12 +590,7 @@ def _rigid_project(f, mask, grid_mm, weight):
     r = x - c
     y = np.stack([f[a][idx] for a in range(3)], axis=1)
     # f ≈ t + ω × r:  rows [I | -[r]×]  — solve the 6×6 normal equations
-    n = len(r)
-    a = np.zeros((n, 3, 6))
-    a[:, 0, 0] = a[:, 1, 1] = a[:, 2, 2] = 1.0
-    a[:, 0, 4], a[:, 0, 5] = r[:, 2], -r[:, 1]
-    a[:, 1, 3], a[:, 1, 5] = -r[:, 2], r[:, 0]
-    a[:, 2, 3], a[:, 2, 4] = r[:, 1], -r[:, 0]
+    a = bayes.rigid_jacobian(r)
     ata = np.einsum("nij,nik->jk", a, a)
     aty = np.einsum("nij,ni->j", a, y)
     try:
@@ -961,8 +957,6 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
     away from the bones (every 2nd voxel along each axis); a bone (``labl`` pulled through ``u_in + u``) keeps its
     rigid motion, its ``σ`` that of its rigid pose, blended into the tissue's over its fade (``bone_margin_mm``,
     as the steps hold it)."""
-    from . import posterior as bayes
-
     shape = fl.shape
     mask = None if regl is None else regl > 0
     # the local intensity fit over at least 2 voxels of the level (a coarse level's LNCC window is under one)
@@ -1516,10 +1510,10 @@ class _Level:
         # settings.holdout: (held-out LNCC, taken steps, u, w, cc, dcc, bone poses, bones tested, bones' rounds) of
         # the best map; step 0 is the level's input after its first bones' round (which no held-out score judges)
         held_best = None
-        if self.held_score is not None:
-            held = [self.held_score(self.u)]
-            held_best = (
-                held[0],
+
+        def snapshot(held_lncc):  # the map as it is now, with its held-out LNCC (settings.holdout)
+            return (
+                held_lncc,
                 len(history),
                 self.u,
                 w,
@@ -1529,6 +1523,10 @@ class _Level:
                 set(self.reg.tested),
                 len(rounds),
             )
+
+        if self.held_score is not None:
+            held = [self.held_score(self.u)]
+            held_best = snapshot(held[0])
             since = len(history)  # the patience counts from the best map or the last bones' round
         radius = self.step
         halvings = rejected = 0
@@ -1556,17 +1554,7 @@ class _Level:
                 if held_best is not None:
                     held.append(self.held_score(self.u))
                     if held[-1] > held_best[0]:
-                        held_best = (
-                            held[-1],
-                            len(history),
-                            self.u,
-                            w,
-                            cc,
-                            dcc,
-                            dict(self.reg.params),
-                            set(self.reg.tested),
-                            len(rounds),
-                        )
+                        held_best = snapshot(held[-1])
                     elif len(history) - max(held_best[1], since) >= self.st.holdout_patience:
                         stopped = "held-out"
             else:
@@ -1585,17 +1573,7 @@ class _Level:
                         held.append(self.held_score(self.u))
                         since = len(history)
                         if held[-1] > held_best[0]:
-                            held_best = (
-                                held[-1],
-                                len(history),
-                                self.u,
-                                w,
-                                cc,
-                                dcc,
-                                dict(self.reg.params),
-                                set(self.reg.tested),
-                                len(rounds),
-                            )
+                            held_best = snapshot(held[-1])
                     force, radius, stop = None, self.step, "cap"
                     continue
                 break

@@ -55,6 +55,7 @@ __all__ = [
     "prior_variance",
     "prior_variance_with_motion",
     "posterior_correction",
+    "rigid_jacobian",
     "rigid_pose_variance",
 ]
 
@@ -231,6 +232,18 @@ def posterior_correction(u: np.ndarray, precision: np.ndarray, prior_var) -> Pos
     )
 
 
+def rigid_jacobian(r: np.ndarray) -> np.ndarray:
+    """The Jacobian ``[I | −[r]×]`` (``(n, 3, 6)``) of a small rigid motion ``t + ω × r`` at the points ``r``
+    (``(n, 3)``, from the centre) with respect to ``(t, ω)``."""
+    jac = np.zeros((len(r), 3, 6))
+    jac[:, 0, 0] = jac[:, 1, 1] = jac[:, 2, 2] = 1.0
+    # ω × r, rows: (ω₁ r₂ − ω₂ r₁, ω₂ r₀ − ω₀ r₂, ω₀ r₁ − ω₁ r₀)
+    jac[:, 0, 4], jac[:, 0, 5] = r[:, 2], -r[:, 1]
+    jac[:, 1, 3], jac[:, 1, 5] = -r[:, 2], r[:, 0]
+    jac[:, 2, 3], jac[:, 2, 4] = r[:, 1], -r[:, 0]
+    return jac
+
+
 def rigid_pose_variance(info: np.ndarray, mask: np.ndarray, grid_mm, centre, prior_sd) -> tuple[np.ndarray, np.ndarray]:
     """A rigid body's pose covariance (6×6: translation mm, rotation rad about ``centre``) from the information
     of its voxels ``mask`` (``info``: (6, …) per voxel), ``(Σ Jᵀ I J + diag(1/prior_sd²))⁻¹``, ``J = [I | −[r]×]``
@@ -239,13 +252,7 @@ def rigid_pose_variance(info: np.ndarray, mask: np.ndarray, grid_mm, centre, pri
     idx = np.nonzero(mask)
     r = np.stack([g[idx] - c for g, c in zip(grid_mm, centre)], axis=-1).astype(np.float64)
     ii = _full(info[(slice(None),) + idx])
-    n = len(r)
-    jac = np.zeros((n, 3, 6))
-    jac[:, 0, 0] = jac[:, 1, 1] = jac[:, 2, 2] = 1.0
-    # ω × r, rows: (ω₁ r₂ − ω₂ r₁, ω₂ r₀ − ω₀ r₂, ω₀ r₁ − ω₁ r₀)
-    jac[:, 0, 4], jac[:, 0, 5] = r[:, 2], -r[:, 1]
-    jac[:, 1, 3], jac[:, 1, 5] = -r[:, 2], r[:, 0]
-    jac[:, 2, 3], jac[:, 2, 4] = r[:, 1], -r[:, 0]
+    jac = rigid_jacobian(r)
     fisher = np.einsum("nia,nij,njb->ab", jac, ii, jac)
     cov = np.linalg.pinv(fisher + np.diag(1.0 / np.asarray(prior_sd, float) ** 2))
     # tr(J C Jᵀ) at every voxel: the translation block, plus the rotation block's |r|² I − r rᵀ part and the
