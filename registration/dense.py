@@ -1446,7 +1446,6 @@ class _Level:
         :mod:`registration.posterior`), the information pooled at the level's own scale: a coarse level measures the
         smooth part of the correction over a large region, the finest the detail; the next level starts from the
         result.  Adds the level's posterior variance to ``reg.var_post`` and returns its record."""
-        t_post = time.perf_counter()
         w_last = self.warp_w(self.u)[0]
         level_noise = float(self.reg.noise_var or 0.0) * kernel_noise(self.sig_pre)[0] ** 3
         air = self.regl == 0 if (self.regl is not None and self.reg.air_around) else None
@@ -1477,7 +1476,6 @@ class _Level:
         post_rec.update(
             noise_sd=round(float(np.sqrt(level_noise)) * self.reg.scale, 6),
             per_sample=round(per_sample, 3),
-            seconds=round(time.perf_counter() - t_post, 2),
         )
         log.info(
             "dense posterior: prior SD %.3f mm, %.0f %% of the correction kept in the tissue, median sigma %.3f mm",
