@@ -148,6 +148,9 @@ class DenseSettings:
     #: correction it made, added to the posterior's σ in quadrature: the noise alone leaves σ several times too
     #: small where a large motion was corrected (registration-settings.md, "posterior")
     posterior_relative_error: float = 0.4
+    #: each level keeps the posterior mean of its change (True) or the steps' own change, the posterior then giving
+    #: the expected error only (False)
+    posterior_mean: bool = True
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -1471,7 +1474,8 @@ class _Level:
             self.u_in,
             finest=self.lv == len(self.st.shrink) - 1,
         )
-        self.u = self.u_in + du
+        if self.st.posterior_mean:
+            self.u = self.u_in + du
         self.reg.var_post = sigma_l**2 if self.reg.var_post is None else self.reg.var_post + sigma_l**2
         post_rec.update(
             noise_sd=round(float(np.sqrt(level_noise)) * self.reg.scale, 6),

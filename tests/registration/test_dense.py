@@ -1222,3 +1222,17 @@ def test_a_held_bones_expected_error_is_its_rigid_poses(case):
     assert np.median(sigma[bone]) < np.median(sigma[~bone]) / 3.0
     rot_deg, shift_mm = res.posterior["bone_sd"]["1"]
     assert 0 < shift_mm < 0.1 and 0 < rot_deg < 1.0
+
+
+def test_without_the_posterior_mean_the_map_is_the_steps_and_sigma_is_still_given(case):
+    """settings.posterior_mean False: every level keeps the steps' own change (the same bits as with the posterior
+    off) and the result still carries its expected error."""
+    template, labels, scan, truth, bone = case
+    st = dict(shrink=(2, 1), iterations=(30, 30))
+    off = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(**st, posterior=False))
+    sigma_only = register_dense(
+        scan, template, moving_labels=labels, settings=DenseSettings(**st, posterior_mean=False)
+    )
+    np.testing.assert_array_equal(off.correspondence.data, sigma_only.correspondence.data)
+    assert off.uncertainty is None and sigma_only.uncertainty is not None
+    assert np.all(np.isfinite(sigma_only.uncertainty.data)) and float(sigma_only.uncertainty.data.min()) > 0
