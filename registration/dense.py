@@ -148,9 +148,11 @@ class DenseSettings:
     #: correction it made, added to the posterior's σ in quadrature: the noise alone leaves σ several times too
     #: small where a large motion was corrected (registration-settings.md, "posterior")
     posterior_relative_error: float = 0.4
-    #: each level keeps the posterior mean of its change (True) or the steps' own change, the posterior then giving
-    #: the expected error only (False)
-    posterior_mean: bool = True
+    #: each level keeps the posterior mean of its change (True: where the images are silent the level's input
+    #: stands) or the steps' own change, the posterior then giving the expected error only (False, the default:
+    #: on the tuning draws the posterior mean cost the large bends more than it gave the small-residual cases,
+    #: dense-registration.md, "The correction as inference")
+    posterior_mean: bool = False
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:

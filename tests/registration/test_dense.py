@@ -1173,19 +1173,19 @@ def test_the_skin_term_alone_moves_an_outline_the_lncc_cannot_see():
 
 
 def test_the_posterior_keeps_the_start_where_the_images_carry_nothing_and_closes_a_clear_offset():
-    """settings.posterior (issue R): the textured case with noise raised until the images carry nothing (SD 20×
-    the texture's, independent draws in the template and the scan), started at the truth: the result equals the
-    start within 0.05 mm over the tissue (the issue's bound; measured 0.001 mm, 0.12 without the posterior), each
-    level keeps under a tenth of its change, and the record says that the images measured no correction (the
-    finest level's prior SD at its bound).  Moderate noise (SD 100, the texture's SD ~250) and the start at the
-    identity, the true warp 2.5 mm at most away: the offset is still closed (≥ 60 % of the start's error
-    removed, as the noiseless test asks; measured 0.83 → 0.27 mm, 0.29 without the posterior) and most of the
-    finest level's change is kept (measured 80 %)."""
+    """settings.posterior with its mean (issue R): the textured case with noise raised until the images carry nothing
+    (SD 20× the texture's, independent draws in the template and the scan), started at the truth: the result equals
+    the start within 0.05 mm over the tissue (the issue's bound; measured 0.001 mm, 0.12 without the posterior),
+    each level keeps under a tenth of its change, and the record says that the images measured no correction (the
+    finest level's prior SD at its bound). Moderate noise (SD 100, the texture's SD ~250) and the start at the
+    identity, the true warp 2.5 mm at most away: the offset is still closed (≥ 60 % of the start's error removed, as
+    the noiseless test asks; measured 0.83 → 0.27 mm, 0.29 without the posterior) and most of the finest level's
+    change is kept (measured 80 %)."""
     template, labels, scan, truth, bone = make_case()
     rng = np.random.default_rng(21)
     tissue = ~bone
     sd_tex = float(np.std(template.data[tissue]))
-    st = DenseSettings(shrink=(2, 1), iterations=(100, 100), bones="free")
+    st = DenseSettings(shrink=(2, 1), iterations=(100, 100), bones="free", posterior_mean=True)
     loud = 20.0 * sd_tex
     t_noisy = Volume((template.data + loud * rng.normal(size=bone.shape)).astype(np.float32), template.geometry)
     s_noisy = Volume((template.data + loud * rng.normal(size=bone.shape)).astype(np.float32), template.geometry)
@@ -1225,14 +1225,13 @@ def test_a_held_bones_expected_error_is_its_rigid_poses(case):
 
 
 def test_without_the_posterior_mean_the_map_is_the_steps_and_sigma_is_still_given(case):
-    """settings.posterior_mean False: every level keeps the steps' own change (the same bits as with the posterior
-    off) and the result still carries its expected error."""
+    """settings.posterior_mean False (the default): every level keeps the steps' own change (the same bits as with
+    the posterior off) and the result still carries its expected error."""
     template, labels, scan, truth, bone = case
     st = dict(shrink=(2, 1), iterations=(30, 30))
     off = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(**st, posterior=False))
-    sigma_only = register_dense(
-        scan, template, moving_labels=labels, settings=DenseSettings(**st, posterior_mean=False)
-    )
+    sigma_only = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(**st))
+    assert not DenseSettings().posterior_mean  # the default
     np.testing.assert_array_equal(off.correspondence.data, sigma_only.correspondence.data)
     assert off.uncertainty is None and sigma_only.uncertainty is not None
     assert np.all(np.isfinite(sigma_only.uncertainty.data)) and float(sigma_only.uncertainty.data.min()) > 0
