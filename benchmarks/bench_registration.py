@@ -716,15 +716,21 @@ def flex_report(title, rows):
             f"{out['marker_ratio']:.2f}" + (f"; time / elastix {out['time_ratio']:.2f}" if el else ""),
             flush=True,
         )
-        cal = ours.get("calibration")
-        if cal:
-            print(
-                f"ours' expected error σ against the true error over the body: {100 * cal['within_2sigma']:.0f} % "
-                f"within 2σ, RMS error / RMS σ {cal['rms_ratio']:.2f}, rank correlation {cal['spearman']:.2f}",
-                flush=True,
-            )
+        _print_calibration(ours)
         return out
+    _print_calibration(ours)
     return None
+
+
+def _print_calibration(ours) -> None:
+    """Ours' expected error against the true one (field_measures' "calibration"), when it has one."""
+    cal = (ours or {}).get("calibration")
+    if cal:
+        print(
+            f"ours' expected error σ against the true error over the body: {100 * cal['within_2sigma']:.0f} % "
+            f"within 2σ, RMS error / RMS σ {cal['rms_ratio']:.2f}, rank correlation {cal['spearman']:.2f}",
+            flush=True,
+        )
 
 
 def _tree_state(root):
