@@ -137,12 +137,11 @@ class DenseSettings:
     holdout_share: float = 0.35
     holdout_patience: int = 10  #: a level stops after this many taken steps without a new highest held-out LNCC
     holdout_seed: int = 0  #: the draw of the fission's noise (same inputs and seed, same bits)
-    #: the correction weighed against the start by what the images measure (:mod:`registration.posterior`): where
-    #: the scan is silent the start stands, and the result carries its expected error at each voxel
-    #: (``DenseResult.uncertainty``); False: the steps' own correction, no uncertainty
+    #: each level's change weighed against its input by what the images measure (:mod:`registration.posterior`):
+    #: the result carries its expected error at each voxel (``DenseResult.uncertainty``); False: none
     posterior: bool = True
-    #: σ (voxels of the finest level) of the kernel over which the correction is measured (the resolution of the
-    #: field); None: the finest level's fluid smoothing (``fluid_voxels``, or ``fluid_mm`` in its voxels)
+    #: σ (voxels of each level) of the kernel over which a level's change is measured (the resolution of the
+    #: field); None: the level's fluid smoothing (``fluid_voxels``, or ``fluid_mm`` in its voxels)
     posterior_pool_voxels: float | None = None
     #: the registration's own error (its smoothing's bias, a motion it recovered in part) as a share of the
     #: correction it made, added to the posterior's σ in quadrature: the noise alone leaves σ several times too
@@ -231,7 +230,9 @@ class DenseResult:
     unfold: dict | None = (
         None  #: what the final repair changed (deformation.fields.displacement.unfold), None if nothing
     )
-    #: settings.posterior: the expected error of the map at each scan voxel, σ = √tr C (mm), None when off
+    #: settings.posterior: the expected error at each scan voxel (mm), σ = √(Σ_levels tr C + (α|u|)²), None when off;
+    #: the levels' ``tr C`` is the posterior mean's error (with posterior_mean False the map's own change may sit
+    #: further from that mean, which σ counts only through α|u|)
     uncertainty: Volume | None = None
     #: settings.posterior: the prior's SD, the noise, the pooling and the share of the correction kept
     posterior: dict | None = None
@@ -956,7 +957,7 @@ def penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffne
 
 
 def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissue, st, u_in=None, finest=True) -> tuple:
-    """settings.posterior on a level (:mod:`registration.posterior`): ``(û, σ, record)`` for the level's change
+    """settings.posterior on a level (:mod:`registration.posterior`): ``(û, σ, record, keep)`` for the level's change
     ``u`` of its input ``u_in``.  The soft tissue's change is weighed against the input by the information pooled
     at the level's scale; the prior's variance, ``σ₀² + β² |u_in|²``, is the evidence's over the scan's tissue
     away from the bones (every 2nd voxel along each axis); a bone (``labl`` pulled through ``u_in + u``) keeps its
@@ -1448,9 +1449,10 @@ class _Level:
 
     def weigh(self) -> dict:
         """settings.posterior: the level's change of ``u`` weighed against its input (:func:`_posterior`,
-        :mod:`registration.posterior`), the information pooled at the level's own scale: a coarse level measures the
-        smooth part of the correction over a large region, the finest the detail; the next level starts from the
-        result.  Adds the level's posterior variance to ``reg.var_post`` and returns its record."""
+        :mod:`registration.posterior`), the information pooled at the level's own scale: a coarse level measures
+        the smooth part of the correction over a large region, the finest the detail; with posterior_mean the
+        level keeps the posterior mean of its change.  Adds the level's posterior variance to ``reg.var_post``
+        and returns its record."""
         w_last = self.warp_w(self.u)[0]
         level_noise = float(self.reg.noise_var or 0.0) * kernel_noise(self.sig_pre)[0] ** 3
         air = self.regl == 0 if (self.regl is not None and self.reg.air_around) else None
@@ -1630,8 +1632,6 @@ class _Level:
             "posterior": post_rec,  # settings.posterior: the level's change weighed against its input, None when off
             "seconds": round(time.perf_counter() - self.t_level, 2),
         }
-        self.u = self.u
-        self.reg.var_post = self.reg.var_post
         return rec
 
 
@@ -1741,6 +1741,13 @@ def register_dense(
       scan's local variance (in the LNCC's window) its noise makes up: near 1 in
       flat tissue, near 0 where structure rises above the noise, so a correction
       the images support costs little and one they do not support costs.
+    * **Expected error** (``posterior``, :mod:`registration.posterior`): after each
+      level, its change of ``U`` is weighed as a measurement against a Gaussian
+      prior (the images' information pooled at the level's scale, the prior's
+      variance by the evidence); ``DenseResult.uncertainty`` is the expected
+      error σ at each voxel.  With ``posterior_mean`` the level keeps the
+      posterior mean of its change (where the scan is silent its input stands);
+      by default the map is the steps' own.
     * **Result**: ``φ₀`` is sampled at ``U(x)`` with its edge values beyond the
       grid.  The sampled ``φ₀ ∘ U`` can show ``det ≤ 0`` at a few voxels where the
       start compresses a crease below the voxel size or curled fingers touch;

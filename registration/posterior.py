@@ -163,6 +163,8 @@ def prior_variance(
     if not len(idx[0]):
         return float(lo)
     lam, vec = _eig(precision[(slice(None),) + idx])
+    if not np.any(lam > 0):  # nothing measured: the evidence is flat, and the lower bound says so
+        return float(lo)
     uu = np.stack([c[idx] for c in u], axis=-1).astype(np.float64)
     v2 = np.einsum("nij,ni->nj", vec, uu) ** 2
 
@@ -190,6 +192,8 @@ def prior_variance_with_motion(
     if not len(idx[0]):
         return float(lo), 1e-6
     lam, vec = _eig(precision[(slice(None),) + idx])
+    if not np.any(lam > 0):  # nothing measured (see prior_variance)
+        return float(lo), 1e-6
     uu = np.stack([c[idx] for c in u], axis=-1).astype(np.float64)
     v2 = np.einsum("nij,ni->nj", vec, uu) ** 2
     m = np.asarray(motion2, np.float64)[idx][:, None]

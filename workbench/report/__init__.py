@@ -241,8 +241,7 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
             page.image(
                 F.encode_png(F.colour_map(ss, px, 0.0, smax, cmap="magma", mask=cs, background=ts, window=lo_hi)),
                 f"{sid}, yz plane: the registration's expected error σ over the scan's tissue, 0–{smax:.2f} mm "
-                "(magma; where the images measured the correction it is small, where they are silent it is the "
-                "prior's and the start stands)",
+                "(magma; small where the images measured the correction, the prior's where they are silent)",
             )
         )
     if truth:
@@ -260,7 +259,7 @@ def _scan_pictures(page: Page, study, sid: str, parts: list, *, truth: bool) -> 
             )
     if truth and sigma is not None:
         cal = (study.validation(sid) or {}).get("uncertainty") or {}
-        if cal.get("bins"):
+        if cal.get("bins") and cal.get("spearman") is not None:  # (a constant σ or error has no rank correlation)
             b = np.asarray(cal["bins"], float)
             top = float(max(b.max(), 1e-3)) * 1.05
             figs.append(

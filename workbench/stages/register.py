@@ -372,16 +372,17 @@ def _run_dense(ctx, start, template, scan, initial, articulated) -> dict:
         "unfold": result.unfold,
         "similarity_before": result.similarity_before,
         "similarity_after": result.similarity_after,
-        # settings.posterior: the prior's SD, the share of the correction kept, the median expected error
+        # settings.posterior: the prior's SD, the share of the finest level's change the images measure, the median
+        # expected error
         # (registration.posterior); None when off
         "posterior": result.posterior,
     }
-    if result.posterior is not None:
+    if result.posterior is not None and result.posterior.get("sigma_median_mm") is not None:
         p = result.posterior
         ctx.say(
-            f"{sid}: the correction weighed against the start: {100 * p['kept']:.0f} % kept over the soft tissue "
-            f"(prior SD {p['prior_sd_mm']:.2f} mm); expected error σ median {p['sigma_median_mm']:.2f} mm "
-            "(uncertainty.mha)"
+            f"{sid}: expected error σ median {p['sigma_median_mm']:.2f} mm over the scan's body (uncertainty.mha); "
+            f"the images measure {100 * p['kept']:.0f} % of the finest level's change over the soft tissue"
+            + (" (kept: --dense posterior_mean=true)" if settings.posterior_mean else "")
             + (
                 "; the images measured no correction (the prior's SD at its lower bound): σ there is not checked"
                 if p.get("prior_at_bound")
