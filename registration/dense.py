@@ -152,6 +152,9 @@ class DenseSettings:
     #: on the tuning draws the posterior mean cost the large bends more than it gave the small-residual cases,
     #: dense-registration.md, "The correction as inference")
     posterior_mean: bool = False
+    #: with posterior_mean False, σ counts how far the steps' change sits from the posterior mean: the expected
+    #: squared error of an estimate Δ under the posterior N(û, C) is tr C + |Δ − û|² (False: tr C alone)
+    posterior_offset: bool = True
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -230,9 +233,10 @@ class DenseResult:
     unfold: dict | None = (
         None  #: what the final repair changed (deformation.fields.displacement.unfold), None if nothing
     )
-    #: settings.posterior: the expected error at each scan voxel (mm), σ = √(Σ_levels tr C + (α|u|)²), None when off;
-    #: the levels' ``tr C`` is the posterior mean's error (with posterior_mean False the map's own change may sit
-    #: further from that mean, which σ counts only through α|u|)
+    #: settings.posterior: the expected error at each scan voxel (mm), σ = √(Σ_levels (tr C + |Δu − û|²) + (α|u|)²),
+    #: None when off: each level's posterior variance, how far its kept change Δu sits from the posterior mean û
+    #: (settings.posterior_offset; 0 with posterior_mean) and a share α of the correction (the registration's own
+    #: error)
     uncertainty: Volume | None = None
     #: settings.posterior: the prior's SD, the noise, the pooling and the share of the correction kept
     posterior: dict | None = None
@@ -1478,9 +1482,12 @@ class _Level:
             self.u_in,
             finest=self.lv == len(self.st.shrink) - 1,
         )
+        var_l = sigma_l.astype(np.float32) ** 2
         if self.st.posterior_mean:
             self.u = self.u_in + du
-        self.reg.var_post = sigma_l**2 if self.reg.var_post is None else self.reg.var_post + sigma_l**2
+        elif self.st.posterior_offset:  # the map keeps the steps' change Δ: E|Δ − u_true|² = tr C + |Δ − û|²
+            var_l += ((self.u - self.u_in - du) ** 2).sum(axis=0)
+        self.reg.var_post = var_l if self.reg.var_post is None else self.reg.var_post + var_l
         post_rec.update(
             noise_sd=round(float(np.sqrt(level_noise)) * self.reg.scale, 6),
             per_sample=round(per_sample, 3),
