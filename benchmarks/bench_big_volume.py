@@ -90,7 +90,7 @@ def run_measured(cmd: list[str], kill_gib: float) -> tuple[int, float, float, st
                 proc.kill()
                 killed = True
             time.sleep(0.05)
-    tail = "\n".join(log.read_text().strip().splitlines()[-3:])
+    tail = "\n".join(log.read_text(encoding="utf-8").strip().splitlines()[-3:])
     log.unlink()
     if killed:
         tail = f"stopped above {kill_gib:g} GiB\n" + tail
@@ -142,7 +142,7 @@ def build_study(out: Path, size) -> tuple[Path, Path]:
         ],
         check=True,
     )
-    m = json.loads((small / "study.json").read_text())
+    m = json.loads((small / "study.json").read_text(encoding="utf-8"))
     shutil.copyfile(small / m["scans"][-1]["truth"]["pose"], out / "target_pose.json")
     ref = sitk.ReadImage(str(small / m["template"]))
     centre = np.asarray(ref.TransformContinuousIndexToPhysicalPoint([(s - 1) / 2 for s in ref.GetSize()]))
@@ -189,7 +189,7 @@ def pose_accuracy(out: Path) -> str:
         b: small.template().geometry.index_to_world(np.argwhere(labels.data == sk.label_of(b))[:, ::-1].mean(0))
         for b in sk.bone_names
     }
-    flagged = json.loads((out / "study" / "poses" / "fits.json").read_text())["scans"]
+    flagged = json.loads((out / "study" / "poses" / "fits.json").read_text(encoding="utf-8"))["scans"]
     lines = []
     for sid in big.scan_ids:
         est = big.pose(sid)

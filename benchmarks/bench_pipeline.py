@@ -101,7 +101,7 @@ def _build_knee125(folder: Path, margin_mm: float) -> None:
         poses.write_text(json.dumps(KNEE125_POSES))
         print(f"generating the 1.25 mm knee on the test field of view in {full} (minutes) ...", flush=True)
         _phantom(full, "--spacing", "1.25", "--poses-file", str(poses), "--force")
-    m = json.loads((full / "study.json").read_text())
+    m = json.loads((full / "study.json").read_text(encoding="utf-8"))
     stage = folder.with_name(folder.name + ".partial")
     shutil.rmtree(stage, ignore_errors=True)
     shutil.copytree(full, stage, ignore=shutil.ignore_patterns("*.nii.gz", "*.mha", "study.json"))

@@ -830,7 +830,7 @@ def run_external(args):
         bones_t = Volume((np.asarray(labels.data) > 0).astype(np.uint8), labels.geometry)
         log = st.path("logs/phantom.json")
         logged = (
-            {s["id"]: s.get("body_voxels_scan") for s in json.loads(log.read_text()).get("scans", [])}
+            {s["id"]: s.get("body_voxels_scan") for s in json.loads(log.read_text(encoding="utf-8")).get("scans", [])}
             if log.is_file()
             else {}
         )

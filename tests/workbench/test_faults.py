@@ -273,7 +273,7 @@ def test_the_limits_of_plausible_geometry_are_accepted(tmp_path):
 @pytest.mark.parametrize("version", [99, "1", 1.5, None])
 def test_an_unsupported_manifest_version_is_refused(study, tmp_path, version):
     root = shutil.copytree(study, tmp_path / "study")
-    m = json.loads((root / "study.json").read_text())
+    m = json.loads((root / "study.json").read_text(encoding="utf-8"))
     m["version"] = version
     (root / "study.json").write_text(json.dumps(m))
     before = _tree(root)
@@ -372,13 +372,13 @@ def test_label_ids_not_in_the_skeleton_are_warned_of(study, tmp_path):
     r = _workbench("bones", root, "--quiet")
     assert r.returncode == 0, r.stderr
     assert f"warning: {path}: label ids 7 (3 voxels), 200 (5 voxels) are not the label of any bone" in r.stderr
-    assert json.loads((root / "bones" / "bones.json").read_text())["unknown_labels"] == {"7": 3, "200": 5}
+    assert json.loads((root / "bones" / "bones.json").read_text(encoding="utf-8"))["unknown_labels"] == {"7": 3, "200": 5}
 
 
 def test_an_empty_dicom_folder_is_said_the_same_way_everywhere(study, tmp_path):
     root = shutil.copytree(study, tmp_path / "study")
     (root / "scans" / "pose01_dicom").mkdir()
-    m = json.loads((root / "study.json").read_text())
+    m = json.loads((root / "study.json").read_text(encoding="utf-8"))
     m["scans"][1]["image"] = "scans/pose01_dicom"
     (root / "study.json").write_text(json.dumps(m))
     said = f"{root / 'scans' / 'pose01_dicom'}: no DICOM series found in this folder"
@@ -401,7 +401,7 @@ def test_a_symlink_to_a_scan_outside_the_study_is_followed_and_dotdot_is_refused
     from workbench.study import read_study
 
     assert read_study(root).scan("pose01").data.shape == sitk.GetArrayFromImage(sitk.ReadImage(str(outside))).shape
-    m = json.loads((root / "study.json").read_text())
+    m = json.loads((root / "study.json").read_text(encoding="utf-8"))
     m["scans"][1]["image"] = "../elsewhere.nii.gz"
     (root / "study.json").write_text(json.dumps(m))
     r = _workbench("info", root)
@@ -412,7 +412,7 @@ def test_a_symlink_to_a_scan_outside_the_study_is_followed_and_dotdot_is_refused
 
 def test_a_joint_without_limits_takes_rotations_within_half_a_turn(study, tmp_path):
     root = shutil.copytree(study, tmp_path / "study")
-    sk = json.loads((root / "skeleton.json").read_text())
+    sk = json.loads((root / "skeleton.json").read_text(encoding="utf-8"))
     for j in sk["joints"]:
         j.pop("limits", None)
     (root / "skeleton.json").write_text(json.dumps(sk))
@@ -469,7 +469,7 @@ def test_ctrl_c_during_register_after_a_real_weights_stage_is_clean(study, tmp_p
     import time
 
     root = shutil.copytree(study, tmp_path / "study", ignore=shutil.ignore_patterns("skinning", "model"))
-    m = json.loads((root / "study.json").read_text())
+    m = json.loads((root / "study.json").read_text(encoding="utf-8"))
     m["stages"] = {}
     (root / "study.json").write_text(json.dumps(m))
     # SIGINT at its default in the child: a background job of a non-interactive shell ignores it, and a child
@@ -502,7 +502,7 @@ def test_ctrl_c_during_register_after_a_real_weights_stage_is_clean(study, tmp_p
     finally:
         watchdog.cancel()
     assert "weights: done" in err and "harmonic" in json.dumps(
-        json.loads((root / "study.json").read_text())["stages"]["weights"]["settings"]
+        json.loads((root / "study.json").read_text(encoding="utf-8"))["stages"]["weights"]["settings"]
     )
     assert staged, err  # the signal came while the registration's outputs were being made
     assert rc == 130, err

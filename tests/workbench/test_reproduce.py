@@ -43,7 +43,7 @@ def test_csv_keeps_full_precision():
 def test_write_table_writes_all_three_files_or_none(tmp_path):
     paths = write_table(_table(), tmp_path)
     assert sorted(p.name for p in paths) == ["demo.csv", "demo.json", "demo.md"]
-    assert Table.from_dict(json.loads((tmp_path / "demo.json").read_text())).value("ours", "n") == 3
+    assert Table.from_dict(json.loads((tmp_path / "demo.json").read_text(encoding="utf-8"))).value("ours", "n") == 3
     bad = _table()
     bad.id = "bad"
     bad.meta = {1: "an integer key JSON cannot hold"}
@@ -56,7 +56,7 @@ def test_reproduce_eigenposes_from_the_command_line(tmp_path, capsys):
     assert main(["reproduce", "eigenposes", "--out", str(tmp_path), "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "Eigenposes of a hand pose library" in out
-    doc = json.loads((tmp_path / "eigenposes.json").read_text())
+    doc = json.loads((tmp_path / "eigenposes.json").read_text(encoding="utf-8"))
     ours = next(r for r in doc["rows"] if r["kind"] == "ours")
     cum = np.asarray(doc["meta"]["cumulative_variance"])
     assert ours["variance_10"] == pytest.approx(cum[9]) and 0.9 <= cum[9] <= 1.0
@@ -78,7 +78,7 @@ def test_reproduce_table2_through_the_stages(tmp_path, capsys):
     from validation.protocols.registration import ALGORITHM1_ROW
 
     assert main(["reproduce", "table2", "--out", str(tmp_path), "--quiet"]) == 0
-    t = Table.from_dict(json.loads((tmp_path / "table2.json").read_text()))
+    t = Table.from_dict(json.loads((tmp_path / "table2.json").read_text(encoding="utf-8")))
     src, reg = t.row("source (no deformation)"), t.row("registered (ours)")
     # Rhee's own reduction was 5.5 -> 3.5 mm; a registration that works removes at least half of the start's MED
     assert reg["med_mm"] < 0.5 * src["med_mm"]
@@ -92,7 +92,7 @@ def test_reproduce_table2_through_the_stages(tmp_path, capsys):
     # moves (ratio ~1) fails it
     assert alg1["med_mm"] < 0.64 * src["med_mm"]
     assert alg1["cc"] > src["cc"]
-    for doc in ((tmp_path / "table2.md").read_text(), (tmp_path / "table2.csv").read_text()):
+    for doc in ((tmp_path / "table2.md").read_text(encoding="utf-8"), (tmp_path / "table2.csv").read_text(encoding="utf-8")):
         assert ALGORITHM1_ROW in doc  # in every format written (JSON above; the HTML report draws every row)
     assert (tmp_path / "studies" / "table2-test" / "study.json").exists()
     capsys.readouterr()
@@ -100,7 +100,7 @@ def test_reproduce_table2_through_the_stages(tmp_path, capsys):
     assert main(["reproduce", "table2", "--out", str(tmp_path), "--quiet"]) == 0
     # every stage reused: the manifest (finish times, digests) is untouched, the table the same
     assert (tmp_path / "studies" / "table2-test" / "study.json").read_bytes() == manifest
-    again = Table.from_dict(json.loads((tmp_path / "table2.json").read_text()))
+    again = Table.from_dict(json.loads((tmp_path / "table2.json").read_text(encoding="utf-8")))
     assert again.row("registered (ours)")["med_mm"] == reg["med_mm"]
     assert again.row(ALGORITHM1_ROW)["med_mm"] == alg1["med_mm"]  # run again, from the same start: the same bits
 
@@ -120,7 +120,7 @@ def test_two_workers_give_the_same_tables(tmp_path, capsys):
     st = two / "studies" / "table2-test"
     shutil.rmtree(st / "registration")
     shutil.rmtree(st / "validation")
-    m = json.loads((st / "study.json").read_text())
+    m = json.loads((st / "study.json").read_text(encoding="utf-8"))
     for k in ("init", "register", "validate"):
         m["stages"].pop(k, None)
     (st / "study.json").write_text(json.dumps(m))
@@ -128,17 +128,17 @@ def test_two_workers_give_the_same_tables(tmp_path, capsys):
     assert main(["reproduce", "table2", "eigenposes", "--out", str(two), "--workers", "2"]) == 0
     err = capsys.readouterr().err
     assert "side by side on a local Dask cluster of 2 worker processes" in err
-    a = Table.from_dict(json.loads((one / "eigenposes.json").read_text()))
-    b = Table.from_dict(json.loads((two / "eigenposes.json").read_text()))
+    a = Table.from_dict(json.loads((one / "eigenposes.json").read_text(encoding="utf-8")))
+    b = Table.from_dict(json.loads((two / "eigenposes.json").read_text(encoding="utf-8")))
     assert [r for r in a.rows if r["kind"] == "ours"] == [r for r in b.rows if r["kind"] == "ours"]
     # the registration again, in a worker process: the same bits (its time aside)
-    ra = Table.from_dict(json.loads((one / "table2.json").read_text())).row("registered (ours)")
-    rb = Table.from_dict(json.loads((two / "table2.json").read_text())).row("registered (ours)")
+    ra = Table.from_dict(json.loads((one / "table2.json").read_text(encoding="utf-8"))).row("registered (ours)")
+    rb = Table.from_dict(json.loads((two / "table2.json").read_text(encoding="utf-8"))).row("registered (ours)")
     assert {k: v for k, v in ra.items() if k != "seconds"} == {k: v for k, v in rb.items() if k != "seconds"}
     from validation.protocols.registration import ALGORITHM1_ROW
 
-    aa = Table.from_dict(json.loads((one / "table2.json").read_text())).row(ALGORITHM1_ROW)
-    ab = Table.from_dict(json.loads((two / "table2.json").read_text())).row(ALGORITHM1_ROW)
+    aa = Table.from_dict(json.loads((one / "table2.json").read_text(encoding="utf-8"))).row(ALGORITHM1_ROW)
+    ab = Table.from_dict(json.loads((two / "table2.json").read_text(encoding="utf-8"))).row(ALGORITHM1_ROW)
     assert {k: v for k, v in aa.items() if k != "seconds"} == {k: v for k, v in ab.items() if k != "seconds"}
     assert main(["reproduce", "eigenposes", "--out", str(two), "--workers", "0"]) == 1
     assert "--workers must be at least 1" in capsys.readouterr().err

@@ -52,7 +52,7 @@ def _strip(src: Path, dst: Path, *, truth: bool = True, keep=()) -> Path:
         if s not in keep
     ]
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns(*drop, ".locks", *(("truth",) if not truth else ())))
-    m = json.loads((dst / "study.json").read_text())
+    m = json.loads((dst / "study.json").read_text(encoding="utf-8"))
     m["stages"] = {k: v for k, v in m.get("stages", {}).items() if k in keep}
     if not truth:
         for s in m["scans"]:
@@ -106,7 +106,7 @@ def test_run_goes_through_every_stage_with_truth_only_in_validate(done):
             paths = [v["path"] for v in e["inputs"].values()]
             assert (name == "validate") == any(p.startswith("truth/") for p in paths), (name, paths)
     assert st.stage_entry("init", "pose02")["settings"]["pose"] == "estimated"
-    evd = json.loads((root / "model" / "evd.json").read_text())
+    evd = json.loads((root / "model" / "evd.json").read_text(encoding="utf-8"))
     assert evd["source"] == "registration" and evd["scans"] == st.scan_ids
     # the printed table is the validate stage's: MED of each scan, registered after initialised
     rows = st.validation("pose02")["rows"]
@@ -190,8 +190,8 @@ def test_a_bone_the_pose_stage_flags_is_listed_by_init_and_not_held_by_register(
 
 
 def _finished_pairs(a: Path, b: Path, stage: str):
-    ea = json.loads((a / "study.json").read_text())["stages"][stage]
-    eb = json.loads((b / "study.json").read_text())["stages"][stage]
+    ea = json.loads((a / "study.json").read_text(encoding="utf-8"))["stages"][stage]
+    eb = json.loads((b / "study.json").read_text(encoding="utf-8"))["stages"][stage]
     if "scans" in ea:
         return [(eb["scans"][s], ea["scans"][s]["finished"]) for s in ea["scans"]]
     return [(eb, ea["finished"])]
@@ -263,7 +263,7 @@ def test_interrupted_run_of_a_study_without_truth_resumes_to_the_same_fields(don
 
 def _registered(root: Path, sid: str) -> bool:
     try:
-        m = json.loads((root / "study.json").read_text())
+        m = json.loads((root / "study.json").read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError):
         return False
     return sid in (m.get("stages", {}).get("register", {}).get("scans") or {})
@@ -273,7 +273,7 @@ def test_concurrent_register_processes_one_per_scan_leave_a_complete_manifest(do
     root, _, _ = done
     copy = tmp_path / "study"
     shutil.copytree(root, copy, ignore=shutil.ignore_patterns("registration", "validation", "model"))
-    m = json.loads((copy / "study.json").read_text())
+    m = json.loads((copy / "study.json").read_text(encoding="utf-8"))
     for k in ("register", "validate", "model"):
         m["stages"].pop(k)
     (copy / "study.json").write_text(json.dumps(m))
@@ -535,14 +535,14 @@ def report(done, tmp_path_factory):
 
 def test_run_ends_with_the_report_stage(done):
     root = done[0]
-    m = json.loads((root / "study.json").read_text())
+    m = json.loads((root / "study.json").read_text(encoding="utf-8"))
     assert "report" in m["stages"]
     assert (root / "report" / "report.html").exists()
 
 
 def test_every_table_and_picture_of_a_study_with_truth(done, report):
     p = parse(report)
-    scans = json.loads((done[0] / "study.json").read_text())["scans"]
+    scans = json.loads((done[0] / "study.json").read_text(encoding="utf-8"))["scans"]
     assert report.stat().st_size < MAX_BYTES
     assert not p.external  # self-contained: nothing fetched
     assert p.headings[:2] == ["Bone poses and joints", "Registration"] and p.headings[-1].startswith("Software")
@@ -575,7 +575,7 @@ def test_every_table_and_picture_of_a_study_with_truth(done, report):
 def test_a_study_without_truth_reports_similarity_and_no_med(done, tmp_path):
     bare = tmp_path / "bare"
     shutil.copytree(done[0], bare, ignore=shutil.ignore_patterns("truth", "validation", "report", ".locks"))
-    m = json.loads((bare / "study.json").read_text())
+    m = json.loads((bare / "study.json").read_text(encoding="utf-8"))
     for s in m["scans"]:
         s.pop("truth", None)
     m["stages"].pop("validate", None)
@@ -653,7 +653,7 @@ def _assert_same_outputs(a: Path, b: Path):
             continue
         assert (a / f).read_bytes() == (b / f).read_bytes(), f
         compared += 1
-    ma, mb = (json.loads((p / "study.json").read_text())["stages"] for p in (a, b))
+    ma, mb = (json.loads((p / "study.json").read_text(encoding="utf-8"))["stages"] for p in (a, b))
     assert set(ma) == set(mb)
     for name, e in ma.items():
         units = {k: v["outputs"] for k, v in e["scans"].items()} if "scans" in e else e["outputs"]
@@ -693,7 +693,7 @@ def test_register_on_a_local_dask_cluster_of_two_workers_gives_the_same_fields(d
     for sid in scans:
         for f in sorted((root / "registration" / sid).iterdir()):
             if f.suffix == ".json":  # the log: all but the stage's settings (SETTINGS set Algorithm 1's levels)
-                a_, b_ = (json.loads(p_.read_text()) for p_ in (f, two / "registration" / sid / f.name))
+                a_, b_ = (json.loads(p_.read_text(encoding="utf-8")) for p_ in (f, two / "registration" / sid / f.name))
                 assert {k: v for k, v in a_.items() if k != "settings"} == {
                     k: v for k, v in b_.items() if k != "settings"
                 }, sid
@@ -755,10 +755,10 @@ def test_run_against_a_dask_scheduler_and_two_workers_gives_the_same_files(done,
     ]
     try:
         deadline = time.monotonic() + 60
-        while not info.exists() or not info.read_text().strip():
+        while not info.exists() or not info.read_text(encoding="utf-8").strip():
             assert procs[0].poll() is None and time.monotonic() < deadline, "dask scheduler did not start"
             time.sleep(0.1)
-        address = json.loads(info.read_text())["address"]
+        address = json.loads(info.read_text(encoding="utf-8"))["address"]
         procs += [
             subprocess.Popen(
                 [

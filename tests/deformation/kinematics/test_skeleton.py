@@ -407,7 +407,7 @@ def test_skeleton_json_round_trip_is_exact(make, tmp_path):
         np.testing.assert_array_equal(j1.axes, j0.axes)
     # Writing again gives the same text: the format is stable.
     again = write_json(back.to_dict(), tmp_path / "again.json")
-    assert again.read_text() == path.read_text()
+    assert again.read_text(encoding="utf-8") == path.read_text(encoding="utf-8")
 
 
 def test_skeleton_equality_sees_a_changed_centre(knee_skeleton):

@@ -14,6 +14,7 @@ from deformation.models.evd import (
     vbd_forward,
     wants_template_example,
 )
+from deformation.models.posespace import PoseSpace
 from deformation.models.skinning import SkinningWeights, distance_weights, stack_transforms
 from validation.phantoms import make_phantom
 
@@ -205,6 +206,90 @@ def test_template_example_anchors_the_rest_pose(knee, knee_examples):
         g, w, ph.skeleton, [e[0] for e in knee_examples], [e[1] for e in knee_examples]
     )
     assert not with_rest.template_example and with_rest.n_scans == 3
+
+
+def test_a_bend_beyond_the_scans_range_moves_no_voxel_further_than_its_bones_and_corrections(knee, knee_examples):
+    """Issue R, item 4: trained on the 0° and 35° poses, the knee bent to 110° (far past the range, where the
+    normalised RBF weights extrapolate: the 35° example weighs over 1, the 0° one below 0).  Every
+    template voxel travels no further than the farthest of the bones that drive it plus the longest correction
+    any example made at it: |v_a − v_0| ≤ max_{j: w_j > 0} |T_j v_0 − v_0| + max_k |d_k(v)| (E blends rigid
+    motions, and the blended correction is capped at the longest example's; float32 positions of ~200 mm: 1e-3
+    mm).  That bound is loose (the correction mostly opposes the bones' travel); what the cap changes is the
+    correction itself: without it, the extrapolated correction is longer than every example's at some voxels
+    (measured s = (−0.45, 1.45), up to 10.2 mm longer), asserted so that the test shows what it guards."""
+    from deformation.kinematics.skeleton import Pose
+
+    ph, w = knee
+    g = ph.geometry
+    train = knee_examples[:2]
+    model = ExampleVolumeDeformation.from_correspondences(
+        g, w, ph.skeleton, [e[0] for e in train], [e[1] for e in train]
+    )
+    ang = {k: np.asarray(v, float).copy() for k, v in knee_examples[1][2].items()}
+    ang["knee"] = np.asarray(ang["knee"], float) * (110.0 / max(float(np.abs(ang["knee"]).max()), 1e-9))
+    pose = ph.pose_of(ang)
+    assert isinstance(pose, Pose)
+    s = model.pose_weights(pose)
+    assert s.max() > 1.05 and s.min() < -0.05, s  # the weights do extrapolate here
+    x = g.world_coordinates().reshape(-1, 3)
+    t = stack_transforms(pose.transforms, w.bones)
+    bones = np.zeros(len(x))
+    for m in range(w.max_influences):  # the farthest driving bone's travel at each voxel
+        tb = t[w.index[:, m].astype(np.int64)]
+        travel = np.linalg.norm(np.einsum("nij,nj->ni", tb[:, :3, :3], x) + tb[:, :3, 3] - x, axis=1)
+        bones = np.where(w.value[:, m] > 0, np.maximum(bones, travel), bones)
+    longest = np.linalg.norm(model.displacements, axis=2).max(axis=1)
+    moved = np.linalg.norm(model.forward(pose).reshape(-1, 3) - x, axis=1)
+    assert np.all(moved <= bones + longest + 1e-3), float((moved - bones - longest).max())
+    # the posed correction, v_a − E(v_0) = (Σ w_j R_j) d_a, is no longer than d_a: capped, within the longest
+    # example's; Rhee Eq. 6 as written (cap=False) goes past it by > 0.5 mm at some voxels
+    vbd = vbd_forward(g, w, t).reshape(-1, 3).astype(np.float64)
+    capped = np.linalg.norm(model.forward(pose).reshape(-1, 3) - vbd, axis=1)
+    uncapped = np.linalg.norm(model.forward(pose, cap=False).reshape(-1, 3) - vbd, axis=1)
+    assert np.all(capped <= longest + 1e-3), float((capped - longest).max())
+    assert np.any(uncapped > longest + 0.5), float((uncapped - longest).max())
+    for weighting in ("psd", "wpsd"):  # at a training pose (a convex blend) the cap changes nothing
+        np.testing.assert_array_equal(
+            model.forward(train[1][0], weighting=weighting), model.forward(train[1][0], weighting=weighting, cap=False)
+        )
+
+
+def test_expected_error_is_each_scans_at_its_pose_and_the_cross_validation_sees_only_the_interpolation(knee):
+    """Issue R, item 2: a model whose true correction is zero everywhere, each scan's d_k pure noise of a known
+    RMS length σ_k (0.3, 0.5, 0.8 mm: an isotropic Gaussian, σ_k/√3 per component).  (1) At a training pose the
+    expected error is that scan's σ_k (s = e_k and the poses explain themselves, γ = 1; float32: 1e-5 mm).
+    (2) Leaving each scan out, the residual is the noises alone, which σ accounts for: the cross-validated
+    interpolation variance averages ≈ 0 over the voxels (pooled over ~350 voxels and clipped at 0, so small and
+    positive: under 0.05 of the mean σ², measured 0.003); without the scans' σ the same residuals count as
+    interpolation error, divided by the small share of the 35° pose the others leave unexplained (over the
+    mean σ², measured 5.6×).  Measured σ at 70°, 90°, 110°: 0.80, 0.91, 0.99 mm.
+    (3) Bent past the range the expected error grows with the bend (the weights extrapolate: Σ s_k² σ_k² and
+    1 − γ rise)."""
+    ph, w = knee
+    g = ph.geometry
+    rng = np.random.default_rng(5)
+    sd = np.array([0.3, 0.5, 0.8])
+    n = g.n_voxels
+    d = (rng.normal(size=(n, 3, 3)) * (sd / np.sqrt(3.0))[None, :, None]).astype(np.float32)
+    poses = [ph.pose_of(ang) for _, ang in ph.poses]
+    vectors = [ph_vec for ph_vec in (PoseSpace(ph.skeleton, [p]).train[0] for p in poses)]
+    sig = np.broadcast_to(sd[None].astype(np.float32), (n, 3))
+    model = ExampleVolumeDeformation.from_examples(g, w, ph.skeleton, vectors, d, scan_sigma=sig)
+    assert not model.template_example  # pose 0 is at rest
+    for k, pose in enumerate(poses):
+        np.testing.assert_allclose(model.expected_error(pose), sd[k], atol=1e-5)
+    cv = model.cross_validation_variance()
+    mean_var = float(np.mean(sd**2))
+    assert float(cv.mean()) < 0.05 * mean_var, float(cv.mean())
+    blind = ExampleVolumeDeformation.from_examples(g, w, ph.skeleton, vectors, d)
+    assert float(blind.cross_validation_variance().mean()) > mean_var
+    ang = {k: np.asarray(v, float) for k, v in ph.poses[2][1].items()}
+    sigma_at = []
+    for bend in (70.0, 90.0, 110.0):
+        a = dict(ang)
+        a["knee"] = ang["knee"] * (bend / float(np.abs(ang["knee"]).max()))
+        sigma_at.append(float(np.median(model.expected_error(ph.pose_of(a)))))
+    assert sigma_at[0] < sigma_at[1] < sigma_at[2], sigma_at
 
 
 def test_template_example_rule():

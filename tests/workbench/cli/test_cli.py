@@ -186,7 +186,7 @@ def test_info_on_manifest_with_bad_truth(knee_study, tmp_path, capsys):
 
     copy = tmp_path / "copy"
     shutil.copytree(knee_study, copy)
-    m = json.loads((copy / "study.json").read_text())
+    m = json.loads((copy / "study.json").read_text(encoding="utf-8"))
     m["scans"][0]["truth"] = "not an object"
     (copy / "study.json").write_text(json.dumps(m))
     assert main(["info", str(copy)]) == 1
@@ -213,7 +213,7 @@ def test_info_check_reads_every_image_and_clean_image_repairs_a_nan_scan(knee_st
 
     copy = tmp_path / "copy"
     shutil.copytree(knee_study, copy)
-    m = json.loads((copy / "study.json").read_text())
+    m = json.loads((copy / "study.json").read_text(encoding="utf-8"))
     scan = copy / m["scans"][1]["image"]
     v = read_volume(scan)
     data = np.array(v.data)

@@ -310,7 +310,7 @@ def test_angles_outside_the_range_of_motion_or_as_strings_are_refused(study, tmp
         assert len(err) == 1 and "p.json" in err[0] and expect in err[0], err
         assert not (tmp_path / "o.nii.gz").exists()
     # the study's skeleton.json carries the limits (an older one without them checks nothing)
-    sk = json.loads((study / "skeleton.json").read_text())
+    sk = json.loads((study / "skeleton.json").read_text(encoding="utf-8"))
     assert {j["name"]: j["limits"][0] for j in sk["joints"]}["knee"] == [-10.0, 150.0]
 
 
@@ -397,3 +397,37 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(phantom,
     for sid in st.scan_ids:
         f = st.init_field(sid)
         assert f.geometry.is_close(st.scan(sid).geometry) and st.init_info(sid)["backward_map"]["map_factor"] == 2
+
+
+def test_deform_writes_the_posed_expected_error(study, tmp_path, capsys):
+    """Issue R, item 2: ``--uncertainty-out`` writes the model's expected error on the posed grid.  The model
+    here is built from the truth (exact maps: no scan error), so σ is the cross-validated pose interpolation's
+    alone: at a training pose the poses explain themselves (γ = 1) and σ vanishes over the body (float: 1e-3
+    mm); bent past the range (110°) it is larger than between the examples (52°).  Asking for it with VBD is
+    refused in one line before any work, and writes nothing."""
+    s = read_study(study)
+    out = tmp_path / "p2.nii.gz"
+    sig = tmp_path / "p2_sigma.nii.gz"
+    args = ["deform", str(study), "--pose", str(study / "truth" / "pose02_pose.json"), "--out", str(out)]
+    assert main(args + ["--uncertainty-out", str(sig), "--quiet"]) == 0
+    sigma = read_volume(sig)
+    assert sigma.geometry.is_close(s.template().geometry)
+    posed_body = read_labels(tmp_path / "p2_labels.nii.gz").data > 0  # the posed bones: inside the body
+    assert float(sigma.data[posed_body].max()) < 1e-3
+    med = {}
+    for bend in (52, 110):
+        pose = tmp_path / f"bend{bend}.json"
+        pose.write_text(json.dumps({"angles": {"knee": [bend, 0, 0]}}))
+        o = tmp_path / f"b{bend}.nii.gz"
+        su = tmp_path / f"b{bend}_sigma.nii.gz"
+        assert main(["deform", str(study), "--pose", str(pose), "--out", str(o), "--uncertainty-out", str(su)]) == 0
+        lab = read_labels(tmp_path / f"b{bend}_labels.nii.gz").data > 0
+        med[bend] = float(np.median(read_volume(su).data[lab]))
+        assert "expected error over the posed body" in capsys.readouterr().out
+    assert 0 < med[52] < med[110], med
+    capsys.readouterr()
+    bad = tmp_path / "vbd_sigma.nii.gz"
+    assert main(args[:-1] + [str(tmp_path / "v.nii.gz"), "--method", "vbd", "--uncertainty-out", str(bad)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--uncertainty-out" in err[0] and "leave --method vbd out" in err[0], err
+    assert not bad.exists() and not (tmp_path / "v.nii.gz").exists()

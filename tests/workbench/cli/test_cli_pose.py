@@ -67,14 +67,14 @@ def test_pose_writes_into_the_study(tmp_path, small_ct_study, capsys):
     err = rotation_angle_deg(compose(invert(truth.transforms["tibia"]), est.transforms["tibia"]))
     assert err < 3.5, err
     assert set(est.joint_angles) == set(truth.joint_angles)
-    joints = json.loads((root / "poses" / "joints.json").read_text())
+    joints = json.loads((root / "poses" / "joints.json").read_text(encoding="utf-8"))
     assert joints["format"] == "avw-joints" and set(joints["joints"]) == {"knee", "tibiofibular", "patellofemoral"}
-    vec = json.loads((root / "poses" / "pose_vectors.json").read_text())
+    vec = json.loads((root / "poses" / "pose_vectors.json").read_text(encoding="utf-8"))
     assert len(vec["scans"]["pose01"]) == sum(vec["dof"]) == 9
     np.testing.assert_allclose(vec["scans"]["pose01"][:3], est.joint_angles["knee"])
-    frames = json.loads((root / "bones" / "bone_frames.json").read_text())
+    frames = json.loads((root / "bones" / "bone_frames.json").read_text(encoding="utf-8"))
     assert set(frames["bones"]) == {"femur", "tibia", "fibula", "patella"}
-    fits = json.loads((root / "poses" / "fits.json").read_text())
+    fits = json.loads((root / "poses" / "fits.json").read_text(encoding="utf-8"))
     assert fits["scans"]["pose01"]["bones"]["tibia"]["status"] == "ok"
     assert 0.0 <= fits["scans"]["pose01"]["bones"]["tibia"]["joint_gap_mm"] < 2.0  # a kept joint (see test_pose)
     assert _hashes(root) == before  # no input file touched
@@ -101,7 +101,7 @@ def test_pose_with_seeds_segments_the_template(tmp_path, small_ct_study, capsys)
     st = read_study(root)
     assert st.template_labels_path() == root / "bones" / "template_labels.nii.gz"  # what every stage uses now
     assert st.stage_entry("bones")["settings"]["source"] == "seeds"
-    seg = json.loads((root / "bones" / "segmentation.json").read_text())
+    seg = json.loads((root / "bones" / "segmentation.json").read_text(encoding="utf-8"))
     assert seg["method"].startswith("ct") and all(v > 0 for v in seg["voxels"].values())
     # pose00 is the straight leg: every bone's true transform is the identity.  Segmented regions differ
     # from the exact labels at the rim only, so the bones stay within 2° and 0.5 mm (at their centroids).
@@ -158,7 +158,7 @@ def test_study_without_labels_and_a_bone_out_of_view(tmp_path, small_ct_study, c
     shutil.copytree(small_ct_study, root)
     st = read_study(root)
     sf = _write_seeds(st, tmp_path / "seeds.json")
-    manifest = json.loads((root / "study.json").read_text())
+    manifest = json.loads((root / "study.json").read_text(encoding="utf-8"))
     del manifest["template_labels"]
     (root / "study.json").write_text(json.dumps(manifest))
     (root / "template_labels.nii.gz").unlink()
@@ -174,10 +174,10 @@ def test_study_without_labels_and_a_bone_out_of_view(tmp_path, small_ct_study, c
     assert main(["pose", str(root), "--scan", "pose01", "--seeds", str(sf), "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "tibia" in out and "fibula" in out  # named in the problems column
-    report = json.loads((root / "poses" / "report.json").read_text())
+    report = json.loads((root / "poses" / "report.json").read_text(encoding="utf-8"))
     failed = {f["bone"]: f for f in report["failures"]}
     assert {"tibia", "fibula"} <= set(failed) and all(f["scan"] == "pose01" for f in failed.values())
-    fits = json.loads((root / "poses" / "fits.json").read_text())["scans"]["pose01"]["bones"]
+    fits = json.loads((root / "poses" / "fits.json").read_text(encoding="utf-8"))["scans"]["pose01"]["bones"]
     assert fits["femur"]["status"] == "ok" and fits["tibia"]["status"] != "ok"
 
 
@@ -206,7 +206,7 @@ def test_a_ct_study_without_labels_goes_from_seeds_to_an_evd_model(tmp_path, sma
     shutil.copytree(small_ct_study, root, ignore=shutil.ignore_patterns("truth"))
     st = read_study(small_ct_study)
     sf = _write_seeds(st, tmp_path / "seeds.json")
-    m = json.loads((root / "study.json").read_text())
+    m = json.loads((root / "study.json").read_text(encoding="utf-8"))
     del m["template_labels"]
     for s in m["scans"]:
         s.pop("truth")

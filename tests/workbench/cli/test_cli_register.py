@@ -32,7 +32,7 @@ def _unregistered_copy(study, d, *, keep_init: bool = False):
     (the defaults apply, not the settings an earlier test ran with), and no init either unless ``keep_init``."""
     drop = ("registration", "validation") if keep_init else ("registration", "init", "validation")
     shutil.copytree(study, d, ignore=shutil.ignore_patterns(*drop))
-    m = json.loads((d / "study.json").read_text())
+    m = json.loads((d / "study.json").read_text(encoding="utf-8"))
     for stage in ("register", "validate") if keep_init else ("init", "register", "validate"):
         m.get("stages", {}).pop(stage, None)
     (d / "study.json").write_text(json.dumps(m))
@@ -134,7 +134,7 @@ def test_register_skips_what_is_up_to_date_and_names_bad_scans(tmp_path, study, 
 def test_register_on_a_study_without_bones_says_what_to_run(tmp_path, study, capsys):
     bare = tmp_path / "bare"
     shutil.copytree(study, bare, ignore=shutil.ignore_patterns("skinning", "registration", "init", "bones"))
-    m = json.loads((bare / "study.json").read_text())
+    m = json.loads((bare / "study.json").read_text(encoding="utf-8"))
     del m["template_labels"]
     m["stages"] = {}
     (bare / "study.json").write_text(json.dumps(m))
@@ -188,7 +188,7 @@ def test_register_unfold_init_repairs_the_folds_of_the_map(tmp_path, study, caps
     d = tmp_path / "u"
     shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration"))
     assert main(["register", str(d), "--scan", "pose01", "--unfold-init", *FAST, *VBD, "--quiet"]) == 0
-    init = json.loads((d / "init" / "pose01" / "init.json").read_text())
+    init = json.loads((d / "init" / "pose01" / "init.json").read_text(encoding="utf-8"))
     repair = init["backward_map"]["unfold"]
     assert repair["n_folded_before"] > 0 and repair["n_folded_after"] == 0  # VBD folds in the crease
     corr = read_displacement(d / "registration" / "pose01" / "correspondence.mha")
@@ -345,7 +345,7 @@ def test_recorded_settings_give_way_to_the_options_that_contradict_them(tmp_path
 
     d = tmp_path / "r"
     shutil.copytree(study, d, ignore=shutil.ignore_patterns("registration", "init", "validation"))
-    m = json.loads((d / "study.json").read_text())
+    m = json.loads((d / "study.json").read_text(encoding="utf-8"))
     m.setdefault("stages", {})
     m["stages"]["init"] = {"digest": "recorded", "settings": {"method": "vbd", "pose": "truth", "unfold": True}}
     m["stages"]["register"] = {

@@ -45,7 +45,7 @@ def test_failure_removes_temporary_file_and_leaves_target(tmp_path):
         with atomic_path(final, overwrite=True) as tmp:
             tmp.write_text("half")
             raise RuntimeError("boom")
-    assert final.read_text() == "old"
+    assert final.read_text(encoding="utf-8") == "old"
     assert os.listdir(tmp_path) == ["out.json"]
 
 
@@ -59,7 +59,7 @@ def test_existing_target_refused_before_anything_happens(tmp_path):
     assert entered == []
     assert err.value.path == final
     assert "out.txt" in str(err.value) and "overwrite=True" in str(err.value) and "--force" in str(err.value)
-    assert final.read_text() == "old"
+    assert final.read_text(encoding="utf-8") == "old"
 
 
 def test_target_created_meanwhile_is_not_clobbered(tmp_path):
@@ -68,7 +68,7 @@ def test_target_created_meanwhile_is_not_clobbered(tmp_path):
         with atomic_path(final) as tmp:
             tmp.write_text("new")
             final.write_text("someone else")
-    assert final.read_text() == "someone else"
+    assert final.read_text(encoding="utf-8") == "someone else"
     assert os.listdir(tmp_path) == ["out.txt"]
 
 
@@ -91,7 +91,7 @@ def test_write_text_atomic(tmp_path):
     with pytest.raises(OutputExistsError):
         write_text_atomic(tmp_path / "notes.md", "x")
     write_text_atomic(tmp_path / "notes.md", "x", overwrite=True)
-    assert path.read_text() == "x"
+    assert path.read_text(encoding="utf-8") == "x"
     assert os.listdir(tmp_path) == ["notes.md"]
 
 

@@ -150,7 +150,7 @@ def test_detached_headers_write_their_data_files(tmp_path):
     write_volume(vol, tmp_path / "b.mhd", compress=True)
     write_volume(vol, tmp_path / "c.nhdr", compress=True)
     assert _listing(tmp_path) == ["a.mhd", "a.raw", "b.mhd", "b.zraw", "c.nhdr", "c.raw.gz"]
-    assert "ElementDataFile = a.raw" in (tmp_path / "a.mhd").read_text()
+    assert "ElementDataFile = a.raw" in (tmp_path / "a.mhd").read_text(encoding="utf-8")
     assert (tmp_path / "a.raw").stat().st_size == vol.data.nbytes == 7 * 11 * 13 * 4
 
 

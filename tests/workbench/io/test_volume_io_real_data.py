@@ -29,7 +29,7 @@ def _header_numbers(text: str, key: str) -> tuple[float, ...]:
 
 @needs_head
 def test_head_mr_metaimage(tmp_path):
-    text = HEAD_MHD.read_text()
+    text = HEAD_MHD.read_text(encoding="utf-8")
     # What the header states, read independently of ITK.
     assert _header_numbers(text, "DimSize") == (48.0, 62.0, 42.0)
     assert _header_numbers(text, "ElementSpacing") == (4.0, 4.0, 4.0)

@@ -118,7 +118,7 @@ def test_a_stage_hands_its_step_times_to_its_manifest_entry_not_to_its_files(stu
     for sid in ("a", "b"):
         e = study.stage_entry("timed", sid)
         assert e["timings"] == {"step": 0.25, "levels": [0.5, 0.75]} and e["seconds"] >= 0
-        assert json.loads((study.root / "timed" / sid / "out.json").read_text()) == {"n": 1}
+        assert json.loads((study.root / "timed" / sid / "out.json").read_text(encoding="utf-8")) == {"n": 1}
     execute(study, SCALE, Gain(), registry=REG)
     assert "timings" not in study.stage_entry("scale", "a")  # a stage that hands none has none
     # workbench info's lines: each stage's seconds, its steps' summed over its scans
@@ -190,7 +190,7 @@ def test_concurrent_writers_lose_no_entry(study):
     for p in procs:
         p.join(120)
         assert p.exitcode == 0
-    m = json.loads((study.root / "study.json").read_text())
+    m = json.loads((study.root / "study.json").read_text(encoding="utf-8"))
     assert len(m["stages"]["toy"]["scans"]) == 100
 
 
@@ -280,7 +280,7 @@ def test_a_stage_is_not_rerun_under_a_stage_reading_it(study, tmp_path):
     # the reader pauses inside mean's run; the writer's rerun of scale a gets 3 s to happen under it
     _second_while_first_is_paused(study.root, hold, _execute_held_mean, "in", _rerun_scale_a, "started")
     st = read_study(study.root)
-    assert json.loads(Path(st.output("mean", "mean.json")).read_text())["same"]
+    assert json.loads(Path(st.output("mean", "mean.json")).read_text(encoding="utf-8"))["same"]
     assert st.stage_entry("scale", "a")["settings"] == {"factor": 4.0}  # the rerun did happen, after the reader
     assert stage_status(st, HELD_MEAN, registry={"scale": SCALE, "mean": HELD_MEAN}) == "stale"
 
@@ -335,7 +335,7 @@ def test_a_stage_waits_for_a_rerun_two_stages_upstream(study, tmp_path):
     # the writer pauses inside scale's run on scan a (its lock held, b's entries still recorded); c gets 3 s
     _second_while_first_is_paused(study.root, hold, _rerun_scale_a_held, "in", _execute_c, "reader")
     assert not (hold / "ran").exists()
-    assert "the b stage of scan 'a' is out of date" in (hold / "stale").read_text()
+    assert "the b stage of scan 'a' is out of date" in (hold / "stale").read_text(encoding="utf-8")
 
 
 def test_the_cli_names_the_stages_in_the_pipeline_order():
@@ -348,7 +348,7 @@ def test_the_cli_names_the_stages_in_the_pipeline_order():
 def _caught_signals() -> int:
     """The process's caught-signal mask (``SigCgt`` of /proc/self/status): bit n−1 is set while signal n has a
     handler — what the kernel will do, which Python's ``signal.getsignal`` does not see when C code changed it."""
-    for line in Path("/proc/self/status").read_text().splitlines():
+    for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
         if line.startswith("SigCgt:"):
             return int(line.split()[1], 16)
     pytest.skip("no /proc/self/status")
