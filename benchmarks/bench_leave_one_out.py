@@ -9,7 +9,9 @@ poses, and the held-out scan is predicted at its estimated pose by EVD
 (Rhee Eq. 6) and by VBD (Rhee Eq. 2).  Both are compared with the scan's
 true forward map over the template's body voxels (MED, mm) and by the
 correlation of the posed template with the scan (CC, whole grid)
-(:func:`validation.leave_one_out.leave_one_out_correspondences`).  The same
+(:func:`validation.leave_one_out.leave_one_out_correspondences`), and how the model's expected error at
+the held-out pose (its scans' registration σ blended, and the cross-validated interpolation's) predicts
+the true error (within 2σ, RMS error / RMS σ, rank correlation, over the body).  The same
 table with models built from the *truth* (exact correspondences, true
 poses) shows what the model itself can do.
 
@@ -30,7 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from validation.leave_one_out import leave_one_out_correspondences, registration_training_positions
+from validation.leave_one_out import (
+    leave_one_out_correspondences,
+    registration_training_positions,
+    registration_training_sigma,
+)
 from validation.phantoms import make_phantom
 from workbench.stages.run import run_stages
 from workbench.study import write_phantom_study
@@ -78,18 +84,23 @@ def run_case(case: str, size: str, seed: int, out: Path, spacing=None, n_poses=N
     template, sk = study.template(), study.skeleton()
     ids = study.scan_ids
     g = template.geometry
-    est_poses, reg_pos = {}, {}
+    est_poses, reg_pos, reg_sigma = {}, {}, {}
     for sid in ids:
-        est_poses[sid], reg_pos[sid], _ = registration_training_positions(study, sid, g, weights)
+        est_poses[sid], reg_pos[sid], found = registration_training_positions(study, sid, g, weights)
+        reg_sigma[sid] = registration_training_sigma(study, sid, reg_pos[sid], found)
+    if any(v is None for v in reg_sigma.values()):
+        reg_sigma = None  # a registration without its expected error: the model's is the cross-validation's alone
     true_poses = {sid: study.truth_pose(sid) for sid in ids}
     true_pos = {sid: study.truth_template_to_scan(sid).data + g.world_coordinates() for sid in ids}
     images = {sid: study.scan(sid) for sid in ids}
     rows = []
-    for label, poses, pos in (
-        ("registrations + estimated poses", est_poses, reg_pos),
-        ("truth (exact correspondences, true poses)", true_poses, true_pos),
+    for label, poses, pos, sig in (
+        ("registrations + estimated poses", est_poses, reg_pos, reg_sigma),
+        ("truth (exact correspondences, true poses)", true_poses, true_pos, None),
     ):
-        res = leave_one_out_correspondences(template, weights, body, sk, poses, pos, true_pos, images=images)
+        res = leave_one_out_correspondences(
+            template, weights, body, sk, poses, pos, true_pos, images=images, sigmas=sig
+        )
         rows.append((case, label, res))
     return rows
 
@@ -113,19 +124,24 @@ def main(argv=None) -> int:
     table = []
     for case in args.cases:
         table += run_case(case, args.size, args.seed, out, args.spacing, args.n_poses)
-    print("\n| case | model from | held-out scan | MED VBD mm | MED EVD mm | CC VBD | CC EVD | EVD wins (MED) |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "\n| case | model from | held-out scan | MED VBD mm | MED EVD mm | CC VBD | CC EVD | EVD wins (MED) | "
+        "sigma: within 2 / RMS ratio / rank |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for case, label, res in table:
         for r in res:
+            c = r.calibration or {}
+            cal = " / ".join("-" if c.get(k) is None else f"{c[k]:.2f}" for k in ("within_2sigma", "rms_ratio", "spearman"))
             print(
                 f"| {case} | {label} | {r.scan} | {r.med_vbd:.2f} | {r.med_evd:.2f} | {r.cc_vbd:.3f} | "
-                f"{r.cc_evd:.3f} | {'yes' if r.med_evd < r.med_vbd else 'no'} |"
+                f"{r.cc_evd:.3f} | {'yes' if r.med_evd < r.med_vbd else 'no'} | {cal} |"
             )
         mv, me = np.mean([r.med_vbd for r in res]), np.mean([r.med_evd for r in res])
         cv, ce = np.mean([r.cc_vbd for r in res]), np.mean([r.cc_evd for r in res])
         print(
             f"| {case} | {label} | mean | {mv:.2f} | {me:.2f} | {cv:.3f} | {ce:.3f} | "
-            f"{sum(r.med_evd < r.med_vbd for r in res)}/{len(res)} |"
+            f"{sum(r.med_evd < r.med_vbd for r in res)}/{len(res)} | |"
         )
     print(f"studies in {out}")
     return 0

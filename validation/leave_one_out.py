@@ -33,6 +33,7 @@ __all__ = [
     "HeldOut",
     "leave_one_out_correspondences",
     "registration_training_positions",
+    "registration_training_sigma",
 ]
 
 
@@ -60,6 +61,40 @@ def registration_training_positions(study, scan_id: str, geometry, weights: Skin
     return pose, fill_unmatched(geometry, weights, pose.transforms, pos, found), found
 
 
+def registration_training_sigma(study, scan_id: str, positions, found) -> np.ndarray | None:
+    """The expected error (mm) of a scan's EVD example at every template voxel: its registration's σ
+    (``uncertainty.mha``, :meth:`workbench.study.Study.registration_uncertainty`) where the voxel lies in the
+    scan (``positions``, ``found`` of :func:`registration_training_positions`), trilinear; where the registration
+    did not find the voxel (its VBD position stands, ``d_k = 0``, a guess) the scan's largest σ.  ``None`` when
+    the registration wrote no σ (Rhee's Algorithm 1, or the posterior off)."""
+    from deformation.fields.interpolate import sample
+
+    sig = study.registration_uncertainty(scan_id)
+    if sig is None:
+        return None
+    pos = np.asarray(positions).reshape(-1, 3)
+    out = sample(sig, pos, order=1, fill=np.nan).astype(np.float32)
+    worst = np.float32(np.nanmax(sig.data)) if np.any(np.isfinite(sig.data)) else np.float32(0.0)
+    out[~np.isfinite(out) | ~np.asarray(found, bool).reshape(-1)] = worst
+    return out.reshape(np.asarray(found).shape)
+
+
+def _calibration(model, pose, posed, truth, mask) -> dict:
+    """The model's expected error at ``pose`` (:meth:`ExampleVolumeDeformation.expected_error`) against the true
+    error of its posed positions over ``mask`` (the three measures of issue R, no bins)."""
+    from validation.registration_measures import uncertainty_calibration
+
+    err = np.linalg.norm(np.asarray(posed, np.float64) - truth, axis=1)
+    sigma = model.expected_error(pose).reshape(-1)
+    mask = np.asarray(mask, bool)
+    if mask.any() and max(float(err[mask].max()), float(sigma[mask].max())) < 1e-3:
+        # a pose the model reproduces exactly (the template's own, with exact examples): nothing to calibrate
+        return {"within_2sigma": None, "rms_ratio": None, "spearman": None, "exact": True}
+    cal = uncertainty_calibration(err, sigma, mask)
+    cal.pop("bins")
+    return cal
+
+
 @dataclass
 class LeaveOneOut:
     pose_id: str
@@ -67,6 +102,9 @@ class LeaveOneOut:
     med_template_evd: float
     med_scan_vbd: float | None = None
     med_scan_evd: float | None = None
+    #: the model's expected error at the held-out pose against its true error over the body
+    #: (:func:`validation.registration_measures.uncertainty_calibration`, without its bins)
+    calibration: dict | None = None
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -79,12 +117,14 @@ def leave_one_out(
     weighting: str = "psd",
     scan_side: bool = False,
     pose_indices=None,
+    cap: bool = True,
     progress=None,
 ) -> list[LeaveOneOut]:
     """Run the leave-one-out comparison on a :class:`~validation.phantoms.Phantom` (see the module docstring).
 
     ``scan_side`` adds the correspondence MED on the posed grid (one backward
-    map and one truth inversion per pose; slower).
+    map and one truth inversion per pose; slower); ``cap`` False poses by Rhee Eq. 6 as written, the blended
+    displacement uncapped beyond the examples' range (:mod:`deformation.models.evd`).
     """
     g = phantom.geometry
     x = g.world_coordinates().reshape(-1, 3)
@@ -107,12 +147,13 @@ def leave_one_out(
             g, weights, phantom.skeleton, [poses[i] for i in rest], [fields[i] for i in rest]
         )
         truth = fields[k].reshape(-1, 3)
-        f_evd = model.forward(poses[k], weighting=weighting)  # Rhee Eq. 6
+        f_evd = model.forward(poses[k], weighting=weighting, cap=cap)  # Rhee Eq. 6
         f_vbd = vbd_forward(g, weights, poses[k].transforms)  # Rhee Eq. 2
         r = LeaveOneOut(
             angles[k][0],
             float(np.linalg.norm(f_vbd.reshape(-1, 3)[body_t] - truth[body_t], axis=1).mean()),
             float(np.linalg.norm(f_evd.reshape(-1, 3)[body_t] - truth[body_t], axis=1).mean()),
+            calibration=_calibration(model, poses[k], f_evd.reshape(-1, 3), truth, body_t),
         )
         if scan_side:
             phi, _ = phantom.correspondence(phantom.posing_model(angles[k][1]))
@@ -143,6 +184,7 @@ class HeldOut:
     med_evd: float
     cc_vbd: float | None = None  #: Pearson correlation of the posed template with the held-out scan
     cc_evd: float | None = None
+    calibration: dict | None = None  #: the model's expected error against the true error (as LeaveOneOut's)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -158,6 +200,7 @@ def leave_one_out_correspondences(
     truth_positions: dict,
     *,
     images: dict | None = None,
+    sigmas: dict | None = None,
     held_out=None,
     weighting: str = "psd",
     progress=None,
@@ -173,7 +216,10 @@ def leave_one_out_correspondences(
     (Rhee Eq. 2) and compared with ``truth_positions`` (its true forward map)
     over the template's ``body`` voxels; with ``images`` (scan → Volume) the
     posed template is also resampled onto the scan's grid and correlated
-    with it (:func:`registration.metrics.similarity`, whole grid).
+    with it (:func:`registration.metrics.similarity`, whole grid).  ``sigmas`` (scan → ``(nz, ny, nx)``, the
+    expected error of its positions, mm) gives the model its scans' errors; either way each held-out scan
+    records how the model's expected error at its pose (the cross-validated interpolation's, and the scans')
+    predicts the true error (``calibration``).
     """
     from deformation.models.posed_template import TemplatePoser
     from registration.metrics import similarity
@@ -188,16 +234,24 @@ def leave_one_out_correspondences(
     for k in held_out or ids:
         rest = tuple(s for s in ids if s != k)
         model = ExampleVolumeDeformation.from_correspondences(  # Rhee Eq. 7 on the other scans
-            g, weights, skeleton, [poses[s] for s in rest], [positions[s] for s in rest]
+            g,
+            weights,
+            skeleton,
+            [poses[s] for s in rest],
+            [positions[s] for s in rest],
+            scan_sigma=None if sigmas is None else [sigmas[s] for s in rest],
         )
-        truth = np.asarray(truth_positions[k], np.float64).reshape(-1, 3)[mask]
-        f_evd = model.forward(poses[k], weighting=weighting).reshape(-1, 3)[mask]  # Rhee Eq. 6
+        truth_all = np.asarray(truth_positions[k], np.float64).reshape(-1, 3)
+        truth = truth_all[mask]
+        f_all = model.forward(poses[k], weighting=weighting).reshape(-1, 3)  # Rhee Eq. 6
+        f_evd = f_all[mask]
         f_vbd = vbd_forward(g, weights, poses[k].transforms).reshape(-1, 3)[mask]  # Rhee Eq. 2
         r = HeldOut(
             k,
             rest,
             float(np.linalg.norm(f_vbd - truth, axis=1).mean()),
             float(np.linalg.norm(f_evd - truth, axis=1).mean()),
+            calibration=_calibration(model, poses[k], f_all, truth_all, mask),
         )
         if images is not None and k in images:
             from deformation.geometry import Volume

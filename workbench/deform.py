@@ -123,6 +123,24 @@ def say_if_compiling(say) -> None:
         say(note)
 
 
+def _sigma_summary(poser, pose, posed) -> dict:
+    """The posed expected error over the posed body (template body voxels, on the template grid): its median and
+    95th percentile, the scans' part alone (median) and the share of the variance the pose interpolation makes."""
+    import numpy as np
+
+    model = poser.model
+    body = poser.body.data > 0
+    total = model.expected_error(pose)[body].astype(np.float64)
+    interp = (1.0 - model.space.explained(pose)) * model.cross_validation_variance().reshape(body.shape)[body]
+    scans = np.sqrt(np.maximum(total**2 - interp, 0.0))
+    return {
+        "median_mm": float(np.median(total)) if total.size else 0.0,
+        "p95_mm": float(np.percentile(total, 95)) if total.size else 0.0,
+        "scans_median_mm": float(np.median(scans)) if scans.size else 0.0,
+        "interpolation_share": float(interp.sum() / max(float((total**2).sum()), 1e-30)),
+    }
+
+
 def deform_study(
     folder,
     pose_path,
@@ -132,6 +150,7 @@ def deform_study(
     weighting: str = "psd",
     labels_out=None,
     field_out=None,
+    uncertainty_out=None,
     grow: bool = False,
     overwrite: bool = False,
     map_factor: int = 1,
@@ -141,8 +160,10 @@ def deform_study(
 
     The posed volume lies on the template's grid (same geometry), or with
     ``grow`` on that grid extended by whole voxels to hold the posed body
-    (a bent limb leaves a slab scanned straight).  Returns a
-    summary: the method, the backward map's status counts, timings.
+    (a bent limb leaves a slab scanned straight).  With ``uncertainty_out``
+    (EVD only) the model's expected error at the pose is written on the
+    posed grid too.  Returns a summary: the method, the backward map's
+    status counts, timings.
     """
     from workbench.io.atomic import check_output_folder, split_suffix
     from workbench.io.volumes import image_format
@@ -156,9 +177,10 @@ def deform_study(
     out = Path(out)
     stem, suffix = split_suffix(out.name)
     labels_out = Path(labels_out) if labels_out else out.with_name(f"{stem}_labels{suffix}")
-    outputs = [out, labels_out] + ([Path(field_out)] if field_out else [])
+    extra = [(Path(p), o) for p, o in ((field_out, "--field-out"), (uncertainty_out, "--uncertainty-out")) if p]
+    outputs = [out, labels_out] + [p for p, _ in extra]
     # every check before any work, so that no output set is left half-written
-    for p, option in zip(outputs, ("--out", "--labels-out", "--field-out")):
+    for p, option in zip(outputs, ["--out", "--labels-out"] + [o for _, o in extra]):
         check_output_folder(p, option)
         image_format(p, for_writing=True)
         if p.exists() and not overwrite:
@@ -174,6 +196,17 @@ def deform_study(
             "writes the posed labels beside the posed volume and needs one.",
             study.root / MANIFEST,
         )
+    if uncertainty_out and (method == "vbd" or not study.has_model):
+        raise InputFileError(
+            f"--uncertainty-out {uncertainty_out}: the expected error comes from an EVD model; "
+            + (
+                "leave --method vbd out"
+                if study.has_model
+                else f"build one first (`workbench model {study.root}`) or leave --uncertainty-out out"
+            )
+            + ".",
+            study.root / MANIFEST,
+        )
     say_if_compiling(say)
     poser = study_poser(study, method=method, weighting=weighting, progress=say)
     used = poser.method
@@ -182,10 +215,14 @@ def deform_study(
         g = poser.template.geometry
         target = covering_grid(g, points_bounds(poser.forward(pose)[poser.body.data > 0], 2.0 * max(g.spacing)))
         say(f"posed volume on the grid grown to hold the posed body: {target.describe()}")
-    posed = poser.pose(pose, target=target, map_factor=map_factor)
+    posed = poser.pose(pose, target=target, map_factor=map_factor, uncertainty=bool(uncertainty_out))
     bm, forward_seconds, backward_seconds = posed.backward, posed.forward_seconds, posed.backward_seconds
     write_volume(posed.volume, out, overwrite=overwrite)
     write_labels(posed.labels, labels_out, overwrite=overwrite)
+    sigma_summary = None
+    if uncertainty_out:
+        write_volume(posed.uncertainty, uncertainty_out, overwrite=overwrite)
+        sigma_summary = _sigma_summary(poser, pose, posed)
     if field_out:
         from workbench.io.volumes import write_displacement
 
@@ -199,6 +236,8 @@ def deform_study(
         "out": str(out),
         "labels": str(labels_out),
         "field": str(field_out) if field_out else None,
+        "uncertainty": str(uncertainty_out) if uncertainty_out else None,
+        "uncertainty_summary": sigma_summary,
         "forward_seconds": forward_seconds,
         "backward_seconds": backward_seconds,
         **bm.summary(),

@@ -20,6 +20,24 @@ are per voxel, from the weighted pose distance of Kurihara Eq. 16
 (:mod:`.posespace`), computed on the fly.  Measurements behind these choices:
 ``docs/measurements/deformation-and-validation.md``.
 
+Beyond the examples' range the normalised RBF weights extrapolate (some ``s_k`` negative, some above one: a
+bend past the most bent scan weighs it ~1.4 and the next −0.5), and so would ``d_a``, without a bound.  The
+blended displacement at a voxel is therefore never longer than the longest example's there (its direction
+kept): where the weights are a convex blend this changes nothing, and beyond the range no template voxel
+travels further than the bones that drive it plus the largest correction any scan showed at it
+(``|v_a − v_0| ≤ max_j |T_j v_0 − v_0| + max_k |d_k|``, as ``E`` blends rigid motions).  The cost, on the
+phantoms' bends past their range, is in ``docs/measurements/deformation-and-validation.md``.
+
+Uncertainty (issue R): a training scan's ``d_k`` carries its registration's expected error ``σ_k`` (the
+register stage's ``uncertainty.mha`` at the voxel's place in the scan).  At a pose ``a`` the model's
+displacement is ``Σ_k s_k d_k``, so independent errors give ``Σ_k s_k² σ_k²``; between and beyond the
+training poses the interpolation errs too.  Its variance is cross-validated: each scan is predicted from the
+others, and the residual less the scans' own errors, divided by the share of a Gaussian process's variance
+the others leave unexplained at that pose (``1 − γ``, :meth:`~.posespace.PoseSpace.explained`, with the
+Gaussians of Kurihara Eq. 13), is averaged over the scans; at ``a`` it counts ``(1 − γ(a))`` times.  So the
+expected error is each scan's own at its training pose and grows away from them.  ``E`` blends rotations
+(``|M d| ≤ |d|``), so the displacement's error bounds the posed position's.
+
 Positions are ``(nz, ny, nx, 3)`` (:mod:`.resample` makes a posed volume); the
 displacements are stored per voxel, ``(n_voxels, n_poses, 3)`` float32.
 """
@@ -58,17 +76,31 @@ EVD_WEIGHTINGS = ("psd", "wpsd")
 
 
 @nb.njit(cache=True, inline="always")
-def _evd_point(a, i, j, k, v, disp, s, idx, val, t, out):
-    """Rhee Eq. 6 at grid point (i, j, k) = voxel v: E(v0 + Σ_p s_p d_p) with v0 = a·(i, j, k, 1)."""
-    # Rhee Eq. 6's v0: the template grid point in world mm
-    p0 = a[0, 0] * i + a[0, 1] * j + a[0, 2] * k + a[0, 3]
-    p1 = a[1, 0] * i + a[1, 1] * j + a[1, 2] * k + a[1, 3]
-    p2 = a[2, 0] * i + a[2, 1] * j + a[2, 2] * k + a[2, 3]
-    for p in range(disp.shape[1]):  # Rhee Eq. 6's d_a = Σ_p s_p(a) d_p: the training displacements blended
+def _evd_point(a, i, j, k, v, disp, s, idx, val, t, cap_on, out):
+    """Rhee Eq. 6 at grid point (i, j, k) = voxel v: E(v0 + Σ_p s_p d_p) with v0 = a·(i, j, k, 1), the blended
+    displacement no longer than the longest example's at v (module docstring, "Beyond the examples' range")."""
+    # Rhee Eq. 6's d_a = Σ_p s_p(a) d_p: the training displacements blended
+    d0 = d1 = d2 = 0.0
+    cap = 0.0  # the longest example displacement at v
+    for p in range(disp.shape[1]):
+        e0, e1, e2 = disp[v, p, 0], disp[v, p, 1], disp[v, p, 2]
         sp = s[p]
-        p0 += sp * disp[v, p, 0]
-        p1 += sp * disp[v, p, 1]
-        p2 += sp * disp[v, p, 2]
+        d0 += sp * e0
+        d1 += sp * e1
+        d2 += sp * e2
+        cap = max(cap, e0 * e0 + e1 * e1 + e2 * e2)
+    n2 = d0 * d0 + d1 * d1 + d2 * d2
+    # the pose weights extrapolate (some s_p < 0 or > 1): the length capped, the direction kept (a convex blend's
+    # round-off, 1e-6 of the square, is left alone: the training poses keep their bits)
+    if cap_on and n2 > cap * (1.0 + 1e-6):
+        f = np.sqrt(cap / n2)
+        d0 *= f
+        d1 *= f
+        d2 *= f
+    # Rhee Eq. 6's v0 + d_a, v0 the template grid point in world mm
+    p0 = a[0, 0] * i + a[0, 1] * j + a[0, 2] * k + a[0, 3] + d0
+    p1 = a[1, 0] * i + a[1, 1] * j + a[1, 2] * k + a[1, 3] + d1
+    p2 = a[2, 0] * i + a[2, 1] * j + a[2, 2] * k + a[2, 3] + d2
     o0, o1, o2 = blend_point(idx, val, v, t, p0, p1, p2)  # Rhee Eq. 6: va = E(v0 + d_a), E the VBD of Rhee Eq. 2
     out[k, j, i, 0] = o0
     out[k, j, i, 1] = o1
@@ -76,7 +108,7 @@ def _evd_point(a, i, j, k, v, disp, s, idx, val, t, out):
 
 
 @nb.njit(cache=True, parallel=True)
-def forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out):
+def forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out, cap=True):
     """Rhee Eq. 6 on a grid: ``out[v] = (Σ_m w_m T_{b_m}) (v + Σ_p s_p disp[v, p])`` for every grid point ``v``.
 
     The compiled kernel behind :func:`vbd_forward` (no examples: ``disp`` of
@@ -84,18 +116,19 @@ def forward_kernel(a, nx, ny, nz, idx, val, t, disp, s, out):
     :meth:`ExampleVolumeDeformation.forward`.  ``a`` is the grid's 3×4
     index → world matrix, ``(nx, ny, nz)`` its size; ``idx``, ``val`` the
     sparse skinning weights per voxel; ``t`` the bones' 3×4 transforms;
-    ``s`` the pose weights of the examples; ``out`` ``(nz, ny, nx, 3)``.
+    ``s`` the pose weights of the examples; ``out`` ``(nz, ny, nx, 3)``; ``cap``: the blended displacement no
+    longer than the longest example's (module docstring; False: Rhee Eq. 6 as written).
     """
     nxy = nx * ny
     for k in nb.prange(nz):
         for j in range(ny):
             for i in range(nx):
                 v = k * nxy + j * nx + i
-                _evd_point(a, i, j, k, v, disp, s, idx, val, t, out)
+                _evd_point(a, i, j, k, v, disp, s, idx, val, t, cap, out)
 
 
 @nb.njit(cache=True, parallel=True)
-def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, out):
+def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, out, cap=True):
     """As :func:`forward_kernel` with per-voxel pose weights (Kurihara Eq. 16, 12–14), solved on the fly."""
     P = disp.shape[1]
     n_bones = bone_pair.shape[0]
@@ -133,8 +166,12 @@ def _forward_kernel_wpsd(a, nx, ny, nz, idx, val, t, disp, bone_pair, bone_q, ou
                 else:
                     for q in range(P):
                         phi[q] = 1.0 / P
-                _evd_point(a, i, j, k, v, disp, phi, idx, val, t, out)
+                _evd_point(a, i, j, k, v, disp, phi, idx, val, t, cap, out)
 
+
+#: σ (template voxels) of the Gaussian that pools the cross-validated interpolation variance: each voxel has a few
+#: residuals (one per scan), ~350 voxels pooled make its estimate ~19× less noisy
+CV_POOL_VOXELS = 2.0
 
 #: The template joins the examples when every training pose is at least this fraction of the training poses'
 #: mean nearest-neighbour distance (the RBF width of :mod:`.posespace`) from the rest pose.
@@ -236,6 +273,10 @@ class ExampleVolumeDeformation:
     template_example : bool
         The last example is the template's rest pose with ``d = 0`` (module docstring); ``n_scans`` then
         counts the others.
+    scan_sigma : (n_voxels, n_scans) float32, optional
+        The expected error (mm) of each training scan's ``d_k`` at every voxel (its registration's σ where the
+        voxel lies in the scan); with it, and without it from the cross-validation alone,
+        :meth:`expected_error` gives a posed volume's uncertainty (module docstring, "Uncertainty").
     """
 
     def __init__(
@@ -246,6 +287,7 @@ class ExampleVolumeDeformation:
         displacements,
         *,
         template_example: bool = False,
+        scan_sigma=None,
     ):
         _check_grid_weights(geometry, weights)
         d = np.ascontiguousarray(displacements, dtype=np.float32)
@@ -261,6 +303,17 @@ class ExampleVolumeDeformation:
         if self.template_example and np.any(d[:, -1]):
             raise ValueError("the template's example (the last) must have zero displacement (Rhee Eq. 7 at rest)")
         self._dof_bone = dof_bones(space.skeleton, weights.bones)
+        self.scan_sigma = None
+        if scan_sigma is not None:
+            sig = np.ascontiguousarray(scan_sigma, dtype=np.float32)
+            if sig.shape != (geometry.n_voxels, self.n_scans):
+                raise ValueError(
+                    f"scan_sigma must be (n_voxels, n_scans) = {(geometry.n_voxels, self.n_scans)}, got {sig.shape}"
+                )
+            if not np.all(np.isfinite(sig)) or sig.min() < 0:
+                raise ValueError("scan_sigma must be finite and ≥ 0 (mm)")
+            self.scan_sigma = sig
+        self._cv_var = None  # the cross-validated interpolation variance (mm²), made on first use
 
     @property
     def n_scans(self) -> int:
@@ -277,15 +330,23 @@ class ExampleVolumeDeformation:
         displacements,
         *,
         template_example="auto",
+        scan_sigma=None,
     ) -> ExampleVolumeDeformation:
         """The model from the training scans' pose vectors ``(P, n_dof)`` and displacements ``(n_voxels, P, 3)``
         (Rhee Eq. 7), the template's rest pose with ``d = 0`` added as an example when ``template_example``
-        is True, or "auto" and :func:`wants_template_example`."""
+        is True, or "auto" and :func:`wants_template_example`; ``scan_sigma`` ``(n_voxels, P)``: the class's."""
         vectors, template_example = with_template_example(skeleton, vectors, template_example)
         d = np.asarray(displacements, dtype=np.float32)
         if template_example:
             d = np.concatenate([d, np.zeros(d.shape[:1] + (1, 3), np.float32)], axis=1)
-        return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=template_example)
+        return cls(
+            geometry,
+            weights,
+            PoseSpace(skeleton, vectors),
+            d,
+            template_example=template_example,
+            scan_sigma=scan_sigma,
+        )
 
     @classmethod
     def from_correspondences(
@@ -297,6 +358,7 @@ class ExampleVolumeDeformation:
         template_to_scan,
         *,
         template_example="auto",
+        scan_sigma=None,
         progress=None,
     ) -> ExampleVolumeDeformation:
         """Build the model from each training scan's pose and template → scan positions (Rhee Eq. 7).
@@ -305,7 +367,8 @@ class ExampleVolumeDeformation:
         transforms template → scan) and ``template_to_scan`` the matching
         ``(nz, ny, nx, 3)`` arrays: the world position in scan ``k`` of every
         template voxel (ground truth, or a registration's inverse field).
-        ``template_example``: see :meth:`from_examples`.
+        ``template_example``: see :meth:`from_examples`; ``scan_sigma``: one ``(nz, ny, nx)`` array per scan,
+        the expected error (mm) of its positions (the class's ``scan_sigma``).
         """
         poses = list(poses)
         fields = list(template_to_scan)
@@ -342,18 +405,83 @@ class ExampleVolumeDeformation:
                     ) from None
             if progress is not None:
                 progress(k + 1, len(poses))
-        return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=with_template)
+        sig = None
+        if scan_sigma is not None:
+            sig = [np.asarray(a, np.float32).reshape(-1) for a in scan_sigma]
+            if len(sig) != len(poses) or any(a.shape[0] != n for a in sig):
+                raise ValueError(f"scan_sigma needs one array of {n} voxels per scan ({len(poses)})")
+            sig = np.stack(sig, axis=1)
+        return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=with_template, scan_sigma=sig)
 
     def pose_weights(self, pose) -> np.ndarray:
         return self.space.weights(pose)
 
-    def forward(self, pose, transforms=None, *, weighting: str = "psd") -> np.ndarray:
+    def _blend(self, lo, hi, s, keep) -> np.ndarray:
+        """``Σ_p s_p d_p`` over the examples ``keep`` for voxels ``lo:hi``, capped at their longest (float64)."""
+        d = self.displacements[lo:hi][:, keep].astype(np.float64)
+        out = np.einsum("npc,p->nc", d, s)
+        cap = (d**2).sum(-1).max(axis=1) if d.shape[1] else np.zeros(hi - lo)
+        n2 = (out**2).sum(-1)
+        f = np.ones_like(n2)
+        over = n2 > cap * (1.0 + 1e-6)  # as the forward kernel: the length capped, the direction kept
+        f[over] = np.sqrt(cap[over] / n2[over])
+        return out * f[:, None]
+
+    def cross_validation_variance(self) -> np.ndarray:
+        """The pose interpolation's variance (mm²) per voxel, from leaving each scan out (module docstring,
+        "Uncertainty"): ``max(0, mean_k (r_k² − σ_k² − Σ_j s_j² σ_j²) / (1 − γ_k))``, ``r_k`` the residual of
+        ``d_k`` predicted from the other examples at scan k's pose, ``σ`` the scans' expected errors (0 without
+        ``scan_sigma``) and ``γ_k`` the share the others explain there (:meth:`PoseSpace.explained`).
+        The per-voxel mean is pooled over a Gaussian of :data:`CV_POOL_VOXELS` before the clip.
+        ``(n_voxels,)`` float32; zeros with one scan (nothing to leave out)."""
+        if self._cv_var is not None:
+            return self._cv_var
+        n, P, ns = self.geometry.n_voxels, self.space.n_poses, self.n_scans
+        total = np.zeros(n)
+        if P < 2 or ns < 1:
+            self._cv_var = total.astype(np.float32)
+            return self._cv_var
+        sig2 = None if self.scan_sigma is None else self.scan_sigma.astype(np.float64) ** 2
+        for k in range(ns):
+            keep = [p for p in range(P) if p != k]
+            others = PoseSpace(self.space.skeleton, self.space.train[keep])
+            s = others.weights(self.space.train[k])  # Kurihara Eq. 14 at scan k's pose, from the others
+            share = max(1.0 - others.explained(self.space.train[k]), 0.05)  # the unexplained share, floored
+            s_scans = np.array([s[i] if keep[i] < ns else 0.0 for i in range(len(keep))])  # the template's σ: 0
+            for lo in range(0, n, 1 << 18):
+                hi = min(n, lo + (1 << 18))
+                r2 = ((self.displacements[lo:hi, k].astype(np.float64) - self._blend(lo, hi, s, keep)) ** 2).sum(-1)
+                if sig2 is not None:  # the scans' own errors are in the residual: the interpolation's is the rest
+                    sc = [p for p in keep if p < ns]
+                    r2 -= sig2[lo:hi, k] + sig2[lo:hi][:, sc] @ (s_scans[: len(sc)] ** 2)
+                total[lo:hi] += r2 / share
+        # each voxel's mean of a few residuals, less their expected noise, is itself noisy (and the division by a
+        # small unexplained share amplifies it): pooled over a Gaussian of CV_POOL_VOXELS before the clip at 0
+        from scipy import ndimage
+
+        pooled = ndimage.gaussian_filter((total / ns).reshape(self.geometry.array_shape), CV_POOL_VOXELS, mode="nearest")
+        self._cv_var = np.maximum(pooled.reshape(-1), 0.0).astype(np.float32)
+        return self._cv_var
+
+    def expected_error(self, pose) -> np.ndarray:
+        """The posed volume's expected error (mm) at every template voxel, ``(nz, ny, nx)`` float32 (module
+        docstring, "Uncertainty"): ``√(Σ_k s_k² σ_k² + (1 − γ(a)) v)``, the scans' errors blended by the pose
+        weights of Kurihara Eq. 14 and the cross-validated interpolation variance ``v`` where the training
+        poses do not explain the pose (``γ``, :meth:`PoseSpace.explained`: 1 at a training pose)."""
+        s = self.space.weights(pose)
+        var = (1.0 - self.space.explained(pose)) * self.cross_validation_variance().astype(np.float64)
+        if self.scan_sigma is not None:
+            var = var + (self.scan_sigma.astype(np.float64) ** 2) @ (s[: self.n_scans] ** 2)
+        return np.sqrt(var).astype(np.float32).reshape(self.geometry.array_shape)
+
+    def forward(self, pose, transforms=None, *, weighting: str = "psd", cap: bool = True) -> np.ndarray:
         """The posed position of every template voxel at ``pose`` (Rhee Eq. 6), ``(nz, ny, nx, 3)`` float32.
 
         ``pose`` is a :class:`~deformation.kinematics.skeleton.Pose` (or a pose vector
         together with ``transforms``); ``weighting`` is ``"psd"`` (one set of
         normalised RBF weights for every voxel, Rhee's choice) or ``"wpsd"``
-        (per-voxel weights, Kurihara Eq. 16).
+        (per-voxel weights, Kurihara Eq. 16); ``cap`` False leaves the blended displacement uncapped beyond the
+        examples' range (Rhee Eq. 6 as written; module docstring).
         """
         if weighting not in EVD_WEIGHTINGS:
             raise ValueError(f"weighting must be one of {EVD_WEIGHTINGS}, got {weighting!r}")
@@ -369,7 +497,9 @@ class ExampleVolumeDeformation:
         if weighting == "psd":
             s = np.ascontiguousarray(self.space.weights(pose), dtype=np.float64)  # Kurihara Eq. 12–15: s_k(a)
             # Rhee Eq. 6: va = E(v0 + Σ_k s_k(a) d_k) for every template voxel
-            forward_kernel(a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, s, out)
+            forward_kernel(
+                a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, s, out, bool(cap)
+            )
         else:
             vec = self.space.vector(pose)
             train = self.space.train
@@ -377,6 +507,17 @@ class ExampleVolumeDeformation:
             bone_q = per_bone_sq(vec[None, :] - train, self._dof_bone, self.weights.n_bones)
             # Rhee Eq. 6 with WPSD's per-voxel s_k (Kurihara Eq. 16 in place of Kurihara Eq. 15)
             _forward_kernel_wpsd(
-                a, nx, ny, nz, self.weights.index, self.weights.value, t, self.displacements, bone_pair, bone_q, out
+                a,
+                nx,
+                ny,
+                nz,
+                self.weights.index,
+                self.weights.value,
+                t,
+                self.displacements,
+                bone_pair,
+                bone_q,
+                out,
+                bool(cap),
             )
         return out

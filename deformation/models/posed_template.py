@@ -38,6 +38,10 @@ class PosedTemplate:
     )
     forward_seconds: float
     backward_seconds: float
+    #: with ``pose(..., uncertainty=True)``: the model's expected error (mm) pulled onto the posed grid
+    #: (:meth:`~deformation.models.evd.ExampleVolumeDeformation.expected_error`; where no template voxel lands, the
+    #: map's largest), None otherwise
+    uncertainty: Volume | None = None
 
 
 class TemplatePoser:
@@ -125,8 +129,11 @@ class TemplatePoser:
             cache[key] = (g, w, model)
         return cache[key]
 
-    def pose(self, pose, *, labels: bool = True, target=None, map_factor: int = 1) -> PosedTemplate:
-        """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry).
+    def pose(
+        self, pose, *, labels: bool = True, target=None, map_factor: int = 1, uncertainty: bool = False
+    ) -> PosedTemplate:
+        """The template (and labels) posed, on the template's grid or on ``target`` (a GridGeometry); with
+        ``uncertainty`` (EVD only) the model's expected error posed too.
 
         ``map_factor`` f > 1: the forward and backward maps are solved on every f-th voxel of the grids
         (f³ fewer voxels), and the template is pulled at full resolution through the blend of that map
@@ -136,6 +143,13 @@ class TemplatePoser:
         f = int(map_factor)
         if f < 1:
             raise ValueError(f"map_factor must be a positive integer, got {map_factor!r}")
+        if uncertainty and self.model is None:
+            raise ValueError("the expected error of a posed volume needs an EVD model (VBD has none)")
+        sigma = None
+        if uncertainty:
+            err = self.model.expected_error(pose)
+            sigma = Volume(err, self.template.geometry)
+            sigma_fill = float(err.max()) if err.size else 0.0
         if self.weights_factor > 1:
             if f not in (1, self.weights_factor):
                 raise ValueError(
@@ -171,6 +185,8 @@ class TemplatePoser:
             bm = CoarseBackwardMap(coarse, f, g, tgt)
             vol = bm.pull(self.template, fill=self.fill)
             lab = bm.pull(self.template_labels, labels=True) if labels and self.template_labels is not None else None
+            if sigma is not None:
+                sigma = bm.pull(sigma, fill=sigma_fill)
         else:
             bm = backward_map(fwd, g, target, transforms=t, prefer=prefer)
             vol = resample_forward(bm, self.template, fill=self.fill)
@@ -179,8 +195,10 @@ class TemplatePoser:
                 if labels and self.template_labels is not None
                 else None
             )
+            if sigma is not None:
+                sigma = resample_forward(bm, sigma, fill=sigma_fill)
         t2 = time.perf_counter()
-        return PosedTemplate(vol, lab, bm, t1 - t0, t2 - t1)
+        return PosedTemplate(vol, lab, bm, t1 - t0, t2 - t1, sigma)
 
 
 def _grid_factor(template, grid) -> int:

@@ -178,6 +178,20 @@ class PoseSpace:
         """``s(a)`` over the training poses (Kurihara Eq. 14)."""
         return pose_weights(self.train, self.vector(pose))
 
+    def explained(self, pose) -> float:
+        """``φ(a)ᵀ Φ⁻¹ φ(a)`` in [0, 1], Φ and φ the Gaussians of Kurihara Eq. 13 (unscaled): the share of a unit
+        Gaussian process's variance at ``a`` that the training poses explain — 1 at a training pose, falling to
+        0 far from them (the process's posterior variance there is ``1 − explained``); 1 with one training pose
+        at that pose, 0 elsewhere."""
+        q = self.vector(pose)
+        train = self.train
+        if len(train) < 2:
+            return float(np.sum((train[0] - q) ** 2) < 1e-18)
+        pair = ((train[:, None, :] - train[None, :, :]) ** 2).sum(-1)
+        sigma = _nn_width(pair)
+        phi = np.exp(-((train - q[None]) ** 2).sum(-1) / sigma**2)
+        return float(np.clip(phi @ np.linalg.solve(np.exp(-pair / sigma**2), phi), 0.0, 1.0))
+
     def point_space(self, weights: SkinningWeights) -> PointPoseSpace:
         """Per-point WPSD coefficients for points with these skinning weights (Kurihara Eq. 16)."""
         return PointPoseSpace(self, weights)

@@ -43,6 +43,14 @@ def add_parser(subparsers) -> None:
         help="also write the posed-to-template displacement field (ITK vector image, mm)",
     )
     p.add_argument(
+        "--uncertainty-out",
+        type=Path,
+        metavar="SIGMA",
+        help="also write the posed volume's expected error (mm, on the posed volume's grid): the training "
+        "scans' registration errors blended by the pose weights, and the pose interpolation's error "
+        "cross-validated over the scans, which grows away from the training poses (EVD only)",
+    )
+    p.add_argument(
         "--grow",
         action="store_true",
         help="write the posed volume on the template's grid extended (same spacing and direction) to "
@@ -84,6 +92,7 @@ def handle(args) -> int:
         weighting=args.weighting,
         labels_out=args.labels_out,
         field_out=args.field_out,
+        uncertainty_out=args.uncertainty_out,
         grow=args.grow,
         overwrite=args.force,
         map_factor=args.map_factor,
@@ -101,5 +110,13 @@ def handle(args) -> int:
         f"({100 * s['fraction_folded']:.3f} %), {s['n_not_converged']:,} not converged, {s['n_outside']:,} "
         f"outside the template (fill value)"
     )
-    print(f"wrote {s['out']} and {s['labels']}" + (f" and {s['field']}" if s["field"] else ""))
+    if s.get("uncertainty"):
+        u = s["uncertainty_summary"]
+        print(
+            f"expected error over the posed body: median {u['median_mm']:.2f} mm, 95th percentile "
+            f"{u['p95_mm']:.2f} mm (the scans' registrations {u['scans_median_mm']:.2f} mm, the pose "
+            f"interpolation's share {100 * u['interpolation_share']:.0f} %)"
+        )
+    wrote = [s["out"], s["labels"]] + [s[k] for k in ("field", "uncertainty") if s.get(k)]
+    print("wrote " + ", ".join(wrote[:-1]) + " and " + wrote[-1])
     return 0

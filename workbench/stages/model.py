@@ -18,7 +18,11 @@ scan is near rest (:mod:`deformation.models.evd`; ``evd.json``'s
 ``template_example``).
 
 Outputs (``model/``): ``evd.json`` and ``evd_displacements.mha``
-(3 components per training scan, mm, on the template grid).
+(3 components per training scan, mm, on the template grid); when every
+registration wrote its expected error, ``evd_uncertainty.mha`` (one
+component per training scan: the error of its ``d_k``, mm), from which
+``workbench deform --uncertainty-out`` poses the model's expected error
+(:mod:`deformation.models.evd`, "Uncertainty").
 """
 
 from __future__ import annotations
@@ -75,17 +79,18 @@ def _run(ctx) -> dict:
     from deformation.models.evd import ExampleVolumeDeformation, fill_unmatched
     from deformation.models.posespace import pose_vector
     from deformation.models.skinning import stack_transforms
-    from validation.leave_one_out import registration_training_positions
+    from validation.leave_one_out import registration_training_positions, registration_training_sigma
 
     study, s = ctx.study, ctx.settings
     ids = study.check_scan_ids(s.scans)
     weights, body = study.weights()
     sk = study.skeleton()
     g = study.template().geometry
-    poses, fields, unmatched = [], [], {}
+    poses, fields, unmatched, sigmas = [], [], {}, []
     for k, sid in enumerate(ids):
         if s.source == "registration":
             pose, pos, found = registration_training_positions(study, sid, g, weights)
+            sigmas.append(registration_training_sigma(study, sid, pos, found))  # its registration's σ, or None
             how = "the registration's inverse field and the estimated pose"
         else:
             pose = study.truth_pose(sid)
@@ -110,9 +115,28 @@ def _run(ctx) -> dict:
         poses.append(pose)
         fields.append(pos)
         ctx.report(k + 1, len(ids), f"{sid}: template → scan positions from {how}")
-    model = ExampleVolumeDeformation.from_correspondences(g, weights, sk, poses, fields)  # Rhee Eq. 7
+    # the scans' expected errors when every registration wrote one (the truth's maps are exact: none)
+    scan_sigma = sigmas if sigmas and all(v is not None for v in sigmas) else None
+    model = ExampleVolumeDeformation.from_correspondences(  # Rhee Eq. 7
+        g, weights, sk, poses, fields, scan_sigma=scan_sigma
+    )
     del fields
     disp = model.displacements[:, : len(ids)].reshape(g.array_shape + (3 * len(ids),))
+    cv = model.cross_validation_variance()
+    body_mask = body.data.reshape(-1) > 0
+    uncertainty = {
+        "file": "evd_uncertainty.mha" if scan_sigma is not None else None,
+        "layout": "per voxel: each training scan's expected error sigma_k (mm, its registration's uncertainty.mha "
+        "where the voxel lies in the scan, its largest where the registration did not find it)",
+        "scans_median_mm": {
+            sid: float(np.median(model.scan_sigma[body_mask, k])) if scan_sigma is not None else 0.0
+            for k, sid in enumerate(ids)
+        },
+        # the pose interpolation's error where the training poses explain nothing, cross-validated over the scans
+        "interpolation_median_mm": float(np.sqrt(np.median(cv[body_mask]))) if body_mask.any() else 0.0,
+        "method": "deformation.models.evd (module docstring, 'Uncertainty'): sigma at a pose is "
+        "sqrt(sum_k s_k^2 sigma_k^2 + (1 - gamma) v), v cross-validated by leaving each scan out",
+    }
     doc = {
         "format": "avw-evd",
         "version": 1,
@@ -131,9 +155,13 @@ def _run(ctx) -> dict:
         "unmatched_voxels": unmatched,
         "unmatched": "template voxels with no correspondence in that scan (outside its field of view, or the "
         "inverse not found): d_k = 0 there, i.e. VBD",
+        "uncertainty": uncertainty,
         "workbench_version": __version__,
     }
-    return {"evd_displacements.mha": VectorImage(Volume(disp, g)), "evd.json": Json(doc)}
+    out = {"evd_displacements.mha": VectorImage(Volume(disp, g)), "evd.json": Json(doc)}
+    if scan_sigma is not None:
+        out["evd_uncertainty.mha"] = VectorImage(Volume(model.scan_sigma.reshape(g.array_shape + (len(ids),)), g))
+    return out
 
 
 STAGE = Stage(
@@ -145,5 +173,5 @@ STAGE = Stage(
     needs=_needs,
     inputs=_inputs,
     uses=lambda study, s: s.scans,
-    version=4,  # what each version changed: docs/measurements/workbench.md
+    version=5,  # what each version changed: docs/measurements/workbench.md
 )

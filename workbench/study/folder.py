@@ -417,6 +417,13 @@ class Study:
         n = len(doc["scans"])
         if vol.n_components != 3 * n:
             raise InputFileError(f"{dpath}: {vol.n_components} components, expected 3 × {n} training scans.", dpath)
+        sigma = None
+        sig_file = (doc.get("uncertainty") or {}).get("file")
+        if sig_file:  # the scans' expected errors (model stage version 5 with registrations that wrote theirs)
+            spath = path.parent / sig_file
+            svol = read_vector_image(spath, components=n)  # one per training scan (a scalar image for one scan)
+            vol.geometry.check_same(svol.geometry, names=(str(dpath), str(spath)), remedy=stale)
+            sigma = np.asarray(svol.data, np.float32).reshape(-1, n)
         return ExampleVolumeDeformation.from_examples(
             vol.geometry,
             weights,
@@ -424,6 +431,7 @@ class Study:
             [np.asarray(doc["pose_vectors"][s], dtype=float) for s in doc["scans"]],
             vol.data.reshape(-1, n, 3),
             template_example=bool(doc.get("template_example", False)),
+            scan_sigma=sigma,
         )
 
     # -- surface stage -----------------------------------------------------------------------------
