@@ -971,7 +971,7 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
     mask = None if regl is None else regl > 0
     # the local intensity fit over at least 2 voxels of the level (a coarse level's LNCC window is under one)
     info = bayes.information(fl, w, sp, np.maximum(win, 2.0), noise_var, per_sample, mask)
-    prec = bayes.pooled_precision(info, pool, sp)
+    eig = bayes.pooled_precision(info, pool, sp, eig=True)  # one decomposition for the evidence and the posterior
     keep = np.ones(shape, np.float32)  # 1 − the nearest bone's weight (1 away from every bone)
     bone_w = []
     if labl is not None:
@@ -993,12 +993,13 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
     motion_share = None
     if u_in is not None and np.any(u_in):
         m2 = (u_in**2).sum(axis=0)
-        s0, b = bayes.prior_variance_with_motion(u, prec, soft & sub, m2)
+        s0, b = bayes.prior_variance_with_motion(u, None, soft & sub, m2, eig=eig)
         prior_var = s0 + b * m2
         motion_share = float(np.sqrt(b))
     else:
-        prior_var = bayes.prior_variance(u, prec, soft & sub)
-    post = bayes.posterior_correction(u, prec, prior_var)
+        prior_var = bayes.prior_variance(u, None, soft & sub, eig=eig)
+    post = bayes.posterior_correction(u, None, prior_var, eig=eig)
+    del eig
     k = keep[None]
     u_new = (k * post.u + (1.0 - k) * u).astype(np.float32)
 

@@ -108,7 +108,7 @@ def information(f, w, sp, window, noise_var: float, per_sample: float = 1.0, mas
     return out
 
 
-def pooled_precision(info: np.ndarray, pool, sp, z: float = 2.0) -> np.ndarray:
+def pooled_precision(info: np.ndarray, pool, sp, z: float = 2.0, *, eig: bool = False):
     """``info`` summed over a Gaussian of ``pool`` voxels (σ per axis) with peak 1 (the smoothed field times the
     kernel's sum, ``(2π)^{3/2} Π σ``), each eigenvalue lowered by ``z`` standard errors of that sum.
 
@@ -121,7 +121,9 @@ def pooled_precision(info: np.ndarray, pool, sp, z: float = 2.0) -> np.ndarray:
     (signal × noise and noise × noise; ``I`` the information without its noise, estimated by the kernel's mean).
     Summed with the kernel's weights its variance is ``Σ K²`` (``π^{3/2} Π σ``) times that; the eigenvalues are
     lowered by ``z`` times the Frobenius norm of those standard errors (a one-sided bound: the information that
-    stands ``z`` standard errors above chance)."""
+    stands ``z`` standard errors above chance).  With ``eig`` the result is ``(λ, V)``, the eigenvalues (≥ 0)
+    and vectors of ``P`` instead of ``P``, which :func:`prior_variance`, :func:`prior_variance_with_motion` and
+    :func:`posterior_correction` take (``eig=``, their ``precision`` then None)."""
     pool = np.broadcast_to(np.asarray(pool, float), (3,))
     n = float((2.0 * np.pi) ** 1.5 * np.prod(pool))
     n2 = float(np.pi**1.5 * np.prod(pool))
@@ -137,13 +139,20 @@ def pooled_precision(info: np.ndarray, pool, sp, z: float = 2.0) -> np.ndarray:
     floor = np.float32(z) * np.sqrt(var * np.float32(n2))
     lam, vec = np.linalg.eigh(_full(mean * np.float32(n)))
     lam = np.clip(lam - floor[..., None].astype(np.float64), 0.0, None)
+    if eig:
+        return lam, vec
     full = np.einsum("...ik,...k,...jk->...ij", vec, lam, vec)
     return np.stack([full[..., i, j] for i, j in PAIRS]).astype(np.float32)
 
 
-def _eig(p: np.ndarray):
-    """Eigenvalues (clipped at 0: the cross tensor of misaligned edges can be negative) and vectors of (6, …)."""
-    lam, vec = np.linalg.eigh(_full(p))
+def _eig(p: np.ndarray, eig=None, idx=None):
+    """Eigenvalues (clipped at 0: the cross tensor of misaligned edges can be negative) and vectors of (6, …) ``p``
+    at the voxels ``idx`` (a tuple of index arrays; None: all), or those of ``eig`` (``(λ, V)`` of the whole
+    of ``p``, :func:`pooled_precision`'s) there."""
+    if eig is not None:
+        lam, vec = eig
+        return (lam, vec) if idx is None else (lam[idx], vec[idx])
+    lam, vec = np.linalg.eigh(_full(p if idx is None else p[(slice(None),) + idx]))
     return np.clip(lam, 0.0, None), vec
 
 
@@ -152,21 +161,40 @@ PRIOR_VARIANCE_BOUNDS = (1e-4, 100.0)
 
 
 def prior_variance(
-    u: np.ndarray, precision: np.ndarray, where: np.ndarray, *, lo=PRIOR_VARIANCE_BOUNDS[0], hi=PRIOR_VARIANCE_BOUNDS[1]
+    u: np.ndarray,
+    precision: np.ndarray,
+    where: np.ndarray,
+    *,
+    lo=PRIOR_VARIANCE_BOUNDS[0],
+    hi=PRIOR_VARIANCE_BOUNDS[1],
+    eig=None,
 ) -> float:
     """σ_p² (mm²) that maximises the evidence of the corrections ``u`` (3, …) at the voxels ``where``:
     ``u(x) ~ N(0, σ_p² I + P(x)⁻¹)``, ``P`` the pooled ``precision`` (6, …).  In ``P``'s eigenbasis each component
     ``v_k`` has variance ``σ_p² + 1/λ_k``; up to terms free of ``σ_p²`` the negative log evidence is
     ``Σ log(1 + λ σ_p²) + λ v² / (1 + λ σ_p²)`` (a direction with ``λ = 0`` tells nothing).  Searched on
-    ``log σ_p²`` within ``[lo, hi]``."""
+    ``log σ_p²`` within ``[lo, hi]``.  ``eig``: ``precision``'s ``(λ, V)`` (:func:`pooled_precision`)."""
+    got = _evidence_terms(u, precision, where, eig)
+    if got is None:  # nothing measured: the evidence is flat, and the lower bound says so
+        return float(lo)
+    return _best_prior_variance(*got[:2], lo, hi)
+
+
+def _evidence_terms(u, precision, where, eig):
+    """``(λ, v², idx)`` at the voxels ``where``: the eigenvalues of ``precision`` there and the squared components
+    of ``u`` along its eigenvectors; None when nothing is measured there."""
     idx = np.nonzero(where)
     if not len(idx[0]):
-        return float(lo)
-    lam, vec = _eig(precision[(slice(None),) + idx])
-    if not np.any(lam > 0):  # nothing measured: the evidence is flat, and the lower bound says so
-        return float(lo)
+        return None
+    lam, vec = _eig(precision, eig, idx)
+    if not np.any(lam > 0):
+        return None
     uu = np.stack([c[idx] for c in u], axis=-1).astype(np.float64)
-    v2 = np.einsum("nij,ni->nj", vec, uu) ** 2
+    return lam, np.einsum("nij,ni->nj", vec, uu) ** 2, idx
+
+
+def _best_prior_variance(lam, v2, lo, hi) -> float:
+    """:func:`prior_variance`'s search on ``log σ_p²`` within ``[lo, hi]``."""
 
     def neg(log_s):
         s = np.exp(log_s)
@@ -178,7 +206,7 @@ def prior_variance(
 
 
 def prior_variance_with_motion(
-    u: np.ndarray, precision: np.ndarray, where: np.ndarray, motion2: np.ndarray
+    u: np.ndarray, precision: np.ndarray, where: np.ndarray, motion2: np.ndarray, *, eig=None
 ) -> tuple[float, float]:
     """``(σ₀², β²)`` that maximise the evidence of ``u`` under a prior whose variance grows with the motion so far,
     ``σ_p²(x) = σ₀² + β² m(x)`` (``m`` = ``motion2``, mm²: the squared correction the coarser levels made): a
@@ -188,14 +216,10 @@ def prior_variance_with_motion(
     from scipy.optimize import minimize
 
     lo, hi = PRIOR_VARIANCE_BOUNDS
-    idx = np.nonzero(where)
-    if not len(idx[0]):
+    got = _evidence_terms(u, precision, where, eig)
+    if got is None:  # nothing measured (see prior_variance)
         return float(lo), 1e-6
-    lam, vec = _eig(precision[(slice(None),) + idx])
-    if not np.any(lam > 0):  # nothing measured (see prior_variance)
-        return float(lo), 1e-6
-    uu = np.stack([c[idx] for c in u], axis=-1).astype(np.float64)
-    v2 = np.einsum("nij,ni->nj", vec, uu) ** 2
+    lam, v2, idx = got
     m = np.asarray(motion2, np.float64)[idx][:, None]
 
     def unpack(x):
@@ -206,7 +230,7 @@ def prior_variance_with_motion(
         d = 1.0 + lam * (s0 + b * m)
         return float(np.sum(np.log(d) + lam * v2 / d))
 
-    s_first = prior_variance(u, precision, where)
+    s_first = _best_prior_variance(lam, v2, lo, hi)  # the motion-free evidence's, a start
     best = min(
         (
             minimize(neg, np.log([s_first, b0]), method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-6})
@@ -217,10 +241,11 @@ def prior_variance_with_motion(
     return unpack(best.x)
 
 
-def posterior_correction(u: np.ndarray, precision: np.ndarray, prior_var) -> PosteriorResult:
+def posterior_correction(u: np.ndarray, precision: np.ndarray, prior_var, *, eig=None) -> PosteriorResult:
     """Per voxel ``C = (P + I/σ_p²)⁻¹``, the posterior mean ``û = C P u`` and ``σ = √tr C``; in ``P``'s eigenbasis
-    the gain along ``λ`` is ``λ σ_p² / (1 + λ σ_p²)`` and the variance ``σ_p² / (1 + λ σ_p²)``."""
-    lam, vec = _eig(precision)
+    the gain along ``λ`` is ``λ σ_p² / (1 + λ σ_p²)`` and the variance ``σ_p² / (1 + λ σ_p²)``.  ``eig``:
+    ``precision``'s ``(λ, V)`` (:func:`pooled_precision`)."""
+    lam, vec = _eig(precision, eig)
     pv = np.asarray(prior_var, np.float64)
     pv = pv[..., None] if pv.ndim else pv  # a variance per voxel, or one for all
     d = 1.0 + lam * pv
