@@ -221,6 +221,23 @@ class PoseSession:
             self._scans[scan_id] = resampled_onto(self.study.scan(scan_id), self.grid)
         return self._scans[scan_id]
 
+    def model_uncertainty(self):
+        """The posed model's expected error σ (mm) on the view's grid at the current pose (EVD's
+        :meth:`~deformation.models.evd.ExampleVolumeDeformation.expected_error` pulled through the pose's backward
+        map, as ``workbench deform --uncertainty-out``); None with VBD (no model) or before the first pose."""
+        if self.posed is None or self.poser.model is None:
+            return None
+        if self.posed.uncertainty is None:
+            from deformation.fields.resample import resample_forward
+            from deformation.geometry import Volume
+
+            err = self.poser.model.expected_error(self.skeleton.pose(self.angles))
+            vol = Volume(err, self.poser.template.geometry)
+            bm = self.posed.backward
+            fill = float(err.max()) if err.size else 0.0
+            self.posed.uncertainty = bm.pull(vol, fill=fill) if hasattr(bm, "pull") else resample_forward(bm, vol, fill=fill)
+        return self.posed.uncertainty
+
     def uncertainty_on_grid(self, scan_id: str):
         """The scan's registration's expected error σ (mm, ``uncertainty.mha``) resampled onto the view's grid, read
         once; None when the registration wrote none (Rhee's Algorithm 1, or the posterior off)."""
@@ -305,8 +322,8 @@ class PoseSession:
         data = np.asarray(vol.data)
         at = tuple(int(n // 2) for n in data.shape)
         sigma = None
-        if self.sigma_overlay and self.showing != "model":
-            sigma = self.uncertainty_on_grid(self.showing)
+        if self.sigma_overlay:
+            sigma = self.model_uncertainty() if self.showing == "model" else self.uncertainty_on_grid(self.showing)
         out = {}
         for which in ("xy", "xz", "yz"):
             sl, px = plane(data, self.grid.spacing, which, at)

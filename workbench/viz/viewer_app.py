@@ -69,6 +69,7 @@ def build_app(session, *, name: str = "workbench view"):
             "preset": str(session.transfer),
             "compare": "model",
             "sigma_overlay": False,
+            "has_model": session.method == "evd",  # the posed model has an expected error to overlay
             "compare_scan": "",
             "showing": "model",
             "image": "",
@@ -325,10 +326,10 @@ def build_app(session, *, name: str = "workbench view"):
                     v3.VBtn("flicker", value="flicker", size="small", id="compare-flicker")
                 v3.VCheckbox(
                     v_model=("sigma_overlay",),
-                    label="the scan's slices: its registration's expected error σ over it",
+                    label="the slices: the expected error σ over them (the posed model's, or a scan's registration's)",
                     density="compact",
                     hide_details=True,
-                    disabled=("!compare_scan",),
+                    disabled=("!compare_scan && !has_model",),
                     id="sigma-overlay",
                 )
                 joints = []
