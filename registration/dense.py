@@ -155,6 +155,11 @@ class DenseSettings:
     #: with posterior_mean False, σ counts how far the steps' change sits from the posterior mean: the expected
     #: squared error of an estimate Δ under the posterior N(û, C) is tr C + |Δ − û|² (False: tr C alone)
     posterior_offset: bool = True
+    #: the whole correction from the start weighed too, on the finest level against the start (its prior's
+    #: variance the evidence's): in the soft tissue σ² is at least that posterior's expected squared error, so a
+    #: direction the images never measured keeps the error a start typically has, not a level's change's
+    #: (dense-registration.md, "The whole correction against the start")
+    posterior_total: bool = True
 
     def __post_init__(self):
         if len(self.shrink) != len(self.iterations) or not self.shrink:
@@ -235,8 +240,8 @@ class DenseResult:
     )
     #: settings.posterior: the expected error at each scan voxel (mm), σ = √(Σ_levels (tr C + |Δu − û|²) + (α|u|)²),
     #: None when off: each level's posterior variance, how far its kept change Δu sits from the posterior mean û
-    #: (settings.posterior_offset; 0 with posterior_mean) and a share α of the correction (the registration's own
-    #: error)
+    #: (settings.posterior_offset; 0 with posterior_mean), in the soft tissue at least the whole correction's posterior
+    #: against the start (settings.posterior_total), and a share α of the correction (the registration's own error)
     uncertainty: Volume | None = None
     #: settings.posterior: the prior's SD, the noise, the pooling and the share of the correction kept
     posterior: dict | None = None
@@ -960,7 +965,9 @@ def penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffne
     return (membrane_penalty, skin_penalty), skin, membrane
 
 
-def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissue, st, u_in=None, finest=True) -> tuple:
+def _posterior(
+    u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissue, st, u_in=None, finest=True, u_total=None
+) -> tuple:
     """settings.posterior on a level (:mod:`registration.posterior`): ``(û, σ, record, keep)`` for the level's change
     ``u`` of its input ``u_in``.  The soft tissue's change is weighed against the input by the information pooled
     at the level's scale; the prior's variance, ``σ₀² + β² |u_in|²``, is the evidence's over the scan's tissue
@@ -999,6 +1006,10 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
     else:
         prior_var = bayes.prior_variance(u, None, soft & sub, eig=eig)
     post = bayes.posterior_correction(u, None, prior_var, eig=eig)
+    var_total = None
+    if u_total is not None:  # settings.posterior_total: the whole correction against the start, the same information
+        post_t = bayes.posterior_correction(u_total, None, bayes.prior_variance(u_total, None, soft & sub, eig=eig), eig=eig)
+        var_total = post_t.sigma.astype(np.float32) ** 2 + ((u_total - post_t.u) ** 2).sum(axis=0)
     del eig
     k = keep[None]
     u_new = (k * post.u + (1.0 - k) * u).astype(np.float32)
@@ -1043,7 +1054,7 @@ def _posterior(u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissu
         # each bone's largest rotation SD (°) and translation SD (mm) of its rigid pose
         "bone_sd": bone_sd if (bone_w and finest) else None,
     }
-    return u_new, sigma, rec, keep
+    return u_new, sigma, rec, keep, var_total
 
 
 def _held_out_score(flv, warp_v, win, fv_stats, regl, u_now) -> float:
@@ -1075,6 +1086,7 @@ class _Registration:
     sp_full: np.ndarray
     crop: tuple
     var_post: np.ndarray | None = None  #: settings.posterior: the expected squared error of u so far
+    var_total: np.ndarray | None = None  #: settings.posterior_total: the whole correction's, on the finest level
 
 
 class _Level:
@@ -1467,7 +1479,8 @@ class _Level:
             if self.st.posterior_pool_voxels is not None
             else (float(self.st.fluid_voxels) if self.st.fluid_voxels is not None else self.st.fluid_mm / self.sp)
         )
-        du, sigma_l, post_rec, self.keep = _posterior(
+        finest = self.lv == len(self.st.shrink) - 1
+        du, sigma_l, post_rec, self.keep, var_total = _posterior(
             self.u - self.u_in,
             self.fl,
             w_last,
@@ -1481,8 +1494,10 @@ class _Level:
             self.tissue,
             self.st,
             self.u_in,
-            finest=self.lv == len(self.st.shrink) - 1,
+            finest=finest,
+            u_total=self.u if (finest and self.st.posterior_total) else None,
         )
+        self.reg.var_total = var_total
         var_l = sigma_l.astype(np.float32) ** 2
         if self.st.posterior_mean:
             self.u = self.u_in + du
@@ -1908,6 +1923,8 @@ def register_dense(
         # σ: the levels' posteriors and, in the soft tissue, the registration's own error, a share of the correction
         # it made (a held bone's error is its rigid pose's, in the finest level's posterior)
         own = (st.posterior_relative_error * np.linalg.norm(u, axis=0)) ** 2
+        if reg.var_total is not None:  # settings.posterior_total: in the soft tissue at least the whole correction's
+            var_post = var_post + level.keep * np.maximum(reg.var_total - var_post, 0.0)
         sigma = np.sqrt(var_post + level.keep * own).astype(np.float32)
         post_rec = dict(levels[-1]["posterior"])
         post_rec.update(

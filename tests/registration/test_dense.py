@@ -1261,3 +1261,20 @@ def test_sigma_counts_the_steps_change_the_posterior_doubts():
     u2 = np.sum(plain.correspondence.data.astype(np.float64) ** 2, axis=-1)
     assert u2[tissue].mean() > 0.005  # the steps did fit the noise (mean |u| 0.12 mm measured)
     assert added[tissue].sum() >= 0.4 * u2[tissue].sum(), (added[tissue].sum(), u2[tissue].sum())
+
+
+def test_the_whole_corrections_posterior_only_raises_sigma_in_the_soft_tissue(case):
+    """settings.posterior_total (the default, issue R): the whole correction from the start is weighed against
+    the start on the finest level, and in the soft tissue σ² is at least that posterior's expected squared error.
+    It changes σ only (the map is the same bits), never lowers it anywhere (float32: 1e-6 mm), and leaves the
+    held bone's σ (its rigid pose's) alone."""
+    template, labels, scan, truth, bone = case
+    st = dict(shrink=(2, 1), iterations=(30, 30))
+    plain = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(**st, posterior_total=False))
+    total = register_dense(scan, template, moving_labels=labels, settings=DenseSettings(**st))
+    assert DenseSettings().posterior_total
+    np.testing.assert_array_equal(plain.correspondence.data, total.correspondence.data)
+    a, b = plain.uncertainty.data.astype(np.float64), total.uncertainty.data.astype(np.float64)
+    assert np.all(b >= a - 1e-6)
+    core = ndimage.binary_erosion(bone, iterations=3)  # the bone away from its fade (bone_margin_mm)
+    np.testing.assert_allclose(b[core], a[core], atol=1e-6)
