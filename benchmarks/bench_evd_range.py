@@ -3,9 +3,10 @@
 Leave one pose out of an EVD model built from the phantom's *true* template → scan maps (harmonic skinning
 weights, the ``workbench weights`` path) and predict it (:func:`validation.leave_one_out.leave_one_out`):
 the last (most bent) pose of a phantom lies outside the others' range, where the normalised RBF pose weights
-extrapolate; the first is at or near rest, which the template's own example anchors; the others lie inside.  Prints, per held-out pose, the pose weights' range and the MED (mm, over
-the template's body) of VBD (Rhee Eq. 2), EVD as the workbench poses it (capped, the default) and Rhee Eq. 6
-as written (uncapped).  Tuning phantoms only (seeds 0–99): the choice it informs is made here.
+extrapolate; the first is at or near rest, which the template's own example anchors; the others lie inside.
+Prints, per held-out pose, where it lies and the MED (mm, over the template's body) of VBD (Rhee Eq. 2), EVD
+as the workbench poses it (capped, the default) and Rhee Eq. 6 as written (uncapped).  Tuning phantoms only
+(seeds 0–99): the choice it informs is made here.
 
     python benchmarks/bench_evd_range.py [--cases knee:0:5 hand:4:10 knee:1:6]   # region:seed:poses
 """

@@ -132,7 +132,9 @@ def main(argv=None) -> int:
     for case, label, res in table:
         for r in res:
             c = r.calibration or {}
-            cal = " / ".join("-" if c.get(k) is None else f"{c[k]:.2f}" for k in ("within_2sigma", "rms_ratio", "spearman"))
+            cal = " / ".join(
+                "-" if c.get(k) is None else f"{c[k]:.2f}" for k in ("within_2sigma", "rms_ratio", "spearman")
+            )
             print(
                 f"| {case} | {label} | {r.scan} | {r.med_vbd:.2f} | {r.med_evd:.2f} | {r.cc_vbd:.3f} | "
                 f"{r.cc_evd:.3f} | {'yes' if r.med_evd < r.med_vbd else 'no'} | {cal} |"

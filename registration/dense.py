@@ -153,7 +153,7 @@ class DenseSettings:
     #: dense-registration.md, "The correction as inference")
     posterior_mean: bool = False
     #: with posterior_mean False, σ counts how far the steps' change sits from the posterior mean: the expected
-    #: squared error of an estimate Δ under the posterior N(û, C) is tr C + |Δ − û|² (False: tr C alone)
+    #: squared error of an estimate Δ under the posterior N(û, C) is ``tr C + |Δ − û|²`` (False: ``tr C`` alone)
     posterior_offset: bool = True
     #: the whole correction from the start weighed too, on the finest level against the start (its prior's
     #: variance the evidence's): in the soft tissue σ² is at least that posterior's expected squared error, so a
@@ -238,7 +238,7 @@ class DenseResult:
     unfold: dict | None = (
         None  #: what the final repair changed (deformation.fields.displacement.unfold), None if nothing
     )
-    #: settings.posterior: the expected error at each scan voxel (mm), σ = √(Σ_levels (tr C + |Δu − û|²) + (α|u|)²),
+    #: settings.posterior: the expected error at each scan voxel (mm), ``σ = √(Σ_levels (tr C + |Δu − û|²) + (α|u|)²)``,
     #: None when off: each level's posterior variance, how far its kept change Δu sits from the posterior mean û
     #: (settings.posterior_offset; 0 with posterior_mean), in the soft tissue at least the whole correction's posterior
     #: against the start (settings.posterior_total), and a share α of the correction (the registration's own error)
@@ -1008,7 +1008,9 @@ def _posterior(
     post = bayes.posterior_correction(u, None, prior_var, eig=eig)
     var_total = None
     if u_total is not None:  # settings.posterior_total: the whole correction against the start, the same information
-        post_t = bayes.posterior_correction(u_total, None, bayes.prior_variance(u_total, None, soft & sub, eig=eig), eig=eig)
+        post_t = bayes.posterior_correction(
+            u_total, None, bayes.prior_variance(u_total, None, soft & sub, eig=eig), eig=eig
+        )
         var_total = post_t.sigma.astype(np.float32) ** 2 + ((u_total - post_t.u) ** 2).sum(axis=0)
     del eig
     k = keep[None]

@@ -429,10 +429,11 @@ class ExampleVolumeDeformation:
 
     def cross_validation_variance(self) -> np.ndarray:
         """The pose interpolation's variance (mm²) per voxel, from leaving each scan out (module docstring,
-        "Uncertainty"): ``max(0, mean_k (r_k² − σ_k² − Σ_j s_j² σ_j²) / (1 − γ_k))``, ``r_k`` the residual of
-        ``d_k`` predicted from the other examples at scan k's pose, ``σ`` the scans' expected errors (0 without
-        ``scan_sigma``) and ``γ_k`` the share the others explain there (:meth:`PoseSpace.explained`).
-        The per-voxel mean is pooled over a Gaussian of :data:`CV_POOL_VOXELS` before the clip.
+        "Uncertainty"): ``mean_k (r_k² − σ_k² − Σ_j s_j² σ_j²) / (1 − γ_k)``, ``r_k`` the residual of ``d_k``
+        predicted from the other examples at scan k's pose, ``σ`` the scans' expected errors (0 without
+        ``scan_sigma``) and ``γ_k`` the share the others explain there
+        (:meth:`~deformation.models.posespace.PoseSpace.explained`), pooled over a Gaussian of
+        ``CV_POOL_VOXELS`` and clipped at 0.
         ``(n_voxels,)`` float32; zeros with one scan (nothing to leave out)."""
         if self._cv_var is not None:
             return self._cv_var
@@ -459,7 +460,9 @@ class ExampleVolumeDeformation:
         # small unexplained share amplifies it): pooled over a Gaussian of CV_POOL_VOXELS before the clip at 0
         from scipy import ndimage
 
-        pooled = ndimage.gaussian_filter((total / ns).reshape(self.geometry.array_shape), CV_POOL_VOXELS, mode="nearest")
+        pooled = ndimage.gaussian_filter(
+            (total / ns).reshape(self.geometry.array_shape), CV_POOL_VOXELS, mode="nearest"
+        )
         self._cv_var = np.maximum(pooled.reshape(-1), 0.0).astype(np.float32)
         return self._cv_var
 
@@ -467,7 +470,8 @@ class ExampleVolumeDeformation:
         """The posed volume's expected error (mm) at every template voxel, ``(nz, ny, nx)`` float32 (module
         docstring, "Uncertainty"): ``√(Σ_k s_k² σ_k² + (1 − γ(a)) v)``, the scans' errors blended by the pose
         weights of Kurihara Eq. 14 and the cross-validated interpolation variance ``v`` where the training
-        poses do not explain the pose (``γ``, :meth:`PoseSpace.explained`: 1 at a training pose)."""
+        poses do not explain the pose (``γ``, :meth:`~deformation.models.posespace.PoseSpace.explained`: 1 at a
+        training pose)."""
         s = self.space.weights(pose)
         var = (1.0 - self.space.explained(pose)) * self.cross_validation_variance().astype(np.float64)
         if self.scan_sigma is not None:

@@ -372,7 +372,10 @@ def test_label_ids_not_in_the_skeleton_are_warned_of(study, tmp_path):
     r = _workbench("bones", root, "--quiet")
     assert r.returncode == 0, r.stderr
     assert f"warning: {path}: label ids 7 (3 voxels), 200 (5 voxels) are not the label of any bone" in r.stderr
-    assert json.loads((root / "bones" / "bones.json").read_text(encoding="utf-8"))["unknown_labels"] == {"7": 3, "200": 5}
+    assert json.loads((root / "bones" / "bones.json").read_text(encoding="utf-8"))["unknown_labels"] == {
+        "7": 3,
+        "200": 5,
+    }
 
 
 def test_an_empty_dicom_folder_is_said_the_same_way_everywhere(study, tmp_path):

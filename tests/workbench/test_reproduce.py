@@ -92,7 +92,10 @@ def test_reproduce_table2_through_the_stages(tmp_path, capsys):
     # moves (ratio ~1) fails it
     assert alg1["med_mm"] < 0.64 * src["med_mm"]
     assert alg1["cc"] > src["cc"]
-    for doc in ((tmp_path / "table2.md").read_text(encoding="utf-8"), (tmp_path / "table2.csv").read_text(encoding="utf-8")):
+    for doc in (
+        (tmp_path / "table2.md").read_text(encoding="utf-8"),
+        (tmp_path / "table2.csv").read_text(encoding="utf-8"),
+    ):
         assert ALGORITHM1_ROW in doc  # in every format written (JSON above; the HTML report draws every row)
     assert (tmp_path / "studies" / "table2-test" / "study.json").exists()
     capsys.readouterr()

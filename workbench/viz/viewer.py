@@ -235,7 +235,9 @@ class PoseSession:
             vol = Volume(err, self.poser.template.geometry)
             bm = self.posed.backward
             fill = float(err.max()) if err.size else 0.0
-            self.posed.uncertainty = bm.pull(vol, fill=fill) if hasattr(bm, "pull") else resample_forward(bm, vol, fill=fill)
+            self.posed.uncertainty = (
+                bm.pull(vol, fill=fill) if hasattr(bm, "pull") else resample_forward(bm, vol, fill=fill)
+            )
         return self.posed.uncertainty
 
     def uncertainty_on_grid(self, scan_id: str):
