@@ -968,12 +968,13 @@ def penalties(b, s, band, region, skin_weight: float, u, membrane_w, sp, stiffne
 def _posterior(
     u, fl, w, sp, win, noise_var, per_sample, pool, labl, regl, tissue, st, u_in=None, finest=True, u_total=None
 ) -> tuple:
-    """settings.posterior on a level (:mod:`registration.posterior`): ``(û, σ, record, keep)`` for the level's change
-    ``u`` of its input ``u_in``.  The soft tissue's change is weighed against the input by the information pooled
-    at the level's scale; the prior's variance, ``σ₀² + β² |u_in|²``, is the evidence's over the scan's tissue
-    away from the bones (every 2nd voxel along each axis); a bone (``labl`` pulled through ``u_in + u``) keeps its
-    rigid motion, its ``σ`` that of its rigid pose, blended into the tissue's over its fade (``bone_margin_mm``,
-    as the steps hold it)."""
+    """settings.posterior on a level (:mod:`registration.posterior`): ``(û, σ, record, keep, var_total)`` for the
+    level's change ``u`` of its input ``u_in`` (``var_total``: with ``u_total``, the whole correction's expected
+    squared error against the start, settings.posterior_total; else None).  The soft tissue's change is weighed
+    against the input by the information pooled at the level's scale; the prior's variance, ``σ₀² + β² |u_in|²``,
+    is the evidence's over the scan's tissue away from the bones (every 2nd voxel along each axis); a bone
+    (``labl`` pulled through ``u_in + u``) keeps its rigid motion, its ``σ`` that of its rigid pose, blended into
+    the tissue's over its fade (``bone_margin_mm``, as the steps hold it)."""
     shape = fl.shape
     mask = None if regl is None else regl > 0
     # the local intensity fit over at least 2 voxels of the level (a coarse level's LNCC window is under one)
@@ -1006,15 +1007,17 @@ def _posterior(
     else:
         prior_var = bayes.prior_variance(u, None, soft & sub, eig=eig)
     post = bayes.posterior_correction(u, None, prior_var, eig=eig)
+    k = keep[None]
+    u_new = (k * post.u + (1.0 - k) * u).astype(np.float32)
     var_total = None
     if u_total is not None:  # settings.posterior_total: the whole correction against the start, the same information
+        if st.posterior_mean:  # the map the level keeps: its input and the posterior mean of its change
+            u_total = u_new if u_in is None else u_in + u_new
         post_t = bayes.posterior_correction(
             u_total, None, bayes.prior_variance(u_total, None, soft & sub, eig=eig), eig=eig
         )
         var_total = post_t.sigma.astype(np.float32) ** 2 + ((u_total - post_t.u) ** 2).sum(axis=0)
     del eig
-    k = keep[None]
-    u_new = (k * post.u + (1.0 - k) * u).astype(np.float32)
 
     var = post.sigma.astype(np.float64) ** 2
     if bone_w and not finest:  # a held bone's pose is judged once, on the finest level

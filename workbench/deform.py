@@ -123,7 +123,7 @@ def say_if_compiling(say) -> None:
         say(note)
 
 
-def _sigma_summary(poser, pose, posed) -> dict:
+def _sigma_summary(poser, pose) -> dict:
     """The posed expected error over the posed body (template body voxels, on the template grid): its median and
     95th percentile, the scans' part alone (median) and the share of the variance the pose interpolation makes."""
     import numpy as np
@@ -210,6 +210,12 @@ def deform_study(
     say_if_compiling(say)
     poser = study_poser(study, method=method, weighting=weighting, progress=say)
     used = poser.method
+    if uncertainty_out and poser.model is None:  # weights on a coarse grid: study_poser fell back to VBD
+        raise InputFileError(
+            f"--uncertainty-out {uncertainty_out}: the study's skinning weights lie on a coarse grid, so it is "
+            "posed by VBD, which has no expected error; leave --uncertainty-out out.",
+            study.root / MANIFEST,
+        )
     target = None
     if grow:  # the template's grid (same spacing and direction) extended to hold the posed body
         g = poser.template.geometry
@@ -217,12 +223,11 @@ def deform_study(
         say(f"posed volume on the grid grown to hold the posed body: {target.describe()}")
     posed = poser.pose(pose, target=target, map_factor=map_factor, uncertainty=bool(uncertainty_out))
     bm, forward_seconds, backward_seconds = posed.backward, posed.forward_seconds, posed.backward_seconds
+    sigma_summary = _sigma_summary(poser, pose) if uncertainty_out else None  # before any file is written
     write_volume(posed.volume, out, overwrite=overwrite)
     write_labels(posed.labels, labels_out, overwrite=overwrite)
-    sigma_summary = None
     if uncertainty_out:
         write_volume(posed.uncertainty, uncertainty_out, overwrite=overwrite)
-        sigma_summary = _sigma_summary(poser, pose, posed)
     if field_out:
         from workbench.io.volumes import write_displacement
 

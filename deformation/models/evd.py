@@ -375,6 +375,13 @@ class ExampleVolumeDeformation:
         if len(poses) != len(fields):
             raise ValueError(f"{len(poses)} poses but {len(fields)} correspondence fields")
         _check_grid_weights(geometry, weights)
+        n = geometry.n_voxels
+        sig = None
+        if scan_sigma is not None:  # checked before the work
+            sig = [np.asarray(a, np.float32).reshape(-1) for a in scan_sigma]
+            if len(sig) != len(poses) or any(a.shape[0] != n for a in sig):
+                raise ValueError(f"scan_sigma needs one array of {n} voxels per scan ({len(poses)})")
+            sig = np.stack(sig, axis=1)
         space = PoseSpace(skeleton, poses)  # distinct poses, checked before the work
         vectors, with_template = with_template_example(skeleton, space.train, template_example)
         n = geometry.n_voxels
@@ -405,12 +412,6 @@ class ExampleVolumeDeformation:
                     ) from None
             if progress is not None:
                 progress(k + 1, len(poses))
-        sig = None
-        if scan_sigma is not None:
-            sig = [np.asarray(a, np.float32).reshape(-1) for a in scan_sigma]
-            if len(sig) != len(poses) or any(a.shape[0] != n for a in sig):
-                raise ValueError(f"scan_sigma needs one array of {n} voxels per scan ({len(poses)})")
-            sig = np.stack(sig, axis=1)
         return cls(geometry, weights, PoseSpace(skeleton, vectors), d, template_example=with_template, scan_sigma=sig)
 
     def pose_weights(self, pose) -> np.ndarray:
@@ -433,8 +434,9 @@ class ExampleVolumeDeformation:
         predicted from the other examples at scan k's pose, ``σ`` the scans' expected errors (0 without
         ``scan_sigma``) and ``γ_k`` the share the others explain there
         (:meth:`~deformation.models.posespace.PoseSpace.explained`), pooled over a Gaussian of
-        ``CV_POOL_VOXELS`` and clipped at 0.
-        ``(n_voxels,)`` float32; zeros with one scan (nothing to leave out)."""
+        ``CV_POOL_VOXELS`` and clipped at 0 (``1 − γ_k`` floored at 0.05: a pose the others explain almost
+        wholly would divide its residual by almost nothing).  ``(n_voxels,)`` float32; zeros with one example
+        (one scan at rest: nothing to leave out)."""
         if self._cv_var is not None:
             return self._cv_var
         n, P, ns = self.geometry.n_voxels, self.space.n_poses, self.n_scans
@@ -473,10 +475,13 @@ class ExampleVolumeDeformation:
         poses do not explain the pose (``γ``, :meth:`~deformation.models.posespace.PoseSpace.explained`: 1 at a
         training pose)."""
         s = self.space.weights(pose)
-        var = (1.0 - self.space.explained(pose)) * self.cross_validation_variance().astype(np.float64)
-        if self.scan_sigma is not None:
-            var = var + (self.scan_sigma.astype(np.float64) ** 2) @ (s[: self.n_scans] ** 2)
-        return np.sqrt(var).astype(np.float32).reshape(self.geometry.array_shape)
+        var = np.float32(1.0 - self.space.explained(pose)) * self.cross_validation_variance()
+        if self.scan_sigma is not None:  # float32 throughout: no float64 copy of the (n_voxels, n_scans) σ
+            s2 = (s[: self.n_scans] ** 2).astype(np.float32)
+            for lo in range(0, len(var), 1 << 20):
+                hi = min(len(var), lo + (1 << 20))
+                var[lo:hi] += np.square(self.scan_sigma[lo:hi]) @ s2
+        return np.sqrt(var).reshape(self.geometry.array_shape)
 
     def forward(self, pose, transforms=None, *, weighting: str = "psd", cap: bool = True) -> np.ndarray:
         """The posed position of every template voxel at ``pose`` (Rhee Eq. 6), ``(nz, ny, nx, 3)`` float32.

@@ -108,6 +108,26 @@ def test_run_goes_through_every_stage_with_truth_only_in_validate(done):
     assert st.stage_entry("init", "pose02")["settings"]["pose"] == "estimated"
     evd = json.loads((root / "model" / "evd.json").read_text(encoding="utf-8"))
     assert evd["source"] == "registration" and evd["scans"] == st.scan_ids
+    # issue R: each example carries its registration's σ (evd_uncertainty.mha, one component per scan), read back
+    # with the model; at a training scan's own pose the model's expected error is that scan's σ (s = e_k, and the
+    # poses explain themselves, γ = 1: float32 round-off); where the registration did not find a voxel its σ is
+    # the scan's largest
+    assert evd["uncertainty"]["file"] == "evd_uncertainty.mha" and (root / "model" / "evd_uncertainty.mha").exists()
+    model = st.model()
+    k = st.scan_ids.index("pose02")
+    assert model.scan_sigma.shape == (model.geometry.n_voxels, len(st.scan_ids))
+    assert np.all(np.isfinite(model.scan_sigma)) and float(model.scan_sigma.min()) > 0
+    np.testing.assert_allclose(
+        model.expected_error(st.pose("pose02")).reshape(-1), model.scan_sigma[:, k], rtol=1e-4, atol=1e-5
+    )
+    from validation.leave_one_out import registration_training_positions, registration_training_sigma
+
+    weights, _ = st.weights()
+    _, pos, found = registration_training_positions(st, "pose02", model.geometry, weights)
+    sig = registration_training_sigma(st, "pose02", pos, found)
+    np.testing.assert_array_equal(sig.reshape(-1), model.scan_sigma[:, k])
+    if not found.all():
+        assert np.all(sig[~found] == np.float32(np.max(st.registration_uncertainty("pose02").data)))
     # the printed table is the validate stage's: MED of each scan, registered after initialised
     rows = st.validation("pose02")["rows"]
     assert f"| pose02 | registered | {rows['registered']['med_mm']:.2f} |" in out

@@ -128,12 +128,15 @@ def _run(ctx) -> dict:
         "file": "evd_uncertainty.mha" if scan_sigma is not None else None,
         "layout": "per voxel: each training scan's expected error sigma_k (mm, its registration's uncertainty.mha "
         "where the voxel lies in the scan, its largest where the registration did not find it)",
+        # None without the scans' σ (a model from the truth's exact maps, or registrations that wrote none)
         "scans_median_mm": {
-            sid: float(np.median(model.scan_sigma[body_mask, k])) if scan_sigma is not None else 0.0
+            sid: float(np.median(model.scan_sigma[body_mask, k]))
+            if scan_sigma is not None and body_mask.any()
+            else None
             for k, sid in enumerate(ids)
         },
         # the pose interpolation's error where the training poses explain nothing, cross-validated over the scans
-        "interpolation_median_mm": float(np.sqrt(np.median(cv[body_mask]))) if body_mask.any() else 0.0,
+        "interpolation_median_mm": float(np.sqrt(np.median(cv[body_mask]))) if body_mask.any() else None,
         "method": "deformation.models.evd (module docstring, 'Uncertainty'): sigma at a pose is "
         "sqrt(sum_k s_k^2 sigma_k^2 + (1 - gamma) v), v cross-validated by leaving each scan out",
     }

@@ -196,8 +196,9 @@ class PoseSession:
     def update(self, *, exact: bool = True) -> np.ndarray:
         """Pose the template at the current angles and render it; returns the image ``(h, w, 3)`` uint8."""
         t0 = time.perf_counter()
+        self._posed_at = self.skeleton.pose(self.angles)  # the pose self.posed was made for (its σ's)
         self.posed = self.poser.pose(
-            self.skeleton.pose(self.angles),
+            self._posed_at,
             labels=self.bones,
             target=self.grid,
             map_factor=1 if exact else COARSE_FACTOR,
@@ -231,7 +232,7 @@ class PoseSession:
             from deformation.fields.resample import resample_forward
             from deformation.geometry import Volume
 
-            err = self.poser.model.expected_error(self.skeleton.pose(self.angles))
+            err = self.poser.model.expected_error(self._posed_at)  # the posed volume's pose, not a newer slider's
             vol = Volume(err, self.poser.template.geometry)
             bm = self.posed.backward
             fill = float(err.max()) if err.size else 0.0

@@ -348,6 +348,9 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(phantom,
     assert main(["weights", str(root), "--method", "distance", "--quiet"]) == 0
     exact = tmp_path / "exact.nii.gz"
     assert main(["deform", str(root), "--pose", str(pose), "--out", str(exact), "--method", "vbd", "--quiet"]) == 0
+    # a model from the full-grid weights stays in the study: the coarse weights pose by VBD all the same
+    assert main(["model", str(root), "--source", "truth", "--quiet"]) == 0
+    model_json = (root / "model" / "evd.json").read_bytes()
     assert main(["weights", str(root), "--method", "distance", "--grid-factor", "2", "--quiet"]) == 0
     w, g, meta = read_voxel_weights(root / "skinning" / "weights.json")
     assert g.is_close(t.geometry.every(2)) and meta["grid_factor"] == 2 and w.n_points == g.n_voxels
@@ -378,12 +381,27 @@ def test_weights_on_every_other_voxel_pose_the_full_resolution_template(phantom,
         (["register", str(root), "--init", "vbd", "--force"], "--grid-factor 1"),
         # every 6th voxel of this 5 mm knee (30 mm) holds none of the fibula's
         (["weights", str(root), "--method", "distance", "--grid-factor", "6"], "fibula"),
-        (["model", str(root), "--source", "truth"], "--grid-factor 1"),
+        (["model", str(root), "--source", "truth", "--force"], "--grid-factor 1"),
+        # VBD has no expected error: refused once the poser is known, before any posing or writing
+        (
+            [
+                "deform",
+                str(root),
+                "--pose",
+                str(pose),
+                "--out",
+                str(tmp_path / "u.nii.gz"),
+                "--uncertainty-out",
+                str(tmp_path / "u_sigma.nii.gz"),
+            ],
+            "--uncertainty-out",
+        ),
     ):
         assert main(argv + ["--quiet"]) == 1, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], (argv, err)
-    assert not (root / "model").exists()
+    assert (root / "model" / "evd.json").read_bytes() == model_json  # the refused model stage wrote nothing
+    assert not (tmp_path / "u.nii.gz").exists() and not (tmp_path / "u_sigma.nii.gz").exists()
     # the VBD start itself takes the coarse weights (register needs full-grid ones, above): its field lies on
     # the scan's full grid, blended up from the maps solved on every 2nd voxel
     st = read_study(root)
