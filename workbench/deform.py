@@ -136,7 +136,8 @@ def _sigma_summary(poser, pose) -> dict:
     return {
         "median_mm": float(np.median(total)) if total.size else 0.0,
         "p95_mm": float(np.percentile(total, 95)) if total.size else 0.0,
-        "scans_median_mm": float(np.median(scans)) if scans.size else 0.0,
+        # None: the model holds no scan errors (built from the truth's exact maps, or before the model stage's v5)
+        "scans_median_mm": (float(np.median(scans)) if scans.size else 0.0) if model.scan_sigma is not None else None,
         "interpolation_share": float(interp.sum() / max(float((total**2).sum()), 1e-30)),
     }
 

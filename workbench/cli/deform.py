@@ -112,10 +112,15 @@ def handle(args) -> int:
     )
     if s.get("uncertainty"):
         u = s["uncertainty_summary"]
+        scans = (
+            f"the scans' registrations {u['scans_median_mm']:.2f} mm"
+            if u["scans_median_mm"] is not None
+            else "no scan errors in the model: from the truth, or built before it held them (`workbench model "
+            "--force` adds them)"
+        )
         print(
             f"expected error over the posed body: median {u['median_mm']:.2f} mm, 95th percentile "
-            f"{u['p95_mm']:.2f} mm (the scans' registrations {u['scans_median_mm']:.2f} mm, the pose "
-            f"interpolation's share {100 * u['interpolation_share']:.0f} %)"
+            f"{u['p95_mm']:.2f} mm ({scans}; the pose interpolation's share {100 * u['interpolation_share']:.0f} %)"
         )
     wrote = [s["out"], s["labels"]] + [s[k] for k in ("field", "uncertainty") if s.get(k)]
     print("wrote " + ", ".join(wrote[:-1]) + " and " + wrote[-1])
