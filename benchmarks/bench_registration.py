@@ -733,6 +733,41 @@ def _print_calibration(ours) -> None:
         )
 
 
+def calibration_plot(sets, path) -> None:
+    """Ours' calibration per case (:func:`field_measures`' "calibration" bins: per σ decile the mean σ and the RMS
+    true error, mm), one panel per set, one line per case, the diagonal where σ is the RMS error; written to
+    ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sets = [
+        (name, [s for s in summary if (s.get("rows", {}).get(OURS) or {}).get("calibration")]) for name, summary in sets
+    ]
+    sets = [(name, summary) for name, summary in sets if summary]
+    if not sets:
+        print(f"--calibration-plot {path}: no case has ours' expected error; nothing drawn", flush=True)
+        return
+    fig, axes = plt.subplots(1, len(sets), figsize=(5.2 * len(sets), 4.8), squeeze=False)
+    for ax, (name, summary) in zip(axes[0], sets):
+        top = 0.0
+        for s in summary:
+            bins = np.asarray(s["rows"][OURS]["calibration"]["bins"], float)
+            if bins.size:
+                ax.plot(bins[:, 0], bins[:, 1], marker="o", ms=3, label=s.get("label", s.get("case", "")))
+                top = max(top, float(bins.max()))
+        ax.plot([0, top], [0, top], color="grey", lw=1, ls="--", label="σ = RMS error")
+        ax.set(xlabel="expected error σ, decile mean (mm)", ylabel="RMS true error in the decile (mm)", title=name)
+        ax.set_xlim(0, top * 1.05)
+        ax.set_ylim(0, top * 1.05)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    print(f"calibration plot: {path}", flush=True)
+
+
 def _tree_state(root):
     """``{relative path: (size, modification time ns)}`` of every file under ``root``."""
     return {
@@ -1267,6 +1302,13 @@ def main(argv=None) -> int:
         )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
+        "--calibration-plot",
+        metavar="PNG",
+        type=Path,
+        help="flex, external, suite: also draw ours' calibration (per σ decile, RMS true error against mean σ; one "
+        "line per case, one panel per set) to this PNG",
+    )
+    p.add_argument(
         "--dense-settings",
         metavar="JSON",
         default="{}",
@@ -1339,6 +1381,8 @@ def main(argv=None) -> int:
         print("\n# The three sets, one table each\n")
         for name, summary in sets:
             set_table(name, summary)
+        if args.calibration_plot:
+            calibration_plot(sets, args.calibration_plot)
         print(
             "\n(ratios > 1: ours is worse; CC ratio < 1: ours is worse; bone: ours' and elastix's bone MED; best "
             "peer: the peer with the lowest MED of those that ran (elastix, + rigidity penalty, greedy, demons, ...); "
@@ -1346,9 +1390,14 @@ def main(argv=None) -> int:
             "the body (the start's); times on a shared machine in one run: compare ratios)"
         )
         return 1 if failed else 0
+    sets = []
     if "flex" in args.cases:
-        run_flex(args)
+        sets.append((f"{args.split} draws ({args.acquisition} acquisition, {args.start} start)", run_flex(args)))
     failed = run_external(args) if "external" in args.cases else 0
+    if "external" in args.cases:
+        sets.append(("the external set (held out, the workbench's own start)", getattr(args, "external_summary", [])))
+    if args.calibration_plot and sets:
+        calibration_plot(sets, args.calibration_plot)
     for name, ph, articulated in _cases(args):
         print(f"\n{name}: {ph.geometry.describe()}", flush=True)
         report(name, run_case(name, ph, articulated, args))
